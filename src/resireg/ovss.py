@@ -1,0 +1,229 @@
+"""Open-vocabulary semantic segmentation (OVSS): vocabularies, text prototypes, metric.
+
+The protocol follows the paper's appendix (DESIGN.md section 4): one text prototype
+per class from the 80 OpenAI ImageNet templates, cosine similarity with dense features,
+nearest upsampling to the label size, softmax with temperature 100, argmax; mIoU over
+classes present, ignore index 255.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import open_clip
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = [
+    "TEMPLATES",
+    "ADE20K_CLASSES",
+    "ORAD3D_CLASSES",
+    "SCANNET_CLASSES",
+    "VOCABULARIES",
+    "vocabulary",
+    "text_prototypes",
+    "predict",
+    "SegmentationMetric",
+]
+
+#: The 80 prompt templates of OpenAI's CLIP ImageNet evaluation, as shipped by open_clip.
+TEMPLATES: tuple[Callable[[str], str], ...] = tuple(open_clip.OPENAI_IMAGENET_TEMPLATES)
+
+#: ADE20K-150 class names in the form used by the training-free OVSS line of work that
+#: RADSeg evaluates with (one name per class, label order 0..149 after reduce_zero_label).
+ADE20K_CLASSES: tuple[str, ...] = (
+    "wall", "building", "sky", "floor", "tree", "ceiling", "road", "bed", "windowpane",
+    "grass", "cabinet", "sidewalk", "person", "earth", "door", "table", "mountain", "plant",
+    "curtain", "chair", "car", "water", "painting", "sofa", "shelf", "house", "sea",
+    "mirror", "rug", "field", "armchair", "seat", "fence", "desk", "rock", "wardrobe",
+    "lamp", "bathtub", "railing", "cushion", "base", "box", "column", "signboard",
+    "chestofdrawers", "counter", "sand", "sink", "skyscraper", "fireplace", "refrigerator",
+    "grandstand", "path", "stairs", "runway", "case", "pooltable", "pillow", "screendoor",
+    "stairway", "river", "bridge", "bookcase", "blind", "coffeetable", "toilet", "flower",
+    "book", "hill", "bench", "countertop", "stove", "palm", "kitchenisland", "computer",
+    "swivelchair", "boat", "bar", "arcademachine", "hovel", "bus", "towel", "light",
+    "truck", "tower", "chandelier", "awning", "streetlight", "booth", "televisionreceiver",
+    "airplane", "dirttrack", "apparel", "pole", "land", "bannister", "escalator", "ottoman",
+    "bottle", "buffet", "poster", "stage", "van", "ship", "fountain", "conveyerbelt",
+    "canopy", "washer", "plaything", "swimmingpool", "stool", "barrel", "basket",
+    "waterfall", "tent", "bag", "minibike", "cradle", "oven", "ball", "food", "step",
+    "tank", "tradename", "microwave", "pot", "animal", "bicycle", "lake", "dishwasher",
+    "screen", "blanket", "sculpture", "hood", "sconce", "vase", "trafficlight", "tray",
+    "ashcan", "fan", "pier", "crtscreen", "plate", "monitor", "bulletinboard", "shower",
+    "radiator", "glass", "clock", "flag",
+)  # fmt: skip
+
+#: ORAD-3D's 10 classes (label ids 0..9 in this order).
+ORAD3D_CLASSES: tuple[str, ...] = (
+    "road", "traversable ground", "car", "person", "water", "snow", "grass on road",
+    "rock", "sky", "background",
+)  # fmt: skip
+
+_NYU40: tuple[str, ...] = (
+    "wall", "floor", "cabinet", "bed", "chair", "sofa", "table", "door", "window",
+    "bookshelf", "picture", "counter", "blinds", "desk", "shelves", "curtain", "dresser",
+    "pillow", "mirror", "floor mat", "clothes", "ceiling", "books", "refrigerator",
+    "television", "paper", "towel", "shower curtain", "box", "whiteboard", "person",
+    "night stand", "toilet", "sink", "lamp", "bathtub", "bag", "otherstructure",
+    "otherfurniture", "otherprop",
+)  # fmt: skip
+
+#: ScanNet's NYU40 classes without the three catch-all "other" classes (37 classes).
+SCANNET_CLASSES: tuple[str, ...] = tuple(
+    c for c in _NYU40 if c not in ("otherstructure", "otherfurniture", "otherprop")
+)
+
+VOCABULARIES: dict[str, tuple[str, ...]] = {
+    "ade20k": ADE20K_CLASSES,
+    "orad3d": ORAD3D_CLASSES,
+    "scannet": SCANNET_CLASSES,
+}
+
+
+def vocabulary(name: str) -> tuple[str, ...]:
+    """Class names of a named vocabulary (``ade20k``, ``orad3d``, ``scannet``)."""
+    try:
+        return VOCABULARIES[name]
+    except KeyError:
+        raise ValueError(
+            f"unknown vocabulary {name!r}; choose one of {sorted(VOCABULARIES)}"
+        ) from None
+
+
+@torch.no_grad()
+def text_prototypes(
+    encode_text: Callable[[list[str]], Tensor],
+    class_names: Sequence[str],
+    templates: Sequence[Callable[[str], str]] = TEMPLATES,
+    batch_size: int = 1024,
+) -> Tensor:
+    """One unit-norm text prototype per class, averaged over prompt templates.
+
+    Every template is filled with every class name and embedded; each embedding is
+    L2-normalised, the embeddings of a class are averaged, and the average renormalised.
+
+    Args:
+        encode_text: maps a list of strings to ``[M, D]`` embeddings.
+        class_names: ``K`` class names.
+        templates: prompt templates (callables ``name -> prompt``).
+        batch_size: prompts per ``encode_text`` call.
+
+    Returns:
+        ``[K, D]`` unit-norm prototypes.
+    """
+    if not class_names:
+        raise ValueError("class_names is empty")
+    prompts = [t(name) for name in class_names for t in templates]
+    embeds = torch.cat(
+        [encode_text(prompts[i : i + batch_size]) for i in range(0, len(prompts), batch_size)]
+    )
+    embeds = F.normalize(embeds.float(), dim=-1).reshape(len(class_names), len(templates), -1)
+    return F.normalize(embeds.mean(dim=1), dim=-1)
+
+
+def predict(
+    dense: Tensor, prototypes: Tensor, size: tuple[int, int], temperature: float = 100.0
+) -> tuple[Tensor, Tensor]:
+    """Per-pixel class prediction from dense features.
+
+    Cosine similarity of every feature with every prototype gives ``[B, K, h, w]`` logits;
+    softmax with ``temperature`` and argmax; the prediction is brought to the label size
+    with nearest upsampling. Nearest upsampling copies whole logit vectors, so taking the
+    argmax before upsampling gives exactly the label map of upsampling first, at a
+    fraction of the memory (``K x H x W`` floats per image for ADE20K's 150 classes).
+
+    Args:
+        dense: ``[B, D, h, w]`` dense features.
+        prototypes: ``[K, D]`` text prototypes.
+        size: label size ``(H, W)``.
+        temperature: softmax temperature (does not change the argmax; the probabilities
+            are returned for confidence maps).
+
+    Returns:
+        ``(labels, probs)``: ``labels`` ``[B, H, W]`` int64 class indices and ``probs``
+        ``[B, K, h, w]`` softmax probabilities at feature resolution.
+    """
+    dense = F.normalize(dense.float(), dim=1)
+    protos = F.normalize(prototypes.float().to(dense.device), dim=1)
+    logits = torch.einsum("bdhw,kd->bkhw", dense, protos)
+    probs = torch.softmax(temperature * logits, dim=1)
+    labels = probs.argmax(dim=1, keepdim=True).float()
+    labels = F.interpolate(labels, size=size, mode="nearest").squeeze(1).long()
+    return labels, probs
+
+
+class SegmentationMetric:
+    """Confusion-matrix segmentation metric accumulated over batches.
+
+    Args:
+        num_classes: number of classes ``K`` (predictions and labels in ``0..K-1``).
+        ignore_index: label value excluded from scoring.
+        reduce_zero_label: map label 0 to ``ignore_index`` and ``c`` to ``c - 1`` first
+            (ADE20K's convention, where 0 means "other").
+
+    ``update`` takes ``pred`` and ``target`` of the same shape. ``compute`` returns mIoU
+    (mean over classes with non-empty union), frequency-weighted IoU, pixel accuracy and
+    per-class IoU (NaN for classes with empty union). The confusion matrix (rows: ground
+    truth, columns: prediction) is public so distributed runs can sum it across ranks.
+    """
+
+    def __init__(
+        self, num_classes: int, ignore_index: int = 255, reduce_zero_label: bool = False
+    ) -> None:
+        if num_classes < 1:
+            raise ValueError(f"num_classes must be >= 1, got {num_classes}")
+        self.num_classes = num_classes
+        self.ignore_index = ignore_index
+        self.reduce_zero_label = reduce_zero_label
+        self.confusion = torch.zeros(num_classes, num_classes, dtype=torch.int64)
+
+    def reset(self) -> None:
+        self.confusion.zero_()
+
+    def update(self, pred: Tensor, target: Tensor) -> None:
+        if pred.shape != target.shape:
+            raise ValueError(
+                f"pred shape {tuple(pred.shape)} does not match target shape {tuple(target.shape)}"
+            )
+        pred = pred.detach().reshape(-1).long().cpu()
+        target = target.detach().reshape(-1).long().cpu()
+        if self.reduce_zero_label:
+            target = torch.where(
+                (target == 0) | (target == self.ignore_index),
+                torch.full_like(target, self.ignore_index),
+                target - 1,
+            )
+        valid = target != self.ignore_index
+        pred, target = pred[valid], target[valid]
+        bad = (target < 0) | (target >= self.num_classes)
+        if bool(bad.any()):
+            raise ValueError(
+                f"target holds label {int(target[bad][0])} outside 0..{self.num_classes - 1} "
+                f"(and it is not the ignore index {self.ignore_index})"
+            )
+        if bool(((pred < 0) | (pred >= self.num_classes)).any()):
+            raise ValueError(f"pred holds a class outside 0..{self.num_classes - 1}")
+        k = self.num_classes
+        self.confusion += torch.bincount(target * k + pred, minlength=k * k).reshape(k, k)
+
+    def merge(self, other: SegmentationMetric | Tensor) -> None:
+        """Add another metric's (or a raw) confusion matrix, e.g. from another rank."""
+        self.confusion += (
+            other.confusion
+            if isinstance(other, SegmentationMetric)
+            else other.to(torch.int64).cpu()
+        )
+
+    def compute(self) -> dict[str, float | list[float]]:
+        cm = self.confusion.double()
+        tp = cm.diag()
+        gt = cm.sum(1)
+        union = gt + cm.sum(0) - tp
+        present = union > 0
+        iou = torch.where(present, tp / union.clamp_min(1), torch.full_like(tp, float("nan")))
+        total = gt.sum()
+        miou = iou[present].mean().item() if bool(present.any()) else float("nan")
+        fmiou = (gt[present] / total * iou[present]).sum().item() if total > 0 else float("nan")
+        acc = (tp.sum() / total).item() if total > 0 else float("nan")
+        return {"miou": miou, "fmiou": fmiou, "pixel_acc": acc, "per_class_iou": iou.tolist()}

@@ -1,0 +1,1 @@
+"""Training, evaluation and sweeps for ReSiReg (Lightning + Hydra). Imports `resireg`, never the reverse."""

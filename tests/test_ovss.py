@@ -1,0 +1,102 @@
+import pytest
+import torch
+import torch.nn.functional as F
+from torchmetrics.classification import MulticlassJaccardIndex
+
+from resireg.ovss import (
+    ADE20K_CLASSES,
+    ORAD3D_CLASSES,
+    SCANNET_CLASSES,
+    TEMPLATES,
+    SegmentationMetric,
+    predict,
+    text_prototypes,
+    vocabulary,
+)
+
+
+def test_vocabularies():
+    assert len(ADE20K_CLASSES) == 150 and len(set(ADE20K_CLASSES)) == 150
+    assert len(ORAD3D_CLASSES) == 10
+    assert len(SCANNET_CLASSES) == 37 and not any(c.startswith("other") for c in SCANNET_CLASSES)
+    assert len(TEMPLATES) == 80
+    assert vocabulary("orad3d") == ORAD3D_CLASSES
+    with pytest.raises(ValueError, match="'nope'"):
+        vocabulary("nope")
+
+
+def test_metric_matches_torchmetrics_over_batches():
+    k = 7
+    ours = SegmentationMetric(k, ignore_index=255)
+    ref = MulticlassJaccardIndex(num_classes=k, ignore_index=255, average="none")
+    g = torch.Generator().manual_seed(0)
+    for _ in range(4):
+        target = torch.randint(0, k - 1, (2, 20, 30), generator=g)  # class k-1 never in target
+        target[torch.rand(target.shape, generator=g) < 0.1] = 255
+        pred = torch.where(
+            torch.rand(target.shape, generator=g) < 0.6,
+            target,
+            torch.randint(0, k - 2, target.shape, generator=g),
+        )
+        pred[pred == 255] = 0
+        ours.update(pred, target)
+        ref.update(pred, target)
+    out = ours.compute()
+    iou_ref = ref.compute()
+    iou = torch.tensor(out["per_class_iou"])
+    present = ~torch.isnan(iou)
+    assert present.sum() == k - 1  # class k-1: never predicted nor labelled -> excluded
+    assert torch.allclose(iou[present].float(), iou_ref[present].float(), atol=1e-6)
+    assert out["miou"] == pytest.approx(iou_ref[present].mean().item(), abs=1e-6)
+
+
+def test_metric_fmiou_accuracy_and_reduce_zero_label():
+    m = SegmentationMetric(2, reduce_zero_label=True)
+    target = torch.tensor([[0, 1, 1, 2, 2, 2, 255]])  # 0 -> ignore; 1 -> class 0; 2 -> class 1
+    pred = torch.tensor([[1, 0, 1, 1, 1, 0, 0]])
+    m.update(pred, target)
+    out = m.compute()
+    # class 0: tp=1, gt=2, pred=2 -> IoU 1/3 ; class 1: tp=2, gt=3, pred=3 -> IoU 2/4
+    assert out["per_class_iou"] == pytest.approx([1 / 3, 0.5])
+    assert out["miou"] == pytest.approx((1 / 3 + 0.5) / 2)
+    assert out["fmiou"] == pytest.approx(2 / 5 * 1 / 3 + 3 / 5 * 0.5)
+    assert out["pixel_acc"] == pytest.approx(3 / 5)
+
+
+def test_metric_rejects_out_of_range_labels():
+    m = SegmentationMetric(3)
+    with pytest.raises(ValueError, match="label 5"):
+        m.update(torch.zeros(4, dtype=torch.long), torch.tensor([0, 1, 5, 2]))
+
+
+def test_metric_merge_equals_single_accumulation():
+    a, b, both = SegmentationMetric(4), SegmentationMetric(4), SegmentationMetric(4)
+    x1, y1 = torch.randint(0, 4, (100,)), torch.randint(0, 4, (100,))
+    x2, y2 = torch.randint(0, 4, (100,)), torch.randint(0, 4, (100,))
+    a.update(x1, y1), b.update(x2, y2), both.update(x1, y1), both.update(x2, y2)
+    a.merge(b)
+    assert torch.equal(a.confusion, both.confusion)
+
+
+def test_text_prototypes_average_normalised_template_embeddings():
+    table = {}
+
+    def encode(texts):
+        return torch.stack([table.setdefault(t, torch.randn(16) * (1 + len(t))) for t in texts])
+
+    templates = (lambda c: f"a {c}", lambda c: f"the {c}.", lambda c: f"photo of {c}")
+    protos = text_prototypes(encode, ["cat", "dog"], templates, batch_size=2)
+    assert protos.shape == (2, 16)
+    for i, name in enumerate(["cat", "dog"]):
+        ref = torch.stack([F.normalize(table[t(name)], dim=0) for t in templates]).mean(0)
+        assert torch.allclose(protos[i], F.normalize(ref, dim=0), atol=1e-6)
+
+
+def test_predict_equals_upsample_then_argmax():
+    dense = torch.randn(2, 8, 5, 7)
+    protos = torch.randn(4, 8)
+    labels, probs = predict(dense, protos, (23, 31))
+    logits = torch.einsum("bdhw,kd->bkhw", F.normalize(dense, dim=1), F.normalize(protos, dim=1))
+    ref = torch.softmax(100 * F.interpolate(logits, size=(23, 31), mode="nearest"), dim=1).argmax(1)
+    assert torch.equal(labels, ref)
+    assert torch.allclose(probs.sum(1), torch.ones(2, 5, 7))
