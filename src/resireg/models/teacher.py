@@ -1,0 +1,145 @@
+"""Dense SigLIP 2-aligned teachers for stage-1 patch distillation.
+
+:class:`RadSegTeacher` loads RADSeg through ``torch.hub`` (``RADSeg-OVSS/RADSeg``, entry
+``radseg_encoder``, or a local clone with ``source="local"``). What its code does, and
+therefore how we call it (read from the repository's ``hubconf.py`` and
+``radseg/radseg.py``):
+
+- ``radseg_encoder(model_version, lang_model, scra_scaling, scga_scaling, **kwargs)``
+  builds ``RADSegEncoder``, which itself ``torch.hub.load``s ``NVlabs/RADIO``'s
+  ``radio_model`` with the language adaptor (``siglip2``) and the SAM adaptor, detaches
+  the adaptors, and replaces the last block's attention by self-correlating recursive
+  attention (SCRA).
+- It expects RGB in ``[0, 1]`` (RADIO normalises internally) at a resolution RADIO
+  supports (``get_nearest_size``).
+- ``encode_image_to_feat_map(rgb)`` returns RADIO's spatial features ``[B, C, h, w]``
+  after self-correlating global aggregation (SCGA); with ``predict=False`` (the default)
+  it returns just that map. ``slide_crop > 0`` (default 336) runs sliding-window
+  inference; we default to ``slide_crop=0`` (one pass), the setting for training crops.
+- ``align_spatial_features_with_language(feat_map)`` applies the SigLIP 2 adaptor's
+  ``head_mlp`` per location -> language-aligned dense features ``[B, C_lang, h, w]``.
+
+The teacher output is resized (bilinear) to the student's patch grid. A learned Linear
+(teacher dim -> 512) in the training module is the distillation head.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from resireg.models.hub import require_online
+
+__all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
+
+
+class _FrozenTeacher(nn.Module):
+    """Common frozen-teacher behaviour: eval mode, no grads, output resized to a grid."""
+
+    out_dim: int
+
+    def _freeze(self) -> None:
+        self.requires_grad_(False)
+        self.eval()
+
+    def train(self, mode: bool = True) -> _FrozenTeacher:
+        return super().train(False)
+
+    def dense(self, images: Tensor) -> Tensor:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def forward(self, images: Tensor, grid: Sequence[int]) -> Tensor:
+        """Dense teacher features ``[B, out_dim, *grid]`` for ``images`` (normalised like the student's)."""
+        with torch.no_grad():
+            feats = self.dense(images).float()
+        return F.interpolate(feats, size=tuple(grid), mode="bilinear", align_corners=False)
+
+
+class RadSegTeacher(_FrozenTeacher):
+    """RADSeg (RADIO + SigLIP 2 adaptor) dense features.
+
+    Args:
+        repo: ``owner/name`` on GitHub, or a local directory (with ``source="local"``).
+        source: ``"github"`` or ``"local"``.
+        model_version: RADIO version (``c-radio_v3-b``).
+        lang_model: language adaptor (``siglip2``).
+        mean, std: normalisation of the student's images, undone before RADIO.
+        slide_crop: RADSeg's sliding-window crop (0 = single pass).
+        **kwargs: passed to ``radseg_encoder``.
+    """
+
+    def __init__(
+        self,
+        repo: str = "RADSeg-OVSS/RADSeg",
+        source: str = "github",
+        model_version: str = "c-radio_v3-b",
+        lang_model: str = "siglip2",
+        mean: Sequence[float] = (0.485, 0.456, 0.406),
+        std: Sequence[float] = (0.229, 0.224, 0.225),
+        slide_crop: int = 0,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__()
+        if source == "local" and not os.path.isdir(repo):
+            raise FileNotFoundError(f"RADSeg repository directory {repo!r} does not exist")
+        if source == "github":
+            require_online(
+                f"RADSeg ({repo}) and its RADIO weights",
+                "github.com",
+                "Clone RADSeg-OVSS/RADSeg elsewhere and pass model.teacher.repo=/path/to/RADSeg "
+                "model.teacher.source=local (RADIO's weights must be in the torch hub cache), "
+                "or disable distillation (model.loss.distill.scale=0).",
+                hf=False,
+            )
+        self.encoder = torch.hub.load(
+            repo, "radseg_encoder", source=source, model_version=model_version, lang_model=lang_model,
+            slide_crop=slide_crop, **kwargs,
+        )  # fmt: skip
+        self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
+        self.out_dim = int(self.dense(torch.zeros(1, 3, 224, 224)).shape[1])
+        self._freeze()
+
+    def dense(self, images: Tensor) -> Tensor:
+        rgb = (images * self.std + self.mean).clamp(0, 1)
+        h, w = self.encoder.get_nearest_size(*rgb.shape[-2:])
+        if (h, w) != tuple(rgb.shape[-2:]):
+            rgb = F.interpolate(rgb, size=(h, w), mode="bilinear", align_corners=False)
+        feat_map = self.encoder.encode_image_to_feat_map(rgb)
+        return self.encoder.align_spatial_features_with_language(feat_map)
+
+
+class ConvTeacher(_FrozenTeacher):
+    """A small random conv net standing in for RADSeg offline (tests, smoke runs).
+
+    Two stride-4 convolutions give a 1/16-resolution map of ``out_dim`` channels.
+    """
+
+    def __init__(self, out_dim: int = 48, hidden: int = 16, seed: int = 0) -> None:
+        super().__init__()
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.net = nn.Sequential(
+                nn.Conv2d(3, hidden, 4, stride=4),
+                nn.GELU(),
+                nn.Conv2d(hidden, out_dim, 4, stride=4),
+            )
+        self.out_dim = out_dim
+        self._freeze()
+
+    def dense(self, images: Tensor) -> Tensor:
+        return self.net(images)
+
+
+def build_teacher(kind: str, **kwargs: Any) -> _FrozenTeacher:
+    """``kind="radseg"`` -> :class:`RadSegTeacher`, ``kind="conv"`` -> :class:`ConvTeacher`."""
+    if kind == "radseg":
+        return RadSegTeacher(**kwargs)
+    if kind == "conv":
+        return ConvTeacher(**kwargs)
+    raise ValueError(f"unknown teacher kind {kind!r} (expected 'radseg' or 'conv')")

@@ -1,0 +1,253 @@
+"""Models: EUPE loading (timm and Meta formats), frozen parts, head, text cache, export."""
+
+import textwrap
+import time
+
+import pytest
+import timm
+import torch
+from PIL import Image
+from safetensors.torch import save_file
+
+from resireg.models import (
+    TINY_BACKBONE,
+    TINY_HEAD,
+    TINY_TEXT,
+    ConvTeacher,
+    EUPEBackbone,
+    FrozenTextTower,
+    LanguageHead,
+    RadSegTeacher,
+    ResiregVLM,
+    WeightsUnavailableError,
+)
+from resireg.models import hub as hub_module
+
+TINY = {"embed_dim": 64, "depth": 2, "num_heads": 2}
+NAME = "vit_small_patch16_dinov3_qkvb.eupe_lvd1689m"
+
+
+def _count(module):
+    return sum(p.numel() for p in module.parameters())
+
+
+def test_parameter_counts():
+    backbone = EUPEBackbone(weights=None)
+    head = LanguageHead(in_dim=backbone.embed_dim)
+    assert round(_count(backbone) / 1e6, 1) == 21.6
+    assert 3.6e6 < _count(head) < 3.8e6
+    assert 25.0e6 <= _count(backbone) + _count(head) <= 25.6e6
+
+
+def _meta_state_dict(timm_sd, num_heads):
+    """Meta's original EUPE layout, built from a timm state dict (inverse of timm's conversion)."""
+    meta = {}
+    for k, v in timm_sd.items():
+        if k.endswith("attn.q_bias"):
+            v_bias = timm_sd[k.replace("q_bias", "v_bias")]
+            meta[k.replace("q_bias", "qkv.bias")] = torch.cat([v, torch.zeros_like(v), v_bias])
+            # Meta saves this buffer uninitialised; NaNs must never reach the model.
+            meta[k.replace("q_bias", "qkv.bias_mask")] = torch.full((3 * v.numel(),), float("nan"))
+            continue
+        if k.endswith("attn.v_bias"):
+            continue
+        k = (
+            k.replace("reg_token", "storage_tokens")
+            .replace("gamma_1", "ls1.gamma")
+            .replace("gamma_2", "ls2.gamma")
+        )
+        meta[k] = v
+    dim = timm_sd["cls_token"].shape[-1]
+    meta["mask_token"] = torch.randn(1, dim)
+    meta["rope_embed.periods"] = torch.randn(dim // num_heads // 4)
+    meta["projectors.0.weight"] = torch.randn(32, dim)  # training-only distillation heads
+    meta["projectors.0.bias"] = torch.randn(32)
+    return meta
+
+
+def test_meta_checkpoint_loads_like_timm_format(tmp_path):
+    ref = timm.create_model(NAME, pretrained=False, num_classes=0, dynamic_img_size=True, **TINY)
+    with torch.no_grad():  # non-trivial values everywhere, including the biases and layer scales
+        for p in ref.parameters():
+            p.copy_(torch.randn_like(p) * 0.05)
+    sd = ref.state_dict()
+    assert "storage_tokens" not in sd
+    save_file({k: v.contiguous() for k, v in sd.items()}, tmp_path / "timm.safetensors")
+    meta = _meta_state_dict(sd, TINY["num_heads"])
+    assert {
+        "storage_tokens",
+        "blocks.0.attn.qkv.bias_mask",
+        "rope_embed.periods",
+        "projectors.0.weight",
+    } <= meta.keys()
+    torch.save(meta, tmp_path / "EUPE-ViT-S.pt")
+
+    from_timm = EUPEBackbone(NAME, weights=str(tmp_path / "timm.safetensors"), **TINY)
+    from_meta = EUPEBackbone(NAME, weights=str(tmp_path / "EUPE-ViT-S.pt"), **TINY)
+    x = torch.randn(2, 3, 48, 80)
+    a, b = from_timm(x), from_meta(x)
+    with torch.no_grad():
+        expected = ref.forward_features(x)
+    assert torch.isfinite(b.patches).all()
+    assert torch.equal(a.patches, b.patches) and torch.equal(a.cls, b.cls)
+    assert torch.allclose(a.cls, expected[:, 0])
+    assert a.patches.shape == (2, 64, 3, 5) and a.registers.shape == (2, 4, 64)
+
+
+def test_missing_weights_file_is_clear():
+    with pytest.raises(FileNotFoundError, match="nope.pt"):
+        EUPEBackbone(weights="/nope.pt", **TINY)
+
+
+def test_backbone_is_frozen_and_unchanged_by_head_training():
+    backbone = EUPEBackbone(**TINY_BACKBONE)
+    head = LanguageHead(in_dim=64, **TINY_HEAD)
+    assert not any(p.requires_grad for p in backbone.parameters())
+    x = torch.randn(2, 3, 32, 48)
+    before = backbone(x).patches.clone()
+    backbone.train()
+    assert not backbone.training  # stays in eval mode
+    opt = torch.optim.AdamW(head.parameters(), lr=1e-2)
+    out = head(backbone(x))
+    out.embedding.pow(2).sum().backward()
+    opt.step()
+    assert all(p.grad is None for p in backbone.parameters())
+    assert torch.equal(backbone(x).patches, before)
+    assert out.embedding.shape == (2, 96) and out.patches.shape == (2, 48, 2, 3)
+
+
+def test_head_uses_registers_when_asked():
+    backbone = EUPEBackbone(**TINY_BACKBONE)
+    feats = backbone(torch.randn(1, 3, 32, 32))
+    torch.manual_seed(0)
+    with_regs = LanguageHead(in_dim=64, use_registers=True, **TINY_HEAD).eval()
+    torch.manual_seed(0)
+    without = LanguageHead(in_dim=64, **TINY_HEAD).eval()
+    assert not torch.allclose(with_regs(feats).patches, without(feats).patches)
+
+
+def test_text_cache_encodes_each_caption_once():
+    tower = FrozenTextTower.tiny()
+    rows = []
+    tower.tower.register_forward_hook(lambda m, args, out: rows.append(args[0].shape[0]))
+    captions = ["a red car", "a dog", "a red car", "grass"]
+    first = tower(captions)
+    second = tower(captions)
+    assert sum(rows) == 3  # three unique captions, tower run once
+    assert torch.equal(first, second)
+    assert tower.misses == 3 and tower.hits == 5
+    assert not any(p.requires_grad for p in tower.parameters())
+
+
+def test_text_cache_is_bounded():
+    tower = FrozenTextTower.tiny(cache_size=2)
+    tower(["a", "b", "c"])
+    assert len(tower._cache) == 2
+
+
+def _tiny_vlm():
+    return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT)
+
+
+def test_vlm_round_trip_is_exact(tmp_path):
+    model = _tiny_vlm()
+    with torch.no_grad():
+        for p in model.head.parameters():
+            p.add_(torch.randn_like(p) * 0.1)  # "trained" weights differ from a fresh init
+    model.save_pretrained(tmp_path / "export")
+    loaded = ResiregVLM.from_pretrained(tmp_path / "export")
+    images = torch.rand(2, 3, 48, 64)
+    for variant, kw in ((None, {}), ("lite", {}), ("full", {"n_prototypes": 6, "n_components": 6})):
+        assert torch.equal(
+            model.encode_image(images, variant, **kw), loaded.encode_image(images, variant, **kw)
+        )
+    texts = ["a cat", "the sky"]
+    assert torch.equal(model.encode_text(texts), loaded.encode_text(texts))
+    assert (tmp_path / "export" / "model.safetensors").exists()
+
+
+def test_vlm_outputs_and_preprocessing():
+    model = _tiny_vlm()
+    image = Image.new("RGB", (100, 70), (120, 30, 200))
+    x = model.preprocess(image, short_side=48)
+    assert x.shape == (1, 3, 48, 64)  # 70 -> 48, 100 -> 68.6 -> rounded to 64
+    expected = (
+        torch.tensor([120, 30, 200]) / 255.0 - torch.tensor(model.backbone.mean)
+    ) / torch.tensor(model.backbone.std)
+    assert torch.allclose(x[0, :, 10, 10], expected, atol=1e-3)
+    dense = model.encode_image([image, image], short_side=48)
+    assert dense.shape == (2, 48, 3, 4)
+    assert torch.allclose(dense.norm(dim=1), torch.ones(2, 3, 4), atol=1e-5)
+    text = model.encode_text(["a", "b", "c"])
+    assert text.shape == (3, 48) and torch.allclose(text.norm(dim=1), torch.ones(3), atol=1e-5)
+    sim = model.similarity(image, ["a", "b"], short_side=48)
+    assert sim.shape == (1, 2, 3, 4) and sim.abs().max() <= 1.0 + 1e-5
+    with pytest.raises(ValueError, match="resireg must be"):
+        model.encode_image(image, "fancy")
+
+
+def test_offline_hub_requests_fail_fast(tmp_path, monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))  # an empty cache
+    start = time.monotonic()
+    with pytest.raises(
+        WeightsUnavailableError, match=r"model\.backbone\.weights=/path/to/EUPE-ViT-S\.pt"
+    ):
+        EUPEBackbone(weights="hub")
+    with pytest.raises(WeightsUnavailableError, match=r"model\.text\.weights="):
+        FrozenTextTower.pretrained()
+    with pytest.raises(WeightsUnavailableError, match="export directory"):
+        ResiregVLM.from_pretrained("someone/some-vlm")
+    assert time.monotonic() - start < 5.0
+
+
+def test_unreachable_github_names_local_alternative(monkeypatch):
+    monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
+    with pytest.raises(WeightsUnavailableError, match="source=local"):
+        RadSegTeacher()
+
+
+def test_radseg_teacher_through_local_torch_hub(tmp_path):
+    """The real torch.hub path (source='local') against a repo with RADSeg's entry-point API."""
+    repo = tmp_path / "RADSeg"
+    repo.mkdir()
+    (repo / "hubconf.py").write_text(
+        textwrap.dedent(
+            """
+            dependencies = ["torch"]
+            import torch
+
+            class _Encoder(torch.nn.Module):
+                def __init__(self, model_version, lang_model, slide_crop, **kw):
+                    super().__init__()
+                    self.calls = {"model_version": model_version, "lang_model": lang_model, "slide_crop": slide_crop}
+                    self.proj = torch.nn.Conv2d(3, 40, 16, stride=16)
+                    self.lang = torch.nn.Conv2d(40, 24, 1)
+                def get_nearest_size(self, h, w):
+                    return (h // 16) * 16, (w // 16) * 16
+                def encode_image_to_feat_map(self, rgb):
+                    assert rgb.min() >= 0 and rgb.max() <= 1  # RADIO takes [0, 1] RGB
+                    return self.proj(rgb)
+                def align_spatial_features_with_language(self, feat):
+                    return self.lang(feat)
+
+            def radseg_encoder(model_version="c-radio_v3-b", lang_model="siglip2", **kwargs):
+                return _Encoder(model_version, lang_model, **kwargs)
+            """
+        )
+    )
+    teacher = RadSegTeacher(repo=str(repo), source="local")
+    assert teacher.encoder.calls == {
+        "model_version": "c-radio_v3-b",
+        "lang_model": "siglip2",
+        "slide_crop": 0,
+    }
+    assert teacher.out_dim == 24
+    out = teacher(torch.randn(2, 3, 70, 90), (5, 6))
+    assert out.shape == (2, 24, 5, 6)
+    assert not any(p.requires_grad for p in teacher.parameters())
+
+
+def test_conv_teacher_matches_student_grid():
+    teacher = ConvTeacher(out_dim=20)
+    assert teacher(torch.randn(2, 3, 64, 96), (4, 6)).shape == (2, 20, 4, 6)
