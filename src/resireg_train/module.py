@@ -1,0 +1,173 @@
+"""LightningModule training the 25M VLM's language head and text projection.
+
+Frozen: EUPE backbone, text tower, RadSeg teacher (excluded from checkpoints; they are
+rebuilt from their weights source). Trained: language head, text projection, logit
+scale, and (stage 1) the distillation head mapping teacher features to the head width.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor, nn
+
+from resireg.models import ResiregVLM, build_teacher
+from resireg_train.losses import ContrastiveLoss, distill_loss, warmup_factor
+
+__all__ = ["ResiregModule"]
+
+_FROZEN_PREFIXES = ("vlm.backbone.", "vlm.text.", "teacher.")
+
+
+class ResiregModule(L.LightningModule):
+    """Two-stage training of the dense VLM (DESIGN.md section 6).
+
+    Args:
+        backbone, head, text: model configs (see :meth:`ResiregVLM.build`).
+        teacher: teacher config (``{"kind": "radseg" | "conv", ...}``); loaded only when the
+            distillation scale is > 0.
+        optimizer: ``{"lr", "weight_decay", "betas"}`` for AdamW.
+        scheduler: ``{"min_lr"}``: per-step cosine from ``lr`` to ``min_lr``.
+        loss: ``{"contrastive": {"scale", "warmup_epochs"}, "distill": {"scale", "warmup_epochs"}}``.
+        logit_scale: ``{"init", "max"}`` (learned in log space, clamped after every step).
+        steps_per_epoch: optimizer steps per epoch (for fractional-epoch warm-up).
+    """
+
+    def __init__(
+        self,
+        backbone: dict,
+        head: dict,
+        text: dict,
+        teacher: dict | None = None,
+        optimizer: dict | None = None,
+        scheduler: dict | None = None,
+        loss: dict | None = None,
+        logit_scale: dict | None = None,
+        steps_per_epoch: int = 1000,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.optim_cfg = {
+            "lr": 6e-4,
+            "weight_decay": 0.05,
+            "betas": (0.9, 0.999),
+            **(optimizer or {}),
+        }
+        self.sched_cfg = {"min_lr": 1e-6, **(scheduler or {})}
+        loss = loss or {}
+        self.contrastive_cfg = {"scale": 1.0, "warmup_epochs": 0.0, **loss.get("contrastive", {})}
+        self.distill_cfg = {"scale": 0.0, "warmup_epochs": 0.0, **loss.get("distill", {})}
+        ls = {"init": 1 / 0.07, "max": 100.0, **(logit_scale or {})}
+        self.max_log_scale = math.log(ls["max"])
+        self.steps_per_epoch = steps_per_epoch
+
+        self.vlm = ResiregVLM.build(backbone, head, text)
+        self.logit_scale = nn.Parameter(torch.tensor(math.log(ls["init"])))
+        self.contrastive = ContrastiveLoss()
+        self.teacher = None
+        self.distill_head = None
+        if self.distill_cfg["scale"] > 0:
+            if teacher is None:
+                raise ValueError("model.loss.distill.scale > 0 needs a model.teacher config")
+            self.teacher = build_teacher(**teacher)
+            self.distill_head = nn.Linear(self.teacher.out_dim, self.vlm.head.out_dim)
+
+    # ------------------------------------------------------------------ steps
+    def loss_scales(self, epoch: float) -> tuple[float, float]:
+        """Warmed-up (contrastive, distillation) scales at a fractional epoch."""
+        c = self.contrastive_cfg["scale"] * warmup_factor(
+            epoch, self.contrastive_cfg["warmup_epochs"]
+        )
+        d = self.distill_cfg["scale"] * warmup_factor(epoch, self.distill_cfg["warmup_epochs"])
+        return c, d
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        images, captions = batch["image"], batch["caption"]
+        feats = self.vlm.backbone(images)
+        out = self.vlm.head(feats)
+        text = self.vlm.text_proj(self.vlm.text(captions).to(images.device))
+        loss_c, logits = self.contrastive(out.embedding, text, self.logit_scale.exp())
+        scale_c, scale_d = self.loss_scales(self.global_step / self.steps_per_epoch)
+        loss = scale_c * loss_c
+        logs = {
+            "train/loss_contrastive": loss_c.detach(),
+            "train/logit_scale": self.logit_scale.exp().detach(),
+        }
+        if self.teacher is not None:
+            target = self.distill_head(
+                self.teacher(images, out.patches.shape[-2:]).permute(0, 2, 3, 1)
+            )
+            loss_d = distill_loss(out.patches, target.permute(0, 3, 1, 2))
+            loss = loss + scale_d * loss_d
+            logs["train/loss_distill"] = loss_d.detach()
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"non-finite training loss {loss.item()} at global step {self.global_step} "
+                f"(contrastive {loss_c.item()}); lower model.optimizer.lr or check the data"
+            )
+        # Local rows of the global logits: row i's caption sits at column rank * B + i.
+        targets = (
+            torch.arange(logits.shape[0], device=logits.device) + self.global_rank * logits.shape[0]
+        )
+        logs["train/retrieval_i2t"] = (logits.argmax(1) == targets).float().mean()
+        logs["train/loss"] = loss.detach()
+        logs["train/lr"] = self.trainer.optimizers[0].param_groups[0]["lr"]
+        self.log_dict(
+            logs,
+            prog_bar=False,
+            on_step=True,
+            on_epoch=True,
+            batch_size=images.shape[0],
+            sync_dist=False,
+        )
+        return loss
+
+    def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
+        with torch.no_grad():
+            self.logit_scale.clamp_(max=self.max_log_scale)
+
+    # -------------------------------------------------------------- optimiser
+    def configure_optimizers(self) -> dict:
+        decay, no_decay = [], []
+        for name, p in self.named_parameters():
+            if not p.requires_grad:
+                continue
+            # No weight decay on norms, biases and the logit scale (all 0-/1-d tensors).
+            (no_decay if p.ndim <= 1 else decay).append(p)
+        cfg = self.optim_cfg
+        optimizer = torch.optim.AdamW(
+            [
+                {"params": decay, "weight_decay": cfg["weight_decay"]},
+                {"params": no_decay, "weight_decay": 0.0},
+            ],
+            lr=cfg["lr"],
+            betas=tuple(cfg["betas"]),
+        )
+        total = max(1, int(self.trainer.estimated_stepping_batches))
+        floor = self.sched_cfg["min_lr"] / cfg["lr"]
+
+        def cosine(step: int) -> float:
+            progress = min(1.0, step / total)
+            return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
+
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine)
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
+        }
+
+    # ------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Frozen parts are rebuilt from their weights source, never stored."""
+        checkpoint["state_dict"] = {
+            k: v for k, v in checkpoint["state_dict"].items() if not k.startswith(_FROZEN_PREFIXES)
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        own = self.state_dict()
+        checkpoint["state_dict"].update(
+            {k: v for k, v in own.items() if k.startswith(_FROZEN_PREFIXES)}
+        )
