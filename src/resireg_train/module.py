@@ -132,7 +132,7 @@ class ResiregModule(L.LightningModule):
     # -------------------------------------------------------------- optimiser
     def configure_optimizers(self) -> dict:
         decay, no_decay = [], []
-        for name, p in self.named_parameters():
+        for p in self.parameters():
             if not p.requires_grad:
                 continue
             # No weight decay on norms, biases and the logit scale (all 0-/1-d tensors).
