@@ -24,8 +24,9 @@ from typing import Any, NamedTuple
 
 import timm
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
+from resireg.models.frozen import FrozenModule
 from resireg.models.hub import hf_cached, require_online
 
 __all__ = ["EUPE_MODELS", "BackboneOutput", "EUPEBackbone"]
@@ -52,7 +53,7 @@ class BackboneOutput(NamedTuple):
     patches: Tensor
 
 
-class EUPEBackbone(nn.Module):
+class EUPEBackbone(FrozenModule):
     """A frozen EUPE ViT.
 
     Args:
@@ -97,12 +98,7 @@ class EUPEBackbone(nn.Module):
         cfg = model.pretrained_cfg
         self.mean = tuple(cfg.get("mean", (0.485, 0.456, 0.406)))
         self.std = tuple(cfg.get("std", (0.229, 0.224, 0.225)))
-        self.requires_grad_(False)
-        self.eval()
-
-    def train(self, mode: bool = True) -> EUPEBackbone:
-        """The backbone stays in eval mode whatever the parent module does."""
-        return super().train(False)
+        self.freeze()
 
     def forward(self, images: Tensor) -> BackboneOutput:
         """Encode normalised images ``[B, 3, H, W]`` (H, W divisible by the patch size)."""

@@ -26,6 +26,7 @@ The teacher output is resized (bilinear) to the student's patch grid. A learned 
 from __future__ import annotations
 
 import os
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any
 
@@ -33,25 +34,20 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.models.frozen import FrozenModule
 from resireg.models.hub import require_online
 
 __all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
 
 
-class _FrozenTeacher(nn.Module):
-    """Common frozen-teacher behaviour: eval mode, no grads, output resized to a grid."""
+class _FrozenTeacher(FrozenModule, ABC):
+    """A frozen teacher: ``dense`` features resized to the student's grid."""
 
     out_dim: int
 
-    def _freeze(self) -> None:
-        self.requires_grad_(False)
-        self.eval()
-
-    def train(self, mode: bool = True) -> _FrozenTeacher:
-        return super().train(False)
-
-    def dense(self, images: Tensor) -> Tensor:  # pragma: no cover - interface
-        raise NotImplementedError
+    @abstractmethod
+    def dense(self, images: Tensor) -> Tensor:
+        """Teacher features ``[B, out_dim, h, w]`` at the teacher's own resolution."""
 
     def forward(self, images: Tensor, grid: Sequence[int]) -> Tensor:
         """Dense teacher features ``[B, out_dim, *grid]`` for ``images`` (normalised like the student's)."""
@@ -103,7 +99,7 @@ class RadSegTeacher(_FrozenTeacher):
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         self.out_dim = int(self.dense(torch.zeros(1, 3, 224, 224)).shape[1])
-        self._freeze()
+        self.freeze()
 
     def dense(self, images: Tensor) -> Tensor:
         rgb = (images * self.std + self.mean).clamp(0, 1)
@@ -130,7 +126,7 @@ class ConvTeacher(_FrozenTeacher):
                 nn.Conv2d(hidden, out_dim, 4, stride=4),
             )
         self.out_dim = out_dim
-        self._freeze()
+        self.freeze()
 
     def dense(self, images: Tensor) -> Tensor:
         return self.net(images)

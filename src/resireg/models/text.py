@@ -23,7 +23,8 @@ import torch.nn.functional as F
 from open_clip.model import CLIPTextCfg, _build_text_tower
 from torch import Tensor, nn
 
-from resireg.models.hub import WeightsUnavailableError, require_online
+from resireg.models.frozen import FrozenModule
+from resireg.models.hub import WeightsUnavailableError, hf_cached, require_online
 
 __all__ = ["FrozenTextTower", "TextProjection", "dense_text_half"]
 
@@ -34,7 +35,7 @@ _OFFLINE_HINT = (
 )
 
 
-class FrozenTextTower(nn.Module):
+class FrozenTextTower(FrozenModule):
     """A frozen open_clip text transformer with a caption -> embedding cache.
 
     Build with :meth:`pretrained` (SigLIP 2) or :meth:`tiny` (random 2-layer tower with
@@ -65,8 +66,7 @@ class FrozenTextTower(nn.Module):
         self._cache: OrderedDict[str, Tensor] = OrderedDict()
         self.hits = 0
         self.misses = 0
-        self.requires_grad_(False)
-        self.eval()
+        self.freeze()
 
     @classmethod
     def pretrained(
@@ -91,8 +91,6 @@ class FrozenTextTower(nn.Module):
             if not cfg:
                 raise ValueError(f"open_clip has no pretrained tag {weights!r} for {model_name!r}")
             repo = (cfg.get("hf_hub") or "").rstrip("/")
-            from resireg.models.hub import hf_cached
-
             if not any(
                 hf_cached(repo, f)
                 for f in ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
@@ -119,8 +117,6 @@ class FrozenTextTower(nn.Module):
             )
         hf_name = cfg.get("hf_tokenizer_name")
         if hf_name:
-            from resireg.models.hub import hf_cached
-
             if not hf_cached(hf_name, "tokenizer_config.json"):
                 require_online(f"tokenizer {hf_name!r}", "huggingface.co", _OFFLINE_HINT)
         try:
@@ -164,9 +160,6 @@ class FrozenTextTower(nn.Module):
 
     def spec(self) -> dict:
         return dict(self._spec)
-
-    def train(self, mode: bool = True) -> FrozenTextTower:
-        return super().train(False)
 
     @property
     def device(self) -> torch.device:
