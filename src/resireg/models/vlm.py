@@ -44,6 +44,24 @@ def _pil_to_tensor(image: Image.Image) -> Tensor:
     return torch.from_numpy(array).permute(2, 0, 1)
 
 
+def _prefixed(parts: dict[str, nn.Module]) -> dict[str, Tensor]:
+    """One flat CPU state dict of several modules, keys prefixed ``"<name>."``."""
+    return {
+        f"{name}.{k}": v.detach().cpu().contiguous()
+        for name, module in parts.items()
+        for k, v in module.state_dict().items()
+    }
+
+
+def _load_prefixed(tensors: dict[str, Tensor], parts: dict[str, nn.Module]) -> None:
+    """Inverse of :func:`_prefixed`: load each module's keys (strictly) where present."""
+    for name, module in parts.items():
+        prefix = f"{name}."
+        part = {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
+        if part:
+            module.load_state_dict(part)
+
+
 class ResiregVLM(nn.Module):
     """Dense vision-language model: images -> ``[B, 512, h, w]``, texts -> ``[K, 512]``.
 
@@ -200,23 +218,17 @@ class ResiregVLM(nn.Module):
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         cfg = self.config()
-        trained = {f"head.{k}": v for k, v in self.head.state_dict().items()}
-        trained.update({f"text_proj.{k}": v for k, v in self.text_proj.state_dict().items()})
         save_file(
-            {k: v.detach().cpu().contiguous() for k, v in trained.items()},
-            out / "model.safetensors",
+            _prefixed({"head": self.head, "text_proj": self.text_proj}), out / "model.safetensors"
         )
-        frozen: dict[str, Tensor] = {}
+        frozen: dict[str, nn.Module] = {}
         if include_frozen or self.backbone.weights is None:
-            frozen.update({f"backbone.{k}": v for k, v in self.backbone.state_dict().items()})
+            frozen["backbone"] = self.backbone
             cfg["backbone"]["weights"] = None
         if include_frozen or cfg["text"]["kind"] == "tiny":
-            frozen.update({f"text.{k}": v for k, v in self.text.state_dict().items()})
+            frozen["text"] = self.text
         if frozen:
-            save_file(
-                {k: v.detach().cpu().contiguous() for k, v in frozen.items()},
-                out / "frozen.safetensors",
-            )
+            save_file(_prefixed(frozen), out / "frozen.safetensors")
             cfg["frozen_weights"] = "frozen.safetensors"
         (out / "config.json").write_text(json.dumps(cfg, indent=2))
         return out
@@ -239,16 +251,19 @@ class ResiregVLM(nn.Module):
             )
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"])
         if "frozen_weights" in cfg:
-            frozen = load_file(path / cfg["frozen_weights"])
-            for prefix, module in (("backbone.", model.backbone), ("text.", model.text)):
-                part = {k[len(prefix) :]: v for k, v in frozen.items() if k.startswith(prefix)}
-                if part:
-                    module.load_state_dict(part)
+            _load_prefixed(
+                load_file(path / cfg["frozen_weights"]),
+                {"backbone": model.backbone, "text": model.text},
+            )
         trained = load_file(path / "model.safetensors")
-        model.head.load_state_dict({k[5:]: v for k, v in trained.items() if k.startswith("head.")})
-        model.text_proj.load_state_dict(
-            {k[10:]: v for k, v in trained.items() if k.startswith("text_proj.")}
-        )
+        missing = [
+            name
+            for name in ("head", "text_proj")
+            if not any(k.startswith(f"{name}.") for k in trained)
+        ]
+        if missing:
+            raise ValueError(f"{str(path / 'model.safetensors')!r} holds no weights for {missing}")
+        _load_prefixed(trained, {"head": model.head, "text_proj": model.text_proj})
         return model.to(map_location).eval()
 
     @staticmethod
