@@ -8,7 +8,7 @@ from resireg_train.losses import ContrastiveLoss, distill_loss, warmup_factor
 def test_contrastive_equals_open_clip_clip_loss():
     image, text = torch.randn(12, 32), torch.randn(12, 32)
     scale = torch.tensor(1 / 0.07)
-    ours, logits = ContrastiveLoss()(image, text, scale)
+    ours, logits, targets = ContrastiveLoss()(image, text, scale)
     ref = ClipLoss()(
         torch.nn.functional.normalize(image, dim=-1),
         torch.nn.functional.normalize(text, dim=-1),
@@ -16,11 +16,12 @@ def test_contrastive_equals_open_clip_clip_loss():
     )
     assert torch.allclose(ours, ref, atol=1e-6)
     assert logits.shape == (12, 12)
+    assert torch.equal(targets, torch.arange(12))
 
 
 def test_contrastive_gradients_flow_to_both_towers():
     image, text = torch.randn(4, 8, requires_grad=True), torch.randn(4, 8, requires_grad=True)
-    loss, _ = ContrastiveLoss()(image, text, torch.tensor(10.0))
+    loss, _, _ = ContrastiveLoss()(image, text, torch.tensor(10.0))
     loss.backward()
     assert image.grad.abs().sum() > 0 and text.grad.abs().sum() > 0
 

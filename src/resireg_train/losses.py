@@ -36,10 +36,13 @@ class ContrastiveLoss(nn.Module):
         logit_scale: scalar, the *exponentiated* scale.
 
     Returns:
-        ``(loss, logits_per_image)`` with the local rows of the logits (for retrieval accuracy).
+        ``(loss, logits, targets)``: this rank's rows of the image->text logits and the
+        column of each row's own caption (for retrieval accuracy).
     """
 
-    def forward(self, image: Tensor, text: Tensor, logit_scale: Tensor) -> tuple[Tensor, Tensor]:
+    def forward(
+        self, image: Tensor, text: Tensor, logit_scale: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
         image = F.normalize(image.float(), dim=-1)
         text = F.normalize(text.float(), dim=-1)
         all_image, all_text = gather_keep_local_grad(image), gather_keep_local_grad(text)
@@ -50,7 +53,8 @@ class ContrastiveLoss(nn.Module):
         ) / 2
         b = image.shape[0]
         rank = dist.get_rank() if dist.is_available() and dist.is_initialized() else 0
-        return loss, logits_per_image[rank * b : (rank + 1) * b]
+        local = slice(rank * b, (rank + 1) * b)
+        return loss, logits_per_image[local], labels[local]
 
 
 def distill_loss(student: Tensor, teacher: Tensor) -> Tensor:

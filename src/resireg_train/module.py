@@ -89,7 +89,7 @@ class ResiregModule(L.LightningModule):
         feats = self.vlm.backbone(images)
         out = self.vlm.head(feats)
         text = self.vlm.text_proj(self.vlm.text(captions).to(images.device))
-        loss_c, logits = self.contrastive(out.embedding, text, self.logit_scale.exp())
+        loss_c, logits, targets = self.contrastive(out.embedding, text, self.logit_scale.exp())
         scale_c, scale_d = self.loss_scales(self.global_step / self.steps_per_epoch)
         loss = scale_c * loss_c
         logs = {
@@ -108,10 +108,6 @@ class ResiregModule(L.LightningModule):
                 f"non-finite training loss {loss.item()} at global step {self.global_step} "
                 f"(contrastive {loss_c.item()}); lower model.optimizer.lr or check the data"
             )
-        # Local rows of the global logits: row i's caption sits at column rank * B + i.
-        targets = (
-            torch.arange(logits.shape[0], device=logits.device) + self.global_rank * logits.shape[0]
-        )
         logs["train/retrieval_i2t"] = (logits.argmax(1) == targets).float().mean()
         logs["train/loss"] = loss.detach()
         logs["train/lr"] = self.trainer.optimizers[0].param_groups[0]["lr"]
