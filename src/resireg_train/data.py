@@ -1,0 +1,433 @@
+"""Caption data on Hugging Face ``datasets``: sources -> one ``{image, caption}`` stream -> batches.
+
+Pipeline (DESIGN.md section 7):
+
+1. Each configured source is opened in streaming mode (a hub id, a local folder of
+   parquet / image files / webdataset shards, a ``datasets`` builder name with
+   ``data_files``, or the generated ``synthetic`` source). Image decoding is switched
+   off (``IterableDataset.decode(False)``), and one ``map`` reduces each example to
+   ``{"image": bytes, "caption": [str, ...]}`` through the source's column paths
+   (``"texts.0.assistant"`` walks lists and dicts).
+2. The sources are mixed by ``datasets.interleave_datasets`` with per-source
+   probabilities, shuffled (shard order + a buffer), and split across DDP ranks with
+   ``datasets.distributed.split_dataset_by_node``; ``DataLoader`` workers split each
+   rank's shards further (``datasets`` does that itself).
+3. :class:`CaptionStream` decodes, skips and counts undecodable or tiny images, picks one
+   caption at random, resizes the shorter side to ``crop_size``, takes a random
+   ``crop_size`` square and normalises. Every epoch yields exactly ``steps_per_epoch``
+   batches; the stream restarts (reshuffled) whenever it runs out.
+
+Determinism: epoch ``e`` of rank ``r`` sees the stream reshuffled with ``seed + e`` and
+draws crops and captions from a generator seeded by ``(seed, e, r, worker)``, so an
+epoch's batches depend only on the seed and the epoch: a run resumed from the checkpoint
+of epoch ``e`` trains on the same batches as the uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+from collections.abc import Callable, Iterator, Mapping
+from itertools import count
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from datasets import Features, IterableDataset, List, Value, interleave_datasets, load_dataset
+from datasets import Image as HFImage
+from datasets.distributed import split_dataset_by_node
+from PIL import Image
+from torch.utils.data import DataLoader, get_worker_info
+from torchvision.transforms.v2 import functional as TF
+
+from resireg.models.hub import require_online
+from resireg_train.synthetic import SyntheticScenes
+
+__all__ = [
+    "IMAGENET_MEAN",
+    "IMAGENET_STD",
+    "CaptionDataModule",
+    "CaptionStream",
+    "open_caption_source",
+    "mix_caption_sources",
+]
+
+log = logging.getLogger(__name__)
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+#: The one schema every source is mapped to before mixing.
+CAPTION_FEATURES = Features({"image": Value("binary"), "caption": List(Value("string"))})
+_SOURCE_KEYS = {
+    "path", "name", "split", "data_files", "data_dir", "revision",
+    "image", "caption", "probability", "size", "image_size", "noise", "seed", "shards",
+}  # fmt: skip
+_LOCAL_BUILDERS = {"parquet", "imagefolder", "webdataset", "json", "csv", "arrow"}
+_EPOCH_PASSES = 10_000  # reshuffle seed of pass p in epoch e: e * _EPOCH_PASSES + p
+_DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
+
+
+# ---------------------------------------------------------------------------- sources
+def _pluck(example: Mapping[str, Any], path: str) -> Any:
+    """Walk ``"texts.0.assistant"`` through nested dicts and lists."""
+    value: Any = example
+    for part in path.split("."):
+        value = value[int(part)] if isinstance(value, (list, tuple)) else value[part]
+    return value
+
+
+def _image_bytes(value: Any) -> bytes | None:
+    """Undecoded image value (``{"bytes", "path"}``, raw bytes or a local path) -> bytes."""
+    if isinstance(value, dict):
+        if value.get("bytes"):
+            return value["bytes"]
+        value = value.get("path")
+    if isinstance(value, (bytes, bytearray)):
+        return bytes(value)
+    if isinstance(value, str) and os.path.isfile(value):
+        return Path(value).read_bytes()
+    return None
+
+
+def _captions(value: Any) -> list[str]:
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, (list, tuple)):
+        return []
+    return [c.strip() for c in value if isinstance(c, str) and c.strip()]
+
+
+def _to_schema(image_path: str, caption_path: str) -> Callable[[dict], dict]:
+    def convert(example: dict) -> dict:
+        try:
+            image = _image_bytes(_pluck(example, image_path))
+        except (KeyError, IndexError, TypeError):
+            image = None
+        try:
+            captions = _captions(_pluck(example, caption_path))
+        except (KeyError, IndexError, TypeError):
+            captions = []
+        return {"image": image, "caption": captions}
+
+    return convert
+
+
+def _synthetic_examples(shards: list[tuple[int, int]], size: int, image_size, seed, noise):
+    scenes = SyntheticScenes(size=size, image_size=tuple(image_size), seed=seed, noise=noise)
+    for start, step in shards:
+        for i in range(start, size, step):
+            scene = scenes[i]
+            buf = io.BytesIO()
+            scene["image"].save(buf, format="PNG")
+            yield {"image": {"bytes": buf.getvalue(), "path": None}, "caption": scene["caption"]}
+
+
+def _is_local(path: str) -> bool:
+    return path in _LOCAL_BUILDERS or os.path.exists(path)
+
+
+def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
+    """Open one caption source (streaming) mapped to ``{"image": bytes, "caption": [str]}``.
+
+    Args:
+        name: the source's name (``data.sources.<name>``; used in error messages).
+        spec: ``path`` (hub id, local folder, builder name such as ``parquet`` /
+            ``webdataset`` / ``imagefolder``, or ``synthetic``), optional ``name``,
+            ``split`` (default ``train``), ``data_files``, ``data_dir``, ``revision``;
+            column paths ``image`` (default ``image``) and ``caption`` (default
+            ``caption``). Synthetic: ``size``, ``image_size``, ``noise``, ``seed``, ``shards``.
+    """
+    key = f"data.sources.{name}"
+    unknown = set(spec) - _SOURCE_KEYS
+    if unknown:
+        raise ValueError(f"{key}: unknown keys {sorted(unknown)} (allowed: {sorted(_SOURCE_KEYS)})")
+    if "path" not in spec:
+        raise ValueError(f"{key}.path is required (hub id, local folder or 'synthetic')")
+    path = str(spec["path"])
+    if path == "synthetic":
+        size, n_shards = int(spec.get("size", 256)), int(spec.get("shards", 8))
+        ds = IterableDataset.from_generator(
+            _synthetic_examples,
+            features=Features({"image": HFImage(), "caption": Value("string")}),
+            gen_kwargs={
+                "shards": [(s, n_shards) for s in range(min(n_shards, size))],
+                "size": size,
+                "image_size": tuple(spec.get("image_size", (128, 128))),
+                "seed": int(spec.get("seed", 0)),
+                "noise": float(spec.get("noise", 12.0)),
+            },
+        )
+    else:
+        if not _is_local(path):
+            if path.startswith(("/", ".", "~")):
+                raise FileNotFoundError(f"{key}.path={path!r} does not exist")
+            _require_hub_dataset(key, path)
+        kwargs = {k: spec[k] for k in ("name", "data_files", "data_dir", "revision") if spec.get(k)}
+        ds = load_dataset(path, split=spec.get("split", "train"), streaming=True, **kwargs)
+    ds = ds.decode(False)
+    image_col, caption_col = spec.get("image", "image"), spec.get("caption", "caption")
+    columns = ds.column_names
+    if columns is not None:
+        for role, col in (("image", image_col), ("caption", caption_col)):
+            if col.split(".")[0] not in columns:
+                raise ValueError(f"{key}.{role}={col!r}: no such column; columns are {columns}")
+    return ds.map(
+        _to_schema(image_col, caption_col), remove_columns=columns, features=CAPTION_FEATURES
+    )
+
+
+def _require_hub_dataset(key: str, repo_id: str) -> None:
+    """Fail at once (not after a minute of retries) when a hub dataset cannot be streamed."""
+    require_online(
+        f"the hub dataset {repo_id!r} ({key}.path)",
+        "huggingface.co",
+        f"Download it elsewhere (e.g. `datasets` save_to_disk / parquet, or img2dataset to "
+        f"webdataset shards) and set {key}.path to the local folder.",
+    )
+
+
+def mix_caption_sources(
+    sources: Mapping[str, Mapping[str, Any]], seed: int = 0, shuffle_buffer: int = 1000
+) -> IterableDataset:
+    """Open every source, interleave them with their ``probability`` (normalised), shuffle."""
+    if not sources:
+        raise ValueError("data.sources is empty: configure at least one caption source")
+    names = list(sources)
+    weights = np.array([float(sources[n].get("probability", 1.0)) for n in names])
+    bad = [
+        f"data.sources.{n}.probability={w}" for n, w in zip(names, weights, strict=True) if w <= 0
+    ]
+    if bad:
+        raise ValueError(f"source probabilities must be > 0: {', '.join(bad)}")
+    streams = [open_caption_source(n, sources[n]) for n in names]
+    if len(streams) == 1:
+        mixed = streams[0]
+    else:
+        mixed = interleave_datasets(
+            streams,
+            probabilities=(weights / weights.sum()).tolist(),
+            seed=seed,
+            stopping_strategy="all_exhausted",
+        )
+    return mixed.shuffle(seed=seed, buffer_size=shuffle_buffer) if shuffle_buffer > 1 else mixed
+
+
+# ----------------------------------------------------------------------- torch stream
+class CaptionStream(torch.utils.data.IterableDataset):
+    """One rank's training samples: exactly ``steps_per_epoch`` batches per epoch.
+
+    Each sample is ``{"image": [3, S, S] float, "caption": str, "skipped_invalid": int,
+    "skipped_small": int}``; the two counters hold how many examples were dropped
+    (undecodable image / no caption, or shorter side < ``min_image_size``) just before it,
+    so summing them over batches counts every skip exactly once.
+
+    Args:
+        stream: the mixed ``datasets`` stream of this rank.
+        steps_per_epoch: batches per epoch.
+        batch_size: samples per batch (this rank).
+        crop_size: side of the square random crop.
+        min_image_size: smaller images (shorter side) are skipped.
+        mean, std: normalisation (the backbone's).
+        seed, rank: seed the crop/caption generator with the epoch and worker.
+    """
+
+    def __init__(
+        self,
+        stream: IterableDataset,
+        steps_per_epoch: int,
+        batch_size: int,
+        crop_size: int,
+        min_image_size: int = 64,
+        mean: tuple[float, ...] = IMAGENET_MEAN,
+        std: tuple[float, ...] = IMAGENET_STD,
+        seed: int = 0,
+        rank: int = 0,
+    ) -> None:
+        super().__init__()
+        self.stream = stream
+        self.steps_per_epoch = steps_per_epoch
+        self.batch_size = batch_size
+        self.crop_size = crop_size
+        self.min_image_size = min_image_size
+        self.mean, self.std = list(mean), list(std)
+        self.seed, self.rank = seed, rank
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.steps_per_epoch * self.batch_size
+
+    def _examples(self) -> Iterator[dict]:
+        """The rank's stream, restarted (reshuffled) whenever it runs out."""
+        for p in count():
+            self.stream.set_epoch(self.epoch * _EPOCH_PASSES + p)
+            n = 0
+            for n, example in enumerate(self.stream, 1):  # noqa: B007
+                yield example
+            if n == 0:
+                raise RuntimeError(
+                    "the caption stream yielded no examples for this worker: it has fewer "
+                    "shards than processes x data.num_workers, or the sources are empty"
+                )
+
+    def _prepare(self, example: dict, rng: np.random.Generator) -> torch.Tensor | str:
+        """Decoded, cropped, normalised image, or the reason it was skipped."""
+        if example["image"] is None or not example["caption"]:
+            return "invalid"
+        try:
+            with Image.open(io.BytesIO(example["image"])) as im:
+                array = np.asarray(im.convert("RGB"))
+        except _DECODE_ERRORS:
+            return "invalid"
+        if min(array.shape[:2]) < self.min_image_size:
+            return "small"
+        image = TF.resize(
+            torch.from_numpy(array.copy()).permute(2, 0, 1), self.crop_size, antialias=True
+        )
+        h, w = image.shape[-2:]
+        top = int(rng.integers(0, h - self.crop_size + 1))
+        left = int(rng.integers(0, w - self.crop_size + 1))
+        image = TF.crop(image, top, left, self.crop_size, self.crop_size)
+        image = TF.to_dtype(image, torch.float32, scale=True)
+        return TF.normalize(image, self.mean, self.std)
+
+    def __iter__(self) -> Iterator[dict]:
+        info = get_worker_info()
+        worker, workers = (info.id, info.num_workers) if info else (0, 1)
+        # DataLoader takes batches from the workers in turn: worker w builds batches
+        # w, w + W, ... so the epoch has exactly steps_per_epoch batches.
+        quota = len(range(worker, self.steps_per_epoch, workers)) * self.batch_size
+        rng = np.random.default_rng([self.seed, self.epoch, self.rank, worker])
+        skipped = {"invalid": 0, "small": 0}
+        examples = self._examples()
+        produced = 0
+        while produced < quota:
+            example = next(examples)
+            image = self._prepare(example, rng)
+            if isinstance(image, str):
+                skipped[image] += 1
+                if sum(skipped.values()) in (1, 10, 100, 1000):
+                    log.warning("caption data: skipped %s so far (rank %d, worker %d)",
+                                skipped, self.rank, worker)  # fmt: skip
+                continue
+            captions = example["caption"]
+            yield {
+                "image": image,
+                "caption": captions[int(rng.integers(len(captions)))],
+                "skipped_invalid": skipped["invalid"],
+                "skipped_small": skipped["small"],
+            }
+            skipped = {"invalid": 0, "small": 0}
+            produced += 1
+
+
+class _EpochDataLoader(DataLoader):
+    """A ``DataLoader`` that tells its dataset the trainer's epoch before each pass.
+
+    Lightning calls ``set_epoch`` on samplers only, and an ``IterableDataset`` has none.
+    """
+
+    def __init__(self, dataset: CaptionStream, epoch: Callable[[], int], **kwargs: Any) -> None:
+        super().__init__(dataset, **kwargs)
+        self._epoch = epoch
+
+    def __iter__(self):
+        self.dataset.set_epoch(self._epoch())
+        return super().__iter__()
+
+
+class CaptionDataModule(L.LightningDataModule):
+    """Image-caption training data (DESIGN.md section 7).
+
+    Args:
+        sources: ``{name: spec}``; see :func:`open_caption_source`. Each spec may carry a
+            ``probability`` (relative weight in the mix, default 1).
+        batch_size: the *global* batch size (split evenly over DDP processes).
+        steps_per_epoch: batches per epoch (each rank).
+        crop_size: square crop side.
+        min_image_size: images with a shorter side below this are skipped (counted).
+        num_workers: ``DataLoader`` workers per process (capped at the stream's shards).
+        shuffle_buffer: ``datasets`` shuffle buffer (examples); <= 1 disables it.
+        seed: data seed (shuffling, mixing, crops, caption choice).
+        mean, std: image normalisation; the training entry point checks they match the
+            backbone's.
+    """
+
+    def __init__(
+        self,
+        sources: Mapping[str, Mapping[str, Any]],
+        batch_size: int = 48,
+        steps_per_epoch: int = 1000,
+        crop_size: int = 512,
+        min_image_size: int = 64,
+        num_workers: int = 4,
+        shuffle_buffer: int = 1000,
+        seed: int = 0,
+        mean: tuple[float, ...] = IMAGENET_MEAN,
+        std: tuple[float, ...] = IMAGENET_STD,
+        pin_memory: bool = False,
+    ) -> None:
+        super().__init__()
+        self.sources = {k: dict(v) for k, v in sources.items()}
+        self.batch_size = batch_size
+        self.steps_per_epoch = steps_per_epoch
+        self.crop_size = crop_size
+        self.min_image_size = min_image_size
+        self.num_workers = num_workers
+        self.shuffle_buffer = shuffle_buffer
+        self.seed = seed
+        self.mean, self.std = tuple(mean), tuple(std)
+        self.pin_memory = pin_memory
+        self.train_set: CaptionStream | None = None
+
+    def _world(self) -> tuple[int, int]:
+        trainer = self.trainer
+        return (trainer.global_rank, trainer.world_size) if trainer is not None else (0, 1)
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        rank, world = self._world()
+        if self.batch_size % world:
+            raise ValueError(
+                f"data.batch_size={self.batch_size} (global) must be divisible by the "
+                f"number of processes ({world})"
+            )
+        stream = mix_caption_sources(self.sources, self.seed, self.shuffle_buffer)
+        if world > 1:
+            stream = split_dataset_by_node(stream, rank=rank, world_size=world)
+        self.train_set = CaptionStream(
+            stream,
+            steps_per_epoch=self.steps_per_epoch,
+            batch_size=self.batch_size // world,
+            crop_size=self.crop_size,
+            min_image_size=self.min_image_size,
+            mean=self.mean,
+            std=self.std,
+            seed=self.seed,
+            rank=rank,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        self.setup()
+        assert self.train_set is not None
+        workers = min(self.num_workers, self.train_set.stream.num_shards)
+        if workers < self.num_workers:
+            log.warning(
+                "data.num_workers=%d capped at %d: the caption stream has only %d shards",
+                self.num_workers, workers, self.train_set.stream.num_shards,
+            )  # fmt: skip
+        return _EpochDataLoader(
+            self.train_set,
+            epoch=lambda: self.trainer.current_epoch if self.trainer is not None else 0,
+            batch_size=self.train_set.batch_size,
+            num_workers=workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=False,  # workers must re-read the epoch every pass
+        )
