@@ -328,18 +328,23 @@ class CaptionStream(torch.utils.data.IterableDataset):
 
 
 class _EpochDataLoader(DataLoader):
-    """A ``DataLoader`` that tells its dataset the trainer's epoch before each pass.
+    """A ``DataLoader`` that tells its dataset the trainer's epoch when a pass starts.
 
     Lightning calls ``set_epoch`` on samplers only, and an ``IterableDataset`` has none.
+    The epoch is read at the first batch, not when the iterator is made: on resume,
+    Lightning makes the iterator before it restores the epoch counter from the checkpoint.
     """
 
     def __init__(self, dataset: CaptionStream, epoch: Callable[[], int], **kwargs: Any) -> None:
         super().__init__(dataset, **kwargs)
         self._epoch = epoch
 
-    def __iter__(self):
-        self.dataset.set_epoch(self._epoch())
-        return super().__iter__()
+    def __iter__(self) -> Iterator[dict]:
+        def batches() -> Iterator[dict]:
+            self.dataset.set_epoch(self._epoch())
+            yield from super(_EpochDataLoader, self).__iter__()
+
+        return batches()
 
 
 class CaptionDataModule(L.LightningDataModule):

@@ -8,6 +8,8 @@ scale, and (stage 1) the distillation head mapping teacher features to the head 
 from __future__ import annotations
 
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -29,7 +31,8 @@ class ResiregModule(L.LightningModule):
         backbone, head, text: model configs (see :meth:`ResiregVLM.build`).
         teacher: teacher config (``{"kind": "radseg" | "conv", ...}``); loaded only when the
             distillation scale is > 0.
-        optimizer: ``{"lr", "weight_decay", "betas"}`` for AdamW.
+        optimizer: ``{"name", "lr", "weight_decay", ...}``: a ``torch.optim`` class name
+            (default ``AdamW``) and its keyword arguments.
         scheduler: ``{"min_lr"}``: per-step cosine from ``lr`` to ``min_lr``.
         loss: ``{"contrastive": {"scale", "warmup_epochs"}, "distill": {"scale", "warmup_epochs"}}``.
         logit_scale: ``{"init", "max"}`` (learned in log space, clamped after every step).
@@ -50,12 +53,11 @@ class ResiregModule(L.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
-        self.optim_cfg = {
-            "lr": 6e-4,
-            "weight_decay": 0.05,
-            "betas": (0.9, 0.999),
-            **(optimizer or {}),
-        }
+        self.optim_cfg = {"name": "AdamW", "lr": 6e-4, "weight_decay": 0.05, **(optimizer or {})}
+        if not isinstance(getattr(torch.optim, self.optim_cfg["name"], None), type):
+            raise ValueError(
+                f"model.optimizer.name={self.optim_cfg['name']!r} is not a torch.optim optimizer"
+            )
         self.sched_cfg = {"min_lr": 1e-6, **(scheduler or {})}
         loss = loss or {}
         self.contrastive_cfg = {"scale": 1.0, "warmup_epochs": 0.0, **loss.get("contrastive", {})}
@@ -109,16 +111,22 @@ class ResiregModule(L.LightningModule):
                 f"(contrastive {loss_c.item()}); lower model.optimizer.lr or check the data"
             )
         logs["train/retrieval_i2t"] = (logits.argmax(1) == targets).float().mean()
-        logs["train/loss"] = loss.detach()
-        logs["train/lr"] = self.trainer.optimizers[0].param_groups[0]["lr"]
-        self.log_dict(
-            logs,
-            prog_bar=False,
-            on_step=True,
-            on_epoch=True,
-            batch_size=images.shape[0],
-            sync_dist=False,
-        )
+        self.log_dict(logs, on_step=True, on_epoch=True, batch_size=images.shape[0])
+        self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"], on_step=True,
+                 on_epoch=False, batch_size=images.shape[0])  # fmt: skip
+        self.log("train/loss", loss.detach(), on_step=True, on_epoch=True, prog_bar=True,
+                 batch_size=images.shape[0])  # fmt: skip
+        # Examples the data pipeline dropped before this batch, summed over the epoch and ranks.
+        for reason in ("invalid", "small"):
+            if f"skipped_{reason}" in batch:
+                self.log(
+                    f"data/skipped_{reason}",
+                    batch[f"skipped_{reason}"].sum().float(),
+                    on_step=False,
+                    on_epoch=True,
+                    reduce_fx="sum",
+                    sync_dist=True,
+                )
         return loss
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
@@ -133,14 +141,9 @@ class ResiregModule(L.LightningModule):
                 continue
             # No weight decay on norms, biases and the logit scale (all 0-/1-d tensors).
             (no_decay if p.ndim <= 1 else decay).append(p)
-        cfg = self.optim_cfg
-        optimizer = torch.optim.AdamW(
-            [
-                {"params": decay, "weight_decay": cfg["weight_decay"]},
-                {"params": no_decay, "weight_decay": 0.0},
-            ],
-            lr=cfg["lr"],
-            betas=tuple(cfg["betas"]),
+        cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in self.optim_cfg.items()}
+        optimizer = getattr(torch.optim, cfg.pop("name"))(
+            [{"params": decay}, {"params": no_decay, "weight_decay": 0.0}], **cfg
         )
         total = max(1, int(self.trainer.estimated_stepping_batches))
         floor = self.sched_cfg["min_lr"] / cfg["lr"]
@@ -157,13 +160,60 @@ class ResiregModule(L.LightningModule):
 
     # ------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
-        """Frozen parts are rebuilt from their weights source, never stored."""
+        """Frozen parts are rebuilt from their weights source, never stored.
+
+        The RNG states are stored so a resumed run draws the same drop-path masks as an
+        uninterrupted one (the data pipeline seeds itself from the epoch).
+        """
         checkpoint["state_dict"] = {
             k: v for k, v in checkpoint["state_dict"].items() if not k.startswith(_FROZEN_PREFIXES)
         }
+        checkpoint["rng_states"] = {"torch": torch.get_rng_state()}
+        if torch.cuda.is_available():
+            checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         own = self.state_dict()
         checkpoint["state_dict"].update(
             {k: v for k, v in own.items() if k.startswith(_FROZEN_PREFIXES)}
         )
+        states = checkpoint.get("rng_states", {})
+        if "torch" in states:
+            torch.set_rng_state(states["torch"])
+        if "cuda" in states and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(states["cuda"])
+
+    # ----------------------------------------------------------------- stage 2
+    def load_trained(self, source: str | os.PathLike) -> list[str]:
+        """Start from an earlier stage's trained weights (not its optimizer state).
+
+        Args:
+            source: a training checkpoint (``.ckpt``: head, text projection and logit
+                scale) or a ``ResiregVLM.save_pretrained`` export (head and text projection;
+                the logit scale keeps its init).
+
+        Returns:
+            The names of the loaded tensors.
+        """
+        path = Path(source)
+        if path.is_dir():
+            exported = ResiregVLM.from_pretrained(path)
+            self.vlm.head.load_state_dict(exported.head.state_dict())
+            self.vlm.text_proj.load_state_dict(exported.text_proj.state_dict())
+            return sorted(
+                k for k in self.state_dict() if k.startswith(("vlm.head.", "vlm.text_proj."))
+            )
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"model.init_from={str(source)!r} is neither a checkpoint nor an export directory"
+            )
+        state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
+        wanted = ("vlm.head.", "vlm.text_proj.", "logit_scale")
+        trained = {k: v for k, v in state.items() if k.startswith(wanted)}
+        if not any(k.startswith("vlm.head.") for k in trained):
+            raise ValueError(f"model.init_from={str(source)!r} holds no language-head weights")
+        missing, _ = self.load_state_dict(trained, strict=False)
+        absent = [k for k in missing if k.startswith(wanted)]
+        if absent:
+            raise ValueError(f"model.init_from={str(source)!r} lacks {absent[:5]}")
+        return sorted(trained)

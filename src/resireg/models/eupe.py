@@ -59,20 +59,29 @@ class EUPEBackbone(FrozenModule):
     Args:
         model_name: timm model name (or a key of :data:`EUPE_MODELS`).
         weights: ``"hub"``, a local checkpoint path (timm or Meta format), or ``None``.
+        seed: seed of the random init when ``weights`` is ``None``, so the frozen random
+            backbone of a tiny/smoke model is rebuilt identically from its config.
         **overrides: timm constructor overrides (e.g. ``embed_dim=64, depth=2,
             num_heads=2`` for a tiny model of the same architecture).
     """
 
     def __init__(
-        self, model_name: str = "eupe_vit_s16", weights: str | None = "hub", **overrides: Any
+        self,
+        model_name: str = "eupe_vit_s16",
+        weights: str | None = "hub",
+        seed: int = 0,
+        **overrides: Any,
     ) -> None:
         super().__init__()
         self.model_name = EUPE_MODELS.get(model_name, model_name)
         self.weights = weights
+        self.seed = seed
         self.overrides = dict(overrides)
         kwargs: dict[str, Any] = {"num_classes": 0, "dynamic_img_size": True, **overrides}
         if weights is None:
-            model = timm.create_model(self.model_name, pretrained=False, **kwargs)
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                model = timm.create_model(self.model_name, pretrained=False, **kwargs)
         elif weights == "hub":
             cfg = timm.models.get_pretrained_cfg(self.model_name)
             repo = cfg.hf_hub_id if cfg is not None else None
@@ -116,4 +125,5 @@ class EUPEBackbone(FrozenModule):
 
     def spec(self) -> dict[str, Any]:
         """JSON-serialisable description (name, weights source, overrides)."""
-        return {"model_name": self.model_name, "weights": self.weights, **self.overrides}
+        return {"model_name": self.model_name, "weights": self.weights, "seed": self.seed,
+                **self.overrides}  # fmt: skip

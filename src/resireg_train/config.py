@@ -1,0 +1,137 @@
+"""Where the Hydra configs live, and the checks a run's config must pass before anything starts.
+
+Hydra/OmegaConf check structure; they do not know that a learning rate must be positive or
+that ``min_lr`` must not exceed ``lr``. :func:`validate` does, and reports every violation
+at once, each as ``key=value: expected ...``, before any model or dataset is loaded.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["CONFIG_DIR", "ConfigError", "validate"]
+
+
+def _config_dir() -> Path:
+    env = os.environ.get("RESIREG_CONFIG_DIR")
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "conf"
+
+
+#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it).
+CONFIG_DIR = _config_dir()
+
+
+class ConfigError(ValueError):
+    """A config value of the wrong type or out of range; the message names key and value."""
+
+
+_MISSING = object()
+_PRECISIONS = {
+    "32-true", "32", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true", "64",
+    "transformer-engine", "transformer-engine-float16",
+}  # fmt: skip
+
+
+def _int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _opt_str(v: Any) -> bool:
+    return v is None or isinstance(v, str)
+
+
+# (key, check, what is expected). A key absent from the config is not checked.
+_RULES: list[tuple[str, Callable[[Any], bool], str]] = [
+    ("seed", _int, "an integer"),
+    ("data.batch_size", lambda v: _int(v) and v >= 1, "an integer >= 1"),
+    ("data.steps_per_epoch", lambda v: _int(v) and v >= 1, "an integer >= 1"),
+    ("data.crop_size", lambda v: _int(v) and v >= 16, "an integer >= 16"),
+    ("data.min_image_size", lambda v: _int(v) and v >= 1, "an integer >= 1"),
+    ("data.num_workers", lambda v: _int(v) and v >= 0, "an integer >= 0"),
+    ("data.shuffle_buffer", lambda v: _int(v) and v >= 0, "an integer >= 0"),
+    ("data.sources", lambda v: isinstance(v, dict) and len(v) > 0, "a non-empty mapping"),
+    ("model.optimizer.name", lambda v: isinstance(v, str), "a torch.optim class name"),
+    ("model.optimizer.lr", lambda v: _num(v) and v > 0, "a number > 0"),
+    ("model.optimizer.weight_decay", lambda v: _num(v) and v >= 0, "a number >= 0"),
+    ("model.scheduler.min_lr", lambda v: _num(v) and v >= 0, "a number >= 0"),
+    ("model.loss.contrastive.scale", lambda v: _num(v) and v >= 0, "a number >= 0"),
+    ("model.loss.contrastive.warmup_epochs", lambda v: _num(v) and v >= 0, "a number >= 0"),
+    ("model.loss.distill.scale", lambda v: _num(v) and v >= 0, "a number >= 0"),
+    ("model.loss.distill.warmup_epochs", lambda v: _num(v) and v >= 0, "a number >= 0"),
+    ("model.logit_scale.init", lambda v: _num(v) and v > 0, "a number > 0"),
+    ("model.logit_scale.max", lambda v: _num(v) and v > 0, "a number > 0"),
+    ("model.head.drop_path", lambda v: _num(v) and 0 <= v < 1, "a number in [0, 1)"),
+    ("model.head.out_dim", lambda v: _int(v) and v >= 1, "an integer >= 1"),
+    ("model.head.depth", lambda v: _int(v) and v >= 1, "an integer >= 1"),
+    ("model.init_from", _opt_str, "null or a path"),
+    ("trainer.max_epochs", lambda v: _int(v) and v >= 1, "an integer >= 1"),
+    ("trainer.precision", lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
+    ("ckpt_path", _opt_str, "null, 'last' or a checkpoint path"),
+    ("optimized_metric", _opt_str, "null or a metric name"),
+]
+
+
+def _get(cfg: DictConfig, key: str) -> Any:
+    """The resolved plain value at ``key`` (``_MISSING`` when absent; ``None`` when ``???``)."""
+    value = OmegaConf.select(cfg, key, default=_MISSING, throw_on_missing=False)
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
+def _missing(node: Any, prefix: str = "") -> list[str]:
+    """Keys holding ``???`` (found without resolving interpolations)."""
+    if isinstance(node, dict):
+        return [m for k, v in node.items() for m in _missing(v, f"{prefix}{k}.")]
+    return [prefix[:-1]] if node == "???" else []
+
+
+def validate(cfg: DictConfig | dict) -> None:
+    """Check value types and ranges of a training config; raise :class:`ConfigError` listing all.
+
+    Also checks the cross-field rules: ``min_lr <= lr``, ``logit_scale.init <= max``, a
+    teacher config whenever the distillation scale is > 0, and a source ``probability`` > 0.
+    """
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    errors = [
+        f"{key}=???: a value is required (e.g. {key}=... on the command line)"
+        for key in _missing(OmegaConf.to_container(cfg, resolve=False))
+    ]
+    for key, check, expected in _RULES:
+        value = _get(cfg, key)
+        if value is not _MISSING and not check(value):
+            errors.append(f"{key}={value!r}: expected {expected}")
+    values = {k: _get(cfg, k) for k in (
+        "model.optimizer.lr", "model.scheduler.min_lr", "model.logit_scale.init",
+        "model.logit_scale.max", "model.loss.distill.scale", "model.teacher", "data.sources",
+    )}  # fmt: skip
+    lr, min_lr = values["model.optimizer.lr"], values["model.scheduler.min_lr"]
+    if _num(lr) and _num(min_lr) and min_lr > lr:
+        errors.append(f"model.scheduler.min_lr={min_lr!r}: expected <= model.optimizer.lr={lr!r}")
+    init, top = values["model.logit_scale.init"], values["model.logit_scale.max"]
+    if _num(init) and _num(top) and init > top:
+        errors.append(f"model.logit_scale.init={init!r}: expected <= model.logit_scale.max={top!r}")
+    distill = values["model.loss.distill.scale"]
+    if _num(distill) and distill > 0 and values["model.teacher"] in (None, _MISSING):
+        errors.append(
+            f"model.loss.distill.scale={distill!r}: distillation needs a model.teacher config "
+            "(or set the scale to 0)"
+        )
+    sources = values["data.sources"]
+    if isinstance(sources, dict):
+        for name, spec in sources.items():
+            p = spec.get("probability", 1.0) if isinstance(spec, dict) else None
+            if not (_num(p) and p > 0):
+                errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
+    if errors:
+        raise ConfigError("invalid config:\n  " + "\n  ".join(errors))

@@ -1,0 +1,167 @@
+"""Run records: a CSV logger that survives resume, and ``results.json`` (final + best metrics).
+
+``results.json`` is what sweeps are summarised from (``resireg-report``). It is rewritten
+at the end of every epoch, so an interrupted or failed run still reports how far it got::
+
+    {"status": "running" | "completed" | "failed", "error": null | "...",
+     "epoch": 3, "global_step": 32,
+     "final": {"train/loss": 1.9, ...},                    # last epoch's epoch-level values
+     "best": {"train/loss": {"value": 1.9, "epoch": 3}, ...},
+     "history": [{"epoch": 0, "step": 8, "train/loss": 2.7, ...}, ...]}
+
+"Best" is the minimum for losses and the maximum for accuracies, retrieval and IoU metrics;
+other values (learning rate, logit scale, skip counts) are reported as final only.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+from lightning.pytorch.loggers import CSVLogger
+from lightning.pytorch.loggers.csv_logs import ExperimentWriter
+
+__all__ = ["ResumableCSVLogger", "ResultsTracker", "read_results", "update_results"]
+
+RESULTS_FILE = "results.json"
+_HIGHER = ("miou", "iou", "acc", "retrieval")
+
+
+def metric_mode(name: str) -> str | None:
+    """``"min"`` for losses, ``"max"`` for accuracy / retrieval / IoU metrics, else ``None``."""
+    lower = name.lower()
+    if "loss" in lower:
+        return "min"
+    if any(tag in lower for tag in _HIGHER):
+        return "max"
+    return None
+
+
+# ------------------------------------------------------------------------- CSV logger
+class _ResumingWriter(ExperimentWriter):
+    """Keeps ``metrics.csv`` rows logged before ``keep_before_step`` instead of deleting the file."""
+
+    def __init__(self, log_dir: str, keep_before_step: int | None) -> None:
+        self._keep_before = keep_before_step
+        super().__init__(log_dir)
+
+    def _check_log_dir_exists(self) -> None:
+        if self._keep_before is None or not os.path.isfile(self.metrics_file_path):
+            if os.path.isfile(self.metrics_file_path):
+                os.remove(self.metrics_file_path)  # a fresh run: no stale rows
+            return
+        with open(self.metrics_file_path, newline="") as f:
+            reader = csv.DictReader(f)
+            keys = list(reader.fieldnames or [])
+            rows = [r for r in reader if r.get("step") and int(r["step"]) < self._keep_before]
+        # Rows logged after the checkpoint were computed by steps that are now re-run.
+        with open(self.metrics_file_path, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=keys)
+            writer.writeheader()
+            writer.writerows(rows)
+        self.metrics_keys = keys
+
+
+class ResumableCSVLogger(CSVLogger):
+    """``CSVLogger`` writing ``<save_dir>/metrics.csv`` that continues the file on resume.
+
+    Lightning's own ``CSVLogger`` deletes an existing ``metrics.csv``. With
+    ``resume_step`` (the global step of the checkpoint being resumed) the rows logged
+    before that step are kept and the later ones (from the interrupted epoch) dropped.
+    """
+
+    def __init__(self, save_dir: str | os.PathLike, resume_step: int | None = None) -> None:
+        super().__init__(save_dir=str(save_dir), name="", version="")
+        self._resume_step = resume_step
+
+    @property
+    def experiment(self) -> ExperimentWriter:
+        if self._experiment is None:
+            self._fs.makedirs(self.root_dir, exist_ok=True)
+            self._experiment = _ResumingWriter(self.log_dir, self._resume_step)
+        return self._experiment
+
+
+# ---------------------------------------------------------------------- results.json
+def read_results(directory: str | os.PathLike) -> dict[str, Any]:
+    path = Path(directory) / RESULTS_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def update_results(directory: str | os.PathLike, **fields: Any) -> dict[str, Any]:
+    """Merge ``fields`` into ``<directory>/results.json`` (written atomically)."""
+    directory = Path(directory)
+    results = {**read_results(directory), **fields}
+    directory.mkdir(parents=True, exist_ok=True)
+    tmp = directory / f".{RESULTS_FILE}.tmp"
+    tmp.write_text(json.dumps(results, indent=2, sort_keys=False))
+    tmp.replace(directory / RESULTS_FILE)
+    return results
+
+
+def _epoch_metrics(metrics: dict[str, Any]) -> dict[str, float]:
+    """Epoch-level values from ``trainer.callback_metrics`` (``x_epoch`` -> ``x``; no ``_step``)."""
+    out = {}
+    for key, value in metrics.items():
+        if key.endswith("_step"):
+            continue
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            continue
+        out[key.removesuffix("_epoch")] = number
+    return out
+
+
+class ResultsTracker(L.Callback):
+    """Records every epoch's metrics and keeps ``results.json`` up to date (rank 0).
+
+    Its history is part of the checkpoint, so a resumed run reports the best values of
+    the epochs before the interruption too.
+    """
+
+    def __init__(self, directory: str | os.PathLike) -> None:
+        self.directory = Path(directory)
+        self.history: list[dict[str, float]] = []
+
+    def summary(self) -> dict[str, Any]:
+        best: dict[str, dict[str, float]] = {}
+        for row in self.history:
+            for key, value in row.items():
+                mode = metric_mode(key)
+                if mode is None or math.isnan(value):
+                    continue
+                current = best.get(key, {}).get("value")
+                if current is None or (value < current if mode == "min" else value > current):
+                    best[key] = {"value": value, "epoch": int(row["epoch"])}
+        last = self.history[-1] if self.history else {}
+        final = {k: v for k, v in last.items() if k not in ("epoch", "step")}
+        return {"final": final, "best": best, "history": self.history}
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        row = {"epoch": trainer.current_epoch, "step": trainer.global_step}
+        row.update(_epoch_metrics(trainer.callback_metrics))
+        self.history = [r for r in self.history if r["epoch"] < row["epoch"]] + [row]
+        if trainer.is_global_zero:
+            update_results(
+                self.directory,
+                status="running",
+                epoch=trainer.current_epoch,
+                global_step=trainer.global_step,
+                **self.summary(),
+            )
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.is_global_zero and self.history:
+            update_results(self.directory, status="completed", error=None, **self.summary())
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": self.history}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.history = list(state_dict.get("history", []))

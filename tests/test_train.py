@@ -1,0 +1,205 @@
+"""Hydra configs and the `resireg-train` entry point: recipe, smoke run, resume, bad config."""
+
+import csv
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+
+import lightning as L
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from resireg.models import ResiregVLM
+from resireg_train.config import CONFIG_DIR, ConfigError, validate
+from resireg_train.module import ResiregModule
+from resireg_train.train import train
+
+
+def _compose(*overrides):
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+# DESIGN.md section 6, key by key.
+RECIPE = {
+    "trainer.max_epochs": (100, 350),
+    "data.batch_size": (48, 48),
+    "data.steps_per_epoch": (1000, 1000),
+    "data.crop_size": (512, 512),
+    "model.optimizer.name": ("AdamW", "AdamW"),
+    "model.optimizer.lr": (6e-4, 4e-4),
+    "model.scheduler.min_lr": (1e-6, 5e-6),
+    "model.optimizer.weight_decay": (0.05, 0.05),
+    "model.loss.contrastive.scale": (1.0, 1.0),
+    "model.loss.contrastive.warmup_epochs": (4, 4),
+    "model.loss.distill.scale": (0.1, 0.0),
+    "model.logit_scale.init": (1 / 0.07, 1 / 0.07),
+    "model.logit_scale.max": (100.0, 100.0),
+    "trainer.precision": ("bf16-mixed", "bf16-mixed"),
+}
+
+
+@pytest.mark.parametrize("stage", [1, 2])
+def test_experiment_configs_carry_the_recipe_table(stage):
+    cfg = _compose(f"experiment=vlm25m_stage{stage}")
+    for key, values in RECIPE.items():
+        got = OmegaConf.select(cfg, key)
+        assert got == pytest.approx(values[stage - 1]), key
+    assert cfg.model.backbone.model_name == "eupe_vit_s16" and cfg.model.backbone.weights == "hub"
+    assert cfg.model.text.model_name == "ViT-B-16-SigLIP2" and cfg.model.text.weights == "webli"
+    assert (cfg.model.head.depth, cfg.model.head.num_heads, cfg.model.head.out_dim) == (2, 8, 512)
+    assert cfg.model.head.drop_path == 0.3 and cfg.model.head.mlp_ratio == 4.0
+    if stage == 1:
+        assert cfg.model.loss.distill.warmup_epochs == 8
+        assert cfg.model.teacher.kind == "radseg"
+        assert cfg.model.teacher.model_version == "c-radio_v3-b"
+        assert cfg.model.teacher.lang_model == "siglip2"
+        assert "init_from" not in cfg.model
+        validate(cfg)
+    else:
+        assert cfg.model.teacher is None
+        assert OmegaConf.is_missing(cfg.model, "init_from")  # stage 2 must name stage 1
+        with pytest.raises(ConfigError, match=r"model\.init_from=\?\?\?"):
+            validate(cfg)
+        validate(_compose("experiment=vlm25m_stage2", "model.init_from=stage1/last.ckpt"))
+
+
+def test_bad_config_values_fail_fast_naming_key_and_value(tmp_path):
+    cfg = _compose(
+        "experiment=smoke",
+        f"paths.output_dir={tmp_path}",
+        "model.optimizer.lr=-0.1",
+        "data.batch_size=abc",
+        "model.head.drop_path=1.5",
+    )
+    with pytest.raises(ConfigError) as err:
+        train(cfg)
+    message = str(err.value)
+    assert "model.optimizer.lr=-0.1: expected a number > 0" in message
+    assert "data.batch_size='abc': expected an integer >= 1" in message
+    assert "model.head.drop_path=1.5" in message
+    assert not (tmp_path / "checkpoints").exists()  # nothing was built or trained
+    cfg = _compose("experiment=smoke", "model.loss.distill.scale=0.5", "model.teacher=null")
+    with pytest.raises(ConfigError, match=r"model\.loss\.distill\.scale=0\.5: distillation needs"):
+        validate(cfg)
+    with pytest.raises(ConfigError, match=r"model\.scheduler\.min_lr=0\.1: expected <= "):
+        validate(_compose("experiment=smoke", "model.scheduler.min_lr=0.1"))
+
+
+def _read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_smoke_experiment_through_the_entry_point(tmp_path):
+    """`resireg-train experiment=smoke` end to end in a fresh process."""
+    exe = shutil.which("resireg-train")
+    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.train"]
+    out = tmp_path / "run"
+    proc = subprocess.run(
+        [*cmd, "experiment=smoke", f"hydra.run.dir={out}", "~callbacks.progress_bar"],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results["status"] == "completed" and results["error"] is None
+    history = results["history"]
+    assert [h["epoch"] for h in history] == list(range(6))
+    assert history[-1]["train/loss"] < history[0]["train/loss"] - 0.1, history
+    assert results["best"]["train/loss"]["value"] == min(h["train/loss"] for h in history)
+    assert results["final"]["data/skipped_invalid"] == 0
+    rows = _read_csv(out / "metrics.csv")
+    steps = [int(r["step"]) for r in rows if r["train/loss_step"]]
+    assert len(steps) == 6 * 8 and steps == sorted(steps)
+    assert (out / ".hydra" / "config.yaml").is_file() and (
+        out / "checkpoints" / "last.ckpt"
+    ).is_file()
+    # The export reloads into the same trained weights as the last checkpoint.
+    vlm = ResiregVLM.from_pretrained(out / "export")
+    module = ResiregModule.load_from_checkpoint(out / "checkpoints" / "last.ckpt")
+    assert torch.equal(vlm.head.proj.weight, module.vlm.head.proj.weight)
+    image = torch.rand(3, 64, 80)
+    torch.testing.assert_close(
+        vlm.encode_image(image, resireg="full", n_prototypes=4, n_components=4),
+        module.vlm.eval().encode_image(image, resireg="full", n_prototypes=4, n_components=4),
+    )
+
+
+class _CrashAt(L.Callback):
+    def __init__(self, epoch):
+        self.epoch = epoch
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        if trainer.current_epoch == self.epoch:
+            raise RuntimeError("simulated crash")
+
+
+def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path):
+    def cfg(name, *extra):
+        return _compose("experiment=smoke", f"paths.output_dir={tmp_path / name}",
+                        "trainer.max_epochs=3", "data.steps_per_epoch=4",
+                        "~callbacks.progress_bar", *extra)  # fmt: skip
+
+    train(cfg("straight"))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(cfg("resumed"), callbacks=[_CrashAt(2)])
+    crashed = json.loads((tmp_path / "resumed" / "results.json").read_text())
+    assert crashed["status"] == "failed" and "simulated crash" in crashed["error"]
+    assert crashed["epoch"] == 1
+    results = train(cfg("resumed", "ckpt_path=last"))
+    assert results["status"] == "completed"
+
+    a = torch.load(tmp_path / "straight/checkpoints/last.ckpt", weights_only=False)
+    b = torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)
+    assert a["global_step"] == b["global_step"] == 12
+    assert a["state_dict"].keys() == b["state_dict"].keys()
+    # Equal up to float noise: the frozen text tower embeds a caption in a different batch
+    # after the resume (its cache starts empty), which moves results by ~1e-7.
+    for key in a["state_dict"]:
+        torch.testing.assert_close(a["state_dict"][key], b["state_dict"][key], atol=1e-6, rtol=0)
+    rows_a = _read_csv(tmp_path / "straight/metrics.csv")
+    rows_b = _read_csv(tmp_path / "resumed/metrics.csv")
+    assert [(r["step"], r["epoch"], r["train/lr"]) for r in rows_a] == [
+        (r["step"], r["epoch"], r["train/lr"]) for r in rows_b
+    ]  # no row lost or repeated across the interruption; same schedule
+    for key in ("train/loss_step", "train/loss_epoch"):
+        va = [float(r[key]) for r in rows_a if r[key]]
+        vb = [float(r[key]) for r in rows_b if r[key]]
+        assert va == pytest.approx(vb, rel=1e-5, abs=1e-6)
+    # The cosine schedule ran over all 12 steps, not restarted at the resume.
+    lrs = [float(r["train/lr"]) for r in rows_b if r["train/lr"]]
+    assert len(lrs) == 12 and all(x > y for x, y in zip(lrs, lrs[1:], strict=False))
+    assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
+
+
+def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
+    stage1 = tmp_path / "stage1"
+    train(_compose("experiment=smoke", f"paths.output_dir={stage1}", "trainer.max_epochs=1",
+                   "data.steps_per_epoch=2", "~callbacks.progress_bar"))  # fmt: skip
+    ckpt = torch.load(stage1 / "checkpoints/last.ckpt", weights_only=False)["state_dict"]
+    stage2 = tmp_path / "stage2"
+    cfg = _compose(
+        "experiment=smoke", f"paths.output_dir={stage2}", "trainer.max_epochs=1",
+        "data.steps_per_epoch=1", "~callbacks.progress_bar", "model.teacher=null",
+        "model.loss.distill.scale=0", f"+model.init_from={stage1 / 'checkpoints/last.ckpt'}",
+        "model.optimizer.lr=1e-12", "model.scheduler.min_lr=1e-12",
+    )  # fmt: skip
+    train(cfg)
+    after = torch.load(stage2 / "checkpoints/last.ckpt", weights_only=False)["state_dict"]
+    assert not any(k.startswith(("teacher.", "distill_head.")) for k in after)
+    for key in ("vlm.head.proj.weight", "vlm.text_proj.weight", "logit_scale"):
+        torch.testing.assert_close(after[key], ckpt[key], atol=1e-6, rtol=0)  # lr ~ 0
+    assert math.isfinite(json.loads((stage2 / "results.json").read_text())["final"]["train/loss"])
+    # From an export folder as well (head + text projection).
+    module = ResiregModule(**{k: v for k, v in OmegaConf.to_container(cfg.model).items()
+                              if k not in ("_target_", "init_from")} | {"steps_per_epoch": 1})  # fmt: skip
+    loaded = module.load_trained(stage1 / "export")
+    assert "vlm.head.proj.weight" in loaded
+    assert torch.equal(module.vlm.head.proj.weight, ckpt["vlm.head.proj.weight"])
+    with pytest.raises(FileNotFoundError, match=r"model\.init_from='nope'"):
+        module.load_trained("nope")
