@@ -203,3 +203,19 @@ def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
     assert torch.equal(module.vlm.head.proj.weight, ckpt["vlm.head.proj.weight"])
     with pytest.raises(FileNotFoundError, match=r"model\.init_from='nope'"):
         module.load_trained("nope")
+
+
+def test_tensorboard_and_mlflow_trackers(tmp_path):
+    """`logger=[tensorboard,mlflow]` adds both trackers; metrics.csv is still written."""
+    pytest.importorskip("tensorboard")
+    mlflow = pytest.importorskip("mlflow")
+    out = tmp_path / "run"
+    train(_compose("experiment=smoke", f"paths.output_dir={out}", f"paths.log_dir={tmp_path}",
+                   "logger=[tensorboard,mlflow]", "trainer.max_epochs=1", "data.steps_per_epoch=2",
+                   "~callbacks.progress_bar"))  # fmt: skip
+    assert (out / "metrics.csv").is_file()
+    assert list((out / "tensorboard").glob("events.out.tfevents.*"))
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    runs = mlflow.search_runs(experiment_names=["resireg"], output_format="list")
+    assert len(runs) == 1 and runs[0].info.run_name == "smoke"
+    assert "train/loss_epoch" in runs[0].data.metrics

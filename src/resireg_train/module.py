@@ -86,17 +86,19 @@ class ResiregModule(L.LightningModule):
         d = self.distill_cfg["scale"] * warmup_factor(epoch, self.distill_cfg["warmup_epochs"])
         return c, d
 
-    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+    def losses(self, batch: dict, step: int) -> tuple[Tensor, dict[str, Tensor]]:
+        """Total loss of a batch ``{"image": [B, 3, H, W], "caption": [str] * B}`` at optimizer
+        step ``step`` (for the warm-up), and its detached parts for logging."""
         images, captions = batch["image"], batch["caption"]
-        feats = self.vlm.backbone(images)
-        out = self.vlm.head(feats)
+        out = self.vlm.head(self.vlm.backbone(images))
         text = self.vlm.text_proj(self.vlm.text(captions).to(images.device))
         loss_c, logits, targets = self.contrastive(out.embedding, text, self.logit_scale.exp())
-        scale_c, scale_d = self.loss_scales(self.global_step / self.steps_per_epoch)
+        scale_c, scale_d = self.loss_scales(step / self.steps_per_epoch)
         loss = scale_c * loss_c
         logs = {
             "train/loss_contrastive": loss_c.detach(),
             "train/logit_scale": self.logit_scale.exp().detach(),
+            "train/retrieval_i2t": (logits.argmax(1) == targets).float().mean(),
         }
         if self.teacher is not None:
             target = self.distill_head(
@@ -105,12 +107,17 @@ class ResiregModule(L.LightningModule):
             loss_d = distill_loss(out.patches, target.permute(0, 3, 1, 2))
             loss = loss + scale_d * loss_d
             logs["train/loss_distill"] = loss_d.detach()
+        return loss, logs
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        images = batch["image"]
+        loss, logs = self.losses(batch, self.global_step)
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"non-finite training loss {loss.item()} at global step {self.global_step} "
-                f"(contrastive {loss_c.item()}); lower model.optimizer.lr or check the data"
+                f"(contrastive {logs['train/loss_contrastive'].item()}); lower "
+                "model.optimizer.lr or check the data"
             )
-        logs["train/retrieval_i2t"] = (logits.argmax(1) == targets).float().mean()
         self.log_dict(logs, on_step=True, on_epoch=True, batch_size=images.shape[0])
         self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"], on_step=True,
                  on_epoch=False, batch_size=images.shape[0])  # fmt: skip
@@ -134,7 +141,10 @@ class ResiregModule(L.LightningModule):
             self.logit_scale.clamp_(max=self.max_log_scale)
 
     # -------------------------------------------------------------- optimiser
-    def configure_optimizers(self) -> dict:
+    def build_optimizer(
+        self, total_steps: int
+    ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
+        """The optimizer over the trained parameters and its per-step cosine schedule."""
         decay, no_decay = [], []
         for p in self.parameters():
             if not p.requires_grad:
@@ -145,14 +155,17 @@ class ResiregModule(L.LightningModule):
         optimizer = getattr(torch.optim, cfg.pop("name"))(
             [{"params": decay}, {"params": no_decay, "weight_decay": 0.0}], **cfg
         )
-        total = max(1, int(self.trainer.estimated_stepping_batches))
+        total = max(1, int(total_steps))
         floor = self.sched_cfg["min_lr"] / cfg["lr"]
 
         def cosine(step: int) -> float:
             progress = min(1.0, step / total)
             return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * progress))
 
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, cosine)
+        return optimizer, torch.optim.lr_scheduler.LambdaLR(optimizer, cosine)
+
+    def configure_optimizers(self) -> dict:
+        optimizer, scheduler = self.build_optimizer(self.trainer.estimated_stepping_batches)
         return {
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
