@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from resireg.models import ResiregVLM
 from resireg_train.config import CONFIG_DIR, ConfigError, validate
 from resireg_train.module import ResiregModule
-from resireg_train.train import train
+from resireg_train.train import _optimized_value, train
 
 
 def _compose(*overrides):
@@ -175,6 +175,11 @@ def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path)
     lrs = [float(r["train/lr"]) for r in rows_b if r["train/lr"]]
     assert len(lrs) == 12 and all(x > y for x, y in zip(lrs, lrs[1:], strict=False))
     assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
+    # What a sweeper (e.g. Optuna) receives from the Hydra main with optimized_metric set.
+    best = results["best"]["train/loss"]["value"]
+    assert _optimized_value(cfg("x", "optimized_metric=train/loss"), results) == best
+    with pytest.raises(KeyError, match="optimized_metric='val/nope'"):
+        _optimized_value(cfg("x", "optimized_metric=val/nope"), results)
 
 
 def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):

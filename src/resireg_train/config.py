@@ -49,35 +49,48 @@ def _opt_str(v: Any) -> bool:
     return v is None or isinstance(v, str)
 
 
-# (key, check, what is expected). A key absent from the config is not checked.
-_RULES: list[tuple[str, Callable[[Any], bool], str]] = [
-    ("seed", _int, "an integer"),
-    ("data.batch_size", lambda v: _int(v) and v >= 1, "an integer >= 1"),
-    ("data.steps_per_epoch", lambda v: _int(v) and v >= 1, "an integer >= 1"),
-    ("data.crop_size", lambda v: _int(v) and v >= 16, "an integer >= 16"),
-    ("data.min_image_size", lambda v: _int(v) and v >= 1, "an integer >= 1"),
-    ("data.num_workers", lambda v: _int(v) and v >= 0, "an integer >= 0"),
-    ("data.shuffle_buffer", lambda v: _int(v) and v >= 0, "an integer >= 0"),
-    ("data.sources", lambda v: isinstance(v, dict) and len(v) > 0, "a non-empty mapping"),
-    ("model.optimizer.name", lambda v: isinstance(v, str), "a torch.optim class name"),
-    ("model.optimizer.lr", lambda v: _num(v) and v > 0, "a number > 0"),
-    ("model.optimizer.weight_decay", lambda v: _num(v) and v >= 0, "a number >= 0"),
-    ("model.scheduler.min_lr", lambda v: _num(v) and v >= 0, "a number >= 0"),
-    ("model.loss.contrastive.scale", lambda v: _num(v) and v >= 0, "a number >= 0"),
-    ("model.loss.contrastive.warmup_epochs", lambda v: _num(v) and v >= 0, "a number >= 0"),
-    ("model.loss.distill.scale", lambda v: _num(v) and v >= 0, "a number >= 0"),
-    ("model.loss.distill.warmup_epochs", lambda v: _num(v) and v >= 0, "a number >= 0"),
-    ("model.logit_scale.init", lambda v: _num(v) and v > 0, "a number > 0"),
-    ("model.logit_scale.max", lambda v: _num(v) and v > 0, "a number > 0"),
-    ("model.head.drop_path", lambda v: _num(v) and 0 <= v < 1, "a number in [0, 1)"),
-    ("model.head.out_dim", lambda v: _int(v) and v >= 1, "an integer >= 1"),
-    ("model.head.depth", lambda v: _int(v) and v >= 1, "an integer >= 1"),
-    ("model.init_from", _opt_str, "null or a path"),
-    ("trainer.max_epochs", lambda v: _int(v) and v >= 1, "an integer >= 1"),
-    ("trainer.precision", lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
-    ("ckpt_path", _opt_str, "null, 'last' or a checkpoint path"),
-    ("optimized_metric", _opt_str, "null or a metric name"),
-]
+Rule = tuple[Callable[[Any], bool], str]
+
+
+def _integer(minimum: int) -> Rule:
+    return (lambda v: _int(v) and v >= minimum), f"an integer >= {minimum}"
+
+
+def _number(minimum: float, strict: bool = False) -> Rule:
+    if strict:
+        return (lambda v: _num(v) and v > minimum), f"a number > {minimum:g}"
+    return (lambda v: _num(v) and v >= minimum), f"a number >= {minimum:g}"
+
+
+# key -> (check, what is expected). A key absent from the config is not checked.
+_RULES: dict[str, Rule] = {
+    "seed": (_int, "an integer"),
+    "data.batch_size": _integer(1),
+    "data.steps_per_epoch": _integer(1),
+    "data.crop_size": _integer(16),
+    "data.min_image_size": _integer(1),
+    "data.num_workers": _integer(0),
+    "data.shuffle_buffer": _integer(0),
+    "data.sources": (lambda v: isinstance(v, dict) and len(v) > 0, "a non-empty mapping"),
+    "model.optimizer.name": (lambda v: isinstance(v, str), "a torch.optim class name"),
+    "model.optimizer.lr": _number(0, strict=True),
+    "model.optimizer.weight_decay": _number(0),
+    "model.scheduler.min_lr": _number(0),
+    "model.loss.contrastive.scale": _number(0),
+    "model.loss.contrastive.warmup_epochs": _number(0),
+    "model.loss.distill.scale": _number(0),
+    "model.loss.distill.warmup_epochs": _number(0),
+    "model.logit_scale.init": _number(0, strict=True),
+    "model.logit_scale.max": _number(0, strict=True),
+    "model.head.drop_path": (lambda v: _num(v) and 0 <= v < 1, "a number in [0, 1)"),
+    "model.head.out_dim": _integer(1),
+    "model.head.depth": _integer(1),
+    "model.init_from": (_opt_str, "null or a path"),
+    "trainer.max_epochs": _integer(1),
+    "trainer.precision": (lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
+    "ckpt_path": (_opt_str, "null, 'last' or a checkpoint path"),
+    "optimized_metric": (_opt_str, "null or a metric name"),
+}
 
 
 def _get(cfg: DictConfig, key: str) -> Any:
@@ -107,7 +120,7 @@ def validate(cfg: DictConfig | dict) -> None:
         f"{key}=???: a value is required (e.g. {key}=... on the command line)"
         for key in _missing(OmegaConf.to_container(cfg, resolve=False))
     ]
-    for key, check, expected in _RULES:
+    for key, (check, expected) in _RULES.items():
         value = _get(cfg, key)
         if value is not _MISSING and not check(value):
             errors.append(f"{key}={value!r}: expected {expected}")

@@ -210,12 +210,7 @@ class ResiregModule(L.LightningModule):
         """
         path = Path(source)
         if path.is_dir():
-            exported = ResiregVLM.from_pretrained(path)
-            self.vlm.head.load_state_dict(exported.head.state_dict())
-            self.vlm.text_proj.load_state_dict(exported.text_proj.state_dict())
-            return sorted(
-                k for k in self.state_dict() if k.startswith(("vlm.head.", "vlm.text_proj."))
-            )
+            return [f"vlm.{k}" for k in self.vlm.load_trained(path)]
         if not path.is_file():
             raise FileNotFoundError(
                 f"model.init_from={str(source)!r} is neither a checkpoint nor an export directory"

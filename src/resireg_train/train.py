@@ -96,16 +96,17 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
     except BaseException as exc:
-        update_results(
-            out,
-            status="failed",
-            error="".join(traceback.format_exception_only(type(exc), exc)).strip(),
-        )
+        if trainer.is_global_zero:
+            update_results(
+                out,
+                status="failed",
+                error="".join(traceback.format_exception_only(type(exc), exc)).strip(),
+            )
         raise
-    if trainer.interrupted:
-        return update_results(out, status="interrupted")
-    results = {}
-    if trainer.is_global_zero:
+    results: dict[str, Any] = {}
+    if trainer.is_global_zero and trainer.interrupted:
+        results = update_results(out, status="interrupted")
+    elif trainer.is_global_zero:
         extra: dict[str, Any] = {}
         if cfg.export:
             module.vlm.save_pretrained(out / "export")
@@ -117,7 +118,7 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
 def _optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     """The value a sweeper (e.g. Optuna) optimises: ``optimized_metric``'s best or final."""
     name = cfg.get("optimized_metric")
-    if not name:
+    if not name or not results:  # unset, or a rank other than 0
         return None
     for section in ("best", "final"):
         value = results.get(section, {}).get(name)

@@ -255,16 +255,22 @@ class ResiregVLM(nn.Module):
                 load_file(path / cfg["frozen_weights"]),
                 {"backbone": model.backbone, "text": model.text},
             )
-        trained = load_file(path / "model.safetensors")
-        missing = [
-            name
-            for name in ("head", "text_proj")
-            if not any(k.startswith(f"{name}.") for k in trained)
-        ]
-        if missing:
-            raise ValueError(f"{str(path / 'model.safetensors')!r} holds no weights for {missing}")
-        _load_prefixed(trained, {"head": model.head, "text_proj": model.text_proj})
+        model.load_trained(path)
         return model.to(map_location).eval()
+
+    def load_trained(self, directory: str | os.PathLike) -> list[str]:
+        """Load an export's trained parts (head, text projection) into this model.
+
+        Returns the names of the loaded tensors (``"head.…"``, ``"text_proj.…"``).
+        """
+        file = Path(directory) / "model.safetensors"
+        trained = load_file(file)
+        parts = {"head": self.head, "text_proj": self.text_proj}
+        missing = [n for n in parts if not any(k.startswith(f"{n}.") for k in trained)]
+        if missing:
+            raise ValueError(f"{str(file)!r} holds no weights for {missing}")
+        _load_prefixed(trained, parts)
+        return sorted(trained)
 
     @staticmethod
     def _download(repo_id: str) -> Path:
