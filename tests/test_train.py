@@ -84,6 +84,8 @@ def test_bad_config_values_fail_fast_naming_key_and_value(tmp_path):
     assert "data.batch_size='abc': expected an integer >= 1" in message
     assert "model.head.drop_path=1.5" in message
     assert not (tmp_path / "checkpoints").exists()  # nothing was built or trained
+    results = json.loads((tmp_path / "results.json").read_text())  # for sweep reports
+    assert results["status"] == "failed" and "model.optimizer.lr=-0.1" in results["error"]
     cfg = _compose("experiment=smoke", "model.loss.distill.scale=0.5", "model.teacher=null")
     with pytest.raises(ConfigError, match=r"model\.loss\.distill\.scale=0\.5: distillation needs"):
         validate(cfg)

@@ -22,6 +22,7 @@ import hydra
 import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.config import CONFIG_DIR, validate
@@ -57,15 +58,30 @@ def _instantiate_all(group: DictConfig | None) -> list[Any]:
 def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, Any]:
     """Train from a composed config; returns the ``results.json`` content.
 
+    Any failure, from a bad config value to a crash mid-epoch, is recorded in
+    ``results.json`` (``"status": "failed"`` and the error) before it is re-raised, so a
+    sweep report lists the job with its reason.
+
     Args:
         cfg: a composed ``train.yaml`` config (``paths.output_dir`` must be resolvable).
         callbacks: extra callbacks (added to the configured ones).
     """
-    validate(cfg)
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    L.seed_everything(cfg.seed, workers=True)
+    if rank_zero_only.rank == 0:
+        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
+    try:
+        return _fit(cfg, out, callbacks)
+    except BaseException as exc:
+        if rank_zero_only.rank == 0:
+            error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+            update_results(out, status="failed", error=error)
+        raise
 
+
+def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
+    validate(cfg)
+    L.seed_everything(cfg.seed, workers=True)
     model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
     init_from = model_cfg.pop("init_from", None)
     module = hydra.utils.instantiate(model_cfg, _convert_="all")
@@ -84,35 +100,22 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
     loggers = [ResumableCSVLogger(out, resume_step=resume_step), *_instantiate_all(cfg.logger)]
-    tracker = ResultsTracker(out)
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
         logger=loggers,
-        callbacks=[*_instantiate_all(cfg.callbacks), tracker, *callbacks],
+        callbacks=[*_instantiate_all(cfg.callbacks), ResultsTracker(out), *callbacks],
         default_root_dir=str(out),
     )
-    if trainer.is_global_zero:
-        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
-    try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
-    except BaseException as exc:
-        if trainer.is_global_zero:
-            update_results(
-                out,
-                status="failed",
-                error="".join(traceback.format_exception_only(type(exc), exc)).strip(),
-            )
-        raise
-    results: dict[str, Any] = {}
-    if trainer.is_global_zero and trainer.interrupted:
-        results = update_results(out, status="interrupted")
-    elif trainer.is_global_zero:
-        extra: dict[str, Any] = {}
-        if cfg.export:
-            module.vlm.save_pretrained(out / "export")
-            extra["export"] = str(out / "export")
-        results = update_results(out, **extra)
-    return results
+    trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    if not trainer.is_global_zero:
+        return {}
+    if trainer.interrupted:
+        return update_results(out, status="interrupted")
+    extra: dict[str, Any] = {}
+    if cfg.export:
+        module.vlm.save_pretrained(out / "export")
+        extra["export"] = str(out / "export")
+    return update_results(out, **extra)
 
 
 def _optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
