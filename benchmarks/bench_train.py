@@ -22,13 +22,12 @@ import statistics
 import time
 import warnings
 
-import hydra
 import lightning as L
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from resireg_train.config import CONFIG_DIR
+from resireg_train.train import build
 
 #: The 25M VLM's trained head on a ViT-S/16-sized backbone (random init, no download) at a
 #: reduced crop and batch, so a CPU step costs about what a real step costs on a GPU.
@@ -46,10 +45,7 @@ def _module(*overrides: str):
     """The smoke experiment's module and data module, with Hydra overrides."""
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("train", overrides=["experiment=smoke", *overrides])
-    model = OmegaConf.to_container(cfg.model, resolve=True)
-    model.pop("init_from", None)
-    data = hydra.utils.instantiate(cfg.data, _convert_="all")
-    return hydra.utils.instantiate(model, _convert_="all"), data
+    return build(cfg)
 
 
 def _batches(data, steps: int) -> list[dict]:

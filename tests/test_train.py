@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from resireg.models import ResiregVLM
 from resireg_train.config import CONFIG_DIR, ConfigError, validate
 from resireg_train.module import ResiregModule
-from resireg_train.train import _optimized_value, train
+from resireg_train.train import _optimized_value, build, train
 
 
 def _compose(*overrides):
@@ -203,8 +203,7 @@ def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
         torch.testing.assert_close(after[key], ckpt[key], atol=1e-6, rtol=0)  # lr ~ 0
     assert math.isfinite(json.loads((stage2 / "results.json").read_text())["final"]["train/loss"])
     # From an export folder as well (head + text projection).
-    module = ResiregModule(**{k: v for k, v in OmegaConf.to_container(cfg.model).items()
-                              if k not in ("_target_", "init_from")} | {"steps_per_epoch": 1})  # fmt: skip
+    module, _ = build(cfg)
     loaded = module.load_trained(stage1 / "export")
     assert "vlm.head.proj.weight" in loaded
     assert torch.equal(module.vlm.head.proj.weight, ckpt["vlm.head.proj.weight"])

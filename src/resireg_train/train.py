@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from resireg_train.config import CONFIG_DIR, validate
 from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, update_results
 
-__all__ = ["train", "main"]
+__all__ = ["build", "train", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,19 @@ def _instantiate_all(group: DictConfig | None) -> list[Any]:
     if not group:
         return []
     return [hydra.utils.instantiate(c) for c in group.values() if c and "_target_" in c]
+
+
+def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
+    """The module and data module of a composed config (``model.init_from`` is not applied:
+    it is a starting point for :func:`train`, not part of the model)."""
+    model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
+    model_cfg.pop("init_from", None)
+    module = hydra.utils.instantiate(model_cfg, _convert_="all")
+    backbone = module.vlm.backbone
+    datamodule = hydra.utils.instantiate(
+        cfg.data, mean=list(backbone.mean), std=list(backbone.std), _convert_="all"
+    )
+    return module, datamodule
 
 
 def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, Any]:
@@ -82,13 +95,8 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
     validate(cfg)
     L.seed_everything(cfg.seed, workers=True)
-    model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
-    init_from = model_cfg.pop("init_from", None)
-    module = hydra.utils.instantiate(model_cfg, _convert_="all")
-    backbone = module.vlm.backbone
-    datamodule = hydra.utils.instantiate(
-        cfg.data, mean=list(backbone.mean), std=list(backbone.std), _convert_="all"
-    )
+    module, datamodule = build(cfg)
+    init_from = cfg.model.get("init_from")
 
     ckpt = _resolve_checkpoint(cfg.ckpt_path, out)
     if init_from and ckpt is None:
