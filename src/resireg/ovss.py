@@ -22,6 +22,8 @@ __all__ = [
     "SCANNET_CLASSES",
     "VOCABULARIES",
     "vocabulary",
+    "class_prompts",
+    "average_prompts",
     "text_prototypes",
     "predict",
     "SegmentationMetric",
@@ -91,6 +93,29 @@ def vocabulary(name: str) -> tuple[str, ...]:
         ) from None
 
 
+def class_prompts(
+    class_names: Sequence[str], templates: Sequence[Callable[[str], str]] = TEMPLATES
+) -> list[str]:
+    """Every template filled with every class name, class-major: ``K * T`` prompts."""
+    if not class_names:
+        raise ValueError("class_names is empty")
+    return [t(name) for name in class_names for t in templates]
+
+
+def average_prompts(embeddings: Tensor, num_classes: int) -> Tensor:
+    """Class-major prompt embeddings ``[K * T, D]`` -> unit-norm class prototypes ``[K, D]``.
+
+    Each embedding is L2-normalised, the ``T`` embeddings of a class are averaged, and
+    the average is renormalised.
+    """
+    if embeddings.shape[0] % num_classes:
+        raise ValueError(
+            f"{embeddings.shape[0]} prompt embeddings do not split into {num_classes} classes"
+        )
+    embeds = F.normalize(embeddings.float(), dim=-1).reshape(num_classes, -1, embeddings.shape[-1])
+    return F.normalize(embeds.mean(dim=1), dim=-1)
+
+
 @torch.no_grad()
 def text_prototypes(
     encode_text: Callable[[list[str]], Tensor],
@@ -98,10 +123,7 @@ def text_prototypes(
     templates: Sequence[Callable[[str], str]] = TEMPLATES,
     batch_size: int = 1024,
 ) -> Tensor:
-    """One unit-norm text prototype per class, averaged over prompt templates.
-
-    Every template is filled with every class name and embedded; each embedding is
-    L2-normalised, the embeddings of a class are averaged, and the average renormalised.
+    """Text prototype per class: :func:`class_prompts` embedded, then :func:`average_prompts`.
 
     Args:
         encode_text: maps a list of strings to ``[M, D]`` embeddings.
@@ -112,14 +134,11 @@ def text_prototypes(
     Returns:
         ``[K, D]`` unit-norm prototypes.
     """
-    if not class_names:
-        raise ValueError("class_names is empty")
-    prompts = [t(name) for name in class_names for t in templates]
+    prompts = class_prompts(class_names, templates)
     embeds = torch.cat(
         [encode_text(prompts[i : i + batch_size]) for i in range(0, len(prompts), batch_size)]
     )
-    embeds = F.normalize(embeds.float(), dim=-1).reshape(len(class_names), len(templates), -1)
-    return F.normalize(embeds.mean(dim=1), dim=-1)
+    return average_prompts(embeds, len(class_names))
 
 
 def predict(

@@ -166,9 +166,17 @@ class FrozenTextTower(FrozenModule):
         return next(self.tower.parameters()).device
 
     @torch.no_grad()
-    def forward(self, texts: Sequence[str]) -> Tensor:
-        """Pooled embeddings ``[K, out_dim]`` (float32) of ``texts``, from the cache when possible."""
+    def forward(self, texts: Sequence[str], cache: bool = True) -> Tensor:
+        """Pooled embeddings ``[K, out_dim]`` (float32) of ``texts``.
+
+        With ``cache`` (default) known texts come from the cache and new ones are added.
+        ``cache=False`` runs the tower on exactly ``texts`` in one batch, reading and
+        writing no cache: the result then does not depend on what was cached before
+        (a text embedded within a different batch can differ in the last float bits).
+        """
         texts = list(texts)
+        if not cache:
+            return self.tower(self.tokenizer(texts).to(self.device)).float()
         missing = list(dict.fromkeys(t for t in texts if t not in self._cache))
         self.misses += len(missing)
         self.hits += len(texts) - len(missing)

@@ -32,7 +32,7 @@ from resireg.models.hub import require_online
 from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
 from resireg.reconstruct import ReSiRegFull, ReSiRegLite
 
-__all__ = ["ResiregVLM"]
+__all__ = ["ResiregVLM", "patch_grid_size", "resize_to_patch_grid"]
 
 _FORMAT = "resireg-vlm"
 
@@ -42,6 +42,33 @@ def _pil_to_tensor(image: Image.Image) -> Tensor:
 
     array = np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
     return torch.from_numpy(array).permute(2, 0, 1)
+
+
+def resize_to_patch_grid(image: Tensor, short_side: int | None, patch_size: int) -> Tensor:
+    """An RGB image ``[3, H, W]`` (uint8, or float in [0, 1]) -> float ``[3, h, w]`` in [0, 1].
+
+    With ``short_side`` the shorter side is scaled to it (aspect kept); either way each
+    side is rounded to a multiple of ``patch_size`` (bilinear, antialiased).
+    """
+    if image.ndim != 3 or image.shape[0] != 3:
+        raise ValueError(f"images must be RGB [3, H, W], got shape {tuple(image.shape)}")
+    image = image.float() / 255.0 if not image.is_floating_point() else image.float()
+    size = patch_grid_size(tuple(image.shape[-2:]), short_side, patch_size)
+    if size == tuple(image.shape[-2:]):
+        return image
+    return F.interpolate(
+        image[None], size=size, mode="bilinear", align_corners=False, antialias=True
+    )[0]
+
+
+def patch_grid_size(
+    size: tuple[int, int], short_side: int | None, patch_size: int
+) -> tuple[int, int]:
+    """``(H, W)`` after :func:`resize_to_patch_grid` (no pixels needed)."""
+    h, w = size
+    scale = short_side / min(h, w) if short_side else 1.0
+    p = patch_size
+    return (max(p, round(h * scale / p) * p), max(p, round(w * scale / p) * p))
 
 
 def _prefixed(parts: dict[str, nn.Module]) -> dict[str, Tensor]:
@@ -120,20 +147,7 @@ class ResiregVLM(nn.Module):
         ):
             images = [images]
         tensors = [_pil_to_tensor(im) if isinstance(im, Image.Image) else im for im in images]
-        p = self.backbone.patch_size
-        out = []
-        for t in tensors:
-            if t.ndim != 3 or t.shape[0] != 3:
-                raise ValueError(f"images must be RGB [3, H, W], got shape {tuple(t.shape)}")
-            t = t.float() / 255.0 if not t.is_floating_point() else t.float()
-            h, w = t.shape[-2:]
-            scale = short_side / min(h, w) if short_side else 1.0
-            size = (max(p, round(h * scale / p) * p), max(p, round(w * scale / p) * p))
-            if size != (h, w):
-                t = F.interpolate(
-                    t[None], size=size, mode="bilinear", align_corners=False, antialias=True
-                )[0]
-            out.append(t)
+        out = [resize_to_patch_grid(t, short_side, self.backbone.patch_size) for t in tensors]
         if len({tuple(t.shape) for t in out}) != 1:
             raise ValueError(
                 f"images of one batch must share a size after resizing, got {[tuple(t.shape[-2:]) for t in out]}"
