@@ -1,0 +1,437 @@
+"""Segmentation datasets for OVSS evaluation: ADE20K-150, ORAD-3D and the synthetic scenes.
+
+Every dataset is a map-style :class:`SegmentationSet` yielding the image resized so its
+shorter side is ``short_side`` (576 in the paper's protocol; sides rounded to the patch
+size) and the label map at full resolution (predictions are brought to the label size
+with nearest upsampling, DESIGN.md section 4).
+
+Batches: ReSiReg Full treats a batch as one scene (prototypes shared across its images),
+so every image of a batch must have the same resized size. :meth:`SegmentationSet.batches`
+groups images by resized size, in dataset order: a batch is ``batch_size`` consecutive
+images of one size, and a size's leftover images form one smaller batch at the end. With
+images of one size (ORAD-3D, synthetic) that is plain consecutive batching; for ADE20K
+the batch-size histogram is reported with the results.
+
+Sources (``kind``):
+
+- ``ade20k``: ``path`` is a hub id (default ``zhoubolei/scene_parse_150``, config
+  ``scene_parsing``, revision ``refs/convert/parquet``: the hub's script loader does not
+  run with datasets >= 4), a local folder holding that parquet layout, or a local
+  ``ADEChallengeData2016`` folder (``images/<split>/*.jpg``, ``annotations/<split>/*.png``).
+  Labels 0..150 with 0 = "other", scored with ``reduce_zero_label``.
+- ``orad3d``: a local ORAD-3D folder ``<path>/<split>/<sequence>/{image_data, gt_image,
+  gt_image_multi_seg}``; see :func:`orad3d_label` for how labels are built.
+- ``synthetic``: :class:`~resireg_train.synthetic.SyntheticScenes` with their masks.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw
+from torchvision.transforms.v2.functional import pil_to_tensor
+
+from resireg.models.hub import require_online
+from resireg.models.vlm import patch_grid_size, resize_to_patch_grid
+from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
+from resireg_train.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
+
+__all__ = [
+    "SegmentationSet",
+    "build_segmentation_set",
+    "collate_segmentation",
+    "orad3d_label",
+    "ORAD3D_POLYGON_TAGS",
+    "ORAD3D_GT_IMAGE_CLASSES",
+]
+
+log = logging.getLogger(__name__)
+
+IGNORE_INDEX = 255
+_DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+#: ORAD-3D's polygon tags (``gt_image_multi_seg``) -> vocabulary class.
+ORAD3D_POLYGON_TAGS: dict[str, str] = {
+    "road": "road",
+    "safe-road": "traversable ground",
+    "car": "car",
+    "people": "person",
+    "person": "person",
+    "water": "water",
+    "snow": "snow",
+    "grass-on-road": "grass on road",
+    "rock": "rock",
+    "sky": "sky",
+    "background": "background",
+}
+#: ORAD-3D ``gt_image`` colours (``"r,g,b"``) -> vocabulary class: the base layer under the
+#: polygons (road / non-road, as in ORFD; add your copy's sky colour if it has one).
+ORAD3D_GT_IMAGE_CLASSES: dict[str, str] = {
+    "255,255,255": "road",
+    "0,0,0": "background",
+}
+
+
+# ------------------------------------------------------------------------------ images
+def _open(source: str | bytes | os.PathLike) -> Image.Image:
+    return Image.open(io.BytesIO(source) if isinstance(source, bytes) else source)
+
+
+def _header_size(source: str | bytes | os.PathLike) -> tuple[int, int]:
+    """``(H, W)`` read from the file header (no decoding)."""
+    with _open(source) as image:
+        w, h = image.size
+    return h, w
+
+
+class SegmentationSet(torch.utils.data.Dataset):
+    """A segmentation dataset for OVSS: resized images and full-resolution labels.
+
+    Args:
+        name: dataset name (metric names ``val/ovss/<name>/...``).
+        classes: class names, label ``i`` = ``classes[i]`` (after ``reduce_zero_label``).
+        load: ``index -> (PIL image, label array [H, W])``.
+        header_size: ``index -> (H, W)`` of the image without decoding it.
+        length: number of images.
+        short_side: shorter side after resizing (``None``: keep the size).
+        patch_size: sides are rounded to a multiple of it.
+        reduce_zero_label: labels are 0 = unlabelled, ``c`` = class ``c - 1`` (ADE20K).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        classes: Sequence[str],
+        load: Callable[[int], tuple[Image.Image, np.ndarray]],
+        header_size: Callable[[int], tuple[int, int]],
+        length: int,
+        short_side: int | None = 576,
+        patch_size: int = 16,
+        reduce_zero_label: bool = False,
+    ) -> None:
+        self.name = name
+        self.classes = tuple(classes)
+        self._load = load
+        self._header_size = header_size
+        self.length = length
+        self.short_side = short_side
+        self.patch_size = patch_size
+        self.reduce_zero_label = reduce_zero_label
+        self.ignore_index = IGNORE_INDEX
+        self._grid_sizes: dict[int, tuple[int, int]] | None = None
+        self.unreadable: list[int] = []
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int) -> dict[str, Any] | None:
+        """``{"image": float [3, h, w] in [0, 1], "label": int64 [H, W], "index"}``, or ``None``
+        when the image or label cannot be decoded (the batch counts it as skipped)."""
+        try:
+            image, label = self._load(index)
+            pixels = pil_to_tensor(image.convert("RGB"))
+        except _DECODE_ERRORS as err:
+            log.warning("%s: skipping image %d: %s", self.name, index, err)
+            return None
+        return {
+            "image": resize_to_patch_grid(pixels, self.short_side, self.patch_size),
+            "label": torch.from_numpy(np.asarray(label, dtype=np.int64)),
+            "index": index,
+        }
+
+    def grid_sizes(self) -> dict[int, tuple[int, int]]:
+        """Resized ``(h, w)`` of every readable image (headers are read once)."""
+        if self._grid_sizes is None:
+            sizes, self.unreadable = {}, []
+            for i in range(self.length):
+                try:
+                    size = self._header_size(i)
+                except _DECODE_ERRORS:
+                    self.unreadable.append(i)
+                    continue
+                sizes[i] = patch_grid_size(size, self.short_side, self.patch_size)
+            if self.unreadable:
+                log.warning(
+                    "%s: %d unreadable images skipped (first: %s)",
+                    self.name,
+                    len(self.unreadable),
+                    self.unreadable[:5],
+                )
+            self._grid_sizes = sizes
+        return self._grid_sizes
+
+    def batches(self, batch_size: int, rank: int = 0, world_size: int = 1) -> list[list[int]]:
+        """Index batches whose images share a resized size (see the module docstring); rank
+        ``r`` of ``world_size`` takes batches ``r, r + world_size, ...``."""
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        groups: dict[tuple[int, int], list[int]] = {}
+        batches: list[list[int]] = []
+        for index, size in self.grid_sizes().items():
+            group = groups.setdefault(size, [])
+            group.append(index)
+            if len(group) == batch_size:
+                batches.append(groups.pop(size))
+        batches.extend(g for g in groups.values() if g)
+        return batches[rank::world_size]
+
+
+def collate_segmentation(items: list[dict[str, Any] | None]) -> dict[str, Any]:
+    """Stack the images of a batch; labels stay a list (each at its own full resolution)."""
+    kept = [item for item in items if item is not None]
+    return {
+        "image": torch.stack([item["image"] for item in kept]) if kept else None,
+        "label": [item["label"] for item in kept],
+        "index": [item["index"] for item in kept],
+        "skipped": len(items) - len(kept),
+    }
+
+
+# ----------------------------------------------------------------------------- sources
+_COMMON_KEYS = {"name", "kind", "short_side", "limit"}
+_KIND_KEYS = {
+    "synthetic": {"size", "image_size", "seed", "noise"},
+    "ade20k": {"path", "config", "revision", "split", "image", "label"},
+    "orad3d": {"path", "split", "polygon_tags", "gt_image_classes"},
+}
+
+
+def build_segmentation_set(
+    spec: Mapping[str, Any], patch_size: int, key: str = "dataset", name: str | None = None
+) -> SegmentationSet:
+    """A :class:`SegmentationSet` from a config entry.
+
+    Args:
+        spec: ``name``, ``kind`` (``synthetic`` | ``ade20k`` | ``orad3d``), ``short_side``
+            (default 576), ``limit`` (first N images only) and the kind's keys (module
+            docstring; ADE20K's hub config name is ``config``).
+        patch_size: the backbone's patch size.
+        key: the config key of ``spec``, for error messages.
+        name: dataset name in metric names when ``spec`` has none.
+    """
+    name = str(spec.get("name") or name or spec.get("kind"))
+    kind = spec.get("kind")
+    if kind not in _KIND_KEYS:
+        raise ValueError(f"{key}.kind={kind!r}: expected one of {sorted(_KIND_KEYS)}")
+    unknown = set(spec) - _COMMON_KEYS - _KIND_KEYS[kind]
+    if unknown:
+        allowed = sorted(_COMMON_KEYS | _KIND_KEYS[kind])
+        raise ValueError(f"{key}: unknown keys {sorted(unknown)} for kind {kind!r} ({allowed})")
+    short_side = spec.get("short_side", 576)
+    if short_side is not None and int(short_side) < patch_size:
+        raise ValueError(f"{key}.short_side={short_side!r}: expected null or >= {patch_size}")
+    common = {"short_side": short_side, "patch_size": patch_size}
+    builder = {"synthetic": _synthetic, "ade20k": _ade20k, "orad3d": _orad3d}[kind]
+    dataset = builder(name, spec, key, common)
+    limit = spec.get("limit")
+    if limit is not None:
+        if int(limit) < 1:
+            raise ValueError(f"{key}.limit={limit!r}: expected null or >= 1")
+        dataset.length = min(dataset.length, int(limit))
+    if dataset.length == 0:
+        raise ValueError(f"{key}: the dataset is empty ({dict(spec)})")
+    return dataset
+
+
+def _synthetic(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+    scenes = SyntheticScenes(
+        size=int(spec.get("size", 64)),
+        image_size=tuple(spec.get("image_size", (128, 128))),
+        seed=int(spec.get("seed", 1)),
+        noise=float(spec.get("noise", 12.0)),
+    )
+
+    def load(i: int) -> tuple[Image.Image, np.ndarray]:
+        scene = scenes[i]
+        return scene["image"], scene["mask"]
+
+    return SegmentationSet(
+        name, SYNTHETIC_CLASSES, load, lambda i: scenes.image_size, len(scenes), **common
+    )
+
+
+# ------------------------------------------------------------------------------ ADE20K
+def _ade20k(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+    path = str(spec.get("path", "zhoubolei/scene_parse_150"))
+    split = str(spec.get("split", "validation"))
+    common = {**common, "reduce_zero_label": True}
+    local = Path(path).expanduser()
+    if (local / "images" / split).is_dir():  # ADEChallengeData2016
+        pairs = []
+        for image in sorted((local / "images" / split).glob("*.jpg")):
+            label = local / "annotations" / split / f"{image.stem}.png"
+            if not label.is_file():
+                raise FileNotFoundError(f"{key}.path={path!r}: {image.name} has no {label}")
+            pairs.append((image, label))
+        return SegmentationSet(
+            name,
+            ADE20K_CLASSES,
+            lambda i: (_open(pairs[i][0]), np.asarray(_open(pairs[i][1]))),
+            lambda i: _header_size(pairs[i][0]),
+            len(pairs),
+            **common,
+        )
+    table = _load_hub_table(path, spec, split, key, local.is_dir())
+    image_col, label_col = spec.get("image", "image"), spec.get("label", "annotation")
+    for role, col in (("image", image_col), ("label", label_col)):
+        if col not in table.column_names:
+            raise ValueError(
+                f"{key}.{role}={col!r}: no such column; columns are {table.column_names}"
+            )
+    from datasets import Image as HFImage
+
+    table = table.cast_column(image_col, HFImage(decode=False)).cast_column(
+        label_col, HFImage(decode=False)
+    )
+
+    def stored(value: Mapping[str, Any]) -> bytes | str:  # embedded bytes, or a file path
+        return value["bytes"] if value.get("bytes") is not None else value["path"]
+
+    def load(i: int) -> tuple[Image.Image, np.ndarray]:
+        row = table[i]
+        return _open(stored(row[image_col])), np.asarray(_open(stored(row[label_col])))
+
+    return SegmentationSet(
+        name,
+        ADE20K_CLASSES,
+        load,
+        lambda i: _header_size(stored(table[i][image_col])),
+        len(table),
+        **common,
+    )
+
+
+def _load_hub_table(path: str, spec: Mapping[str, Any], split: str, key: str, local: bool):
+    """A map-style ``datasets.Dataset``: a local parquet folder, or the hub (cached or online)."""
+    from datasets import load_dataset
+
+    if local:
+        return load_dataset(path, split=split)
+    if path.startswith(("/", ".", "~")):
+        raise FileNotFoundError(f"{key}.path={path!r} does not exist")
+    name = spec.get("config", "scene_parsing")
+    revision = spec.get("revision", "refs/convert/parquet")
+    hint = (
+        f"Download it where there is a network (e.g. `datasets.load_dataset({path!r}, {name!r}, "
+        f"revision={revision!r}, split={split!r})` fills the cache; then set HF_HUB_OFFLINE=1), "
+        f"or set {key}.path to a local ADEChallengeData2016 folder."
+    )
+    if os.environ.get("HF_HUB_OFFLINE", "").strip().lower() not in {"1", "true", "yes", "on"}:
+        require_online(f"the hub dataset {path!r} ({key}.path)", "huggingface.co", hint)
+    try:
+        return load_dataset(path, name, revision=revision, split=split)
+    except (ConnectionError, FileNotFoundError, OSError) as err:
+        from resireg.models.hub import WeightsUnavailableError
+
+        raise WeightsUnavailableError(
+            f"the hub dataset {path!r} ({key}.path) is not in the local cache: {err}. {hint}"
+        ) from err
+
+
+# ------------------------------------------------------------------------------ ORAD-3D
+def orad3d_label(
+    gt_image: str | os.PathLike,
+    polygons: str | os.PathLike | None,
+    polygon_tags: Mapping[str, str] = ORAD3D_POLYGON_TAGS,
+    gt_image_classes: Mapping[str, str] = ORAD3D_GT_IMAGE_CLASSES,
+    key: str = "orad3d",
+) -> np.ndarray:
+    """ORAD-3D label map ``[H, W]`` (uint8 class ids of ``ORAD3D_CLASSES``, 255 = ignore).
+
+    The base layer is ``gt_image`` (road / non-road / sky colours, ``gt_image_classes``;
+    other colours are ignored). The ``gt_image_multi_seg`` polygons (a LabelMe-style JSON:
+    ``{"shapes": [{"label": tag, "points": [[x, y], ...]}, ...]}``) are drawn over it in
+    file order, each tag mapped to a class by ``polygon_tags``.
+    """
+    index = {c: i for i, c in enumerate(ORAD3D_CLASSES)}
+    for table, table_key in (
+        (polygon_tags, "polygon_tags"),
+        (gt_image_classes, "gt_image_classes"),
+    ):
+        bad = sorted(set(table.values()) - set(index))
+        if bad:
+            raise ValueError(f"{key}.{table_key}: {bad} are not ORAD-3D classes {ORAD3D_CLASSES}")
+    rgb = np.asarray(_open(gt_image).convert("RGB"))
+    label = np.full(rgb.shape[:2], IGNORE_INDEX, dtype=np.uint8)
+    for colour, cls in gt_image_classes.items():
+        r, g, b = (int(v) for v in str(colour).split(","))
+        label[(rgb[..., 0] == r) & (rgb[..., 1] == g) & (rgb[..., 2] == b)] = index[cls]
+    if polygons is None:
+        return label
+    canvas = Image.fromarray(label)
+    draw = ImageDraw.Draw(canvas)
+    for shape in json.loads(Path(polygons).read_text()).get("shapes", []):
+        tag = str(shape.get("label", "")).strip()
+        if tag not in polygon_tags:
+            raise ValueError(
+                f"{polygons}: polygon tag {tag!r} has no class; add it to "
+                f"{key}.polygon_tags (known: {sorted(polygon_tags)})"
+            )
+        points = [tuple(map(float, p)) for p in shape.get("points", [])]
+        if len(points) >= 3:
+            draw.polygon(points, fill=index[polygon_tags[tag]])
+    return np.asarray(canvas)
+
+
+def _match(folder: Path, stem: str, suffixes: Sequence[str]) -> Path | None:
+    """The file of ``folder`` named ``<stem><anything><suffix>`` (ORFD-style ``_fillcolor``)."""
+    if not folder.is_dir():
+        return None
+    hits = sorted(
+        p for p in folder.iterdir() if p.name.startswith(stem) and p.suffix.lower() in suffixes
+    )
+    return hits[0] if hits else None
+
+
+def _orad3d(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+    if "path" not in spec:
+        raise ValueError(f"{key}.path is required: the ORAD-3D folder holding <split>/<sequence>/")
+    root = Path(str(spec["path"])).expanduser() / str(spec.get("split", "validation"))
+    if not root.is_dir():
+        raise FileNotFoundError(
+            f"{key}.path={spec['path']!r}: no {root} folder (expected <path>/<split>/<sequence>/"
+            "{image_data,gt_image,gt_image_multi_seg})"
+        )
+    tags = dict(spec.get("polygon_tags") or ORAD3D_POLYGON_TAGS)
+    colours = dict(spec.get("gt_image_classes") or ORAD3D_GT_IMAGE_CLASSES)
+    items: list[tuple[Path, Path, Path | None]] = []
+    for sequence in sorted(p for p in root.iterdir() if p.is_dir()):
+        images = sorted(
+            p for p in (sequence / "image_data").glob("*") if p.suffix.lower() in _IMAGE_SUFFIXES
+        )
+        for image in images:
+            gt = _match(sequence / "gt_image", image.stem, (".png",))
+            if gt is None:
+                continue  # not annotated
+            items.append(
+                (image, gt, _match(sequence / "gt_image_multi_seg", image.stem, (".json",)))
+            )
+    if not items:
+        raise FileNotFoundError(f"{key}.path={spec['path']!r}: no annotated images under {root}")
+    # Tags are checked up front: a decoding error skips an image, a missing tag must not.
+    for _, _, polygons in items:
+        if polygons is not None:
+            for shape in json.loads(polygons.read_text()).get("shapes", []):
+                tag = str(shape.get("label", "")).strip()
+                if tag not in tags:
+                    raise ValueError(
+                        f"{polygons}: polygon tag {tag!r} has no class; add it to "
+                        f"{key}.polygon_tags (known: {sorted(tags)})"
+                    )
+
+    def load(i: int) -> tuple[Image.Image, np.ndarray]:
+        image, gt, polygons = items[i]
+        return _open(image), orad3d_label(gt, polygons, tags, colours, key)
+
+    return SegmentationSet(
+        name, ORAD3D_CLASSES, load, lambda i: _header_size(items[i][0]), len(items), **common
+    )

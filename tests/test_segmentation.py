@@ -1,0 +1,190 @@
+"""Segmentation datasets: synthetic, ADE20K (local folder, hub parquet layout), ORAD-3D."""
+
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from resireg.models import WeightsUnavailableError
+from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
+from resireg_train.segmentation import (
+    build_segmentation_set,
+    collate_segmentation,
+    orad3d_label,
+)
+from resireg_train.synthetic import SyntheticScenes
+
+
+def _save(array, path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(array).save(path)
+
+
+def test_synthetic_set_resizes_images_and_keeps_full_resolution_masks():
+    ds = build_segmentation_set(
+        {"kind": "synthetic", "size": 5, "image_size": [40, 56], "seed": 3, "short_side": 32},
+        patch_size=16,
+    )
+    assert ds.name == "synthetic" and len(ds) == 5 and not ds.reduce_zero_label
+    item = ds[2]
+    scene = SyntheticScenes(5, (40, 56), seed=3)[2]
+    # Short side 40 -> 32; long side 56 * 0.8 = 44.8 -> 48 (rounded to the patch size).
+    assert item["image"].shape == (3, 32, 48)
+    assert 0.0 <= item["image"].min() and item["image"].max() <= 1.0
+    assert torch.equal(item["label"], torch.from_numpy(scene["mask"].astype(np.int64)))
+
+
+def _mixed_sizes_set(sizes):
+    from resireg_train.segmentation import SegmentationSet
+
+    return SegmentationSet(
+        "mixed", ("a", "b"), load=None, header_size=lambda i: sizes[i], length=len(sizes),
+        short_side=None, patch_size=16,
+    )  # fmt: skip
+
+
+def test_batches_share_one_size_cover_every_image_once_and_shard_disjointly():
+    sizes = [(32, 48), (48, 32), (32, 48), (32, 48), (48, 32), (32, 48), (32, 48), (64, 64)]
+    ds = _mixed_sizes_set(sizes)
+    batches = ds.batches(3)
+    assert sorted(i for b in batches for i in b) == list(range(len(sizes)))
+    for batch in batches:
+        assert len({sizes[i] for i in batch}) == 1 and len(batch) <= 3
+    # Full batches as they fill up, then each size's leftovers (sizes in order of appearance).
+    assert batches == [[0, 2, 3], [1, 4], [5, 6], [7]]
+    shards = [ds.batches(3, rank=r, world_size=2) for r in range(2)]
+    assert shards == [[[0, 2, 3], [5, 6]], [[1, 4], [7]]]
+    with pytest.raises(ValueError, match="batch_size"):
+        ds.batches(0)
+
+
+def _ade_folder(root, n=3, corrupt=True):
+    rng = np.random.default_rng(0)
+    labels = []
+    for i in range(n):
+        h, w = (40, 56) if i % 2 == 0 else (56, 40)
+        image = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+        label = rng.integers(0, 151, (h, w), dtype=np.uint8)
+        _save(image, root / "images/validation" / f"ADE_val_{i:08d}.jpg")
+        _save(label, root / "annotations/validation" / f"ADE_val_{i:08d}.png")
+        labels.append(label)
+    if corrupt:
+        (root / "images/validation/ADE_val_99999999.jpg").write_bytes(b"not a jpeg")
+        _save(np.zeros((8, 8), np.uint8), root / "annotations/validation/ADE_val_99999999.png")
+    return labels
+
+
+def test_ade20k_local_folder_reduces_zero_label_and_skips_corrupt_images(tmp_path):
+    labels = _ade_folder(tmp_path / "ADEChallengeData2016")
+    ds = build_segmentation_set(
+        {"kind": "ade20k", "path": str(tmp_path / "ADEChallengeData2016"), "short_side": 32},
+        patch_size=16,
+    )
+    assert ds.classes == ADE20K_CLASSES and ds.reduce_zero_label and len(ds) == 4
+    batches = ds.batches(2)
+    assert ds.unreadable == [3]  # the corrupt file is counted, not fatal
+    assert sorted(i for b in batches for i in b) == [0, 1, 2]
+    assert torch.equal(ds[1]["label"], torch.from_numpy(labels[1].astype(np.int64)))
+    assert ds[1]["image"].shape == (3, 48, 32)  # 56 x 40 -> short side 32
+    batch = collate_segmentation([ds[0], ds[3], ds[2]])
+    assert batch["skipped"] == 1 and batch["index"] == [0, 2]
+
+
+def test_ade20k_hub_layout_from_a_local_parquet_folder(tmp_path):
+    """The hub's parquet conversion (image / annotation columns) read from a local copy."""
+    datasets = pytest.importorskip("datasets")
+    labels = _ade_folder(tmp_path / "src", n=2, corrupt=False)
+    files = sorted((tmp_path / "src/images/validation").glob("*.jpg"))
+    table = datasets.Dataset.from_dict(
+        {
+            "image": [{"bytes": f.read_bytes(), "path": None} for f in files],
+            "annotation": [
+                {"bytes": (tmp_path / "src/annotations/validation" / f"{f.stem}.png").read_bytes(),
+                 "path": None} for f in files
+            ],  # fmt: skip
+            "scene_category": [0, 1],
+        },
+        features=datasets.Features({"image": datasets.Image(), "annotation": datasets.Image(),
+                                    "scene_category": datasets.Value("int64")}),
+    )  # fmt: skip
+    (tmp_path / "hub/data").mkdir(parents=True)
+    table.to_parquet(tmp_path / "hub/data/validation-00000-of-00001.parquet")
+    ds = build_segmentation_set(
+        {"kind": "ade20k", "path": str(tmp_path / "hub"), "short_side": 32}, patch_size=16
+    )
+    assert len(ds) == 2 and ds.reduce_zero_label
+    for i in range(2):
+        assert torch.equal(ds[i]["label"], torch.from_numpy(labels[i].astype(np.int64)))
+    with pytest.raises(ValueError, match=r"dataset\.label='gt'"):
+        build_segmentation_set({"kind": "ade20k", "path": str(tmp_path / "hub"), "label": "gt"}, 16)
+
+
+def test_ade20k_from_the_hub_offline_fails_at_once_naming_the_key():
+    start = time.perf_counter()
+    with pytest.raises(WeightsUnavailableError, match=r"dataset\.path.*ADEChallengeData2016"):
+        build_segmentation_set({"kind": "ade20k"}, patch_size=16)
+    assert time.perf_counter() - start < 10
+
+
+def _orad_sequence(root, seq, stem, base, shapes):
+    folder = root / "validation" / seq
+    _save(np.zeros((*base.shape[:2], 3), np.uint8) + 90, folder / "image_data" / f"{stem}.png")
+    _save(base, folder / "gt_image" / f"{stem}_fillcolor.png")
+    (folder / "gt_image_multi_seg").mkdir(parents=True, exist_ok=True)
+    (folder / "gt_image_multi_seg" / f"{stem}.json").write_text(json.dumps({"shapes": shapes}))
+
+
+def test_orad3d_labels_polygons_over_the_gt_image(tmp_path):
+    base = np.zeros((20, 30, 3), np.uint8)  # background (black)
+    base[10:] = 255  # road (white), bottom half
+    base[0:2, 0:2] = (7, 7, 7)  # a colour with no class -> ignored
+    shapes = [
+        {"label": "safe-road", "points": [[0, 12], [14, 12], [14, 19], [0, 19]], "shape_type": "polygon"},
+        {"label": "people", "points": [[20, 2], [25, 2], [25, 8], [20, 8]], "shape_type": "polygon"},
+    ]  # fmt: skip
+    _orad_sequence(tmp_path, "seq_a", "0001", base, shapes)
+    _orad_sequence(tmp_path, "seq_b", "0002", base, [])
+    ds = build_segmentation_set({"kind": "orad3d", "path": str(tmp_path), "short_side": None}, 16)
+    assert ds.classes == ORAD3D_CLASSES and len(ds) == 2
+    label = ds[0]["label"].numpy()
+    idx = {c: i for i, c in enumerate(ORAD3D_CLASSES)}
+    assert label[15, 5] == idx["traversable ground"]  # polygon over road
+    assert label[15, 25] == idx["road"]  # gt_image road, no polygon
+    assert label[5, 22] == idx["person"]  # polygon over background
+    assert label[5, 10] == idx["background"]
+    assert label[0, 0] == 255  # unmapped colour
+    assert ds[0]["image"].shape == (3, 16, 32)  # sides rounded to the patch size
+    direct = orad3d_label(
+        tmp_path / "validation/seq_a/gt_image/0001_fillcolor.png",
+        tmp_path / "validation/seq_a/gt_image_multi_seg/0001.json",
+    )
+    assert np.array_equal(direct, label)
+
+
+def test_orad3d_unknown_polygon_tag_is_an_error_naming_the_mapping(tmp_path):
+    base = np.zeros((8, 8, 3), np.uint8)
+    _orad_sequence(
+        tmp_path, "s", "1", base, [{"label": "tractor", "points": [[0, 0], [3, 0], [3, 3]]}]
+    )
+    with pytest.raises(ValueError, match=r"'tractor'.*dataset\.polygon_tags"):
+        build_segmentation_set({"kind": "orad3d", "path": str(tmp_path)}, 16)
+    spec = {"kind": "orad3d", "path": str(tmp_path), "polygon_tags": {"tractor": "car"}}
+    assert len(build_segmentation_set(spec, 16)) == 1
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ({"kind": "lidar"}, r"dataset\.kind='lidar'"),
+        ({"kind": "synthetic", "colour": 1}, r"unknown keys \['colour'\]"),
+        ({"kind": "synthetic", "short_side": 8}, r"dataset\.short_side=8"),
+        ({"kind": "orad3d", "path": "/nonexistent/orad"}, r"dataset\.path='/nonexistent/orad'"),
+        ({"kind": "ade20k", "path": "/nonexistent/ade"}, r"dataset\.path='/nonexistent/ade'"),
+    ],
+)
+def test_bad_dataset_specs_name_the_key(spec, message):
+    with pytest.raises((ValueError, FileNotFoundError), match=message):
+        build_segmentation_set(spec, patch_size=16)
