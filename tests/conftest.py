@@ -15,3 +15,29 @@ import torch  # noqa: E402
 def _seed():
     torch.manual_seed(0)
     yield
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory):
+    """An exported tiny ResiregVLM (random init: same architectures, no training)."""
+    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("export") / "export"
+    ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).save_pretrained(path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def prototype_sweep(tmp_path_factory, tiny_export):
+    """A real `resireg-eval sweep=prototype_batch` multirun on a reduced grid (2 batch sizes
+    x 3 prototype counts on the synthetic set); 1000 prototypes exceed the points of a batch,
+    so those two jobs fail. Returns (sweep folder, completed process)."""
+    from _run import run
+
+    logs = tmp_path_factory.mktemp("sweeps")
+    proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+               "dataset.size=12", "num_workers=0", "sweep=prototype_batch", "batch_size=2,4",
+               "full.n_prototypes=4,8,1000", f"paths.log_dir={logs}", check=False)  # fmt: skip
+    (sweep,) = (logs / "prototype_batch" / "multirun").iterdir()
+    return sweep, proc

@@ -7,11 +7,13 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
+from _run import evaluate_export as _evaluate_export
 from resireg_train.losses import ContrastiveLoss
 
 WORLD = 2
@@ -58,14 +60,15 @@ def test_gathered_loss_equals_single_process_loss_on_the_global_batch():
 
 
 @pytest.mark.slow
-def test_ddp_cpu_trains_and_logs(tmp_path):
+def test_ddp_cpu_trains_logs_and_evaluates_sharded(tmp_path):
     """`trainer=ddp_cpu`: 2 spawned processes over gloo, through the real entry point."""
     exe = shutil.which("resireg-train")
     cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.train"]
     out = tmp_path / "run"
     proc = subprocess.run(
         [*cmd, "experiment=smoke", "trainer=ddp_cpu", "trainer.max_epochs=2",
-         "data.steps_per_epoch=3", f"hydra.run.dir={out}", "~callbacks.progress_bar"],
+         "data.steps_per_epoch=3", f"hydra.run.dir={out}", "~callbacks.progress_bar",
+         "callbacks.resireg_eval.batch_size=3"],
         capture_output=True, text=True, timeout=600, env={**os.environ, "HF_HUB_OFFLINE": "1"},
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -74,3 +77,8 @@ def test_ddp_cpu_trains_and_logs(tmp_path):
     assert results["history"][-1]["step"] == 6  # 3 steps per epoch on every rank
     assert (out / "metrics.csv").read_text().count("\n") > 6
     assert (out / "export" / "model.safetensors").is_file()
+    # Sharded evaluation (each rank half the batches, confusion matrices summed) logs what a
+    # single process computes on the exported model.
+    logged = results["history"][-1]
+    recomputed = _evaluate_export(out / "export", tmp_path / "eval", "batch_size=3")
+    assert recomputed and all(np.float32(v) == np.float32(logged[k]) for k, v in recomputed.items())

@@ -9,11 +9,13 @@ import subprocess
 import sys
 
 import lightning as L
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from _run import evaluate_export
 from resireg.models import ResiregVLM
 from resireg_train.config import CONFIG_DIR, ConfigError, validate
 from resireg_train.module import ResiregModule
@@ -130,6 +132,20 @@ def test_smoke_experiment_through_the_entry_point(tmp_path):
         vlm.encode_image(image, resireg="full", n_prototypes=4, n_components=4),
         module.vlm.eval().encode_image(image, resireg="full", n_prototypes=4, n_components=4),
     )
+    # OVSS of BB / Lite / Full on the synthetic eval set, every epoch, in [0, 1] ...
+    names = [
+        f"val/ovss/synthetic/{m}_{v}" for m in ("miou", "fmiou") for v in ("bb", "lite", "full")
+    ]
+    for row in history:
+        assert all(0.0 <= row[n] <= 1.0 for n in names), row
+    assert results["best"][names[2]]["value"] == max(h[names[2]] for h in history)
+    logged_rows = [r for r in rows if r[names[0]]]
+    assert len(logged_rows) == 6 and all(r["step"] for r in logged_rows)
+    # ... and resireg-eval recomputes the last epoch's values exactly from the export (the
+    # logged values went through float32 tensors).
+    recomputed = evaluate_export(out / "export", tmp_path / "eval")
+    assert set(recomputed) == set(names)
+    assert all(np.float32(recomputed[n]) == np.float32(history[-1][n]) for n in names)
 
 
 class _CrashAt(L.Callback):
@@ -225,3 +241,39 @@ def test_tensorboard_and_mlflow_trackers(tmp_path):
     runs = mlflow.search_runs(experiment_names=["resireg"], output_format="list")
     assert len(runs) == 1 and runs[0].info.run_name == "smoke"
     assert "train/loss_epoch" in runs[0].data.metrics
+
+
+class _RecordTokenized(L.Callback):
+    """Records every text the frozen text tower tokenizes (i.e. runs on)."""
+
+    def __init__(self):
+        self.texts = []
+
+    def on_fit_start(self, trainer, pl_module):
+        text = pl_module.vlm.text
+        tokenize = text.tokenizer
+
+        def recording(texts):
+            self.texts.extend(texts)
+            return tokenize(texts)
+
+        text.tokenizer = recording
+
+
+def test_eval_prompts_run_through_the_text_tower_once_per_run(tmp_path):
+    from resireg.ovss import class_prompts
+    from resireg_train.synthetic import SYNTHETIC_CLASSES
+
+    probe = _RecordTokenized()
+    cfg = _compose("experiment=smoke", f"paths.output_dir={tmp_path}", "trainer.max_epochs=3",
+                   "data.steps_per_epoch=2", "~callbacks.progress_bar")  # fmt: skip
+    results = train(cfg, callbacks=[probe])
+    evaluated = [h for h in results["history"] if "val/ovss/synthetic/miou_full" in h]
+    assert len(evaluated) == 3
+    prompts = class_prompts(SYNTHETIC_CLASSES)
+    counts = {p: 0 for p in prompts}
+    for text in probe.texts:
+        if text in counts:
+            counts[text] += 1
+    assert set(counts.values()) == {1}, "a class prompt was embedded more than once"
+    assert len(probe.texts) > len(prompts)  # the training captions went through it too

@@ -128,6 +128,7 @@ class ResultsTracker(L.Callback):
     def __init__(self, directory: str | os.PathLike) -> None:
         self.directory = Path(directory)
         self.history: list[dict[str, float]] = []
+        self._previous: dict[str, Any] = {}
 
     def summary(self) -> dict[str, Any]:
         best: dict[str, dict[str, float]] = {}
@@ -145,7 +146,12 @@ class ResultsTracker(L.Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         row = {"epoch": trainer.current_epoch, "step": trainer.global_step}
-        row.update(_epoch_metrics(trainer.callback_metrics))
+        # trainer.callback_metrics keeps a metric's last value in later epochs; a value
+        # logged this epoch is a new tensor, a stale one the very object seen before.
+        current = dict(trainer.callback_metrics)
+        fresh = {k: v for k, v in current.items() if self._previous.get(k) is not v}
+        self._previous = current
+        row.update(_epoch_metrics(fresh))
         self.history = [r for r in self.history if r["epoch"] < row["epoch"]] + [row]
         if trainer.is_global_zero:
             update_results(

@@ -1,0 +1,120 @@
+"""The OVSS engine shared by ReSiRegEval and resireg-eval."""
+
+import numpy as np
+import pytest
+import torch
+from sklearn.metrics import confusion_matrix
+
+from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from resireg.ovss import predict, text_prototypes
+from resireg_train.evaluation import OVSSTask, StageTimer, build_variants
+from resireg_train.segmentation import build_segmentation_set
+from resireg_train.synthetic import SYNTHETIC_CLASSES
+
+SPEC = {"kind": "synthetic", "size": 10, "image_size": [40, 56], "seed": 5, "short_side": 48}
+FULL = {"n_prototypes": 6, "n_components": 6}
+
+
+@pytest.fixture(scope="module")
+def vlm():
+    torch.manual_seed(0)
+    return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
+
+
+def _task(batch_size=4):
+    return OVSSTask(build_segmentation_set(SPEC, patch_size=16), batch_size=batch_size)
+
+
+def test_prototypes_embed_prompts_once_and_apply_the_current_projection(vlm):
+    task = _task()
+    calls = []
+    handle = vlm.text.tower.register_forward_hook(lambda m, i, o: calls.append(o.shape[0]))
+    try:
+        first = task.prototypes(vlm)
+        again = task.prototypes(vlm)
+        # The reference path: every prompt through encode_text (tower + projection + half).
+        reference = text_prototypes(vlm.encode_text, SYNTHETIC_CLASSES)
+        n_reference_calls = len(calls) - 1
+        with torch.no_grad():
+            vlm.text_proj.weight.mul_(-1.0)  # a different projection, as after a training step
+        flipped = task.prototypes(vlm)
+        with torch.no_grad():
+            vlm.text_proj.weight.mul_(-1.0)
+    finally:
+        handle.remove()
+    assert calls[0] == len(SYNTHETIC_CLASSES) * 80 and task.tower_calls == 1
+    assert len(calls) == 1 + n_reference_calls  # later prototype calls ran no tower
+    torch.testing.assert_close(first, again, rtol=0, atol=0)
+    torch.testing.assert_close(first, reference, rtol=1e-5, atol=1e-6)
+    assert first.shape == (8, 48) and not torch.allclose(flipped, first)
+
+
+def test_scores_match_an_independent_per_image_computation(vlm):
+    """Confusion of the engine == sklearn's over encode_image + predict image by image."""
+    task = _task(batch_size=3)
+    variants = build_variants(["bb", "lite", "full"], {"alpha": 10.0}, FULL)
+    result = task.run(vlm, variants)
+    assert result.images == 10 and result.skipped == 0
+    assert result.batch_sizes == {1: 1, 3: 3}
+    protos = task.prototypes(vlm)
+    ds = task.dataset
+    for name, kwargs in (("bb", {}), ("lite", {"alpha": 10.0}), ("full", FULL)):
+        expected = np.zeros((8, 8), dtype=np.int64)
+        for batch in ds.batches(3):
+            images = torch.stack([ds[i]["image"] for i in batch])
+            dense = vlm.encode_image(images, None if name == "bb" else name, **kwargs)
+            for j, i in enumerate(batch):
+                label = ds[i]["label"]
+                pred, _ = predict(dense[j : j + 1], protos, tuple(label.shape))
+                expected += confusion_matrix(label.flatten(), pred.flatten(), labels=range(8))
+        assert np.array_equal(result.metrics[name].confusion.numpy(), expected), name
+    scores = result.scores()
+    assert set(scores) == {f"val/ovss/synthetic/{m}_{v}" for m in ("miou", "fmiou")
+                           for v in ("bb", "lite", "full")}  # fmt: skip
+    assert all(0.0 <= v <= 1.0 for v in scores.values())
+
+
+def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):
+    variants = build_variants(["bb", "full"], None, FULL)
+    single = _task().run(vlm, variants)
+    shards = [_task().run(vlm, variants, rank=r, world_size=3) for r in range(3)]
+    assert sum(s.images for s in shards) == single.images == 10
+
+    # What trainer.strategy.reduce(t, "sum") returns on every rank: the sum of the packs.
+    packs = []
+    for shard in shards:
+        shard.reduce(lambda t: packs.append(t.clone()) or t)  # capture each rank's pack
+    total = torch.stack(packs).sum(0)
+    shards[0].reduce(lambda t: total)
+    for name in variants:
+        assert torch.equal(shards[0].metrics[name].confusion, single.metrics[name].confusion)
+    assert shards[0].images == 10 and shards[0].scores() == single.scores()
+
+
+def test_bf16_pass_runs_and_timer_splits_the_cost(vlm):
+    timer = StageTimer()
+    result = _task().run(
+        vlm, build_variants(["bb", "full"], None, FULL), precision="bf16", timer=timer
+    )
+    assert all(0.0 <= v <= 1.0 for v in result.scores().values())
+    assert {
+        "data",
+        "backbone",
+        "head",
+        "reconstruction/bb",
+        "reconstruction/full",
+        "metric",
+    } <= set(timer.seconds)
+    with pytest.raises(ValueError, match="precision='fp8'"):
+        _task().run(vlm, {"bb": None}, precision="fp8")
+
+
+def test_variant_names_and_modes_are_checked(vlm):
+    with pytest.raises(ValueError, match=r"variants=\['bb', 'mid'\]: unknown \['mid'\]"):
+        build_variants(["bb", "mid"])
+    with pytest.raises(ValueError, match="n_prototypes"):
+        build_variants(["full"], None, {"n_prototypes": 0})
+    vlm.head.train()
+    _task().run(vlm, {"bb": None})
+    assert vlm.head.training and not vlm.backbone.training  # modes restored after the pass
+    vlm.eval()
