@@ -7,6 +7,7 @@ at once, each as ``key=value: expected ...``, before any model or dataset is loa
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -14,7 +15,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["CONFIG_DIR", "ConfigError", "validate"]
+__all__ = ["CONFIG_DIR", "ConfigError", "validate", "validate_eval", "safe_dirname"]
 
 
 def _config_dir() -> Path:
@@ -93,6 +94,67 @@ _RULES: dict[str, Rule] = {
 }
 
 
+def _optional_int(minimum: int) -> Rule:
+    return (lambda v: v is None or (_int(v) and v >= minimum)), f"null or an integer >= {minimum}"
+
+
+def _unit(v: Any) -> bool:
+    return _num(v) and 0 <= v <= 1
+
+
+_EVAL_PRECISIONS = {"32", "32-true", "bf16", "bf16-mixed"}
+_VARIANTS = {"bb", "lite", "full"}
+# resireg-eval (conf/eval.yaml)
+_EVAL_RULES: dict[str, Rule] = {
+    "seed": (_int, "an integer"),
+    "model_path": (
+        lambda v: isinstance(v, str) and bool(v),
+        "an export folder or a Hugging Face repo id",
+    ),
+    "device": (
+        lambda v: isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps"),
+        "auto, cpu, cuda, cuda:N or mps",
+    ),  # fmt: skip
+    "variants": (
+        lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= _VARIANTS,
+        f"a non-empty list of {sorted(_VARIANTS)}",
+    ),  # fmt: skip
+    "batch_size": _integer(1),
+    "num_workers": _integer(0),
+    "precision": (lambda v: str(v) in _EVAL_PRECISIONS, f"one of {sorted(_EVAL_PRECISIONS)}"),
+    "temperature": _number(0, strict=True),
+    "full.n_prototypes": (
+        lambda v: v == "auto" or (_int(v) and v >= 1),
+        "an integer >= 1 or 'auto'",
+    ),
+    "full.n_components": _optional_int(1),
+    "full.alpha": _number(0, strict=True),
+    "full.tau": (_unit, "a number in [0, 1]"),
+    "full.upscale": _integer(1),
+    "lite.alpha": _number(0, strict=True),
+    "lite.tau": (_unit, "a number in [0, 1]"),
+    "lite.upscale": _integer(1),
+    "dataset.short_side": _optional_int(16),
+    "dataset.limit": _optional_int(1),
+    "optimized_metric": (_opt_str, "null or a metric name"),
+}
+
+
+def safe_dirname(text: str, max_length: int = 200) -> str:
+    """``text`` as one folder name: ``/`` becomes ``_``, and a name longer than ``max_length``
+    is cut and given a hash so it stays unique (Hydra's ``override_dirname`` keeps the ``/``
+    of paths given as values, which would nest folders)."""
+    name = str(text).replace("/", "_").replace(os.sep, "_")
+    if len(name) > max_length:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:8]
+        name = f"{name[: max_length - 9]}-{digest}"
+    return name
+
+
+if not OmegaConf.has_resolver("safe_dirname"):  # used by conf/hydra/default.yaml
+    OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
+
+
 def _get(cfg: DictConfig, key: str) -> Any:
     """The resolved plain value at ``key`` (``_MISSING`` when absent; ``None`` when ``???``)."""
     value = OmegaConf.select(cfg, key, default=_MISSING, throw_on_missing=False)
@@ -108,6 +170,28 @@ def _missing(node: Any, prefix: str = "") -> list[str]:
     return [prefix[:-1]] if node == "???" else []
 
 
+def _errors(cfg: DictConfig, rules: dict[str, Rule]) -> list[str]:
+    """One message per ``???`` key and per rule a present value breaks."""
+    missing = _missing(OmegaConf.to_container(cfg, resolve=False))
+    errors = [
+        f"{key}=???: a value is required (e.g. {key}=... on the command line)" for key in missing
+    ]
+    for key, (check, expected) in rules.items():
+        value = _get(cfg, key)
+        if key not in missing and value is not _MISSING and not check(value):
+            errors.append(f"{key}={value!r}: expected {expected}")
+    return errors
+
+
+def validate_eval(cfg: DictConfig | dict) -> None:
+    """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing all."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    errors = _errors(cfg, _EVAL_RULES)
+    if errors:
+        raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
+
+
 def validate(cfg: DictConfig | dict) -> None:
     """Check value types and ranges of a training config; raise :class:`ConfigError` listing all.
 
@@ -116,14 +200,7 @@ def validate(cfg: DictConfig | dict) -> None:
     """
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
-    errors = [
-        f"{key}=???: a value is required (e.g. {key}=... on the command line)"
-        for key in _missing(OmegaConf.to_container(cfg, resolve=False))
-    ]
-    for key, (check, expected) in _RULES.items():
-        value = _get(cfg, key)
-        if value is not _MISSING and not check(value):
-            errors.append(f"{key}={value!r}: expected {expected}")
+    errors = _errors(cfg, _RULES)
     values = {k: _get(cfg, k) for k in (
         "model.optimizer.lr", "model.scheduler.min_lr", "model.logit_scale.init",
         "model.logit_scale.max", "model.loss.distill.scale", "model.teacher", "data.sources",

@@ -1,0 +1,292 @@
+"""``resireg-report SWEEP_DIR``: one table (and plots) from a Hydra multirun folder.
+
+Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
+(``.hydra/overrides.yaml``) and ``results.json``. A job that failed, is still running or
+never wrote ``results.json`` stays in the table with its status and error. Writes, into
+the sweep folder (or ``--out``):
+
+- ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
+  jobs, status, the scores (final values; for training runs also the best of the chosen
+  metric) and the error.
+- For the prototype/batch ablation (jobs varying ``batch_size`` and ``full.n_prototypes``):
+  ``heatmap.png`` (batch size x prototype count, mIoU of ReSiReg Full) and
+  ``prototype_heuristic.json``: ``n(B)`` fitted to the best prototype count of every
+  batch size, loadable by ``ReSiRegFull(n_prototypes="auto", heuristic=PATH)``.
+- For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
+  per epoch for every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import yaml
+
+from resireg.heuristic import PrototypeHeuristic
+from resireg_train.tracking import RESULTS_FILE, metric_mode, read_results
+
+__all__ = ["Job", "collect", "report", "main"]
+
+BATCH_KEY, PROTOTYPES_KEY = "batch_size", "full.n_prototypes"
+
+
+@dataclass
+class Job:
+    """One sweep job: its folder, overrides and ``results.json`` content."""
+
+    path: Path
+    number: int
+    overrides: dict[str, str]
+    results: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        return self.results.get("status", "missing") if self.results else "missing"
+
+    @property
+    def error(self) -> str | None:
+        if not self.results:
+            return f"no {RESULTS_FILE} (the job did not start, or crashed before writing it)"
+        return self.results.get("error")
+
+
+def collect(sweep_dir: str | Path) -> list[Job]:
+    """Every job folder of a multirun (``.hydra/overrides.yaml`` present), by job number."""
+    sweep = Path(sweep_dir)
+    if not sweep.is_dir():
+        raise FileNotFoundError(f"sweep folder {str(sweep)!r} does not exist")
+    jobs = []
+    for overrides_file in sweep.glob("*/.hydra/overrides.yaml"):
+        folder = overrides_file.parent.parent
+        match = re.match(r"(\d+)", folder.name)
+        items = yaml.safe_load(overrides_file.read_text()) or []
+        overrides = dict(item.split("=", 1) for item in items if "=" in item)
+        overrides = {k.lstrip("+~"): v for k, v in overrides.items()}
+        number = int(match.group(1)) if match else len(jobs)
+        jobs.append(Job(folder, number, overrides, read_results(folder)))
+    if not jobs:
+        raise FileNotFoundError(
+            f"{str(sweep)!r} holds no job folders (<n>_<overrides>/.hydra/overrides.yaml); "
+            "pass the multirun folder, e.g. outputs/<name>/multirun/<time>"
+        )
+    return sorted(jobs, key=lambda j: j.number)
+
+
+def _varying(jobs: list[Job]) -> list[str]:
+    keys = sorted({k for j in jobs for k in j.overrides})
+    return [k for k in keys if len({j.overrides.get(k) for j in jobs}) > 1]
+
+
+def _scores(results: dict[str, Any]) -> dict[str, float]:
+    return {
+        k: float(v)
+        for k, v in results.get("final", {}).items()
+        if isinstance(v, (int, float)) and metric_mode(k) is not None
+    }
+
+
+def default_metric(jobs: list[Job]) -> str | None:
+    """ReSiReg Full's mIoU on the first dataset scored, else the training loss."""
+    names = sorted({k for j in jobs for k in _scores(j.results)})
+    for suffix in ("/miou_full", "/miou_lite", "/miou_bb", "train/loss"):
+        hits = [n for n in names if n.endswith(suffix)]
+        if hits:
+            return hits[0]
+    return names[0] if names else None
+
+
+def summary_table(jobs: list[Job], metric: str | None) -> pd.DataFrame:
+    """One row per job: number, varying overrides, status, scores, best metric, error."""
+    varying = _varying(jobs)
+    rows = []
+    for job in jobs:
+        row: dict[str, Any] = {"job": job.number}
+        row.update({k: job.overrides.get(k) for k in varying})
+        row["status"] = job.status
+        row.update(_scores(job.results))
+        history = job.results.get("history") or []
+        best = job.results.get("best", {}).get(metric) if metric else None
+        if history and best is not None:
+            row[f"best {metric}"] = best["value"]
+            row["best epoch"] = best["epoch"]
+        row["error"] = job.error if job.status != "completed" else None
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    front = ["job", *varying, "status"]
+    back = ["error"]
+    middle = [c for c in table.columns if c not in front and c not in back]
+    return table[front + middle + back]
+
+
+def _is_prototype_sweep(jobs: list[Job]) -> bool:
+    return BATCH_KEY in _varying(jobs) and PROTOTYPES_KEY in _varying(jobs)
+
+
+def prototype_grid(jobs: list[Job], metric: str) -> pd.DataFrame:
+    """mIoU per (batch size, prototype count); NaN where the job did not complete."""
+    cells = []
+    for job in jobs:
+        try:
+            batch, protos = int(job.overrides[BATCH_KEY]), int(job.overrides[PROTOTYPES_KEY])
+        except (KeyError, ValueError):
+            continue
+        value = (
+            _scores(job.results).get(metric, math.nan) if job.status == "completed" else math.nan
+        )
+        cells.append({BATCH_KEY: batch, PROTOTYPES_KEY: protos, metric: value})
+    frame = pd.DataFrame(cells)
+    return (
+        frame.pivot_table(
+            index=BATCH_KEY, columns=PROTOTYPES_KEY, values=metric, aggfunc="max", dropna=False
+        )
+        .sort_index()
+        .sort_index(axis=1)
+    )
+
+
+def fit_heuristic(grid: pd.DataFrame) -> tuple[PrototypeHeuristic, dict[int, int]]:
+    """The best prototype count of every batch size with a result, and the fitted ``n(B)``."""
+    best = {int(b): int(row.idxmax()) for b, row in grid.iterrows() if row.notna().any()}
+    if not best:
+        raise ValueError("no completed job in the prototype/batch grid: nothing to fit")
+    return PrototypeHeuristic.fit(list(best), list(best.values())), best
+
+
+def plot_heatmap(grid: pd.DataFrame, metric: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    values = grid.to_numpy(dtype=float)
+    fig, ax = plt.subplots(figsize=(1.0 + 0.75 * values.shape[1], 1.0 + 0.55 * values.shape[0]))
+    image = ax.imshow(np.ma.masked_invalid(values), cmap="viridis", aspect="auto")
+    ax.set_xticks(range(values.shape[1]), [str(c) for c in grid.columns])
+    ax.set_yticks(range(values.shape[0]), [str(i) for i in grid.index])
+    ax.set_xlabel("prototypes (= PCA components)")
+    ax.set_ylabel("batch size")
+    ax.set_title(metric)
+    finite = values[np.isfinite(values)]
+    middle = (finite.min() + finite.max()) / 2 if finite.size else 0.0
+    for (i, j), v in np.ndenumerate(values):
+        text = "failed" if math.isnan(v) else f"{100 * v:.1f}"
+        colour = "black" if math.isnan(v) or v > middle else "white"
+        ax.text(j, i, text, ha="center", va="center", fontsize=7, color=colour)
+    fig.colorbar(image, ax=ax, label="mIoU")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_curves(jobs: list[Job], metric: str, path: Path) -> bool:
+    """``metric`` per epoch of every run with a history; ``False`` when none has it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    varying = _varying(jobs)
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    drawn = False
+    for job in jobs:
+        points = [(r["epoch"], r[metric]) for r in job.results.get("history") or [] if metric in r]
+        if not points:
+            continue
+        label = ", ".join(f"{k}={job.overrides.get(k)}" for k in varying) or f"job {job.number}"
+        if job.status != "completed":
+            label += f" ({job.status})"
+        ax.plot(*zip(*points, strict=True), marker="o", markersize=3, label=label)
+        drawn = True
+    if drawn:
+        ax.set_xlabel("epoch")
+        ax.set_ylabel(metric)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return drawn
+
+
+def report(
+    sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
+) -> dict[str, Path]:
+    """Write the sweep's summary (and plots / heuristic where they apply); returns the files."""
+    jobs = collect(sweep_dir)
+    out = Path(out) if out else Path(sweep_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    metric = metric or default_metric(jobs)
+    table = summary_table(jobs, metric)
+    files = {"csv": out / "summary.csv", "md": out / "summary.md"}
+    table.to_csv(files["csv"], index=False)
+
+    constant = {k: v for k, v in jobs[0].overrides.items() if k not in _varying(jobs)}
+    counts = table["status"].value_counts().to_dict()
+    lines = [
+        f"# Sweep {Path(sweep_dir).resolve()}",
+        "",
+        f"{len(jobs)} jobs: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())),
+        "",
+        "Common overrides: " + (", ".join(f"`{k}={v}`" for k, v in constant.items()) or "none"),
+        "",
+        table.fillna({"error": ""}).to_markdown(index=False, floatfmt=".4f"),
+    ]
+    if metric and _is_prototype_sweep(jobs):
+        grid = prototype_grid(jobs, metric)
+        files["heatmap"] = out / "heatmap.png"
+        plot_heatmap(grid, metric, files["heatmap"])
+        lines += ["", f"## {metric}: batch size x prototypes", "", grid.to_markdown(floatfmt=".4f")]
+        if grid.notna().to_numpy().any():
+            heuristic, best = fit_heuristic(grid)
+            files["heuristic"] = out / "prototype_heuristic.json"
+            heuristic.save(files["heuristic"])
+            lines += [
+                "",
+                "## Prototype heuristic",
+                "",
+                f"Best prototype count per batch size: {best}.",
+                f"Fit: n(B) = round({heuristic.intercept:.3f} + {heuristic.slope:.3f} * ln B), "
+                f"clipped to [{heuristic.min_prototypes}, {heuristic.max_prototypes}] "
+                f"(`{files['heuristic'].name}`; use with "
+                '`ReSiRegFull(n_prototypes="auto", heuristic=PATH)`).',
+            ]
+    if metric and any(j.results.get("history") for j in jobs):
+        curves = out / "curves.png"
+        if plot_curves(jobs, metric, curves):
+            files["curves"] = curves
+    failed = [j for j in jobs if j.status != "completed"]
+    if failed:
+        lines += ["", "## Jobs that did not complete", ""]
+        lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {j.error}" for j in failed]
+    files["md"].write_text("\n".join(lines) + "\n")
+    return files
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point ``resireg-report SWEEP_DIR [--metric NAME] [--out DIR]``."""
+    parser = argparse.ArgumentParser(prog="resireg-report", description=__doc__.split("\n\n")[0])
+    parser.add_argument("sweep_dir", help="a multirun folder: outputs/<name>/multirun/<time>")
+    parser.add_argument("--metric", help="metric of the heatmap / curves / best column "
+                        "(default: the first ReSiReg Full mIoU, else train/loss)")  # fmt: skip
+    parser.add_argument("--out", help="where to write (default: the sweep folder)")
+    args = parser.parse_args(argv)
+    try:
+        files = report(args.sweep_dir, args.out, args.metric)
+    except (FileNotFoundError, ValueError) as err:
+        parser.exit(2, f"resireg-report: error: {err}\n")
+    for kind, path in files.items():
+        print(f"{kind:>9}: {path}")
+    table = pd.read_csv(files["csv"])
+    bad = table[table["status"] != "completed"]
+    print(f"{len(table)} jobs, {len(table) - len(bad)} completed, {len(bad)} not completed")
+
+
+if __name__ == "__main__":
+    main()
