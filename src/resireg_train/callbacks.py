@@ -101,6 +101,10 @@ class ReSiRegEval(L.Callback):
             scores.update(result.scores())
         return scores
 
+    def idle_metric_prefixes(self, trainer: L.Trainer) -> tuple[str, ...]:
+        """Metric prefixes not logged in this epoch (for ``ResultsTracker``)."""
+        return () if self.due(trainer) else ("val/ovss/",)
+
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not self.due(trainer):
             return

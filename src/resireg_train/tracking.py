@@ -128,7 +128,6 @@ class ResultsTracker(L.Callback):
     def __init__(self, directory: str | os.PathLike) -> None:
         self.directory = Path(directory)
         self.history: list[dict[str, float]] = []
-        self._previous: dict[str, Any] = {}
 
     def summary(self) -> dict[str, Any]:
         best: dict[str, dict[str, float]] = {}
@@ -146,11 +145,15 @@ class ResultsTracker(L.Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         row = {"epoch": trainer.current_epoch, "step": trainer.global_step}
-        # trainer.callback_metrics keeps a metric's last value in later epochs; a value
-        # logged this epoch is a new tensor, a stale one the very object seen before.
-        current = dict(trainer.callback_metrics)
-        fresh = {k: v for k, v in current.items() if self._previous.get(k) is not v}
-        self._previous = current
+        # trainer.callback_metrics keeps a metric's last value in later epochs. A callback
+        # that logs only in some epochs (ReSiRegEval every n epochs) names, through
+        # ``idle_metric_prefixes(trainer)``, what it did not log in this one.
+        idle = tuple(
+            prefix
+            for callback in trainer.callbacks
+            for prefix in getattr(callback, "idle_metric_prefixes", lambda _: ())(trainer)
+        )
+        fresh = {k: v for k, v in trainer.callback_metrics.items() if not k.startswith(idle)}
         row.update(_epoch_metrics(fresh))
         self.history = [r for r in self.history if r["epoch"] < row["epoch"]] + [row]
         if trainer.is_global_zero:
