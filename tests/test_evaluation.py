@@ -118,3 +118,15 @@ def test_variant_names_and_modes_are_checked(vlm):
     _task().run(vlm, {"bb": None})
     assert vlm.head.training and not vlm.backbone.training  # modes restored after the pass
     vlm.eval()
+
+
+def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tmp_path):
+    from test_segmentation import _ade_folder
+
+    _ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
+    spec = {"kind": "ade20k", "path": str(tmp_path / "ade"), "short_side": 32}
+    task = OVSSTask(build_segmentation_set(spec, patch_size=16), batch_size=2)
+    single = task.run(vlm, {"bb": None})
+    assert (single.images, single.skipped) == (3, 1)
+    shards = [task.run(vlm, {"bb": None}, rank=r, world_size=2) for r in range(2)]
+    assert sum(s.skipped for s in shards) == 1 and sum(s.images for s in shards) == 3

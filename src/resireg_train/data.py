@@ -68,7 +68,8 @@ _SOURCE_KEYS = {
 }  # fmt: skip
 _LOCAL_BUILDERS = {"parquet", "imagefolder", "webdataset", "json", "csv", "arrow"}
 _EPOCH_PASSES = 10_000  # reshuffle seed of pass p in epoch e: e * _EPOCH_PASSES + p
-_DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
+#: What PIL raises for an undecodable image file (skipped and counted, never fatal).
+DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 
 
 # ---------------------------------------------------------------------------- sources
@@ -283,7 +284,7 @@ class CaptionStream(torch.utils.data.IterableDataset):
         try:
             with Image.open(io.BytesIO(example["image"])) as im:
                 array = np.asarray(im.convert("RGB"))
-        except _DECODE_ERRORS:
+        except DECODE_ERRORS:
             return "invalid"
         if min(array.shape[:2]) < self.min_image_size:
             return "small"

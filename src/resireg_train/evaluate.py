@@ -83,7 +83,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
             v: dict(zip(classes, ious, strict=True)) for v, ious in result.per_class_iou().items()
         },  # fmt: skip
         images=result.images,
-        skipped=result.skipped + len(dataset.unreadable),
+        skipped=result.skipped,
         batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
     )

@@ -215,6 +215,8 @@ class OVSSTask:
         result.batch_sizes = dict(
             sorted(Counter(len(b) for b in self.dataset.batches(self.batch_size)).items())
         )
+        if rank == 0:  # images whose header was unreadable (counted once across ranks)
+            result.skipped = len(self.dataset.unreadable)
         modes = {m: m.training for m in vlm.modules()}
         vlm.eval()
         try:

@@ -42,6 +42,7 @@ from torchvision.transforms.v2.functional import pil_to_tensor
 from resireg.models.hub import require_online
 from resireg.models.vlm import patch_grid_size, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
+from resireg_train.data import DECODE_ERRORS
 from resireg_train.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 
 __all__ = [
@@ -56,7 +57,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 IGNORE_INDEX = 255
-_DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 #: ORAD-3D's polygon tags (``gt_image_multi_seg``) -> vocabulary class.
@@ -139,7 +139,7 @@ class SegmentationSet(torch.utils.data.Dataset):
         try:
             image, label = self._load(index)
             pixels = pil_to_tensor(image.convert("RGB"))
-        except _DECODE_ERRORS as err:
+        except DECODE_ERRORS as err:
             log.warning("%s: skipping image %d: %s", self.name, index, err)
             return None
         return {
@@ -155,7 +155,7 @@ class SegmentationSet(torch.utils.data.Dataset):
             for i in range(self.length):
                 try:
                     size = self._header_size(i)
-                except _DECODE_ERRORS:
+                except DECODE_ERRORS:
                     self.unreadable.append(i)
                     continue
                 sizes[i] = patch_grid_size(size, self.short_side, self.patch_size)
