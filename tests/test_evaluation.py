@@ -130,3 +130,22 @@ def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tm
     assert (single.images, single.skipped) == (3, 1)
     shards = [task.run(vlm, {"bb": None}, rank=r, world_size=2) for r in range(2)]
     assert sum(s.skipped for s in shards) == 1 and sum(s.images for s in shards) == 3
+
+
+def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
+    import json
+
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.config import CONFIG_DIR, ConfigError
+    from resireg_train.evaluate import evaluate
+
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", overrides=["model_path=x", "precision=fp8", "variants=[bb,mid]",
+                                         "batch_size=0", f"paths.output_dir={tmp_path}"])  # fmt: skip
+    with pytest.raises(ConfigError) as err:
+        evaluate(cfg)
+    for expected in ("variants=['bb', 'mid']", "batch_size=0", "precision='fp8'"):
+        assert expected in str(err.value)
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["status"] == "failed" and "batch_size=0" in results["error"]

@@ -15,6 +15,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg_train.evaluation import PRECISIONS, VARIANTS
+
 __all__ = ["CONFIG_DIR", "ConfigError", "validate", "validate_eval", "safe_dirname"]
 
 
@@ -102,8 +104,6 @@ def _unit(v: Any) -> bool:
     return _num(v) and 0 <= v <= 1
 
 
-_EVAL_PRECISIONS = {"32", "32-true", "bf16", "bf16-mixed"}
-_VARIANTS = {"bb", "lite", "full"}
 # resireg-eval (conf/eval.yaml)
 _EVAL_RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
@@ -116,12 +116,12 @@ _EVAL_RULES: dict[str, Rule] = {
         "auto, cpu, cuda, cuda:N or mps",
     ),  # fmt: skip
     "variants": (
-        lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= _VARIANTS,
-        f"a non-empty list of {sorted(_VARIANTS)}",
+        lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= set(VARIANTS),
+        f"a non-empty list of {list(VARIANTS)}",
     ),  # fmt: skip
     "batch_size": _integer(1),
     "num_workers": _integer(0),
-    "precision": (lambda v: str(v) in _EVAL_PRECISIONS, f"one of {sorted(_EVAL_PRECISIONS)}"),
+    "precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
     "temperature": _number(0, strict=True),
     "full.n_prototypes": (
         lambda v: v == "auto" or (_int(v) and v >= 1),

@@ -29,11 +29,12 @@ from resireg.ovss import TEMPLATES, SegmentationMetric, average_prompts, class_p
 from resireg.reconstruct import ReSiRegFull, ReSiRegLite
 from resireg_train.segmentation import SegmentationSet, collate_segmentation
 
-__all__ = ["VARIANTS", "build_variants", "OVSSTask", "OVSSResult", "StageTimer"]
+__all__ = ["VARIANTS", "PRECISIONS", "build_variants", "OVSSTask", "OVSSResult", "StageTimer"]
 
 #: Dense-feature variants: the head alone, ReSiReg Lite, ReSiReg Full.
 VARIANTS = ("bb", "lite", "full")
-_PRECISIONS = {"32": None, "32-true": None, "bf16": torch.bfloat16, "bf16-mixed": torch.bfloat16}
+#: Evaluation precisions -> autocast dtype (``None``: fp32, no autocast).
+PRECISIONS = {"32": None, "32-true": None, "bf16": torch.bfloat16, "bf16-mixed": torch.bfloat16}
 
 
 def build_variants(
@@ -202,9 +203,9 @@ class OVSSTask:
             timer: collects seconds per stage (``data``, ``backbone``, ``head``,
                 ``reconstruction/<variant>``, ``metric``).
         """
-        if str(precision) not in _PRECISIONS:
-            raise ValueError(f"precision={precision!r}: expected one of {sorted(_PRECISIONS)}")
-        dtype = _PRECISIONS[str(precision)]
+        if str(precision) not in PRECISIONS:
+            raise ValueError(f"precision={precision!r}: expected one of {sorted(PRECISIONS)}")
+        dtype = PRECISIONS[str(precision)]
         timed = timer or _no_timer
         k = len(self.dataset.classes)
         metrics = {

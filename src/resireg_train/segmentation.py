@@ -369,17 +369,27 @@ def orad3d_label(
         return label
     canvas = Image.fromarray(label)
     draw = ImageDraw.Draw(canvas)
-    for shape in json.loads(Path(polygons).read_text()).get("shapes", []):
+    for cls, points in _polygons(polygons, polygon_tags, key):
+        if len(points) >= 3:
+            draw.polygon(points, fill=index[cls])
+    return np.asarray(canvas)
+
+
+def _polygons(
+    path: str | os.PathLike, polygon_tags: Mapping[str, str], key: str
+) -> list[tuple[str, list[tuple[float, float]]]]:
+    """``(class, points)`` of every polygon of a LabelMe-style JSON, in file order; a tag
+    without a class is an error naming ``<key>.polygon_tags``."""
+    shapes = []
+    for shape in json.loads(Path(path).read_text()).get("shapes", []):
         tag = str(shape.get("label", "")).strip()
         if tag not in polygon_tags:
             raise ValueError(
-                f"{polygons}: polygon tag {tag!r} has no class; add it to "
+                f"{path}: polygon tag {tag!r} has no class; add it to "
                 f"{key}.polygon_tags (known: {sorted(polygon_tags)})"
             )
-        points = [tuple(map(float, p)) for p in shape.get("points", [])]
-        if len(points) >= 3:
-            draw.polygon(points, fill=index[polygon_tags[tag]])
-    return np.asarray(canvas)
+        shapes.append((polygon_tags[tag], [tuple(map(float, p)) for p in shape.get("points", [])]))
+    return shapes
 
 
 def _match(folder: Path, stem: str, suffixes: Sequence[str]) -> Path | None:
@@ -420,13 +430,7 @@ def _orad3d(name: str, spec: Mapping[str, Any], key: str, common: dict) -> Segme
     # Tags are checked up front: a decoding error skips an image, a missing tag must not.
     for _, _, polygons in items:
         if polygons is not None:
-            for shape in json.loads(polygons.read_text()).get("shapes", []):
-                tag = str(shape.get("label", "")).strip()
-                if tag not in tags:
-                    raise ValueError(
-                        f"{polygons}: polygon tag {tag!r} has no class; add it to "
-                        f"{key}.polygon_tags (known: {sorted(tags)})"
-                    )
+            _polygons(polygons, tags, key)
 
     def load(i: int) -> tuple[Image.Image, np.ndarray]:
         image, gt, polygons = items[i]
