@@ -147,8 +147,12 @@ def test_orad3d_labels_polygons_over_the_gt_image(tmp_path):
     ]  # fmt: skip
     _orad_sequence(tmp_path, "seq_a", "0001", base, shapes)
     _orad_sequence(tmp_path, "seq_b", "0002", base, [])
+    # Image "1" must not take the labels of image "10" (same prefix, sorted first).
+    _orad_sequence(tmp_path, "seq_c", "1", np.zeros_like(base), [])
+    _orad_sequence(tmp_path, "seq_c", "10", base, [])
     ds = build_segmentation_set({"kind": "orad3d", "path": str(tmp_path), "short_side": None}, 16)
-    assert ds.classes == ORAD3D_CLASSES and len(ds) == 2
+    assert ds.classes == ORAD3D_CLASSES and len(ds) == 4
+    assert (ds[2]["label"] == ORAD3D_CLASSES.index("background")).all()  # seq_c/1
     label = ds[0]["label"].numpy()
     idx = {c: i for i, c in enumerate(ORAD3D_CLASSES)}
     assert label[15, 5] == idx["traversable ground"]  # polygon over road

@@ -393,11 +393,14 @@ def _polygons(
 
 
 def _match(folder: Path, stem: str, suffixes: Sequence[str]) -> Path | None:
-    """The file of ``folder`` named ``<stem><anything><suffix>`` (ORFD-style ``_fillcolor``)."""
+    """The file of ``folder`` named ``<stem><suffix>`` or ``<stem>_<anything><suffix>`` (the
+    ORFD-style ``_fillcolor``); never another stem that merely starts alike (``10`` for ``1``)."""
     if not folder.is_dir():
         return None
     hits = sorted(
-        p for p in folder.iterdir() if p.name.startswith(stem) and p.suffix.lower() in suffixes
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in suffixes and (p.stem == stem or p.stem.startswith(f"{stem}_"))
     )
     return hits[0] if hits else None
 
