@@ -27,10 +27,10 @@ import lightning as L
 import torch
 from hydra import compose, initialize_config_dir
 
-from resireg_train.config import CONFIG_DIR
-from resireg_train.evaluation import OVSSTask, StageTimer, build_variants
-from resireg_train.segmentation import build_segmentation_set
-from resireg_train.train import build
+from resireg_train.validation import CONFIG_DIR
+from resireg_train.ovss.engine import OVSSTask, StageTimer, build_variants
+from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.cli.train import build
 
 STAGES = ("data", "backbone", "head", "reconstruction/bb", "reconstruction/lite",
           "reconstruction/full", "metric")  # fmt: skip

@@ -7,9 +7,9 @@ import subprocess
 import sys
 
 _MODULES = {
-    "resireg-train": "resireg_train.train",
-    "resireg-eval": "resireg_train.evaluate",
-    "resireg-report": "resireg_train.report",
+    "resireg-train": "resireg_train.cli.train",
+    "resireg-eval": "resireg_train.cli.eval",
+    "resireg-report": "resireg_train.cli.report",
 }
 
 

@@ -14,7 +14,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from _run import evaluate_export as _evaluate_export
-from resireg_train.losses import ContrastiveLoss
+from resireg_train.training.losses import ContrastiveLoss
 
 WORLD = 2
 
@@ -63,7 +63,7 @@ def test_gathered_loss_equals_single_process_loss_on_the_global_batch():
 def test_ddp_cpu_trains_logs_and_evaluates_sharded(tmp_path):
     """`trainer=ddp_cpu`: 2 spawned processes over gloo, through the real entry point."""
     exe = shutil.which("resireg-train")
-    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.train"]
+    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
     out = tmp_path / "run"
     proc = subprocess.run(
         [*cmd, "experiment=smoke", "trainer=ddp_cpu", "trainer.max_epochs=2",

@@ -3,13 +3,14 @@
 import numpy as np
 import pytest
 import torch
-from sklearn.metrics import confusion_matrix
+from sklearn.metrics import confusion_matrix, jaccard_score
 
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
 from resireg.ovss import predict, text_prototypes
-from resireg_train.evaluation import OVSSTask, StageTimer, build_variants
-from resireg_train.segmentation import build_segmentation_set
-from resireg_train.synthetic import SYNTHETIC_CLASSES
+from resireg.variants import build_variants
+from resireg_train.data.synthetic import SYNTHETIC_CLASSES
+from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 SPEC = {"kind": "synthetic", "size": 10, "image_size": [40, 56], "seed": 5, "short_side": 48}
 FULL = {"n_prototypes": 6, "n_components": 6}
@@ -52,40 +53,50 @@ def test_prototypes_embed_prompts_once_and_apply_the_current_projection(vlm):
 def test_scores_match_an_independent_per_image_computation(vlm):
     """Confusion of the engine == sklearn's over encode_image + predict image by image."""
     task = _task(batch_size=3)
-    variants = build_variants(["bb", "lite", "full"], {"alpha": 10.0}, FULL)
+    variants = build_variants(["bb", "lite", "full"], {"lite": {"alpha": 10.0}, "full": FULL})
     result = task.run(vlm, variants)
     assert result.images == 10 and result.skipped == 0
     assert result.batch_sizes == {1: 1, 3: 3}
     protos = task.prototypes(vlm)
     ds = task.dataset
-    for name, kwargs in (("bb", {}), ("lite", {"alpha": 10.0}), ("full", FULL)):
-        expected = np.zeros((8, 8), dtype=np.int64)
-        for batch in ds.batches(3):
-            images = torch.stack([ds[i]["image"] for i in batch])
-            dense = vlm.encode_image(images, None if name == "bb" else name, **kwargs)
-            for j, i in enumerate(batch):
-                label = ds[i]["label"]
-                pred, _ = predict(dense[j : j + 1], protos, tuple(label.shape))
-                expected += confusion_matrix(label.flatten(), pred.flatten(), labels=range(8))
-        assert np.array_equal(result.metrics[name].confusion.numpy(), expected), name
     scores = result.scores()
     assert set(scores) == {f"val/ovss/synthetic/{m}_{v}" for m in ("miou", "fmiou")
                            for v in ("bb", "lite", "full")}  # fmt: skip
-    assert all(0.0 <= v <= 1.0 for v in scores.values())
+    for name, kwargs in (("bb", {}), ("lite", {"alpha": 10.0}), ("full", FULL)):
+        expected = np.zeros((8, 8), dtype=np.int64)
+        labels, preds = [], []
+        for batch in ds.batches(3):
+            images = torch.stack([ds[i]["image"] for i in batch])
+            dense = vlm.encode_image(images, name, **kwargs)
+            for j, i in enumerate(batch):
+                label = ds[i]["label"]
+                pred = predict(dense[j : j + 1], protos, tuple(label.shape))
+                expected += confusion_matrix(label.flatten(), pred.flatten(), labels=range(8))
+                labels.append(label.flatten().numpy())
+                preds.append(pred.flatten().numpy())
+        assert np.array_equal(result.metrics[name].confusion.numpy(), expected), name
+        # mIoU over classes present in labels or predictions, f-mIoU weighted by label frequency.
+        y, p = np.concatenate(labels), np.concatenate(preds)
+        present = np.union1d(y, p)
+        iou = jaccard_score(y, p, labels=present, average=None)
+        assert scores[f"val/ovss/synthetic/miou_{name}"] == pytest.approx(iou.mean(), abs=1e-12)
+        freq = np.array([(y == c).mean() for c in present])
+        assert scores[f"val/ovss/synthetic/fmiou_{name}"] == pytest.approx((freq * iou).sum(), abs=1e-12)
 
 
 def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):
-    variants = build_variants(["bb", "full"], None, FULL)
+    variants = build_variants(["bb", "full"], {"full": FULL})
     single = _task().run(vlm, variants)
     shards = [_task().run(vlm, variants, rank=r, world_size=3) for r in range(3)]
     assert sum(s.images for s in shards) == single.images == 10
 
     # What trainer.strategy.reduce(t, "sum") returns on every rank: the sum of the packs.
+    cpu = torch.device("cpu")
     packs = []
     for shard in shards:
-        shard.reduce(lambda t: packs.append(t.clone()) or t)  # capture each rank's pack
+        shard.reduce(lambda t: packs.append(t.clone()) or t, cpu)  # capture each rank's pack
     total = torch.stack(packs).sum(0)
-    shards[0].reduce(lambda t: total)
+    shards[0].reduce(lambda t: total, cpu)
     for name in variants:
         assert torch.equal(shards[0].metrics[name].confusion, single.metrics[name].confusion)
     assert shards[0].images == 10 and shards[0].scores() == single.scores()
@@ -94,28 +105,27 @@ def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):
 def test_bf16_pass_runs_and_timer_splits_the_cost(vlm):
     timer = StageTimer()
     result = _task().run(
-        vlm, build_variants(["bb", "full"], None, FULL), precision="bf16", timer=timer
+        vlm, build_variants(["bb", "full"], {"full": FULL}), precision="bf16", timer=timer
     )
     assert all(0.0 <= v <= 1.0 for v in result.scores().values())
     assert {
         "data",
-        "backbone",
-        "head",
+        "encoder",
         "reconstruction/bb",
         "reconstruction/full",
         "metric",
     } <= set(timer.seconds)
     with pytest.raises(ValueError, match="precision='fp8'"):
-        _task().run(vlm, {"bb": None}, precision="fp8")
+        _task().run(vlm, build_variants(["bb"]), precision="fp8")
 
 
 def test_variant_names_and_modes_are_checked(vlm):
     with pytest.raises(ValueError, match=r"variants=\['bb', 'mid'\]: unknown \['mid'\]"):
         build_variants(["bb", "mid"])
     with pytest.raises(ValueError, match="n_prototypes"):
-        build_variants(["full"], None, {"n_prototypes": 0})
+        build_variants(["full"], {"full": {"n_prototypes": 0}})
     vlm.head.train()
-    _task().run(vlm, {"bb": None})
+    _task().run(vlm, build_variants(["bb"]))
     assert vlm.head.training and not vlm.backbone.training  # modes restored after the pass
     vlm.eval()
 
@@ -126,9 +136,9 @@ def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tm
     _ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
     spec = {"kind": "ade20k", "path": str(tmp_path / "ade"), "short_side": 32}
     task = OVSSTask(build_segmentation_set(spec, patch_size=16), batch_size=2)
-    single = task.run(vlm, {"bb": None})
+    single = task.run(vlm, build_variants(["bb"]))
     assert (single.images, single.skipped) == (3, 1)
-    shards = [task.run(vlm, {"bb": None}, rank=r, world_size=2) for r in range(2)]
+    shards = [task.run(vlm, build_variants(["bb"]), rank=r, world_size=2) for r in range(2)]
     assert sum(s.skipped for s in shards) == 1 and sum(s.images for s in shards) == 3
 
 
@@ -137,8 +147,9 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
 
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.config import CONFIG_DIR, ConfigError
-    from resireg_train.evaluate import evaluate
+    from resireg_train.cli.eval import evaluate
+    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.validation import ConfigError
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("eval", overrides=["model_path=x", "precision=fp8", "variants=[bb,mid]",

@@ -2,7 +2,7 @@ import pytest
 import torch
 from open_clip.loss import ClipLoss
 
-from resireg_train.losses import ContrastiveLoss, distill_loss, warmup_factor
+from resireg_train.training.losses import ContrastiveLoss, distill_loss, warmup_factor
 
 
 def test_contrastive_equals_open_clip_clip_loss():

@@ -145,6 +145,84 @@ def test_text_cache_is_bounded():
     assert len(tower._cache) == 2
 
 
+def test_text_cache_size_is_a_config_key_and_survives_export(tmp_path):
+    model = ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, {**TINY_TEXT, "cache_size": 3})
+    model.text(["a", "b", "c", "d", "e"])
+    assert model.text.cache_size == 3 and list(model.text._cache) == ["c", "d", "e"]
+    model.save_pretrained(tmp_path / "export")
+    assert ResiregVLM.from_pretrained(tmp_path / "export").text.cache_size == 3
+    with pytest.raises(ValueError, match=r"model\.text\.cache_size=-1"):
+        ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, {**TINY_TEXT, "cache_size": -1})
+
+
+def test_tiny_text_tower_is_open_clips_text_transformer():
+    """The public TextTransformer we build equals open_clip's own CLIP text-tower builder."""
+    from open_clip.model import CLIPTextCfg, _build_text_tower
+
+    ours = FrozenTextTower.tiny(seed=3)
+    cfg = CLIPTextCfg(context_length=32, width=64, heads=2, layers=2, no_causal_mask=True,
+                      proj_bias=True, pool_type="argmax")  # fmt: skip
+    torch.manual_seed(3)
+    reference = _build_text_tower(96, cfg).eval()
+    tokens = ours.tokenizer(["a photo of a cat", "grass"])
+    with torch.no_grad():
+        torch.testing.assert_close(ours.tower(tokens), reference(tokens), rtol=0, atol=0)
+
+
+def test_intermediate_layer_is_that_blocks_output():
+    """intermediates == block i's output recomputed from the timm model's own modules;
+    the default (None) keeps the final-norm patch tokens, the head's input."""
+    torch.manual_seed(0)
+    x = torch.randn(2, 3, 32, 48)
+    default = ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
+    first = ResiregVLM(default.backbone, default.head, default.text, default.text_proj, 0)
+    vit = default.backbone.model
+    with torch.no_grad():
+        tokens, rope = vit._pos_embed(vit.patch_embed(x))
+        block0 = vit.blocks[0](vit.norm_pre(tokens), rope=rope)[:, vit.num_prefix_tokens :]
+        final = vit.forward_features(x)[:, vit.num_prefix_tokens :]
+        out0, out = first.encode(x), default.encode(x)
+    grid = lambda t: t.transpose(1, 2).reshape(2, -1, 2, 3)  # noqa: E731
+    torch.testing.assert_close(out0.intermediates, grid(block0), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out.intermediates, grid(final), rtol=1e-5, atol=1e-5)
+    assert torch.equal(out0.language, out.language)  # the head still reads final-norm tokens
+    assert not torch.allclose(out0.intermediates, out.intermediates)
+    with pytest.raises(ValueError, match=r"intermediate_layer=5: expected null or a block index"):
+        ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT, intermediate_layer=5)
+
+
+def test_non_default_head_and_layer_round_trip(tmp_path):
+    head = {"out_dim": 32, "depth": 1, "num_heads": 4, "mlp_ratio": 2.0, "drop_path": 0.1,
+            "use_registers": True}  # fmt: skip
+    model = ResiregVLM.build(TINY_BACKBONE, head, TINY_TEXT, intermediate_layer=-2)
+    model.save_pretrained(tmp_path / "export")
+    loaded = ResiregVLM.from_pretrained(tmp_path / "export")
+    assert loaded.head.spec() == head and loaded.intermediate_layer == -2
+    assert len(loaded.head.blocks) == 1 and loaded.head.use_registers
+    x = torch.randn(1, 3, 32, 32)
+    model.eval()
+    for a, b in zip(model.encode(x)[:2], loaded.encode(x)[:2], strict=True):
+        assert torch.equal(a, b)
+
+
+def test_export_source_is_a_folder_or_a_repo_id(tmp_path, monkeypatch):
+    """Only a cache miss leads to the hub; a missing folder is never looked up there, and any
+    other hub error is not disguised as 'offline'."""
+    import huggingface_hub
+
+    with pytest.raises(FileNotFoundError, match="not an export folder"):
+        ResiregVLM.from_pretrained(tmp_path / "no" / "such" / "export")
+    with pytest.raises(FileNotFoundError, match="not an export folder"):
+        ResiregVLM.from_pretrained("./missing-export")
+
+    def broken(*args, **kwargs):
+        raise PermissionError("cache not readable")
+
+    monkeypatch.setattr(huggingface_hub, "snapshot_download", broken)
+    with pytest.raises(PermissionError, match="cache not readable"):
+        ResiregVLM.from_pretrained("someone/some-vlm")
+
+
 def _tiny_vlm():
     return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT)
 
@@ -181,8 +259,17 @@ def test_vlm_outputs_and_preprocessing():
     text = model.encode_text(["a", "b", "c"])
     assert text.shape == (3, 48) and torch.allclose(text.norm(dim=1), torch.ones(3), atol=1e-5)
     sim = model.similarity(image, ["a", "b"], short_side=48)
-    assert sim.shape == (1, 2, 3, 4) and sim.abs().max() <= 1.0 + 1e-5
-    with pytest.raises(ValueError, match="resireg must be"):
+    # Cosine similarity recomputed from the model's own parts: backbone -> head -> normalise.
+    with torch.no_grad():
+        lang = model.head(model.backbone(x)).patches
+        queries = model.text_proj(model.text.tower(model.text.tokenizer(["a", "b"])))
+    expected = torch.einsum(
+        "dhw,kd->khw",
+        torch.nn.functional.normalize(lang[0], dim=0),
+        torch.nn.functional.normalize(queries[:, 48:], dim=1),
+    )
+    torch.testing.assert_close(sim[0], expected, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="unknown ReSiReg variant 'fancy'"):
         model.encode_image(image, "fancy")
 
 
@@ -209,7 +296,36 @@ def test_unreachable_github_names_local_alternative(monkeypatch):
 
 def test_radseg_teacher_through_local_torch_hub(tmp_path):
     """The real torch.hub path (source='local') against a repo with RADSeg's entry-point API."""
-    repo = tmp_path / "RADSeg"
+    _radseg_repo(tmp_path / "RADSeg")
+    teacher = RadSegTeacher(repo=str(tmp_path / "RADSeg"), source="local")
+    assert teacher.encoder.calls == {
+        "model_version": "c-radio_v3-b",
+        "lang_model": "siglip2",
+        "slide_crop": 0,
+        "device": "cpu",
+    }
+    _check_radseg_teacher(teacher)
+
+
+def test_radseg_teacher_is_built_per_rank_on_the_modules_device(tmp_path):
+    """The training module builds the teacher in setup, on the device Lightning gives the rank
+    (here 'meta', standing in for cuda:N), and RADSeg receives its inputs there."""
+    from resireg_train.training.module import ResiregModule
+
+    _radseg_repo(tmp_path / "RADSeg")
+    teacher = {"kind": "radseg", "repo": str(tmp_path / "RADSeg"), "source": "local"}
+    module = ResiregModule(TINY_BACKBONE, TINY_HEAD, TINY_TEXT, teacher=teacher,
+                           loss={"distill": {"scale": 0.1}})  # fmt: skip
+    assert module.teacher is None  # nothing device-bound is built in __init__
+    module._device = torch.device("meta")  # what Lightning sets before calling setup
+    module.setup("fit")
+    assert module.teacher.encoder.calls["device"] == "meta"
+    assert module.teacher.out_dim == 24 and module.distill_head.in_features == 24
+    assert module.distill_head.weight.device.type == "meta"
+
+
+def _radseg_repo(repo):
+    """A local torch.hub repo exposing RADSeg's ``radseg_encoder`` entry point."""
     repo.mkdir()
     (repo / "hubconf.py").write_text(
         textwrap.dedent(
@@ -217,18 +333,24 @@ def test_radseg_teacher_through_local_torch_hub(tmp_path):
             dependencies = ["torch"]
             import torch
 
-            class _Encoder(torch.nn.Module):
-                def __init__(self, model_version, lang_model, slide_crop, **kw):
-                    super().__init__()
-                    self.calls = {"model_version": model_version, "lang_model": lang_model, "slide_crop": slide_crop}
-                    self.proj = torch.nn.Conv2d(3, 40, 16, stride=16)
-                    self.lang = torch.nn.Conv2d(40, 24, 1)
+            class _Encoder:
+                # Like RADSegEncoder: a plain object (no .to()) whose modules stay on the
+                # device it was built for; inputs must arrive there.
+                def __init__(self, model_version, lang_model, slide_crop, device=None, **kw):
+                    self.device = torch.device(device or "cuda")
+                    self.calls = {"model_version": model_version, "lang_model": lang_model,
+                                  "slide_crop": slide_crop, "device": str(self.device)}
+                    self.proj = torch.nn.Conv2d(3, 40, 16, stride=16).to(self.device)
+                    self.lang = torch.nn.Conv2d(40, 24, 1).to(self.device)
                 def get_nearest_size(self, h, w):
                     return (h // 16) * 16, (w // 16) * 16
                 def encode_image_to_feat_map(self, rgb):
-                    assert rgb.min() >= 0 and rgb.max() <= 1  # RADIO takes [0, 1] RGB
+                    assert rgb.device == self.device, (rgb.device, self.device)
+                    if rgb.device.type != "meta":
+                        assert rgb.min() >= 0 and rgb.max() <= 1  # RADIO takes [0, 1] RGB
                     return self.proj(rgb)
                 def align_spatial_features_with_language(self, feat):
+                    assert feat.device == self.device
                     return self.lang(feat)
 
             def radseg_encoder(model_version="c-radio_v3-b", lang_model="siglip2", **kwargs):
@@ -236,12 +358,9 @@ def test_radseg_teacher_through_local_torch_hub(tmp_path):
             """
         )
     )
-    teacher = RadSegTeacher(repo=str(repo), source="local")
-    assert teacher.encoder.calls == {
-        "model_version": "c-radio_v3-b",
-        "lang_model": "siglip2",
-        "slide_crop": 0,
-    }
+
+
+def _check_radseg_teacher(teacher):
     assert teacher.out_dim == 24
     out = teacher(torch.randn(2, 3, 70, 90), (5, 6))
     assert out.shape == (2, 24, 5, 6)

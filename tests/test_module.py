@@ -1,18 +1,21 @@
 """The LightningModule on tiny models and synthetic scenes."""
 
+import functools
+
 import lightning as L
 import numpy as np
 import pytest
 import torch
+from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch.utils.data import DataLoader
 
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
-from resireg_train.module import ResiregModule
-from resireg_train.synthetic import SyntheticScenes
+from resireg_train.training.module import ResiregModule
+from resireg_train.data.synthetic import SyntheticScenes
 
 MEAN, STD = (
-    torch.tensor([0.485, 0.456, 0.406]).view(3, 1, 1),
-    torch.tensor([0.229, 0.224, 0.225]).view(3, 1, 1),
+    torch.tensor(IMAGENET_DEFAULT_MEAN).view(3, 1, 1),
+    torch.tensor(IMAGENET_DEFAULT_STD).view(3, 1, 1),
 )
 
 
@@ -34,7 +37,7 @@ def _module(**kw):
         "backbone": TINY_BACKBONE,
         "head": TINY_HEAD,
         "text": TINY_TEXT,
-        "optimizer": {"lr": 2e-3, "weight_decay": 0.05},
+        "optimizer": functools.partial(torch.optim.AdamW, lr=2e-3, weight_decay=0.05),
         "scheduler": {"min_lr": 1e-5},
         "steps_per_epoch": 8,
     }
@@ -57,21 +60,49 @@ class _Record(L.Callback):
         self.losses.append(float(outputs["loss"]))
 
 
+class _RecordScale(L.Callback):
+    def __init__(self):
+        self.scales = []
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        self.scales.append(module.logit_scale.exp().item())  # after the previous step's clamp
+
+
 def test_training_reduces_loss_and_clamps_logit_scale(tmp_path):
+    # The clamp (12) lies below the initial scale (1/0.07 = 14.3), which training alone
+    # keeps near 14: without the clamp every recorded scale would exceed 12.
     module = _module(
-        optimizer={"lr": 3e-3, "weight_decay": 0.05}, logit_scale={"init": 1 / 0.07, "max": 20.0}
+        optimizer=functools.partial(torch.optim.AdamW, lr=3e-3, weight_decay=0.05),
+        logit_scale={"init": 1 / 0.07, "max": 12.0},
     )
     loader = DataLoader(_Scenes(32), batch_size=8, shuffle=False)
     before = [p.clone() for p in module.vlm.backbone.parameters()]
-    record = _Record()
-    trainer = _trainer(tmp_path, epochs=8, limit_train_batches=4, callbacks=[record])
+    record, scale = _Record(), _RecordScale()
+    trainer = _trainer(tmp_path, epochs=8, limit_train_batches=4, callbacks=[record, scale])
     trainer.fit(module, loader)
-    assert module.logit_scale.exp().item() <= 20.0 + 1e-4  # clamped after every step
+    assert scale.scales[0] == pytest.approx(1 / 0.07)  # the initial scale, before any step
+    assert max(scale.scales[1:]) <= 12.0 + 1e-5  # clamped after every step ...
+    assert scale.scales[1] == pytest.approx(12.0, abs=1e-5)  # ... and hit after the first
     assert all(
         torch.equal(a, b) for a, b in zip(before, module.vlm.backbone.parameters(), strict=True)
     )
     assert np.mean(record.losses[-4:]) < np.mean(record.losses[:4]) - 0.2, record.losses
-    assert 0.0 <= trainer.callback_metrics["train/retrieval_i2t_epoch"] <= 1.0
+
+
+def test_retrieval_accuracy_is_in_batch_image_to_text_top1():
+    module = _module().eval()
+    batch = next(iter(DataLoader(_Scenes(8, seed=2), batch_size=8)))
+    with torch.no_grad():
+        _, logs = module.losses(batch, step=0)
+        image = torch.nn.functional.normalize(module.vlm.encode(batch["image"]).embedding, dim=1)
+        text = torch.nn.functional.normalize(module.vlm.text_embedding(batch["caption"]), dim=1)
+    expected = ((image @ text.T).argmax(1) == torch.arange(8)).float().mean()
+    assert logs["train/retrieval_i2t"].item() == expected.item()
+    # A permutation of the captions changes which caption each image should find.
+    with torch.no_grad():
+        _, shuffled = module.losses({**batch, "caption": batch["caption"][::-1]}, step=0)
+    reversed_hits = ((image @ text.flip(0).T).argmax(1) == torch.arange(8)).float().mean()
+    assert shuffled["train/retrieval_i2t"].item() == reversed_hits.item()
 
 
 def test_no_weight_decay_on_norms_biases_and_logit_scale(tmp_path):
@@ -79,8 +110,9 @@ def test_no_weight_decay_on_norms_biases_and_logit_scale(tmp_path):
     trainer = _trainer(tmp_path, limit_train_batches=1)
     trainer.fit(module, DataLoader(_Scenes(8), batch_size=4))
     opt = trainer.optimizers[0]
-    decayed = {id(p) for p in opt.param_groups[0]["params"]}
-    assert opt.param_groups[1]["weight_decay"] == 0.0
+    groups = {g["weight_decay"]: g["params"] for g in opt.param_groups}
+    assert set(groups) == {0.0, 0.05}
+    decayed = {id(p) for p in groups[0.05]}
     assert id(module.logit_scale) not in decayed
     names = {id(p): n for n, p in module.named_parameters()}
     assert all(names[i].endswith("weight") and "norm" not in names[i] for i in decayed)
@@ -95,9 +127,8 @@ def test_loss_scales_follow_warmup_and_distill_only_in_stage1():
             "distill": {"scale": 0.1, "warmup_epochs": 8},
         },
     )
-    assert [m.loss_scales(e) for e in (0, 2, 4, 8)] == pytest.approx(
-        [(0, 0), (0.5, 0.025), (1, 0.05), (1, 0.1)]
-    )
+    scales = [s for e in (0, 2, 4, 8) for s in m.loss_scales(e)]
+    assert scales == pytest.approx([0, 0, 0.5, 0.025, 1, 0.05, 1, 0.1])
     stage2 = _module(loss={"distill": {"scale": 0.0}}, teacher={"kind": "conv"})
     assert stage2.teacher is None and stage2.distill_head is None
 
@@ -107,6 +138,8 @@ def test_distillation_trains_the_distill_head(tmp_path):
         teacher={"kind": "conv", "out_dim": 20},
         loss={"distill": {"scale": 0.1, "warmup_epochs": 0}},
     )
+    assert m.distill_head is None  # built with the teacher, on the rank's device, in setup
+    m.setup("fit")
     w0 = m.distill_head.weight.clone()
     trainer = _trainer(tmp_path, limit_train_batches=2)
     trainer.fit(m, DataLoader(_Scenes(8), batch_size=4))
@@ -137,7 +170,9 @@ def test_checkpoint_excludes_frozen_parts(tmp_path):
 def test_overfits_a_small_synthetic_set(tmp_path):
     """In-batch image->text retrieval rises far above chance (1/16) within 200 steps."""
     module = _module(
-        optimizer={"lr": 3e-3, "weight_decay": 0.0}, scheduler={"min_lr": 3e-3}, steps_per_epoch=2
+        optimizer=functools.partial(torch.optim.AdamW, lr=3e-3, weight_decay=0.0),
+        scheduler={"min_lr": 3e-3},
+        steps_per_epoch=2,
     )
     loader = DataLoader(_Scenes(32, seed=3), batch_size=16, shuffle=True)
     record = _Record()

@@ -1,4 +1,4 @@
-"""ReSiReg Full / Lite against plain-loop references of the DESIGN.md section 3 equations."""
+"""ReSiReg Full / Lite against plain-loop references of the docs/design.md section 4 equations."""
 
 import math
 import subprocess

@@ -11,7 +11,7 @@ from PIL import Image
 from _run import run
 from resireg.heuristic import PrototypeHeuristic
 from resireg.reconstruct import ReSiRegFull
-from resireg_train.config import CONFIG_DIR, safe_dirname
+from resireg_train.cli.task import CONFIG_DIR, safe_dirname
 from resireg_train.report import collect, report
 
 

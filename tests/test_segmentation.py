@@ -10,12 +10,12 @@ from PIL import Image
 
 from resireg.models import WeightsUnavailableError
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
-from resireg_train.segmentation import (
+from resireg_train.ovss.datasets import (
     build_segmentation_set,
     collate_segmentation,
     orad3d_label,
 )
-from resireg_train.synthetic import SyntheticScenes
+from resireg_train.data.synthetic import SyntheticScenes
 
 
 def _save(array, path):
@@ -38,7 +38,7 @@ def test_synthetic_set_resizes_images_and_keeps_full_resolution_masks():
 
 
 def _mixed_sizes_set(sizes):
-    from resireg_train.segmentation import SegmentationSet
+    from resireg_train.ovss.datasets import SegmentationSet
 
     return SegmentationSet(
         "mixed", ("a", "b"), load=None, header_size=lambda i: sizes[i], length=len(sizes),

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from resireg_train.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
+from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 
 
 def test_scenes_are_deterministic_and_consistent():

@@ -17,9 +17,10 @@ from omegaconf import OmegaConf
 
 from _run import evaluate_export
 from resireg.models import ResiregVLM
-from resireg_train.config import CONFIG_DIR, ConfigError, validate
-from resireg_train.module import ResiregModule
-from resireg_train.train import _optimized_value, build, train
+from resireg_train.cli.task import CONFIG_DIR, optimized_value
+from resireg_train.validation import ConfigError, validate
+from resireg_train.training.module import ResiregModule
+from resireg_train.cli.train import build, train
 
 
 def _compose(*overrides):
@@ -27,13 +28,13 @@ def _compose(*overrides):
         return compose("train", overrides=list(overrides))
 
 
-# DESIGN.md section 6, key by key.
+# docs/design.md section 7, key by key.
 RECIPE = {
     "trainer.max_epochs": (100, 350),
     "data.batch_size": (48, 48),
     "data.steps_per_epoch": (1000, 1000),
     "data.crop_size": (512, 512),
-    "model.optimizer.name": ("AdamW", "AdamW"),
+    "model.optimizer._target_": ("torch.optim.AdamW", "torch.optim.AdamW"),
     "model.optimizer.lr": (6e-4, 4e-4),
     "model.scheduler.min_lr": (1e-6, 5e-6),
     "model.optimizer.weight_decay": (0.05, 0.05),
@@ -103,7 +104,7 @@ def _read_csv(path):
 def test_smoke_experiment_through_the_entry_point(tmp_path):
     """`resireg-train experiment=smoke` end to end in a fresh process."""
     exe = shutil.which("resireg-train")
-    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.train"]
+    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
     out = tmp_path / "run"
     proc = subprocess.run(
         [*cmd, "experiment=smoke", f"hydra.run.dir={out}", "~callbacks.progress_bar"],
@@ -195,9 +196,9 @@ def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path)
     assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
     # What a sweeper (e.g. Optuna) receives from the Hydra main with optimized_metric set.
     best = results["best"]["train/loss"]["value"]
-    assert _optimized_value(cfg("x", "optimized_metric=train/loss"), results) == best
+    assert optimized_value(cfg("x", "optimized_metric=train/loss"), results) == best
     with pytest.raises(KeyError, match="optimized_metric='val/nope'"):
-        _optimized_value(cfg("x", "optimized_metric=val/nope"), results)
+        optimized_value(cfg("x", "optimized_metric=val/nope"), results)
 
 
 def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
@@ -262,7 +263,7 @@ class _RecordTokenized(L.Callback):
 
 def test_eval_prompts_run_through_the_text_tower_once_per_run_at_the_interval(tmp_path):
     from resireg.ovss import class_prompts
-    from resireg_train.synthetic import SYNTHETIC_CLASSES
+    from resireg_train.data.synthetic import SYNTHETIC_CLASSES
 
     probe = _RecordTokenized()
     cfg = _compose("experiment=smoke", f"paths.output_dir={tmp_path}", "trainer.max_epochs=5",

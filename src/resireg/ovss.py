@@ -1,6 +1,6 @@
 """Open-vocabulary semantic segmentation (OVSS): vocabularies, text prototypes, metric.
 
-The protocol follows the paper's appendix (DESIGN.md section 4): one text prototype
+The protocol follows the paper's appendix (docs/design.md section 5): one text prototype
 per class from the 80 OpenAI ImageNet templates, cosine similarity with dense features,
 nearest upsampling to the label size, softmax with temperature 100, argmax; mIoU over
 classes present, ignore index 255.
@@ -143,33 +143,22 @@ def text_prototypes(
 
 def predict(
     dense: Tensor, prototypes: Tensor, size: tuple[int, int], temperature: float = 100.0
-) -> tuple[Tensor, Tensor]:
-    """Per-pixel class prediction from dense features.
+) -> Tensor:
+    """Per-pixel class prediction ``[B, H, W]`` (int64) from dense features ``[B, D, h, w]``.
 
-    Cosine similarity of every feature with every prototype gives ``[B, K, h, w]`` logits;
-    softmax with ``temperature`` and argmax; the prediction is brought to the label size
-    with nearest upsampling. Nearest upsampling copies whole logit vectors, so taking the
-    argmax before upsampling gives exactly the label map of upsampling first, at a
-    fraction of the memory (``K x H x W`` floats per image for ADE20K's 150 classes).
-
-    Args:
-        dense: ``[B, D, h, w]`` dense features.
-        prototypes: ``[K, D]`` text prototypes.
-        size: label size ``(H, W)``.
-        temperature: softmax temperature (does not change the argmax; the probabilities
-            are returned for confidence maps).
-
-    Returns:
-        ``(labels, probs)``: ``labels`` ``[B, H, W]`` int64 class indices and ``probs``
-        ``[B, K, h, w]`` softmax probabilities at feature resolution.
+    Cosine similarity of every feature with every prototype ``[K, D]`` gives ``[B, K, h, w]``
+    logits; softmax with ``temperature`` and argmax; the prediction is brought to the label
+    size ``(H, W)`` with nearest upsampling. Nearest upsampling copies whole logit vectors,
+    so taking the argmax before upsampling gives exactly the label map of upsampling first,
+    at a fraction of the memory (``K x H x W`` floats per image for ADE20K's 150 classes).
+    The softmax does not change the argmax; it is kept so the computation is the
+    protocol's as written (docs/design.md section 5).
     """
     dense = F.normalize(dense.float(), dim=1)
     protos = F.normalize(prototypes.float().to(dense.device), dim=1)
     logits = torch.einsum("bdhw,kd->bkhw", dense, protos)
-    probs = torch.softmax(temperature * logits, dim=1)
-    labels = probs.argmax(dim=1, keepdim=True).float()
-    labels = F.interpolate(labels, size=size, mode="nearest").squeeze(1).long()
-    return labels, probs
+    labels = torch.softmax(temperature * logits, dim=1).argmax(dim=1, keepdim=True).float()
+    return F.interpolate(labels, size=size, mode="nearest").squeeze(1).long()
 
 
 class SegmentationMetric:
@@ -225,14 +214,6 @@ class SegmentationMetric:
             raise ValueError(f"pred holds a class outside 0..{self.num_classes - 1}")
         k = self.num_classes
         self.confusion += torch.bincount(target * k + pred, minlength=k * k).reshape(k, k)
-
-    def merge(self, other: SegmentationMetric | Tensor) -> None:
-        """Add another metric's (or a raw) confusion matrix, e.g. from another rank."""
-        self.confusion += (
-            other.confusion
-            if isinstance(other, SegmentationMetric)
-            else other.to(torch.int64).cpu()
-        )
 
     def compute(self) -> dict[str, float | list[float]]:
         cm = self.confusion.double()

@@ -1,6 +1,6 @@
 """ReSiReg Full and Lite: parameter-free reconstruction of dense language features.
 
-Notation (DESIGN.md section 3): intermediates ``F_v`` ``[B, Dv, Hv, Wv]`` carry the
+Notation (docs/design.md section 4): intermediates ``F_v`` ``[B, Dv, Hv, Wv]`` carry the
 backbone's spatial structure, language tokens ``F_vl`` ``[B, Dl, Hl, Wl]`` carry the
 language-aligned (but spatially noisy) features, and an optional segmentation prior
 ``S`` ``[B, H', W']`` holds instance ids (0 = none). Both modules return
@@ -227,6 +227,19 @@ class ReSiRegFull(nn.Module):
             )
         return int(self.n_prototypes)
 
+    def check_grid(self, batch_size: int, height: int, width: int) -> int:
+        """The prototype count for a batch of ``batch_size`` intermediates grids of
+        ``height x width``; a ValueError if it exceeds the batch's upsampled points."""
+        s = self.upscale
+        n_points = batch_size * height * s * width * s
+        n = self.resolve_prototypes(batch_size)
+        if n > n_points:
+            raise ValueError(
+                f"n_prototypes={n} exceeds the number of points N={n_points} (B*Hv*s*Wv*s for "
+                f"B={batch_size} intermediates of {height} x {width}, upscale={s})"
+            )
+        return n
+
     def assign(self, intermediates: Tensor) -> tuple[Tensor, Tensor]:
         """Cluster the batch's intermediates.
 
@@ -240,13 +253,7 @@ class ReSiRegFull(nn.Module):
         """
         b, _, hv, wv = intermediates.shape
         s = self.upscale
-        n_points = b * hv * s * wv * s
-        n = self.resolve_prototypes(b)
-        if n > n_points:
-            raise ValueError(
-                f"n_prototypes={n} exceeds the number of points N={n_points} "
-                f"(B*Hv*s*Wv*s for input shape {tuple(intermediates.shape)}, upscale={s})"
-            )
+        n = self.check_grid(b, hv, wv)
         x = intermediates.float()
         fit = upsampled_pca(x, s, self.n_components if self.n_components is not None else n)
         projected = torch.einsum("bdhw,rd->brhw", x - fit.mean[None, :, None, None], fit.components)

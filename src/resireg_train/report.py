@@ -1,4 +1,4 @@
-"""``resireg-report SWEEP_DIR``: one table (and plots) from a Hydra multirun folder.
+"""Sweep reports (``resireg-report SWEEP_DIR``): one table (and plots) from a Hydra multirun folder.
 
 Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
 (``.hydra/overrides.yaml``) and ``results.json``. A job that failed, is still running or
@@ -18,7 +18,6 @@ the sweep folder (or ``--out``):
 
 from __future__ import annotations
 
-import argparse
 import math
 import re
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ import yaml
 from resireg.heuristic import PrototypeHeuristic
 from resireg_train.tracking import RESULTS_FILE, metric_mode, read_results
 
-__all__ = ["Job", "collect", "report", "main"]
+__all__ = ["Job", "collect", "report"]
 
 BATCH_KEY, PROTOTYPES_KEY = "batch_size", "full.n_prototypes"
 
@@ -267,26 +266,3 @@ def report(
         lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {j.error}" for j in failed]
     files["md"].write_text("\n".join(lines) + "\n")
     return files
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Console entry point ``resireg-report SWEEP_DIR [--metric NAME] [--out DIR]``."""
-    parser = argparse.ArgumentParser(prog="resireg-report", description=__doc__.split("\n\n")[0])
-    parser.add_argument("sweep_dir", help="a multirun folder: outputs/<name>/multirun/<time>")
-    parser.add_argument("--metric", help="metric of the heatmap / curves / best column "
-                        "(default: the first ReSiReg Full mIoU, else train/loss)")  # fmt: skip
-    parser.add_argument("--out", help="where to write (default: the sweep folder)")
-    args = parser.parse_args(argv)
-    try:
-        files = report(args.sweep_dir, args.out, args.metric)
-    except (FileNotFoundError, ValueError) as err:
-        parser.exit(2, f"resireg-report: error: {err}\n")
-    for kind, path in files.items():
-        print(f"{kind:>9}: {path}")
-    table = pd.read_csv(files["csv"])
-    bad = table[table["status"] != "completed"]
-    print(f"{len(table)} jobs, {len(table) - len(bad)} completed, {len(bad)} not completed")
-
-
-if __name__ == "__main__":
-    main()

@@ -26,6 +26,8 @@ import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
+from resireg_train.files import write_atomic
+
 __all__ = ["ResumableCSVLogger", "ResultsTracker", "read_results", "update_results"]
 
 RESULTS_FILE = "results.json"
@@ -98,9 +100,7 @@ def update_results(directory: str | os.PathLike, **fields: Any) -> dict[str, Any
     directory = Path(directory)
     results = {**read_results(directory), **fields}
     directory.mkdir(parents=True, exist_ok=True)
-    tmp = directory / f".{RESULTS_FILE}.tmp"
-    tmp.write_text(json.dumps(results, indent=2, sort_keys=False))
-    tmp.replace(directory / RESULTS_FILE)
+    write_atomic(directory / RESULTS_FILE, json.dumps(results, indent=2, sort_keys=False))
     return results
 
 

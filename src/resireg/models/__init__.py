@@ -1,5 +1,6 @@
-"""Models of the 25M dense VLM: frozen EUPE backbone, language head, SigLIP 2 text, teachers."""
+"""Dense encoders: the interface, the 25M dense VLM and its parts (EUPE, head, SigLIP 2 text, teachers)."""
 
+from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.eupe import EUPE_MODELS, BackboneOutput, EUPEBackbone
 from resireg.models.head import HeadOutput, LanguageHead
 from resireg.models.hub import WeightsUnavailableError
@@ -8,6 +9,9 @@ from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
 from resireg.models.vlm import ResiregVLM
 
 __all__ = [
+    "DenseEncoder",
+    "DenseOutput",
+    "InputRule",
     "EUPE_MODELS",
     "BackboneOutput",
     "EUPEBackbone",

@@ -24,6 +24,7 @@ from typing import Any, NamedTuple
 
 import timm
 import torch
+from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
 from resireg.models.frozen import FrozenModule
@@ -40,17 +41,20 @@ EUPE_MODELS = {
 
 
 class BackboneOutput(NamedTuple):
-    """Final-norm tokens of the backbone.
+    """Tokens of the backbone.
 
     Attributes:
-        cls: ``[B, D]`` CLS token.
-        registers: ``[B, R, D]`` register (storage) tokens.
-        patches: ``[B, D, H/p, W/p]`` patch-token grid (ReSiReg's intermediates).
+        cls: ``[B, D]`` final-norm CLS token.
+        registers: ``[B, R, D]`` final-norm register (storage) tokens.
+        patches: ``[B, D, H/p, W/p]`` final-norm patch-token grid (the head's input).
+        intermediates: ``[B, D, H/p, W/p]`` ReSiReg's intermediates: ``patches`` by
+            default, or the output of the block chosen with ``intermediate_layer``.
     """
 
     cls: Tensor
     registers: Tensor
     patches: Tensor
+    intermediates: Tensor
 
 
 class EUPEBackbone(FrozenModule):
@@ -105,23 +109,52 @@ class EUPEBackbone(FrozenModule):
         self.embed_dim = int(model.embed_dim)
         self.num_registers = int(model.num_prefix_tokens) - 1
         cfg = model.pretrained_cfg
-        self.mean = tuple(cfg.get("mean", (0.485, 0.456, 0.406)))
-        self.std = tuple(cfg.get("std", (0.229, 0.224, 0.225)))
+        self.mean = tuple(cfg.get("mean", IMAGENET_DEFAULT_MEAN))
+        self.std = tuple(cfg.get("std", IMAGENET_DEFAULT_STD))
+        self.depth = len(model.blocks)
         self.freeze()
 
-    def forward(self, images: Tensor) -> BackboneOutput:
-        """Encode normalised images ``[B, 3, H, W]`` (H, W divisible by the patch size)."""
+    def check_layer(self, layer: int | None) -> int | None:
+        """``layer`` if it names a block (negative counts from the end), else a ValueError."""
+        if layer is None:
+            return None
+        if isinstance(layer, bool) or not isinstance(layer, int) or not -self.depth <= layer < self.depth:
+            raise ValueError(
+                f"intermediate_layer={layer!r}: expected null or a block index in "
+                f"[{-self.depth}, {self.depth - 1}] ({self.model_name} has {self.depth} blocks)"
+            )
+        return layer
+
+    def forward(self, images: Tensor, intermediate_layer: int | None = None) -> BackboneOutput:
+        """Encode normalised images ``[B, 3, H, W]`` (H, W divisible by the patch size).
+
+        Args:
+            intermediate_layer: ``None``: the intermediates are the final-norm patch tokens;
+                a block index: that block's output patch tokens (without the final norm),
+                taken in the same pass by timm's ``forward_intermediates``.
+        """
         b, _, h, w = images.shape
         if h % self.patch_size or w % self.patch_size:
             raise ValueError(
                 f"image size {(h, w)} is not divisible by the patch size {self.patch_size}"
             )
+        layer = self.check_layer(intermediate_layer)
         with torch.no_grad():
-            tokens = self.model.forward_features(images)  # [B, 1 + R + N, D], final norm applied
+            if layer is None:
+                tokens = self.model.forward_features(images)  # [B, 1 + R + N, D], final norm
+            else:
+                tokens, (inter,) = self.model.forward_intermediates(
+                    images, indices=[layer % self.depth], norm=False, output_fmt="NCHW"
+                )
         gh, gw = h // self.patch_size, w // self.patch_size
         prefix = 1 + self.num_registers
         patches = tokens[:, prefix:].transpose(1, 2).reshape(b, -1, gh, gw)
-        return BackboneOutput(cls=tokens[:, 0], registers=tokens[:, 1:prefix], patches=patches)
+        return BackboneOutput(
+            cls=tokens[:, 0],
+            registers=tokens[:, 1:prefix],
+            patches=patches,
+            intermediates=patches if layer is None else inter,
+        )
 
     def spec(self) -> dict[str, Any]:
         """JSON-serialisable description (name, weights source, overrides)."""

@@ -55,6 +55,9 @@ class LanguageHead(nn.Module):
         use_registers: bool = False,
     ) -> None:
         super().__init__()
+        self._spec = {"out_dim": out_dim, "depth": depth, "num_heads": num_heads,
+                      "mlp_ratio": mlp_ratio, "drop_path": drop_path,
+                      "use_registers": use_registers}  # fmt: skip
         self.use_registers = use_registers
         self.out_dim = out_dim
         self.blocks = nn.Sequential(
@@ -66,6 +69,10 @@ class LanguageHead(nn.Module):
         self.norm = nn.LayerNorm(in_dim)
         self.proj = nn.Linear(in_dim, out_dim)
         self.apply(self._init)
+
+    def spec(self) -> dict:
+        """Constructor arguments except ``in_dim`` (taken from the backbone on rebuild)."""
+        return dict(self._spec)
 
     @staticmethod
     def _init(m: nn.Module) -> None:

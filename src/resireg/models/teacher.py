@@ -19,6 +19,11 @@ therefore how we call it (read from the repository's ``hubconf.py`` and
 - ``align_spatial_features_with_language(feat_map)`` applies the SigLIP 2 adaptor's
   ``head_mlp`` per location -> language-aligned dense features ``[B, C_lang, h, w]``.
 
+- ``RADSegEncoder`` is a plain object, not an ``nn.Module``: it takes a ``device`` when it
+  is built and keeps RADIO there, so ``.to()`` of a parent module never reaches it. The
+  teacher is therefore built in each process on that process's device (the training
+  module does it in ``setup``), and inputs are moved to the encoder's device.
+
 The teacher output is resized (bilinear) to the student's patch grid. A learned Linear
 (teacher dim -> 512) in the training module is the distillation head.
 """
@@ -32,6 +37,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
@@ -66,6 +72,8 @@ class RadSegTeacher(_FrozenTeacher):
         lang_model: language adaptor (``siglip2``).
         mean, std: normalisation of the student's images, undone before RADIO.
         slide_crop: RADSeg's sliding-window crop (0 = single pass).
+        device: where RADSeg builds and runs RADIO (default: CPU); inputs are moved there
+            and outputs moved back to the input's device.
         **kwargs: passed to ``radseg_encoder``.
     """
 
@@ -75,12 +83,14 @@ class RadSegTeacher(_FrozenTeacher):
         source: str = "github",
         model_version: str = "c-radio_v3-b",
         lang_model: str = "siglip2",
-        mean: Sequence[float] = (0.485, 0.456, 0.406),
-        std: Sequence[float] = (0.229, 0.224, 0.225),
+        mean: Sequence[float] = IMAGENET_DEFAULT_MEAN,
+        std: Sequence[float] = IMAGENET_DEFAULT_STD,
         slide_crop: int = 0,
+        device: str | torch.device | None = None,
         **kwargs: Any,
     ) -> None:
         super().__init__()
+        self.encoder_device = torch.device(device if device is not None else "cpu")
         if source == "local" and not os.path.isdir(repo):
             raise FileNotFoundError(f"RADSeg repository directory {repo!r} does not exist")
         if source == "github":
@@ -94,15 +104,20 @@ class RadSegTeacher(_FrozenTeacher):
             )
         self.encoder = torch.hub.load(
             repo, "radseg_encoder", source=source, model_version=model_version, lang_model=lang_model,
-            slide_crop=slide_crop, **kwargs,
+            slide_crop=slide_crop, device=str(self.encoder_device), **kwargs,
         )  # fmt: skip
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
-        self.out_dim = int(self.dense(torch.zeros(1, 3, 224, 224)).shape[1])
+        probe = torch.zeros(1, 3, 224, 224, device=self.encoder_device)
+        self.out_dim = int(self._language_map(probe).shape[1])
         self.freeze()
 
     def dense(self, images: Tensor) -> Tensor:
-        rgb = (images * self.std + self.mean).clamp(0, 1)
+        rgb = (images * self.std + self.mean).clamp(0, 1).to(self.encoder_device)
+        return self._language_map(rgb).to(images.device)
+
+    def _language_map(self, rgb: Tensor) -> Tensor:
+        """RADSeg's language-aligned map of RGB in [0, 1] on the encoder's device."""
         h, w = self.encoder.get_nearest_size(*rgb.shape[-2:])
         if (h, w) != tuple(rgb.shape[-2:]):
             rgb = F.interpolate(rgb, size=(h, w), mode="bilinear", align_corners=False)
@@ -132,10 +147,13 @@ class ConvTeacher(_FrozenTeacher):
         return self.net(images)
 
 
-def build_teacher(kind: str, **kwargs: Any) -> _FrozenTeacher:
-    """``kind="radseg"`` -> :class:`RadSegTeacher`, ``kind="conv"`` -> :class:`ConvTeacher`."""
+def build_teacher(
+    kind: str, device: str | torch.device | None = None, **kwargs: Any
+) -> _FrozenTeacher:
+    """``kind="radseg"`` -> :class:`RadSegTeacher`, ``kind="conv"`` -> :class:`ConvTeacher`,
+    built on ``device``."""
     if kind == "radseg":
-        return RadSegTeacher(**kwargs)
+        return RadSegTeacher(device=device, **kwargs)
     if kind == "conv":
-        return ConvTeacher(**kwargs)
+        return ConvTeacher(**kwargs).to(device or "cpu")
     raise ValueError(f"unknown teacher kind {kind!r} (expected 'radseg' or 'conv')")

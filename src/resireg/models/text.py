@@ -20,7 +20,7 @@ from typing import Any
 import open_clip
 import torch
 import torch.nn.functional as F
-from open_clip.model import CLIPTextCfg, _build_text_tower
+from open_clip.transformer import TextTransformer
 from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
@@ -140,18 +140,27 @@ class FrozenTextTower(FrozenModule):
         """A random open_clip text transformer with the bundled CLIP BPE tokenizer (offline)."""
         spec = {"kind": "tiny", "width": width, "layers": layers, "heads": heads, "out_dim": out_dim,
                 "context_length": context_length, "seed": seed}  # fmt: skip
-        text_cfg = CLIPTextCfg(context_length=context_length, width=width, heads=heads, layers=layers,
-                               no_causal_mask=True, proj_bias=True, pool_type="argmax")  # fmt: skip
+        tok = open_clip.SimpleTokenizer(context_length=context_length)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            tower = _build_text_tower(out_dim, text_cfg)
-        tok = open_clip.SimpleTokenizer(context_length=context_length)
+            tower = TextTransformer(
+                context_length=context_length, vocab_size=tok.vocab_size, width=width, heads=heads,
+                layers=layers, output_dim=out_dim, no_causal_mask=True, proj_bias=True,
+                pool_type="argmax",
+            )  # fmt: skip
         return cls(tower, tok, out_dim, spec, cache_size)
 
     @classmethod
-    def from_spec(cls, spec: dict, cache_size: int | None = 200_000) -> FrozenTextTower:
+    def from_spec(cls, spec: dict) -> FrozenTextTower:
+        """Build from :meth:`spec` output or a config (``model.text``): ``kind`` selects
+        :meth:`tiny` or :meth:`pretrained`; ``cache_size`` (optional) bounds the caption cache."""
         spec = dict(spec)
         kind = spec.pop("kind")
+        cache_size = spec.pop("cache_size", 200_000)
+        if cache_size is not None and (
+            isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0
+        ):
+            raise ValueError(f"model.text.cache_size={cache_size!r}: expected null or an integer >= 0")
         if kind == "tiny":
             return cls.tiny(**spec, cache_size=cache_size)
         if kind == "pretrained":
@@ -159,7 +168,7 @@ class FrozenTextTower(FrozenModule):
         raise ValueError(f"unknown text tower kind {kind!r} (expected 'pretrained' or 'tiny')")
 
     def spec(self) -> dict:
-        return dict(self._spec)
+        return {**self._spec, "cache_size": self.cache_size}
 
     @property
     def device(self) -> torch.device:
@@ -192,10 +201,6 @@ class FrozenTextTower(FrozenModule):
             while len(self._cache) > self.cache_size:
                 self._cache.popitem(last=False)
         return result
-
-    def clear_cache(self) -> None:
-        self._cache.clear()
-        self.hits = self.misses = 0
 
     def _apply(self, fn, recurse=True):  # keep cached tensors on the tower's device
         super()._apply(fn, recurse)

@@ -1,32 +1,31 @@
-"""Where the Hydra configs live, and the checks a run's config must pass before anything starts.
+"""The checks a run's config must pass before anything starts.
 
 Hydra/OmegaConf check structure; they do not know that a learning rate must be positive or
-that ``min_lr`` must not exceed ``lr``. :func:`validate` does, and reports every violation
-at once, each as ``key=value: expected ...``, before any model or dataset is loaded.
+that ``min_lr`` must not exceed ``lr``. :func:`validate` (``resireg-train``) and
+:func:`validate_eval` (``resireg-eval``) do, and report every violation at once, each as
+``key=value: expected ...``, before any model or dataset is loaded. ReSiReg's parameters
+(the ``resireg`` config group) are checked by one rule set in both, under their prefix.
+
+This module is imported before anything heavy: it needs only OmegaConf, torch (for the
+precision table) and the names of the ReSiReg variants.
 """
 
 from __future__ import annotations
 
-import hashlib
-import os
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.evaluation import PRECISIONS, VARIANTS
+from resireg.variants import VARIANTS
 
-__all__ = ["CONFIG_DIR", "ConfigError", "validate", "validate_eval", "safe_dirname"]
+__all__ = ["ConfigError", "PRECISIONS", "validate", "validate_eval"]
 
-
-def _config_dir() -> Path:
-    env = os.environ.get("RESIREG_CONFIG_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "conf"
-
-
-#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it).
-CONFIG_DIR = _config_dir()
+#: Evaluation precisions -> autocast dtype (``None``: fp32, no autocast).
+PRECISIONS: dict[str, torch.dtype | None] = {
+    "32": None, "32-true": None, "bf16": torch.bfloat16, "bf16-mixed": torch.bfloat16,
+}  # fmt: skip
 
 
 class ConfigError(ValueError):
@@ -75,7 +74,7 @@ _RULES: dict[str, Rule] = {
     "data.num_workers": _integer(0),
     "data.shuffle_buffer": _integer(0),
     "data.sources": (lambda v: isinstance(v, dict) and len(v) > 0, "a non-empty mapping"),
-    "model.optimizer.name": (lambda v: isinstance(v, str), "a torch.optim class name"),
+    "model.optimizer._target_": (lambda v: isinstance(v, str), "an optimizer class path"),
     "model.optimizer.lr": _number(0, strict=True),
     "model.optimizer.weight_decay": _number(0),
     "model.scheduler.min_lr": _number(0),
@@ -89,6 +88,8 @@ _RULES: dict[str, Rule] = {
     "model.head.out_dim": _integer(1),
     "model.head.depth": _integer(1),
     "model.init_from": (_opt_str, "null or a path"),
+    "model.intermediate_layer": (lambda v: v is None or _int(v), "null or a block index"),
+    "model.text.cache_size": (lambda v: v is None or (_int(v) and v >= 0), "null or an integer >= 0"),
     "trainer.max_epochs": _integer(1),
     "trainer.precision": (lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
     "ckpt_path": (_opt_str, "null, 'last' or a checkpoint path"),
@@ -104,6 +105,36 @@ def _unit(v: Any) -> bool:
     return _num(v) and 0 <= v <= 1
 
 
+def _resireg_rules(prefix: str) -> dict[str, Rule]:
+    """Rules of the ``resireg`` group (variants and their parameters) under ``prefix``."""
+    return {
+        f"{prefix}variants": (
+            lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= set(VARIANTS),
+            f"a non-empty list of {list(VARIANTS)}",
+        ),
+        f"{prefix}full.n_prototypes": (
+            lambda v: v == "auto" or (_int(v) and v >= 1),
+            "an integer >= 1 or 'auto'",
+        ),
+        f"{prefix}full.n_components": _optional_int(1),
+        f"{prefix}full.alpha": _number(0, strict=True),
+        f"{prefix}full.tau": (_unit, "a number in [0, 1]"),
+        f"{prefix}full.upscale": _integer(1),
+        f"{prefix}full.max_iter": _integer(1),
+        f"{prefix}full.seed": (_int, "an integer"),
+        f"{prefix}lite.alpha": _number(0, strict=True),
+        f"{prefix}lite.tau": (_unit, "a number in [0, 1]"),
+        f"{prefix}lite.upscale": _integer(1),
+        f"{prefix}batch_size": _integer(1),
+        f"{prefix}num_workers": _integer(0),
+        f"{prefix}precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
+        f"{prefix}temperature": _number(0, strict=True),
+    }
+
+
+_RULES.update(_resireg_rules("callbacks.resireg_eval."))
+_RULES["callbacks.resireg_eval.every_n_epochs"] = _integer(1)
+
 # resireg-eval (conf/eval.yaml)
 _EVAL_RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
@@ -115,44 +146,11 @@ _EVAL_RULES: dict[str, Rule] = {
         lambda v: isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps"),
         "auto, cpu, cuda, cuda:N or mps",
     ),  # fmt: skip
-    "variants": (
-        lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= set(VARIANTS),
-        f"a non-empty list of {list(VARIANTS)}",
-    ),  # fmt: skip
-    "batch_size": _integer(1),
-    "num_workers": _integer(0),
-    "precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
-    "temperature": _number(0, strict=True),
-    "full.n_prototypes": (
-        lambda v: v == "auto" or (_int(v) and v >= 1),
-        "an integer >= 1 or 'auto'",
-    ),
-    "full.n_components": _optional_int(1),
-    "full.alpha": _number(0, strict=True),
-    "full.tau": (_unit, "a number in [0, 1]"),
-    "full.upscale": _integer(1),
-    "lite.alpha": _number(0, strict=True),
-    "lite.tau": (_unit, "a number in [0, 1]"),
-    "lite.upscale": _integer(1),
+    **_resireg_rules(""),
     "dataset.short_side": _optional_int(16),
     "dataset.limit": _optional_int(1),
     "optimized_metric": (_opt_str, "null or a metric name"),
 }
-
-
-def safe_dirname(text: str, max_length: int = 200) -> str:
-    """``text`` as one folder name: ``/`` becomes ``_``, and a name longer than ``max_length``
-    is cut and given a hash so it stays unique (Hydra's ``override_dirname`` keeps the ``/``
-    of paths given as values, which would nest folders)."""
-    name = str(text).replace("/", "_").replace(os.sep, "_")
-    if len(name) > max_length:
-        digest = hashlib.sha1(name.encode()).hexdigest()[:8]
-        name = f"{name[: max_length - 9]}-{digest}"
-    return name
-
-
-if not OmegaConf.has_resolver("safe_dirname"):  # used by conf/hydra/default.yaml
-    OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
 
 
 def _get(cfg: DictConfig, key: str) -> Any:

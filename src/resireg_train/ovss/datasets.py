@@ -3,7 +3,7 @@
 Every dataset is a map-style :class:`SegmentationSet` yielding the image resized so its
 shorter side is ``short_side`` (576 in the paper's protocol; sides rounded to the patch
 size) and the label map at full resolution (predictions are brought to the label size
-with nearest upsampling, DESIGN.md section 4).
+with nearest upsampling, docs/design.md section 5).
 
 Batches: ReSiReg Full treats a batch as one scene (prototypes shared across its images),
 so every image of a batch must have the same resized size. :meth:`SegmentationSet.batches`
@@ -21,7 +21,7 @@ Sources (``kind``):
   Labels 0..150 with 0 = "other", scored with ``reduce_zero_label``.
 - ``orad3d``: a local ORAD-3D folder ``<path>/<split>/<sequence>/{image_data, gt_image,
   gt_image_multi_seg}``; see :func:`orad3d_label` for how labels are built.
-- ``synthetic``: :class:`~resireg_train.synthetic.SyntheticScenes` with their masks.
+- ``synthetic``: :class:`~resireg_train.data.synthetic.SyntheticScenes` with their masks.
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ from PIL import Image, ImageDraw
 from torchvision.transforms.v2.functional import pil_to_tensor
 
 from resireg.models.hub import require_online
-from resireg.models.vlm import patch_grid_size, resize_to_patch_grid
+from resireg.models.images import patch_grid_size, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
-from resireg_train.data import DECODE_ERRORS
-from resireg_train.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
+from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
+from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "SegmentationSet",

@@ -1,6 +1,6 @@
 """Caption data on Hugging Face ``datasets``: sources -> one ``{image, caption}`` stream -> batches.
 
-Pipeline (DESIGN.md section 7):
+Pipeline (docs/design.md section 8):
 
 1. Each configured source is opened in streaming mode (a hub id, a local folder of
    parquet / image files / webdataset shards, a ``datasets`` builder name with
@@ -40,15 +40,15 @@ from datasets import Features, IterableDataset, List, Value, interleave_datasets
 from datasets import Image as HFImage
 from datasets.distributed import split_dataset_by_node
 from PIL import Image
+from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch.utils.data import DataLoader, get_worker_info
 from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
-from resireg_train.synthetic import SyntheticScenes
+from resireg_train.data.synthetic import SyntheticScenes
+from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
-    "IMAGENET_MEAN",
-    "IMAGENET_STD",
     "CaptionDataModule",
     "CaptionStream",
     "open_caption_source",
@@ -57,8 +57,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 #: The one schema every source is mapped to before mixing.
 CAPTION_FEATURES = Features({"image": Value("binary"), "caption": List(Value("string"))})
@@ -68,8 +66,6 @@ _SOURCE_KEYS = {
 }  # fmt: skip
 _LOCAL_BUILDERS = {"parquet", "imagefolder", "webdataset", "json", "csv", "arrow"}
 _EPOCH_PASSES = 10_000  # reshuffle seed of pass p in epoch e: e * _EPOCH_PASSES + p
-#: What PIL raises for an undecodable image file (skipped and counted, never fatal).
-DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 
 
 # ---------------------------------------------------------------------------- sources
@@ -243,8 +239,8 @@ class CaptionStream(torch.utils.data.IterableDataset):
         batch_size: int,
         crop_size: int,
         min_image_size: int = 64,
-        mean: tuple[float, ...] = IMAGENET_MEAN,
-        std: tuple[float, ...] = IMAGENET_STD,
+        mean: tuple[float, ...] = IMAGENET_DEFAULT_MEAN,
+        std: tuple[float, ...] = IMAGENET_DEFAULT_STD,
         seed: int = 0,
         rank: int = 0,
     ) -> None:
@@ -349,7 +345,7 @@ class _EpochDataLoader(DataLoader):
 
 
 class CaptionDataModule(L.LightningDataModule):
-    """Image-caption training data (DESIGN.md section 7).
+    """Image-caption training data (docs/design.md section 8).
 
     Args:
         sources: ``{name: spec}``; see :func:`open_caption_source`. Each spec may carry a
@@ -375,8 +371,8 @@ class CaptionDataModule(L.LightningDataModule):
         num_workers: int = 4,
         shuffle_buffer: int = 1000,
         seed: int = 0,
-        mean: tuple[float, ...] = IMAGENET_MEAN,
-        std: tuple[float, ...] = IMAGENET_STD,
+        mean: tuple[float, ...] = IMAGENET_DEFAULT_MEAN,
+        std: tuple[float, ...] = IMAGENET_DEFAULT_STD,
         pin_memory: bool = False,
     ) -> None:
         super().__init__()

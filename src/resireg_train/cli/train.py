@@ -12,8 +12,8 @@ epoch), ``results.json`` (final and best metrics, status) and ``export/`` (the t
 
 from __future__ import annotations
 
+import functools
 import logging
-import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -21,12 +21,12 @@ from typing import Any
 import hydra
 import lightning as L
 import torch
-from hydra.core.hydra_config import HydraConfig
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.config import CONFIG_DIR, validate
+from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, update_results
+from resireg_train.validation import validate
 
 __all__ = ["build", "train", "main"]
 
@@ -61,35 +61,26 @@ def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
     model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
     model_cfg.pop("init_from", None)
     module = hydra.utils.instantiate(model_cfg, _convert_="all")
-    backbone = module.vlm.backbone
+    rule = module.vlm.input_rule
     datamodule = hydra.utils.instantiate(
-        cfg.data, mean=list(backbone.mean), std=list(backbone.std), _convert_="all"
+        cfg.data, mean=list(rule.mean), std=list(rule.std), _convert_="all"
     )
     return module, datamodule
 
 
 def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, Any]:
-    """Train from a composed config; returns the ``results.json`` content.
+    """Train from a composed config; returns the ``results.json`` content (``{}`` on ranks
+    other than 0).
 
     Any failure, from a bad config value to a crash mid-epoch, is recorded in
-    ``results.json`` (``"status": "failed"`` and the error) before it is re-raised, so a
-    sweep report lists the job with its reason.
+    ``results.json`` (see :func:`~resireg_train.cli.task.run_task`).
 
     Args:
         cfg: a composed ``train.yaml`` config (``paths.output_dir`` must be resolvable).
         callbacks: extra callbacks (added to the configured ones).
     """
-    out = Path(cfg.paths.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    if rank_zero_only.rank == 0:
-        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
-    try:
-        return _fit(cfg, out, callbacks)
-    except BaseException as exc:
-        if rank_zero_only.rank == 0:
-            error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-            update_results(out, status="failed", error=error)
-        raise
+    body = functools.partial(_fit, callbacks=callbacks)
+    return run_task(cfg, body, rank_zero=rank_zero_only.rank == 0)
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
@@ -126,24 +117,7 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     return update_results(out, **extra)
 
 
-def _optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
-    """The value a sweeper (e.g. Optuna) optimises: ``optimized_metric``'s best or final."""
-    name = cfg.get("optimized_metric")
-    if not name or not results:  # unset, or a rank other than 0
-        return None
-    for section in ("best", "final"):
-        value = results.get(section, {}).get(name)
-        if value is not None:
-            return float(value["value"] if isinstance(value, dict) else value)
-    raise KeyError(f"optimized_metric={name!r} was not logged; logged: {sorted(results['final'])}")
-
-
-@hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="train")
-def main(cfg: DictConfig) -> float | None:
-    """Console entry point ``resireg-train`` (Hydra command-line overrides)."""
-    log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
-    return _optimized_value(cfg, train(cfg))
-
+main = hydra_entry_point("train", train)
 
 if __name__ == "__main__":
     main()

@@ -7,17 +7,20 @@ scale, and (stage 1) the distillation head mapping teacher features to the head 
 
 from __future__ import annotations
 
+import functools
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
+from timm.optim import param_groups_weight_decay
 from torch import Tensor, nn
 
 from resireg.models import ResiregVLM, build_teacher
-from resireg_train.losses import ContrastiveLoss, distill_loss, warmup_factor
+from resireg_train.training.losses import ContrastiveLoss, distill_loss, warmup_factor
 
 __all__ = ["ResiregModule"]
 
@@ -25,14 +28,16 @@ _FROZEN_PREFIXES = ("vlm.backbone.", "vlm.text.", "teacher.")
 
 
 class ResiregModule(L.LightningModule):
-    """Two-stage training of the dense VLM (DESIGN.md section 6).
+    """Two-stage training of the dense VLM (docs/design.md section 7).
 
     Args:
         backbone, head, text: model configs (see :meth:`ResiregVLM.build`).
+        intermediate_layer: ReSiReg's intermediates in evaluation (see ``ResiregVLM``).
         teacher: teacher config (``{"kind": "radseg" | "conv", ...}``); loaded only when the
-            distillation scale is > 0.
-        optimizer: ``{"name", "lr", "weight_decay", ...}``: a ``torch.optim`` class name
-            (default ``AdamW``) and its keyword arguments.
+            distillation scale is > 0, and built on the rank's own device in :meth:`setup`.
+        optimizer: a partial optimizer, ``params -> torch.optim.Optimizer`` (Hydra
+            ``_partial_: true`` in ``conf/model``), with ``lr`` and ``weight_decay``; weight
+            decay is applied to matrices only (timm's ``param_groups_weight_decay``).
         scheduler: ``{"min_lr"}``: per-step cosine from ``lr`` to ``min_lr``.
         loss: ``{"contrastive": {"scale", "warmup_epochs"}, "distill": {"scale", "warmup_epochs"}}``.
         logit_scale: ``{"init", "max"}`` (learned in log space, clamped after every step).
@@ -44,8 +49,9 @@ class ResiregModule(L.LightningModule):
         backbone: dict,
         head: dict,
         text: dict,
+        intermediate_layer: int | None = None,
         teacher: dict | None = None,
-        optimizer: dict | None = None,
+        optimizer: Callable[..., torch.optim.Optimizer] | None = None,
         scheduler: dict | None = None,
         loss: dict | None = None,
         logit_scale: dict | None = None,
@@ -53,11 +59,7 @@ class ResiregModule(L.LightningModule):
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
-        self.optim_cfg = {"name": "AdamW", "lr": 6e-4, "weight_decay": 0.05, **(optimizer or {})}
-        if not isinstance(getattr(torch.optim, self.optim_cfg["name"], None), type):
-            raise ValueError(
-                f"model.optimizer.name={self.optim_cfg['name']!r} is not a torch.optim optimizer"
-            )
+        self.optimizer_factory = optimizer or functools.partial(torch.optim.AdamW, lr=6e-4)
         self.sched_cfg = {"min_lr": 1e-6, **(scheduler or {})}
         loss = loss or {}
         self.contrastive_cfg = {"scale": 1.0, "warmup_epochs": 0.0, **loss.get("contrastive", {})}
@@ -66,16 +68,35 @@ class ResiregModule(L.LightningModule):
         self.max_log_scale = math.log(ls["max"])
         self.steps_per_epoch = steps_per_epoch
 
-        self.vlm = ResiregVLM.build(backbone, head, text)
+        self.vlm = ResiregVLM.build(backbone, head, text, intermediate_layer)
         self.logit_scale = nn.Parameter(torch.tensor(math.log(ls["init"])))
         self.contrastive = ContrastiveLoss()
+        self.teacher_cfg = None
         self.teacher = None
         self.distill_head = None
         if self.distill_cfg["scale"] > 0:
             if teacher is None:
                 raise ValueError("model.loss.distill.scale > 0 needs a model.teacher config")
-            self.teacher = build_teacher(**teacher)
+            self.teacher_cfg = dict(teacher)
+
+    def setup(self, stage: str) -> None:
+        """Build the teacher in each process, on that process's device.
+
+        RADSeg's encoder is a plain object that fixes its device when it is built, so
+        Lightning's ``.to()`` never reaches it: it must be built here, once the module sits
+        on the rank's device (``setup`` runs after that move), not in ``__init__``.
+        """
+        if self.teacher_cfg is None or self.teacher is not None:
+            return
+        self.teacher = build_teacher(**self.teacher_cfg, device=self.device)
+        if self.distill_head is None:  # (a restored checkpoint may have built it already)
             self.distill_head = nn.Linear(self.teacher.out_dim, self.vlm.head.out_dim)
+        elif self.distill_head.in_features != self.teacher.out_dim:
+            raise ValueError(
+                f"the checkpoint's distillation head takes {self.distill_head.in_features} "
+                f"teacher channels; model.teacher gives {self.teacher.out_dim}"
+            )
+        self.distill_head.to(self.device)
 
     # ------------------------------------------------------------------ steps
     def loss_scales(self, epoch: float) -> tuple[float, float]:
@@ -90,8 +111,8 @@ class ResiregModule(L.LightningModule):
         """Total loss of a batch ``{"image": [B, 3, H, W], "caption": [str] * B}`` at optimizer
         step ``step`` (for the warm-up), and its detached parts for logging."""
         images, captions = batch["image"], batch["caption"]
-        out = self.vlm.head(self.vlm.backbone(images))
-        text = self.vlm.text_proj(self.vlm.text(captions).to(images.device))
+        out = self.vlm.encode(images)
+        text = self.vlm.text_embedding(captions)
         loss_c, logits, targets = self.contrastive(out.embedding, text, self.logit_scale.exp())
         scale_c, scale_d = self.loss_scales(step / self.steps_per_epoch)
         loss = scale_c * loss_c
@@ -102,9 +123,9 @@ class ResiregModule(L.LightningModule):
         }
         if self.teacher is not None:
             target = self.distill_head(
-                self.teacher(images, out.patches.shape[-2:]).permute(0, 2, 3, 1)
+                self.teacher(images, out.language.shape[-2:]).permute(0, 2, 3, 1)
             )
-            loss_d = distill_loss(out.patches, target.permute(0, 3, 1, 2))
+            loss_d = distill_loss(out.language, target.permute(0, 3, 1, 2))
             loss = loss + scale_d * loss_d
             logs["train/loss_distill"] = loss_d.detach()
         return loss, logs
@@ -123,18 +144,26 @@ class ResiregModule(L.LightningModule):
                  on_epoch=False, batch_size=images.shape[0])  # fmt: skip
         self.log("train/loss", loss.detach(), on_step=True, on_epoch=True, prog_bar=True,
                  batch_size=images.shape[0])  # fmt: skip
-        # Examples the data pipeline dropped before this batch, summed over the epoch and ranks.
-        for reason in ("invalid", "small"):
-            if f"skipped_{reason}" in batch:
-                self.log(
-                    f"data/skipped_{reason}",
-                    batch[f"skipped_{reason}"].sum().float(),
-                    on_step=False,
-                    on_epoch=True,
-                    reduce_fx="sum",
-                    sync_dist=True,
-                )
+        self._log_skipped(batch)
         return loss
+
+    def _log_skipped(self, batch: dict) -> None:
+        """Examples the data pipeline dropped before this batch, summed over ranks here and
+        over the epoch by the logger.
+
+        The cross-rank sum is one explicit reduce that every rank issues at this same point
+        of every step; a ``sync_dist`` metric would instead be reduced lazily by whichever
+        rank first reads it (rank 0's progress bar), out of order with the other ranks'
+        collectives.
+        """
+        keys = [f"skipped_{reason}" for reason in ("invalid", "small") if f"skipped_{reason}" in batch]
+        if not keys:
+            return
+        counts = torch.stack([batch[k].sum() for k in keys]).float().to(self.device)
+        if self.trainer.world_size > 1:
+            counts = self.trainer.strategy.reduce(counts, reduce_op="sum")
+        for key, count in zip(keys, counts, strict=True):
+            self.log(f"data/{key}", count, on_step=False, on_epoch=True, reduce_fx="sum")
 
     def on_train_batch_end(self, outputs: Any, batch: Any, batch_idx: int) -> None:
         with torch.no_grad():
@@ -144,19 +173,17 @@ class ResiregModule(L.LightningModule):
     def build_optimizer(
         self, total_steps: int
     ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
-        """The optimizer over the trained parameters and its per-step cosine schedule."""
-        decay, no_decay = [], []
-        for p in self.parameters():
-            if not p.requires_grad:
-                continue
-            # No weight decay on norms, biases and the logit scale (all 0-/1-d tensors).
-            (no_decay if p.ndim <= 1 else decay).append(p)
-        cfg = {k: tuple(v) if isinstance(v, list) else v for k, v in self.optim_cfg.items()}
-        optimizer = getattr(torch.optim, cfg.pop("name"))(
-            [{"params": decay}, {"params": no_decay, "weight_decay": 0.0}], **cfg
-        )
+        """The optimizer over the trained parameters and its per-step cosine schedule.
+
+        No weight decay on norms, biases and the logit scale (timm's rule: every tensor of
+        at most one dimension, and every ``.bias``).
+        """
+        factory = self.optimizer_factory
+        weight_decay = getattr(factory, "keywords", {}).get("weight_decay", 0.0)
+        optimizer = factory(param_groups_weight_decay(self, weight_decay))
+        lr = optimizer.defaults["lr"]
         total = max(1, int(total_steps))
-        floor = self.sched_cfg["min_lr"] / cfg["lr"]
+        floor = self.sched_cfg["min_lr"] / lr
 
         def cosine(step: int) -> float:
             progress = min(1.0, step / total)
@@ -186,6 +213,9 @@ class ResiregModule(L.LightningModule):
             checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        weight = checkpoint["state_dict"].get("distill_head.weight")
+        if weight is not None and self.distill_head is None:  # sized by the teacher in setup
+            self.distill_head = nn.Linear(weight.shape[1], weight.shape[0])
         own = self.state_dict()
         checkpoint["state_dict"].update(
             {k: v for k, v in own.items() if k.startswith(_FROZEN_PREFIXES)}

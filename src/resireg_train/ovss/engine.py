@@ -1,14 +1,14 @@
-"""OVSS evaluation of a :class:`~resireg.models.ResiregVLM` for BB, ReSiReg Lite and ReSiReg Full.
+"""OVSS evaluation of any :class:`~resireg.models.DenseEncoder` for the ReSiReg variants.
 
 One engine serves the ``ReSiRegEval`` training callback, ``resireg-eval`` and
 ``benchmarks/bench_eval.py``, so a number logged during training is recomputed exactly by
 ``resireg-eval`` on the exported model.
 
-Per batch (images of one size, see :meth:`SegmentationSet.batches`): the backbone and the
-language head run once; each variant turns (EUPE patch tokens, head patch tokens) into
-dense features (``bb``: the head's tokens; ``lite`` / ``full``: ReSiReg); every image is
-then predicted against the text prototypes (:func:`resireg.ovss.predict`) at its label's
-full resolution and scored in one confusion matrix per variant.
+Per batch (images of one size, see :meth:`SegmentationSet.batches`): the encoder runs once
+(``encode``); each variant of :func:`resireg.variants.build_variants` turns its
+(intermediates, language tokens) into dense features; every image is then predicted
+against the text prototypes (:func:`resireg.ovss.predict`) at its label's full resolution
+and scored in one confusion matrix per variant (docs/design.md section 5).
 """
 
 from __future__ import annotations
@@ -20,48 +20,19 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from resireg.models import ResiregVLM, dense_text_half
+from resireg.models import DenseEncoder
 from resireg.ovss import TEMPLATES, SegmentationMetric, average_prompts, class_prompts, predict
-from resireg.reconstruct import ReSiRegFull, ReSiRegLite
-from resireg_train.segmentation import SegmentationSet, collate_segmentation
+from resireg_train.ovss.datasets import SegmentationSet, collate_segmentation
+from resireg_train.validation import PRECISIONS
 
-__all__ = ["VARIANTS", "PRECISIONS", "build_variants", "OVSSTask", "OVSSResult", "StageTimer"]
-
-#: Dense-feature variants: the head alone, ReSiReg Lite, ReSiReg Full.
-VARIANTS = ("bb", "lite", "full")
-#: Evaluation precisions -> autocast dtype (``None``: fp32, no autocast).
-PRECISIONS = {"32": None, "32-true": None, "bf16": torch.bfloat16, "bf16-mixed": torch.bfloat16}
-
-
-def build_variants(
-    variants: Sequence[str],
-    lite: Mapping | None = None,
-    full: Mapping | None = None,
-    key: str = "variants",
-) -> dict[str, nn.Module | None]:
-    """``{"bb": None, "lite": ReSiRegLite(**lite), "full": ReSiRegFull(**full)}`` for the names given."""
-    if not variants:
-        raise ValueError(f"{key}=[]: name at least one of {list(VARIANTS)}")
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad:
-        raise ValueError(f"{key}={list(variants)}: unknown {bad}; choose from {list(VARIANTS)}")
-    modules: dict[str, nn.Module | None] = {}
-    for name in variants:
-        if name == "bb":
-            modules[name] = None
-        elif name == "lite":
-            modules[name] = ReSiRegLite(**dict(lite or {}))
-        else:
-            modules[name] = ReSiRegFull(**dict(full or {}))
-    return modules
+__all__ = ["OVSSTask", "OVSSResult", "StageTimer"]
 
 
 class StageTimer:
-    """Wall seconds per stage (``with timer("backbone"): ...``); CUDA is synchronised."""
+    """Wall seconds per stage (``with timer("encoder"): ...``); CUDA is synchronised."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
@@ -94,13 +65,17 @@ class OVSSResult:
     skipped: int = 0
     batch_sizes: dict[int, int] = field(default_factory=dict)
 
-    def reduce(self, all_reduce: Callable[[Tensor], Tensor]) -> None:
-        """Sum confusion matrices and counts across ranks with ``all_reduce`` (a sum)."""
+    def reduce(self, all_reduce: Callable[[Tensor], Tensor], device: torch.device) -> None:
+        """Sum confusion matrices and counts across ranks with ``all_reduce`` (a sum).
+
+        The packed tensor is moved to ``device`` first: NCCL reduces only tensors on the
+        rank's GPU (gloo takes either), so pass the module's device.
+        """
         names = list(self.metrics)
         packed = torch.cat(
             [self.metrics[n].confusion.reshape(-1) for n in names]
             + [torch.tensor([self.images, self.skipped], dtype=torch.int64)]
-        )
+        ).to(device)
         total = all_reduce(packed).to(torch.int64).cpu()
         offset = 0
         for n in names:
@@ -127,9 +102,9 @@ class OVSSResult:
 class OVSSTask:
     """OVSS of one dataset: its batches, its class prompts and the scoring.
 
-    The frozen text tower embeds the ``K x 80`` class prompts once per task (the tower
-    never changes); every :meth:`prototypes` call applies the model's *current* text
-    projection to those cached outputs, so a training run re-embeds nothing per epoch.
+    The encoder's frozen text part (``text_features``) embeds the ``K x 80`` class prompts
+    once per task; every :meth:`prototypes` call applies the encoder's *current*
+    ``dense_text`` to those outputs, so a training run re-embeds nothing per epoch.
 
     Args:
         dataset: the segmentation dataset.
@@ -159,21 +134,41 @@ class OVSSTask:
         self.temperature = temperature
         self.prompt_batch_size = prompt_batch_size
         self.tower_calls = 0
-        self._tower_out: Tensor | None = None
+        self._text_features: Tensor | None = None
 
     @torch.no_grad()
-    def prototypes(self, vlm: ResiregVLM) -> Tensor:
-        """Class prototypes ``[K, 512]`` from the cached tower outputs and the current projection."""
-        if self._tower_out is None:
+    def prototypes(self, encoder: DenseEncoder) -> Tensor:
+        """Class prototypes ``[K, Dl]`` from the once-computed text features and the encoder's
+        current ``dense_text``."""
+        if self._text_features is None:
             step = self.prompt_batch_size
             chunks = [
-                vlm.text(self.prompts[i : i + step], cache=False)
+                encoder.text_features(self.prompts[i : i + step])
                 for i in range(0, len(self.prompts), step)
             ]
             self.tower_calls += len(chunks)
-            self._tower_out = torch.cat(chunks)
-        projected = vlm.text_proj(self._tower_out.to(vlm.device, torch.float32))
-        return average_prompts(dense_text_half(projected), len(self.dataset.classes))
+            self._text_features = torch.cat(chunks)
+        return average_prompts(encoder.dense_text(self._text_features), len(self.dataset.classes))
+
+    def check_variants(self, variants: Mapping[str, nn.Module], key: str = "") -> None:
+        """Fail before any encoding if a variant cannot run on some batch of this task (e.g.
+        more prototypes than a batch has points); the error names ``key.<variant>``."""
+        patch = self.dataset.patch_size
+        sizes = self.dataset.grid_sizes()
+        shapes = {(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)}
+        for name, variant in variants.items():
+            check = getattr(variant, "check_grid", None)
+            if check is None:
+                continue
+            for b, h, w in sorted(shapes):
+                try:
+                    check(b, h // patch, w // patch)
+                except ValueError as err:
+                    where = f"{key}.{name}" if key else name
+                    raise ValueError(
+                        f"{where}: {err}; dataset {self.dataset.name!r} with batch_size="
+                        f"{self.batch_size} has a batch of {b} images of {h} x {w} px"
+                    ) from err
 
     def loader(self, rank: int = 0, world_size: int = 1) -> DataLoader:
         return DataLoader(
@@ -186,8 +181,8 @@ class OVSSTask:
     @torch.no_grad()
     def run(
         self,
-        vlm: ResiregVLM,
-        variants: Mapping[str, nn.Module | None],
+        encoder: DenseEncoder,
+        variants: Mapping[str, nn.Module],
         rank: int = 0,
         world_size: int = 1,
         precision: str = "32",
@@ -196,11 +191,11 @@ class OVSSTask:
         """Score this rank's share of the batches (``reduce`` the result across ranks).
 
         Args:
-            vlm: the model (its modules are put in eval mode for the pass and restored).
-            variants: ``build_variants`` output.
+            encoder: the model (its modules are put in eval mode for the pass and restored).
+            variants: ``resireg.variants.build_variants`` output.
             rank, world_size: this process's share: batches ``rank::world_size``.
             precision: ``"32"`` (fp32, the protocol's default) or ``"bf16"`` (autocast).
-            timer: collects seconds per stage (``data``, ``backbone``, ``head``,
+            timer: collects seconds per stage (``data``, ``encoder``,
                 ``reconstruction/<variant>``, ``metric``).
         """
         if str(precision) not in PRECISIONS:
@@ -218,11 +213,11 @@ class OVSSTask:
         )
         if rank == 0:  # images whose header was unreadable (counted once across ranks)
             result.skipped = len(self.dataset.unreadable)
-        modes = {m: m.training for m in vlm.modules()}
-        vlm.eval()
+        modes = {m: m.training for m in encoder.modules()}
+        encoder.eval()
         try:
-            protos = self.prototypes(vlm)
-            device = vlm.device
+            protos = self.prototypes(encoder)
+            device = encoder.device
             with torch.autocast(
                 device.type, dtype=dtype or torch.float32, enabled=dtype is not None
             ):
@@ -235,29 +230,21 @@ class OVSSTask:
                     result.skipped += batch["skipped"]
                     if batch["image"] is None:
                         continue
-                    self._score(vlm, batch, variants, protos, metrics, timed)
+                    self._score(encoder, batch, variants, protos, metrics, timed)
                     result.images += len(batch["label"])
         finally:
             for module, mode in modes.items():
                 module.training = mode
         return result
 
-    def _score(self, vlm, batch, variants, protos, metrics, timed) -> None:
-        x = vlm.preprocess(batch["image"])
-        with timed("backbone"):
-            feats = vlm.backbone(x)
-        with timed("head"):
-            lang = vlm.head(feats).patches
-        for name, module in variants.items():
+    def _score(self, encoder, batch, variants, protos, metrics, timed) -> None:
+        x = encoder.input_rule.normalize(batch["image"].to(encoder.device))
+        with timed("encoder"):
+            out = encoder.encode(x)
+        for name, variant in variants.items():
             with timed(f"reconstruction/{name}"):
-                dense = (
-                    F.normalize(lang.float(), dim=1)
-                    if module is None
-                    else module(feats.patches, lang)
-                )
+                dense = variant(out.intermediates, out.language)
             with timed("metric"):
                 for i, label in enumerate(batch["label"]):
-                    pred, _ = predict(
-                        dense[i : i + 1], protos, tuple(label.shape), self.temperature
-                    )
+                    pred = predict(dense[i : i + 1], protos, tuple(label.shape), self.temperature)
                     metrics[name].update(pred[0], label)

@@ -1,4 +1,4 @@
-"""``ReSiRegEval``: OVSS mIoU of BB / ReSiReg Lite / ReSiReg Full while the head trains."""
+"""``ReSiRegEval``: OVSS mIoU of the ReSiReg variants while the head trains."""
 
 from __future__ import annotations
 
@@ -7,10 +7,13 @@ from typing import Any
 
 import lightning as L
 
-from resireg_train.evaluation import VARIANTS, OVSSResult, OVSSTask, build_variants
-from resireg_train.segmentation import build_segmentation_set
+from resireg.variants import VARIANTS, build_variants
+from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.ovss.engine import OVSSTask
 
 __all__ = ["ReSiRegEval"]
+
+_KEY = "callbacks.resireg_eval"
 
 
 class ReSiRegEval(L.Callback):
@@ -23,18 +26,21 @@ class ReSiRegEval(L.Callback):
     in ``results.json``.
 
     Under DDP each rank scores a disjoint share of the batches and the confusion matrices
-    are summed across ranks before the scores are computed, so every rank logs the
-    single-process numbers. The text tower embeds each dataset's class prompts once per
-    run; each pass applies the current text projection to them.
+    are summed across ranks, on the module's device, by one explicit reduce that every
+    rank issues at the same point; the scores are then identical on every rank and are
+    logged without ``sync_dist`` (a lazy sync would be issued by whichever rank first reads
+    the metric, e.g. rank 0's progress bar, and the ranks' collectives would interleave).
+    The text tower embeds each dataset's class prompts once per run; each pass applies the
+    current text projection to them.
 
     Args:
         datasets: ``{name: spec}`` segmentation datasets (see
-            :func:`~resireg_train.segmentation.build_segmentation_set`).
-        variants: any of ``bb``, ``lite``, ``full``.
+            :func:`~resireg_train.ovss.datasets.build_segmentation_set`).
+        variants: names of :func:`resireg.variants.build_variant` (``bb``, ``lite``, ``full``).
         every_n_epochs: evaluation interval in epochs.
         batch_size: images per batch (ReSiReg Full's scene; see ``OVSSTask``).
         num_workers: DataLoader workers per dataset.
-        lite, full: ``ReSiRegLite`` / ``ReSiRegFull`` arguments.
+        lite, full: the variants' arguments (the ``resireg`` config group).
         precision: ``"32"`` (default, the protocol's fp32) or ``"bf16"``.
         temperature: softmax temperature of the prediction.
     """
@@ -51,34 +57,36 @@ class ReSiRegEval(L.Callback):
         precision: str = "32",
         temperature: float = 100.0,
     ) -> None:
-        key = "callbacks.resireg_eval"
         if not datasets:
-            raise ValueError(f"{key}.datasets is empty: configure at least one dataset")
+            raise ValueError(f"{_KEY}.datasets is empty: configure at least one dataset")
         if int(every_n_epochs) < 1:
-            raise ValueError(f"{key}.every_n_epochs={every_n_epochs!r}: expected >= 1")
+            raise ValueError(f"{_KEY}.every_n_epochs={every_n_epochs!r}: expected >= 1")
         if int(batch_size) < 1:
-            raise ValueError(f"{key}.batch_size={batch_size!r}: expected >= 1")
+            raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
-        self.variants = build_variants(list(variants), lite, full, key=f"{key}.variants")
+        self.variants = build_variants(
+            list(variants), {"lite": lite, "full": full}, key=f"{_KEY}.variants"
+        )
         self.every_n_epochs = int(every_n_epochs)
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
         self.precision = str(precision)
         self.temperature = float(temperature)
         self.tasks: dict[str, OVSSTask] = {}
-        self.last_results: dict[str, OVSSResult] = {}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        """Build each dataset's task and check every variant against its batches now, so a
+        bad setting fails before training rather than at the first evaluation."""
         if self.tasks:
             return
-        patch = pl_module.vlm.backbone.patch_size
+        patch = pl_module.vlm.input_rule.patch_size
         for name, spec in self.dataset_specs.items():
-            dataset = build_segmentation_set(
-                spec, patch, key=f"callbacks.resireg_eval.datasets.{name}", name=name
-            )
-            self.tasks[name] = OVSSTask(
+            dataset = build_segmentation_set(spec, patch, key=f"{_KEY}.datasets.{name}", name=name)
+            task = OVSSTask(
                 dataset, self.batch_size, self.num_workers, temperature=self.temperature
             )
+            task.check_variants(self.variants, key=_KEY)
+            self.tasks[name] = task
 
     def due(self, trainer: L.Trainer) -> bool:
         epoch = trainer.current_epoch + 1
@@ -87,7 +95,7 @@ class ReSiRegEval(L.Callback):
     def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
         """Score every dataset now (sharded across ranks, then reduced); returns the scores."""
         scores: dict[str, float] = {}
-        for name, task in self.tasks.items():
+        for task in self.tasks.values():
             result = task.run(
                 pl_module.vlm,
                 self.variants,
@@ -96,8 +104,9 @@ class ReSiRegEval(L.Callback):
                 precision=self.precision,
             )
             if trainer.world_size > 1:
-                result.reduce(lambda t: trainer.strategy.reduce(t, reduce_op="sum"))
-            self.last_results[name] = result
+                result.reduce(
+                    lambda t: trainer.strategy.reduce(t, reduce_op="sum"), pl_module.device
+                )
             scores.update(result.scores())
         return scores
 
@@ -109,12 +118,10 @@ class ReSiRegEval(L.Callback):
         if not self.due(trainer):
             return
         for name, value in self.evaluate(trainer, pl_module).items():
-            # Identical on every rank (the confusion matrices were summed); "max" keeps it exact.
-            pl_module.log(
-                name, value, on_step=False, on_epoch=True, sync_dist=True, reduce_fx="max"
-            )
+            # Already identical on every rank: no sync_dist (see the class docstring).
+            pl_module.log(name, value, on_step=False, on_epoch=True, sync_dist=False)
 
     @property
     def tower_calls(self) -> int:
-        """Text-tower calls made for class prompts so far (once per dataset per run)."""
+        """Text-feature calls made for class prompts so far (once per dataset per run)."""
         return sum(task.tower_calls for task in self.tasks.values())

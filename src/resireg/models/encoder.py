@@ -1,0 +1,169 @@
+"""The dense-encoder interface: what any backbone gives ReSiReg and the evaluation.
+
+A :class:`DenseEncoder` declares how its input is prepared (:class:`InputRule`) and
+produces, from one forward pass,
+
+- ``intermediates`` ``[B, Dv, h, w]``: features that carry the image's spatial structure
+  (ReSiReg clusters / attends over them),
+- ``language`` ``[B, Dl, h', w']``: language-aligned dense tokens,
+- ``embedding`` ``[B, De]`` or ``None``: a global image embedding, when the model has one,
+
+and embeds text queries into the language space (``encode_text -> [K, Dl]``, unit norm).
+Text goes through two steps so an evaluation can run a frozen text tower once and still
+follow a trainable projection: ``text_features`` (frozen, cacheable) then ``dense_text``
+(the current projection and normalisation). A frozen encoder's ``dense_text`` only
+normalises.
+
+``preprocess``, ``encode_image`` and ``similarity`` are shared by every encoder, so a new
+backbone implements ``input_rule``, ``encode`` and ``encode_text`` (docs/design.md
+section 3).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor, nn
+
+from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
+from resireg.variants import build_variant
+
+__all__ = ["InputRule", "DenseOutput", "DenseEncoder"]
+
+
+@dataclass(frozen=True)
+class InputRule:
+    """How an encoder's images are prepared.
+
+    Attributes:
+        patch_size: sides of the model input are multiples of it.
+        mean, std: per-channel normalisation of RGB in [0, 1].
+    """
+
+    patch_size: int
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+
+    def size(self, size: tuple[int, int], short_side: int | None) -> tuple[int, int]:
+        """``(H, W)`` of an image of ``size`` after :meth:`resize`."""
+        return patch_grid_size(size, short_side, self.patch_size)
+
+    def resize(self, image: Tensor, short_side: int | None) -> Tensor:
+        """RGB ``[3, H, W]`` (uint8 or float in [0, 1]) -> float ``[3, h, w]`` in [0, 1]."""
+        return resize_to_patch_grid(image, short_side, self.patch_size)
+
+    def normalize(self, images: Tensor) -> Tensor:
+        """``[B, 3, H, W]`` in [0, 1] -> normalised with ``mean`` / ``std``."""
+        mean = torch.tensor(self.mean, device=images.device).view(1, 3, 1, 1)
+        std = torch.tensor(self.std, device=images.device).view(1, 3, 1, 1)
+        return (images - mean) / std
+
+
+class DenseOutput(NamedTuple):
+    """One encoder pass (see the module docstring)."""
+
+    intermediates: Tensor
+    language: Tensor
+    embedding: Tensor | None
+
+
+class DenseEncoder(nn.Module, ABC):
+    """Base class of every dense vision-language encoder ReSiReg runs on."""
+
+    @property
+    @abstractmethod
+    def input_rule(self) -> InputRule:
+        """Patch size and normalisation of this encoder's input."""
+
+    @abstractmethod
+    def encode(self, images: Tensor) -> DenseOutput:
+        """Normalised images ``[B, 3, H, W]`` (sides multiples of the patch size) -> features."""
+
+    @abstractmethod
+    def encode_text(self, texts: Sequence[str]) -> Tensor:
+        """Unit-norm text queries ``[K, Dl]`` in the language tokens' space."""
+
+    # Text in two steps; the defaults suit an encoder with no trainable text part.
+    def text_features(self, texts: Sequence[str]) -> Tensor:
+        """The frozen part of :meth:`encode_text` (safe to compute once and reuse)."""
+        return self.encode_text(texts)
+
+    def dense_text(self, features: Tensor) -> Tensor:
+        """:meth:`text_features` output -> unit-norm queries ``[K, Dl]`` (current weights)."""
+        return F.normalize(features.float(), dim=-1)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    # ------------------------------------------------------------- shared helpers
+    def preprocess(self, images: Any, short_side: int | None = None) -> Tensor:
+        """PIL images, or RGB tensors (uint8, or float in [0, 1]), -> normalised ``[B, 3, H, W]``.
+
+        Each image is resized by :meth:`InputRule.resize` (shorter side to ``short_side``
+        if given; sides rounded to the patch size); the images of one call must share the
+        resulting size.
+        """
+        if isinstance(images, (Image.Image, Tensor)) and not (
+            isinstance(images, Tensor) and images.ndim == 4
+        ):
+            images = [images]
+        rule = self.input_rule
+        tensors = [pil_to_tensor(im) if isinstance(im, Image.Image) else im for im in images]
+        out = [rule.resize(t, short_side) for t in tensors]
+        if len({tuple(t.shape) for t in out}) != 1:
+            raise ValueError(
+                "images of one batch must share a size after resizing, got "
+                f"{[tuple(t.shape[-2:]) for t in out]}"
+            )
+        return rule.normalize(torch.stack(out).to(self.device))
+
+    def encode_image(
+        self,
+        images: Any,
+        resireg: str | nn.Module | None = None,
+        *,
+        normalized: bool = False,
+        short_side: int | None = None,
+        prior: Tensor | None = None,
+        **resireg_kwargs: Any,
+    ) -> Tensor:
+        """Dense language features ``[B, Dl, h, w]`` (unit norm over channels).
+
+        Args:
+            images: PIL images / RGB tensors, or (``normalized=True``) a normalised batch.
+            resireg: ``None`` or ``"bb"`` (the language tokens), a variant name of
+                :func:`resireg.variants.build_variant` (``"lite"``, ``"full"``), or a
+                variant module. ReSiReg's grid is ``upscale`` times finer.
+            short_side: resize for PIL/tensor input (see :meth:`preprocess`).
+            prior: optional segmentation prior ``[B, H', W']`` of instance ids for ReSiReg.
+            **resireg_kwargs: the variant's arguments (with a name).
+        """
+        x = images if normalized else self.preprocess(images, short_side)
+        variant = (
+            resireg
+            if isinstance(resireg, nn.Module)
+            else build_variant(resireg or "bb", **resireg_kwargs)
+        )
+        with torch.no_grad():
+            out = self.encode(x)
+            return variant(out.intermediates, out.language, prior)
+
+    def similarity(
+        self,
+        images: Any,
+        texts: Sequence[str],
+        resireg: str | nn.Module | None = None,
+        **kwargs: Any,
+    ) -> Tensor:
+        """Per-pixel cosine similarity maps ``[B, K, h, w]`` of images with text queries."""
+        dense = self.encode_image(images, resireg, **kwargs)
+        with torch.no_grad():
+            queries = self.encode_text(texts).to(dense.device)
+        return torch.einsum("bdhw,kd->bkhw", dense.float(), queries.float())

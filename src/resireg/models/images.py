@@ -1,0 +1,46 @@
+"""Images -> patch-grid tensors: the resize rule every dense encoder's input follows.
+
+The shorter side is scaled to ``short_side`` (aspect kept; ``None`` keeps the size), then
+each side is rounded to a multiple of the patch size; bilinear with antialiasing. The
+evaluation datasets resize in DataLoader workers with these same functions, so a model's
+own preprocessing and the evaluation agree pixel for pixel (docs/design.md section 3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import Tensor
+
+__all__ = ["pil_to_tensor", "patch_grid_size", "resize_to_patch_grid"]
+
+
+def pil_to_tensor(image: Image.Image) -> Tensor:
+    """A PIL image -> uint8 RGB ``[3, H, W]``."""
+    array = np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
+    return torch.from_numpy(array).permute(2, 0, 1)
+
+
+def patch_grid_size(
+    size: tuple[int, int], short_side: int | None, patch_size: int
+) -> tuple[int, int]:
+    """``(H, W)`` after :func:`resize_to_patch_grid` (no pixels needed)."""
+    h, w = size
+    scale = short_side / min(h, w) if short_side else 1.0
+    p = patch_size
+    return (max(p, round(h * scale / p) * p), max(p, round(w * scale / p) * p))
+
+
+def resize_to_patch_grid(image: Tensor, short_side: int | None, patch_size: int) -> Tensor:
+    """An RGB image ``[3, H, W]`` (uint8, or float in [0, 1]) -> float ``[3, h, w]`` in [0, 1]."""
+    if image.ndim != 3 or image.shape[0] != 3:
+        raise ValueError(f"images must be RGB [3, H, W], got shape {tuple(image.shape)}")
+    image = image.float() / 255.0 if not image.is_floating_point() else image.float()
+    size = patch_grid_size(tuple(image.shape[-2:]), short_side, patch_size)
+    if size == tuple(image.shape[-2:]):
+        return image
+    return F.interpolate(
+        image[None], size=size, mode="bilinear", align_corners=False, antialias=True
+    )[0]

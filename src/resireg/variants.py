@@ -1,0 +1,73 @@
+"""The ReSiReg variant factory: one name + its keyword arguments -> a module.
+
+Every variant is called the same way, ``variant(intermediates, language, prior=None)``,
+and returns unit-norm dense language features ``[B, Dl, h, w]``:
+
+- ``bb``: the backbone's own language tokens, normalised (no reconstruction),
+- ``lite``: :class:`~resireg.reconstruct.ReSiRegLite`,
+- ``full``: :class:`~resireg.reconstruct.ReSiRegFull`.
+
+The evaluation engine, the training callback and ``DenseEncoder.encode_image`` build
+variants only through :func:`build_variant`, so a new variant (e.g. the self-calibration
+baseline) is one more entry in :data:`_FACTORIES`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from resireg.reconstruct import ReSiRegFull, ReSiRegLite
+
+__all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants"]
+
+
+class BackboneOnly(nn.Module):
+    """The ``bb`` variant: the language tokens as they are, L2-normalised over channels."""
+
+    def forward(self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None) -> Tensor:
+        return F.normalize(language.float(), dim=1)
+
+
+_FACTORIES: dict[str, Callable[..., nn.Module]] = {
+    "bb": BackboneOnly,
+    "lite": ReSiRegLite,
+    "full": ReSiRegFull,
+}
+
+#: Names :func:`build_variant` knows, in the order results are reported.
+VARIANTS: tuple[str, ...] = tuple(_FACTORIES)
+
+
+def build_variant(name: str, **kwargs: Any) -> nn.Module:
+    """The variant ``name`` built with ``kwargs`` (``bb`` takes none)."""
+    if name not in _FACTORIES:
+        raise ValueError(f"unknown ReSiReg variant {name!r}; choose from {list(VARIANTS)}")
+    if name == "bb" and kwargs:
+        raise ValueError(f"variant 'bb' takes no parameters, got {sorted(kwargs)}")
+    return _FACTORIES[name](**kwargs)
+
+
+def build_variants(
+    names: list[str] | tuple[str, ...],
+    params: Mapping[str, Mapping[str, Any] | None] | None = None,
+    key: str = "variants",
+) -> dict[str, nn.Module]:
+    """``{name: build_variant(name, **params[name])}`` for each name, in order.
+
+    Args:
+        names: variant names (see :data:`VARIANTS`).
+        params: per-variant keyword arguments, e.g. ``{"full": {"n_prototypes": 36}}``;
+            entries for variants not named are ignored.
+        key: the config key holding ``names``, named in errors.
+    """
+    if not names:
+        raise ValueError(f"{key}=[]: name at least one of {list(VARIANTS)}")
+    bad = [n for n in names if n not in _FACTORIES]
+    if bad:
+        raise ValueError(f"{key}={list(names)}: unknown {bad}; choose from {list(VARIANTS)}")
+    params = params or {}
+    return {n: build_variant(n, **dict(params.get(n) or {})) for n in names}

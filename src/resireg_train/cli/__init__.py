@@ -1,0 +1,1 @@
+"""Console entry points: resireg-train, resireg-eval, resireg-report (Hydra mains share task.py)."""

@@ -1,0 +1,35 @@
+"""``resireg-report SWEEP_DIR [--metric NAME] [--out DIR]``: the console entry point of
+:mod:`resireg_train.report`."""
+
+from __future__ import annotations
+
+import argparse
+
+import pandas as pd
+
+from resireg_train import report as _report
+
+__all__ = ["main"]
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point ``resireg-report SWEEP_DIR [--metric NAME] [--out DIR]``."""
+    parser = argparse.ArgumentParser(prog="resireg-report", description=_report.__doc__.split("\n\n")[0])
+    parser.add_argument("sweep_dir", help="a multirun folder: outputs/<name>/multirun/<time>")
+    parser.add_argument("--metric", help="metric of the heatmap / curves / best column "
+                        "(default: the first ReSiReg Full mIoU, else train/loss)")  # fmt: skip
+    parser.add_argument("--out", help="where to write (default: the sweep folder)")
+    args = parser.parse_args(argv)
+    try:
+        files = _report.report(args.sweep_dir, args.out, args.metric)
+    except (FileNotFoundError, ValueError) as err:
+        parser.exit(2, f"resireg-report: error: {err}\n")
+    for kind, path in files.items():
+        print(f"{kind:>9}: {path}")
+    table = pd.read_csv(files["csv"])
+    bad = table[table["status"] != "completed"]
+    print(f"{len(table)} jobs, {len(table) - len(bad)} completed, {len(bad)} not completed")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""What the Hydra mains share: where the configs live, the run-folder name resolver, and
+the task wrapper that records a failure in ``results.json`` and returns the value a
+sweeper optimises."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from resireg_train.tracking import update_results
+
+__all__ = ["CONFIG_DIR", "hydra_entry_point", "optimized_value", "run_task", "safe_dirname"]
+
+log = logging.getLogger(__name__)
+
+
+def _config_dir() -> Path:
+    env = os.environ.get("RESIREG_CONFIG_DIR")
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "conf"
+
+
+#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it).
+CONFIG_DIR = _config_dir()
+
+
+def safe_dirname(text: str, max_length: int = 200) -> str:
+    """``text`` as one folder name: ``/`` becomes ``_``, and a name longer than ``max_length``
+    is cut and given a hash so it stays unique (Hydra's ``override_dirname`` keeps the ``/``
+    of paths given as values, which would nest folders)."""
+    name = str(text).replace("/", "_").replace(os.sep, "_")
+    if len(name) > max_length:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:8]
+        name = f"{name[: max_length - 9]}-{digest}"
+    return name
+
+
+def register_resolvers() -> None:
+    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` in ``conf/hydra``)."""
+    if not OmegaConf.has_resolver("safe_dirname"):
+        OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
+
+
+def run_task(
+    cfg: DictConfig,
+    body: Callable[[DictConfig, Path], dict[str, Any]],
+    rank_zero: bool = True,
+) -> dict[str, Any]:
+    """Run ``body(cfg, output_dir)`` with ``results.json`` kept up to date.
+
+    The run is marked ``running`` first; any failure, from a bad config value to a crash
+    mid-epoch, is recorded as ``"status": "failed"`` with its error before it is re-raised,
+    so a sweep report lists the job with its reason. Only rank 0 (``rank_zero``) writes.
+    """
+    out = Path(cfg.paths.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if rank_zero:
+        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
+    try:
+        return body(cfg, out)
+    except BaseException as exc:
+        if rank_zero:
+            error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+            update_results(out, status="failed", error=error)
+        raise
+
+
+def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
+    """The value a sweeper (e.g. Optuna) optimises: ``optimized_metric``'s best value if the
+    run tracked one, else its final value; ``None`` when unset or on ranks other than 0."""
+    name = cfg.get("optimized_metric")
+    if not name or not results:
+        return None
+    for section in ("best", "final"):
+        value = results.get(section, {}).get(name)
+        if value is not None:
+            return float(value["value"] if isinstance(value, dict) else value)
+    logged = sorted(results.get("final", {}))
+    raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
+
+
+def hydra_entry_point(
+    config_name: str, task: Callable[[DictConfig], dict[str, Any]]
+) -> Callable[[], float | None]:
+    """A console entry point: Hydra composes ``conf/<config_name>.yaml`` with the command
+    line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper."""
+    register_resolvers()
+
+    @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
+    def main(cfg: DictConfig) -> float | None:
+        log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
+        return optimized_value(cfg, task(cfg))
+
+    return main

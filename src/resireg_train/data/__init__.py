@@ -1,0 +1,1 @@
+"""Caption streaming for training and the synthetic scenes used by tests and smoke runs."""

@@ -1,0 +1,1 @@
+"""OVSS evaluation: the engine, the ReSiRegEval training callback, segmentation datasets."""

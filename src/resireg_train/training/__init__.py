@@ -1,0 +1,1 @@
+"""The LightningModule of the 25M VLM and its losses."""
