@@ -27,12 +27,13 @@ import lightning as L
 import torch
 from hydra import compose, initialize_config_dir
 
-from resireg_train.validation import CONFIG_DIR
-from resireg_train.ovss.engine import OVSSTask, StageTimer, build_variants
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg.variants import build_variants
+from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.cli.train import build
+from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.ovss.engine import OVSSTask, StageTimer
 
-STAGES = ("data", "backbone", "head", "reconstruction/bb", "reconstruction/lite",
+STAGES = ("data", "encoder", "reconstruction/bb", "reconstruction/lite",
           "reconstruction/full", "metric")  # fmt: skip
 
 
@@ -93,8 +94,10 @@ def vits(repeats: int, images: int) -> None:
     head = {"out_dim": 512, "depth": 2, "num_heads": 8}
     vlm = ResiregVLM.build(backbone, head, TINY_TEXT).eval()
     spec = {"kind": "synthetic", "size": images, "image_size": [432, 576], "short_side": 576}
-    task = OVSSTask(build_segmentation_set(spec, vlm.backbone.patch_size), batch_size=8)
-    variants = build_variants(["bb", "lite", "full"], {"alpha": 10.0}, {"n_prototypes": 36})
+    task = OVSSTask(build_segmentation_set(spec, vlm.input_rule.patch_size), batch_size=8)
+    variants = build_variants(
+        ["bb", "lite", "full"], {"lite": {"alpha": 10.0}, "full": {"n_prototypes": 36}}
+    )
     task.prototypes(vlm)  # once per run; not part of a pass
     timers = []
     for _ in range(repeats):

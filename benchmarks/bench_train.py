@@ -26,7 +26,7 @@ import lightning as L
 import torch
 from hydra import compose, initialize_config_dir
 
-from resireg_train.validation import CONFIG_DIR
+from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.cli.train import build
 
 #: The 25M VLM's trained head on a ViT-S/16-sized backbone (random init, no download) at a
@@ -45,7 +45,9 @@ def _module(*overrides: str):
     """The smoke experiment's module and data module, with Hydra overrides."""
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("train", overrides=["experiment=smoke", *overrides])
-    return build(cfg)
+    module, data = build(cfg)
+    module.setup("fit")  # the teacher (and distillation head) are built per process in setup
+    return module, data
 
 
 def _batches(data, steps: int) -> list[dict]:

@@ -10,8 +10,8 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch.utils.data import DataLoader
 
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
-from resireg_train.training.module import ResiregModule
 from resireg_train.data.synthetic import SyntheticScenes
+from resireg_train.training.module import ResiregModule
 
 MEAN, STD = (
     torch.tensor(IMAGENET_DEFAULT_MEAN).view(3, 1, 1),

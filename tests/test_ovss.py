@@ -69,13 +69,19 @@ def test_metric_rejects_out_of_range_labels():
         m.update(torch.zeros(4, dtype=torch.long), torch.tensor([0, 1, 5, 2]))
 
 
-def test_metric_merge_equals_single_accumulation():
-    a, b, both = SegmentationMetric(4), SegmentationMetric(4), SegmentationMetric(4)
-    x1, y1 = torch.randint(0, 4, (100,)), torch.randint(0, 4, (100,))
-    x2, y2 = torch.randint(0, 4, (100,)), torch.randint(0, 4, (100,))
-    a.update(x1, y1), b.update(x2, y2), both.update(x1, y1), both.update(x2, y2)
-    a.merge(b)
-    assert torch.equal(a.confusion, both.confusion)
+def test_metric_confusion_equals_sklearn_with_zero_label_reduction():
+    """ADE20K's convention: label 0 is ignored, label c is class c - 1; 255 is ignored."""
+    from sklearn.metrics import confusion_matrix
+
+    metric = SegmentationMetric(4, reduce_zero_label=True)
+    target = torch.randint(0, 5, (2, 30))
+    target[0, :3] = 255
+    preds = torch.randint(0, 4, (2, 30))
+    for p, t in zip(preds, target, strict=True):
+        metric.update(p, t)
+    keep = (target != 0) & (target != 255)
+    expected = confusion_matrix((target[keep] - 1).numpy(), preds[keep].numpy(), labels=range(4))
+    assert torch.equal(metric.confusion, torch.from_numpy(expected))
 
 
 def test_text_prototypes_average_normalised_template_embeddings():
@@ -95,8 +101,7 @@ def test_text_prototypes_average_normalised_template_embeddings():
 def test_predict_equals_upsample_then_argmax():
     dense = torch.randn(2, 8, 5, 7)
     protos = torch.randn(4, 8)
-    labels, probs = predict(dense, protos, (23, 31))
+    labels = predict(dense, protos, (23, 31))
     logits = torch.einsum("bdhw,kd->bkhw", F.normalize(dense, dim=1), F.normalize(protos, dim=1))
     ref = torch.softmax(100 * F.interpolate(logits, size=(23, 31), mode="nearest"), dim=1).argmax(1)
     assert torch.equal(labels, ref)
-    assert torch.allclose(probs.sum(1), torch.ones(2, 5, 7))

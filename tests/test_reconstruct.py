@@ -277,7 +277,7 @@ def _noisy_semantic_scene(seed=0, b=4, h=12, w=16, n_classes=5, noise=4.0):
 
 def _miou(dense, labels, text):
     metric = SegmentationMetric(text.shape[0])
-    pred, _ = predict(dense, text, tuple(labels.shape[-2:]))
+    pred = predict(dense, text, tuple(labels.shape[-2:]))
     metric.update(pred, labels)
     return metric.compute()["miou"]
 

@@ -10,12 +10,12 @@ from PIL import Image
 
 from resireg.models import WeightsUnavailableError
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
+from resireg_train.data.synthetic import SyntheticScenes
 from resireg_train.ovss.datasets import (
     build_segmentation_set,
     collate_segmentation,
     orad3d_label,
 )
-from resireg_train.data.synthetic import SyntheticScenes
 
 
 def _save(array, path):

@@ -18,9 +18,9 @@ from omegaconf import OmegaConf
 from _run import evaluate_export
 from resireg.models import ResiregVLM
 from resireg_train.cli.task import CONFIG_DIR, optimized_value
-from resireg_train.validation import ConfigError, validate
-from resireg_train.training.module import ResiregModule
 from resireg_train.cli.train import build, train
+from resireg_train.training.module import ResiregModule
+from resireg_train.validation import ConfigError, validate
 
 
 def _compose(*overrides):
@@ -70,6 +70,56 @@ def test_experiment_configs_carry_the_recipe_table(stage):
         with pytest.raises(ConfigError, match=r"model\.init_from=\?\?\?"):
             validate(cfg)
         validate(_compose("experiment=vlm25m_stage2", "model.init_from=stage1/last.ckpt"))
+
+
+def test_resireg_parameters_have_one_source_for_eval_and_the_callback():
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        evaluation = compose("eval", overrides=["model_path=x"])
+    callback = _compose().callbacks.resireg_eval
+    group = OmegaConf.load(CONFIG_DIR / "resireg" / "default.yaml")
+    for key in ("variants", "lite", "full"):
+        assert evaluation[key] == callback[key] == group[key], key
+    assert group.full.n_components is None  # tied to n_prototypes in both
+
+
+def _leaves(node, prefix=""):
+    if isinstance(node, dict):
+        return {k: v for key, sub in node.items() for k, v in _leaves(sub, f"{prefix}{key}.").items()}
+    return {prefix[:-1]: node}
+
+
+@pytest.mark.parametrize("name", ["smoke", "vlm25m_stage1", "vlm25m_stage2"])
+def test_experiment_files_state_only_what_differs_from_their_base_groups(name):
+    """Every value an experiment file sets differs from what its base groups give."""
+    raw = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "experiment" / f"{name}.yaml"))
+    groups = [
+        f"{k.removeprefix('override /')}={v}"
+        for entry in raw.pop("defaults", [])
+        for k, v in entry.items()
+    ]
+    base = OmegaConf.to_container(_compose(*groups))
+    composed = OmegaConf.to_container(_compose(f"experiment={name}"))
+    base_leaves, leaves = _leaves(base), _leaves(composed)
+    for key in _leaves(raw):
+        if key == "name":
+            continue
+        assert leaves.get(key, "<absent>") != base_leaves.get(key, "<absent>"), key
+
+
+def test_callback_resireg_values_are_checked_before_training(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        validate(_compose("experiment=smoke", "callbacks.resireg_eval.full.alpha=0",
+                          "callbacks.resireg_eval.variants=[bb,mid]"))  # fmt: skip
+    assert "callbacks.resireg_eval.full.alpha=0: expected a number > 0" in str(err.value)
+    assert "callbacks.resireg_eval.variants=['bb', 'mid']" in str(err.value)
+    # More prototypes than a validation batch has points: found at setup, before epoch 0.
+    cfg = _compose("experiment=smoke", f"paths.output_dir={tmp_path}", "~callbacks.progress_bar",
+                   "callbacks.resireg_eval.full.n_prototypes=100000")  # fmt: skip
+    with pytest.raises(ValueError, match=r"callbacks\.resireg_eval\.full: n_prototypes=100000 exceeds"):
+        train(cfg)
+    assert not (tmp_path / "checkpoints").exists()
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["status"] == "failed" and "epoch" not in results
 
 
 def test_bad_config_values_fail_fast_naming_key_and_value(tmp_path):

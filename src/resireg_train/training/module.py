@@ -58,7 +58,9 @@ class ResiregModule(L.LightningModule):
         steps_per_epoch: int = 1000,
     ) -> None:
         super().__init__()
-        self.save_hyperparameters()
+        # The optimizer partial stays out of the checkpoint's hyperparameters, which must load
+        # with torch.load(weights_only=True); the run's .hydra/config.yaml records it.
+        self.save_hyperparameters(ignore=["optimizer"])
         self.optimizer_factory = optimizer or functools.partial(torch.optim.AdamW, lr=6e-4)
         self.sched_cfg = {"min_lr": 1e-6, **(scheduler or {})}
         loss = loss or {}
