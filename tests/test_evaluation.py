@@ -81,7 +81,9 @@ def test_scores_match_an_independent_per_image_computation(vlm):
         iou = jaccard_score(y, p, labels=present, average=None)
         assert scores[f"val/ovss/synthetic/miou_{name}"] == pytest.approx(iou.mean(), abs=1e-12)
         freq = np.array([(y == c).mean() for c in present])
-        assert scores[f"val/ovss/synthetic/fmiou_{name}"] == pytest.approx((freq * iou).sum(), abs=1e-12)
+        assert scores[f"val/ovss/synthetic/fmiou_{name}"] == pytest.approx(
+            (freq * iou).sum(), abs=1e-12
+        )
 
 
 def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):

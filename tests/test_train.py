@@ -84,7 +84,9 @@ def test_resireg_parameters_have_one_source_for_eval_and_the_callback():
 
 def _leaves(node, prefix=""):
     if isinstance(node, dict):
-        return {k: v for key, sub in node.items() for k, v in _leaves(sub, f"{prefix}{key}.").items()}
+        return {
+            k: v for key, sub in node.items() for k, v in _leaves(sub, f"{prefix}{key}.").items()
+        }
     return {prefix[:-1]: node}
 
 
@@ -115,7 +117,9 @@ def test_callback_resireg_values_are_checked_before_training(tmp_path):
     # More prototypes than a validation batch has points: found at setup, before epoch 0.
     cfg = _compose("experiment=smoke", f"paths.output_dir={tmp_path}", "~callbacks.progress_bar",
                    "callbacks.resireg_eval.full.n_prototypes=100000")  # fmt: skip
-    with pytest.raises(ValueError, match=r"callbacks\.resireg_eval\.full: n_prototypes=100000 exceeds"):
+    with pytest.raises(
+        ValueError, match=r"callbacks\.resireg_eval\.full: n_prototypes=100000 exceeds"
+    ):
         train(cfg)
     assert not (tmp_path / "checkpoints").exists()
     results = json.loads((tmp_path / "results.json").read_text())

@@ -28,7 +28,9 @@ __all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants"]
 class BackboneOnly(nn.Module):
     """The ``bb`` variant: the language tokens as they are, L2-normalised over channels."""
 
-    def forward(self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None) -> Tensor:
+    def forward(
+        self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None
+    ) -> Tensor:
         return F.normalize(language.float(), dim=1)
 
 

@@ -89,7 +89,10 @@ _RULES: dict[str, Rule] = {
     "model.head.depth": _integer(1),
     "model.init_from": (_opt_str, "null or a path"),
     "model.intermediate_layer": (lambda v: v is None or _int(v), "null or a block index"),
-    "model.text.cache_size": (lambda v: v is None or (_int(v) and v >= 0), "null or an integer >= 0"),
+    "model.text.cache_size": (
+        lambda v: v is None or (_int(v) and v >= 0),
+        "null or an integer >= 0",
+    ),
     "trainer.max_epochs": _integer(1),
     "trainer.precision": (lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
     "ckpt_path": (_opt_str, "null, 'last' or a checkpoint path"),

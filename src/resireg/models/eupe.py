@@ -118,7 +118,11 @@ class EUPEBackbone(FrozenModule):
         """``layer`` if it names a block (negative counts from the end), else a ValueError."""
         if layer is None:
             return None
-        if isinstance(layer, bool) or not isinstance(layer, int) or not -self.depth <= layer < self.depth:
+        if (
+            isinstance(layer, bool)
+            or not isinstance(layer, int)
+            or not -self.depth <= layer < self.depth
+        ):
             raise ValueError(
                 f"intermediate_layer={layer!r}: expected null or a block index in "
                 f"[{-self.depth}, {self.depth - 1}] ({self.model_name} has {self.depth} blocks)"

@@ -160,7 +160,9 @@ class FrozenTextTower(FrozenModule):
         if cache_size is not None and (
             isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0
         ):
-            raise ValueError(f"model.text.cache_size={cache_size!r}: expected null or an integer >= 0")
+            raise ValueError(
+                f"model.text.cache_size={cache_size!r}: expected null or an integer >= 0"
+            )
         if kind == "tiny":
             return cls.tiny(**spec, cache_size=cache_size)
         if kind == "pretrained":

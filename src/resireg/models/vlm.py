@@ -178,9 +178,7 @@ class ResiregVLM(DenseEncoder):
             raise ValueError(
                 f"{str(cfg_file)!r} is not a {_FORMAT} config (format={cfg.get('format')!r})"
             )
-        model = cls.build(
-            cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer")
-        )
+        model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
         if "frozen_weights" in cfg:
             _load_prefixed(
                 load_file(path / cfg["frozen_weights"]),

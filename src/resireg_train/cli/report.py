@@ -14,7 +14,9 @@ __all__ = ["main"]
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point ``resireg-report SWEEP_DIR [--metric NAME] [--out DIR]``."""
-    parser = argparse.ArgumentParser(prog="resireg-report", description=_report.__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="resireg-report", description=_report.__doc__.split("\n\n")[0]
+    )
     parser.add_argument("sweep_dir", help="a multirun folder: outputs/<name>/multirun/<time>")
     parser.add_argument("--metric", help="metric of the heatmap / curves / best column "
                         "(default: the first ReSiReg Full mIoU, else train/loss)")  # fmt: skip

@@ -158,7 +158,9 @@ class ResiregModule(L.LightningModule):
         rank first reads it (rank 0's progress bar), out of order with the other ranks'
         collectives.
         """
-        keys = [f"skipped_{reason}" for reason in ("invalid", "small") if f"skipped_{reason}" in batch]
+        keys = [
+            f"skipped_{reason}" for reason in ("invalid", "small") if f"skipped_{reason}" in batch
+        ]
         if not keys:
             return
         counts = torch.stack([batch[k].sum() for k in keys]).float().to(self.device)
