@@ -334,3 +334,21 @@ def test_eval_prompts_run_through_the_text_tower_once_per_run_at_the_interval(tm
             counts[text] += 1
     assert set(counts.values()) == {1}, "a class prompt was embedded more than once"
     assert len(probe.texts) > len(prompts)  # the training captions went through it too
+
+
+def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path):
+    """Three runs started together (a shell loop, a job array) never share a run folder."""
+    exe = shutil.which("resireg-train")
+    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    procs = [
+        subprocess.Popen([*cmd, "experiment=smoke", f"paths.log_dir={tmp_path}",
+                          f"model.optimizer.lr=-{lr}"],  # fails at the config check, quickly
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        for lr in (1, 2, 3)
+    ]  # fmt: skip
+    assert all(p.wait(timeout=300) != 0 for p in procs)
+    folders = sorted((tmp_path / "smoke").iterdir())
+    assert len(folders) == 3, folders
+    errors = {json.loads((f / "results.json").read_text())["error"] for f in folders}
+    assert len(errors) == 3  # each run recorded its own failure in its own folder

@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import secrets
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +19,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.tracking import update_results
 
-__all__ = ["CONFIG_DIR", "hydra_entry_point", "optimized_value", "run_task", "safe_dirname"]
+__all__ = [
+    "CONFIG_DIR",
+    "RUN_ID",
+    "hydra_entry_point",
+    "optimized_value",
+    "register_resolvers",
+    "run_task",
+    "safe_dirname",
+]
 
 log = logging.getLogger(__name__)
 
@@ -43,10 +52,17 @@ def safe_dirname(text: str, max_length: int = 200) -> str:
     return name
 
 
+#: A short random token drawn once per process: two runs started in the same second (a job
+#: array, a shell loop) still get two run folders.
+RUN_ID = secrets.token_hex(3)
+
+
 def register_resolvers() -> None:
-    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` in ``conf/hydra``)."""
+    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``)."""
     if not OmegaConf.has_resolver("safe_dirname"):
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
+    if not OmegaConf.has_resolver("run_id"):
+        OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
 
 
 def run_task(
