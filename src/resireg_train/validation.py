@@ -4,7 +4,8 @@ Hydra/OmegaConf check structure; they do not know that a learning rate must be p
 that ``min_lr`` must not exceed ``lr``. :func:`validate` (``resireg-train``) and
 :func:`validate_eval` (``resireg-eval``) do, and report every violation at once, each as
 ``key=value: expected ...``, before any model or dataset is loaded. ReSiReg's parameters
-(the ``resireg`` config group) are checked by one rule set in both, under their prefix.
+(the ``resireg`` config group) and the evaluation pass settings are checked by one rule set
+in both, under their prefix.
 
 This module is imported before anything heavy: it needs only OmegaConf, torch (for the
 precision table) and the names of the ReSiReg variants.
@@ -64,6 +65,10 @@ def _number(minimum: float, strict: bool = False) -> Rule:
     return (lambda v: _num(v) and v >= minimum), f"a number >= {minimum:g}"
 
 
+def _optional_int(minimum: int) -> Rule:
+    return (lambda v: v is None or (_int(v) and v >= minimum)), f"null or an integer >= {minimum}"
+
+
 # key -> (check, what is expected). A key absent from the config is not checked.
 _RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
@@ -89,10 +94,7 @@ _RULES: dict[str, Rule] = {
     "model.head.depth": _integer(1),
     "model.init_from": (_opt_str, "null or a path"),
     "model.intermediate_layer": (lambda v: v is None or _int(v), "null or a block index"),
-    "model.text.cache_size": (
-        lambda v: v is None or (_int(v) and v >= 0),
-        "null or an integer >= 0",
-    ),
+    "model.text.cache_size": _optional_int(0),
     "trainer.max_epochs": _integer(1),
     "trainer.precision": (lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
     "ckpt_path": (_opt_str, "null, 'last' or a checkpoint path"),
@@ -100,16 +102,13 @@ _RULES: dict[str, Rule] = {
 }
 
 
-def _optional_int(minimum: int) -> Rule:
-    return (lambda v: v is None or (_int(v) and v >= minimum)), f"null or an integer >= {minimum}"
-
-
 def _unit(v: Any) -> bool:
     return _num(v) and 0 <= v <= 1
 
 
-def _resireg_rules(prefix: str) -> dict[str, Rule]:
-    """Rules of the ``resireg`` group (variants and their parameters) under ``prefix``."""
+def _ovss_rules(prefix: str) -> dict[str, Rule]:
+    """Rules of the keys resireg-eval and the ReSiRegEval callback share, under ``prefix``:
+    the ``resireg`` group (variants and their parameters) and the pass settings."""
     return {
         f"{prefix}variants": (
             lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= set(VARIANTS),
@@ -135,7 +134,7 @@ def _resireg_rules(prefix: str) -> dict[str, Rule]:
     }
 
 
-_RULES.update(_resireg_rules("callbacks.resireg_eval."))
+_RULES.update(_ovss_rules("callbacks.resireg_eval."))
 _RULES["callbacks.resireg_eval.every_n_epochs"] = _integer(1)
 
 # resireg-eval (conf/eval.yaml)
@@ -149,7 +148,7 @@ _EVAL_RULES: dict[str, Rule] = {
         lambda v: isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps"),
         "auto, cpu, cuda, cuda:N or mps",
     ),  # fmt: skip
-    **_resireg_rules(""),
+    **_ovss_rules(""),
     "dataset.short_side": _optional_int(16),
     "dataset.limit": _optional_int(1),
     "optimized_metric": (_opt_str, "null or a metric name"),

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor, nn
 
-from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
+from resireg.models.images import pil_to_tensor, resize_to_patch_grid
 from resireg.variants import build_variant
 
 __all__ = ["InputRule", "DenseOutput", "DenseEncoder"]
@@ -49,10 +49,6 @@ class InputRule:
     patch_size: int
     mean: tuple[float, float, float]
     std: tuple[float, float, float]
-
-    def size(self, size: tuple[int, int], short_side: int | None) -> tuple[int, int]:
-        """``(H, W)`` of an image of ``size`` after :meth:`resize`."""
-        return patch_grid_size(size, short_side, self.patch_size)
 
     def resize(self, image: Tensor, short_side: int | None) -> Tensor:
         """RGB ``[3, H, W]`` (uint8 or float in [0, 1]) -> float ``[3, h, w]`` in [0, 1]."""

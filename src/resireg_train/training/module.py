@@ -85,8 +85,9 @@ class ResiregModule(L.LightningModule):
         """Build the teacher in each process, on that process's device.
 
         RADSeg's encoder is a plain object that fixes its device when it is built, so
-        Lightning's ``.to()`` never reaches it: it must be built here, once the module sits
-        on the rank's device (``setup`` runs after that move), not in ``__init__``.
+        Lightning's ``.to()`` never reaches it: it must be built here, not in ``__init__``.
+        Lightning calls ``setup`` before it moves the module, but with ``self.device``
+        already reporting the rank's root device, which is where the teacher goes.
         """
         if self.teacher_cfg is None or self.teacher is not None:
             return
