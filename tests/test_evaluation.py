@@ -94,14 +94,15 @@ def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):
 
     # What trainer.strategy.reduce(t, "sum") returns on every rank: the sum of the packs.
     cpu = torch.device("cpu")
-    packs = []
+    packs, skips = [], [s.skipped_samples for s in shards]
     for shard in shards:
-        shard.reduce(lambda t: packs.append(t.clone()) or t, cpu)  # capture each rank's pack
+        shard.reduce(lambda t: packs.append(t.clone()) or t, lambda o: skips, cpu)  # capture
     total = torch.stack(packs).sum(0)
-    shards[0].reduce(lambda t: total, cpu)
+    shards[0].reduce(lambda t: total, lambda o: skips, cpu)
     for name in variants:
         assert torch.equal(shards[0].metrics[name].confusion, single.metrics[name].confusion)
     assert shards[0].images == 10 and shards[0].scores() == single.scores()
+    assert shards[0].batch_sizes == single.batch_sizes == {2: 1, 4: 2}
 
 
 def test_bf16_pass_agrees_with_fp32_and_timer_splits_the_cost(vlm):
@@ -129,11 +130,14 @@ def test_bf16_pass_agrees_with_fp32_and_timer_splits_the_cost(vlm):
         _task().run(vlm, build_variants(["bb"]), precision="fp8")
 
 
-def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scores(vlm):
+def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scores(
+    vlm, monkeypatch
+):
     """NCCL reduces only tensors on the rank's GPU: the strategy must receive the pack on the
     module's device ('meta' stands in for cuda:N), and the reduced sums give the scores."""
     from types import SimpleNamespace
 
+    from resireg_train.ovss import callback as callback_module
     from resireg_train.ovss.callback import ReSiRegEval
 
     callback = ReSiRegEval({"synthetic": SPEC}, variants=["bb", "full"], batch_size=4,
@@ -143,7 +147,7 @@ def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scor
     (task,) = callback.tasks.values()
     single = task.run(vlm, callback.variants)
     packed = []
-    single.reduce(lambda t: packed.append(t) or t, torch.device("cpu"))
+    single.reduce(lambda t: packed.append(t) or t, lambda o: [o], torch.device("cpu"))
 
     class Strategy:
         calls = []
@@ -153,10 +157,14 @@ def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scor
             self.calls.append(tensor.shape)
             return packed[0]  # the sum over ranks of what they packed
 
-    trainer = SimpleNamespace(global_rank=1, world_size=2, strategy=Strategy())
+    trainer = SimpleNamespace(global_rank=1, world_size=2, strategy=Strategy(),
+                              is_global_zero=False)  # fmt: skip
+    gathered = []
+    monkeypatch.setattr(callback_module, "_all_gather_object",
+                        lambda o: gathered.append(o) or [o, []])  # fmt: skip
     scores = callback.evaluate(trainer, module)
-    assert Strategy.calls == [packed[0].shape]
-    assert scores == single.scores()
+    assert Strategy.calls == [packed[0].shape] and gathered == [[]]
+    assert scores == {**single.scores(), "val/ovss/synthetic/skipped": 0.0}
 
 
 def test_variant_names_and_modes_are_checked(vlm):

@@ -63,10 +63,17 @@ def test_metric_fmiou_accuracy_and_reduce_zero_label():
     assert out["pixel_acc"] == pytest.approx(3 / 5)
 
 
-def test_metric_rejects_out_of_range_labels():
+def test_metric_rejects_out_of_range_labels_naming_the_stored_value():
     m = SegmentationMetric(3)
-    with pytest.raises(ValueError, match="label 5"):
+    with pytest.raises(ValueError, match=r"class id 5; valid ids are 0\.\.2 and 255"):
         m.update(torch.zeros(4, dtype=torch.long), torch.tensor([0, 1, 5, 2]))
+    # With ADE20K's zero-label shift the message names the value in the file (200, not 199),
+    # ids 0..150 are valid (150 is class 149) and 255 stays ignored.
+    ade = SegmentationMetric(150, reduce_zero_label=True)
+    ade.update(torch.zeros(3, dtype=torch.long), torch.tensor([0, 150, 255]))
+    assert ade.confusion[149, 0] == 1 and ade.confusion.sum() == 1
+    with pytest.raises(ValueError, match=r"class ids 151, 200; valid ids are 0\.\.150 \(0 = other"):
+        ade.update(torch.zeros(3, dtype=torch.long), torch.tensor([200, 151, 3]))
 
 
 def test_metric_confusion_equals_sklearn_with_zero_label_reduction():

@@ -2,6 +2,7 @@
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -85,12 +86,13 @@ def test_ade20k_local_folder_reduces_zero_label_and_skips_corrupt_images(tmp_pat
     )
     assert ds.classes == ADE20K_CLASSES and ds.reduce_zero_label and len(ds) == 4
     batches = ds.batches(2)
-    assert ds.unreadable == [3]  # the corrupt file is counted, not fatal
+    assert [s.index for s in ds.unreadable] == [3]  # the corrupt file is counted, not fatal
+    assert ds.unreadable[0].file.endswith("ADE_val_99999999.jpg")
     assert sorted(i for b in batches for i in b) == [0, 1, 2]
     assert torch.equal(ds[1]["label"], torch.from_numpy(labels[1].astype(np.int64)))
     assert ds[1]["image"].shape == (3, 48, 32)  # 56 x 40 -> short side 32
     batch = collate_segmentation([ds[0], ds[3], ds[2]])
-    assert batch["skipped"] == 1 and batch["index"] == [0, 2]
+    assert [s.index for s in batch["skipped"]] == [3] and batch["index"] == [0, 2]
 
 
 def test_ade20k_hub_layout_from_a_local_parquet_folder(tmp_path):
@@ -192,3 +194,71 @@ def test_orad3d_unknown_polygon_tag_is_an_error_naming_the_mapping(tmp_path):
 def test_bad_dataset_specs_name_the_key(spec, message):
     with pytest.raises((ValueError, FileNotFoundError), match=message):
         build_segmentation_set(spec, patch_size=16)
+
+
+def poisoned_ade_folder(root):
+    """An ADEChallengeData2016 folder of 48 x 64 images: five good ones (one ``.JPG``) and one
+    of each fault: a label id past 150, an RGB label, a label of another size, a truncated
+    image. Returns ``{file name: expected reason regex}`` of the bad ones."""
+    rng = np.random.default_rng(0)
+
+    def pair(stem, ext=".jpg", label=None):
+        _save(
+            rng.integers(0, 255, (48, 64, 3), dtype=np.uint8),
+            root / f"images/validation/{stem}{ext}",
+        )
+        label = rng.integers(0, 151, (48, 64), dtype=np.uint8) if label is None else label
+        _save(label, root / f"annotations/validation/{stem}.png")
+
+    for i in range(4):
+        pair(f"ADE_val_{i:08d}")
+    out_of_range = rng.integers(0, 151, (48, 64), dtype=np.uint8)
+    out_of_range[5, 7] = 200
+    pair("ADE_val_00000010", label=out_of_range)
+    pair("ADE_val_00000011", label=rng.integers(0, 151, (48, 64, 3), dtype=np.uint8))
+    pair("ADE_val_00000012", label=rng.integers(0, 151, (40, 64), dtype=np.uint8))
+    pair("ADE_val_00000013")
+    jpeg = root / "images/validation/ADE_val_00000013.jpg"
+    jpeg.write_bytes(jpeg.read_bytes()[: jpeg.stat().st_size // 2])
+    pair("ADE_val_00000014", ext=".JPG")
+    return {
+        "ADE_val_00000010.jpg": r"class id 200; valid ids are 0\.\.150",
+        "ADE_val_00000011.jpg": r"shape \(48, 64, 3\).*not a colour image",
+        "ADE_val_00000012.jpg": r"label is 40 x 64 px but its image is 48 x 64 px",
+        "ADE_val_00000013.jpg": r"unreadable: image file is truncated",
+    }
+
+
+def test_bad_ade20k_samples_are_skipped_naming_file_and_reason(tmp_path):
+    import re
+
+    from resireg_train.ovss.datasets import SkippedSample
+
+    bad = poisoned_ade_folder(tmp_path)
+    ds = build_segmentation_set({"kind": "ade20k", "path": str(tmp_path), "short_side": 32}, 16)
+    assert len(ds) == 9  # the upper-case .JPG image is listed too
+    items = [ds[i] for i in range(len(ds))]
+    skipped = {Path(s.file).name: s.reason for s in items if isinstance(s, SkippedSample)}
+    assert set(skipped) == set(bad)
+    for name, pattern in bad.items():
+        assert re.search(pattern, skipped[name]), (name, skipped[name])
+    good = [s for s in items if not isinstance(s, SkippedSample)]
+    assert len(good) == 5 and all(s["label"].shape == (48, 64) for s in good)
+
+
+def test_sixteen_bit_png_images_are_scaled_not_saturated(tmp_path):
+    """A 16-bit grey PNG (PIL mode I;16) comes out as v / 257 on all three channels, as numpy
+    computes it; PIL's own convert("RGB") clips every value above 255 to white."""
+    from resireg.models.images import pil_to_tensor
+
+    wide = np.linspace(0, 65535, 48 * 64).astype(np.uint16).reshape(48, 64)
+    Image.fromarray(wide).save(tmp_path / "wide.png")
+    with Image.open(tmp_path / "wide.png") as image:
+        assert image.mode.startswith("I")
+        pixels = pil_to_tensor(image)
+        clipped = np.asarray(image.convert("RGB"))
+    expected = np.rint(wide / 257.0).astype(np.uint8)
+    assert pixels.shape == (3, 48, 64) and pixels.dtype == torch.uint8
+    for channel in pixels:
+        assert np.array_equal(channel.numpy(), expected)
+    assert (clipped == 255).mean() > 0.99  # what the images came out as before

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import open_clip
 import torch
 import torch.nn.functional as F
@@ -26,6 +27,7 @@ __all__ = [
     "average_prompts",
     "text_prototypes",
     "predict",
+    "label_problem",
     "SegmentationMetric",
 ]
 
@@ -161,6 +163,31 @@ def predict(
     return F.interpolate(labels, size=size, mode="nearest").squeeze(1).long()
 
 
+def label_problem(
+    label: Tensor | np.ndarray,
+    num_classes: int,
+    ignore_index: int = 255,
+    reduce_zero_label: bool = False,
+) -> str | None:
+    """Why ``label`` (class ids as stored in the file) cannot be scored, or ``None``.
+
+    Valid values are ``0..num_classes-1`` and ``ignore_index``; with ``reduce_zero_label``
+    (ADE20K) they are ``0..num_classes`` (0 = "other", not scored) and ``ignore_index``. The
+    message names the value as it is stored, so it can be found in the file.
+    """
+    if not isinstance(label, Tensor):
+        label = torch.from_numpy(np.asarray(label).astype(np.int64, copy=False))
+    values = label.reshape(-1).long()
+    top = num_classes if reduce_zero_label else num_classes - 1
+    bad = values[((values < 0) | (values > top)) & (values != ignore_index)].unique()
+    if bad.numel() == 0:
+        return None
+    zero = " (0 = other, not scored)" if reduce_zero_label else ""
+    ids = ", ".join(str(int(v)) for v in bad[:5]) + (", ..." if bad.numel() > 5 else "")
+    noun = "class id" if bad.numel() == 1 else "class ids"
+    return f"label holds {noun} {ids}; valid ids are 0..{top}{zero} and {ignore_index} (ignored)"
+
+
 class SegmentationMetric:
     """Confusion-matrix segmentation metric accumulated over batches.
 
@@ -196,6 +223,9 @@ class SegmentationMetric:
             )
         pred = pred.detach().reshape(-1).long().cpu()
         target = target.detach().reshape(-1).long().cpu()
+        problem = label_problem(target, self.num_classes, self.ignore_index, self.reduce_zero_label)
+        if problem:
+            raise ValueError(problem)
         if self.reduce_zero_label:
             target = torch.where(
                 (target == 0) | (target == self.ignore_index),
@@ -204,12 +234,6 @@ class SegmentationMetric:
             )
         valid = target != self.ignore_index
         pred, target = pred[valid], target[valid]
-        bad = (target < 0) | (target >= self.num_classes)
-        if bool(bad.any()):
-            raise ValueError(
-                f"target holds label {int(target[bad][0])} outside 0..{self.num_classes - 1} "
-                f"(and it is not the ignore index {self.ignore_index})"
-            )
         if bool(((pred < 0) | (pred >= self.num_classes)).any()):
             raise ValueError(f"pred holds a class outside 0..{self.num_classes - 1}")
         k = self.num_classes

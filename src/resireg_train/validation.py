@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.variants import VARIANTS
 
-__all__ = ["ConfigError", "PRECISIONS", "validate", "validate_eval"]
+__all__ = ["ConfigError", "PRECISIONS", "check_devices", "validate", "validate_eval"]
 
 #: Evaluation precisions -> autocast dtype (``None``: fp32, no autocast).
 PRECISIONS: dict[str, torch.dtype | None] = {
@@ -183,6 +183,26 @@ def _errors(cfg: DictConfig, rules: dict[str, Rule]) -> list[str]:
     return errors
 
 
+def _device_errors(
+    key: str, device: Any, fix: str = "use cpu, or auto to take a GPU only where there is one"
+) -> list[str]:
+    """A device this machine does not have (checked before any model is built)."""
+    if not isinstance(device, str):
+        return []
+    kind, _, index = device.partition(":")
+    if kind in ("cuda", "gpu"):
+        if not torch.cuda.is_available():
+            return [f"{key}={device!r}: this machine has no CUDA GPU "
+                    f"(torch.cuda.is_available() is False); {fix}"]  # fmt: skip
+        if index.isdigit() and int(index) >= torch.cuda.device_count():
+            return [
+                f"{key}={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)"
+            ]
+    if kind == "mps" and not torch.backends.mps.is_available():
+        return [f"{key}={device!r}: MPS is not available on this machine; {fix}"]
+    return []
+
+
 def validate_eval(cfg: DictConfig | dict) -> None:
     """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing all."""
     if not isinstance(cfg, DictConfig):
@@ -217,6 +237,15 @@ def validate(cfg: DictConfig | dict) -> None:
             f"model.loss.distill.scale={distill!r}: distillation needs a model.teacher config "
             "(or set the scale to 0)"
         )
+    text = _get(cfg, "model.text")
+    if isinstance(text, dict) and text.get("kind") == "pretrained":
+        weights = text.get("weights")
+        if not (isinstance(weights, str) and weights):
+            errors.append(
+                f"model.text.weights={weights!r}: expected an open_clip pretrained tag of "
+                f"model.text.model_name={text.get('model_name')!r} (e.g. webli) or a local "
+                "open_clip checkpoint file"
+            )
     sources = values["data.sources"]
     if isinstance(sources, dict):
         for name, spec in sources.items():
@@ -225,3 +254,19 @@ def validate(cfg: DictConfig | dict) -> None:
                 errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
+
+
+def check_devices(cfg: DictConfig | dict) -> None:
+    """Check that this machine has the devices a config asks for (``device`` of
+    resireg-eval, ``trainer.accelerator`` of resireg-train); raise :class:`ConfigError`
+    naming the key and the fix. Separate from :func:`validate`: a config valid on a GPU
+    node is still valid on a laptop, it just cannot run there."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    errors = _device_errors("device", _get(cfg, "device"))
+    accelerator = _get(cfg, "trainer.accelerator")
+    if accelerator in ("gpu", "cuda"):
+        fix = "use trainer=cpu (or trainer=ddp_cpu), or trainer.accelerator=auto"
+        errors += _device_errors("trainer.accelerator", accelerator, fix)
+    if errors:
+        raise ConfigError("this machine cannot run the config:\n  " + "\n  ".join(errors))

@@ -17,8 +17,21 @@ from torch import Tensor
 __all__ = ["pil_to_tensor", "patch_grid_size", "resize_to_patch_grid"]
 
 
+#: PIL modes of 16-bit (and 32-bit integer) single-channel images, e.g. 16-bit PNGs.
+_WIDE_GREY = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+
+
 def pil_to_tensor(image: Image.Image) -> Tensor:
-    """A PIL image -> uint8 RGB ``[3, H, W]``."""
+    """A PIL image -> uint8 RGB ``[3, H, W]``.
+
+    16-bit grey images are scaled (``v / 257``, so 65535 -> 255): PIL's ``convert("RGB")``
+    clips them at 255 instead, turning almost every pixel white. Mode ``I`` (32-bit int)
+    is read as 16-bit, what PNG decoders give it.
+    """
+    if image.mode in _WIDE_GREY:
+        wide = np.asarray(image).astype(np.float64)
+        grey = np.clip(np.rint(wide / 257.0), 0, 255).astype(np.uint8)
+        return torch.from_numpy(grey).expand(3, *grey.shape).contiguous()
     array = np.asarray(image.convert("RGB"), dtype=np.uint8).copy()
     return torch.from_numpy(array).permute(2, 0, 1)
 

@@ -8,7 +8,12 @@
 The scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
 model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
 ReSiReg's parameters (``variants``, ``lite.*``, ``full.*``) come from the ``resireg``
-config group, which the training callback shares.
+config group, which the training callback shares. An export written by ``resireg-train``
+records the settings its training run evaluated it with (``resireg_eval.json``: variants,
+``lite``, ``full``, ``batch_size``, ``precision``, ``temperature``); every one of them still at
+its default here (not set on the command line, nor by an experiment or sweep file) takes
+the recorded value, so ``resireg-eval`` reproduces the training score by default
+(``export_settings=false`` turns this off).
 ``results.json`` in the output dir holds the status (and the error of a failed run), the
 scores under ``final``, per-class IoU, the parameters, image counts, the batch-size
 histogram and seconds per stage.
@@ -21,15 +26,18 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from resireg.models import ResiregVLM
 from resireg.variants import build_variants
-from resireg_train.cli.task import hydra_entry_point, run_task
+from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
 from resireg_train.ovss.datasets import build_segmentation_set
-from resireg_train.ovss.engine import OVSSTask, StageTimer
+from resireg_train.ovss.engine import SETTINGS_FILE, OVSSTask, StageTimer, load_settings
 from resireg_train.tracking import update_results
-from resireg_train.validation import validate_eval
+from resireg_train.validation import check_devices, validate_eval
 
 __all__ = ["evaluate", "main"]
 
@@ -42,6 +50,66 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def _leaves(tree: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """``("full.n_prototypes", 12)``... of a nested dict (lists are values)."""
+    out = []
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out += _leaves(value, f"{prefix}{key}.")
+        else:
+            out.append((f"{prefix}{key}", value))
+    return out
+
+
+def _command_line_keys() -> list[str]:
+    """The keys the command line (or a sweeper) set for this job."""
+    if not HydraConfig.initialized():
+        return []
+    return [o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task]
+
+
+def _defaults() -> DictConfig:
+    """``conf/eval.yaml`` as composed without any override."""
+    if GlobalHydra.instance().is_initialized():
+        return compose("eval")
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose("eval")
+
+
+def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
+    """``cfg`` with the export's recorded evaluation settings in place of the values still at
+    their default (see the module docstring), and the keys that were taken."""
+    export = Path(str(cfg.model_path)).expanduser()
+    if not cfg.get("export_settings", True) or not export.is_dir():
+        return cfg, []
+    recorded = load_settings(export)
+    if not recorded:
+        return cfg, []
+    given, defaults = _command_line_keys(), _defaults()
+    merged, taken = cfg.copy(), []
+    with open_dict(merged):
+        for key, value in _leaves(recorded):
+            on_command_line = any(
+                key == g or key.startswith(f"{g}.") or g.startswith(f"{key}.") for g in given
+            )
+            current = OmegaConf.select(cfg, key, default=None)
+            default = OmegaConf.select(defaults, key, default=None)
+            if OmegaConf.is_config(current):
+                current = OmegaConf.to_container(current)
+            if OmegaConf.is_config(default):
+                default = OmegaConf.to_container(default)
+            if on_command_line or current != default or current == value:
+                continue
+            OmegaConf.update(merged, key, value, merge=False)
+            taken.append(key)
+    if taken:
+        log.info(
+            "evaluation settings from %s: %s", export / SETTINGS_FILE,
+            ", ".join(f"{k}={OmegaConf.select(merged, k)}" for k in taken),
+        )  # fmt: skip
+    return merged, taken
+
+
 def evaluate(cfg: DictConfig) -> dict[str, Any]:
     """Evaluate from a composed ``eval.yaml`` config; returns the ``results.json`` content.
 
@@ -52,11 +120,13 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
+    cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg)
+    check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
     params = {k: params[k] for k in ("model_path", "dataset", "variants", "batch_size", "precision",
                                      "temperature", "lite", "full")}  # fmt: skip
-    update_results(out, params=params)
+    update_results(out, params=params, settings_from_export=from_export)
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
     encoder = ResiregVLM.from_pretrained(cfg.model_path, map_location=_device(cfg.device))
@@ -69,6 +139,8 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     scores = result.scores()
     for name, value in scores.items():
         log.info("%s = %.4f", name, value)
+    if result.skipped:
+        log.warning(result.skip_report())
     classes = dataset.classes
     return update_results(
         out,
@@ -79,6 +151,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         },  # fmt: skip
         images=result.images,
         skipped=result.skipped,
+        skipped_samples=[s.as_dict() for s in result.skipped_samples],
         batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
     )

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import lightning as L
+import torch.distributed as dist
 
 from resireg.variants import VARIANTS, build_variants
 from resireg_train.ovss.datasets import build_segmentation_set
-from resireg_train.ovss.engine import OVSSTask
+from resireg_train.ovss.engine import OVSSResult, OVSSTask, save_settings
 
 __all__ = ["ReSiRegEval"]
+
+log = logging.getLogger(__name__)
 
 _KEY = "callbacks.resireg_eval"
 
@@ -30,6 +35,10 @@ class ReSiRegEval(L.Callback):
     rank issues at the same point; the scores are then identical on every rank and are
     logged without ``sync_dist`` (a lazy sync would be issued by whichever rank first reads
     the metric, e.g. rank 0's progress bar, and the ranks' collectives would interleave).
+    Images that cannot be scored (unreadable, or a label that is not a valid single-channel
+    map of the image's size) are skipped: ``val/ovss/<dataset>/skipped`` counts them, the
+    log names each the first time it is skipped, and :attr:`skipped_samples` (written to
+    ``results.json`` by ``ResultsTracker``) names them all with their reasons.
     The text tower embeds each dataset's class prompts once per run; each pass applies the
     current text projection to them.
 
@@ -64,6 +73,12 @@ class ReSiRegEval(L.Callback):
         if int(batch_size) < 1:
             raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
+        #: What ``resireg-eval`` needs to score the exported model the same way.
+        self.settings = {
+            "variants": list(variants), "lite": dict(lite or {}), "full": dict(full or {}),
+            "batch_size": int(batch_size), "precision": str(precision),
+            "temperature": float(temperature),
+        }  # fmt: skip
         self.variants = build_variants(
             list(variants), {"lite": lite, "full": full}, key=f"{_KEY}.variants"
         )
@@ -73,6 +88,8 @@ class ReSiRegEval(L.Callback):
         self.precision = str(precision)
         self.temperature = float(temperature)
         self.tasks: dict[str, OVSSTask] = {}
+        #: ``{dataset: [{"file", "reason"}, ...]}`` of the last pass (the same on every rank).
+        self.skipped_samples: dict[str, list[dict[str, str]]] = {}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         """Build each dataset's task and check every variant against its batches now, so a
@@ -93,7 +110,8 @@ class ReSiRegEval(L.Callback):
         return epoch % self.every_n_epochs == 0 or epoch == trainer.max_epochs
 
     def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, float]:
-        """Score every dataset now (sharded across ranks, then reduced); returns the scores."""
+        """Score every dataset now (sharded across ranks, then reduced); returns the scores
+        and the skipped counts (``val/ovss/<dataset>/skipped``)."""
         scores: dict[str, float] = {}
         for task in self.tasks.values():
             result = task.run(
@@ -105,10 +123,22 @@ class ReSiRegEval(L.Callback):
             )
             if trainer.world_size > 1:
                 result.reduce(
-                    lambda t: trainer.strategy.reduce(t, reduce_op="sum"), pl_module.device
+                    lambda t: trainer.strategy.reduce(t, reduce_op="sum"),
+                    _all_gather_object,
+                    pl_module.device,
                 )
             scores.update(result.scores())
+            scores[f"val/ovss/{result.dataset}/skipped"] = float(result.skipped)
+            self._report_skipped(trainer, result)
         return scores
+
+    def _report_skipped(self, trainer: L.Trainer, result: OVSSResult) -> None:
+        """Keep the pass's skipped samples; warn (rank 0) about the ones not reported yet."""
+        known = {s["file"] for s in self.skipped_samples.get(result.dataset, [])}
+        self.skipped_samples[result.dataset] = [s.as_dict() for s in result.skipped_samples]
+        new = [s for s in result.skipped_samples if s.file not in known]
+        if new and trainer.is_global_zero:
+            log.warning(result.skip_report())
 
     def idle_metric_prefixes(self, trainer: L.Trainer) -> tuple[str, ...]:
         """Metric prefixes not logged in this epoch (for ``ResultsTracker``)."""
@@ -121,7 +151,21 @@ class ReSiRegEval(L.Callback):
             # Already identical on every rank: no sync_dist (see the class docstring).
             pl_module.log(name, value, on_step=False, on_epoch=True, sync_dist=False)
 
+    def save_settings(self, export: str | os.PathLike) -> None:
+        """Record this callback's evaluation settings in an export folder, so ``resireg-eval``
+        on the export reproduces the scores of training by default."""
+        save_settings(export, self.settings)
+
     @property
     def tower_calls(self) -> int:
         """Text-feature calls made for class prompts so far (once per dataset per run)."""
         return sum(task.tower_calls for task in self.tasks.values())
+
+
+def _all_gather_object(obj: Any) -> list[Any]:
+    """Every rank's ``obj`` (a collective: all ranks call it at the same point). With NCCL,
+    ``all_gather_object`` pickles through the current CUDA device, which Lightning sets to
+    the rank's own before training starts."""
+    gathered: list[Any] = [None] * dist.get_world_size()
+    dist.all_gather_object(gathered, obj)
+    return gathered

@@ -31,22 +31,23 @@ import json
 import logging
 import os
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from PIL import Image, ImageDraw
-from torchvision.transforms.v2.functional import pil_to_tensor
 
 from resireg.models.hub import require_online
-from resireg.models.images import patch_grid_size, resize_to_patch_grid
-from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
+from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
+from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "SegmentationSet",
+    "SkippedSample",
     "build_segmentation_set",
     "collate_segmentation",
     "orad3d_label",
@@ -93,6 +94,18 @@ def _header_size(source: str | bytes | os.PathLike) -> tuple[int, int]:
     return h, w
 
 
+@dataclass(frozen=True)
+class SkippedSample:
+    """An image that was not scored: its dataset index, its file (or row) and why."""
+
+    index: int
+    file: str
+    reason: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {"file": self.file, "reason": self.reason}
+
+
 class SegmentationSet(torch.utils.data.Dataset):
     """A segmentation dataset for OVSS: resized images and full-resolution labels.
 
@@ -105,6 +118,11 @@ class SegmentationSet(torch.utils.data.Dataset):
         short_side: shorter side after resizing (``None``: keep the size).
         patch_size: sides are rounded to a multiple of it.
         reduce_zero_label: labels are 0 = unlabelled, ``c`` = class ``c - 1`` (ADE20K).
+        describe: ``index -> str`` naming the sample's file (or row) in skip reports.
+
+    A sample whose image cannot be decoded, or whose label is not a single-channel map of
+    the image's size holding valid class ids, is skipped: ``__getitem__`` returns a
+    :class:`SkippedSample` naming the file and the reason, and the evaluation counts it.
     """
 
     def __init__(
@@ -117,6 +135,7 @@ class SegmentationSet(torch.utils.data.Dataset):
         short_side: int | None = 576,
         patch_size: int = 16,
         reduce_zero_label: bool = False,
+        describe: Callable[[int], str] | None = None,
     ) -> None:
         self.name = name
         self.classes = tuple(classes)
@@ -127,45 +146,61 @@ class SegmentationSet(torch.utils.data.Dataset):
         self.patch_size = patch_size
         self.reduce_zero_label = reduce_zero_label
         self.ignore_index = IGNORE_INDEX
+        self._describe = describe or (lambda i: f"{name} #{i}")
         self._grid_sizes: dict[int, tuple[int, int]] | None = None
-        self.unreadable: list[int] = []
+        self.unreadable: list[SkippedSample] = []
 
     def __len__(self) -> int:
         return self.length
 
-    def __getitem__(self, index: int) -> dict[str, Any] | None:
-        """``{"image": float [3, h, w] in [0, 1], "label": int64 [H, W], "index"}``, or ``None``
-        when the image or label cannot be decoded (the batch counts it as skipped)."""
+    def describe(self, index: int) -> str:
+        """The sample's file (or row), as skip reports name it."""
+        return self._describe(index)
+
+    def label_problem(self, label: np.ndarray, image_size: tuple[int, int]) -> str | None:
+        """Why ``label`` cannot be scored against an image of ``image_size`` ``(H, W)``, or
+        ``None``: it must be one class id per pixel, of the image's size (a label is never
+        resized to fit), holding only valid ids (:func:`resireg.ovss.label_problem`)."""
+        if label.ndim != 2:
+            return (
+                f"label has shape {tuple(label.shape)}: expected one class id per pixel "
+                "(a single-channel map), not a colour image"
+            )
+        if tuple(label.shape) != tuple(image_size):
+            (h, w), (ih, iw) = label.shape, image_size
+            return f"label is {h} x {w} px but its image is {ih} x {iw} px"
+        return label_problem(label, len(self.classes), self.ignore_index, self.reduce_zero_label)
+
+    def __getitem__(self, index: int) -> dict[str, Any] | SkippedSample:
+        """``{"image": float [3, h, w] in [0, 1], "label": int64 [H, W], "index"}``, or a
+        :class:`SkippedSample` when the image or label cannot be decoded or scored."""
         try:
             image, label = self._load(index)
-            pixels = pil_to_tensor(image.convert("RGB"))
+            pixels = pil_to_tensor(image)
+            label = np.asarray(label)
         except DECODE_ERRORS as err:
-            log.warning("%s: skipping image %d: %s", self.name, index, err)
-            return None
+            return SkippedSample(index, self.describe(index), f"unreadable: {err}")
+        problem = self.label_problem(label, tuple(pixels.shape[-2:]))
+        if problem is not None:
+            return SkippedSample(index, self.describe(index), problem)
         return {
             "image": resize_to_patch_grid(pixels, self.short_side, self.patch_size),
-            "label": torch.from_numpy(np.asarray(label, dtype=np.int64)),
+            "label": torch.from_numpy(label.astype(np.int64)),
             "index": index,
         }
 
     def grid_sizes(self) -> dict[int, tuple[int, int]]:
-        """Resized ``(h, w)`` of every readable image (headers are read once)."""
+        """Resized ``(h, w)`` of every image whose header is readable (read once); the
+        others are listed in :attr:`unreadable`."""
         if self._grid_sizes is None:
             sizes, self.unreadable = {}, []
             for i in range(self.length):
                 try:
                     size = self._header_size(i)
-                except DECODE_ERRORS:
-                    self.unreadable.append(i)
+                except DECODE_ERRORS as err:
+                    self.unreadable.append(SkippedSample(i, self.describe(i), f"unreadable: {err}"))
                     continue
                 sizes[i] = patch_grid_size(size, self.short_side, self.patch_size)
-            if self.unreadable:
-                log.warning(
-                    "%s: %d unreadable images skipped (first: %s)",
-                    self.name,
-                    len(self.unreadable),
-                    self.unreadable[:5],
-                )
             self._grid_sizes = sizes
         return self._grid_sizes
 
@@ -185,14 +220,15 @@ class SegmentationSet(torch.utils.data.Dataset):
         return batches[rank::world_size]
 
 
-def collate_segmentation(items: list[dict[str, Any] | None]) -> dict[str, Any]:
-    """Stack the images of a batch; labels stay a list (each at its own full resolution)."""
-    kept = [item for item in items if item is not None]
+def collate_segmentation(items: list[dict[str, Any] | SkippedSample]) -> dict[str, Any]:
+    """Stack the images of a batch; labels stay a list (each at its own full resolution);
+    ``skipped`` lists the batch's :class:`SkippedSample` records."""
+    kept = [item for item in items if not isinstance(item, SkippedSample)]
     return {
         "image": torch.stack([item["image"] for item in kept]) if kept else None,
         "label": [item["label"] for item in kept],
         "index": [item["index"] for item in kept],
-        "skipped": len(items) - len(kept),
+        "skipped": [item for item in items if isinstance(item, SkippedSample)],
     }
 
 
@@ -266,20 +302,7 @@ def _ade20k(name: str, spec: Mapping[str, Any], key: str, common: dict) -> Segme
     common = {**common, "reduce_zero_label": True}
     local = Path(path).expanduser()
     if (local / "images" / split).is_dir():  # ADEChallengeData2016
-        pairs = []
-        for image in sorted((local / "images" / split).glob("*.jpg")):
-            label = local / "annotations" / split / f"{image.stem}.png"
-            if not label.is_file():
-                raise FileNotFoundError(f"{key}.path={path!r}: {image.name} has no {label}")
-            pairs.append((image, label))
-        return SegmentationSet(
-            name,
-            ADE20K_CLASSES,
-            lambda i: (_open(pairs[i][0]), np.asarray(_open(pairs[i][1]))),
-            lambda i: _header_size(pairs[i][0]),
-            len(pairs),
-            **common,
-        )
+        return _ade20k_folder(name, local, split, key, path, common)
     table = _load_hub_table(path, spec, split, key, local.is_dir())
     image_col, label_col = spec.get("image", "image"), spec.get("label", "annotation")
     for role, col in (("image", image_col), ("label", label_col)):
@@ -300,12 +323,45 @@ def _ade20k(name: str, spec: Mapping[str, Any], key: str, common: dict) -> Segme
         row = table[i]
         return _open(stored(row[image_col])), np.asarray(_open(stored(row[label_col])))
 
+    def describe(i: int) -> str:
+        stored_path = table[i][image_col].get("path")
+        return f"{path} [{split}] row {i}" + (f" ({stored_path})" if stored_path else "")
+
     return SegmentationSet(
         name,
         ADE20K_CLASSES,
         load,
         lambda i: _header_size(stored(table[i][image_col])),
         len(table),
+        describe=describe,
+        **common,
+    )
+
+
+def _ade20k_folder(
+    name: str, root: Path, split: str, key: str, path: str, common: dict
+) -> SegmentationSet:
+    """ADEChallengeData2016: ``images/<split>/<stem>.jpg`` (any image suffix, any case) with
+    ``annotations/<split>/<stem>.png``."""
+    labels = {
+        p.stem: p for p in (root / "annotations" / split).glob("*") if p.suffix.lower() == ".png"
+    }
+    pairs = []
+    for image in sorted((root / "images" / split).iterdir()):
+        if image.suffix.lower() not in _IMAGE_SUFFIXES:
+            continue
+        if image.stem not in labels:
+            raise FileNotFoundError(
+                f"{key}.path={path!r}: {image.name} has no annotations/{split}/{image.stem}.png"
+            )
+        pairs.append((image, labels[image.stem]))
+    return SegmentationSet(
+        name,
+        ADE20K_CLASSES,
+        lambda i: (_open(pairs[i][0]), np.asarray(_open(pairs[i][1]))),
+        lambda i: _header_size(pairs[i][0]),
+        len(pairs),
+        describe=lambda i: str(pairs[i][0]),
         **common,
     )
 
@@ -440,5 +496,11 @@ def _orad3d(name: str, spec: Mapping[str, Any], key: str, common: dict) -> Segme
         return _open(image), orad3d_label(gt, polygons, tags, colours, key)
 
     return SegmentationSet(
-        name, ORAD3D_CLASSES, load, lambda i: _header_size(items[i][0]), len(items), **common
+        name,
+        ORAD3D_CLASSES,
+        load,
+        lambda i: _header_size(items[i][0]),
+        len(items),
+        describe=lambda i: str(items[i][0]),
+        **common,
     )

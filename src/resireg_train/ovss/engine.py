@@ -13,11 +13,15 @@ and scored in one confusion matrix per variant (docs/design.md section 5).
 
 from __future__ import annotations
 
+import json
+import os
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -25,10 +29,39 @@ from torch.utils.data import DataLoader
 
 from resireg.models import DenseEncoder
 from resireg.ovss import TEMPLATES, SegmentationMetric, average_prompts, class_prompts, predict
-from resireg_train.ovss.datasets import SegmentationSet, collate_segmentation
+from resireg_train.files import write_atomic
+from resireg_train.ovss.datasets import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.validation import PRECISIONS
 
-__all__ = ["OVSSTask", "OVSSResult", "StageTimer"]
+__all__ = [
+    "OVSSTask",
+    "OVSSResult",
+    "SETTINGS_FILE",
+    "StageTimer",
+    "load_settings",
+    "save_settings",
+]
+
+#: The file of an export recording the evaluation settings its training run scored it with.
+SETTINGS_FILE = "resireg_eval.json"
+#: Which settings it records (the ``resireg`` group and the pass settings of resireg-eval).
+SETTING_KEYS = ("variants", "lite", "full", "batch_size", "precision", "temperature")
+
+
+def save_settings(directory: str | os.PathLike, settings: Mapping[str, Any]) -> Path:
+    """Record ``settings`` (keys :data:`SETTING_KEYS`) in ``<directory>/resireg_eval.json``."""
+    unknown = set(settings) - set(SETTING_KEYS)
+    if unknown:
+        raise ValueError(f"unknown evaluation settings {sorted(unknown)}; known: {SETTING_KEYS}")
+    return write_atomic(
+        Path(directory) / SETTINGS_FILE, json.dumps(dict(settings), indent=2), "settings"
+    )
+
+
+def load_settings(directory: str | os.PathLike) -> dict[str, Any]:
+    """The settings :func:`save_settings` recorded in ``directory`` (``{}`` when none)."""
+    path = Path(directory) / SETTINGS_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 class StageTimer:
@@ -57,24 +90,44 @@ def _no_timer(stage: str) -> Iterator[None]:
 
 @dataclass
 class OVSSResult:
-    """Confusion matrices per variant and counts of one evaluation pass."""
+    """Confusion matrices per variant and counts of one evaluation pass.
+
+    ``batch_sizes`` counts the batches *scored* per number of images (a batch that lost an
+    image to a skip counts at its smaller size); ``skipped_samples`` names every image that
+    was not scored and why.
+    """
 
     dataset: str
     metrics: dict[str, SegmentationMetric]
+    max_batch_size: int
     images: int = 0
-    skipped: int = 0
-    batch_sizes: dict[int, int] = field(default_factory=dict)
+    skipped_samples: list[SkippedSample] = field(default_factory=list)
+    batch_sizes: Counter[int] = field(default_factory=Counter)
 
-    def reduce(self, all_reduce: Callable[[Tensor], Tensor], device: torch.device) -> None:
-        """Sum confusion matrices and counts across ranks with ``all_reduce`` (a sum).
+    @property
+    def skipped(self) -> int:
+        return len(self.skipped_samples)
+
+    def reduce(
+        self,
+        all_reduce: Callable[[Tensor], Tensor],
+        all_gather_object: Callable[[Any], list[Any]],
+        device: torch.device,
+    ) -> None:
+        """Combine the ranks' results: confusion matrices, image count and batch-size
+        histogram are summed with ``all_reduce`` (one tensor), the skipped samples gathered
+        with ``all_gather_object``. Every rank must call this at the same point.
 
         The packed tensor is moved to ``device`` first: NCCL reduces only tensors on the
         rank's GPU (gloo takes either), so pass the module's device.
         """
         names = list(self.metrics)
+        histogram = torch.zeros(self.max_batch_size + 1, dtype=torch.int64)
+        for size, count in self.batch_sizes.items():
+            histogram[size] = count
         packed = torch.cat(
             [self.metrics[n].confusion.reshape(-1) for n in names]
-            + [torch.tensor([self.images, self.skipped], dtype=torch.int64)]
+            + [torch.tensor([self.images], dtype=torch.int64), histogram]
         ).to(device)
         total = all_reduce(packed).to(torch.int64).cpu()
         offset = 0
@@ -84,7 +137,17 @@ class OVSSResult:
                 total[offset : offset + size].reshape(self.metrics[n].confusion.shape).clone()
             )
             offset += size
-        self.images, self.skipped = int(total[offset]), int(total[offset + 1])
+        self.images = int(total[offset])
+        sizes = total[offset + 1 :].tolist()
+        self.batch_sizes = Counter({b: int(n) for b, n in enumerate(sizes) if n})
+        gathered = all_gather_object(self.skipped_samples)
+        self.skipped_samples = sorted((s for part in gathered for s in part), key=lambda s: s.index)
+
+    def skip_report(self) -> str:
+        """One line: how many images were skipped, each named with its reason."""
+        scored = self.images + self.skipped
+        named = "; ".join(f"{s.file}: {s.reason}" for s in self.skipped_samples)
+        return f"{self.dataset}: skipped {self.skipped} of {scored} images ({named})"
 
     def scores(self, prefix: str = "val/ovss") -> dict[str, float]:
         """``{"<prefix>/<dataset>/miou_<variant>": ..., ".../fmiou_<variant>": ...}``."""
@@ -207,12 +270,10 @@ class OVSSTask:
             v: SegmentationMetric(k, self.dataset.ignore_index, self.dataset.reduce_zero_label)
             for v in variants
         }
-        result = OVSSResult(self.dataset.name, metrics)
-        result.batch_sizes = dict(
-            sorted(Counter(len(b) for b in self.dataset.batches(self.batch_size)).items())
-        )
-        if rank == 0:  # images whose header was unreadable (counted once across ranks)
-            result.skipped = len(self.dataset.unreadable)
+        result = OVSSResult(self.dataset.name, metrics, self.batch_size)
+        self.dataset.grid_sizes()  # reads the headers once; unreadable ones are listed
+        if rank == 0:  # images whose header was unreadable (reported once across ranks)
+            result.skipped_samples.extend(self.dataset.unreadable)
         modes = {m: m.training for m in encoder.modules()}
         encoder.eval()
         try:
@@ -227,11 +288,12 @@ class OVSSTask:
                         batch = next(batches, None)
                     if batch is None:
                         break
-                    result.skipped += batch["skipped"]
+                    result.skipped_samples.extend(batch["skipped"])
                     if batch["image"] is None:
                         continue
                     self._score(encoder, batch, variants, protos, metrics, timed)
                     result.images += len(batch["label"])
+                    result.batch_sizes[len(batch["label"])] += 1
         finally:
             for module, mode in modes.items():
                 module.training = mode
