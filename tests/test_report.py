@@ -1,23 +1,69 @@
 """Sweep configs, multiruns and `resireg-report`: table, heatmap, heuristic, curves, failures."""
 
 import csv
+import itertools
 import json
+import shlex
+import sys
 
+import pandas as pd
 import pytest
 import torch
+import yaml
 from hydra import compose, initialize_config_dir
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import ConfigCompositionException
 from PIL import Image
 
 from _run import run
 from resireg.heuristic import PrototypeHeuristic
 from resireg.reconstruct import ReSiRegFull
-from resireg_train.cli.task import CONFIG_DIR, safe_dirname
-from resireg_train.report import collect, report
+from resireg_train.cli import report as report_cli
+from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, safe_dirname
+from resireg_train.report import (
+    DPI,
+    collect,
+    curves_figure,
+    grid_statuses,
+    heatmap_figure,
+    plot_heatmap,
+    prototype_grid,
+    report,
+)
+
+MIOU = "val/ovss/synthetic/miou_full"
 
 
 def _rows(path):
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def _job(sweep, number, overrides, results=None):
+    """A job folder as Hydra and run_task leave it: ``.hydra/overrides.yaml`` (+ results.json)."""
+    folder = sweep / f"{number}_{','.join(f'{k}={v}' for k, v in overrides.items())}"
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "overrides.yaml").write_text(
+        yaml.safe_dump([f"{k}={v}" for k, v in overrides.items()])
+    )
+    if results is not None:
+        (folder / "results.json").write_text(json.dumps(results))
+    return folder
+
+
+def _tick_labels(axis):
+    """The tick labels ``axis`` draws (those inside its view limits)."""
+    lo, hi = sorted(axis.get_view_interval())
+    i = 0 if axis.axis_name == "x" else 1
+    return [t for t in axis.get_ticklabels() if lo <= t.get_position()[i] <= hi]
+
+
+def _outside(artist, fig, renderer):
+    """How far (px) ``artist``'s drawn extent sticks out of the figure; 0 when inside."""
+    box, frame = artist.get_window_extent(renderer), fig.bbox
+    return max(frame.x0 - box.x0, box.x1 - frame.x1, frame.y0 - box.y0, box.y1 - frame.y1, 0)
 
 
 def test_prototype_batch_sweep_is_the_papers_full_factorial():
@@ -43,7 +89,7 @@ def test_prototype_batch_multirun_report_lists_failures_and_fits_the_heuristic(
     assert all("/" not in j for j in jobs)  # the model path's slashes did not nest folders
 
     out = run("resireg-report", sweep).stdout
-    assert "6 jobs, 4 completed, 2 not completed" in out
+    assert "6 jobs, 4 completed, 2 failed" in out
     rows = _rows(sweep / "summary.csv")
     assert [(r["batch_size"], r["full.n_prototypes"], r["status"]) for r in rows] == [
         ("2", "4", "completed"), ("2", "8", "completed"), ("2", "1000", "failed"),
@@ -121,3 +167,156 @@ def test_safe_dirname_flattens_paths_and_keeps_long_names_unique():
     )
     a, b = safe_dirname("x=" + "1" * 300), safe_dirname("x=" + "1" * 299 + "2")
     assert len(a) == 200 and a != b
+
+
+def test_unknown_metric_is_a_cli_error_naming_the_metrics_the_sweep_has(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    finals = [{MIOU: 0.4, "train/lr": 1e-3}, {MIOU: 0.5, "val/acc": 0.9}]
+    for n, final in enumerate(finals):
+        best = {"train/loss": {"value": 1.0, "epoch": 0}}  # only in "best"
+        _job(sweep, n, {"batch_size": 2 + n}, {"status": "completed", "final": final, "best": best})
+    with pytest.raises(SystemExit) as exit_info:
+        report_cli.main([str(sweep), "--metric", "val/nope"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "'val/nope'" in err
+    listed = err.split("hold: ")[1].strip().split(", ")
+    assert listed == sorted([MIOU, "train/lr", "val/acc", "train/loss"])
+    assert not (sweep / "summary.csv").exists()  # nothing written
+    # A metric that only some job's "best" holds is known.
+    report_cli.main([str(sweep), "--metric", "train/loss"])
+    assert capsys.readouterr().out.splitlines()[-1] == "2 jobs, 2 completed"
+
+
+def _status_sweep(sweep):
+    """A 2 x 3 batch/prototype grid, one job per status; returns {(batch, protos): status}."""
+    stop = "KeyboardInterrupt: interrupted by the user (Ctrl-C); resume with ckpt_path=last"
+    cells = {
+        (2, 4): {"status": "completed", "final": {MIOU: 0.25}},
+        (2, 8): {"status": "interrupted", "error": stop, "final": {MIOU: 0.3}},
+        (2, 16): {"status": "failed", "error": "ValueError: boom"},
+        (4, 4): {"status": "completed", "final": {MIOU: 0.5}},
+        (4, 8): {"status": "running", "error": None, "final": {MIOU: 0.1}},
+        (4, 16): None,  # never wrote results.json
+    }
+    for n, ((b, p), results) in enumerate(cells.items()):
+        _job(sweep, n, {"batch_size": b, "full.n_prototypes": p}, results)
+    return stop, {k: (v or {}).get("status", "missing") for k, v in cells.items()}
+
+
+def test_report_counts_and_labels_interrupted_jobs(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    stop, statuses = _status_sweep(sweep)
+    report_cli.main([str(sweep)])
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last == "6 jobs, 2 completed, 1 running, 1 interrupted, 1 failed, 1 missing"
+    rows = _rows(sweep / "summary.csv")
+    assert [r["status"] for r in rows] == list(statuses.values())
+    assert rows[1]["error"] == stop and rows[1][MIOU] == "0.3"  # how far it got
+    markdown = (sweep / "summary.md").read_text()
+    assert "6 jobs: 2 completed, 1 running, 1 interrupted, 1 failed, 1 missing" in markdown
+    section = markdown.split("## Jobs that did not complete")[1]
+    assert f"- job 1 (1_batch_size=2,full.n_prototypes=8): **interrupted**: {stop}" in section
+    assert section.count("**") == 2 * 4
+    # Heatmap cells: the value (x100) where the job completed, else the job's status.
+    jobs = collect(sweep)
+    grid = prototype_grid(jobs, MIOU)
+    fig = heatmap_figure(grid, MIOU, grid_statuses(jobs, MIOU, grid))
+    (ax,) = [a for a in fig.axes if a.get_title() == MIOU]
+    texts = {tuple(t.get_position()): t.get_text() for t in ax.texts}
+    expected = {
+        (j, i): {(2, 4): "25.0", (4, 4): "50.0"}.get((b, p), statuses[(b, p)])
+        for i, b in enumerate((2, 4))
+        for j, p in enumerate((4, 8, 16))
+    }
+    assert texts == expected
+    assert statuses[(2, 8)] == "interrupted" and texts[(1, 0)] == "interrupted"
+
+
+@pytest.mark.parametrize(
+    ("rows", "cols", "metric"),
+    [(1, 1, "val/ovss/a_much_longer_dataset_name/miou_full"), (2, 2, MIOU), (7, 10, MIOU)],
+)
+def test_heatmap_keeps_title_labels_and_ticks_inside_the_figure(tmp_path, rows, cols, metric):
+    batches, protos = [2, 4, 6, 8, 16, 24, 32][:rows], list(range(24, 133, 12))[:cols]
+    values = torch.rand(rows, cols, dtype=torch.float64).numpy()
+    values[-1, -1] = float("nan")
+    grid = pd.DataFrame(values, index=batches, columns=protos)
+    statuses = pd.DataFrame("completed", index=batches, columns=protos, dtype=object)
+    statuses.iloc[-1, -1] = "interrupted"
+    fig = heatmap_figure(grid, metric, statuses)
+    fig.draw_without_rendering()  # runs constrained layout
+    renderer = fig.canvas.get_renderer()
+    (ax,) = [a for a in fig.axes if a.get_title() == metric]
+    (cbar,) = [a for a in fig.axes if a is not ax]
+    assert [t.get_text() for t in _tick_labels(ax.xaxis)] == [str(p) for p in protos]
+    assert [t.get_text() for t in _tick_labels(ax.yaxis)] == [str(b) for b in batches]
+    artists = [ax.title, ax.xaxis.label, ax.yaxis.label, *_tick_labels(ax.xaxis),
+               *_tick_labels(ax.yaxis), cbar.yaxis.label, *_tick_labels(cbar.yaxis)]  # fmt: skip
+    assert [(a.get_text(), _outside(a, fig, renderer)) for a in artists] == [
+        (a.get_text(), 0) for a in artists
+    ]
+    assert not ax.title.get_window_extent(renderer).overlaps(ax.get_window_extent(renderer))
+    # The PNG is the figure at DPI dots per inch (no cropping).
+    plot_heatmap(grid, metric, tmp_path / "heatmap.png", statuses)
+    with Image.open(tmp_path / "heatmap.png") as image:
+        assert image.size == tuple(round(v * DPI) for v in fig.get_size_inches())
+        assert image.size[0] >= 5 * DPI and image.size[1] >= 3.5 * DPI
+
+
+def test_curves_of_many_runs_keep_legend_and_labels_inside_the_figure(tmp_path):
+    sweep = tmp_path / "sweep"
+    lrs = [f"{k}e-4" for k in range(1, 11)]
+    for n, lr in enumerate(lrs):
+        history = [{"epoch": e, "step": 8 * e, MIOU: 0.1 * e + 0.01 * n} for e in range(3)]
+        _job(sweep, n, {"model.optimizer.lr": lr}, {"status": "completed", "history": history})
+    fig = curves_figure(collect(sweep), MIOU)
+    fig.draw_without_rendering()
+    renderer = fig.canvas.get_renderer()
+    (ax,) = fig.axes
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == [f"model.optimizer.lr={lr}" for lr in lrs]
+    assert [t.get_text() for t in _tick_labels(ax.xaxis)] == ["0", "1", "2"]  # whole epochs
+    artists = [ax.xaxis.label, ax.yaxis.label, legend, *_tick_labels(ax.xaxis),
+               *_tick_labels(ax.yaxis)]  # fmt: skip
+    assert [_outside(a, fig, renderer) for a in artists] == [0] * len(artists)
+    assert not legend.get_window_extent(renderer).overlaps(ax.get_window_extent(renderer))
+
+
+def _smaller_grid_commands():
+    """The resireg-eval command lines under "A smaller grid" in prototype_batch.yaml's comment."""
+    text = (CONFIG_DIR / "sweep" / "prototype_batch.yaml").read_text()
+    comment = [line.lstrip("#").strip() for line in text.splitlines() if line.startswith("#")]
+    after = comment[next(i for i, c in enumerate(comment) if c.startswith("A smaller grid")) :]
+    return [shlex.split(c)[1:] for c in after if c.startswith("resireg-eval ")]
+
+
+def test_the_smaller_grid_overrides_in_the_sweep_comment_work(tmp_path, monkeypatch):
+    plain, quoted = _smaller_grid_commands()
+    smaller = list(itertools.product([2, 8], range(24, 133, 12)))  # 2 x 10 jobs
+    # `batch_size=2,8`: Hydra's own multirun of the documented command, a no-op task per job.
+    seen = []
+
+    def task(cfg):
+        seen.append((cfg.batch_size, cfg.full.n_prototypes))
+        return {}
+
+    documented = [a.replace("<export>", "x") for a in plain]
+    logs = [f"paths.log_dir={tmp_path}", "hydra/job_logging=none", "hydra/hydra_logging=none"]
+    monkeypatch.setattr(sys, "argv", ["resireg-eval", *documented, *logs])
+    try:
+        hydra_entry_point("eval", task)()
+    finally:
+        GlobalHydra.instance().clear()
+    assert seen == smaller
+    # The quoted sweeper param composes (unquoted, the comment's old form, it does not), and
+    # Hydra's basic sweeper expands the params to the same grid.
+    args = [a.replace("<export>", "x") for a in quoted]
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", overrides=args, return_hydra_config=True)
+        with pytest.raises(ConfigCompositionException, match="Ambiguous value"):
+            compose("eval", overrides=[a.replace('"', "") for a in args])
+    params = cfg.hydra.sweeper.params
+    parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
+    (jobs,) = BasicSweeper.split_arguments(parsed, max_batch_size=None)
+    assert [tuple(int(o.split("=")[1]) for o in job) for job in jobs] == smaller

@@ -1,9 +1,9 @@
 """Sweep reports (``resireg-report SWEEP_DIR``): one table (and plots) from a Hydra multirun folder.
 
 Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
-(``.hydra/overrides.yaml``) and ``results.json``. A job that failed, is still running or
-never wrote ``results.json`` stays in the table with its status and error. Writes, into
-the sweep folder (or ``--out``):
+(``.hydra/overrides.yaml``) and ``results.json``. A job that failed, was interrupted
+(Ctrl-C; resumable), is still running or never wrote ``results.json`` stays in the table
+with its status and error. Writes, into the sweep folder (or ``--out``):
 
 - ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
   jobs, status, the scores (final values; for training runs also the best of the chosen
@@ -14,6 +14,9 @@ the sweep folder (or ``--out``):
   batch size, loadable by ``ReSiRegFull(n_prototypes="auto", heuristic=PATH)``.
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
+
+An explicit metric must be one the sweep's results hold (a ``final`` or ``best`` key of
+some job); anything else is a :class:`ValueError` that lists them.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 import yaml
@@ -30,9 +33,27 @@ import yaml
 from resireg.heuristic import PrototypeHeuristic
 from resireg_train.tracking import RESULTS_FILE, metric_mode, read_results
 
-__all__ = ["Job", "collect", "report"]
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+__all__ = [
+    "Job",
+    "collect",
+    "count_statuses",
+    "curves_figure",
+    "grid_statuses",
+    "heatmap_figure",
+    "known_metrics",
+    "plot_curves",
+    "plot_heatmap",
+    "prototype_grid",
+    "report",
+]
 
 BATCH_KEY, PROTOTYPES_KEY = "batch_size", "full.n_prototypes"
+#: Job statuses in the order they are counted (others follow alphabetically).
+STATUSES = ("completed", "running", "interrupted", "failed", "missing")
+DPI = 120
 
 
 @dataclass
@@ -52,7 +73,10 @@ class Job:
     def error(self) -> str | None:
         if not self.results:
             return f"no {RESULTS_FILE} (the job did not start, or crashed before writing it)"
-        return self.results.get("error")
+        error = self.results.get("error")
+        if error is None and self.status == "interrupted":
+            return "interrupted before completing"
+        return error
 
 
 def collect(sweep_dir: str | Path) -> list[Job]:
@@ -88,6 +112,30 @@ def _scores(results: dict[str, Any]) -> dict[str, float]:
         for k, v in results.get("final", {}).items()
         if isinstance(v, (int, float)) and metric_mode(k) is not None
     }
+
+
+def known_metrics(jobs: list[Job]) -> list[str]:
+    """Every metric some job's ``results.json`` holds (its ``final`` and ``best`` keys)."""
+    return sorted(
+        {k for j in jobs for part in ("final", "best") for k in j.results.get(part) or {}}
+    )
+
+
+def check_metric(jobs: list[Job], metric: str) -> None:
+    """Raise a :class:`ValueError` naming the metrics that exist if ``metric`` is not one."""
+    known = known_metrics(jobs)
+    if metric not in known:
+        listed = ", ".join(known) if known else "none (no job has recorded a metric yet)"
+        raise ValueError(f"unknown metric {metric!r}; the sweep's results hold: {listed}")
+
+
+def count_statuses(statuses: pd.Series | list[str]) -> str:
+    """``"1 completed, 1 interrupted, 1 failed"``: jobs per status, completed always shown."""
+    counts = pd.Series(statuses, dtype=object).value_counts()
+    order = [*STATUSES, *sorted(set(counts.index) - set(STATUSES))]
+    return ", ".join(
+        f"{counts.get(s, 0)} {s}" for s in order if s == "completed" or counts.get(s, 0)
+    )
 
 
 def default_metric(jobs: list[Job]) -> str | None:
@@ -127,8 +175,9 @@ def _is_prototype_sweep(jobs: list[Job]) -> bool:
     return BATCH_KEY in _varying(jobs) and PROTOTYPES_KEY in _varying(jobs)
 
 
-def prototype_grid(jobs: list[Job], metric: str) -> pd.DataFrame:
-    """mIoU per (batch size, prototype count); NaN where the job did not complete."""
+def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
+    """One row per job of the grid: batch size, prototype count, ``metric`` (NaN unless the
+    job completed) and status."""
     cells = []
     for job in jobs:
         try:
@@ -138,14 +187,34 @@ def prototype_grid(jobs: list[Job], metric: str) -> pd.DataFrame:
         value = (
             _scores(job.results).get(metric, math.nan) if job.status == "completed" else math.nan
         )
-        cells.append({BATCH_KEY: batch, PROTOTYPES_KEY: protos, metric: value})
-    frame = pd.DataFrame(cells)
+        cells.append(
+            {BATCH_KEY: batch, PROTOTYPES_KEY: protos, metric: value, "status": job.status}
+        )
+    return pd.DataFrame(cells)
+
+
+def prototype_grid(jobs: list[Job], metric: str) -> pd.DataFrame:
+    """mIoU per (batch size, prototype count); NaN where the job did not complete."""
     return (
-        frame.pivot_table(
+        _grid_cells(jobs, metric)
+        .pivot_table(
             index=BATCH_KEY, columns=PROTOTYPES_KEY, values=metric, aggfunc="max", dropna=False
         )
         .sort_index()
         .sort_index(axis=1)
+    )
+
+
+def grid_statuses(jobs: list[Job], metric: str, grid: pd.DataFrame) -> pd.DataFrame:
+    """The status of each cell of ``grid`` (``"missing"`` where no job ran that pair; the
+    statuses joined by ``/`` where several jobs did)."""
+    return (
+        _grid_cells(jobs, metric)
+        .groupby([BATCH_KEY, PROTOTYPES_KEY])["status"]
+        .agg(lambda s: "/".join(sorted(set(s))))
+        .unstack()
+        .reindex(index=grid.index, columns=grid.columns)
+        .fillna("missing")
     )
 
 
@@ -157,43 +226,74 @@ def fit_heuristic(grid: pd.DataFrame) -> tuple[PrototypeHeuristic, dict[int, int
     return PrototypeHeuristic.fit(list(best), list(best.values())), best
 
 
-def plot_heatmap(grid: pd.DataFrame, metric: str, path: Path) -> None:
-    import matplotlib
+def _agg_figure(width: float, height: float) -> Figure:
+    """A pyplot-free figure with constrained layout and an Agg canvas (no global state)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _widen_to_fit(fig: Figure, *texts: Any, margin: float = 0.5) -> None:
+    """Widen ``fig`` (in steps of 1/4 in, so the pixel size stays whole) until ``texts``
+    (e.g. a long title) fit across it, measured by matplotlib's renderer."""
+    renderer = fig.canvas.get_renderer()
+    need = max(t.get_window_extent(renderer).width for t in texts) / fig.dpi + margin
+    if need > fig.get_figwidth():
+        fig.set_figwidth(math.ceil(4 * need) / 4)
+
+
+def heatmap_figure(grid: pd.DataFrame, metric: str, statuses: pd.DataFrame | None = None) -> Figure:
+    """The batch size x prototypes heatmap of ``metric``; a cell without a value reads its
+    job's status (``statuses``, aligned with ``grid``: failed / interrupted / running /
+    missing). Sized to the grid (at least 5 x 3.5 in) with constrained layout, so titles,
+    labels and ticks stay inside the figure for any grid size."""
+    import matplotlib
     import numpy as np
 
     values = grid.to_numpy(dtype=float)
-    fig, ax = plt.subplots(figsize=(1.0 + 0.75 * values.shape[1], 1.0 + 0.55 * values.shape[0]))
-    image = ax.imshow(np.ma.masked_invalid(values), cmap="viridis", aspect="auto")
-    ax.set_xticks(range(values.shape[1]), [str(c) for c in grid.columns])
-    ax.set_yticks(range(values.shape[0]), [str(i) for i in grid.index])
+    rows, cols = values.shape
+    fig = _agg_figure(max(5.0, 2.5 + 0.75 * cols), max(3.5, 1.75 + 0.5 * rows))
+    ax = fig.add_subplot()
+    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="0.9")
+    image = ax.imshow(np.ma.masked_invalid(values), cmap=cmap, aspect="auto")
+    ax.set_xticks(range(cols), [str(c) for c in grid.columns])
+    ax.set_yticks(range(rows), [str(i) for i in grid.index])
     ax.set_xlabel("prototypes (= PCA components)")
     ax.set_ylabel("batch size")
-    ax.set_title(metric)
+    title = ax.set_title(metric)
     finite = values[np.isfinite(values)]
     middle = (finite.min() + finite.max()) / 2 if finite.size else 0.0
     for (i, j), v in np.ndenumerate(values):
-        text = "failed" if math.isnan(v) else f"{100 * v:.1f}"
+        if math.isnan(v):
+            status = statuses.iat[i, j] if statuses is not None else "missing"
+            text = "no value" if status == "completed" else status
+        else:
+            text = f"{100 * v:.1f}"
         colour = "black" if math.isnan(v) or v > middle else "white"
         ax.text(j, i, text, ha="center", va="center", fontsize=7, color=colour)
-    fig.colorbar(image, ax=ax, label="mIoU")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    label = "mIoU" if "miou" in metric.lower() else metric.rsplit("/", 1)[-1]
+    fig.colorbar(image, ax=ax, label=f"{label} (cells: x100)")
+    _widen_to_fit(fig, title)
+    return fig
 
 
-def plot_curves(jobs: list[Job], metric: str, path: Path) -> bool:
-    """``metric`` per epoch of every run with a history; ``False`` when none has it."""
-    import matplotlib
+def plot_heatmap(
+    grid: pd.DataFrame, metric: str, path: Path, statuses: pd.DataFrame | None = None
+) -> None:
+    """Save :func:`heatmap_figure` as a PNG (``DPI`` dots per inch)."""
+    heatmap_figure(grid, metric, statuses).savefig(path, dpi=DPI)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def curves_figure(jobs: list[Job], metric: str) -> Figure | None:
+    """``metric`` per epoch of every run with a history (``None`` when none has it). Up to
+    6 runs the legend sits in the axes; with more it goes outside, to the right."""
+    from matplotlib.ticker import MaxNLocator
 
     varying = _varying(jobs)
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    drawn = False
+    curves = []
     for job in jobs:
         points = [(r["epoch"], r[metric]) for r in job.results.get("history") or [] if metric in r]
         if not points:
@@ -201,24 +301,43 @@ def plot_curves(jobs: list[Job], metric: str, path: Path) -> bool:
         label = ", ".join(f"{k}={job.overrides.get(k)}" for k in varying) or f"job {job.number}"
         if job.status != "completed":
             label += f" ({job.status})"
+        curves.append((points, label))
+    if not curves:
+        return None
+    fig = _agg_figure(7.0, 4.5)
+    ax = fig.add_subplot()
+    for points, label in curves:
         ax.plot(*zip(*points, strict=True), marker="o", markersize=3, label=label)
-        drawn = True
-    if drawn:
-        ax.set_xlabel("epoch")
-        ax.set_ylabel(metric)
-        ax.grid(alpha=0.3)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # whole epochs
+    ax.set_xlabel("epoch")
+    ax.set_ylabel(metric)
+    ax.grid(alpha=0.3)
+    if len(curves) <= 6:
         ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return drawn
+    else:  # constrained layout makes room for an "outside" legend
+        fig.set_figwidth(10.0)
+        fig.legend(fontsize=7, loc="outside right upper", ncols=math.ceil(len(curves) / 24))
+    return fig
+
+
+def plot_curves(jobs: list[Job], metric: str, path: Path) -> bool:
+    """Save :func:`curves_figure` as a PNG; ``False`` (nothing written) when no run has it."""
+    fig = curves_figure(jobs, metric)
+    if fig is not None:
+        fig.savefig(path, dpi=DPI)
+    return fig is not None
 
 
 def report(
     sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
 ) -> dict[str, Path]:
-    """Write the sweep's summary (and plots / heuristic where they apply); returns the files."""
+    """Write the sweep's summary (and plots / heuristic where they apply); returns the files.
+
+    Raises :class:`ValueError` (before writing anything) when ``metric`` is given and no
+    job's results hold it."""
     jobs = collect(sweep_dir)
+    if metric:
+        check_metric(jobs, metric)
     out = Path(out) if out else Path(sweep_dir)
     out.mkdir(parents=True, exist_ok=True)
     metric = metric or default_metric(jobs)
@@ -227,11 +346,10 @@ def report(
     table.to_csv(files["csv"], index=False)
 
     constant = {k: v for k, v in jobs[0].overrides.items() if k not in _varying(jobs)}
-    counts = table["status"].value_counts().to_dict()
     lines = [
         f"# Sweep {Path(sweep_dir).resolve()}",
         "",
-        f"{len(jobs)} jobs: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())),
+        f"{len(jobs)} jobs: {count_statuses(table['status'])}",
         "",
         "Common overrides: " + (", ".join(f"`{k}={v}`" for k, v in constant.items()) or "none"),
         "",
@@ -240,7 +358,7 @@ def report(
     if metric and _is_prototype_sweep(jobs):
         grid = prototype_grid(jobs, metric)
         files["heatmap"] = out / "heatmap.png"
-        plot_heatmap(grid, metric, files["heatmap"])
+        plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
         lines += ["", f"## {metric}: batch size x prototypes", "", grid.to_markdown(floatfmt=".4f")]
         if grid.notna().to_numpy().any():
             heuristic, best = fit_heuristic(grid)

@@ -18,8 +18,9 @@ def main(argv: list[str] | None = None) -> None:
         prog="resireg-report", description=_report.__doc__.split("\n\n")[0]
     )
     parser.add_argument("sweep_dir", help="a multirun folder: outputs/<name>/multirun/<time>")
-    parser.add_argument("--metric", help="metric of the heatmap / curves / best column "
-                        "(default: the first ReSiReg Full mIoU, else train/loss)")  # fmt: skip
+    parser.add_argument("--metric", help="metric of the heatmap / curves / best column, one "
+                        "the jobs' results hold (default: the first ReSiReg Full mIoU, else "
+                        "train/loss); an unknown one is an error listing those")  # fmt: skip
     parser.add_argument("--out", help="where to write (default: the sweep folder)")
     args = parser.parse_args(argv)
     try:
@@ -29,8 +30,7 @@ def main(argv: list[str] | None = None) -> None:
     for kind, path in files.items():
         print(f"{kind:>9}: {path}")
     table = pd.read_csv(files["csv"])
-    bad = table[table["status"] != "completed"]
-    print(f"{len(table)} jobs, {len(table) - len(bad)} completed, {len(bad)} not completed")
+    print(f"{len(table)} jobs, {_report.count_statuses(table['status'])}")
 
 
 if __name__ == "__main__":
