@@ -1,4 +1,4 @@
-"""Small file helpers shared by the data, evaluation and tracking code."""
+"""Small file helpers shared by the data, evaluation, tracking and checkpoint code."""
 
 from __future__ import annotations
 
@@ -7,17 +7,42 @@ from pathlib import Path
 
 from PIL import Image
 
-__all__ = ["DECODE_ERRORS", "write_atomic"]
+__all__ = ["DECODE_ERRORS", "WriteError", "write_atomic"]
 
 #: What PIL raises for an undecodable image file (skipped and counted, never fatal).
 DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 
 
-def write_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and a rename,
-    so a reader (or a crash) never sees a half-written file under the final name."""
+class WriteError(OSError):
+    """A file could not be written (disk full, quota, permissions); one line naming it."""
+
+
+def write_atomic(
+    path: str | os.PathLike,
+    data: str | bytes | memoryview,
+    what: str = "file",
+) -> Path:
+    """Write ``data`` (text or bytes) to ``path`` through a temporary file in the same
+    folder, flushed to disk, and one rename.
+
+    A reader, or a crash, never sees a half-written file under the final name: if the write
+    fails (a full disk) the temporary file is removed, the old ``path`` (if any) is left as
+    it was, and a :class:`WriteError` says what was being written where.
+    """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    # Same folder: os.replace is atomic only within one file system.
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:
+        tmp.unlink(missing_ok=True)
+        if isinstance(err, OSError) and not isinstance(err, WriteError):
+            failure = WriteError(f"could not write the {what} {path}: {err.strerror or err}")
+            failure.errno = err.errno
+            raise failure from err
+        raise
     return path

@@ -69,12 +69,16 @@ def run_task(
     cfg: DictConfig,
     body: Callable[[DictConfig, Path], dict[str, Any]],
     rank_zero: bool = True,
+    resume_hint: str | None = None,
 ) -> dict[str, Any]:
     """Run ``body(cfg, output_dir)`` with ``results.json`` kept up to date.
 
-    The run is marked ``running`` first; any failure, from a bad config value to a crash
-    mid-epoch, is recorded as ``"status": "failed"`` with its error before it is re-raised,
-    so a sweep report lists the job with its reason. Only rank 0 (``rank_zero``) writes.
+    The run is marked ``running`` first. Ctrl-C (``KeyboardInterrupt``) is recorded as
+    ``"status": "interrupted"`` and the process exits with status 130 (what a shell reports
+    for Ctrl-C) after saying how to resume (``resume_hint``). Any other failure, from a bad
+    config value to a crash mid-epoch, is recorded as ``"status": "failed"`` with its error
+    before it is re-raised, so a sweep report lists the job with its reason. Only rank 0
+    (``rank_zero``) writes.
     """
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,11 +86,28 @@ def run_task(
         update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
     try:
         return body(cfg, out)
+    except KeyboardInterrupt:
+        error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"
+        if resume_hint:
+            error += f"; {resume_hint}"
+        if rank_zero:
+            _record(out, status="interrupted", error=error)
+            log.warning("%s", error)
+        raise SystemExit(130) from None
     except BaseException as exc:
         if rank_zero:
             error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-            update_results(out, status="failed", error=error)
+            _record(out, status="failed", error=error)
         raise
+
+
+def _record(out: Path, **fields: Any) -> None:
+    """Update ``results.json`` without hiding the error being recorded if this write fails
+    too (e.g. on the full disk that failed the run)."""
+    try:
+        update_results(out, **fields)
+    except OSError as err:
+        log.error("could not record %s in results.json: %s", fields, err)
 
 
 def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:

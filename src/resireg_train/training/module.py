@@ -69,6 +69,8 @@ class ResiregModule(L.LightningModule):
         ls = {"init": 1 / 0.07, "max": 100.0, **(logit_scale or {})}
         self.max_log_scale = math.log(ls["max"])
         self.steps_per_epoch = steps_per_epoch
+        self._schedule: dict[str, int] | None = None  # this run's cosine length (optimizer steps)
+        self._resumed_schedule: dict[str, int] | None = None  # the checkpoint's, when resuming
 
         self.vlm = ResiregVLM.build(backbone, head, text, intermediate_layer)
         self.logit_scale = nn.Parameter(torch.tensor(math.log(ls["init"])))
@@ -197,22 +199,45 @@ class ResiregModule(L.LightningModule):
         return optimizer, torch.optim.lr_scheduler.LambdaLR(optimizer, cosine)
 
     def configure_optimizers(self) -> dict:
-        optimizer, scheduler = self.build_optimizer(self.trainer.estimated_stepping_batches)
+        total = int(self.trainer.estimated_stepping_batches)
+        self._schedule = {"total_steps": total, "max_epochs": int(self.trainer.max_epochs)}
+        self._check_resumed_schedule()
+        optimizer, scheduler = self.build_optimizer(total)
         return {
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
         }
 
+    def _check_resumed_schedule(self) -> None:
+        """Refuse to resume with a different schedule length: the cosine would jump to the
+        learning rate of another run's position (the smoke run: 1e-5 at the end of 2 epochs,
+        1.36e-3 one step into a resume with 4)."""
+        old, new = self._resumed_schedule, self._schedule
+        if old is None or new is None or old["total_steps"] == new["total_steps"]:
+            return
+        raise ValueError(
+            f"trainer.max_epochs={new['max_epochs']}: the checkpoint being resumed belongs to a "
+            f"run planned for {old['max_epochs']} epochs ({old['total_steps']} optimizer steps "
+            f"of its cosine learning-rate schedule), and this one would have "
+            f"{new['total_steps']}, so its learning rate would jump mid-run. Resume with "
+            f"trainer.max_epochs={old['max_epochs']} (and the same data settings); to train "
+            "longer, start a new run from this one's weights: model.init_from=<its "
+            "checkpoints/last.ckpt> (a fresh schedule over the new run's epochs)"
+        )
+
     # ------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Frozen parts are rebuilt from their weights source, never stored.
 
-        The RNG states are stored so a resumed run draws the same drop-path masks as an
+        The schedule's length is stored so a resume with another ``trainer.max_epochs`` is
+        refused (see ``_check_resumed_schedule``). The RNG states are stored so a resumed run draws the same drop-path masks as an
         uninterrupted one (the data pipeline seeds itself from the epoch).
         """
         checkpoint["state_dict"] = {
             k: v for k, v in checkpoint["state_dict"].items() if not k.startswith(_FROZEN_PREFIXES)
         }
+        if self._schedule is not None:
+            checkpoint["lr_schedule"] = dict(self._schedule)
         checkpoint["rng_states"] = {"torch": torch.get_rng_state()}
         if torch.cuda.is_available():
             checkpoint["rng_states"]["cuda"] = torch.cuda.get_rng_state_all()
@@ -225,6 +250,8 @@ class ResiregModule(L.LightningModule):
         checkpoint["state_dict"].update(
             {k: v for k, v in own.items() if k.startswith(_FROZEN_PREFIXES)}
         )
+        self._resumed_schedule = checkpoint.get("lr_schedule")
+        self._check_resumed_schedule()  # (strategies that restore after configure_optimizers)
         states = checkpoint.get("rng_states", {})
         if "torch" in states:
             torch.set_rng_state(states["torch"])

@@ -1,0 +1,118 @@
+"""Checkpoints that a crash cannot truncate, and resuming that survives a corrupt one.
+
+:class:`AtomicCheckpointIO` replaces Lightning's file writer. Lightning's own writes the
+checkpoint into the system temp folder and *moves* it to the run folder; across file
+systems a move is a copy, so a full disk leaves a truncated ``epochNNN.ckpt`` (and a temp
+file) behind. Here the checkpoint is written next to its final name and renamed
+(:func:`resireg_train.files.write_atomic`).
+
+:func:`resolve_checkpoint` turns ``ckpt_path`` into the checkpoint to resume and checks it
+can be read; an unreadable ``last.ckpt`` falls back to the newest readable checkpoint of
+the run, and says so.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+
+from resireg_train.files import write_atomic
+
+__all__ = ["AtomicCheckpointIO", "CheckpointError", "read_checkpoint", "resolve_checkpoint"]
+
+log = logging.getLogger(__name__)
+
+
+class CheckpointError(RuntimeError):
+    """No readable checkpoint to resume from; the message names the files and the options."""
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """The checkpoint written to a temporary file beside it, then renamed.
+
+    ``torch.save`` serialises into memory first (as Lightning's own writer does): its zip
+    writer would turn a failed file write into an internal "unexpected pos" error, where a
+    write from memory fails with the system's reason (e.g. "No space left on device").
+    """
+
+    def save_checkpoint(
+        self, checkpoint: dict[str, Any], path: str | os.PathLike, storage_options: Any = None
+    ) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__} takes no storage_options")
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        buffer = io.BytesIO()
+        torch.save(checkpoint, buffer)
+        write_atomic(path, buffer.getbuffer(), what="checkpoint")
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any] | str:
+    """The checkpoint at ``path`` (on the CPU), or why it cannot be read."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - zip, pickle and I/O errors all mean "unreadable"
+        return f"{type(err).__name__}: {err}".splitlines()[0]
+    if not isinstance(checkpoint, dict) or "global_step" not in checkpoint:
+        return "not a Lightning training checkpoint (no global_step)"
+    return checkpoint
+
+
+def _candidates(folder: Path) -> list[Path]:
+    """``last.ckpt`` first, then the other checkpoints of ``folder``, newest first."""
+    others = sorted(
+        (p for p in folder.glob("*.ckpt") if p.name != "last.ckpt"),
+        key=lambda p: p.stat().st_mtime,
+        reverse=True,
+    )
+    last = folder / "last.ckpt"
+    return ([last] if last.is_file() else []) + others
+
+
+def resolve_checkpoint(
+    ckpt_path: str | None, output_dir: Path
+) -> tuple[str, dict[str, Any]] | None:
+    """The checkpoint to resume and its content, or ``None`` to start from scratch.
+
+    Args:
+        ckpt_path: ``None`` (start from scratch), ``"last"`` (``<output_dir>/checkpoints/
+            last.ckpt``, or the newest readable checkpoint there when it is corrupt; from
+            scratch when there is none) or a checkpoint file (must be readable).
+        output_dir: the run's folder.
+    """
+    if ckpt_path is None:
+        return None
+    if ckpt_path != "last":
+        if not Path(ckpt_path).is_file():
+            raise FileNotFoundError(f"ckpt_path={ckpt_path!r}: no such checkpoint file")
+        content = read_checkpoint(ckpt_path)
+        if isinstance(content, str):
+            raise CheckpointError(f"ckpt_path={ckpt_path!r} cannot be read ({content})")
+        return ckpt_path, content
+    folder = output_dir / "checkpoints"
+    candidates = _candidates(folder) if folder.is_dir() else []
+    if not candidates:
+        log.warning("ckpt_path=last: no checkpoint in %s yet, starting from scratch", folder)
+        return None
+    problems = []
+    for path in candidates:
+        content = read_checkpoint(path)
+        if isinstance(content, str):
+            problems.append(f"{path.name} ({content})")
+            continue
+        if problems:
+            log.warning(
+                "ckpt_path=last: %s unreadable; resuming from %s (global step %d) instead",
+                "; ".join(problems), path, content["global_step"],
+            )  # fmt: skip
+        return str(path), content
+    raise CheckpointError(
+        f"ckpt_path=last: no readable checkpoint in {folder}: {'; '.join(problems)}. Remove the "
+        "unreadable files to start this run again from scratch, or set ckpt_path to a readable "
+        "checkpoint (e.g. of another run)"
+    )
