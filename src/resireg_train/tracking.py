@@ -28,7 +28,13 @@ from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
 from resireg_train.files import write_atomic
 
-__all__ = ["ResumableCSVLogger", "ResultsTracker", "read_results", "update_results"]
+__all__ = [
+    "ResumableCSVLogger",
+    "ResultsTracker",
+    "epoch_metrics",
+    "read_results",
+    "update_results",
+]
 
 RESULTS_FILE = "results.json"
 _HIGHER = ("miou", "iou", "acc", "retrieval")
@@ -100,15 +106,26 @@ def update_results(directory: str | os.PathLike, **fields: Any) -> dict[str, Any
     directory = Path(directory)
     results = {**read_results(directory), **fields}
     directory.mkdir(parents=True, exist_ok=True)
-    write_atomic(directory / RESULTS_FILE, json.dumps(results, indent=2, sort_keys=False))
+    write_atomic(directory / RESULTS_FILE, json.dumps(results, indent=2), what="run record")
     return results
 
 
-def _epoch_metrics(metrics: dict[str, Any]) -> dict[str, float]:
-    """Epoch-level values from ``trainer.callback_metrics`` (``x_epoch`` -> ``x``; no ``_step``)."""
+def epoch_metrics(trainer: L.Trainer) -> dict[str, float]:
+    """This epoch's epoch-level values from ``trainer.callback_metrics`` (``x_epoch`` -> ``x``;
+    no ``x_step``).
+
+    ``callback_metrics`` keeps a metric's last value in later epochs. A callback that logs
+    only in some epochs (``ReSiRegEval`` every n epochs) names, through
+    ``idle_metric_prefixes(trainer)``, what it did not log in this one; those are left out.
+    """
+    idle = tuple(
+        prefix
+        for callback in trainer.callbacks
+        for prefix in getattr(callback, "idle_metric_prefixes", lambda _: ())(trainer)
+    )
     out = {}
-    for key, value in metrics.items():
-        if key.endswith("_step"):
+    for key, value in trainer.callback_metrics.items():
+        if key.endswith("_step") or key.startswith(idle):
             continue
         try:
             number = float(value)
@@ -116,6 +133,15 @@ def _epoch_metrics(metrics: dict[str, Any]) -> dict[str, float]:
             continue
         out[key.removesuffix("_epoch")] = number
     return out
+
+
+def _skipped_samples(trainer: L.Trainer) -> dict[str, Any]:
+    """``{"skipped_samples": {dataset: [{"file", "reason"}]}}`` from the callbacks that skip
+    evaluation samples (``ReSiRegEval.skipped_samples``); ``{}`` when none does."""
+    merged: dict[str, Any] = {}
+    for callback in trainer.callbacks:
+        merged.update(getattr(callback, "skipped_samples", None) or {})
+    return {"skipped_samples": merged} if merged else {}
 
 
 class ResultsTracker(L.Callback):
@@ -145,16 +171,7 @@ class ResultsTracker(L.Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         row = {"epoch": trainer.current_epoch, "step": trainer.global_step}
-        # trainer.callback_metrics keeps a metric's last value in later epochs. A callback
-        # that logs only in some epochs (ReSiRegEval every n epochs) names, through
-        # ``idle_metric_prefixes(trainer)``, what it did not log in this one.
-        idle = tuple(
-            prefix
-            for callback in trainer.callbacks
-            for prefix in getattr(callback, "idle_metric_prefixes", lambda _: ())(trainer)
-        )
-        fresh = {k: v for k, v in trainer.callback_metrics.items() if not k.startswith(idle)}
-        row.update(_epoch_metrics(fresh))
+        row.update(epoch_metrics(trainer))
         self.history = [r for r in self.history if r["epoch"] < row["epoch"]] + [row]
         if trainer.is_global_zero:
             update_results(
@@ -163,6 +180,7 @@ class ResultsTracker(L.Callback):
                 epoch=trainer.current_epoch,
                 global_step=trainer.global_step,
                 **self.summary(),
+                **_skipped_samples(trainer),
             )
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:

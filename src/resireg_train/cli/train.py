@@ -20,32 +20,19 @@ from typing import Any
 
 import hydra
 import lightning as L
-import torch
 from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.cli.task import hydra_entry_point, run_task
+from resireg_train.ovss.callback import ReSiRegEval
 from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, update_results
-from resireg_train.validation import validate
+from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
+from resireg_train.training.console import EpochLog, quiet_library_noise
+from resireg_train.validation import check_devices, validate
 
 __all__ = ["build", "train", "main"]
 
 log = logging.getLogger(__name__)
-
-
-def _resolve_checkpoint(ckpt_path: str | None, output_dir: Path) -> str | None:
-    """``"last"`` -> ``<output_dir>/checkpoints/last.ckpt`` when it exists (else start fresh)."""
-    if ckpt_path is None:
-        return None
-    if ckpt_path == "last":
-        last = output_dir / "checkpoints" / "last.ckpt"
-        if last.is_file():
-            return str(last)
-        log.warning("ckpt_path=last: no %s yet, starting from scratch", last)
-        return None
-    if not Path(ckpt_path).is_file():
-        raise FileNotFoundError(f"ckpt_path={ckpt_path!r}: no such checkpoint file")
-    return ckpt_path
 
 
 def _instantiate_all(group: DictConfig | None) -> list[Any]:
@@ -80,40 +67,57 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
         callbacks: extra callbacks (added to the configured ones).
     """
     body = functools.partial(_fit, callbacks=callbacks)
-    return run_task(cfg, body, rank_zero=rank_zero_only.rank == 0)
+    out = cfg.paths.output_dir
+    return run_task(
+        cfg,
+        body,
+        rank_zero=rank_zero_only.rank == 0,
+        resume_hint=f"resume with ckpt_path=last hydra.run.dir={out}",
+    )
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
+    quiet_library_noise()
     validate(cfg)
+    check_devices(cfg)
     L.seed_everything(cfg.seed, workers=True)
     module, datamodule = build(cfg)
     init_from = cfg.model.get("init_from")
 
-    ckpt = _resolve_checkpoint(cfg.ckpt_path, out)
+    resumed = resolve_checkpoint(cfg.ckpt_path, out)
+    ckpt = resumed[0] if resumed else None
     if init_from and ckpt is None:
         loaded = module.load_trained(init_from)
         log.info("model.init_from: loaded %d tensors from %s", len(loaded), init_from)
     resume_step = None
-    if ckpt is not None:
-        resume_step = int(torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"])
+    if resumed is not None:
+        resume_step = int(resumed[1]["global_step"])
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
     loggers = [ResumableCSVLogger(out, resume_step=resume_step), *_instantiate_all(cfg.logger)]
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
         logger=loggers,
-        callbacks=[*_instantiate_all(cfg.callbacks), ResultsTracker(out), *callbacks],
+        callbacks=[*_instantiate_all(cfg.callbacks), ResultsTracker(out), EpochLog(), *callbacks],
+        plugins=[AtomicCheckpointIO()],
         default_root_dir=str(out),
     )
-    trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    except SystemExit:
+        # Lightning answers Ctrl-C by shutting down and calling sys.exit(1); say what it was.
+        if trainer.interrupted:
+            raise KeyboardInterrupt from None
+        raise
     if not trainer.is_global_zero:
         return {}
-    if trainer.interrupted:
-        return update_results(out, status="interrupted")
     extra: dict[str, Any] = {}
     if cfg.export:
-        module.vlm.save_pretrained(out / "export")
-        extra["export"] = str(out / "export")
+        export = module.vlm.save_pretrained(out / "export")
+        for callback in trainer.callbacks:
+            if isinstance(callback, ReSiRegEval):
+                callback.save_settings(export)
+        extra["export"] = str(export)
     return update_results(out, **extra)
 
 

@@ -45,6 +45,7 @@ from torch.utils.data import DataLoader, get_worker_info
 from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
+from resireg.models.images import pil_to_tensor
 from resireg_train.data.synthetic import SyntheticScenes
 from resireg_train.files import DECODE_ERRORS
 
@@ -279,14 +280,12 @@ class CaptionStream(torch.utils.data.IterableDataset):
             return "invalid"
         try:
             with Image.open(io.BytesIO(example["image"])) as im:
-                array = np.asarray(im.convert("RGB"))
+                pixels = pil_to_tensor(im)
         except DECODE_ERRORS:
             return "invalid"
-        if min(array.shape[:2]) < self.min_image_size:
+        if min(pixels.shape[-2:]) < self.min_image_size:
             return "small"
-        image = TF.resize(
-            torch.from_numpy(array.copy()).permute(2, 0, 1), self.crop_size, antialias=True
-        )
+        image = TF.resize(pixels, self.crop_size, antialias=True)
         h, w = image.shape[-2:]
         top = int(rng.integers(0, h - self.crop_size + 1))
         left = int(rng.integers(0, w - self.crop_size + 1))
@@ -308,10 +307,10 @@ class CaptionStream(torch.utils.data.IterableDataset):
             example = next(examples)
             image = self._prepare(example, rng)
             if isinstance(image, str):
+                # Counted in the next sample; the epoch's totals (over workers and ranks)
+                # are reported once per epoch (resireg_train.training.epoch_log).
                 skipped[image] += 1
-                if sum(skipped.values()) in (1, 10, 100, 1000):
-                    log.warning("caption data: skipped %s so far (rank %d, worker %d)",
-                                skipped, self.rank, worker)  # fmt: skip
+                log.debug("caption data: skipped an example (%s)", image)
                 continue
             captions = example["caption"]
             yield {

@@ -1,0 +1,147 @@
+"""What a training run prints: one line per epoch, and no library noise.
+
+``EpochLog`` writes one line per epoch (losses, learning rate, evaluation scores, skipped
+examples, steps, seconds) through :mod:`logging`, so it reaches the run's ``train.log``
+(Hydra's file handler) always, and the console when stdout is not a terminal (a batch
+job, ``nohup``, a pipe): on a terminal the progress bar shows the same values.
+
+:func:`quiet_library_noise` silences the messages every run would print that are not the
+user's business (see the README's "What a run prints").
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+import warnings
+from typing import Any
+
+import lightning as L
+
+from resireg_train.tracking import epoch_metrics
+
+__all__ = ["EpochLog", "epoch_line", "quiet_library_noise"]
+
+log = logging.getLogger(__name__)
+#: The epoch lines' own logger (kept off terminal handlers, see ``EpochLog``).
+lines = logging.getLogger(f"{__name__}.epochs")
+
+#: ``(message regex, why it is silenced)`` of Python warnings every run would print.
+_NOISE_WARNINGS = (
+    (r"Found \d+ module\(s\) in eval mode at the start of training",
+     "the backbone, text tower and teacher are frozen on purpose"),
+    (r"Your `IterableDataset` has `__len__` defined",
+     "the caption stream shards itself per worker and rank, so its length is exact"),
+    (r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+     "Lightning's own use of a torch API, nothing a user can change"),
+)  # fmt: skip
+#: Log records (logger name, message start) silenced the same way.
+_NOISE_RECORDS = (("lightning", "💡 Tip:"),)  # an advertisement for a cloud logger
+
+
+class _DropRecords(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not any(
+            record.name.startswith(name) and str(record.msg).startswith(start)
+            for name, start in _NOISE_RECORDS
+        )
+
+
+_DROP = _DropRecords()
+
+
+def quiet_library_noise() -> None:
+    """Silence :data:`_NOISE_WARNINGS` and :data:`_NOISE_RECORDS` in this process (idempotent;
+    called by the entry points and, for spawned DDP ranks, by :class:`EpochLog`)."""
+    for pattern, _why in _NOISE_WARNINGS:
+        warnings.filterwarnings("ignore", message=pattern)
+    # Lightning logs through whichever of these loggers its rank-zero helpers were bound to.
+    for name in ("lightning_utilities.core.rank_zero", "lightning.pytorch.utilities.rank_zero",
+                 "lightning.fabric.utilities.rank_zero", "lightning.pytorch", "lightning.fabric"):  # fmt: skip
+        logger = logging.getLogger(name)
+        if _DROP not in logger.filters:
+            logger.addFilter(_DROP)
+        for handler in logger.handlers:
+            if _DROP not in handler.filters:
+                handler.addFilter(_DROP)
+
+
+def _format(value: float) -> str:
+    if math.isnan(value) or value == 0 or 1e-3 <= abs(value) < 1e4:
+        return f"{value:.4g}"
+    return f"{value:.3e}"
+
+
+def epoch_line(epoch: int, max_epochs: int, metrics: dict[str, float], steps: int,
+               seconds: float) -> str:  # fmt: skip
+    """``epoch 2/6 | train/loss=2.83 ... | 8 steps | 3.1 s``: the epoch-level metrics sorted
+    by name, training first, then evaluation (mIoU; the f-mIoU stay in ``results.json``), then
+    data counts."""
+    order = {"train": 0, "val": 1, "data": 2}
+    shown = [k for k in metrics if "/fmiou_" not in k]
+    names = sorted(shown, key=lambda k: (order.get(k.split("/")[0], 3), k))
+    values = " ".join(f"{k}={_format(metrics[k])}" for k in names)
+    return f"epoch {epoch + 1}/{max_epochs} | {values} | {steps} steps | {seconds:.1f} s"
+
+
+class _NotOnTerminal(logging.Filter):
+    """Drops this module's epoch lines on a handler that writes to a terminal."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.name != lines.name
+
+
+class EpochLog(L.Callback):
+    """Logs :func:`epoch_line` at the end of every training epoch (rank 0), after the
+    evaluation and ``ResultsTracker``: the values are those ``results.json`` records
+    (epoch-level metrics; ``idle_metric_prefixes`` of other callbacks left out). Caption
+    examples the data pipeline skipped are summed over workers and ranks
+    (``data/skipped_*``) and, when any were, also reported as one warning per epoch.
+    """
+
+    def __init__(self) -> None:
+        self._start = time.perf_counter()
+        self._first_step = 0
+        self._quieted: list[logging.Handler] = []
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        quiet_library_noise()
+        # A handler whose stream is a terminal shows the progress bar: no epoch lines there.
+        for handler in logging.getLogger().handlers:
+            stream = getattr(handler, "stream", None)
+            isatty = getattr(stream, "isatty", None)
+            if isinstance(handler, logging.StreamHandler) and isatty is not None and isatty():
+                handler.addFilter(_NOT_ON_TERMINAL)
+                self._quieted.append(handler)
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        for handler in self._quieted:
+            handler.removeFilter(_NOT_ON_TERMINAL)
+        self._quieted = []
+
+    def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._start = time.perf_counter()
+        self._first_step = trainer.global_step
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.is_global_zero:
+            return
+        metrics = epoch_metrics(trainer)
+        steps = trainer.global_step - self._first_step
+        seconds = time.perf_counter() - self._start
+        lines.info(epoch_line(trainer.current_epoch, trainer.max_epochs, metrics, steps, seconds))
+        skipped = {k.removeprefix("data/skipped_"): int(v) for k, v in metrics.items()
+                   if k.startswith("data/skipped_") and v}  # fmt: skip
+        if skipped:
+            detail = ", ".join(f"{reason} {n}" for reason, n in sorted(skipped.items()))
+            log.warning(
+                "epoch %d: skipped %d caption examples (%s; all workers and ranks)",
+                trainer.current_epoch + 1, sum(skipped.values()), detail,
+            )  # fmt: skip
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+
+_NOT_ON_TERMINAL = _NotOnTerminal()
