@@ -13,13 +13,14 @@ _MODULES = {
 }
 
 
-def run(script, *args, timeout=600, check=True):
-    """``script args...`` offline; returns the CompletedProcess (asserts success if ``check``)."""
+def run(script, *args, timeout=600, check=True, env=None):
+    """``script args...`` offline (in ``env``, default this process's environment); returns the
+    CompletedProcess (asserts success if ``check``)."""
     exe = shutil.which(script)
     cmd = [exe] if exe else [sys.executable, "-m", _MODULES[script]]
     proc = subprocess.run(
         [*cmd, *map(str, args)], capture_output=True, text=True, timeout=timeout,
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        env={**(os.environ if env is None else env), "HF_HUB_OFFLINE": "1"},
     )  # fmt: skip
     if check:
         assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]

@@ -1,0 +1,17 @@
+"""Faults injected into real runs (loaded by the entry point from the ``callbacks`` group)."""
+
+import os
+import signal
+
+import lightning as L
+
+
+class SigintAt(L.Callback):
+    """Sends this process a real SIGINT (Ctrl-C) during training epoch ``epoch``."""
+
+    def __init__(self, epoch: int, batch: int = 2) -> None:
+        self.epoch, self.batch = epoch, batch
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if trainer.current_epoch == self.epoch and batch_idx == self.batch:
+            os.kill(os.getpid(), signal.SIGINT)

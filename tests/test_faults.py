@@ -1,0 +1,312 @@
+"""Bad inputs and faults as users meet them: poisoned evaluation data, Ctrl-C, a full disk,
+a corrupt checkpoint, a resume with another schedule, batch-job logs."""
+
+import errno
+import json
+import os
+import re
+import resource
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from _run import run
+from resireg_train.training.checkpoints import CheckpointError, resolve_checkpoint
+from test_segmentation import poisoned_ade_folder
+
+TESTS = Path(__file__).parent
+SMOKE = ("experiment=smoke", "data.steps_per_epoch=4", "callbacks.resireg_eval.num_workers=0")
+
+
+def _train(out, *overrides, check=True, **kwargs):
+    return run("resireg-train", *SMOKE, f"hydra.run.dir={out}", *overrides, check=check, **kwargs)
+
+
+def _results(out):
+    return json.loads((Path(out) / "results.json").read_text())
+
+
+# --------------------------------------------------------------------- bad labels (item 3)
+@pytest.mark.slow
+def test_poisoned_ade20k_folder_trains_and_evaluates_naming_the_bad_samples(tmp_path):
+    """Out-of-range id, RGB label, wrong-size label and truncated image: training goes on,
+    every epoch counts 4 skips and results.json names each file with its reason; resireg-eval
+    on the export (with no ReSiReg arguments: the export records them) reproduces the
+    training score, skips the same 4, and scores exactly what a folder holding only the good
+    images scores. Its batch-size histogram counts the batches scored."""
+    bad = poisoned_ade_folder(tmp_path / "ade")
+    clean = tmp_path / "clean"
+    for sub in ("images", "annotations"):
+        (clean / sub / "validation").mkdir(parents=True)
+        for f in (tmp_path / "ade" / sub / "validation").iterdir():
+            if f"{f.stem}.jpg" not in bad:
+                (clean / sub / "validation" / f.name).write_bytes(f.read_bytes())
+    ade = "callbacks.resireg_eval.datasets.ade20k"
+    out = tmp_path / "run"
+    proc = _train(out, "trainer.max_epochs=2", "val_data=ade20k", f"{ade}.path={tmp_path / 'ade'}",
+                  f"{ade}.short_side=32", "callbacks.resireg_eval.batch_size=2",
+                  "callbacks.resireg_eval.full.n_prototypes=4")  # fmt: skip
+    results = _results(out)
+    assert results["status"] == "completed"
+    assert [h["val/ovss/ade20k/skipped"] for h in results["history"]] == [4, 4]
+    named = {Path(s["file"]).name: s["reason"] for s in results["skipped_samples"]["ade20k"]}
+    assert set(named) == set(bad)
+    for name, pattern in bad.items():
+        assert re.search(pattern, named[name]), (name, named[name])
+    log = (out / "train.log").read_text()
+    assert log.count("ade20k: skipped 4 of 9 images") == 1  # named once, not every epoch
+    assert all(name in log for name in bad)
+    assert "skipped 4 of 9" in proc.stdout + proc.stderr
+
+    scores = {}
+    for name, path in (("poisoned", tmp_path / "ade"), ("clean", clean)):
+        run("resireg-eval", f"model_path={out / 'export'}", "dataset=ade20k", f"dataset.path={path}",
+            "dataset.short_side=32", "num_workers=0", f"hydra.run.dir={tmp_path / name}")  # fmt: skip
+        scores[name] = _results(tmp_path / name)
+    poisoned = scores["poisoned"]
+    assert poisoned["params"]["batch_size"] == 2 and poisoned["params"]["full"]["n_prototypes"] == 4
+    assert poisoned["images"] == 5 and poisoned["skipped"] == 4
+    assert {Path(s["file"]).name for s in poisoned["skipped_samples"]} == set(bad)
+    # 9 images in batches of 2 of one size: planned [2, 2, 2, 2, 1]; scored after the skips:
+    # [0, 1], [2, 3], [14] (10 + 11 and 12 + 13 lost both their images).
+    assert poisoned["batch_sizes"] == {"1": 1, "2": 2}
+    assert poisoned["final"] == scores["clean"]["final"]
+    final = results["history"][-1]
+    for key, value in poisoned["final"].items():
+        assert value == pytest.approx(final[key], abs=1e-6), key
+
+
+# ------------------------------------------------------------------------- Ctrl-C (item 4)
+@pytest.mark.slow
+def test_ctrl_c_is_recorded_as_interrupted_and_the_run_resumes_on_its_schedule(tmp_path):
+    out = tmp_path / "run"
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
+    }
+    stop = ["+callbacks.stop._target_=_faults.SigintAt", "+callbacks.stop.epoch=1"]
+    proc = _train(out, "trainer.max_epochs=3", *stop, check=False, env=env)
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    results = _results(out)
+    assert results["status"] == "interrupted"
+    assert results["error"].startswith("KeyboardInterrupt: interrupted by the user (Ctrl-C)")
+    assert f"ckpt_path=last hydra.run.dir={out}" in results["error"]
+    assert [h["epoch"] for h in results["history"]] == [0]
+
+    # A longer schedule would jump the learning rate: refused, naming the key and the way out.
+    longer = _train(out, "trainer.max_epochs=5", "ckpt_path=last", check=False)
+    assert longer.returncode != 0
+    error = _results(out)["error"]
+    assert "trainer.max_epochs=5" in error and "planned for 3 epochs" in error
+    assert "model.init_from" in error
+
+    _train(out, "trainer.max_epochs=3", "ckpt_path=last")
+    results = _results(out)
+    assert results["status"] == "completed" and results["error"] is None
+    assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
+
+
+# ---------------------------------------------------------------------- full disk (item 4)
+def _file_size_limit(limit):
+    def apply():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    return apply
+
+
+def test_a_write_failing_midway_keeps_the_old_file_and_leaves_no_temporary(tmp_path):
+    """A real failed write: a process that may not write files over 4 KB (RLIMIT_FSIZE, as
+    a full disk or a quota would refuse) rewrites results.json with 10 KB."""
+    target = tmp_path / "results.json"
+    target.write_text('{"status": "running"}')
+    code = (
+        "import sys; from resireg_train.files import write_atomic\n"
+        "try:\n    write_atomic(sys.argv[1], 'x' * 10_000, what='run record')\n"
+        "except OSError as err:\n    print(type(err).__name__, err.errno, err)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(target)], capture_output=True, text=True,
+        preexec_fn=_file_size_limit(4096), timeout=60,
+    )  # fmt: skip
+    assert proc.stdout.strip() == (
+        f"WriteError {errno.EFBIG} could not write the run record {target}: File too large"
+    ), proc.stderr
+    assert target.read_text() == '{"status": "running"}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]
+
+
+@pytest.mark.slow
+def test_a_checkpoint_that_cannot_be_written_fails_in_one_line_and_leaves_nothing(tmp_path):
+    """A real write failure: the process may not write files over 512 KB (RLIMIT_FSIZE, as
+    a full disk or a quota would refuse), and a smoke checkpoint is ~1.4 MB."""
+    out = tmp_path / "run"
+    exe = Path(sys.executable).parent / "resireg-train"
+    proc = subprocess.run(
+        [str(exe), *SMOKE, "trainer.max_epochs=1", f"hydra.run.dir={out}"],
+        capture_output=True, text=True, timeout=600, preexec_fn=_file_size_limit(512 * 1024),
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )  # fmt: skip
+    assert proc.returncode != 0
+    target = out / "checkpoints" / "epoch000.ckpt"
+    expected = f"could not write the checkpoint {target}: File too large"
+    results = _results(out)
+    assert (
+        results["status"] == "failed"
+        and results["error"] == f"resireg_train.files.WriteError: {expected}"
+    )
+    said = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert said[-2] == f"resireg_train.files.WriteError: {expected}"  # then Hydra's hint
+    assert list((out / "checkpoints").iterdir()) == []  # no truncated file, no temporary
+
+
+# ------------------------------------------------------------- corrupt checkpoint (item 4)
+@pytest.fixture(scope="module")
+def two_epochs(tmp_path_factory):
+    """A 2-epoch smoke run keeping every epoch's checkpoint, its stdout piped (as in a batch
+    job); returns (folder, completed process)."""
+    out = tmp_path_factory.mktemp("two_epochs") / "run"
+    proc = _train(out, "trainer.max_epochs=2", "callbacks.model_checkpoint.save_top_k=-1")
+    return out, proc
+
+
+def _corrupt(path):
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+
+
+@pytest.mark.slow
+def test_a_corrupt_last_checkpoint_resumes_from_the_newest_readable_one(two_epochs, tmp_path):
+    source, _ = two_epochs
+    out = tmp_path / "run"
+    (out / "checkpoints").mkdir(parents=True)
+    for name in ("epoch000.ckpt", "epoch001.ckpt", "last.ckpt"):
+        (out / "checkpoints" / name).write_bytes((source / "checkpoints" / name).read_bytes())
+    os.utime(out / "checkpoints" / "epoch000.ckpt", (1, 1))  # the oldest
+    _corrupt(out / "checkpoints" / "last.ckpt")
+    _corrupt(out / "checkpoints" / "epoch001.ckpt")
+    proc = _train(out, "trainer.max_epochs=2", "ckpt_path=last")
+    said = proc.stdout + proc.stderr
+    assert re.search(r"last\.ckpt \(\w+Error.*epoch001\.ckpt \(\w+Error.*unreadable; resuming "
+                     r"from \S*epoch000\.ckpt \(global step 4\) instead", said), said[-3000:]  # fmt: skip
+    results = _results(out)
+    assert results["status"] == "completed" and [h["epoch"] for h in results["history"]] == [0, 1]
+    assert results["global_step"] == 8
+
+
+def test_no_readable_checkpoint_fails_naming_the_files_and_the_options(tmp_path):
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    torch.save({"global_step": 3}, folder / "epoch000.ckpt")
+    (folder / "last.ckpt").write_bytes(b"PK\x03\x04 truncated")
+    path, content = resolve_checkpoint("last", tmp_path)
+    assert Path(path).name == "epoch000.ckpt" and content["global_step"] == 3
+    _corrupt(folder / "epoch000.ckpt")
+    with pytest.raises(CheckpointError) as err:
+        resolve_checkpoint("last", tmp_path)
+    message = str(err.value)
+    assert "last.ckpt (" in message and "epoch000.ckpt (" in message
+    assert "Remove the unreadable files" in message and "set ckpt_path" in message
+    with pytest.raises(CheckpointError, match=r"ckpt_path='\S+last\.ckpt' cannot be read"):
+        resolve_checkpoint(str(folder / "last.ckpt"), tmp_path)
+    assert resolve_checkpoint("last", tmp_path / "fresh") is None  # nothing yet: from scratch
+
+
+# ------------------------------------------------------------------ batch-job logs (item 5)
+@pytest.mark.slow
+def test_train_log_and_piped_stdout_have_one_line_per_epoch_and_no_noise(two_epochs):
+    out, proc = two_epochs
+    line = re.compile(r"epoch (\d)/2 \| train/logit_scale=\S+ train/loss=\S+ .*train/lr=\S+ .*"
+                      r"val/ovss/synthetic/miou_full=\S+ .*data/skipped_invalid=0 "
+                      r"data/skipped_small=0 \| 4 steps \| [\d.]+ s$")  # fmt: skip
+    logged = [
+        m.group(1) for m in map(line.search, (out / "train.log").read_text().splitlines()) if m
+    ]
+    assert logged == ["1", "2"]
+    printed = [m.group(1) for m in map(line.search, proc.stdout.splitlines()) if m]
+    assert printed == ["1", "2"]
+    said = proc.stdout + proc.stderr
+    for noise in ("in eval mode at the start of training", "litlogger", "LeafSpec",
+                  "has `__len__` defined"):  # fmt: skip
+        assert noise not in said, noise
+
+
+def test_skipped_caption_examples_are_reported_once_per_epoch_with_the_epoch_totals(caplog):
+    """The epoch's data/skipped_* sums (over steps, workers and ranks) in one warning."""
+    from resireg_train.training.console import EpochLog
+
+    trainer = SimpleNamespace(
+        is_global_zero=True, callbacks=[], current_epoch=1, max_epochs=3, global_step=16,
+        callback_metrics={"train/loss_epoch": torch.tensor(2.5), "train/loss_step": torch.tensor(9.0),
+                          "data/skipped_invalid": torch.tensor(3.0),
+                          "data/skipped_small": torch.tensor(2.0)},
+    )  # fmt: skip
+    callback = EpochLog()
+    callback._first_step = 8
+    with caplog.at_level("INFO"):
+        callback.on_train_epoch_end(trainer, None)
+    (line,) = [r.getMessage() for r in caplog.records if r.levelname == "INFO"]
+    assert re.fullmatch(r"epoch 2/3 \| train/loss=2\.5 data/skipped_invalid=3 "
+                        r"data/skipped_small=2 \| 8 steps \| [\d.]+ s", line)  # fmt: skip
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert (
+        warning == "epoch 2: skipped 5 caption examples (invalid 3, small 2; all workers and ranks)"
+    )
+
+
+# ------------------------------------------------------------- smaller defects (item 6)
+def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatch):
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.validation import ConfigError, check_devices, validate
+
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        stage1 = compose("train", overrides=["experiment=vlm25m_stage1", "model.text.weights=null"])
+        smoke = compose("train", overrides=["experiment=smoke"])
+    with pytest.raises(ConfigError, match=r"model\.text\.weights=None: expected an open_clip "
+                       r"pretrained tag of model\.text\.model_name='ViT-B-16-SigLIP2'"):  # fmt: skip
+        validate(stage1)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError, match=r"trainer\.accelerator='gpu': this machine has no CUDA "
+                       r"GPU .*use trainer=cpu"):  # fmt: skip
+        check_devices(stage1)
+    check_devices(smoke)  # trainer=cpu
+    with pytest.raises(
+        ConfigError, match=r"device='cuda:1': this machine has no CUDA GPU.*use cpu"
+    ):
+        check_devices({"device": "cuda:1"})
+    check_devices({"device": "auto"})
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ConfigError, match=r"device='cuda:1': this machine has 1 CUDA device"):
+        check_devices({"device": "cuda:1"})
+    check_devices(stage1)
+
+
+def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.eval import with_export_settings
+    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.ovss.engine import save_settings
+
+    save_settings(tmp_path, {"variants": ["bb", "full"], "batch_size": 2, "precision": "32",
+                             "full": {"n_prototypes": 12, "alpha": 5.0}, "lite": {}})  # fmt: skip
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        plain = compose("eval", overrides=[f"model_path={tmp_path}"])
+        chosen = compose("eval", overrides=[f"model_path={tmp_path}", "batch_size=4"])
+        sweep = compose("eval", overrides=[f"model_path={tmp_path}", "sweep=prototype_batch"])
+        off = compose("eval", overrides=[f"model_path={tmp_path}", "export_settings=false"])
+    cfg, taken = with_export_settings(plain)
+    assert sorted(taken) == ["batch_size", "full.n_prototypes", "variants"]  # alpha: same value
+    assert (cfg.batch_size, cfg.full.n_prototypes, list(cfg.variants)) == (2, 12, ["bb", "full"])
+    cfg, taken = with_export_settings(chosen)
+    assert cfg.batch_size == 4 and "batch_size" not in taken and cfg.full.n_prototypes == 12
+    cfg, taken = with_export_settings(sweep)
+    assert list(cfg.variants) == ["full"] and "variants" not in taken  # the sweep file's choice
+    assert with_export_settings(off) == (off, [])
