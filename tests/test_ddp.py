@@ -78,6 +78,11 @@ def test_ddp_cpu_trains_logs_and_evaluates_sharded(tmp_path):
     assert results["history"][-1]["step"] == 6  # 3 steps per epoch on every rank
     assert (out / "metrics.csv").read_text().count("\n") > 6
     assert (out / "export" / "model.safetensors").is_file()
+    # Rank 0 runs in a spawned process without Hydra's logging: its epoch lines still reach
+    # the run's train.log and the piped stdout, once per epoch.
+    for text in ((out / "train.log").read_text(), proc.stdout):
+        assert [line.split(" | ")[0].split()[-2:] for line in text.splitlines()
+                if " | " in line and "epoch " in line] == [["epoch", "1/2"], ["epoch", "2/2"]]  # fmt: skip
     # Sharded evaluation (each rank half the batches, confusion matrices summed) logs what a
     # single process computes on the exported model.
     logged = results["history"][-1]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 import time
 import warnings
 from typing import Any
@@ -24,6 +25,8 @@ from resireg_train.tracking import epoch_metrics
 __all__ = ["EpochLog", "epoch_line", "quiet_library_noise"]
 
 log = logging.getLogger(__name__)
+#: Hydra's default log line format (conf/hydra keeps Hydra's job_logging).
+_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"
 #: The epoch lines' own logger (kept off terminal handlers, see ``EpochLog``).
 lines = logging.getLogger(f"{__name__}.epochs")
 
@@ -104,11 +107,30 @@ class EpochLog(L.Callback):
         self._start = time.perf_counter()
         self._first_step = 0
         self._quieted: list[logging.Handler] = []
+        self._added: list[logging.Handler] = []
+        # The log files of this (Hydra-configured) process, for ranks spawned without logging.
+        self._log_files = [
+            h.baseFilename
+            for h in logging.getLogger().handlers
+            if isinstance(h, logging.FileHandler)
+        ]
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         quiet_library_noise()
+        root = logging.getLogger()
+        if not root.handlers:
+            # A process spawned for a DDP rank (ddp_spawn) starts with logging unconfigured:
+            # log to the run's files and stdout as the launching process does.
+            formatter = logging.Formatter(_FORMAT)
+            handlers = [logging.FileHandler(f) for f in self._log_files]
+            handlers.append(logging.StreamHandler(sys.stdout))
+            for handler in handlers:
+                handler.setFormatter(formatter)
+                root.addHandler(handler)
+            root.setLevel(logging.INFO)
+            self._added = handlers
         # A handler whose stream is a terminal shows the progress bar: no epoch lines there.
-        for handler in logging.getLogger().handlers:
+        for handler in root.handlers:
             stream = getattr(handler, "stream", None)
             isatty = getattr(stream, "isatty", None)
             if isinstance(handler, logging.StreamHandler) and isatty is not None and isatty():
@@ -118,7 +140,10 @@ class EpochLog(L.Callback):
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         for handler in self._quieted:
             handler.removeFilter(_NOT_ON_TERMINAL)
-        self._quieted = []
+        for handler in self._added:
+            logging.getLogger().removeHandler(handler)
+            handler.close()
+        self._quieted, self._added = [], []
 
     def on_train_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._start = time.perf_counter()
