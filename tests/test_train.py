@@ -352,3 +352,16 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path):
     assert len(folders) == 3, folders
     errors = {json.loads((f / "results.json").read_text())["error"] for f in folders}
     assert len(errors) == 3  # each run recorded its own failure in its own folder
+
+
+def test_a_new_run_refuses_a_folder_that_holds_another_run(tmp_path):
+    """A hand-pointed hydra.run.dir: the second fresh run stops before touching anything,
+    so the two never append to one metrics.csv; resuming the folder is allowed."""
+    (tmp_path / "results.json").write_text(json.dumps({"name": "smoke", "status": "running"}))
+    (tmp_path / "metrics.csv").write_text("step,train/loss\n0,2.5\n")
+    cfg = _compose("experiment=smoke", f"paths.output_dir={tmp_path}")
+    with pytest.raises(FileExistsError, match=r"already holds a run \('smoke', status 'running'\)"
+                       r": resume it with ckpt_path=last"):  # fmt: skip
+        train(cfg)
+    assert (tmp_path / "metrics.csv").read_text() == "step,train/loss\n0,2.5\n"
+    assert json.loads((tmp_path / "results.json").read_text())["status"] == "running"

@@ -25,7 +25,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.ovss.callback import ReSiRegEval
-from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, update_results
+from resireg_train.tracking import (
+    ResultsTracker,
+    ResumableCSVLogger,
+    read_results,
+    update_results,
+)
 from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
 from resireg_train.training.console import EpochLog, quiet_library_noise
 from resireg_train.validation import check_devices, validate
@@ -68,12 +73,28 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     """
     body = functools.partial(_fit, callbacks=callbacks)
     out = cfg.paths.output_dir
+    if rank_zero_only.rank == 0 and cfg.ckpt_path is None:
+        _refuse_occupied(Path(out))
     return run_task(
         cfg,
         body,
         rank_zero=rank_zero_only.rank == 0,
         resume_hint=f"resume with ckpt_path=last hydra.run.dir={out}",
     )
+
+
+def _refuse_occupied(out: Path) -> None:
+    """A new run never shares a folder with another (their metrics.csv, checkpoints and
+    results.json would interleave): a folder already holding a run record is refused unless
+    the run resumes it. Default folders are unique (time + run id); this guards a
+    ``hydra.run.dir`` given by hand."""
+    previous = read_results(out)
+    if previous:
+        raise FileExistsError(
+            f"hydra.run.dir={out} already holds a run ({previous.get('name')!r}, status "
+            f"{previous.get('status')!r}): resume it with ckpt_path=last, or give this run its "
+            "own folder (leave hydra.run.dir unset for a new, unique one)"
+        )
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
