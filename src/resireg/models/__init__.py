@@ -1,9 +1,14 @@
-"""Dense encoders: the interface, the 25M dense VLM and its parts (EUPE, head, SigLIP 2 text, teachers)."""
+"""Dense encoders: the interface, the encoder zoo (CLIP, RADIO, RADSeg, dino.txt) and the
+25M dense VLM with its parts (EUPE, head, SigLIP 2 text, teachers)."""
 
+from resireg.models.clip import CLIP_MODELS, ClipEncoder
+from resireg.models.dinotxt import DinoTxtEncoder
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
+from resireg.models.encoders import ENCODERS, build_encoder, count_parameters
 from resireg.models.eupe import EUPE_MODELS, BackboneOutput, EUPEBackbone
 from resireg.models.head import HeadOutput, LanguageHead
 from resireg.models.hub import WeightsUnavailableError
+from resireg.models.radio import RadioEncoder, RadSegEncoder
 from resireg.models.teacher import ConvTeacher, RadSegTeacher, build_teacher
 from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
 from resireg.models.vlm import ResiregVLM
@@ -12,6 +17,14 @@ __all__ = [
     "DenseEncoder",
     "DenseOutput",
     "InputRule",
+    "ENCODERS",
+    "build_encoder",
+    "count_parameters",
+    "CLIP_MODELS",
+    "ClipEncoder",
+    "DinoTxtEncoder",
+    "RadioEncoder",
+    "RadSegEncoder",
     "EUPE_MODELS",
     "BackboneOutput",
     "EUPEBackbone",

@@ -1,0 +1,291 @@
+"""``ClipEncoder``: OpenAI CLIP ViT-B/16 and ViT-L/14@336 (open_clip) as a :class:`DenseEncoder`.
+
+One frozen open_clip ``CLIP`` model gives everything:
+
+- ``intermediates`` ``[B, width, H/p, W/p]``: the tokens of one earlier block
+  (``intermediate_layer``): that block's output (the residual stream, no final norm),
+  class token dropped, patch tokens reshaped to the grid. Default: SC-CLIP's mid-level
+  block (see :class:`ClipEncoder`).
+- ``language`` ``[B, embed_dim, H/p, W/p]``: MaskCLIP's dense tokens, the **value path of
+  the last block**: ``ln_post(out_proj(V(ln_1(x)))) @ proj`` where ``x`` is the last
+  block's input and ``V`` the value slice of its attention's ``in_proj``. Attention is
+  dropped (every token keeps its own value), and so are the block's residual and MLP.
+- ``embedding`` ``[B, embed_dim]``: the ordinary CLIP image embedding (class token,
+  ``ln_post``, ``proj``; not normalised), i.e. ``model.encode_image``.
+
+``encode_text`` gives open_clip's text embedding of the same model, normalised
+(``[K, embed_dim]``, the language tokens' space).
+
+**Resolution.** CLIP's ViTs are run at their native input resolution in a single pass:
+the canvas ``[B, 3, H, W]`` is resized (bilinear, antialiased) to ``image_size`` x
+``image_size`` (224 for ViT-B-16, 336 for ViT-L-14-336), so the positional embedding
+is used exactly as trained, and both dense maps are upsampled bilinearly from the native
+grid (14 x 14, 24 x 24) to the canvas grid ``(H/p, W/p)``. This undoes the aspect
+distortion of the square resize; the maps are as coarse as the native grid. A sliding
+window over the canvas (SCLIP / SC-CLIP's evaluation, 224 crops, stride 112) would keep
+more detail but needs several passes per image and window stitching: the protocol here
+is one pass at native resolution, so ReSiReg is compared on the backbone's own grid.
+Resizing the already normalised batch equals normalising the resized image (bilinear
+weights sum to one and the normalisation is per-channel affine).
+
+**Weights.** ``weights="openai"`` is open_clip's tag (from the Hugging Face cache, or
+downloaded when online; offline with nothing cached it fails at once with a
+:class:`~resireg.models.hub.WeightsUnavailableError` naming ``model.weights``), a local
+open_clip checkpoint file (a state dict: ``.bin`` / ``.pt`` / ``.safetensors``, loaded by
+``open_clip.create_model(..., pretrained=path)``), or ``None`` for a seeded random init
+(tests). The architecture is always built with QuickGELU, the activation the OpenAI
+weights were trained with (open_clip's plain ``ViT-B-16`` config uses nn.GELU and only
+warns about the mismatch).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import open_clip
+import torch
+import torch.nn.functional as F
+from open_clip.transformer import ResidualAttentionBlock
+from torch import Tensor
+
+from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
+from resireg.models.frozen import FrozenModule
+from resireg.models.hub import hf_cached, require_online
+
+__all__ = ["CLIP_MODELS", "ClipEncoder"]
+
+#: Supported open_clip model names -> default ``intermediate_layer`` (0-based block index).
+#: ViT-B-16: SC-CLIP's ``pre_adjust_idx = 8`` (the 9th of 12 blocks); ViT-L-14-336: the
+#: same relative depth (18th of 24 blocks), see :class:`ClipEncoder`.
+CLIP_MODELS = {"ViT-B-16": 8, "ViT-L-14-336": 17}
+
+
+def _offline_hint(model_name: str, key: str = "model") -> str:
+    return (
+        f"Pass a local file instead: {key}.weights=/path/to/open_clip_pytorch_model.bin (an "
+        f"open_clip checkpoint of {model_name} with OpenAI weights, .bin / .pt / .safetensors), "
+        f"or {key}.weights=null for a random init."
+    )
+
+
+def _check_weights_reachable(model_name: str, weights: str, key: str = "model") -> None:
+    """Raise :class:`WeightsUnavailableError` at once when the tag's weights are neither
+    cached nor downloadable (mirrors :meth:`FrozenTextTower.pretrained`)."""
+    from open_clip.pretrained import get_pretrained_cfg
+
+    cfg = get_pretrained_cfg(model_name, weights)
+    if not cfg:
+        raise ValueError(
+            f"{key}.weights={weights!r} is neither an existing file nor an open_clip pretrained "
+            f"tag of {model_name!r} (tags: {open_clip.list_pretrained_tags_by_model(model_name)})"
+        )
+    what = f"open_clip weights {model_name}/{weights}"
+    if cfg.get("hf_hub"):
+        # open_clip's convention: 'org/model/' (default file names) or 'org/model/file'.
+        repo, name = os.path.split(cfg["hf_hub"])
+        names = (name,) if name else ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
+        if not any(hf_cached(repo, f) for f in names):
+            require_online(what, "huggingface.co", _offline_hint(model_name, key))
+    elif cfg.get("url"):
+        host = cfg["url"].split("://", 1)[-1].split("/", 1)[0]
+        require_online(what, host, _offline_hint(model_name, key), hf=False)
+
+
+class ClipEncoder(DenseEncoder, FrozenModule):
+    """Frozen OpenAI CLIP ViT as a dense encoder (MaskCLIP language tokens).
+
+    Args:
+        model_name: ``"ViT-B-16"`` (patch 16, width 768, 12 blocks, embed 512) or
+            ``"ViT-L-14-336"`` (patch 14, width 1024, 24 blocks, embed 768).
+        weights: ``"openai"`` (open_clip tag), a local open_clip checkpoint file, or ``None``
+            (random init seeded by ``seed``).
+        intermediate_layer: the block whose output tokens are the intermediates (0-based;
+            negative counts from the end, ``-1`` = the last block). ``None`` (default): SC-CLIP's
+            choice, block 8 of ViT-B/16 (its ``pre_adjust_idx``: the 9th of 12 blocks, three
+            before the last), whose token affinities SC-CLIP found semantically coherent and
+            uses to recalibrate the last block's attention and to aggregate its output. The
+            deepest blocks are dominated by global, image-level information and by a few
+            high-norm anomaly tokens, the shallow ones by low-level appearance; a mid-to-late
+            block groups patches by object/stuff while staying spatially local, which is what
+            ReSiReg clusters and attends with. SC-CLIP's release configures only ViT-B/16; for
+            ViT-L-14-336 the default keeps the same relative depth, block 17 (18th of 24).
+            SCLIP and MaskCLIP themselves use no intermediate block (only the last block).
+        image_size: native input side of the ViT; ``None`` = the model's own (224 / 336). Other
+            sizes build the positional embedding at that grid (open_clip interpolates a
+            checkpoint's embedding when it loads it).
+        device: where the model lives.
+        seed: seed of the random init (``weights=None``), so a random encoder is rebuilt
+            identically.
+        config_key: the config prefix named in errors (``model`` -> ``model.weights``).
+    """
+
+    def __init__(
+        self,
+        model_name: str = "ViT-B-16",
+        weights: str | os.PathLike | None = "openai",
+        intermediate_layer: int | None = None,
+        image_size: int | None = None,
+        device: str | torch.device | None = None,
+        seed: int = 0,
+        config_key: str = "model",
+    ) -> None:
+        super().__init__()
+        if model_name not in CLIP_MODELS:
+            raise ValueError(f"model_name={model_name!r}: choose from {list(CLIP_MODELS)}")
+        cfg = open_clip.get_model_config(model_name)
+        vision = cfg["vision_cfg"]
+        self.model_name = model_name
+        self.weights = None if weights is None else os.fspath(weights)
+        self.image_size = int(image_size or vision["image_size"])
+        self.patch_size = int(vision["patch_size"])
+        self.depth = int(vision["layers"])
+        self.width = int(vision["width"])
+        self.embed_dim = int(cfg["embed_dim"])
+        self.seed = seed
+        if self.image_size % self.patch_size:
+            raise ValueError(
+                f"image_size={self.image_size} is not a multiple of the patch size {self.patch_size}"
+            )
+        default = CLIP_MODELS[model_name]
+        self.intermediate_layer = self._check_layer(
+            default if intermediate_layer is None else intermediate_layer
+        )
+        if self.weights is not None and not os.path.isfile(self.weights):
+            _check_weights_reachable(model_name, self.weights, config_key)
+
+        kwargs: dict[str, Any] = {"force_quick_gelu": True}
+        if self.image_size != vision["image_size"]:
+            kwargs["force_image_size"] = self.image_size
+        if self.weights is None:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                model = open_clip.create_model(model_name, pretrained=None, **kwargs)
+        else:
+            model = open_clip.create_model(model_name, pretrained=self.weights, **kwargs)
+        self._check_architecture(model)
+        self.model = model
+        self.tokenizer = open_clip.get_tokenizer(model_name)  # bundled CLIP BPE: offline
+        self._input_rule = InputRule(
+            self.patch_size,
+            tuple(open_clip.OPENAI_DATASET_MEAN),
+            tuple(open_clip.OPENAI_DATASET_STD),
+        )
+        if device is not None:
+            self.to(device)
+        self.freeze()
+
+    def _check_layer(self, layer: int) -> int:
+        if isinstance(layer, bool) or not isinstance(layer, int):
+            raise TypeError(f"intermediate_layer={layer!r}: expected an int or None")
+        if not -self.depth <= layer < self.depth:
+            raise ValueError(
+                f"intermediate_layer={layer} is out of range for {self.model_name} "
+                f"({self.depth} blocks: 0..{self.depth - 1}, or negative from the end)"
+            )
+        return layer % self.depth
+
+    @staticmethod
+    def _check_architecture(model: Any) -> None:
+        visual = model.visual
+        blocks = visual.transformer.resblocks
+        if (
+            visual.attn_pool is not None
+            or visual.pool_type != "tok"
+            or visual.final_ln_after_pool
+            or visual.proj is None
+            or not all(type(b) is ResidualAttentionBlock for b in blocks)
+            or not all(
+                b.attn._qkv_same_embed_dim and b.attn.in_proj_bias is not None for b in blocks
+            )
+        ):
+            raise ValueError("ClipEncoder needs an OpenAI-style CLIP ViT (class token, packed qkv)")
+
+    def spec(self) -> dict[str, Any]:
+        """Constructor arguments that rebuild this encoder (``device`` aside)."""
+        return {
+            "model_name": self.model_name,
+            "weights": self.weights,
+            "intermediate_layer": self.intermediate_layer,
+            "image_size": self.image_size,
+            "seed": self.seed,
+        }
+
+    # ------------------------------------------------------- DenseEncoder interface
+    @property
+    def input_rule(self) -> InputRule:
+        return self._input_rule
+
+    @staticmethod
+    def value_path(block: ResidualAttentionBlock, x: Tensor) -> Tensor:
+        """MaskCLIP's value path of ``block`` on its (batch-first) input ``x`` ``[B, L, D]``.
+
+        ``ls_1(out_proj(V(ln_1(x))))``: the attention branch with every token attending only
+        to itself (softmax(QK^T) replaced by the identity), no residual, no MLP. Written by
+        hand: neither open_clip nor torch exposes the value projection of a packed
+        ``nn.MultiheadAttention``, so it is sliced out of ``in_proj_weight`` / ``in_proj_bias``.
+        """
+        attn = block.attn
+        d = attn.embed_dim
+        v = F.linear(block.ln_1(x), attn.in_proj_weight[2 * d :], attn.in_proj_bias[2 * d :])
+        return block.ls_1(attn.out_proj(v))
+
+    @torch.no_grad()
+    def encode(self, images: Tensor) -> DenseOutput:
+        """Normalised images ``[B, 3, H, W]`` -> (intermediates ``[B, width, H/p, W/p]``,
+        language tokens ``[B, embed_dim, H/p, W/p]``, embedding ``[B, embed_dim]``), float32."""
+        h, w = images.shape[-2:]
+        p, s = self.patch_size, self.image_size
+        if h % p or w % p:
+            raise ValueError(f"image sides {(h, w)} are not multiples of the patch size {p}")
+        visual = self.model.visual
+        x = images.to(self.device, visual.conv1.weight.dtype)
+        if (h, w) != (s, s):
+            x = F.interpolate(x, size=(s, s), mode="bilinear", align_corners=False, antialias=True)
+
+        tokens = visual._embeds(x)  # conv1, class token, positional embedding, ln_pre
+        transformer = visual.transformer
+        if not transformer.batch_first:
+            tokens = tokens.transpose(0, 1)
+        blocks = transformer.resblocks
+        inter = lang = None
+        for i, block in enumerate(blocks):
+            if i == len(blocks) - 1:  # the last block's input feeds the value path
+                last_in = tokens if transformer.batch_first else tokens.transpose(0, 1)
+                lang = self.value_path(block, last_in)
+            tokens = block(tokens)
+            if i == self.intermediate_layer:
+                inter = tokens
+        if not transformer.batch_first:
+            tokens, inter = tokens.transpose(0, 1), inter.transpose(0, 1)
+
+        pooled, _ = visual._pool(tokens)  # open_clip's own pooling (class token, ln_post)
+        embedding = pooled @ visual.proj
+        lang = visual.ln_post(lang) @ visual.proj
+
+        g = s // p
+        grid = (h // p, w // p)
+        return DenseOutput(
+            self._to_grid(inter[:, 1:], g, grid),
+            self._to_grid(lang[:, 1:], g, grid),
+            embedding.float(),
+        )
+
+    @staticmethod
+    def _to_grid(tokens: Tensor, g: int, size: tuple[int, int]) -> Tensor:
+        """Patch tokens ``[B, g*g, D]`` -> ``[B, D, *size]`` (bilinear from the native grid)."""
+        maps = tokens.float().unflatten(1, (g, g)).permute(0, 3, 1, 2).contiguous()
+        if size == (g, g):
+            return maps
+        return F.interpolate(maps, size=size, mode="bilinear", align_corners=False)
+
+    def text_features(self, texts: Sequence[str]) -> Tensor:
+        """open_clip's text embeddings ``[K, embed_dim]`` (float32, not normalised)."""
+        tokens = self.tokenizer(list(texts)).to(self.device)
+        with torch.no_grad():
+            return self.model.encode_text(tokens).float()
+
+    def encode_text(self, texts: Sequence[str]) -> Tensor:
+        """Unit-norm text queries ``[K, embed_dim]``, the language tokens' space."""
+        return self.dense_text(self.text_features(texts))

@@ -1,0 +1,78 @@
+"""Every dense encoder ReSiReg is evaluated on, built by one factory from a config entry.
+
+``build_encoder(kind, **kwargs)`` with ``kind``:
+
+- ``resireg_vlm``: our 25M VLM from an export (``path``; :meth:`ResiregVLM.from_pretrained`),
+- ``clip``: OpenAI CLIP through open_clip, MaskCLIP language tokens (:class:`ClipEncoder`),
+- ``radio``: C-RADIO through ``torch.hub`` with a language adaptor (:class:`RadioEncoder`),
+- ``radseg``: RADSeg through ``torch.hub``, one pass (:class:`RadSegEncoder`),
+- ``dinotxt``: dino.txt through ``torch.hub`` (:class:`DinoTxtEncoder`).
+
+What each gives ReSiReg (intermediates, language tokens, resolution, text path, source) is
+tabulated in docs/design.md section 6.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from resireg.models.clip import ClipEncoder
+from resireg.models.dinotxt import DinoTxtEncoder
+from resireg.models.encoder import DenseEncoder
+from resireg.models.radio import RadioEncoder, RadSegEncoder
+from resireg.models.vlm import ResiregVLM
+
+__all__ = ["ENCODERS", "build_encoder", "count_parameters"]
+
+
+def _resireg_vlm(
+    path: str, device: torch.device | str | None = None, config_key: str = "model"
+) -> ResiregVLM:
+    if not path:
+        raise ValueError(f"{config_key}.path is required: an export folder or a hub repo id")
+    return ResiregVLM.from_pretrained(path, map_location=device or "cpu")
+
+
+#: ``kind`` -> builder taking the entry's keys, ``device`` and ``config_key``.
+ENCODERS: dict[str, Callable[..., DenseEncoder]] = {
+    "resireg_vlm": _resireg_vlm,
+    "clip": ClipEncoder,
+    "radio": RadioEncoder,
+    "radseg": RadSegEncoder,
+    "dinotxt": DinoTxtEncoder,
+}
+
+
+def build_encoder(
+    kind: str,
+    device: torch.device | str | None = None,
+    config_key: str = "model",
+    **kwargs: Any,
+) -> DenseEncoder:
+    """The encoder ``kind`` built from its config keys (errors name ``<config_key>.<key>``)."""
+    if kind not in ENCODERS:
+        raise ValueError(f"{config_key}.kind={kind!r}: expected one of {sorted(ENCODERS)}")
+    try:
+        return ENCODERS[kind](device=device, config_key=config_key, **kwargs)
+    except TypeError as err:  # an unknown key for this kind
+        raise TypeError(f"{config_key} (kind {kind!r}): {err}") from err
+
+
+def count_parameters(encoder: DenseEncoder) -> int:
+    """All parameters of the encoder, frozen ones included (RADSeg keeps RADIO and its
+    adaptor outside the module tree, so they are counted from there)."""
+    modules = [encoder]
+    inner = getattr(encoder, "encoder", None)
+    if inner is not None and not isinstance(inner, torch.nn.Module):
+        modules += [m for m in vars(inner).values() if isinstance(m, torch.nn.Module)]
+    seen: set[int] = set()
+    total = 0
+    for module in modules:
+        for p in module.parameters():
+            if id(p) not in seen:
+                seen.add(id(p))
+                total += p.numel()
+    return total
