@@ -77,7 +77,7 @@ def test_resireg_parameters_have_one_source_for_eval_and_the_callback():
         evaluation = compose("eval", overrides=["model_path=x"])
     callback = _compose().callbacks.resireg_eval
     group = OmegaConf.load(CONFIG_DIR / "resireg" / "default.yaml")
-    for key in ("variants", "lite", "full"):
+    for key in ("variants", "calib", "lite", "full"):
         assert evaluation[key] == callback[key] == group[key], key
     assert group.full.n_components is None  # tied to n_prototypes in both
 

@@ -4,12 +4,16 @@ Every variant is called the same way, ``variant(intermediates, language, prior=N
 and returns unit-norm dense language features ``[B, Dl, h, w]``:
 
 - ``bb``: the backbone's own language tokens, normalised (no reconstruction),
+- ``calib``: :class:`~resireg.calib.Calib`, SC-CLIP's self-calibration made
+  backbone-generic (LOF anomaly resolution, then aggregation with thresholded
+  intermediate affinities; ``[B, Dl, Hv, Wv]``, the prior is ignored),
 - ``lite``: :class:`~resireg.reconstruct.ReSiRegLite`,
 - ``full``: :class:`~resireg.reconstruct.ReSiRegFull`.
 
-The evaluation engine, the training callback and ``DenseEncoder.encode_image`` build
-variants only through :func:`build_variant`, so a new variant (e.g. the self-calibration
-baseline) is one more entry in :data:`_FACTORIES`.
+:data:`VARIANTS` lists them in the report order of the paper's Table 1 (BB, Calib, Lite,
+Full). The evaluation engine, the training callback and ``DenseEncoder.encode_image`` build
+variants only through :func:`build_variant`, so a new variant is one more entry in
+:data:`_FACTORIES`.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from typing import Any
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.calib import Calib
 from resireg.reconstruct import ReSiRegFull, ReSiRegLite
 
 __all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants"]
@@ -36,6 +41,7 @@ class BackboneOnly(nn.Module):
 
 _FACTORIES: dict[str, Callable[..., nn.Module]] = {
     "bb": BackboneOnly,
+    "calib": Calib,
     "lite": ReSiRegLite,
     "full": ReSiRegFull,
 }

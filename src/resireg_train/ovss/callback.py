@@ -45,11 +45,12 @@ class ReSiRegEval(L.Callback):
     Args:
         datasets: ``{name: spec}`` segmentation datasets (see
             :func:`~resireg_train.ovss.datasets.build_segmentation_set`).
-        variants: names of :func:`resireg.variants.build_variant` (``bb``, ``lite``, ``full``).
+        variants: names of :func:`resireg.variants.build_variant` (``bb``, ``calib``, ``lite``,
+            ``full``).
         every_n_epochs: evaluation interval in epochs.
         batch_size: images per batch (ReSiReg Full's scene; see ``OVSSTask``).
         num_workers: DataLoader workers per dataset.
-        lite, full: the variants' arguments (the ``resireg`` config group).
+        calib, lite, full: the variants' arguments (the ``resireg`` config group).
         precision: ``"32"`` (default, the protocol's fp32) or ``"bf16"``.
         temperature: softmax temperature of the prediction.
     """
@@ -64,6 +65,7 @@ class ReSiRegEval(L.Callback):
         lite: Mapping[str, Any] | None = None,
         full: Mapping[str, Any] | None = None,
         precision: str = "32",
+        calib: Mapping[str, Any] | None = None,
         temperature: float = 100.0,
     ) -> None:
         if not datasets:
@@ -74,14 +76,12 @@ class ReSiRegEval(L.Callback):
             raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
         #: What ``resireg-eval`` needs to score the exported model the same way.
+        params = {"calib": dict(calib or {}), "lite": dict(lite or {}), "full": dict(full or {})}
         self.settings = {
-            "variants": list(variants), "lite": dict(lite or {}), "full": dict(full or {}),
-            "batch_size": int(batch_size), "precision": str(precision),
-            "temperature": float(temperature),
+            "variants": list(variants), **params, "batch_size": int(batch_size),
+            "precision": str(precision), "temperature": float(temperature),
         }  # fmt: skip
-        self.variants = build_variants(
-            list(variants), {"lite": lite, "full": full}, key=f"{_KEY}.variants"
-        )
+        self.variants = build_variants(list(variants), params, key=f"{_KEY}.variants")
         self.every_n_epochs = int(every_n_epochs)
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)

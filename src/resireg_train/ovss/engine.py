@@ -45,7 +45,7 @@ __all__ = [
 #: The file of an export recording the evaluation settings its training run scored it with.
 SETTINGS_FILE = "resireg_eval.json"
 #: Which settings it records (the ``resireg`` group and the pass settings of resireg-eval).
-SETTING_KEYS = ("variants", "lite", "full", "batch_size", "precision", "temperature")
+SETTING_KEYS = ("variants", "calib", "lite", "full", "batch_size", "precision", "temperature")
 
 
 def save_settings(directory: str | os.PathLike, settings: Mapping[str, Any]) -> Path:
