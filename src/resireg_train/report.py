@@ -328,6 +328,119 @@ def plot_curves(jobs: list[Job], metric: str, path: Path) -> bool:
     return fig is not None
 
 
+# ---------------------------------------------------------------- encoder table (Table 1)
+#: Post-hoc methods compared with the backbone alone, in the order of the paper's Table 1.
+METHODS = ("calib", "lite", "full")
+METHOD_NAMES = {"bb": "BB", "calib": "Calib", "lite": "Lite", "full": "Full"}
+
+
+def _encoder_of(job: Job) -> tuple[str, bool | None, int | None]:
+    """(name, third party?, parameter count) of a job's encoder (from its results, else its
+    ``encoder=`` override when the job failed before building it)."""
+    info = job.results.get("encoder") or {}
+    params = (job.results.get("params") or {}).get("encoder") or {}
+    name = info.get("name") or params.get("name") or job.overrides.get("encoder", "?")
+    third = info.get("third_party", params.get("third_party"))
+    return str(name), third, info.get("parameters")
+
+
+def _dataset_of(job: Job) -> str:
+    params = (job.results.get("params") or {}).get("dataset") or {}
+    return str(params.get("name") or job.overrides.get("dataset", "?"))
+
+
+def is_encoder_sweep(jobs: list[Job]) -> bool:
+    """Jobs of ``resireg-eval`` that vary the encoder (``sweep=table1``)."""
+    return "encoder" in _varying(jobs)
+
+
+def encoder_table(jobs: list[Job]) -> pd.DataFrame:
+    """The paper's Table 1 from an encoder x dataset sweep: one row per encoder (its name,
+    third-party flag and parameter count), per dataset the BB mIoU and, per method (Calib,
+    Lite, Full), its mIoU and its delta to BB, in mIoU points (x100). A job that did not
+    complete leaves its cells empty and is named in ``<dataset> status``. Two rows follow:
+    the mean delta per method over all encoders, and over the third-party ones only."""
+    rows: dict[str, dict[str, Any]] = {}
+    datasets: list[str] = []
+    for job in jobs:
+        name, third, parameters = _encoder_of(job)
+        dataset = _dataset_of(job)
+        if dataset not in datasets:
+            datasets.append(dataset)
+        row = rows.setdefault(name, {"encoder": name, "third_party": third, "parameters (M)": None})
+        if third is not None:
+            row["third_party"] = third
+        if parameters:
+            row["parameters (M)"] = round(parameters / 1e6, 1)
+        row[f"{dataset} status"] = job.status
+        if job.status != "completed":
+            continue
+        final = job.results.get("final", {})
+        bb = final.get(f"val/ovss/{dataset}/miou_bb")
+        if bb is not None:
+            row[f"{dataset} BB"] = 100 * bb
+        for method in METHODS:
+            value = final.get(f"val/ovss/{dataset}/miou_{method}")
+            if value is None:
+                continue
+            row[f"{dataset} {METHOD_NAMES[method]}"] = 100 * value
+            if bb is not None:
+                row[f"{dataset} {METHOD_NAMES[method]} Δ"] = 100 * (value - bb)
+    columns = ["encoder", "third_party", "parameters (M)"]
+    for dataset in datasets:
+        columns.append(f"{dataset} BB")
+        for method in METHODS:
+            columns += [f"{dataset} {METHOD_NAMES[method]}", f"{dataset} {METHOD_NAMES[method]} Δ"]
+        columns.append(f"{dataset} status")
+    table = pd.DataFrame(list(rows.values())).reindex(columns=columns)
+    deltas = [c for c in columns if c.endswith(" Δ")]
+    third_party = table["third_party"].fillna(False).astype(bool)
+    averages = []
+    for label, mask in (("mean Δ, all encoders", slice(None)),
+                        ("mean Δ, third-party encoders", third_party)):  # fmt: skip
+        averages.append(
+            {"encoder": label, **table.loc[mask, deltas].astype(float).mean().to_dict()}
+        )
+    return pd.concat([table, pd.DataFrame(averages)], ignore_index=True).reindex(columns=columns)
+
+
+def method_means(table: pd.DataFrame) -> pd.DataFrame:
+    """Mean delta per method over every encoder and dataset of :func:`encoder_table` (all
+    encoders, and third-party ones only)."""
+    body = table[~table["encoder"].str.startswith("mean Δ")]
+    third = body["third_party"].fillna(False).astype(bool)
+    out = {}
+    for method in METHODS:
+        cols = [c for c in table.columns if c.endswith(f" {METHOD_NAMES[method]} Δ")]
+        values = body[cols].astype(float)
+        out[METHOD_NAMES[method]] = {
+            "all encoders": values.stack().mean(),
+            "third-party encoders": values[third].stack().mean(),
+        }
+    return pd.DataFrame(out)
+
+
+def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
+    """``table1.csv`` and ``table1.md`` (the table, then the mean delta per method)."""
+    table = encoder_table(jobs)
+    files = {"table1_csv": out / "table1.csv", "table1_md": out / "table1.md"}
+    table.to_csv(files["table1_csv"], index=False)
+    shown = table.copy()
+    shown["third_party"] = shown["third_party"].map({True: "yes", False: "no (ours)"})
+    shown = shown.astype(object).where(shown.notna(), None)  # tabulate blanks None, not NaN
+    lines = [
+        "# ReSiReg across encoders (mIoU x100; Δ = method - BB)",
+        "",
+        shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+        "",
+        "## Mean Δ per method (over encoders and datasets)",
+        "",
+        method_means(table).to_markdown(floatfmt="+.2f"),
+    ]
+    files["table1_md"].write_text("\n".join(lines) + "\n")
+    return files
+
+
 def report(
     sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
 ) -> dict[str, Path]:
@@ -355,6 +468,9 @@ def report(
         "",
         table.fillna({"error": ""}).to_markdown(index=False, floatfmt=".4f"),
     ]
+    if is_encoder_sweep(jobs):
+        files.update(write_encoder_table(jobs, out))
+        lines += ["", f"Encoder table (the paper's Table 1): `{files['table1_md'].name}`."]
     if metric and _is_prototype_sweep(jobs):
         grid = prototype_grid(jobs, metric)
         files["heatmap"] = out / "heatmap.png"

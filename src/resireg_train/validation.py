@@ -34,6 +34,9 @@ class ConfigError(ValueError):
 
 
 _MISSING = object()
+#: ``encoder.kind`` values (``resireg.models.ENCODERS``; listed here so the config check does
+#: not import the models).
+_ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt")
 _PRECISIONS = {
     "32-true", "32", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true", "64",
     "transformer-engine", "transformer-engine-float16",
@@ -124,6 +127,12 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
         f"{prefix}full.upscale": _integer(1),
         f"{prefix}full.max_iter": _integer(1),
         f"{prefix}full.seed": (_int, "an integer"),
+        f"{prefix}calib.n_neighbors": _integer(1),
+        f"{prefix}calib.contamination": (
+            lambda v: _num(v) and 0 <= v <= 0.5,
+            "a number in [0, 0.5]",
+        ),
+        f"{prefix}calib.threshold": (_unit, "a number in [0, 1]"),
         f"{prefix}lite.alpha": _number(0, strict=True),
         f"{prefix}lite.tau": (_unit, "a number in [0, 1]"),
         f"{prefix}lite.upscale": _integer(1),
@@ -140,10 +149,10 @@ _RULES["callbacks.resireg_eval.every_n_epochs"] = _integer(1)
 # resireg-eval (conf/eval.yaml)
 _EVAL_RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
-    "model_path": (
-        lambda v: isinstance(v, str) and bool(v),
-        "an export folder or a Hugging Face repo id",
-    ),
+    "model_path": (_opt_str, "null or an export folder / Hugging Face repo id"),
+    "encoder.kind": (lambda v: v in _ENCODER_KINDS, f"one of {list(_ENCODER_KINDS)}"),
+    "encoder.name": (lambda v: isinstance(v, str) and bool(v), "a name for reports"),
+    "encoder.third_party": (lambda v: isinstance(v, bool), "true or false"),
     "device": (
         lambda v: isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps"),
         "auto, cpu, cuda, cuda:N or mps",
@@ -208,6 +217,11 @@ def validate_eval(cfg: DictConfig | dict) -> None:
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
     errors = _errors(cfg, _EVAL_RULES)
+    if _get(cfg, "encoder.kind") == "resireg_vlm" and not _get(cfg, "model_path"):
+        errors.append(
+            "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
+            "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
+        )
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
 

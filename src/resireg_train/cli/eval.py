@@ -1,6 +1,9 @@
-"""``resireg-eval``: OVSS of an exported :class:`~resireg.models.ResiregVLM` (Hydra main).
+"""``resireg-eval``: OVSS of a dense encoder (Hydra main): our exported
+:class:`~resireg.models.ResiregVLM` by default, or any encoder of ``conf/encoder/``.
 
     resireg-eval model_path=outputs/smoke/<time>/export dataset=synthetic
+    resireg-eval encoder=clip_vit_b16 dataset=ade20k variants=[bb,calib,lite,full]
+    resireg-eval sweep=table1                              # every encoder x dataset: Table 1
     resireg-eval model_path=<export> dataset=ade20k variants=[full] batch_size=16 \
         full.n_prototypes=60
     resireg-eval model_path=<export> dataset=ade20k sweep=prototype_batch      # the ablation grid
@@ -31,7 +34,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from resireg.models import ResiregVLM
+from resireg.models import build_encoder, count_parameters
 from resireg.variants import build_variants
 from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
 from resireg_train.ovss.datasets import build_segmentation_set
@@ -79,6 +82,8 @@ def _defaults() -> DictConfig:
 def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
     """``cfg`` with the export's recorded evaluation settings in place of the values still at
     their default (see the module docstring), and the keys that were taken."""
+    if cfg.encoder.kind != "resireg_vlm" or not cfg.model_path:
+        return cfg, []
     export = Path(str(cfg.model_path)).expanduser()
     if not cfg.get("export_settings", True) or not export.is_dir():
         return cfg, []
@@ -124,12 +129,17 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     validate_eval(cfg)
     check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
-    params = {k: params[k] for k in ("model_path", "dataset", "variants", "batch_size", "precision",
-                                     "temperature", "lite", "full")}  # fmt: skip
+    params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",
+                                     "precision", "temperature", "calib", "lite", "full")}  # fmt: skip
     update_results(out, params=params, settings_from_export=from_export)
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
-    encoder = ResiregVLM.from_pretrained(cfg.model_path, map_location=_device(cfg.device))
+    spec = {k: v for k, v in params["encoder"].items() if k not in ("name", "third_party")}
+    encoder = build_encoder(**spec, device=_device(cfg.device), config_key="encoder")
+    n_parameters = count_parameters(encoder)
+    update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,
+                                 "third_party": bool(cfg.encoder.third_party),
+                                 "parameters": n_parameters})  # fmt: skip
     patch = encoder.input_rule.patch_size
     dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
     task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
