@@ -30,14 +30,14 @@ def tiny_export(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def prototype_sweep(tmp_path_factory, tiny_export):
-    """A real `resireg-eval sweep=prototype_batch` multirun on a reduced grid (2 batch sizes
-    x 3 prototype counts on the synthetic set); 1000 prototypes exceed the points of a batch,
-    so those two jobs fail. Returns (sweep folder, completed process)."""
+    """A real `resireg-eval sweep=prototype_batch_jobs` multirun (one job per setting) on a
+    reduced grid (2 batch sizes x 3 prototype counts on the synthetic set); 1000 prototypes
+    exceed the points of a batch, so those two jobs fail. Returns (sweep folder, process)."""
     from _run import run
 
     logs = tmp_path_factory.mktemp("sweeps")
     proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
-               "dataset.size=12", "num_workers=0", "sweep=prototype_batch", "batch_size=2,4",
+               "dataset.size=12", "num_workers=0", "sweep=prototype_batch_jobs", "batch_size=2,4",
                "full.n_prototypes=4,8,1000", f"paths.log_dir={logs}", check=False)  # fmt: skip
     (sweep,) = (logs / "prototype_batch" / "multirun").iterdir()
     return sweep, proc

@@ -7,7 +7,7 @@ from sklearn.metrics import confusion_matrix, jaccard_score
 
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
 from resireg.ovss import predict, text_prototypes
-from resireg.variants import build_variants
+from resireg.variants import build_variant, build_variants
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES
 from resireg_train.ovss.datasets import build_segmentation_set
 from resireg_train.ovss.engine import OVSSTask, StageTimer
@@ -208,3 +208,29 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
         assert expected in str(err.value)
     results = json.loads((tmp_path / "results.json").read_text())
     assert results["status"] == "failed" and "batch_size=0" in results["error"]
+
+
+def test_many_configurations_in_one_pass_equal_separate_runs(vlm):
+    """`full@n_prototypes:<n>` configurations scored on one encoded batch give exactly the
+    confusion matrices of one run per configuration, and the encoder runs once per batch."""
+    names = ["bb", "full@n_prototypes:4", "full@n_prototypes:6@alpha:2.0", "lite@upscale:1"]
+    params = {"full": FULL, "lite": {"alpha": 10.0}}
+    calls = []
+    handle = vlm.head.register_forward_hook(lambda m, i, o: calls.append(1))
+    try:
+        together = _task(batch_size=3).run(vlm, build_variants(names, params))
+    finally:
+        handle.remove()
+    assert len(calls) == 4  # 10 images in batches of 3: one head pass per batch
+    separate = {
+        "bb": ("bb", {}),
+        "full@n_prototypes:4": ("full", {**FULL, "n_prototypes": 4}),
+        "full@n_prototypes:6@alpha:2.0": ("full", {**FULL, "n_prototypes": 6, "alpha": 2.0}),
+        "lite@upscale:1": ("lite", {"alpha": 10.0, "upscale": 1}),
+    }
+    for name, (variant, kwargs) in separate.items():
+        alone = _task(batch_size=3).run(vlm, {variant: build_variant(variant, **kwargs)})
+        assert torch.equal(together.metrics[name].confusion, alone.metrics[variant].confusion), name
+    assert "val/ovss/synthetic/miou_full@n_prototypes:4" in together.scores()
+    with pytest.raises(ValueError, match=r"expected <variant>@<key>:<value>"):
+        build_variants(["full@n_prototypes=4"])

@@ -1,7 +1,6 @@
 """Sweep configs, multiruns and `resireg-report`: table, heatmap, heuristic, curves, failures."""
 
 import csv
-import itertools
 import json
 import shlex
 import sys
@@ -67,15 +66,25 @@ def _outside(artist, fig, renderer):
 
 
 def test_prototype_batch_sweep_is_the_papers_full_factorial():
+    """Both forms cover the paper's 7 batch sizes x 10 prototype counts, components tied: 7
+    jobs of 10 configurations each (one encoder pass per batch size), or 70 jobs."""
+    counts = [24, 36, 48, 60, 72, 84, 96, 108, 120, 132]
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("eval", overrides=["sweep=prototype_batch", "model_path=x"],
-                      return_hydra_config=True)  # fmt: skip
-    params = cfg.hydra.sweeper.params
-    assert [int(b) for b in params.batch_size.split(",")] == [2, 4, 6, 8, 16, 24, 32]
-    start, stop, step = (int(v) for v in params["full.n_prototypes"][6:-1].split(","))
-    assert list(range(start, stop, step)) == [24, 36, 48, 60, 72, 84, 96, 108, 120, 132]
-    assert cfg.hydra.mode.name == "MULTIRUN" and cfg.variants == ["full"]
-    assert cfg.full.n_components is None  # tied: ReSiRegFull uses n_components = n_prototypes
+        passes = compose("eval", overrides=["sweep=prototype_batch", "model_path=x"],
+                         return_hydra_config=True)  # fmt: skip
+        jobs = compose("eval", overrides=["sweep=prototype_batch_jobs", "model_path=x"],
+                       return_hydra_config=True)  # fmt: skip
+    for cfg in (passes, jobs):
+        params = cfg.hydra.sweeper.params
+        assert [int(b) for b in params.batch_size.split(",")] == [2, 4, 6, 8, 16, 24, 32]
+        assert cfg.hydra.mode.name == "MULTIRUN" and cfg.name == "prototype_batch"
+        assert cfg.full.n_components is None  # tied: ReSiRegFull uses n_components = n_prototypes
+    assert list(passes.variants) == [f"full@n_prototypes:{n}" for n in counts]
+    assert "full.n_prototypes" not in passes.hydra.sweeper.params
+    start, stop, step = (
+        int(v) for v in jobs.hydra.sweeper.params["full.n_prototypes"][6:-1].split(",")
+    )
+    assert list(range(start, stop, step)) == counts and jobs.variants == ["full"]
 
 
 def test_prototype_batch_multirun_report_lists_failures_and_fits_the_heuristic(
@@ -293,12 +302,12 @@ def _smaller_grid_commands():
 
 def test_the_smaller_grid_overrides_in_the_sweep_comment_work(tmp_path, monkeypatch):
     plain, quoted = _smaller_grid_commands()
-    smaller = list(itertools.product([2, 8], range(24, 133, 12)))  # 2 x 10 jobs
+    counts = [f"full@n_prototypes:{n}" for n in range(24, 133, 12)]
     # `batch_size=2,8`: Hydra's own multirun of the documented command, a no-op task per job.
     seen = []
 
     def task(cfg):
-        seen.append((cfg.batch_size, cfg.full.n_prototypes))
+        seen.append((cfg.batch_size, list(cfg.variants)))
         return {}
 
     documented = [a.replace("<export>", "x") for a in plain]
@@ -308,9 +317,9 @@ def test_the_smaller_grid_overrides_in_the_sweep_comment_work(tmp_path, monkeypa
         hydra_entry_point("eval", task)()
     finally:
         GlobalHydra.instance().clear()
-    assert seen == smaller
+    assert seen == [(2, counts), (8, counts)]  # 2 jobs, 10 configurations each
     # The quoted sweeper param composes (unquoted, the comment's old form, it does not), and
-    # Hydra's basic sweeper expands the params to the same grid.
+    # Hydra's basic sweeper expands the params to the same jobs.
     args = [a.replace("<export>", "x") for a in quoted]
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("eval", overrides=args, return_hydra_config=True)
@@ -319,4 +328,33 @@ def test_the_smaller_grid_overrides_in_the_sweep_comment_work(tmp_path, monkeypa
     params = cfg.hydra.sweeper.params
     parsed = OverridesParser.create().parse_overrides([f"{k}={v}" for k, v in params.items()])
     (jobs,) = BasicSweeper.split_arguments(parsed, max_batch_size=None)
-    assert [tuple(int(o.split("=")[1]) for o in job) for job in jobs] == smaller
+    assert [tuple(int(o.split("=")[1]) for o in job) for job in jobs] == [(2,), (8,)]
+    assert list(cfg.variants) == counts
+
+
+@pytest.mark.slow
+def test_one_job_per_batch_size_reports_what_one_job_per_setting_reports(tmp_path, tiny_export):
+    """The same 2 x 2 grid as 4 jobs (full.n_prototypes swept) and as 2 jobs of two
+    configurations each: equal scores cell by cell, equal heuristic."""
+    common = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=12",
+              "num_workers=0", "batch_size=2,4"]  # fmt: skip
+    forms = {
+        "jobs": ["sweep=prototype_batch_jobs", "full.n_prototypes=4,8"],
+        "passes": ["sweep=prototype_batch", "variants=[full@n_prototypes:4,full@n_prototypes:8]"],
+    }
+    reports = {}
+    for form, args in forms.items():
+        logs = tmp_path / form
+        run("resireg-eval", *common, *args, f"paths.log_dir={logs}")
+        (sweep,) = (logs / "prototype_batch" / "multirun").iterdir()
+        assert len([p for p in sweep.iterdir() if p.is_dir()]) == {"jobs": 4, "passes": 2}[form]
+        run("resireg-report", sweep)
+        jobs = collect(sweep)
+        reports[form] = (
+            prototype_grid(jobs, "val/ovss/synthetic/miou_full"),
+            json.loads((sweep / "prototype_heuristic.json").read_text()),
+        )
+    (grid_jobs, fit_jobs), (grid_passes, fit_passes) = reports["jobs"], reports["passes"]
+    assert grid_jobs.shape == (2, 2) and not grid_jobs.isna().to_numpy().any()
+    pd.testing.assert_frame_equal(grid_jobs, grid_passes, check_exact=True)
+    assert fit_jobs == fit_passes

@@ -18,6 +18,7 @@ variants only through :func:`build_variant`, so a new variant is one more entry 
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -27,7 +28,7 @@ from torch import Tensor, nn
 from resireg.calib import Calib
 from resireg.reconstruct import ReSiRegFull, ReSiRegLite
 
-__all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants"]
+__all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants", "parse_variant"]
 
 
 class BackboneOnly(nn.Module):
@@ -59,23 +60,52 @@ def build_variant(name: str, **kwargs: Any) -> nn.Module:
     return _FACTORIES[name](**kwargs)
 
 
+def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
+    """``"full@n_prototypes:24@alpha:5.0"`` -> ``("full", {"n_prototypes": 24, "alpha": 5.0})``.
+
+    A *configuration* is a variant name with parameter overrides after ``@`` (``key:value``,
+    repeated; values are Python literals, else strings such as ``auto``). The syntax passes
+    through Hydra's command line (``variants=[bb,full@n_prototypes:24]``) and YAML unquoted.
+    """
+    base, *items = str(name).split("@")
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"{name!r}: expected <variant>@<key>:<value>[@<key>:<value>...]")
+        try:
+            overrides[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            overrides[key] = text
+    return base, overrides
+
+
 def build_variants(
     names: list[str] | tuple[str, ...],
     params: Mapping[str, Mapping[str, Any] | None] | None = None,
     key: str = "variants",
 ) -> dict[str, nn.Module]:
-    """``{name: build_variant(name, **params[name])}`` for each name, in order.
+    """``{name: variant}`` for each name, in order: the variant of :func:`parse_variant`'s
+    base name built with ``params[base]`` updated by the name's overrides. The evaluation
+    scores every configuration on the same encoded batch, so ``["full@n_prototypes:24",
+    "full@n_prototypes:36"]`` costs one encoder pass for both.
 
     Args:
-        names: variant names (see :data:`VARIANTS`).
+        names: variant names (see :data:`VARIANTS`) or configurations (``full@n_prototypes:24``).
         params: per-variant keyword arguments, e.g. ``{"full": {"n_prototypes": 36}}``;
             entries for variants not named are ignored.
         key: the config key holding ``names``, named in errors.
     """
     if not names:
         raise ValueError(f"{key}=[]: name at least one of {list(VARIANTS)}")
-    bad = [n for n in names if n not in _FACTORIES]
+    parsed = {n: parse_variant(n) for n in names}
+    bad = [n for n, (base, _) in parsed.items() if base not in _FACTORIES]
     if bad:
         raise ValueError(f"{key}={list(names)}: unknown {bad}; choose from {list(VARIANTS)}")
+    if len(parsed) != len(names):
+        raise ValueError(f"{key}={list(names)}: a name appears twice")
     params = params or {}
-    return {n: build_variant(n, **dict(params.get(n) or {})) for n in names}
+    return {
+        n: build_variant(base, **{**dict(params.get(base) or {}), **overrides})
+        for n, (base, overrides) in parsed.items()
+    }

@@ -31,6 +31,7 @@ import pandas as pd
 import yaml
 
 from resireg.heuristic import PrototypeHeuristic
+from resireg.variants import parse_variant
 from resireg_train.tracking import RESULTS_FILE, metric_mode, read_results
 
 if TYPE_CHECKING:
@@ -115,10 +116,11 @@ def _scores(results: dict[str, Any]) -> dict[str, float]:
 
 
 def known_metrics(jobs: list[Job]) -> list[str]:
-    """Every metric some job's ``results.json`` holds (its ``final`` and ``best`` keys)."""
-    return sorted(
-        {k for j in jobs for part in ("final", "best") for k in j.results.get(part) or {}}
-    )
+    """Every metric some job's ``results.json`` holds (its ``final`` and ``best`` keys), and
+    the variant's metric of each configuration's (``.../miou_full`` for
+    ``.../miou_full@n_prototypes:24``)."""
+    names = {k for j in jobs for part in ("final", "best") for k in j.results.get(part) or {}}
+    return sorted(names | {k.split("@")[0] for k in names})
 
 
 def check_metric(jobs: list[Job], metric: str) -> None:
@@ -140,7 +142,7 @@ def count_statuses(statuses: pd.Series | list[str]) -> str:
 
 def default_metric(jobs: list[Job]) -> str | None:
     """ReSiReg Full's mIoU on the first dataset scored, else the training loss."""
-    names = sorted({k for j in jobs for k in _scores(j.results)})
+    names = sorted({k.split("@")[0] for j in jobs for k in _scores(j.results)})
     for suffix in ("/miou_full", "/miou_lite", "/miou_bb", "train/loss"):
         hits = [n for n in names if n.endswith(suffix)]
         if hits:
@@ -172,25 +174,58 @@ def summary_table(jobs: list[Job], metric: str | None) -> pd.DataFrame:
 
 
 def _is_prototype_sweep(jobs: list[Job]) -> bool:
-    return BATCH_KEY in _varying(jobs) and PROTOTYPES_KEY in _varying(jobs)
+    """A batch size x prototype count grid: jobs vary the batch size, and the prototype
+    count too (one per job) or score several counts each."""
+    varying = _varying(jobs)
+    return BATCH_KEY in varying and (
+        PROTOTYPES_KEY in varying or any(len(_prototype_configs(j)) > 1 for j in jobs)
+    )
+
+
+def _prototype_configs(job: Job) -> dict[int, str]:
+    """``{prototype count: configuration}`` of the ``full@n_prototypes:<n>`` configurations a
+    job scored in one pass (its ``params.variants``, recorded before it ran)."""
+    names = (job.results.get("params") or {}).get("variants") or []
+    out = {}
+    for name in names:
+        try:
+            base, overrides = parse_variant(name)
+        except ValueError:
+            continue
+        n = overrides.get("n_prototypes")
+        if base == "full" and isinstance(n, int) and not isinstance(n, bool):
+            out[n] = name
+    return out
 
 
 def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
-    """One row per job of the grid: batch size, prototype count, ``metric`` (NaN unless the
-    job completed) and status."""
+    """One row per (job, prototype count) of the grid: batch size, prototype count, ``metric``
+    (NaN unless the job completed) and status. A job either set ``full.n_prototypes`` (one
+    count per job) or scored several ``full@n_prototypes:<n>`` configurations in one pass;
+    ``metric`` names Full's score (``.../miou_full``), each configuration's is
+    ``.../miou_full@n_prototypes:<n>``."""
     cells = []
     for job in jobs:
         try:
-            batch, protos = int(job.overrides[BATCH_KEY]), int(job.overrides[PROTOTYPES_KEY])
+            batch = int(job.overrides[BATCH_KEY])
         except (KeyError, ValueError):
             continue
-        value = (
-            _scores(job.results).get(metric, math.nan) if job.status == "completed" else math.nan
-        )
-        cells.append(
-            {BATCH_KEY: batch, PROTOTYPES_KEY: protos, metric: value, "status": job.status}
-        )
-    return pd.DataFrame(cells)
+        scores = _scores(job.results) if job.status == "completed" else {}
+        if PROTOTYPES_KEY in job.overrides:
+            try:
+                counts = {int(job.overrides[PROTOTYPES_KEY]): metric}
+            except ValueError:
+                continue
+        else:
+            counts = {
+                n: metric + name[len("full") :] for n, name in _prototype_configs(job).items()
+            }
+        for protos, name in counts.items():
+            value = scores.get(name, math.nan)
+            cells.append(
+                {BATCH_KEY: batch, PROTOTYPES_KEY: protos, metric: value, "status": job.status}
+            )
+    return pd.DataFrame(cells, columns=[BATCH_KEY, PROTOTYPES_KEY, metric, "status"])
 
 
 def prototype_grid(jobs: list[Job], metric: str) -> pd.DataFrame:

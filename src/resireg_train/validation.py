@@ -19,7 +19,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.variants import VARIANTS
+from resireg.variants import VARIANTS, parse_variant
 
 __all__ = ["ConfigError", "PRECISIONS", "check_devices", "validate", "validate_eval"]
 
@@ -105,6 +105,13 @@ _RULES: dict[str, Rule] = {
 }
 
 
+def _variant_ok(name: Any) -> bool:
+    try:
+        return parse_variant(str(name))[0] in VARIANTS
+    except ValueError:
+        return False
+
+
 def _unit(v: Any) -> bool:
     return _num(v) and 0 <= v <= 1
 
@@ -114,8 +121,9 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
     the ``resireg`` group (variants and their parameters) and the pass settings."""
     return {
         f"{prefix}variants": (
-            lambda v: isinstance(v, list) and len(v) > 0 and set(v) <= set(VARIANTS),
-            f"a non-empty list of {list(VARIANTS)}",
+            lambda v: isinstance(v, list) and len(v) > 0 and all(_variant_ok(n) for n in v),
+            f"a non-empty list of {list(VARIANTS)}, each optionally with overrides "
+            "(full@n_prototypes:24)",
         ),
         f"{prefix}full.n_prototypes": (
             lambda v: v == "auto" or (_int(v) and v >= 1),
