@@ -23,8 +23,9 @@ def test_every_encoder_config_names_a_known_kind_and_builds_its_class_arguments(
 
     assert set(_ENCODER_KINDS) == set(ENCODERS)  # the config check's copy of the kinds
     names = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))
-    assert names == ["clip_vit_b16", "clip_vit_l14_336", "dinotxt", "radio_v3b_clip",
-                     "radio_v3b_siglip2", "radio_v4_siglip2", "radseg", "resireg_vlm"]  # fmt: skip
+    assert names == ["clip_vit_b16", "clip_vit_l14_336", "dinotxt", "otas", "radio_v3b_clip",
+                     "radio_v3b_siglip2", "radio_v4_siglip2", "radseg", "resireg_vlm",
+                     "tipsv2"]  # fmt: skip
     sweep = OmegaConf.load(CONFIG_DIR / "sweep" / "table1.yaml")
     assert sorted(sweep.hydra.sweeper.params.encoder.split(",")) == names
     for name in names:

@@ -36,7 +36,7 @@ class ConfigError(ValueError):
 _MISSING = object()
 #: ``encoder.kind`` values (``resireg.models.ENCODERS``; listed here so the config check does
 #: not import the models).
-_ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt")
+_ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt", "tips", "otas")
 _PRECISIONS = {
     "32-true", "32", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true", "64",
     "transformer-engine", "transformer-engine-float16",

@@ -8,9 +8,11 @@ from resireg.models.encoders import ENCODERS, build_encoder, count_parameters
 from resireg.models.eupe import EUPE_MODELS, BackboneOutput, EUPEBackbone
 from resireg.models.head import HeadOutput, LanguageHead
 from resireg.models.hub import WeightsUnavailableError
+from resireg.models.otas import OtasEncoder
 from resireg.models.radio import RadioEncoder, RadSegEncoder
 from resireg.models.teacher import ConvTeacher, RadSegTeacher, build_teacher
 from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
+from resireg.models.tips import TipsEncoder
 from resireg.models.vlm import ResiregVLM
 
 __all__ = [
@@ -25,6 +27,8 @@ __all__ = [
     "DinoTxtEncoder",
     "RadioEncoder",
     "RadSegEncoder",
+    "TipsEncoder",
+    "OtasEncoder",
     "EUPE_MODELS",
     "BackboneOutput",
     "EUPEBackbone",

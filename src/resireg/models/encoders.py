@@ -6,7 +6,10 @@
 - ``clip``: OpenAI CLIP through open_clip, MaskCLIP language tokens (:class:`ClipEncoder`),
 - ``radio``: C-RADIO through ``torch.hub`` with a language adaptor (:class:`RadioEncoder`),
 - ``radseg``: RADSeg through ``torch.hub``, one pass (:class:`RadSegEncoder`),
-- ``dinotxt``: dino.txt through ``torch.hub`` (:class:`DinoTxtEncoder`).
+- ``dinotxt``: dino.txt through ``torch.hub`` (:class:`DinoTxtEncoder`),
+- ``tips``: TIPSv2 from the release's ``.npz`` files (:class:`TipsEncoder`),
+- ``otas``: OTAS, DINOv2 clusters pooling MaskCLIP tokens (:class:`OtasEncoder`); these two
+  are the backbone-only references of the paper's Table 1.
 
 What each gives ReSiReg (intermediates, language tokens, resolution, text path, source) is
 tabulated in docs/design.md section 6.
@@ -22,7 +25,9 @@ import torch
 from resireg.models.clip import ClipEncoder
 from resireg.models.dinotxt import DinoTxtEncoder
 from resireg.models.encoder import DenseEncoder
+from resireg.models.otas import OtasEncoder
 from resireg.models.radio import RadioEncoder, RadSegEncoder
+from resireg.models.tips import TipsEncoder
 from resireg.models.vlm import ResiregVLM
 
 __all__ = ["ENCODERS", "build_encoder", "count_parameters"]
@@ -43,6 +48,8 @@ ENCODERS: dict[str, Callable[..., DenseEncoder]] = {
     "radio": RadioEncoder,
     "radseg": RadSegEncoder,
     "dinotxt": DinoTxtEncoder,
+    "tips": TipsEncoder,
+    "otas": OtasEncoder,
 }
 
 
