@@ -18,7 +18,6 @@ variants only through :func:`build_variant`, so a new variant is one more entry 
 
 from __future__ import annotations
 
-import ast
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -27,6 +26,7 @@ from torch import Tensor, nn
 
 from resireg.calib import Calib
 from resireg.reconstruct import ReSiRegFull, ReSiRegLite
+from resireg.variant_names import VARIANTS, parse_variant
 
 __all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants", "parse_variant"]
 
@@ -48,7 +48,8 @@ _FACTORIES: dict[str, Callable[..., nn.Module]] = {
 }
 
 #: Names :func:`build_variant` knows, in the order results are reported.
-VARIANTS: tuple[str, ...] = tuple(_FACTORIES)
+if tuple(_FACTORIES) != VARIANTS:  # the names' one source is resireg.variant_names
+    raise ImportError(f"variant factories {tuple(_FACTORIES)} differ from VARIANTS {VARIANTS}")
 
 
 def build_variant(name: str, **kwargs: Any) -> nn.Module:
@@ -58,26 +59,6 @@ def build_variant(name: str, **kwargs: Any) -> nn.Module:
     if name == "bb" and kwargs:
         raise ValueError(f"variant 'bb' takes no parameters, got {sorted(kwargs)}")
     return _FACTORIES[name](**kwargs)
-
-
-def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
-    """``"full@n_prototypes:24@alpha:5.0"`` -> ``("full", {"n_prototypes": 24, "alpha": 5.0})``.
-
-    A *configuration* is a variant name with parameter overrides after ``@`` (``key:value``,
-    repeated; values are Python literals, else strings such as ``auto``). The syntax passes
-    through Hydra's command line (``variants=[bb,full@n_prototypes:24]``) and YAML unquoted.
-    """
-    base, *items = str(name).split("@")
-    overrides: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition(":")
-        if not sep or not key:
-            raise ValueError(f"{name!r}: expected <variant>@<key>:<value>[@<key>:<value>...]")
-        try:
-            overrides[key] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            overrides[key] = text
-    return base, overrides
 
 
 def build_variants(

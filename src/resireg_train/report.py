@@ -32,7 +32,7 @@ import yaml
 
 from resireg.heuristic import PrototypeHeuristic
 from resireg.variants import parse_variant
-from resireg_train.tracking import RESULTS_FILE, metric_mode, read_results
+from resireg_train.results import RESULTS_FILE, metric_mode, read_results
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

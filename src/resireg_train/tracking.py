@@ -16,7 +16,6 @@ other values (learning rate, logit scale, skip counts) are reported as final onl
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 from pathlib import Path
@@ -26,28 +25,13 @@ import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
-from resireg_train.files import write_atomic
+from resireg_train.results import metric_mode, update_results
 
 __all__ = [
     "ResumableCSVLogger",
     "ResultsTracker",
     "epoch_metrics",
-    "read_results",
-    "update_results",
 ]
-
-RESULTS_FILE = "results.json"
-_HIGHER = ("miou", "iou", "acc", "retrieval")
-
-
-def metric_mode(name: str) -> str | None:
-    """``"min"`` for losses, ``"max"`` for accuracy / retrieval / IoU metrics, else ``None``."""
-    lower = name.lower()
-    if "loss" in lower:
-        return "min"
-    if any(tag in lower for tag in _HIGHER):
-        return "max"
-    return None
 
 
 # ------------------------------------------------------------------------- CSV logger
@@ -93,21 +77,6 @@ class ResumableCSVLogger(CSVLogger):
             self._fs.makedirs(self.root_dir, exist_ok=True)
             self._experiment = _ResumingWriter(self.log_dir, self._resume_step)
         return self._experiment
-
-
-# ---------------------------------------------------------------------- results.json
-def read_results(directory: str | os.PathLike) -> dict[str, Any]:
-    path = Path(directory) / RESULTS_FILE
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
-def update_results(directory: str | os.PathLike, **fields: Any) -> dict[str, Any]:
-    """Merge ``fields`` into ``<directory>/results.json`` (written atomically)."""
-    directory = Path(directory)
-    results = {**read_results(directory), **fields}
-    directory.mkdir(parents=True, exist_ok=True)
-    write_atomic(directory / RESULTS_FILE, json.dumps(results, indent=2), what="run record")
-    return results
 
 
 def epoch_metrics(trainer: L.Trainer) -> dict[str, float]:

@@ -7,8 +7,9 @@ that ``min_lr`` must not exceed ``lr``. :func:`validate` (``resireg-train``) and
 (the ``resireg`` config group) and the evaluation pass settings are checked by one rule set
 in both, under their prefix.
 
-This module is imported before anything heavy: it needs only OmegaConf, torch (for the
-precision table) and the names of the ReSiReg variants.
+This module is imported before anything heavy: it needs only OmegaConf and the names of the
+ReSiReg variants (no torch: a bad value is reported before torch loads; ``check_devices``
+imports torch when it runs).
 """
 
 from __future__ import annotations
@@ -16,16 +17,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.variants import VARIANTS, parse_variant
+from resireg.variant_names import VARIANTS, parse_variant
 
 __all__ = ["ConfigError", "PRECISIONS", "check_devices", "validate", "validate_eval"]
 
-#: Evaluation precisions -> autocast dtype (``None``: fp32, no autocast).
-PRECISIONS: dict[str, torch.dtype | None] = {
-    "32": None, "32-true": None, "bf16": torch.bfloat16, "bf16-mixed": torch.bfloat16,
+#: Evaluation precisions -> the torch dtype name of their autocast (``None``: fp32, no autocast).
+PRECISIONS: dict[str, str | None] = {
+    "32": None, "32-true": None, "bf16": "bfloat16", "bf16-mixed": "bfloat16",
 }  # fmt: skip
 
 
@@ -204,6 +204,8 @@ def _device_errors(
     key: str, device: Any, fix: str = "use cpu, or auto to take a GPU only where there is one"
 ) -> list[str]:
     """A device this machine does not have (checked before any model is built)."""
+    import torch
+
     if not isinstance(device, str):
         return []
     kind, _, index = device.partition(":")

@@ -26,21 +26,20 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from resireg.models import build_encoder, count_parameters
-from resireg.variants import build_variants
 from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
-from resireg_train.ovss.datasets import build_segmentation_set
-from resireg_train.ovss.engine import SETTINGS_FILE, OVSSTask, StageTimer, load_settings
-from resireg_train.tracking import update_results
+from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
+from resireg_train.results import update_results
 from resireg_train.validation import check_devices, validate_eval
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["evaluate", "main"]
 
@@ -48,6 +47,8 @@ log = logging.getLogger(__name__)
 
 
 def _device(name: str) -> torch.device:
+    import torch
+
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
@@ -132,6 +133,14 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",
                                      "precision", "temperature", "calib", "lite", "full")}  # fmt: skip
     update_results(out, params=params, settings_from_export=from_export)
+    # The models, datasets and torch load only now, after the config check.
+    import torch
+
+    from resireg.models import build_encoder, count_parameters
+    from resireg.variants import build_variants
+    from resireg_train.ovss.datasets import build_segmentation_set
+    from resireg_train.ovss.engine import OVSSTask, StageTimer
+
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
     spec = {k: v for k, v in params["encoder"].items() if k not in ("name", "third_party")}

@@ -5,24 +5,25 @@ from __future__ import annotations
 
 import argparse
 
-import pandas as pd
-
-from resireg_train import report as _report
-
 __all__ = ["main"]
+
+DESCRIPTION = "Sweep reports: one table (and plots) from a Hydra multirun folder."
 
 
 def main(argv: list[str] | None = None) -> None:
     """Console entry point ``resireg-report SWEEP_DIR [--metric NAME] [--out DIR]``."""
-    parser = argparse.ArgumentParser(
-        prog="resireg-report", description=_report.__doc__.split("\n\n")[0]
-    )
+    parser = argparse.ArgumentParser(prog="resireg-report", description=DESCRIPTION)
     parser.add_argument("sweep_dir", help="a multirun folder: outputs/<name>/multirun/<time>")
     parser.add_argument("--metric", help="metric of the heatmap / curves / best column, one "
                         "the jobs' results hold (default: the first ReSiReg Full mIoU, else "
                         "train/loss); an unknown one is an error listing those")  # fmt: skip
     parser.add_argument("--out", help="where to write (default: the sweep folder)")
     args = parser.parse_args(argv)
+    # pandas, matplotlib and the heuristic load after the arguments parse (--help stays fast).
+    import pandas as pd
+
+    from resireg_train import report as _report
+
     try:
         files = _report.report(args.sweep_dir, args.out, args.metric)
     except (FileNotFoundError, ValueError) as err:

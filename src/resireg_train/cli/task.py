@@ -17,7 +17,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.tracking import update_results
+from resireg_train.results import update_results
 
 __all__ = [
     "CONFIG_DIR",

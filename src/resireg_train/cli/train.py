@@ -14,34 +14,41 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import hydra
-import lightning as L
-from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.cli.task import hydra_entry_point, run_task
-from resireg_train.ovss.callback import ReSiRegEval
-from resireg_train.tracking import (
-    ResultsTracker,
-    ResumableCSVLogger,
-    read_results,
-    update_results,
-)
-from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
-from resireg_train.training.console import EpochLog, quiet_library_noise
+from resireg_train.results import read_results, update_results
 from resireg_train.validation import check_devices, validate
+
+if TYPE_CHECKING:
+    import lightning as L
 
 __all__ = ["build", "train", "main"]
 
 log = logging.getLogger(__name__)
 
+# Lightning, the models and the data load inside the task, after the config check: --help,
+# --cfg job and a bad value answer without them (README, "Start-up").
+
+
+def _process_rank() -> int:
+    """This process's global rank from the launcher's environment (the variables Lightning's
+    ``rank_zero_only`` reads), without importing Lightning; 0 for a single process."""
+    for name in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        if os.environ.get(name, "").isdigit():
+            return int(os.environ[name])
+    return 0
+
 
 def _instantiate_all(group: DictConfig | None) -> list[Any]:
     """Instantiate every ``_target_`` entry of a config group (callbacks, loggers)."""
+    import hydra
+
     if not group:
         return []
     return [hydra.utils.instantiate(c) for c in group.values() if c and "_target_" in c]
@@ -50,6 +57,8 @@ def _instantiate_all(group: DictConfig | None) -> list[Any]:
 def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
     """The module and data module of a composed config (``model.init_from`` is not applied:
     it is a starting point for :func:`train`, not part of the model)."""
+    import hydra
+
     model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
     model_cfg.pop("init_from", None)
     module = hydra.utils.instantiate(model_cfg, _convert_="all")
@@ -73,12 +82,13 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     """
     body = functools.partial(_fit, callbacks=callbacks)
     out = cfg.paths.output_dir
-    if rank_zero_only.rank == 0 and cfg.ckpt_path is None:
+    rank_zero = _process_rank() == 0
+    if rank_zero and cfg.ckpt_path is None:
         _refuse_occupied(Path(out))
     return run_task(
         cfg,
         body,
-        rank_zero=rank_zero_only.rank == 0,
+        rank_zero=rank_zero,
         resume_hint=f"resume with ckpt_path=last hydra.run.dir={out}",
     )
 
@@ -98,9 +108,17 @@ def _refuse_occupied(out: Path) -> None:
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
-    quiet_library_noise()
     validate(cfg)
     check_devices(cfg)
+    import hydra
+    import lightning as L
+
+    from resireg_train.ovss.callback import ReSiRegEval
+    from resireg_train.tracking import ResultsTracker, ResumableCSVLogger
+    from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
+    from resireg_train.training.console import EpochLog, quiet_library_noise
+
+    quiet_library_noise()
     L.seed_everything(cfg.seed, workers=True)
     module, datamodule = build(cfg)
     init_from = cfg.model.get("init_from")

@@ -12,7 +12,8 @@ import torch.distributed as dist
 
 from resireg.variants import VARIANTS, build_variants
 from resireg_train.ovss.datasets import build_segmentation_set
-from resireg_train.ovss.engine import OVSSResult, OVSSTask, save_settings
+from resireg_train.ovss.engine import OVSSResult, OVSSTask
+from resireg_train.ovss.settings import save_settings
 
 __all__ = ["ReSiRegEval"]
 

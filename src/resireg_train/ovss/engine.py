@@ -13,14 +13,11 @@ and scored in one confusion matrix per variant (docs/design.md section 5).
 
 from __future__ import annotations
 
-import json
-import os
 import time
 from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -29,39 +26,10 @@ from torch.utils.data import DataLoader
 
 from resireg.models import DenseEncoder
 from resireg.ovss import TEMPLATES, SegmentationMetric, average_prompts, class_prompts, predict
-from resireg_train.files import write_atomic
 from resireg_train.ovss.datasets import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.validation import PRECISIONS
 
-__all__ = [
-    "OVSSTask",
-    "OVSSResult",
-    "SETTINGS_FILE",
-    "StageTimer",
-    "load_settings",
-    "save_settings",
-]
-
-#: The file of an export recording the evaluation settings its training run scored it with.
-SETTINGS_FILE = "resireg_eval.json"
-#: Which settings it records (the ``resireg`` group and the pass settings of resireg-eval).
-SETTING_KEYS = ("variants", "calib", "lite", "full", "batch_size", "precision", "temperature")
-
-
-def save_settings(directory: str | os.PathLike, settings: Mapping[str, Any]) -> Path:
-    """Record ``settings`` (keys :data:`SETTING_KEYS`) in ``<directory>/resireg_eval.json``."""
-    unknown = set(settings) - set(SETTING_KEYS)
-    if unknown:
-        raise ValueError(f"unknown evaluation settings {sorted(unknown)}; known: {SETTING_KEYS}")
-    return write_atomic(
-        Path(directory) / SETTINGS_FILE, json.dumps(dict(settings), indent=2), "settings"
-    )
-
-
-def load_settings(directory: str | os.PathLike) -> dict[str, Any]:
-    """The settings :func:`save_settings` recorded in ``directory`` (``{}`` when none)."""
-    path = Path(directory) / SETTINGS_FILE
-    return json.loads(path.read_text()) if path.is_file() else {}
+__all__ = ["OVSSTask", "OVSSResult", "StageTimer"]
 
 
 class StageTimer:
@@ -263,7 +231,8 @@ class OVSSTask:
         """
         if str(precision) not in PRECISIONS:
             raise ValueError(f"precision={precision!r}: expected one of {sorted(PRECISIONS)}")
-        dtype = PRECISIONS[str(precision)]
+        name = PRECISIONS[str(precision)]
+        dtype = getattr(torch, name) if name else None
         timed = timer or _no_timer
         k = len(self.dataset.classes)
         metrics = {

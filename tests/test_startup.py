@@ -1,0 +1,34 @@
+"""The entry points answer --help, --cfg job and a bad config value before the heavy
+libraries load: their modules import neither torch nor Lightning (README, "Start-up")."""
+
+import subprocess
+import sys
+
+
+def test_entry_point_modules_import_no_heavy_library():
+    code = (
+        "import sys\n"
+        "import resireg_train.cli.train, resireg_train.cli.eval, resireg_train.cli.report\n"
+        "import resireg_train.validation, resireg_train.results, resireg.variant_names\n"
+        "heavy = ('torch', 'lightning', 'open_clip', 'timm', 'datasets', 'pandas', 'matplotlib')\n"
+        "print(sorted(m for m in heavy if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_a_bad_value_is_reported_without_loading_torch(tmp_path):
+    code = (
+        "import sys\n"
+        "from hydra import compose, initialize_config_dir\n"
+        "from resireg_train.cli.task import CONFIG_DIR\n"
+        "from resireg_train.validation import ConfigError, validate\n"
+        "with initialize_config_dir(str(CONFIG_DIR), version_base='1.3'):\n"
+        "    cfg = compose('train', overrides=['experiment=smoke', 'model.optimizer.lr=-1'])\n"
+        "try:\n"
+        "    validate(cfg)\n"
+        "except ConfigError as err:\n"
+        "    print('torch' in sys.modules, 'model.optimizer.lr=-1' in str(err))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False True", out.stdout + out.stderr
