@@ -2,9 +2,10 @@ import numpy as np
 import pytest
 import torch
 from sklearn.cluster import KMeans
+from sklearn.cluster._kmeans import _tolerance as sk_tolerance
 from sklearn.decomposition import PCA
 
-from resireg.cluster import _lloyd, kmeans, pca, sq_distances
+from resireg.cluster import _lloyd, _tolerance, gram, kmeans, kmeans_plusplus, pca, sq_distances
 
 
 def _mixture(n=3000, d=24, k=8, seed=0, spread=1.0):
@@ -53,6 +54,9 @@ def test_kmeans_deterministic_for_seed():
     a, b = kmeans(x, 6, seed=3), kmeans(x, 6, seed=3)
     assert torch.equal(a.labels, b.labels)
     assert torch.equal(a.centroids, b.centroids)
+    assert torch.equal(a.sq_dists, b.sq_dists)
+    assert (a.n_iter, a.dist_rows) == (b.n_iter, b.dist_rows)
+    assert not torch.equal(kmeans(x, 6, seed=4).centroids, a.centroids)
 
 
 def test_kmeans_reseeds_empty_clusters():
@@ -70,3 +74,119 @@ def test_kmeans_rejects_too_many_clusters():
 def test_sq_distances_matches_cdist():
     x, c = torch.randn(50, 7), torch.randn(4, 7)
     assert torch.allclose(sq_distances(x, c), torch.cdist(x, c) ** 2, atol=1e-4)
+
+
+# --- tolerance stopping, seeding and the bounded Lloyd against independent references ---
+
+
+def _blobs(n=5000, d=32, k=6, spread=2.0, seed=0):
+    """Overlapping gaussian blobs: every seed reaches the same optimum after ~10 iterations."""
+    g = torch.Generator().manual_seed(seed)
+    centers = torch.randn(k, d, generator=g)
+    labels = torch.randint(k, (n,), generator=g)
+    return centers[labels] + spread * torch.randn(n, d, generator=g)
+
+
+def _numpy_lloyd(x, init, max_iter, tol):
+    """Plain float64 Lloyd with scikit-learn's stopping rule, from ``init``."""
+    x, c = x.astype(np.float64), init.astype(np.float64)
+    tol_abs = np.mean(np.var(x, axis=0)) * tol
+    for it in range(1, max_iter + 1):  # noqa: B007 - the count is returned
+        labels = ((x[:, None, :] - c[None]) ** 2).sum(-1).argmin(1)
+        new = np.stack([x[labels == j].mean(0) for j in range(len(c))])
+        shift = ((new - c) ** 2).sum()
+        c = new
+        if shift <= tol_abs:
+            break
+    d2 = ((x[:, None, :] - c[None]) ** 2).sum(-1)
+    return c, d2.argmin(1), it, d2
+
+
+def test_gram_matches_matmul_and_accumulates():
+    g = torch.Generator().manual_seed(0)
+    for d in (5, 127, 128, 130):  # one plain product below 128 columns, 4 slabs from 128 on
+        y = torch.randn(200, d, generator=g, dtype=torch.float64)
+        assert torch.allclose(gram(y), y.T @ y, rtol=1e-12, atol=1e-10)
+        acc = gram(y[:70])
+        assert gram(y[70:], out=acc) is acc  # in place
+        assert torch.allclose(acc, y.T @ y, rtol=1e-12, atol=1e-10)
+
+
+def test_tolerance_is_sklearns():
+    x = _blobs(n=1000, d=7) * torch.linspace(0.5, 3.0, 7) + 10.0
+    assert _tolerance(x, 1e-4) == pytest.approx(float(sk_tolerance(x.numpy(), 1e-4)), rel=1e-5)
+    assert _tolerance(x, 1e-4) == pytest.approx(1e-4 * float(np.var(x.numpy(), axis=0).mean()))
+    assert _tolerance(x, 0.0) == 0.0
+
+
+def test_kmeans_plusplus_is_greedy_kmeanspp():
+    """Same draws as the torch generator gives, replayed in float64 numpy: the same centres."""
+    x = _mixture(n=2000, d=8, k=6)
+    k, trials = 6, 2 + int(np.log(6))
+    ours = kmeans_plusplus(x, k, torch.Generator().manual_seed(5))
+    g = torch.Generator().manual_seed(5)
+    xs = x.double().numpy()
+    chosen = [int(torch.randint(len(xs), (1,), generator=g)[0])]
+    closest = ((xs - xs[chosen[0]]) ** 2).sum(1)
+    for _ in range(1, k):
+        cdf = np.cumsum(closest)
+        draws = torch.rand(trials, generator=g).double().numpy() * cdf[-1]
+        cand = np.minimum(np.searchsorted(cdf, draws), len(xs) - 1)
+        pots = [np.minimum(closest, ((xs - xs[i]) ** 2).sum(1)) for i in cand]
+        best = int(np.argmin([p.sum() for p in pots]))
+        chosen.append(int(cand[best]))
+        closest = pots[best]
+    assert torch.equal(ours, x[chosen])
+
+
+def test_kmeans_mean_inertia_over_20_seeds_within_1pct_of_sklearn():
+    x = _blobs()
+    seeds = range(20)
+    ours = np.mean([kmeans(x, 6, seed=s).inertia.item() for s in seeds])
+    ref = np.mean(
+        [
+            KMeans(n_clusters=6, n_init=1, init="k-means++", tol=1e-4, random_state=s)
+            .fit(x.numpy())
+            .inertia_
+            for s in seeds
+        ]
+    )
+    assert abs(ours / ref - 1) < 0.01
+    # The criterion is sharp enough to see an unconverged Lloyd.
+    early = np.mean([kmeans(x, 6, seed=s, max_iter=2).inertia.item() for s in seeds])
+    assert early > 1.01 * ref
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_kmeans_stops_on_sklearns_tolerance_rule(seed):
+    """Iterations, labels, centroids and distances as a float64 numpy Lloyd with the same
+    init and rule, and as scikit-learn's KMeans from that init; a looser tol stops earlier."""
+    x = _blobs()
+    init = kmeans_plusplus(x, 6, torch.Generator().manual_seed(seed))  # what kmeans(seed) uses
+    iters = {}
+    for tol in (1e-2, 1e-4, 0.0):
+        ours = kmeans(x, 6, seed=seed, tol=tol, max_iter=300)
+        c, labels, n_iter, d2 = _numpy_lloyd(x.numpy(), init.numpy(), 300, tol)
+        assert ours.n_iter == n_iter < 300
+        assert np.array_equal(ours.labels.numpy(), labels)
+        np.testing.assert_allclose(ours.centroids.numpy(), c, atol=1e-4)
+        np.testing.assert_allclose(ours.sq_dists.numpy(), d2, rtol=1e-5, atol=1e-3)
+        assert torch.equal(ours.labels, ours.sq_dists.argmin(1))
+        sk = KMeans(6, init=init.numpy(), n_init=1, tol=tol, max_iter=300).fit(x.numpy())
+        assert sk.n_iter_ == ours.n_iter
+        iters[tol] = ours.n_iter
+    assert iters[1e-2] < iters[1e-4] <= iters[0.0]
+
+
+def test_kmeans_bounds_skip_distance_rows():
+    """Hamerly's bounds: far fewer distance rows than plain Lloyd's N per iteration (+ the
+    final assignment), with the plain Lloyd result (checked above against numpy)."""
+    x = torch.nn.functional.normalize(_mixture(n=6000, d=16, k=20, spread=1.0), dim=1)
+    result = kmeans(x, 20, seed=0)
+    assert result.n_iter >= 3
+    assert result.dist_rows < 0.6 * (result.n_iter + 1) * x.shape[0]
+    c, labels, n_iter, _ = _numpy_lloyd(
+        x.numpy(), kmeans_plusplus(x, 20, torch.Generator().manual_seed(0)).numpy(), 100, 1e-4
+    )
+    assert result.n_iter == n_iter
+    assert np.array_equal(result.labels.numpy(), labels)

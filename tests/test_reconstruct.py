@@ -309,3 +309,49 @@ def test_upsampled_pca_equals_pca_of_materialised_points(scale):
     assert torch.allclose(ours.mean, ref.mean, atol=1e-4)
     assert torch.allclose(ours.explained_variance, ref.explained_variance, rtol=1e-3)
     assert torch.allclose(ours.components, ref.components, atol=1e-3)
+
+
+@pytest.mark.parametrize("scale", [1, 2, 3])
+def test_upsampled_moments_in_image_chunks_and_any_layout(scale, monkeypatch):
+    """The moments equal those of the materialised upsampled points (float64), whether the
+    grid is processed in one chunk or one image at a time, for NCHW or channels-last input;
+    Full's output does not depend on the chunking either."""
+    from resireg.reconstruct import upsampled_moments
+
+    inter, lang, _ = _region_scene(b=5, h=6, w=8, dv=16)
+    up = F.interpolate(inter.double(), scale_factor=scale, mode="bilinear") if scale > 1 else inter
+    points = up.double().permute(0, 2, 3, 1).reshape(-1, 16)
+    full = ReSiRegFull(n_prototypes=4, n_components=8, upscale=scale)
+    ref = full(inter, lang)
+    for chunk_points in (4096, 1):
+        monkeypatch.setattr(reconstruct, "_CHUNK_POINTS", chunk_points)
+        assert len(reconstruct._image_chunks(5, 6, 8)) == (1 if chunk_points > 1 else 5)
+        for x in (inter.contiguous(), inter.contiguous(memory_format=torch.channels_last)):
+            second, first, n, shift = upsampled_moments(x, scale)
+            centred = points - shift.double()
+            assert n == points.shape[0]
+            assert torch.allclose(first.double(), centred.sum(0), atol=1e-3)
+            assert torch.allclose(second.double(), centred.T @ centred, rtol=1e-5, atol=1e-2)
+            assert torch.allclose(full(x, lang), ref, atol=1e-5)
+
+
+@pytest.mark.parametrize("upscale", [1, 2])
+def test_full_seeding_products_on_the_grid_are_the_points_products(upscale, monkeypatch):
+    """Full hands k-means ``dots``, the candidates' products with the normalised upsampled
+    points taken on the small grid; they equal ``c @ z.T``, and k-means with them ends where
+    k-means on the points alone does."""
+    inter, lang, _ = _region_scene(b=3, h=7, w=9, dv=16, k=5, noise=0.5)
+    calls = []
+    real_kmeans = reconstruct.kmeans
+
+    def spy(z, n, **kwargs):
+        calls.append((z, n, kwargs))
+        return real_kmeans(z, n, **kwargs)
+
+    monkeypatch.setattr(reconstruct, "kmeans", spy)
+    dist, _ = ReSiRegFull(n_prototypes=5, n_components=8, upscale=upscale, seed=2).assign(inter)
+    ((z, n, kwargs),) = calls
+    c = z[torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(0))[:4]]
+    assert torch.allclose(kwargs["dots"](c), c @ z.T, atol=1e-5)
+    plain = real_kmeans(z, n, seed=kwargs["seed"], max_iter=kwargs["max_iter"])
+    assert torch.allclose(dist, plain.sq_dists.sqrt(), atol=1e-5)

@@ -5,11 +5,18 @@ products and scatter ops only. They exist (rather than calling scikit-learn) bec
 the clustering sits inside a GPU forward pass: moving tens of thousands of points to
 the host per batch would cost more than the clustering itself (see
 ``benchmarks/bench_reconstruct.py`` for the measured comparison).
+
+:func:`kmeans` is scikit-learn's ``KMeans(init="k-means++", n_init=1)``: greedy k-means++
+seeding, then Lloyd iterations stopped by scikit-learn's tolerance rule, with Hamerly's
+distance bounds so that an iteration computes distances only for the points whose nearest
+centroid might have changed (same labels, centroids and iteration count as plain Lloyd).
+:func:`gram` forms the symmetric product ``Y^T Y`` of the PCA at 2/3 of a matrix product.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -23,6 +30,7 @@ __all__ = [
     "kmeans",
     "kmeans_plusplus",
     "sq_distances",
+    "gram",
 ]
 
 
@@ -48,9 +56,9 @@ class PCAResult:
 def pca(x: Tensor, n_components: int) -> PCAResult:
     """PCA of ``x`` ``[N, D]`` by eigendecomposition of the ``D x D`` covariance.
 
-    The covariance route costs one ``N x D x D`` matrix product plus a ``D x D`` ``eigh``,
-    which for ReSiReg's tall inputs (N in the tens of thousands, D a few hundred) is far
-    cheaper than an SVD of the data. ``n_components`` is clipped to ``D`` (a full-rank PCA
+    The covariance route costs one ``N x D x D`` product (:func:`gram`, which forms only its
+    upper block triangle) plus a ``D x D`` ``eigh``, which for ReSiReg's tall inputs (N in
+    the tens of thousands, D a few hundred) is far cheaper than an SVD of the data. ``n_components`` is clipped to ``D`` (a full-rank PCA
     is a rotation, so clipping changes no distance). Axis signs follow scikit-learn's
     ``svd_flip`` convention (largest-magnitude loading positive) so results are stable.
     """
@@ -59,9 +67,7 @@ def pca(x: Tensor, n_components: int) -> PCAResult:
     x = x.float()
     mean = x.mean(dim=0)
     xc = x - mean
-    return pca_from_moments(
-        xc.T @ xc, x.new_zeros(x.shape[1]), x.shape[0], n_components, shift=mean
-    )
+    return pca_from_moments(gram(xc), x.new_zeros(x.shape[1]), x.shape[0], n_components, shift=mean)
 
 
 def pca_from_moments(
@@ -107,12 +113,20 @@ class KMeansResult:
         labels: ``[N]`` index of the nearest centroid of every point.
         inertia: sum of squared distances of points to their centroid (scalar tensor).
         n_iter: Lloyd iterations run.
+        sq_dists: ``[N, k]`` squared Euclidean distances of every point to every final
+            centroid (the matrix the final assignment was taken from, so callers that need
+            the distances do not recompute them); ``None`` only when built by hand.
+        dist_rows: point-to-all-centroids distance rows Lloyd computed (``N`` per full
+            assignment; the distance bounds skip most rows after the first iterations).
+            Each row costs ``2 k D`` FLOPs of matrix product.
     """
 
     centroids: Tensor
     labels: Tensor
     inertia: Tensor
     n_iter: int
+    sq_dists: Tensor | None = None
+    dist_rows: int = 0
 
 
 def sq_distances(x: Tensor, c: Tensor, x_sq: Tensor | None = None) -> Tensor:
@@ -125,10 +139,49 @@ def sq_distances(x: Tensor, c: Tensor, x_sq: Tensor | None = None) -> Tensor:
     return torch.addmm(x_sq, x, c.T, alpha=-2.0).add_((c * c).sum(1)).clamp_min_(0.0)
 
 
+def gram(y: Tensor, blocks: int = 4, out: Tensor | None = None) -> Tensor:
+    """``y^T y`` ``[D, D]`` of ``y`` ``[P, D]``, computing only its upper block triangle.
+
+    The product is symmetric, so with the columns cut into ``blocks`` slabs, slab ``i`` is
+    multiplied by the columns from its own start on (one product per slab) and the part
+    right of its diagonal block mirrored: ``(1 + 1 / blocks) / 2`` of the full product's
+    multiply-adds (5/8 for 4 slabs), the BLAS ``syrk`` that torch does not expose. Narrow
+    inputs (``D < 32 * blocks``) take one plain product. With ``out`` (a symmetric
+    ``[D, D]``, e.g. zeros or an earlier result), ``y^T y`` is added to it in place, so row
+    chunks of a tall ``y`` can be accumulated without ever forming ``y`` whole.
+    """
+    d = y.shape[1]
+    if out is None:
+        out = y.new_zeros(d, d)
+    # addmm(..., out=) rather than addmm_: the same kernel, but FlopCounterMode counts it.
+    if blocks <= 1 or d < 32 * blocks:
+        return torch.addmm(out, y.T, y, out=out)
+    edges = [d * i // blocks for i in range(blocks + 1)]
+    for start, stop in zip(edges[:-1], edges[1:], strict=True):
+        slab = out[start:stop, start:]
+        torch.addmm(slab, y[:, start:stop].T, y[:, start:], out=slab)
+        if stop < d:
+            out[stop:, start:stop] = out[start:stop, stop:].T
+    return out
+
+
 def _generator(device: torch.device, seed: int) -> torch.Generator:
     gen = torch.Generator(device=device)
     gen.manual_seed(int(seed))
     return gen
+
+
+def _tolerance(x: Tensor, tol: float) -> float:
+    """scikit-learn's absolute k-means tolerance: ``tol`` times the mean per-feature variance.
+
+    ``np.mean(np.var(x, axis=0)) * tol`` (population variance, ``ddof=0``), exactly as
+    ``sklearn.cluster._kmeans._tolerance``; 0 when ``tol`` is 0. Computed as the mean of the
+    squared deviations from the column means (one pass, no cancellation).
+    """
+    if tol == 0:
+        return 0.0
+    x = x.float()
+    return float(tol * (x - x.mean(dim=0)).square_().mean())
 
 
 def kmeans_plusplus(
@@ -136,36 +189,62 @@ def kmeans_plusplus(
 ) -> Tensor:
     """Greedy k-means++ seeding (Arthur & Vassilvitskii, 2007; greedy variant as in scikit-learn).
 
-    Each new centre is the best of ``n_local_trials`` candidates drawn with probability
-    proportional to the squared distance to the nearest chosen centre. The loop runs over
-    the ``k`` seeding steps (inherently sequential); every step is vectorised over points.
+    The first centre is a uniformly drawn point. Each further centre is the best (lowest
+    resulting potential) of ``n_local_trials`` (default ``2 + floor(ln k)``) candidates drawn
+    with probability proportional to the squared distance to the nearest chosen centre, by
+    inverse-CDF sampling (``cumsum`` + ``searchsorted``). The loop runs over the ``k``
+    seeding steps (inherently sequential); every step is one ``[t, D] x [D, N]`` matrix
+    product plus a few vectorised passes over ``[t, N]``.
 
     Returns:
         ``[k, D]`` initial centroids.
     """
-    n, _ = x.shape
+    return _kmeans_plusplus(x, x.T.contiguous(), (x * x).sum(1), k, generator, n_local_trials)
+
+
+def _kmeans_plusplus(
+    x: Tensor,
+    x_t: Tensor | None,
+    x_sq: Tensor,
+    k: int,
+    generator: torch.Generator,
+    n_local_trials: int | None,
+    dots: Callable[[Tensor], Tensor] | None = None,
+) -> Tensor:
+    """:func:`kmeans_plusplus` with ``x_t = x.T.contiguous()`` and ``x_sq = |x|^2`` given;
+    with ``dots`` (see :func:`kmeans`), candidate products come from it and ``x_t`` is unused."""
+    n, d = x.shape
     if n_local_trials is None:
         n_local_trials = 2 + int(math.log(k))
-    x_sq = (x * x).sum(1)
-    x_t = x.T.contiguous()  # [D, N]: candidate distances as [t, N] rows reduce fastest
+    row_sq = x_sq.unsqueeze(0)  # [1, N]; candidate distances are [t, N] rows (fast reductions)
+
+    def sq_dists(c: Tensor) -> Tensor:  # [t, N] = |x|^2 - 2 c.x + |c|^2, not clamped
+        c_sq = (c * c).sum(1, keepdim=True)
+        if dots is None:
+            return torch.addmm(row_sq, c, x_t, alpha=-2.0).add_(c_sq)
+        return torch.add(row_sq, dots(c), alpha=-2.0).add_(c_sq)
+
+    zero = x.new_zeros(())
+    centers = x.new_empty(k, d)
     first = torch.randint(n, (1,), generator=generator, device=x.device)
-    centers = [x[first]]
-    closest = sq_distances(x, centers[0]).squeeze(1)  # [N]
-    for _ in range(1, k):
+    centers[0] = x[first[0]]
+    closest = sq_dists(centers[:1]).clamp_min_(0.0).squeeze(0)  # [N] to the nearest centre
+    for i in range(1, k):
         # Inverse-CDF sampling proportional to the current potential (all points equally
         # likely once every point coincides with a centre).
-        cdf = torch.cumsum(closest if bool(closest.sum() > 0) else torch.ones_like(closest), 0)
+        cdf = torch.cumsum(closest, 0)
+        if not bool(cdf[-1] > 0):
+            cdf = torch.cumsum(torch.ones_like(closest), 0)
         draws = torch.rand(n_local_trials, generator=generator, device=x.device) * cdf[-1]
         cand = torch.searchsorted(cdf, draws).clamp_max_(n - 1)
         c = x[cand]
-        cand_d = torch.addmm(x_sq.unsqueeze(0), c, x_t, alpha=-2.0).add_(
-            (c * c).sum(1, keepdim=True)
-        )
-        cand_d = torch.minimum(closest.unsqueeze(0), cand_d.clamp_min_(0.0))  # [t, N]
-        best = cand_d.sum(1).argmin()
-        closest = cand_d[best]
-        centers.append(c[best].unsqueeze(0))
-    return torch.cat(centers, dim=0)
+        dist = sq_dists(c)
+        # min(closest, max(dist, 0)) in one pass: each candidate's new nearest distances.
+        dist.clamp_(min=zero, max=closest)
+        best = int(dist.sum(1).argmin())
+        closest = dist[best]
+        centers[i] = c[best]
+    return centers
 
 
 def kmeans(
@@ -176,55 +255,169 @@ def kmeans(
     max_iter: int = 100,
     tol: float = 1e-4,
     n_init: int = 1,
+    dots: Callable[[Tensor], Tensor] | None = None,
 ) -> KMeansResult:
-    """Lloyd's k-means on ``x`` ``[N, D]`` with k-means++ seeding.
+    """Lloyd's k-means on ``x`` ``[N, D]`` with greedy k-means++ seeding.
 
-    Assignments use one matrix product per iteration; centroid updates use ``index_add_``
-    and ``bincount`` (no Python loop over clusters). Empty clusters are re-seeded with the
-    points farthest from their current centroid. Stops when the squared centroid shift
-    falls below ``tol`` times the mean per-feature variance (scikit-learn's criterion) or
-    after ``max_iter`` iterations. Deterministic for a fixed ``seed`` on a given device.
+    Each iteration assigns every point to its nearest centroid and moves every centroid to
+    the mean of its points (``index_add_`` / ``bincount``, no Python loop over clusters);
+    empty clusters are re-seeded with the points farthest from their current centroid.
+    Stops, as scikit-learn's ``KMeans`` does, once the squared Frobenius norm of the
+    centroid shift between two iterations is ``<= tol`` times the mean per-feature variance
+    of ``x`` (:func:`_tolerance`; this also covers strict convergence, where the labels and
+    hence the centroids stop changing), or after ``max_iter`` iterations. A final assignment
+    to the last centroids gives the labels, the inertia and :attr:`KMeansResult.sq_dists`.
+
+    The assignments are exact but skip points whose nearest centroid provably did not
+    change (Hamerly's bounds, see :func:`_lloyd`), so later iterations touch only the few
+    points near a cluster boundary. Deterministic for a fixed ``seed`` on a given device.
     The best of ``n_init`` runs (lowest inertia) is returned.
+
+    ``dots``, optional: ``c -> c @ x.T`` (``[t, D] -> [t, N]``, equal up to rounding) for
+    points whose structure makes these products cheaper than a matrix product with ``x``
+    (ReSiReg Full's points are normalised bilinear upsamplings of a grid ``s^2`` times
+    smaller, so the products are taken on the grid and upsampled). The k-means++ seeding,
+    ``k (2 + ln k)`` such products over all points, then uses it.
     """
     if x.ndim != 2:
         raise ValueError(f"kmeans expects x of shape [N, D], got shape {tuple(x.shape)}")
-    n, d = x.shape
+    n, _ = x.shape
     if n_clusters < 1:
         raise ValueError(f"n_clusters must be >= 1, got {n_clusters}")
     if n_clusters > n:
         raise ValueError(f"n_clusters={n_clusters} exceeds the number of points N={n}")
-    x = x.float()
+    x = x.float().contiguous()
     gen = _generator(x.device, seed)
-    tol_abs = tol * x.var(dim=0).mean() if n > 1 else x.new_zeros(())
+    # Computed once, shared by the seeding and every Lloyd iteration of every run.
+    x_sq = (x * x).sum(1)
+    x_t = x.T.contiguous() if dots is None else None
+    tol_abs = _tolerance(x, tol)
     best: KMeansResult | None = None
     for _ in range(max(1, n_init)):
-        result = _lloyd(x, kmeans_plusplus(x, n_clusters, gen), max_iter, tol_abs)
+        init = _kmeans_plusplus(x, x_t, x_sq, n_clusters, gen, None, dots=dots)
+        result = _lloyd(x, init, max_iter, tol_abs, x_sq=x_sq)
         if best is None or result.inertia < best.inertia:
             best = result
     assert best is not None
     return best
 
 
-def _lloyd(x: Tensor, centroids: Tensor, max_iter: int, tol_abs: Tensor) -> KMeansResult:
+def _nearest_two(x: Tensor, x_sq: Tensor, c: Tensor, c_sq: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """For the rows ``x`` ``[M, D]``: nearest centroid ``[M]``, and the distances to the
+    nearest and to the second-nearest centroid ``[M]`` (``inf`` when ``k = 1``)."""
+    part = torch.addmm(c_sq, x, c.T, alpha=-2.0)  # |c|^2 - 2 x.c; |x|^2 is added per row
+    nearest, labels = part.min(dim=1)
+    second = part.scatter_(1, labels.unsqueeze(1), float("inf")).amin(dim=1)
+    nearest = nearest.add_(x_sq).clamp_min_(0.0).sqrt_()
+    return labels, nearest, second.add_(x_sq).clamp_min_(0.0).sqrt_()
+
+
+def _half_separation(c: Tensor) -> Tensor:
+    """Half the distance of every centroid to its nearest other centroid ``[k]`` (``inf`` for
+    ``k = 1``): a point closer than that to its own centroid has no nearer one."""
+    c64 = c.double()
+    c_sq = (c64 * c64).sum(1)
+    dist = (c_sq.unsqueeze(1) + c_sq.unsqueeze(0) - 2.0 * c64 @ c64.T).clamp_min_(0.0).sqrt_()
+    dist.fill_diagonal_(float("inf"))
+    return dist.amin(dim=1).mul_(0.5).to(c.dtype)
+
+
+def _stale(c: Tensor, labels: Tensor, upper: Tensor, lower: Tensor, margin: float) -> Tensor:
+    """Indices of the points whose bounds cannot prove their label is still the nearest."""
+    bound = torch.maximum(lower, _half_separation(c)[labels])
+    return (upper + margin > bound).nonzero().squeeze(1)
+
+
+def _lloyd(
+    x: Tensor,
+    centroids: Tensor,
+    max_iter: int,
+    tol_abs: Tensor | float,
+    x_sq: Tensor | None = None,
+) -> KMeansResult:
+    """Lloyd iterations from ``centroids`` until the shift is ``<= tol_abs`` (absolute).
+
+    Exact Lloyd, with Hamerly's (2010) bounds to skip work: every point keeps an upper
+    bound ``u`` on the distance to its centroid and a lower bound ``l`` on the distance to
+    any other. When the centroids move by ``delta``, ``u += delta[label]`` and
+    ``l -= max(delta of the others)``; a point with ``u + margin <= max(l, s[label])``
+    (``s``: half the distance from its centroid to the nearest other centroid) provably
+    keeps its label, so only the remaining points get a row of distances (one matrix
+    product over those rows). ``margin = 4 sqrt(2 E)`` covers float rounding:
+    ``E = 2 (D + 3) eps (max |x|^2 + max |c|^2)`` bounds the error of a squared distance
+    computed by the ``|x|^2 - 2 x.c + |c|^2`` expansion (so ``sqrt(E)`` bounds that of a
+    distance), and with this margin a skipped point's computed distance row has the same
+    argmin as its exact one. The cluster sums are updated with the points that changed
+    cluster only. Labels, centroids, iteration count and stopping are those of plain Lloyd
+    (up to float rounding).
+    """
+    n, d = x.shape
     k = centroids.shape[0]
-    x_sq = (x * x).sum(1, keepdim=True)
+    x_sq = (x * x).sum(1) if x_sq is None else x_sq  # [N]
+    tol = float(tol_abs)
+    # 2 E = unit * (max |x|^2 + max |c|^2); margin = 4 sqrt(2 E) (see the docstring).
+    unit = 4.0 * (d + 3) * torch.finfo(x.dtype).eps
+    x_sq_max = float(x_sq.max())
+    c_sq = (centroids * centroids).sum(1)
+    c_sq_max = float(c_sq.max())
+    labels, upper, lower = _nearest_two(x, x_sq, centroids, c_sq)
+    rows = n
+    counts = torch.bincount(labels, minlength=k)
+    sums = torch.zeros_like(centroids).index_add_(0, labels, x)
     n_iter = 0
     for n_iter in range(1, max_iter + 1):  # noqa: B007 - n_iter is reported
-        # |x|^2 is the same for every centre, so the argmin needs only -2 x.c + |c|^2.
-        part, labels = torch.addmm((centroids * centroids).sum(1), x, centroids.T, alpha=-2.0).min(
-            dim=1
-        )
-        min_d2 = part.add_(x_sq.squeeze(1))
-        counts = torch.bincount(labels, minlength=k)
-        sums = torch.zeros_like(centroids).index_add_(0, labels, x)
+        if n_iter > 1:
+            c_sq = (centroids * centroids).sum(1)
+            c_sq_max = max(c_sq_max, float(c_sq.max()))
+            margin = 4.0 * math.sqrt(unit * (x_sq_max + c_sq_max))
+            stale = _stale(centroids, labels, upper, lower, margin)
+            if stale.numel():
+                rows += stale.numel()
+                new_labels, upper[stale], lower[stale] = _nearest_two(
+                    x[stale], x_sq[stale], centroids, c_sq
+                )
+                old_labels = labels[stale]
+                moved = new_labels != old_labels
+                idx, to, frm = stale[moved], new_labels[moved], old_labels[moved]
+                labels[idx] = to
+                if 4 * idx.numel() > n:  # many moves: recount from scratch
+                    counts = torch.bincount(labels, minlength=k)
+                    sums = torch.zeros_like(centroids).index_add_(0, labels, x)
+                elif idx.numel():
+                    xm = x[idx]
+                    sums.index_add_(0, to, xm).index_add_(0, frm, xm, alpha=-1)
+                    counts += torch.bincount(to, minlength=k) - torch.bincount(frm, minlength=k)
         new = sums / counts.clamp_min(1).unsqueeze(1).to(x.dtype)
         empty = counts == 0
         if bool(empty.any()):
             # Re-seed empty clusters with the points worst served by the current solution.
-            new[empty] = x[min_d2.topk(int(empty.sum())).indices]
-        shift = ((new - centroids) ** 2).sum()
+            part = torch.addmm((centroids * centroids).sum(1), x, centroids.T, alpha=-2.0)
+            rows += n
+            new[empty] = x[part.amin(dim=1).add_(x_sq).topk(int(empty.sum())).indices]
+        delta_sq = ((new - centroids) ** 2).sum(1)
+        shift = float(delta_sq.sum())
+        delta = delta_sq.sqrt_()
+        upper.add_(delta[labels])
+        if k > 1:
+            top = delta.topk(2)
+            lower.sub_(torch.where(labels == top.indices[0], top.values[1], top.values[0]))
         centroids = new
-        if shift <= tol_abs:
+        if shift <= tol:
             break
-    min_d2, labels = sq_distances(x, centroids, x_sq).min(dim=1)
-    return KMeansResult(centroids=centroids, labels=labels, inertia=min_d2.sum(), n_iter=n_iter)
+    # Final assignment to the last centroids: the full distance matrix (returned), labels of
+    # the points whose bounds cannot vouch for them taken from its rows.
+    sq = sq_distances(x, centroids, x_sq.unsqueeze(1))
+    rows += n
+    c_sq_max = max(c_sq_max, float((centroids * centroids).sum(1).max()))
+    stale = _stale(centroids, labels, upper, lower, 4.0 * math.sqrt(unit * (x_sq_max + c_sq_max)))
+    if stale.numel():
+        labels[stale] = sq[stale].min(dim=1).indices
+    inertia = sq.gather(1, labels.unsqueeze(1)).sum()
+    return KMeansResult(
+        centroids=centroids,
+        labels=labels,
+        inertia=inertia,
+        n_iter=n_iter,
+        sq_dists=sq,
+        dist_rows=rows,
+    )

@@ -20,9 +20,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.cluster import PCAResult, kmeans, pca_from_moments, sq_distances
+from resireg.cluster import PCAResult, gram, kmeans, pca_from_moments
 
-__all__ = ["ReSiRegFull", "ReSiRegLite", "upsampled_pca"]
+__all__ = ["ReSiRegFull", "ReSiRegLite", "upsampled_moments", "upsampled_pca"]
 
 # Budget for one chunk of the explicit (tau > 0) Lite attention matrix, in elements.
 _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
@@ -88,32 +88,114 @@ def _linear_interp_matrix(size: int, scale: int, device: torch.device) -> Tensor
     return F.interpolate(eye, scale_factor=scale, mode="linear", align_corners=False)[0].T
 
 
+# Points per chunk of the moment and projection passes. Chunks hold whole images (the
+# bilinear factor couples neighbouring rows and columns of an image); their temporaries are
+# allocated once and stay in cache instead of being batch-sized fresh allocations.
+_CHUNK_POINTS = 4096
+
+
+def _image_chunks(b: int, h: int, w: int) -> list[tuple[int, int]]:
+    """``(start, stop)`` image ranges of about ``_CHUNK_POINTS`` grid points (>= 1 image)."""
+    per = max(1, _CHUNK_POINTS // max(1, h * w))
+    return [(i, min(b, i + per)) for i in range(0, b, per)]
+
+
+def _linear_gram_factor(size: int, scale: int, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Cholesky factor of ``U^T U`` for the 1-D linear upsampling ``U`` of ``size`` samples.
+
+    Every upsampled sample interpolates two neighbouring inputs, so ``U^T U`` is tridiagonal
+    (and positive definite) and its Cholesky factor ``L`` is lower bidiagonal. Returns its
+    diagonal ``[size]``, its subdiagonal ``[size - 1]`` (``L[i + 1, i]``) and ``U^T 1``
+    ``[size]``, in ``like``'s dtype and device.
+    """
+    u = _linear_interp_matrix(size, scale, like.device)
+    low = torch.linalg.cholesky((u.T @ u).double())
+    return (
+        low.diagonal().to(like.dtype),
+        low.diagonal(-1).to(like.dtype),
+        u.sum(0).to(like.dtype),
+    )
+
+
+def _apply_factor(t: Tensor, diag: Tensor, sub: Tensor, dim: int, out: Tensor) -> Tensor:
+    """``L^T`` of a lower bidiagonal ``L`` applied along ``dim`` of ``t``, into ``out``:
+    ``out_a = L[a, a] t_a + L[a + 1, a] t_(a + 1)`` (two vectorised passes)."""
+    shape = [1] * t.ndim
+    shape[dim] = -1
+    torch.mul(t, diag.view(shape), out=out)
+    size = t.shape[dim]
+    if size > 1:
+        out.narrow(dim, 0, size - 1).addcmul_(t.narrow(dim, 1, size - 1), sub.view(shape))
+    return out
+
+
+def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tensor]:
+    """Moments of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, from the grid.
+
+    Returns ``(second, first, n, shift)`` as :func:`resireg.cluster.pca_from_moments` takes
+    them: ``shift`` is the grid's mean, ``second = sum_p (u_p - shift)(u_p - shift)^T`` and
+    ``first = sum_p (u_p - shift)`` over the ``n = B h w s^2`` upsampled points ``u_p``.
+
+    Bilinear upsampling is a linear map ``U`` that is separable (``U = U_h (x) U_w``) with
+    rows summing to one, so ``second = X^T (U^T U) X`` and ``first = (U^T 1)^T X`` for the
+    centred grid points ``X``. Each ``U_a^T U_a`` is tridiagonal with a lower bidiagonal
+    Cholesky factor ``L_a``, hence ``second = Y^T Y`` with ``Y = (L_h^T (x) L_w^T) X``: four
+    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.cluster.gram`),
+    accumulated over chunks of images so no batch-sized temporary is formed.
+    """
+    b, d, h, w = x.shape
+    pts = x.permute(0, 2, 3, 1)  # [B, h, w, D]; a plain view for channels-last maps
+    shift = pts.mean(dim=(0, 1, 2), dtype=torch.float32)  # centring avoids cancellation
+    chunks = _image_chunks(b, h, w)
+    size = (chunks[0][1], h, w, d)
+    centred = torch.empty(size, dtype=shift.dtype, device=x.device)
+    total = torch.zeros(size[1:], dtype=shift.dtype, device=x.device)  # sum over images
+    second = torch.zeros(d, d, dtype=shift.dtype, device=x.device)
+    if scale > 1:
+        dh, sub_h, wh = _linear_gram_factor(h, scale, centred)
+        dw, sub_w, ww = _linear_gram_factor(w, scale, centred)
+        half, factored = torch.empty_like(centred), torch.empty_like(centred)
+    for start, stop in chunks:
+        m = stop - start
+        c = torch.sub(pts[start:stop], shift, out=centred[:m])
+        total += c.sum(0)
+        if scale > 1:
+            c = _apply_factor(c, dh, sub_h, 1, out=half[:m])
+            c = _apply_factor(c, dw, sub_w, 2, out=factored[:m])
+        gram(c.reshape(-1, d), out=second)
+    if scale > 1:
+        first = torch.outer(wh, ww).reshape(h * w) @ total.reshape(h * w, d)
+    else:
+        first = total.sum(dim=(0, 1))
+    return second, first, b * h * w * scale * scale, shift
+
+
 def upsampled_pca(x: Tensor, scale: int, n_components: int) -> PCAResult:
     """Exact PCA of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, cheaply.
 
     Upsampling by ``s`` multiplies the point count by ``s^2`` (55k points of dimension
     384 for a batch of 8 at 36 x 48 and s = 2) and the ``N x D x D`` covariance product
-    dominated ReSiReg Full's run time. Bilinear upsampling is a linear map ``U`` that is
-    separable (``U = U_h (x) U_w``) with rows summing to one, so the moments of the
-    upsampled points follow from the small grid: ``sum_p u_p u_p^T = X^T (U^T U) X`` with
-    ``U^T U = (U_h^T U_h) (x) (U_w^T U_w)``, two small matrix products on the grid, and
-    ``sum_p u_p = (U^T 1)^T X``. This is the same PCA, ``s^2`` times cheaper; the
-    projection likewise commutes with upsampling (``upsample(X) W = upsample(X W)``).
+    dominated ReSiReg Full's run time. The moments of the upsampled points follow from the
+    small grid (:func:`upsampled_moments`), so this is the same PCA, ``s^2`` times cheaper;
+    the projection likewise commutes with upsampling (``upsample(X) W = upsample(X W)``).
     """
+    second, first, n, shift = upsampled_moments(x, scale)
+    return pca_from_moments(second, first, n, n_components, shift=shift)
+
+
+def _project_grid(x: Tensor, fit: PCAResult) -> Tensor:
+    """``(x_p - mean) W^T`` for the grid points of ``x`` ``[B, D, h, w]`` -> ``[B*h*w, r]``
+    (row-major over batch, then space), in chunks of images."""
     b, d, h, w = x.shape
-    shift = x.mean(dim=(0, 2, 3))  # centring first avoids cancellation in float32
-    x0 = x - shift[None, :, None, None]
-    if scale == 1:
-        weighted, weights = x0, None
-    else:
-        uh = _linear_interp_matrix(h, scale, x.device)
-        uw = _linear_interp_matrix(w, scale, x.device)
-        weighted = (uh.T @ uh) @ x0 @ (uw.T @ uw)
-        weights = torch.outer(uh.sum(0), uw.sum(0))  # [h, w] = U^T 1
-    points = _to_points(x0)
-    second = points.T @ _to_points(weighted)
-    first = points.sum(0) if weights is None else torch.einsum("bdhw,hw->d", x0, weights)
-    return pca_from_moments(second, first, b * h * w * scale * scale, n_components, shift=shift)
+    pts = x.permute(0, 2, 3, 1)
+    chunks = _image_chunks(b, h, w)
+    centred = torch.empty((chunks[0][1], h, w, d), dtype=fit.mean.dtype, device=x.device)
+    comps_t = fit.components.T
+    out = torch.empty(b * h * w, comps_t.shape[1], dtype=fit.mean.dtype, device=x.device)
+    for start, stop in chunks:
+        c = torch.sub(pts[start:stop], fit.mean, out=centred[: stop - start])
+        torch.mm(c.reshape(-1, d), comps_t, out=out[start * h * w : stop * h * w])
+    return out
 
 
 def _to_points(x: Tensor) -> Tensor:
@@ -256,10 +338,25 @@ class ReSiRegFull(nn.Module):
         n = self.check_grid(b, hv, wv)
         x = intermediates.float()
         fit = upsampled_pca(x, s, self.n_components if self.n_components is not None else n)
-        projected = torch.einsum("bdhw,rd->brhw", x - fit.mean[None, :, None, None], fit.components)
-        z = F.normalize(_to_points(_upsample(projected, s)), dim=1)
-        centroids = kmeans(z, n, seed=self.seed, max_iter=self.max_iter).centroids
-        return sq_distances(z, centroids).sqrt_(), (b, hv * s, wv * s)
+        # Project on the small grid (projection commutes with upsampling). The [B*Hv*Wv, r']
+        # result is the channels-last layout of the [B, r', Hv, Wv] map, which bilinear
+        # upsampling keeps, so the upsampled map's points are a view, not a copy.
+        low = _project_grid(x, fit)
+        r = low.shape[1]
+        up = _upsample(low.view(b, hv, wv, r).permute(0, 3, 1, 2), s)
+        up = up.permute(0, 2, 3, 1).reshape(-1, r)
+        norms = torch.linalg.vector_norm(up, dim=1).clamp_min_(1e-12)  # as F.normalize
+        z = up / norms.unsqueeze(1)
+        low_t = low.T.contiguous()  # [r', B*Hv*Wv]
+
+        def dots(c: Tensor) -> Tensor:
+            """``c @ z.T`` on the small grid: z_p.c = up(low.c)_p / |up(low)_p|."""
+            grid_dots = (c @ low_t).view(-1, 1, hv, wv)  # [t*B, 1, Hv, Wv]
+            return _upsample(grid_dots, s).view(c.shape[0], -1).div_(norms)
+
+        result = kmeans(z, n, seed=self.seed, max_iter=self.max_iter, dots=dots)
+        # The final assignment's distance matrix is the one returned (no second product).
+        return result.sq_dists.sqrt_(), (b, hv * s, wv * s)
 
     def forward(
         self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None
