@@ -106,7 +106,7 @@ def test_encode_shapes_on_a_non_square_canvas(enc):
     assert out.embedding.shape == (2, 512)
     for t in out:
         assert t.dtype == torch.float32 and torch.isfinite(t).all()
-    with pytest.raises(ValueError, match="not multiples of the patch size 16"):
+    with pytest.raises(ValueError, match="not a multiple of the patch size 16"):
         enc.encode(_images(40, 80))
 
 

@@ -53,6 +53,7 @@ from torch import Tensor
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import hf_cached, require_online
+from resireg.models.images import tokens_to_grid
 
 __all__ = ["CLIP_MODELS", "ClipEncoder"]
 
@@ -235,10 +236,9 @@ class ClipEncoder(DenseEncoder, FrozenModule):
     def encode(self, images: Tensor) -> DenseOutput:
         """Normalised images ``[B, 3, H, W]`` -> (intermediates ``[B, width, H/p, W/p]``,
         language tokens ``[B, embed_dim, H/p, W/p]``, embedding ``[B, embed_dim]``), float32."""
+        self._input_rule.check_size(images)
         h, w = images.shape[-2:]
         p, s = self.patch_size, self.image_size
-        if h % p or w % p:
-            raise ValueError(f"image sides {(h, w)} are not multiples of the patch size {p}")
         visual = self.model.visual
         x = images.to(self.device, visual.conv1.weight.dtype)
         if (h, w) != (s, s):
@@ -267,18 +267,10 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         g = s // p
         grid = (h // p, w // p)
         return DenseOutput(
-            self._to_grid(inter[:, 1:], g, grid),
-            self._to_grid(lang[:, 1:], g, grid),
+            tokens_to_grid(inter[:, 1:], (g, g), grid),
+            tokens_to_grid(lang[:, 1:], (g, g), grid),
             embedding.float(),
         )
-
-    @staticmethod
-    def _to_grid(tokens: Tensor, g: int, size: tuple[int, int]) -> Tensor:
-        """Patch tokens ``[B, g*g, D]`` -> ``[B, D, *size]`` (bilinear from the native grid)."""
-        maps = tokens.float().unflatten(1, (g, g)).permute(0, 3, 1, 2).contiguous()
-        if size == (g, g):
-            return maps
-        return F.interpolate(maps, size=size, mode="bilinear", align_corners=False)
 
     def text_features(self, texts: Sequence[str]) -> Tensor:
         """open_clip's text embeddings ``[K, embed_dim]`` (float32, not normalised)."""

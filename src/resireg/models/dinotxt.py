@@ -68,7 +68,8 @@ from torch import Tensor
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import require_online
+from resireg.models.hub import check_hub_source, require_online
+from resireg.models.images import tokens_to_grid
 
 __all__ = ["DINOTXT_ENTRY_POINT", "DINOTXT_CHECKPOINTS", "DinoTxtEncoder"]
 
@@ -129,15 +130,10 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
     ) -> None:
         super().__init__()
         key = config_key
-        if source not in ("github", "local"):
-            raise ValueError(f"{key}.source={source!r}: expected 'github' or 'local'")
-        if source == "local" and not os.path.isdir(repo):
-            raise FileNotFoundError(f"{key}.repo={repo!r}: no such directory (dino.txt clone)")
         if vocab is not None and not os.path.isfile(vocab):
             raise FileNotFoundError(f"{key}.vocab={os.fspath(vocab)!r}: no such file")
         # Fail at once, before torch.hub asks for anything it cannot reach.
-        if source == "github":
-            require_online(f"dino.txt ({repo})", "github.com", _hint(key), hf=False)
+        check_hub_source(repo, source, "dino.txt", _hint(key), key)
         if entry_point == DINOTXT_ENTRY_POINT:
             ckpt = os.path.join(torch.hub.get_dir(), "checkpoints")
             missing = [f for f in DINOTXT_CHECKPOINTS if not os.path.isfile(os.path.join(ckpt, f))]
@@ -185,10 +181,9 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         return InputRule(self.patch_size, IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD)
 
     def encode(self, images: Tensor) -> DenseOutput:
+        self.input_rule.check_size(images)
         b, _, h, w = images.shape
         p = self.patch_size
-        if h % p or w % p:
-            raise ValueError(f"image size {(h, w)} is not divisible by the patch size {p}")
         x = images.to(self.device, torch.float32)
         if self.image_size is not None:
             size = (self.image_size, self.image_size)
@@ -206,8 +201,8 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         )
         grid = (h // p, w // p)
         return DenseOutput(
-            intermediates=_to_grid(patches, (gh, gw), grid),
-            language=_to_grid(head_patches, (gh, gw), grid),
+            intermediates=tokens_to_grid(patches, (gh, gw), grid),
+            language=tokens_to_grid(head_patches, (gh, gw), grid),
             embedding=embedding,
         )
 
@@ -224,12 +219,3 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
 
     def encode_text(self, texts: Sequence[str]) -> Tensor:
         return self.dense_text(self.text_features(texts))
-
-
-def _to_grid(tokens: Tensor, size: tuple[int, int], grid: tuple[int, int]) -> Tensor:
-    """Tokens ``[B, N, D]`` of a ``size`` patch grid -> ``[B, D, *grid]`` (bilinear)."""
-    b, _, d = tokens.shape
-    x = tokens.float().transpose(1, 2).reshape(b, d, *size)
-    if tuple(size) != tuple(grid):
-        x = F.interpolate(x, size=grid, mode="bilinear", align_corners=False)
-    return x

@@ -50,6 +50,13 @@ class InputRule:
     mean: tuple[float, float, float]
     std: tuple[float, float, float]
 
+    def check_size(self, images: Tensor, unit: str = "the patch size") -> None:
+        """Raise ``ValueError`` unless both sides of ``images`` are multiples of the patch size
+        (what :meth:`DenseEncoder.encode` accepts); ``unit`` names it in the message."""
+        h, w = images.shape[-2:]
+        if h % self.patch_size or w % self.patch_size:
+            raise ValueError(f"image size {(h, w)} is not a multiple of {unit} {self.patch_size}")
+
     def resize(self, image: Tensor, short_side: int | None) -> Tensor:
         """RGB ``[3, H, W]`` (uint8 or float in [0, 1]) -> float ``[3, h, w]`` in [0, 1]."""
         return resize_to_patch_grid(image, short_side, self.patch_size)

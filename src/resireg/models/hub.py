@@ -12,7 +12,7 @@ import os
 import socket
 import threading
 
-__all__ = ["WeightsUnavailableError", "require_online", "hf_cached"]
+__all__ = ["WeightsUnavailableError", "check_hub_source", "require_online", "hf_cached"]
 
 _TRUE = {"1", "true", "yes", "on"}
 
@@ -64,3 +64,18 @@ def require_online(
         raise WeightsUnavailableError(
             f"{what} needs {host}, which cannot be reached from this machine. {hint}"
         )
+
+
+def check_hub_source(repo: str, source: str, what: str, hint: str, key: str = "model") -> None:
+    """Validate a torch.hub ``repo`` / ``source`` pair before anything is loaded.
+
+    ``source="local"`` needs ``repo`` to be a directory; ``source="github"`` needs
+    github.com, else :class:`~resireg.models.hub.WeightsUnavailableError` at once with
+    ``hint`` (which should name ``{key}.repo`` and ``{key}.source=local``).
+    """
+    if source not in ("github", "local"):
+        raise ValueError(f"{key}.source={source!r}: expected 'github' or 'local'")
+    if source == "local" and not os.path.isdir(repo):
+        raise FileNotFoundError(f"{key}.repo={repo!r}: no such directory ({what} clone)")
+    if source == "github":
+        require_online(f"{what} ({repo})", "github.com", hint, hf=False)

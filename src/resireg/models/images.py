@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-__all__ = ["pil_to_tensor", "patch_grid_size", "resize_to_patch_grid"]
+__all__ = ["pil_to_tensor", "patch_grid_size", "resize_to_patch_grid", "tokens_to_grid"]
 
 
 #: PIL modes of 16-bit (and 32-bit integer) single-channel images, e.g. 16-bit PNGs.
@@ -57,3 +57,14 @@ def resize_to_patch_grid(image: Tensor, short_side: int | None, patch_size: int)
     return F.interpolate(
         image[None], size=size, mode="bilinear", align_corners=False, antialias=True
     )[0]
+
+
+def tokens_to_grid(tokens: Tensor, size: tuple[int, int], grid: tuple[int, int]) -> Tensor:
+    """Patch tokens ``[B, N, D]`` of a ``size`` patch grid (row-major) -> float ``[B, D, *grid]``,
+    bilinearly resized when ``grid`` differs: how an encoder with a fixed native input brings
+    its dense maps to the evaluation canvas's grid."""
+    b, _, d = tokens.shape
+    x = tokens.float().transpose(1, 2).reshape(b, d, *size)
+    if tuple(size) != tuple(grid):
+        x = F.interpolate(x, size=tuple(grid), mode="bilinear", align_corners=False)
+    return x

@@ -84,7 +84,8 @@ from torch import Tensor
 from resireg.models.clip import CLIP_MODELS, ClipEncoder, _check_weights_reachable
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import require_online
+from resireg.models.hub import check_hub_source, require_online
+from resireg.models.images import tokens_to_grid
 
 __all__ = ["OTAS_ENTRY_POINT", "OTAS_CHECKPOINTS", "OtasEncoder"]
 
@@ -166,10 +167,6 @@ class OtasEncoder(DenseEncoder, FrozenModule):
     ) -> None:
         super().__init__()
         key = config_key
-        if source not in ("github", "local"):
-            raise ValueError(f"{key}.source={source!r}: expected 'github' or 'local'")
-        if source == "local" and not os.path.isdir(repo):
-            raise FileNotFoundError(f"{key}.repo={repo!r}: no such directory (DINOv2 clone)")
         if output_grid not in ("canvas", "shared"):
             raise ValueError(f"{key}.output_grid={output_grid!r}: expected 'canvas' or 'shared'")
         self.dino_input_size = _positive_int(dino_input_size, f"{key}.dino_input_size")
@@ -184,8 +181,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         self.repo, self.source, self.entry_point = repo, source, entry_point
 
         # Fail at once, before torch.hub asks for anything it cannot reach.
-        if source == "github":
-            require_online(f"DINOv2 for OTAS ({repo})", "github.com", _hint(key), hf=False)
+        check_hub_source(repo, source, "DINOv2 for OTAS", _hint(key), key)
         ckpt = OTAS_CHECKPOINTS.get(entry_point)
         if ckpt is not None and kwargs.get("pretrained", True):
             path = os.path.join(torch.hub.get_dir(), "checkpoints", ckpt)
@@ -257,10 +253,9 @@ class OtasEncoder(DenseEncoder, FrozenModule):
     def encode(self, images: Tensor) -> DenseOutput:
         """Normalised canvas ``[B, 3, H, W]`` -> (DINOv2 tokens ``[B, 384, H/14, W/14]``,
         OTAS's pooled language features ``[B, 512, h, w]``, CLIP embedding ``[B, 512]``)."""
+        self.input_rule.check_size(images)
         b, _, h, w = images.shape
         p = self.patch_size
-        if h % p or w % p:
-            raise ValueError(f"image size {(h, w)} is not divisible by the patch size {p}")
         x = images.to(self.device, torch.float32)
         tokens = self.dino_tokens(x)
         clip_maps, embedding = self.clip_dense(x)
@@ -275,7 +270,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         language = pooled
         if self.output_grid == "canvas" and tuple(pooled.shape[-2:]) != grid:
             language = F.interpolate(pooled, size=grid, mode="bilinear", align_corners=False)
-        return DenseOutput(_to_grid(tokens, (g, g), grid), language, embedding)
+        return DenseOutput(tokens_to_grid(tokens, (g, g), grid), language, embedding)
 
     def text_features(self, texts: Sequence[str]) -> Tensor:
         """CLIP's text embeddings ``[K, 512]`` (float32, not normalised)."""
@@ -410,12 +405,3 @@ def _clip_positions(pos: Tensor, gh: int, gw: int, square: bool) -> Tensor:
             f"positional embedding interpolated to {tuple(patch.shape[-2:])}, not {(gh, gw)}"
         )
     return torch.cat([pos[:1], patch.permute(0, 2, 3, 1).reshape(gh * gw, -1)], dim=0)
-
-
-def _to_grid(tokens: Tensor, size: tuple[int, int], grid: tuple[int, int]) -> Tensor:
-    """Tokens ``[B, N, D]`` of a ``size`` patch grid -> ``[B, D, *grid]`` (bilinear)."""
-    b, _, d = tokens.shape
-    x = tokens.float().transpose(1, 2).reshape(b, d, *size)
-    if tuple(size) != tuple(grid):
-        x = F.interpolate(x, size=grid, mode="bilinear", align_corners=False)
-    return x

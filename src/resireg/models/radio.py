@@ -95,14 +95,14 @@ from torch import Tensor, nn
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import require_online
+from resireg.models.hub import check_hub_source, require_online
+from resireg.models.images import tokens_to_grid
 
 __all__ = [
     "RADIO_CHECKPOINTS",
     "DEFAULT_ADAPTORS",
     "RadioEncoder",
     "RadSegEncoder",
-    "check_hub_source",
     "radio_hub_cached",
     "require_radio_for_radseg",
     "require_radio_weights",
@@ -128,21 +128,6 @@ _WEIGHTS_HOST = "huggingface.co"
 
 
 # ------------------------------------------------------------------ shared helpers
-def check_hub_source(repo: str, source: str, what: str, hint: str, key: str = "model") -> None:
-    """Validate a torch.hub ``repo`` / ``source`` pair before anything is loaded.
-
-    ``source="local"`` needs ``repo`` to be a directory; ``source="github"`` needs
-    github.com, else :class:`~resireg.models.hub.WeightsUnavailableError` at once with
-    ``hint`` (which should name ``{key}.repo`` and ``{key}.source=local``).
-    """
-    if source not in ("github", "local"):
-        raise ValueError(f"{key}.source={source!r}: expected 'github' or 'local'")
-    if source == "local" and not os.path.isdir(repo):
-        raise FileNotFoundError(f"{key}.repo={repo!r}: no such directory ({what} clone)")
-    if source == "github":
-        require_online(f"{what} ({repo})", "github.com", hint, hf=False)
-
-
 def radio_hub_cached() -> str | None:
     """torch's hub cache directory of ``NVlabs/RADIO`` (``main`` or ``master``), or ``None``.
 
@@ -195,17 +180,6 @@ def external_input_rule(radio: nn.Module) -> tuple[InputRule, torch.dtype | None
     if len(mean) != 3 or len(std) != 3:
         raise ValueError(f"RADIO's conditioner has {len(mean)} channels; expected 3")
     return InputRule(int(radio.min_resolution_step), mean, std), getattr(cond, "dtype", None)
-
-
-def _check_size(images: Tensor, step: int) -> None:
-    h, w = images.shape[-2:]
-    if h % step or w % step:
-        raise ValueError(f"image size {(h, w)} is not a multiple of RADIO's resolution step {step}")
-
-
-def _tokens_to_map(tokens: Tensor, h: int, w: int) -> Tensor:
-    """``[B, h*w, C]`` -> ``[B, C, h, w]``."""
-    return tokens.transpose(1, 2).reshape(tokens.shape[0], -1, h, w)
 
 
 def apply_summary_head(head_mlp: nn.Module, features: Tensor) -> Tensor:
@@ -295,7 +269,7 @@ class RadioEncoder(DenseEncoder, FrozenModule):
     def encode(self, images: Tensor) -> DenseOutput:
         """Normalised images ``[B, 3, H, W]`` -> backbone features, ``head_mlp`` per location,
         the adaptor's summary."""
-        _check_size(images, self._input_rule.patch_size)
+        self._input_rule.check_size(images, "RADIO's resolution step")
         x = images.to(self.device)
         if self._input_dtype is not None:
             x = x.to(self._input_dtype)
@@ -396,7 +370,7 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
 
     def encode(self, images: Tensor) -> DenseOutput:
         """Normalised images ``[B, 3, H, W]`` -> RADIO features in RADSeg, RADSeg's language map."""
-        _check_size(images, self._input_rule.patch_size)
+        self._input_rule.check_size(images, "RADIO's resolution step")
         x = images.to(self.encoder_device)
         if self._input_dtype is not None:
             x = x.to(self._input_dtype)
@@ -418,7 +392,8 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
             out = out["backbone"] if isinstance(out, dict) else out
             inter = out.features
             if inter.ndim == 3:
-                inter = _tokens_to_map(inter, *feat_map.shape[-2:])
+                grid = tuple(feat_map.shape[-2:])
+                inter = tokens_to_grid(inter, grid, grid)
         dev = images.device
         return DenseOutput(inter.float().to(dev), language.float().to(dev), None)
 

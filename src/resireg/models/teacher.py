@@ -30,7 +30,6 @@ The teacher output is resized (bilinear) to the student's patch grid. A learned 
 
 from __future__ import annotations
 
-import os
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any
@@ -41,7 +40,7 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import require_online
+from resireg.models.hub import check_hub_source
 
 __all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
 
@@ -91,17 +90,15 @@ class RadSegTeacher(_FrozenTeacher):
     ) -> None:
         super().__init__()
         self.encoder_device = torch.device(device if device is not None else "cpu")
-        if source == "local" and not os.path.isdir(repo):
-            raise FileNotFoundError(f"RADSeg repository directory {repo!r} does not exist")
-        if source == "github":
-            require_online(
-                f"RADSeg ({repo}) and its RADIO weights",
-                "github.com",
-                "Clone RADSeg-OVSS/RADSeg elsewhere and pass model.teacher.repo=/path/to/RADSeg "
-                "model.teacher.source=local (RADIO's weights must be in the torch hub cache), "
-                "or disable distillation (model.loss.distill.scale=0).",
-                hf=False,
-            )
+        check_hub_source(
+            repo,
+            source,
+            "RADSeg (and its RADIO weights)",
+            "Clone RADSeg-OVSS/RADSeg elsewhere and pass model.teacher.repo=/path/to/RADSeg "
+            "model.teacher.source=local (RADIO's weights must be in the torch hub cache), "
+            "or disable distillation (model.loss.distill.scale=0).",
+            "model.teacher",
+        )
         self.encoder = torch.hub.load(
             repo, "radseg_encoder", source=source, model_version=model_version, lang_model=lang_model,
             slide_crop=slide_crop, device=str(self.encoder_device), **kwargs,

@@ -78,6 +78,7 @@ from torch import Tensor, nn
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import WeightsUnavailableError
+from resireg.models.images import tokens_to_grid
 
 __all__ = [
     "TIPS_TOKENIZER_URL",
@@ -540,10 +541,9 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         return InputRule(self.patch_size, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 
     def encode(self, images: Tensor) -> DenseOutput:
+        self.input_rule.check_size(images)
         _, _, h, w = images.shape
         p = self.patch_size
-        if h % p or w % p:
-            raise ValueError(f"image size {(h, w)} is not divisible by the patch size {p}")
         x = images.to(self.device, torch.float32)
         if self.image_size is not None:
             size = (self.image_size, self.image_size)
@@ -552,11 +552,11 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         with torch.no_grad():
             cls, patches, values = self.visual.dense_features(x)
         grid = (h // p, w // p)
-        intermediates = _to_grid(patches, native, grid)
+        intermediates = tokens_to_grid(patches, native, grid)
         if self.language_tokens == "final":
             language = intermediates
         else:
-            language = _to_grid(values, native, grid)
+            language = tokens_to_grid(values, native, grid)
         return DenseOutput(intermediates, language, cls.float())
 
     def tokenize(self, texts: Sequence[str]) -> tuple[Tensor, Tensor]:
@@ -583,12 +583,3 @@ class TipsEncoder(DenseEncoder, FrozenModule):
 
     def encode_text(self, texts: Sequence[str]) -> Tensor:
         return self.dense_text(self.text_features(texts))
-
-
-def _to_grid(tokens: Tensor, size: tuple[int, int], grid: tuple[int, int]) -> Tensor:
-    """Tokens ``[B, N, D]`` of a ``size`` patch grid -> ``[B, D, *grid]`` (bilinear)."""
-    b, _, d = tokens.shape
-    x = tokens.float().transpose(1, 2).reshape(b, d, *size)
-    if tuple(size) != tuple(grid):
-        x = F.interpolate(x, size=grid, mode="bilinear", align_corners=False)
-    return x
