@@ -76,13 +76,13 @@ class ReSiRegEval(L.Callback):
         if int(batch_size) < 1:
             raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
-        #: What ``resireg-eval`` needs to score the exported model the same way.
-        params = {"calib": dict(calib or {}), "lite": dict(lite or {}), "full": dict(full or {})}
-        self.settings = {
-            "variants": list(variants), **params, "batch_size": int(batch_size),
-            "precision": str(precision), "temperature": float(temperature),
+        self.variant_names = list(variants)
+        self.variant_params = {
+            "calib": dict(calib or {}), "lite": dict(lite or {}), "full": dict(full or {})
         }  # fmt: skip
-        self.variants = build_variants(list(variants), params, key=f"{_KEY}.variants")
+        self.variants = build_variants(
+            self.variant_names, self.variant_params, key=f"{_KEY}.variants"
+        )
         self.every_n_epochs = int(every_n_epochs)
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)
@@ -151,6 +151,15 @@ class ReSiRegEval(L.Callback):
         for name, value in self.evaluate(trainer, pl_module).items():
             # Already identical on every rank: no sync_dist (see the class docstring).
             pl_module.log(name, value, on_step=False, on_epoch=True, sync_dist=False)
+
+    @property
+    def settings(self) -> dict[str, Any]:
+        """What ``resireg-eval`` needs to score the exported model the same way."""
+        return {
+            "variants": self.variant_names, **self.variant_params,
+            "batch_size": self.batch_size, "precision": self.precision,
+            "temperature": self.temperature,
+        }  # fmt: skip
 
     def save_settings(self, export: str | os.PathLike) -> None:
         """Record this callback's evaluation settings in an export folder, so ``resireg-eval``
