@@ -389,7 +389,7 @@ FAKE_RADSEG = textwrap.dedent(
                 last_block.attn, dim=self.model.model.embed_dim, device=self.device,
                 scra_scaling=scra_scaling)
             if predict or sam_refinement:
-                raise NotImplementedError("the fake RADSeg has no prediction mode")
+                raise AssertionError("the adapter must not ask RADSeg for prediction")
             self.predict = predict
             self.slide_stride = slide_stride
             self.slide_crop = slide_crop
