@@ -1,11 +1,16 @@
 """Test-session settings: never touch the network, keep runs deterministic."""
 
 import os
+import sys
+from pathlib import Path
 
 # Hub look-ups fail at once instead of retrying name resolution for ~47 s.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+# Tests that load a benchmark script by path: its `from _common import ...` (the scripts' shared
+# helpers, found next to the script when run as `python benchmarks/x.py`).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import pytest  # noqa: E402
 import torch  # noqa: E402

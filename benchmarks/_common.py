@@ -1,0 +1,53 @@
+"""What the benchmark scripts share: the 25M architecture with random weights, ReSiReg's
+defaults from ``conf/``, and a median timer. (A script run as ``python benchmarks/x.py`` finds
+this module next to it; the tests that import a benchmark put ``benchmarks/`` on the path.)"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def load_yaml(path: Path) -> dict[str, Any]:
+    with open(path) as f:
+        return yaml.safe_load(f)
+
+
+def resireg_defaults() -> dict[str, Any]:
+    """``conf/resireg/default.yaml``: ReSiReg's parameters (``lite``, ``full``, ...)."""
+    return load_yaml(CONF / "resireg" / "default.yaml")
+
+
+def build_model(tiny: bool = False):
+    """The 25M VLM with random weights: EUPE ViT-S/16 of ``conf/model/backbone/eupe_vit_s16.yaml``
+    (``weights: null``) and the head of ``conf/model/vlm25m.yaml``; or the tests' tiny one. The
+    text tower takes no part in an image pass, so the tiny one is built to save time.
+
+    torch and the models are imported here, not at the top, so a process that imports this
+    module for its helpers (e.g. the map's memory probe) loads only what it uses."""
+    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+
+    if tiny:
+        return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
+    backbone = {**load_yaml(CONF / "model" / "backbone" / "eupe_vit_s16.yaml"), "weights": None}
+    head = dict(load_yaml(CONF / "model" / "vlm25m.yaml")["head"])
+    return ResiregVLM.build(backbone, head, TINY_TEXT).eval()
+
+
+def median_seconds(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
+    """Median wall seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)

@@ -1,0 +1,363 @@
+"""Sparse voxel maps: running feature sums (:class:`VoxelMap`) and class votes (:class:`LabelVoxelMap`).
+
+A point ``p`` (metres) falls in the voxel of integer index ``floor(p / voxel_size)`` (per axis),
+whose centre is ``(index + 0.5) * voxel_size``. A map stores, for the occupied voxels only, a
+per-voxel accumulator (feature sum and point count, or class votes), so memory grows with the
+occupied voxels and a map can grow frame by frame.
+
+Storage: rows of a dense accumulator in order of first occupation, plus the voxels' packed
+int64 keys kept sorted with the row of each key. ``add`` finds the keys of new points with
+``torch.searchsorted`` (one ``torch.unique`` per call), appends rows for unseen voxels (capacity
+grows geometrically, so appending is amortised O(1) per voxel) and scatters with ``index_add_``:
+vectorised, no Python loop over points, chunked so no temporary exceeds ~64 MB. Everything stays
+on the map's device. Results are returned in key order, which is the lexicographic order of the
+``(i, j, k)`` indices (the order of ``numpy.unique(indices, axis=0)``), whatever order the points
+came in.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import TypeVar
+
+import torch
+from torch import Tensor
+
+__all__ = ["VoxelMap", "LabelVoxelMap", "voxel_indices"]
+
+# Packed key: 21 bits per axis, index + 2**20 in [0, 2**21); 63 bits in all (non-negative int64).
+_BITS = 21
+_OFFSET = 1 << (_BITS - 1)
+_MAX_INDEX = _OFFSET - 1
+# Elements per temporary in add (float64: 64 MB).
+_CHUNK_ELEMENTS = 1 << 23
+
+
+def voxel_indices(points: Tensor, voxel_size: float) -> Tensor:
+    """Integer voxel indices ``floor(points / voxel_size)`` ``[N, 3]`` int64 (float64 division)."""
+    return torch.floor(points.to(torch.float64) / voxel_size).to(torch.int64)
+
+
+def _pack(index: Tensor) -> Tensor:
+    """``[N, 3]`` int64 voxel indices -> ``[N]`` int64 keys, ordered like the index tuples."""
+    shifted = index + _OFFSET
+    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
+
+
+def _unpack(keys: Tensor) -> Tensor:
+    """Inverse of :func:`_pack`: ``[M]`` keys -> ``[M, 3]`` int64 indices."""
+    mask = (1 << _BITS) - 1
+    parts = [(keys >> (2 * _BITS)) & mask, (keys >> _BITS) & mask, keys & mask]
+    return torch.stack(parts, dim=1) - _OFFSET
+
+
+def _check_voxel_size(voxel_size: float) -> float:
+    try:
+        v = float(voxel_size)
+    except (TypeError, ValueError):
+        v = math.nan
+    if not (math.isfinite(v) and v > 0) or isinstance(voxel_size, bool):
+        raise ValueError(f"voxel_size={voxel_size!r}: expected a finite number > 0 (metres)")
+    return v
+
+
+def _check_count(name: str, value: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}={value!r}: expected an integer >= 1")
+    return value
+
+
+_Map = TypeVar("_Map", bound="_SparseVoxels")
+
+
+class _SparseVoxels:
+    """Sorted packed keys of the occupied voxels and the accumulator row of each.
+
+    Subclasses own the accumulators (``[capacity, ...]`` tensors, rows in order of first
+    occupation) and grow them in :meth:`_grow`.
+    """
+
+    def __init__(self, voxel_size: float, device: torch.device | str) -> None:
+        self.voxel_size = _check_voxel_size(voxel_size)
+        self.device = torch.device(device)
+        self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted
+        self._rows = torch.empty(0, dtype=torch.int64, device=self.device)  # row of each key
+        self._size = 0  # occupied voxels = rows in use
+
+    def __len__(self) -> int:
+        """Number of occupied voxels."""
+        return self._size
+
+    def _grow(self, capacity: int) -> None:
+        raise NotImplementedError
+
+    def _accumulators(self) -> tuple[Tensor, ...]:
+        raise NotImplementedError
+
+    def reserve(self, voxels: int) -> None:
+        """Make room for ``voxels`` occupied voxels in all, so adding up to that many grows nothing."""
+        if voxels > self._capacity():
+            self._grow(voxels)
+
+    def clone(self: _Map) -> _Map:
+        """An independent copy of the map (same device)."""
+        return copy.deepcopy(self)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the map's tensors, the geometric reserve of the accumulators included."""
+        held = (self._keys, self._rows, *self._accumulators())
+        return sum(t.numel() * t.element_size() for t in held)
+
+    def _capacity(self) -> int:
+        raise NotImplementedError
+
+    def _check_points(self, points: Tensor, n: int | None = None) -> Tensor:
+        if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] != 3:
+            shape = tuple(points.shape) if isinstance(points, Tensor) else type(points)
+            raise ValueError(f"points of shape {shape}: expected an [N, 3] tensor")
+        if not points.is_floating_point():
+            raise ValueError(f"points of dtype {points.dtype}: expected floating-point metres")
+        if n is not None and points.shape[0] != n:
+            raise ValueError(f"points of shape {tuple(points.shape)}: expected {n} rows")
+        points = points.to(self.device)
+        if not bool(torch.isfinite(points).all()):
+            raise ValueError(
+                "points contain non-finite values: select the valid ones first "
+                "(points[valid] with the mask from unproject / patch_points)"
+            )
+        return points
+
+    def _rows_of(self, points: Tensor) -> Tensor:
+        """Accumulator rows ``[N]`` of the points' voxels; unseen voxels get new rows."""
+        index = voxel_indices(points, self.voxel_size)
+        if index.numel() and int(index.abs().max()) > _MAX_INDEX:
+            bad = float(points.abs().max())
+            raise ValueError(
+                f"points with |coordinate| {bad:g} m: voxel indices beyond +-{_MAX_INDEX} "
+                f"at voxel_size={self.voxel_size:g} (keys pack 21 bits per axis)"
+            )
+        keys, inverse = torch.unique(_pack(index), return_inverse=True)  # sorted unique keys
+        pos = torch.searchsorted(self._keys, keys)
+        found = pos < self._size
+        found[found.clone()] = self._keys[pos[found]] == keys[found]
+        rows = torch.empty_like(keys)
+        rows[found] = self._rows[pos[found]]
+        new = ~found
+        n_new = int(new.sum())
+        if n_new:
+            if self._size + n_new > self._capacity():
+                self._grow(max(self._size + n_new, int(self._capacity() * 1.5) + 16))
+            new_rows = torch.arange(
+                self._size, self._size + n_new, dtype=torch.int64, device=self.device
+            )
+            rows[new] = new_rows
+            # Merge two sorted key lists without sorting: the j-th new key (sorted) goes
+            # before old key pos_j, so it lands at pos_j + j; old keys fill the rest in order.
+            total = self._size + n_new
+            at = pos[new] + torch.arange(n_new, device=self.device)
+            old = torch.ones(total, dtype=torch.bool, device=self.device)
+            old[at] = False
+            merged_keys = torch.empty(total, dtype=torch.int64, device=self.device)
+            merged_rows = torch.empty(total, dtype=torch.int64, device=self.device)
+            merged_keys[at], merged_rows[at] = keys[new], new_rows
+            merged_keys[old], merged_rows[old] = self._keys, self._rows
+            self._keys, self._rows, self._size = merged_keys, merged_rows, total
+        return rows[inverse]
+
+    @property
+    def indices(self) -> Tensor:
+        """``[M, 3]`` int64 voxel indices, in lexicographic order."""
+        return _unpack(self._keys)
+
+    def centres(self) -> Tensor:
+        """``[M, 3]`` float32 voxel centres ``(index + 0.5) * voxel_size`` (float64, then rounded)."""
+        return ((self.indices.to(torch.float64) + 0.5) * self.voxel_size).to(torch.float32)
+
+
+class VoxelMap(_SparseVoxels):
+    """A sparse voxel map of running feature sums (a map that grows frame by frame).
+
+    Per occupied voxel it keeps the float64 sum of the features of every point ever added and
+    their count. Summing float32 features in float64 makes the mean independent of how points were
+    split across :meth:`add` calls and of their order up to float64 rounding (relative
+    ``~1e-16``, far below the float32 result's resolution). Memory: ``8 (D + 1)`` bytes per voxel
+    plus the geometric reserve (at most 1.5x).
+
+    Args:
+        voxel_size: voxel edge in metres (> 0).
+        dim: feature dimension ``D``.
+        device: where the map's tensors live (points and features are moved there).
+    """
+
+    def __init__(self, voxel_size: float, dim: int, device: torch.device | str = "cpu") -> None:
+        super().__init__(voxel_size, device)
+        self.dim = _check_count("dim", dim)
+        self._sums = torch.zeros(0, self.dim, dtype=torch.float64, device=self.device)
+        self._counts = torch.zeros(0, dtype=torch.int64, device=self.device)
+
+    def __repr__(self) -> str:
+        return (
+            f"VoxelMap(voxel_size={self.voxel_size}, dim={self.dim}, device={self.device}, "
+            f"voxels={len(self)})"
+        )
+
+    def _capacity(self) -> int:
+        return self._sums.shape[0]
+
+    def _accumulators(self) -> tuple[Tensor, ...]:
+        return self._sums, self._counts
+
+    def _grow(self, capacity: int) -> None:
+        sums = torch.zeros(capacity, self.dim, dtype=torch.float64, device=self.device)
+        sums[: self._size] = self._sums[: self._size]
+        counts = torch.zeros(capacity, dtype=torch.int64, device=self.device)
+        counts[: self._size] = self._counts[: self._size]
+        self._sums, self._counts = sums, counts
+
+    def add(self, points: Tensor, features: Tensor) -> None:
+        """Add points and their features to the running sums.
+
+        Args:
+            points: ``[N, 3]`` world coordinates in metres (finite; select valid ones first).
+            features: ``[N, D]`` features (any floating dtype; summed in float64).
+        """
+        if not isinstance(features, Tensor) or features.ndim != 2:
+            shape = tuple(features.shape) if isinstance(features, Tensor) else type(features)
+            raise ValueError(f"features of shape {shape}: expected an [N, {self.dim}] tensor")
+        if features.shape[1] != self.dim:
+            raise ValueError(
+                f"features of shape {tuple(features.shape)}: the map has dim={self.dim}"
+            )
+        if not features.is_floating_point():
+            raise ValueError(f"features of dtype {features.dtype}: expected floating point")
+        points = self._check_points(points, features.shape[0])
+        if points.shape[0] == 0:
+            return
+        rows = self._rows_of(points)
+        self._counts.index_add_(0, rows, torch.ones_like(rows))
+        step = max(1, _CHUNK_ELEMENTS // self.dim)
+        for start in range(0, rows.numel(), step):
+            chunk = features[start : start + step].to(device=self.device, dtype=torch.float64)
+            self._sums.index_add_(0, rows[start : start + step], chunk)
+
+    @property
+    def counts(self) -> Tensor:
+        """``[M]`` int64 points per voxel, in the order of :attr:`indices`."""
+        return self._counts[self._rows]
+
+    def means(self) -> Tensor:
+        """``[M, D]`` float64 mean feature per voxel (not normalised), in :attr:`indices` order."""
+        return self._sums[self._rows] / self._counts[self._rows, None]
+
+    def features(self) -> tuple[Tensor, Tensor]:
+        """Voxel centres ``[M, 3]`` and L2-normalised mean features ``[M, D]``, both float32.
+
+        ``mean / max(||mean||, 1e-12)`` computed in float64 (a zero mean stays zero), in row
+        chunks, so a query needs the float32 result plus one ~64 MB temporary, not a float64
+        copy of the map.
+        """
+        unit = torch.empty(self._size, self.dim, dtype=torch.float32, device=self.device)
+        step = max(1, _CHUNK_ELEMENTS // self.dim)
+        for start in range(0, self._size, step):
+            rows = self._rows[start : start + step]
+            mean = self._sums[rows] / self._counts[rows, None]
+            unit[start : start + step] = mean / mean.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        return self.centres(), unit
+
+
+class LabelVoxelMap(_SparseVoxels):
+    """Ground-truth class votes per voxel.
+
+    Every point with a label in ``0 .. num_classes - 1`` adds one vote for its class to its voxel;
+    points with any other label (``ignore_index``, e.g. 255, or any other id outside the range)
+    are dropped and create no voxel. Their numbers are counted in :attr:`ignored` (labels equal
+    to ``ignore_index``) and :attr:`out_of_range` (all other dropped labels), so a label mapping
+    that leaks unexpected ids can be detected.
+
+    Args:
+        voxel_size: voxel edge in metres (> 0).
+        num_classes: number of classes ``K``.
+        ignore_index: the "no label" id; must lie outside ``0 .. K - 1``.
+        device: where the map's tensors live.
+    """
+
+    def __init__(
+        self,
+        voxel_size: float,
+        num_classes: int,
+        ignore_index: int = 255,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        super().__init__(voxel_size, device)
+        self.num_classes = _check_count("num_classes", num_classes)
+        if isinstance(ignore_index, bool) or not isinstance(ignore_index, int):
+            raise ValueError(f"ignore_index={ignore_index!r}: expected an integer")
+        if 0 <= ignore_index < self.num_classes:
+            raise ValueError(
+                f"ignore_index={ignore_index}: it is a class id (num_classes={self.num_classes})"
+            )
+        self.ignore_index = ignore_index
+        self.ignored = 0
+        self.out_of_range = 0
+        self._votes = torch.zeros(0, self.num_classes, dtype=torch.int64, device=self.device)
+
+    def __repr__(self) -> str:
+        return (
+            f"LabelVoxelMap(voxel_size={self.voxel_size}, num_classes={self.num_classes}, "
+            f"device={self.device}, voxels={len(self)})"
+        )
+
+    def _capacity(self) -> int:
+        return self._votes.shape[0]
+
+    def _accumulators(self) -> tuple[Tensor, ...]:
+        return (self._votes,)
+
+    def _grow(self, capacity: int) -> None:
+        votes = torch.zeros(capacity, self.num_classes, dtype=torch.int64, device=self.device)
+        votes[: self._size] = self._votes[: self._size]
+        self._votes = votes
+
+    def add(self, points: Tensor, labels: Tensor) -> None:
+        """Add one vote per labelled point.
+
+        Args:
+            points: ``[N, 3]`` world coordinates in metres (finite).
+            labels: ``[N]`` integer class ids; ids outside ``0 .. K - 1`` are dropped.
+        """
+        if not isinstance(labels, Tensor) or labels.ndim != 1:
+            shape = tuple(labels.shape) if isinstance(labels, Tensor) else type(labels)
+            raise ValueError(f"labels of shape {shape}: expected an [N] integer tensor")
+        if labels.is_floating_point() or labels.is_complex() or labels.dtype == torch.bool:
+            raise ValueError(f"labels of dtype {labels.dtype}: expected an integer tensor")
+        points = self._check_points(points, labels.shape[0])
+        labels = labels.to(device=self.device, dtype=torch.int64)
+        keep = (labels >= 0) & (labels < self.num_classes)
+        n_ignored = int((labels == self.ignore_index).sum())
+        self.ignored += n_ignored
+        self.out_of_range += int((~keep).sum()) - n_ignored
+        points, labels = points[keep], labels[keep]
+        if points.shape[0] == 0:
+            return
+        rows = self._rows_of(points)
+        flat = self._votes.view(-1)
+        flat.index_add_(0, rows * self.num_classes + labels, torch.ones_like(rows))
+
+    @property
+    def votes(self) -> Tensor:
+        """``[M, K]`` int64 votes per voxel and class, in the order of :attr:`indices`."""
+        return self._votes[self._rows]
+
+    @property
+    def counts(self) -> Tensor:
+        """``[M]`` int64 labelled points per voxel."""
+        return self.votes.sum(dim=1)
+
+    def labels(self) -> tuple[Tensor, Tensor]:
+        """Voxel centres ``[M, 3]`` float32 and labels ``[M]`` int64, the most-voted class.
+
+        Ties go to the lowest class id (``torch.argmax`` returns the first maximum).
+        """
+        return self.centres(), torch.argmax(self.votes, dim=1)
