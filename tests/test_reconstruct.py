@@ -100,8 +100,8 @@ def test_full_empty_prototype_contributes_zero():
     inter, lang, labels = _region_scene()
 
     class WithEmpty(ReSiRegFull):
-        def assign(self, intermediates):
-            dist, shape = super().assign(intermediates)
+        def assign(self, intermediates, spectrum=None):
+            dist, shape = super().assign(intermediates, spectrum)
             return torch.cat([dist, torch.full((dist.shape[0], 1), 1e3)], 1), shape
 
     out = WithEmpty(n_prototypes=4, n_components=8, upscale=1)(inter, lang)
@@ -355,3 +355,26 @@ def test_full_seeding_products_on_the_grid_are_the_points_products(upscale, monk
     assert torch.allclose(kwargs["dots"](c), c @ z.T, atol=1e-5)
     plain = real_kmeans(z, n, seed=kwargs["seed"], max_iter=kwargs["max_iter"])
     assert torch.allclose(dist, plain.sq_dists.sqrt(), atol=1e-5)
+
+
+def test_configurations_sharing_a_batch_equal_each_run_alone():
+    """apply_variant with one `shared` dict per batch (what the evaluation does for many
+    Full configurations) gives bitwise the output of each configuration run alone: the
+    spectrum is sliced per component count, the tokens are resized once."""
+    from resireg.variants import apply_variant, build_variants
+
+    torch.manual_seed(3)
+    inter, lang = torch.randn(2, 16, 5, 6), torch.randn(2, 8, 5, 6)
+    prior = torch.randint(0, 3, (2, 10, 12))
+    names = ["full@n_prototypes:4", "full@n_prototypes:7@alpha:2.0", "full@n_components:3",
+             "full@upscale:1", "lite", "bb"]  # fmt: skip
+    variants = build_variants(names, {"full": {"n_prototypes": 5, "n_components": None}})
+    shared: dict = {}
+    for name, variant in variants.items():
+        for p in (None, prior) if name != "bb" else (None,):
+            together = apply_variant(variant, inter, lang, p, shared=shared)
+            assert torch.equal(together, variant(inter, lang, p)), name
+    assert len(shared) == 2  # one per upscale among the Full configurations
+    full = variants["full@n_prototypes:4"]
+    with pytest.raises(ValueError, match="other intermediates"):
+        full(inter.clone(), lang, shared=next(iter(shared.values())))

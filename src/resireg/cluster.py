@@ -24,6 +24,7 @@ from torch import Tensor
 
 __all__ = [
     "PCAResult",
+    "PCASpectrum",
     "KMeansResult",
     "pca",
     "pca_from_moments",
@@ -70,6 +71,54 @@ def pca(x: Tensor, n_components: int) -> PCAResult:
     return pca_from_moments(gram(xc), x.new_zeros(x.shape[1]), x.shape[0], n_components, shift=mean)
 
 
+@dataclass
+class PCASpectrum:
+    """The eigendecomposition of a covariance, from which a PCA of any size is sliced.
+
+    ReSiReg Full's configurations of one batch differ in their component count only, so the
+    evaluation decomposes once and takes :meth:`top` per configuration; a PCA sliced from
+    the shared spectrum equals one decomposed alone (same ``eigh`` input, same slice).
+
+    Attributes:
+        centre: ``[D]`` float64 mean of the points relative to ``shift``.
+        shift: ``[D]`` offset of the moments (``None``: zero).
+        evals: ``[D]`` float64 eigenvalues, decreasing.
+        evecs: ``[D, D]`` float64 eigenvectors (columns), in the order of ``evals``.
+    """
+
+    centre: Tensor
+    shift: Tensor | None
+    evals: Tensor
+    evecs: Tensor
+
+    @classmethod
+    def from_moments(
+        cls, second: Tensor, first: Tensor, n: int, shift: Tensor | None = None
+    ) -> PCASpectrum:
+        """Arguments as :func:`pca_from_moments` (without the component count)."""
+        if n < 2:
+            raise ValueError(f"pca needs at least 2 points, got N={n}")
+        centre = first.double() / n
+        cov = (second.double() - n * torch.outer(centre, centre)) / (n - 1)
+        # eigh of a D x D matrix is cheap; float64 keeps small eigenvalues ordered correctly.
+        evals, evecs = torch.linalg.eigh(cov)
+        return cls(centre=centre, shift=shift, evals=evals.flip(0), evecs=evecs.flip(1))
+
+    def top(self, n_components: int) -> PCAResult:
+        """The PCA keeping ``n_components`` (clipped to ``D``) axes, signs as scikit-learn's
+        ``svd_flip`` (largest-magnitude loading positive)."""
+        r = min(int(n_components), self.evecs.shape[0])
+        if r < 1:
+            raise ValueError(f"n_components must be >= 1, got {n_components}")
+        comps = self.evecs[:, :r].T.float()  # [r, D]
+        signs = torch.sign(comps.gather(1, comps.abs().argmax(dim=1, keepdim=True)))
+        return PCAResult(
+            mean=self.centre.float() + (self.shift.float() if self.shift is not None else 0.0),
+            components=comps * signs,
+            explained_variance=self.evals[:r].clamp_min(0).float(),
+        )
+
+
 def pca_from_moments(
     second: Tensor, first: Tensor, n: int, n_components: int, shift: Tensor | None = None
 ) -> PCAResult:
@@ -87,21 +136,9 @@ def pca_from_moments(
     smaller grid, see :func:`resireg.reconstruct.upsampled_moments`) fit the exact PCA of
     points they never materialise.
     """
-    d = second.shape[0]
-    if n < 2:
-        raise ValueError(f"pca needs at least 2 points, got N={n}")
-    r = min(int(n_components), d)
-    if r < 1:
+    if int(n_components) < 1:
         raise ValueError(f"n_components must be >= 1, got {n_components}")
-    centre = first.double() / n
-    cov = (second.double() - n * torch.outer(centre, centre)) / (n - 1)
-    # eigh of a D x D matrix is cheap; float64 keeps small eigenvalues ordered correctly.
-    evals, evecs = torch.linalg.eigh(cov)
-    evals = evals.flip(0)[:r].clamp_min(0).float()
-    comps = evecs.flip(1)[:, :r].T.float()  # [r, D]
-    signs = torch.sign(comps.gather(1, comps.abs().argmax(dim=1, keepdim=True)))
-    mean = centre.float() + (shift.float() if shift is not None else 0.0)
-    return PCAResult(mean=mean, components=comps * signs, explained_variance=evals)
+    return PCASpectrum.from_moments(second, first, n, shift).top(n_components)
 
 
 @dataclass

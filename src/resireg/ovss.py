@@ -20,6 +20,7 @@ __all__ = [
     "TEMPLATES",
     "ADE20K_CLASSES",
     "ORAD3D_CLASSES",
+    "NYU40_CLASSES",
     "SCANNET_CLASSES",
     "VOCABULARIES",
     "vocabulary",
@@ -64,7 +65,8 @@ ORAD3D_CLASSES: tuple[str, ...] = (
     "rock", "sky", "background",
 )  # fmt: skip
 
-_NYU40: tuple[str, ...] = (
+#: The NYU40 class names by id - 1 (id 1 = wall ... 40 = otherprop): ScanNet's label set.
+NYU40_CLASSES: tuple[str, ...] = (
     "wall", "floor", "cabinet", "bed", "chair", "sofa", "table", "door", "window",
     "bookshelf", "picture", "counter", "blinds", "desk", "shelves", "curtain", "dresser",
     "pillow", "mirror", "floor mat", "clothes", "ceiling", "books", "refrigerator",
@@ -75,7 +77,7 @@ _NYU40: tuple[str, ...] = (
 
 #: ScanNet's NYU40 classes without the three catch-all "other" classes (37 classes).
 SCANNET_CLASSES: tuple[str, ...] = tuple(
-    c for c in _NYU40 if c not in ("otherstructure", "otherfurniture", "otherprop")
+    c for c in NYU40_CLASSES if c not in ("otherstructure", "otherfurniture", "otherprop")
 )
 
 VOCABULARIES: dict[str, tuple[str, ...]] = {

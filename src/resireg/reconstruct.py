@@ -20,9 +20,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.cluster import PCAResult, gram, kmeans, pca_from_moments
+from resireg.cluster import PCAResult, PCASpectrum, gram, kmeans
 
-__all__ = ["ReSiRegFull", "ReSiRegLite", "upsampled_moments", "upsampled_pca"]
+__all__ = [
+    "FullShared",
+    "ReSiRegFull",
+    "ReSiRegLite",
+    "upsampled_moments",
+    "upsampled_pca",
+    "upsampled_spectrum",
+]
 
 # Budget for one chunk of the explicit (tau > 0) Lite attention matrix, in elements.
 _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
@@ -179,8 +186,14 @@ def upsampled_pca(x: Tensor, scale: int, n_components: int) -> PCAResult:
     small grid (:func:`upsampled_moments`), so this is the same PCA, ``s^2`` times cheaper;
     the projection likewise commutes with upsampling (``upsample(X) W = upsample(X W)``).
     """
+    return upsampled_spectrum(x, scale).top(n_components)
+
+
+def upsampled_spectrum(x: Tensor, scale: int) -> PCASpectrum:
+    """The covariance eigendecomposition behind :func:`upsampled_pca` (any component count
+    is then a slice: :meth:`~resireg.cluster.PCASpectrum.top`)."""
     second, first, n, shift = upsampled_moments(x, scale)
-    return pca_from_moments(second, first, n, n_components, shift=shift)
+    return PCASpectrum.from_moments(second, first, n, shift=shift)
 
 
 def _project_grid(x: Tensor, fit: PCAResult) -> Tensor:
@@ -209,8 +222,12 @@ def _masked_mean_normalised(values: Tensor, index: Tensor, n_groups: int) -> Ten
     Points with ``index < 0`` belong to no group; an empty group yields a zero vector.
     Returns ``[n_groups, D]``.
     """
+    sums = values.new_zeros(n_groups, values.shape[1])
     keep = index >= 0
-    sums = values.new_zeros(n_groups, values.shape[1]).index_add_(0, index[keep], values[keep])
+    if bool(keep.all()):  # every point in a group (k-means masks): no masked copy of values
+        sums.index_add_(0, index, values)
+    else:
+        sums.index_add_(0, index[keep], values[keep])
     # The mean and the sum have the same direction; normalising the sum is enough and a
     # zero sum (empty group) stays zero.
     return F.normalize(sums, dim=1)
@@ -244,6 +261,41 @@ class _Instances:
         self.local = torch.arange(uniq.numel(), device=ids.device) - first[self.owner]
         self.count = int(uniq.numel())
         self.max_per_image = int(per_image.max().item()) if b else 0
+
+
+class FullShared:
+    """What every ReSiReg Full configuration computes identically for one batch: the
+    covariance spectrum of the upsampled intermediates (each configuration slices its own
+    component count from it) and the language tokens at the mask grid.
+
+    The evaluation scores many configurations (``full@n_prototypes:24``, ``:36``, ...) on one
+    encoded batch; passing one ``FullShared`` to each (``full(..., shared=s)``) computes
+    these once. Each result equals the configuration run alone (the same operations on the
+    same inputs). Built lazily; tied to the ``intermediates`` and ``language`` tensors it was
+    made for and to one ``upscale``.
+    """
+
+    def __init__(self, intermediates: Tensor, language: Tensor, upscale: int) -> None:
+        self.intermediates, self.language, self.upscale = intermediates, language, upscale
+        self._spectrum: PCASpectrum | None = None
+        self._tokens: Tensor | None = None
+
+    def check(self, intermediates: Tensor, language: Tensor, upscale: int) -> None:
+        if intermediates is not self.intermediates or language is not self.language:
+            raise ValueError("shared= was built for other intermediates/language tensors")
+        if upscale != self.upscale:
+            raise ValueError(f"shared= was built for upscale={self.upscale}, not {upscale}")
+
+    def spectrum(self) -> PCASpectrum:
+        if self._spectrum is None:
+            self._spectrum = upsampled_spectrum(self.intermediates.float(), self.upscale)
+        return self._spectrum
+
+    def tokens(self, size: tuple[int, int]) -> Tensor:
+        """``[N, Dl]`` language tokens nearest-resized to the mask grid ``size``."""
+        if self._tokens is None:
+            self._tokens = _to_points(_nearest(self.language.float(), size))
+        return self._tokens
 
 
 class ReSiRegFull(nn.Module):
@@ -322,11 +374,15 @@ class ReSiRegFull(nn.Module):
             )
         return n
 
-    def assign(self, intermediates: Tensor) -> tuple[Tensor, Tensor]:
+    def assign(
+        self, intermediates: Tensor, spectrum: PCASpectrum | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Cluster the batch's intermediates.
 
         Args:
             intermediates: ``[B, Dv, Hv, Wv]``.
+            spectrum: the covariance spectrum of the upsampled intermediates, if already
+                computed (:class:`FullShared`); else computed here.
 
         Returns:
             ``(distances, shape)``: ``distances`` ``[N, n]`` Euclidean distances of every
@@ -337,7 +393,8 @@ class ReSiRegFull(nn.Module):
         s = self.upscale
         n = self.check_grid(b, hv, wv)
         x = intermediates.float()
-        fit = upsampled_pca(x, s, self.n_components if self.n_components is not None else n)
+        spectrum = spectrum if spectrum is not None else upsampled_spectrum(x, s)
+        fit = spectrum.top(self.n_components if self.n_components is not None else n)
         # Project on the small grid (projection commutes with upsampling). The [B*Hv*Wv, r']
         # result is the channels-last layout of the [B, r', Hv, Wv] map, which bilinear
         # upsampling keeps, so the upsampled map's points are a view, not a copy.
@@ -359,7 +416,11 @@ class ReSiRegFull(nn.Module):
         return result.sq_dists.sqrt_(), (b, hv * s, wv * s)
 
     def forward(
-        self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None
+        self,
+        intermediates: Tensor,
+        language: Tensor,
+        prior: Tensor | None = None,
+        shared: FullShared | None = None,
     ) -> Tensor:
         """Reconstruct language features.
 
@@ -367,14 +428,19 @@ class ReSiRegFull(nn.Module):
             intermediates: ``[B, Dv, Hv, Wv]`` backbone features used for clustering.
             language: ``[B, Dl, Hl, Wl]`` language-aligned patch tokens.
             prior: optional ``[B, H', W']`` integer instance ids (0 = none).
+            shared: work shared with other configurations of this batch (:class:`FullShared`
+                of these two tensors and this ``upscale``); ``None`` computes it here.
 
         Returns:
             ``[B, Dl, Hv*s, Wv*s]``, unit L2 norm over ``Dl``, in ``language.dtype``.
         """
         _check_inputs(intermediates, language, prior)
+        if shared is None:
+            shared = FullShared(intermediates, language, self.upscale)
+        shared.check(intermediates, language, self.upscale)
         with torch.autocast(device_type=intermediates.device.type, enabled=False):
-            dist, (b, h, w) = self.assign(intermediates)
-            tokens = _to_points(_nearest(language.float(), (h, w)))  # [N, Dl]
+            dist, (b, h, w) = self.assign(intermediates, shared.spectrum())
+            tokens = shared.tokens((h, w))  # [N, Dl]
             masks = dist.argmin(dim=1)
             protos = _masked_mean_normalised(tokens, masks, dist.shape[1])
             if prior is not None:
@@ -489,9 +555,11 @@ class ReSiRegLite(nn.Module):
             # inputs with equal q/k and v widths; otherwise it falls back to the math kernel
             # and materialises N x N (measured: 3.4 GB instead of 89 MB for 8 x 6912 points
             # with 384-d keys and 512-d values). Zero-padding the narrower side to a common
-            # width changes no dot product.
+            # width changes no dot product. The width is rounded up to a multiple of 8, the
+            # alignment CUDA's fused kernels need: the prior's M + 1 slot dimensions make the
+            # query width arbitrary (e.g. 384 + 150 + 1).
             dl = v.shape[2]
-            width = max(q.shape[2], dl)
+            width = -(-max(q.shape[2], dl) // 8) * 8
             out = F.scaled_dot_product_attention(
                 F.pad(q, (0, width - q.shape[2])).unsqueeze(1).contiguous(),
                 F.pad(k, (0, width - k.shape[2])).unsqueeze(1).contiguous(),

@@ -10,10 +10,21 @@ from __future__ import annotations
 import ast
 from typing import Any
 
-__all__ = ["VARIANTS", "parse_variant"]
+__all__ = ["PRIOR_SUFFIX", "PRIOR_VARIANTS", "VARIANTS", "parse_variant", "takes_prior"]
 
 #: Names of :func:`resireg.variants.build_variant`, in the report order of the paper's Table 1.
 VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
+
+#: ``<variant>+prior``: the configuration is called with the segmentation prior
+#: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it.
+PRIOR_SUFFIX = "+prior"
+PRIOR_VARIANTS: tuple[str, ...] = ("lite", "full")
+
+
+def takes_prior(name: str) -> bool:
+    """Whether configuration ``name`` is scored with the segmentation prior (``full+prior``,
+    ``full+prior@n_prototypes:24``)."""
+    return str(name).split("@")[0].endswith(PRIOR_SUFFIX)
 
 
 def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
@@ -22,8 +33,11 @@ def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
     A *configuration* is a variant name with parameter overrides after ``@`` (``key:value``,
     repeated; values are Python literals, else strings such as ``auto``). The syntax passes
     through Hydra's command line (``variants=[bb,full@n_prototypes:24]``) and YAML unquoted.
+    A ``+prior`` suffix on the name (``full+prior@n_prototypes:24``) is not part of the base
+    (``"full"``); :func:`takes_prior` reads it.
     """
     base, *items = str(name).split("@")
+    base = base.removesuffix(PRIOR_SUFFIX)
     overrides: dict[str, Any] = {}
     for item in items:
         key, sep, text = item.partition(":")

@@ -25,10 +25,17 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.calib import Calib
-from resireg.reconstruct import ReSiRegFull, ReSiRegLite
-from resireg.variant_names import VARIANTS, parse_variant
+from resireg.reconstruct import FullShared, ReSiRegFull, ReSiRegLite
+from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
-__all__ = ["VARIANTS", "BackboneOnly", "build_variant", "build_variants", "parse_variant"]
+__all__ = [
+    "VARIANTS",
+    "BackboneOnly",
+    "apply_variant",
+    "build_variant",
+    "build_variants",
+    "parse_variant",
+]
 
 
 class BackboneOnly(nn.Module):
@@ -72,7 +79,8 @@ def build_variants(
     "full@n_prototypes:36"]`` costs one encoder pass for both.
 
     Args:
-        names: variant names (see :data:`VARIANTS`) or configurations (``full@n_prototypes:24``).
+        names: variant names (see :data:`VARIANTS`) or configurations (``full@n_prototypes:24``;
+            ``full+prior`` is built as ``full``, the caller passes it the prior).
         params: per-variant keyword arguments, e.g. ``{"full": {"n_prototypes": 36}}``;
             entries for variants not named are ignored.
         key: the config key holding ``names``, named in errors.
@@ -85,8 +93,37 @@ def build_variants(
         raise ValueError(f"{key}={list(names)}: unknown {bad}; choose from {list(VARIANTS)}")
     if len(parsed) != len(names):
         raise ValueError(f"{key}={list(names)}: a name appears twice")
+    bad = [n for n, (base, _) in parsed.items() if takes_prior(n) and base not in PRIOR_VARIANTS]
+    if bad:
+        raise ValueError(
+            f"{key}={list(names)}: {bad} cannot take a prior; +prior applies to "
+            f"{list(PRIOR_VARIANTS)}"
+        )
     params = params or {}
     return {
         n: build_variant(base, **{**dict(params.get(base) or {}), **overrides})
         for n, (base, overrides) in parsed.items()
     }
+
+
+def apply_variant(
+    variant: nn.Module,
+    intermediates: Tensor,
+    language: Tensor,
+    prior: Tensor | None = None,
+    shared: dict[Any, Any] | None = None,
+) -> Tensor:
+    """``variant(intermediates, language, prior)``, reusing what the configurations of one
+    batch compute identically.
+
+    ``shared`` is one dict per encoded batch, passed to every configuration scored on it:
+    ReSiReg Full configurations with the same ``upscale`` then decompose the covariance
+    and resize the language tokens once (:class:`~resireg.reconstruct.FullShared`), whatever
+    their prototype and component counts. Results equal each configuration run alone.
+    """
+    if shared is not None and isinstance(variant, ReSiRegFull):
+        key = (FullShared, variant.upscale)
+        if key not in shared:
+            shared[key] = FullShared(intermediates, language, variant.upscale)
+        return variant(intermediates, language, prior, shared=shared[key])
+    return variant(intermediates, language, prior)

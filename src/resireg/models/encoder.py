@@ -22,7 +22,7 @@ section 3).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -113,6 +113,10 @@ class DenseEncoder(nn.Module, ABC):
         if given; sides rounded to the patch size); the images of one call must share the
         resulting size.
         """
+        return self.input_rule.normalize(self.resized(images, short_side))
+
+    def resized(self, images: Any, short_side: int | None = None) -> Tensor:
+        """:meth:`preprocess` before normalisation: float ``[B, 3, H, W]`` in [0, 1]."""
         if isinstance(images, (Image.Image, Tensor)) and not (
             isinstance(images, Tensor) and images.ndim == 4
         ):
@@ -125,7 +129,7 @@ class DenseEncoder(nn.Module, ABC):
                 "images of one batch must share a size after resizing, got "
                 f"{[tuple(t.shape[-2:]) for t in out]}"
             )
-        return rule.normalize(torch.stack(out).to(self.device))
+        return torch.stack(out).to(self.device)
 
     def encode_image(
         self,
@@ -134,7 +138,7 @@ class DenseEncoder(nn.Module, ABC):
         *,
         normalized: bool = False,
         short_side: int | None = None,
-        prior: Tensor | None = None,
+        prior: Tensor | Callable[[Tensor], Tensor] | None = None,
         **resireg_kwargs: Any,
     ) -> Tensor:
         """Dense language features ``[B, Dl, h, w]`` (unit norm over channels).
@@ -145,10 +149,18 @@ class DenseEncoder(nn.Module, ABC):
                 :func:`resireg.variants.build_variant` (``"lite"``, ``"full"``), or a
                 variant module. ReSiReg's grid is ``upscale`` times finer.
             short_side: resize for PIL/tensor input (see :meth:`preprocess`).
-            prior: optional segmentation prior ``[B, H', W']`` of instance ids for ReSiReg.
+            prior: optional segmentation prior for ReSiReg: instance ids ``[B, H', W']``
+                (0 = none), or a provider (e.g. :class:`resireg.priors.SamPrior`) called on
+                the resized images before normalisation (float ``[B, 3, H, W]`` in [0, 1])
+                that returns them; a provider needs ``normalized=False``.
             **resireg_kwargs: the variant's arguments (with a name).
         """
-        x = images if normalized else self.preprocess(images, short_side)
+        if normalized and prior is not None and not isinstance(prior, Tensor):
+            raise ValueError("a prior provider needs the images: pass normalized=False")
+        raw = None if normalized else self.resized(images, short_side)
+        x = images if raw is None else self.input_rule.normalize(raw)
+        if prior is not None and not isinstance(prior, Tensor):
+            prior = prior(raw)
         variant = (
             resireg
             if isinstance(resireg, nn.Module)
@@ -156,6 +168,8 @@ class DenseEncoder(nn.Module, ABC):
         )
         with torch.no_grad():
             out = self.encode(x)
+            if prior is not None:
+                prior = prior.to(out.intermediates.device)
             return variant(out.intermediates, out.language, prior)
 
     def similarity(

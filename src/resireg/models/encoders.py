@@ -30,7 +30,7 @@ from resireg.models.radio import RadioEncoder, RadSegEncoder
 from resireg.models.tips import TipsEncoder
 from resireg.models.vlm import ResiregVLM
 
-__all__ = ["ENCODERS", "build_encoder", "count_parameters"]
+__all__ = ["ENCODERS", "build_encoder", "count_parameters", "encoder_modules"]
 
 
 def _resireg_vlm(
@@ -68,16 +68,22 @@ def build_encoder(
         raise TypeError(f"{config_key} (kind {kind!r}): {err}") from err
 
 
-def count_parameters(encoder: DenseEncoder) -> int:
-    """All parameters of the encoder, frozen ones included (RADSeg keeps RADIO and its
-    adaptor outside the module tree, so they are counted from there)."""
-    modules = [encoder]
+def encoder_modules(encoder: DenseEncoder) -> list[torch.nn.Module]:
+    """The encoder and the modules it keeps outside its module tree (RADSeg holds RADIO and
+    its adaptor in a plain object): everything whose weights make its outputs."""
+    modules: list[torch.nn.Module] = [encoder]
     inner = getattr(encoder, "encoder", None)
     if inner is not None and not isinstance(inner, torch.nn.Module):
         modules += [m for m in vars(inner).values() if isinstance(m, torch.nn.Module)]
+    return modules
+
+
+def count_parameters(encoder: DenseEncoder) -> int:
+    """All parameters of the encoder, frozen ones included (those of
+    :func:`encoder_modules`), each shared tensor once."""
     seen: set[int] = set()
     total = 0
-    for module in modules:
+    for module in encoder_modules(encoder):
         for p in module.parameters():
             if id(p) not in seen:
                 seen.add(id(p))
