@@ -8,10 +8,13 @@ with its status and error. Writes, into the sweep folder (or ``--out``):
 - ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
   jobs, status, the scores (final values; for training runs also the best of the chosen
   metric) and the error.
-- For the prototype/batch ablation (jobs varying ``batch_size`` and ``full.n_prototypes``):
-  ``heatmap.png`` (batch size x prototype count, mIoU of ReSiReg Full) and
+- For the prototype/batch ablation (jobs varying ``batch_size`` and ``full.n_prototypes``,
+  2D or 3D: the metric is whichever ``.../miou_full`` the jobs recorded, ``val/ovss/...`` or
+  ``val/scannet3d/...``): ``heatmap.png`` (batch size x prototype count, mIoU of ReSiReg Full) and
   ``prototype_heuristic.json``: ``n(B)`` fitted to the best prototype count of every
   batch size, loadable by ``ReSiRegFull(n_prototypes="auto", heuristic=PATH)``.
+- For encoder sweeps: ``table1.md`` / ``.csv`` (2D OVSS, the paper's Table 1) or, for
+  ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
 
@@ -31,6 +34,7 @@ import pandas as pd
 import yaml
 
 from resireg.heuristic import PrototypeHeuristic
+from resireg.variant_names import takes_prior
 from resireg.variants import parse_variant
 from resireg_train.results import RESULTS_FILE, metric_mode, read_results
 
@@ -45,6 +49,7 @@ __all__ = [
     "grid_statuses",
     "heatmap_figure",
     "known_metrics",
+    "mapping_table",
     "plot_curves",
     "plot_heatmap",
     "prototype_grid",
@@ -191,6 +196,8 @@ def _prototype_configs(job: Job) -> dict[int, str]:
         try:
             base, overrides = parse_variant(name)
         except ValueError:
+            continue
+        if takes_prior(name):  # full+prior@n_prototypes:<n> is not a cell of the grid
             continue
         n = overrides.get("n_prototypes")
         if base == "full" and isinstance(n, int) and not isinstance(n, bool):
@@ -476,6 +483,80 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     return files
 
 
+# ------------------------------------------------------------ 3D mapping table (Table 2)
+MAPPING_PREFIX = "val/scannet3d/"
+
+
+def is_mapping_sweep(jobs: list[Job]) -> bool:
+    """Jobs of ``resireg-eval task=scannet3d`` (3D semantic mapping)."""
+    for job in jobs:
+        params = job.results.get("params") or {}
+        if params.get("task") == "scannet3d" or job.overrides.get("task") == "scannet3d":
+            return True
+        if any(k.startswith(MAPPING_PREFIX) for k in job.results.get("final") or {}):
+            return True
+    return False
+
+
+def mapping_table(jobs: list[Job]) -> pd.DataFrame:
+    """The paper's Table 2 from a 3D mapping sweep: one row per encoder and variant scored
+    (``encoder + Full``), its parameter count, and per dataset the mIoU and f-mIoU over the
+    voxels of all scenes (x100), the mean of the scenes' mIoU (x100) and the job's status (a
+    job that did not complete leaves its cells empty)."""
+    rows: dict[tuple[str, str], dict[str, Any]] = {}
+    datasets: list[str] = []
+    for job in jobs:
+        name, third, parameters = _encoder_of(job)
+        dataset = _dataset_of(job)
+        if dataset not in datasets:
+            datasets.append(dataset)
+        variants = (job.results.get("params") or {}).get("variants") or ["full"]
+        for variant in variants:
+            base = variant.split("@")[0]
+            label = f"{name} + {METHOD_NAMES.get(base, base)}{variant[len(base) :]}"
+            row = rows.setdefault((name, variant), {"model": label, "encoder": name,
+                                                    "variant": variant, "third_party": third,
+                                                    "parameters (M)": None})  # fmt: skip
+            if parameters:
+                row["parameters (M)"] = round(parameters / 1e6, 1)
+            row[f"{dataset} status"] = job.status
+            if job.status != "completed":
+                continue
+            final = job.results.get("final", {})
+            for key, column in (("miou", "mIoU"), ("fmiou", "f-mIoU")):
+                value = final.get(f"{MAPPING_PREFIX}{dataset}/{key}_{variant}")
+                if value is not None:
+                    row[f"{dataset} {column}"] = 100 * value
+            scenes = [
+                s["scores"][variant]["miou"]
+                for s in (job.results.get("per_scene") or {}).values()
+                if variant in s.get("scores", {}) and not math.isnan(s["scores"][variant]["miou"])
+            ]
+            if scenes:
+                row[f"{dataset} mIoU (scene mean)"] = 100 * sum(scenes) / len(scenes)
+    columns = ["model", "encoder", "variant", "third_party", "parameters (M)"]
+    for dataset in datasets:
+        columns += [f"{dataset} mIoU", f"{dataset} f-mIoU", f"{dataset} mIoU (scene mean)",
+                    f"{dataset} status"]  # fmt: skip
+    return pd.DataFrame(list(rows.values())).reindex(columns=columns)
+
+
+def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
+    """``table2.csv`` and ``table2.md``."""
+    table = mapping_table(jobs)
+    files = {"table2_csv": out / "table2.csv", "table2_md": out / "table2.md"}
+    table.to_csv(files["table2_csv"], index=False)
+    shown = table.drop(columns=["encoder", "variant", "third_party"])
+    shown = shown.astype(object).where(shown.notna(), None)
+    lines = [
+        "# 3D semantic mapping on ScanNet (mIoU / f-mIoU x100 over the voxels of all scenes)",
+        "",
+        shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+    ]
+    files["table2_md"].write_text("\n".join(lines) + "\n")
+    return files
+
+
 def report(
     sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
 ) -> dict[str, Path]:
@@ -503,7 +584,10 @@ def report(
         "",
         table.fillna({"error": ""}).to_markdown(index=False, floatfmt=".4f"),
     ]
-    if is_encoder_sweep(jobs):
+    if is_encoder_sweep(jobs) and is_mapping_sweep(jobs):
+        files.update(write_mapping_table(jobs, out))
+        lines += ["", f"3D mapping table (the paper's Table 2): `{files['table2_md'].name}`."]
+    elif is_encoder_sweep(jobs):
         files.update(write_encoder_table(jobs, out))
         lines += ["", f"Encoder table (the paper's Table 1): `{files['table1_md'].name}`."]
     if metric and _is_prototype_sweep(jobs):

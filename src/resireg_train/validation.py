@@ -19,9 +19,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.variant_names import VARIANTS, parse_variant
+from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
-__all__ = ["ConfigError", "PRECISIONS", "check_devices", "validate", "validate_eval"]
+__all__ = ["ConfigError", "PRECISIONS", "TASKS", "check_devices", "validate", "validate_eval"]
 
 #: Evaluation precisions -> the torch dtype name of their autocast (``None``: fp32, no autocast).
 PRECISIONS: dict[str, str | None] = {
@@ -36,6 +36,8 @@ class ConfigError(ValueError):
 _MISSING = object()
 #: ``encoder.kind`` values (``resireg.models.ENCODERS``; listed here so the config check does
 #: not import the models).
+#: Device kinds of ``device`` / ``prior.device`` (``cuda:N`` included).
+_DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
 _ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt", "tips", "otas")
 _PRECISIONS = {
     "32-true", "32", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true", "64",
@@ -107,13 +109,22 @@ _RULES: dict[str, Rule] = {
 
 def _variant_ok(name: Any) -> bool:
     try:
-        return parse_variant(str(name))[0] in VARIANTS
+        base = parse_variant(str(name))[0]
     except ValueError:
         return False
+    return base in (PRIOR_VARIANTS if takes_prior(str(name)) else VARIANTS)
 
 
 def _unit(v: Any) -> bool:
     return _num(v) and 0 <= v <= 1
+
+
+def _size(v: Any) -> bool:
+    return isinstance(v, list) and len(v) == 2 and all(_int(s) and s >= 1 for s in v)
+
+
+#: resireg-eval's tasks: 2D OVSS and 3D semantic mapping on ScanNet (docs/design.md section 10).
+TASKS = ("ovss", "scannet3d")
 
 
 def _ovss_rules(prefix: str) -> dict[str, Rule]:
@@ -123,7 +134,7 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
         f"{prefix}variants": (
             lambda v: isinstance(v, list) and len(v) > 0 and all(_variant_ok(n) for n in v),
             f"a non-empty list of {list(VARIANTS)}, each optionally with overrides "
-            "(full@n_prototypes:24)",
+            f"(full@n_prototypes:24); {list(PRIOR_VARIANTS)} also with the prior (full+prior)",
         ),
         f"{prefix}full.n_prototypes": (
             lambda v: v == "auto" or (_int(v) and v >= 1),
@@ -169,6 +180,35 @@ _EVAL_RULES: dict[str, Rule] = {
     "dataset.short_side": _optional_int(16),
     "dataset.limit": _optional_int(1),
     "optimized_metric": (_opt_str, "null or a metric name"),
+    "feature_cache": (_opt_str, "null or a directory for stored encoder outputs"),
+    # the segmentation prior (conf/prior/sam2.yaml), absent with prior=null
+    "prior.kind": (lambda v: v == "sam2", "sam2"),
+    "prior.model": (lambda v: isinstance(v, str) and bool(v), "a hub id or a local directory"),
+    "prior.device": (
+        lambda v: v is None or (isinstance(v, str) and v.split(":")[0] in _DEVICE_KINDS),
+        "null (the evaluation's device), auto, cpu, cuda, cuda:N or mps",
+    ),
+    "prior.points_per_side": _integer(1),
+    "prior.points_per_batch": _integer(1),
+    "prior.pred_iou_thresh": (_unit, "a number in [0, 1]"),
+    "prior.stability_score_thresh": (_unit, "a number in [0, 1]"),
+    "prior.stability_score_offset": (_num, "a number"),
+    "prior.mask_threshold": (_num, "a number"),
+    "prior.box_nms_thresh": (_unit, "a number in [0, 1]"),
+    "prior.crop_n_layers": _integer(0),
+    "prior.crop_overlap_ratio": (_unit, "a number in [0, 1]"),
+    "prior.crop_n_points_downscale_factor": _integer(1),
+    "task": (lambda v: v in TASKS, f"one of {list(TASKS)}"),
+    # the 3D task's dataset (conf/dataset/scannet.yaml)
+    "dataset.scenes": (
+        lambda v: isinstance(v, list) and len(v) > 0 and all(isinstance(s, str) for s in v),
+        "a non-empty list of scene names (scene0050_00, ...)",
+    ),
+    "dataset.frame_skip": _integer(0),
+    "dataset.image_size": (lambda v: _size(v), "[height, width], two integers >= 1"),
+    "dataset.gt_resolution": (lambda v: v is None or _size(v), "null or [height, width]"),
+    "dataset.voxel_size": _number(0, strict=True),
+    "dataset.gt_unlabelled": (lambda v: v in ("vote", "drop"), "vote or drop"),
 }
 
 
@@ -232,6 +272,21 @@ def validate_eval(cfg: DictConfig | dict) -> None:
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
             "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
         )
+    task, kind = _get(cfg, "task"), _get(cfg, "dataset.kind")
+    if task == "scannet3d" and kind != "scannet":
+        errors.append(f"dataset.kind={kind!r}: task=scannet3d needs dataset=scannet (or another "
+                      "config of kind scannet)")  # fmt: skip
+    if task in ("ovss", _MISSING) and kind == "scannet":
+        errors.append("task='ovss': dataset.kind='scannet' is a 3D mapping set; add task=scannet3d")
+    variants = _get(cfg, "variants")
+    with_prior = [v for v in variants if takes_prior(str(v))] if isinstance(variants, list) else []
+    if with_prior and _get(cfg, "prior") in (None, _MISSING):
+        errors.append(
+            f"prior=None: variants {with_prior} take a segmentation prior; choose one "
+            "(prior=sam2, conf/prior/) or drop +prior"
+        )
+    if with_prior and task == "scannet3d":
+        errors.append(f"variants={variants!r}: +prior configurations are scored by task=ovss only")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
 
@@ -270,6 +325,12 @@ def validate(cfg: DictConfig | dict) -> None:
                 f"model.text.model_name={text.get('model_name')!r} (e.g. webli) or a local "
                 "open_clip checkpoint file"
             )
+    callback = _get(cfg, "callbacks.resireg_eval.variants")
+    if isinstance(callback, list) and any(takes_prior(str(v)) for v in callback):
+        errors.append(
+            f"callbacks.resireg_eval.variants={callback!r}: the training callback has no "
+            "segmentation prior; score +prior configurations with resireg-eval prior=sam2"
+        )
     sources = values["data.sources"]
     if isinstance(sources, dict):
         for name, spec in sources.items():

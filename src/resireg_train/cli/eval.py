@@ -7,6 +7,9 @@
     resireg-eval model_path=<export> dataset=ade20k variants=[full] batch_size=16 \
         full.n_prototypes=60
     resireg-eval model_path=<export> dataset=ade20k sweep=prototype_batch      # the ablation grid
+    resireg-eval model_path=<export> prior=sam2 variants=[full,full+prior]  # SAM 2.1 prior
+    resireg-eval task=scannet3d dataset=scannet encoder=radseg paths.data_dir=/datasets  # 3D
+    resireg-eval sweep=table2 paths.data_dir=/datasets          # 3D mapping: the paper's Table 2
 
 The scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
 model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
@@ -132,11 +135,14 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     params = OmegaConf.to_container(cfg, resolve=True)
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",
                                      "precision", "temperature", "calib", "lite", "full")}  # fmt: skip
+    params["task"] = str(cfg.get("task", "ovss"))
+    params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
     update_results(out, params=params, settings_from_export=from_export)
     # The models, datasets and torch load only now, after the config check.
     import torch
 
     from resireg.models import build_encoder, count_parameters
+    from resireg.variant_names import takes_prior
     from resireg.variants import build_variants
     from resireg_train.ovss.datasets import build_segmentation_set
     from resireg_train.ovss.engine import OVSSTask, StageTimer
@@ -149,12 +155,30 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,
                                  "third_party": bool(cfg.encoder.third_party),
                                  "parameters": n_parameters})  # fmt: skip
+    if params["task"] == "scannet3d":  # 3D semantic mapping (docs/design.md section 10)
+        from resireg_train.mapping.engine import run_scannet3d
+
+        return run_scannet3d(cfg, out, encoder, variants, params)
     patch = encoder.input_rule.patch_size
     dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
     task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
     task.check_variants(variants)
+    cache = None
+    if cfg.get("feature_cache"):
+        from resireg_train.cache import FeatureCache
+
+        key = FeatureCache.key_for(encoder, params["encoder"], params["dataset"], patch,
+                                   str(cfg.precision))  # fmt: skip
+        cache = FeatureCache(cfg.feature_cache, key, dataset.describe)
+        log.info("feature cache %s: %d images stored", cache.folder, len(cache))
     timer = StageTimer()
-    result = task.run(encoder, variants, precision=str(cfg.precision), timer=timer)
+    provider = None
+    if any(takes_prior(v) for v in variants):  # SAM loads only for a +prior configuration
+        from resireg.priors import build_prior
+
+        provider = build_prior(params["prior"], device=encoder.device, key="prior")
+    result = task.run(encoder, variants, precision=str(cfg.precision), timer=timer, cache=cache,
+                      prior=provider)  # fmt: skip
     scores = result.scores()
     for name, value in scores.items():
         log.info("%s = %.4f", name, value)
@@ -173,6 +197,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         skipped_samples=[s.as_dict() for s in result.skipped_samples],
         batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
+        **({"feature_cache": cache.summary()} if cache is not None else {}),
     )
 
 

@@ -15,21 +15,26 @@ from __future__ import annotations
 
 import time
 from collections import Counter, defaultdict
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
-from resireg.models import DenseEncoder
+from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, average_prompts, class_prompts, predict
+from resireg.variant_names import takes_prior
+from resireg.variants import apply_variant
 from resireg_train.ovss.datasets import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.validation import PRECISIONS
 
-__all__ = ["OVSSTask", "OVSSResult", "StageTimer"]
+if TYPE_CHECKING:
+    from resireg_train.cache import FeatureCache
+
+__all__ = ["OVSSTask", "OVSSResult", "StageTimer", "check_variants_on", "inference"]
 
 
 class StageTimer:
@@ -54,6 +59,49 @@ class StageTimer:
 @contextmanager
 def _no_timer(stage: str) -> Iterator[None]:
     yield
+
+
+@contextmanager
+def inference(encoder: DenseEncoder, precision: str) -> Iterator[None]:
+    """An evaluation pass of ``encoder`` (2D and 3D): every module in eval mode (each
+    module's mode restored afterwards), autocast as ``precision`` says: ``"32"`` disables it
+    explicitly (fp32 even inside a ``bf16-mixed`` training run), ``"bf16"`` enables it."""
+    if str(precision) not in PRECISIONS:
+        raise ValueError(f"precision={precision!r}: expected one of {sorted(PRECISIONS)}")
+    name = PRECISIONS[str(precision)]
+    dtype = getattr(torch, name) if name else None
+    modes = {m: m.training for m in encoder.modules()}
+    encoder.eval()
+    try:
+        with torch.autocast(
+            encoder.device.type, dtype=dtype or torch.float32, enabled=dtype is not None
+        ):
+            yield
+    finally:
+        for module, mode in modes.items():
+            module.training = mode
+
+
+def check_variants_on(
+    variants: Mapping[str, nn.Module],
+    shapes: Iterable[tuple[int, int, int]],
+    patch: int,
+    where: Callable[[int, int, int], str],
+    key: str = "",
+) -> None:
+    """Fail before any encoding if a variant cannot run on a batch of ``(images, height,
+    width)`` in ``shapes`` (e.g. more prototypes than the batch has points); the error names
+    ``key.<variant>`` and says ``where(b, h, w)`` (which dataset, batch size and images)."""
+    for name, variant in variants.items():
+        check = getattr(variant, "check_grid", None)
+        if check is None:
+            continue
+        for b, h, w in sorted(set(shapes)):
+            try:
+                check(b, h // patch, w // patch)
+            except ValueError as err:
+                label = f"{key}.{name}" if key else name
+                raise ValueError(f"{label}: {err}; {where(b, h, w)}") from err
 
 
 @dataclass
@@ -184,22 +232,13 @@ class OVSSTask:
     def check_variants(self, variants: Mapping[str, nn.Module], key: str = "") -> None:
         """Fail before any encoding if a variant cannot run on some batch of this task (e.g.
         more prototypes than a batch has points); the error names ``key.<variant>``."""
-        patch = self.dataset.patch_size
         sizes = self.dataset.grid_sizes()
-        shapes = {(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)}
-        for name, variant in variants.items():
-            check = getattr(variant, "check_grid", None)
-            if check is None:
-                continue
-            for b, h, w in sorted(shapes):
-                try:
-                    check(b, h // patch, w // patch)
-                except ValueError as err:
-                    where = f"{key}.{name}" if key else name
-                    raise ValueError(
-                        f"{where}: {err}; dataset {self.dataset.name!r} with batch_size="
-                        f"{self.batch_size} has a batch of {b} images of {h} x {w} px"
-                    ) from err
+        shapes = [(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)]
+        check_variants_on(
+            variants, shapes, self.dataset.patch_size,
+            lambda b, h, w: f"dataset {self.dataset.name!r} with batch_size={self.batch_size} "
+            f"has a batch of {b} images of {h} x {w} px", key,
+        )  # fmt: skip
 
     def loader(self, rank: int = 0, world_size: int = 1) -> DataLoader:
         return DataLoader(
@@ -218,6 +257,8 @@ class OVSSTask:
         world_size: int = 1,
         precision: str = "32",
         timer: StageTimer | None = None,
+        cache: FeatureCache | None = None,
+        prior: Callable[[Tensor], Tensor] | None = None,
     ) -> OVSSResult:
         """Score this rank's share of the batches (``reduce`` the result across ranks).
 
@@ -226,13 +267,19 @@ class OVSSTask:
             variants: ``resireg.variants.build_variants`` output.
             rank, world_size: this process's share: batches ``rank::world_size``.
             precision: ``"32"`` (fp32, the protocol's default) or ``"bf16"`` (autocast).
-            timer: collects seconds per stage (``data``, ``encoder``,
-                ``reconstruction/<variant>``, ``metric``).
+            timer: collects seconds per stage (``data``, ``encoder``, ``cache`` (reads),
+                ``prior``, ``reconstruction/<variant>``, ``metric``).
+            cache: stored encoder outputs of this dataset (read where present, written
+                where missing); its key must match ``encoder``, the dataset and
+                ``precision`` (:meth:`resireg_train.cache.FeatureCache.key_for`).
+            prior: segmentation-prior provider (:class:`resireg.priors.SamPrior`), needed
+                when a configuration takes the prior (``full+prior``): called once per batch
+                on its resized images before normalisation (timer stage ``prior``); its map
+                goes to every ``+prior`` configuration, the others get none.
         """
-        if str(precision) not in PRECISIONS:
-            raise ValueError(f"precision={precision!r}: expected one of {sorted(PRECISIONS)}")
-        name = PRECISIONS[str(precision)]
-        dtype = getattr(torch, name) if name else None
+        needs_prior = [v for v in variants if takes_prior(v)]
+        if needs_prior and prior is None:
+            raise ValueError(f"variants {needs_prior} take a segmentation prior; pass prior=")
         timed = timer or _no_timer
         k = len(self.dataset.classes)
         metrics = {
@@ -243,14 +290,10 @@ class OVSSTask:
         self.dataset.grid_sizes()  # reads the headers once; unreadable ones are listed
         if rank == 0:  # images whose header was unreadable (reported once across ranks)
             result.skipped_samples.extend(self.dataset.unreadable)
-        modes = {m: m.training for m in encoder.modules()}
-        encoder.eval()
         try:
-            protos = self.prototypes(encoder)
-            device = encoder.device
-            with torch.autocast(
-                device.type, dtype=dtype or torch.float32, enabled=dtype is not None
-            ):
+            with inference(encoder, precision):
+                with torch.autocast(encoder.device.type, enabled=False):
+                    protos = self.prototypes(encoder)  # the text path in fp32, whatever precision
                 batches = iter(self.loader(rank, world_size))
                 while True:
                     with timed("data"):
@@ -260,21 +303,43 @@ class OVSSTask:
                     result.skipped_samples.extend(batch["skipped"])
                     if batch["image"] is None:
                         continue
-                    self._score(encoder, batch, variants, protos, metrics, timed)
+                    self._score(encoder, batch, variants, protos, metrics, timed, cache, prior)
                     result.images += len(batch["label"])
                     result.batch_sizes[len(batch["label"])] += 1
         finally:
-            for module, mode in modes.items():
-                module.training = mode
+            if cache is not None:
+                cache.flush()
         return result
 
-    def _score(self, encoder, batch, variants, protos, metrics, timed) -> None:
+    @staticmethod
+    def _encode(encoder, batch, timed, cache) -> DenseOutput:
+        """The encoder's outputs for the batch: from ``cache`` when it holds every image,
+        else one ``encode`` (stored in ``cache`` if given)."""
+        if cache is not None:
+            with timed("cache"):
+                out = cache.get(batch["index"], encoder.device)
+            if out is not None:
+                return out
         x = encoder.input_rule.normalize(batch["image"].to(encoder.device))
         with timed("encoder"):
             out = encoder.encode(x)
+        if cache is not None:
+            cache.put(batch["index"], out)
+        return out
+
+    def _score(
+        self, encoder, batch, variants, protos, metrics, timed, cache=None, prior=None
+    ) -> None:
+        out = self._encode(encoder, batch, timed, cache)
+        seg = None  # the prior's instance map, once per batch, shared by the +prior configs
+        if prior is not None and any(takes_prior(v) for v in variants):
+            with timed("prior"):
+                seg = prior(batch["image"]).to(out.intermediates.device)
+        shared: dict = {}  # work common to the configurations of this batch (apply_variant)
         for name, variant in variants.items():
+            s = seg if takes_prior(name) else None
             with timed(f"reconstruction/{name}"):
-                dense = variant(out.intermediates, out.language)
+                dense = apply_variant(variant, out.intermediates, out.language, s, shared=shared)
             with timed("metric"):
                 for i, label in enumerate(batch["label"]):
                     pred = predict(dense[i : i + 1], protos, tuple(label.shape), self.temperature)

@@ -1,0 +1,205 @@
+"""An on-disk cache of encoder outputs, for sweeps whose jobs must run in separate processes.
+
+One job per ReSiReg setting is sometimes unavoidable (a SLURM array over settings, a sweep
+of ``lite.alpha``): every job would re-run the backbone on the whole dataset although
+nothing upstream of ReSiReg changed. With ``feature_cache=<dir>`` the first job stores each
+image's ``intermediates`` and ``language`` tokens, later jobs read them instead of encoding
+(docs/design.md section 9).
+
+**Key.** A cache folder is ``<dir>/<digest>``, the digest of everything the outputs depend
+on: the encoder's config entry, a fingerprint of its weights (a hash of every parameter and
+buffer, so re-trained or re-downloaded weights never read stale features), the dataset's
+config entry (source, split, limit) and its resolution (``short_side``, patch size), and the
+evaluation precision. Change any of them and the jobs use (and fill) a new folder; the old
+one is never read again (delete it to reclaim the disk). ``key.json`` in the folder says in
+words what it holds. Each stored image also records its file name (``describe``): an entry
+whose file differs from the dataset's (a folder whose images were added or renamed) is a
+miss and is encoded again.
+
+**Layout.** ``shard-<writer>-<n>.safetensors`` holds the tensors of up to ``shard_images``
+images (``<index>/intermediates``, ``<index>/language``, in the dtype the encoder produced)
+and ``shard-<writer>-<n>.json`` lists them. Both are written atomically (temporary file,
+then rename; the listing after its shard), so concurrent jobs filling the same folder never
+see a partial shard and never overwrite each other's files. A job interrupted mid-dataset
+leaves its complete shards behind, and the next job encodes only what is missing.
+
+Why not ``datasets``' own cache: its Arrow rows would have to hold ``[D, h, w]`` tensors of
+differing grid sizes as nested lists, and its fingerprint is of the processing function, not
+of model weights; safetensors shards read back zero-copy as torch tensors.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import uuid
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import save
+from torch import Tensor
+
+from resireg.models import DenseOutput
+from resireg.models.encoders import encoder_modules
+from resireg_train.files import write_atomic
+
+__all__ = ["FeatureCache", "weights_fingerprint"]
+
+_FORMAT = 1
+_FIELDS = ("intermediates", "language")
+
+
+def weights_fingerprint(encoder: torch.nn.Module) -> str:
+    """BLAKE2b digest of every parameter and buffer of ``encoder`` (names, dtypes, shapes and
+    bytes), modules kept outside the module tree included (as ``count_parameters`` counts
+    them). Two encoders share a fingerprint only if their weights are bitwise equal."""
+    digest = hashlib.blake2b(digest_size=16)
+    for prefix, module in enumerate(encoder_modules(encoder)):
+        tensors = {**dict(module.named_parameters()), **dict(module.named_buffers())}
+        for name in sorted(tensors):
+            t = tensors[name].detach()
+            digest.update(f"{prefix}.{name}:{t.dtype}:{tuple(t.shape)};".encode())
+            # bytes of the storage as laid out in memory; view as uint8 covers bf16 too
+            digest.update(t.contiguous().cpu().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
+
+
+def _digest(key: Mapping[str, Any]) -> str:
+    text = json.dumps(key, sort_keys=True, default=str)
+    return hashlib.blake2b(text.encode(), digest_size=12).hexdigest()
+
+
+class FeatureCache:
+    """Encoder outputs of one (encoder, weights, dataset, resolution, precision), on disk.
+
+    Args:
+        root: the cache directory (``feature_cache``); the folder for this key is created in it.
+        key: what the outputs depend on (see :meth:`key_for`); its digest names the folder.
+        describe: ``index -> file name`` of the dataset, checked on every read.
+        shard_images: images per shard file.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        key: Mapping[str, Any],
+        describe: Callable[[int], str],
+        shard_images: int = 64,
+    ) -> None:
+        if shard_images < 1:
+            raise ValueError(f"shard_images must be >= 1, got {shard_images}")
+        self.key = dict(key)
+        self.folder = Path(root).expanduser() / _digest(self.key)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        key_file = self.folder / "key.json"
+        if not key_file.exists():
+            write_atomic(key_file, json.dumps(self.key, indent=2, default=str), "cache key")
+        self.describe = describe
+        self.shard_images = shard_images
+        self._writer = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self._shards_written = 0
+        self._pending: dict[int, dict[str, Tensor]] = {}
+        self._entries: dict[int, tuple[str, str]] = {}  # index -> (shard file, file name)
+        self._handles: dict[str, Any] = {}
+        self.hits = 0
+        self.misses = 0
+        self.bytes_written = 0
+        self.refresh()
+
+    @staticmethod
+    def key_for(
+        encoder: torch.nn.Module,
+        encoder_spec: Mapping[str, Any],
+        dataset_spec: Mapping[str, Any],
+        patch_size: int,
+        precision: str,
+    ) -> dict[str, Any]:
+        """The cache key of ``encoder`` (built from ``encoder_spec``) on a dataset."""
+        return {
+            "format": _FORMAT,
+            "encoder": dict(encoder_spec),
+            "weights": weights_fingerprint(encoder),
+            "dataset": dict(dataset_spec),
+            "resolution": {"short_side": dataset_spec.get("short_side"), "patch": patch_size},
+            "precision": str(precision),
+        }
+
+    def refresh(self) -> None:
+        """Read the listings of every complete shard in the folder (other jobs' included)."""
+        for listing in sorted(self.folder.glob("shard-*.json")):
+            shard = listing.with_suffix(".safetensors").name
+            try:
+                files = json.loads(listing.read_text())["images"]
+            except (OSError, ValueError, KeyError):
+                continue  # unreadable listing: its images count as missing
+            for index, name in files.items():
+                self._entries.setdefault(int(index), (shard, name))
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def _tensors(self, index: int) -> tuple[Tensor, Tensor] | None:
+        entry = self._entries.get(index)
+        if entry is None or entry[1] != self.describe(index):
+            return None
+        shard, _ = entry
+        handle = self._handles.get(shard)
+        if handle is None:
+            handle = self._handles[shard] = safe_open(self.folder / shard, framework="pt")
+        return tuple(handle.get_tensor(f"{index}/{f}") for f in _FIELDS)  # type: ignore[return-value]
+
+    def get(self, indices: Sequence[int], device: torch.device | str = "cpu") -> DenseOutput | None:
+        """The stored outputs of the images ``indices`` stacked as one batch on ``device``
+        (``embedding`` is not stored: ``None``), or ``None`` if any is missing."""
+        found = [self._tensors(i) for i in indices]
+        if any(f is None for f in found):
+            self.misses += 1
+            return None
+        self.hits += 1
+        inter, lang = (torch.stack([f[k] for f in found]).to(device) for k in range(2))  # type: ignore[index]
+        return DenseOutput(inter, lang, None)
+
+    def put(self, indices: Iterable[int], out: DenseOutput) -> None:
+        """Store one encoded batch (image ``i`` of ``indices`` is row ``i`` of ``out``)."""
+        for row, index in enumerate(indices):
+            if index in self._entries or index in self._pending:
+                continue
+            self._pending[index] = {
+                f: getattr(out, f)[row].detach().to("cpu", copy=True).contiguous() for f in _FIELDS
+            }
+        if len(self._pending) >= self.shard_images:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the pending images as one shard (and its listing)."""
+        if not self._pending:
+            return
+        stem = f"shard-{self._writer}-{self._shards_written:05d}"
+        tensors = {f"{i}/{f}": t for i, fields in self._pending.items() for f, t in fields.items()}
+        data = save(tensors)
+        write_atomic(self.folder / f"{stem}.safetensors", data, "feature cache shard")
+        files = {str(i): self.describe(i) for i in self._pending}
+        write_atomic(self.folder / f"{stem}.json", json.dumps({"images": files}), "cache listing")
+        self.bytes_written += len(data)
+        for index in self._pending:
+            self._entries[index] = (f"{stem}.safetensors", files[str(index)])
+        self._pending.clear()
+        self._shards_written += 1
+
+    def disk_bytes(self) -> int:
+        """Bytes of this key's shards on disk."""
+        return sum(p.stat().st_size for p in self.folder.glob("shard-*.safetensors"))
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "folder": str(self.folder),
+            "images": len(self),
+            "hits": self.hits,
+            "misses": self.misses,
+            "bytes_written": self.bytes_written,
+            "disk_bytes": self.disk_bytes(),
+        }

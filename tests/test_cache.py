@@ -1,0 +1,149 @@
+"""The on-disk feature cache: exact outputs, invalidation, partial fills, and resireg-eval."""
+
+import json
+
+import pytest
+import torch
+
+from _run import run
+from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from resireg.variants import build_variants
+from resireg_train.cache import FeatureCache, weights_fingerprint
+from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.ovss.engine import OVSSTask, StageTimer
+
+SPEC = {"name": "synthetic", "kind": "synthetic", "size": 6, "image_size": [40, 56],
+        "seed": 3, "noise": 12.0, "short_side": 32}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
+
+
+def _cache(root, model, spec=SPEC, precision="32", **kw):
+    dataset = build_segmentation_set(spec, model.input_rule.patch_size)
+    key = FeatureCache.key_for(model, {"kind": "tiny"}, spec, model.input_rule.patch_size,
+                               precision)  # fmt: skip
+    return dataset, FeatureCache(root, key, dataset.describe, **kw)
+
+
+class _Counting:
+    """Counts the encoder's passes (the cache must make them unnecessary)."""
+
+    def __init__(self, model):
+        self.calls, self._encode = 0, model.encode
+
+    def __call__(self, x):
+        self.calls += 1
+        return self._encode(x)
+
+
+def test_cache_returns_exactly_the_encoders_outputs(tmp_path, model):
+    dataset, cache = _cache(tmp_path, model, shard_images=4)
+    task = OVSSTask(dataset, batch_size=2)
+    task.run(model, build_variants(["bb"]), cache=cache)
+    assert len(cache) == len(dataset) and cache.bytes_written == cache.disk_bytes() > 0
+    reread = FeatureCache(tmp_path, cache.key, dataset.describe)  # a later job: from disk
+    for batch in task.loader():
+        expected = model.encode(model.input_rule.normalize(batch["image"]))
+        got = reread.get(batch["index"])
+        assert torch.equal(got.intermediates, expected.intermediates)
+        assert torch.equal(got.language, expected.language)
+        assert got.intermediates.dtype == expected.intermediates.dtype
+
+
+def test_cached_pass_scores_identically_without_encoding(tmp_path, model, monkeypatch):
+    dataset, cache = _cache(tmp_path, model)
+    names = ["bb", "lite", "full@n_prototypes:6"]
+    task = OVSSTask(dataset, batch_size=3)
+    plain = task.run(model, build_variants(names))
+    task.run(model, build_variants(names), cache=cache)  # fills
+    counter = _Counting(model)
+    monkeypatch.setattr(model, "encode", counter)
+    timer = StageTimer()
+    again = task.run(model, build_variants(names), timer=timer, cache=FeatureCache(
+        tmp_path, cache.key, dataset.describe))  # fmt: skip
+    assert counter.calls == 0 and "encoder" not in timer.seconds and "cache" in timer.seconds
+    for name in names:
+        assert torch.equal(again.metrics[name].confusion, plain.metrics[name].confusion)
+
+
+def test_any_change_of_weights_resolution_or_precision_is_a_new_key(tmp_path, model):
+    _, cache = _cache(tmp_path, model)
+    changed = ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
+    changed.load_state_dict(model.state_dict())
+    assert weights_fingerprint(changed) == weights_fingerprint(model)
+    with torch.no_grad():
+        next(changed.parameters()).view(-1)[0] += 1e-3
+    assert weights_fingerprint(changed) != weights_fingerprint(model)
+    folders = {
+        cache.folder,
+        _cache(tmp_path, changed)[1].folder,
+        _cache(tmp_path, model, spec={**SPEC, "short_side": 48})[1].folder,
+        _cache(tmp_path, model, precision="bf16")[1].folder,
+    }
+    assert len(folders) == 4
+
+
+def test_new_weights_read_their_own_outputs_not_stale_ones(tmp_path, model):
+    dataset, cache = _cache(tmp_path, model)
+    task = OVSSTask(dataset, batch_size=2)
+    task.run(model, build_variants(["bb"]), cache=cache)
+    changed = ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()  # other weights
+    _, fresh = _cache(tmp_path, changed)
+    assert len(fresh) == 0 and fresh.get([0]) is None
+    task.run(changed, build_variants(["bb"]), cache=fresh)
+    batch = next(iter(task.loader()))
+    expected = changed.encode(changed.input_rule.normalize(batch["image"]))
+    assert torch.equal(fresh.get(batch["index"]).language, expected.language)
+
+
+def test_partial_cache_encodes_only_what_is_missing(tmp_path, model, monkeypatch):
+    dataset, cache = _cache(tmp_path, model, shard_images=2)
+    task = OVSSTask(dataset, batch_size=2)
+    first = next(iter(task.loader()))  # an interrupted job: one batch stored
+    cache.put(first["index"], model.encode(model.input_rule.normalize(first["image"])))
+    assert len(FeatureCache(tmp_path, cache.key, dataset.describe)) == 2
+    (cache.folder / "shard-broken.json").write_text("{not json")  # a torn listing is ignored
+    counter = _Counting(model)
+    monkeypatch.setattr(model, "encode", counter)
+    resumed = FeatureCache(tmp_path, cache.key, dataset.describe)
+    task.run(model, build_variants(["bb"]), cache=resumed)
+    assert counter.calls == len(dataset) // 2 - 1 and resumed.hits == 1
+
+
+def test_an_entry_whose_file_changed_is_a_miss(tmp_path, model):
+    dataset, cache = _cache(tmp_path, model)
+    OVSSTask(dataset, batch_size=2).run(model, build_variants(["bb"]), cache=cache)
+    renamed = FeatureCache(tmp_path, cache.key, lambda i: f"other-{i}.jpg")
+    assert renamed.get([0, 1]) is None and renamed.misses == 1
+
+
+def test_resireg_eval_fills_then_reads_the_cache(tmp_path, tiny_export):
+    args = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=6", "num_workers=0",
+            "full.n_prototypes=6", f"feature_cache={tmp_path / 'cache'}"]  # fmt: skip
+    results = []
+    for job, variants in (("a", "[bb,full]"), ("b", "[full@n_prototypes:8]")):
+        run("resireg-eval", *args, f"variants={variants}", f"hydra.run.dir={tmp_path / job}")
+        results.append(json.loads((tmp_path / job / "results.json").read_text()))
+    first, second = results
+    assert first["feature_cache"]["hits"] == 0 and first["feature_cache"]["images"] == 6
+    assert second["feature_cache"]["misses"] == 0 and second["feature_cache"]["hits"] > 0
+    assert "encoder" not in second["seconds"]
+    # a job without the cache gives the cached job's score
+    run(
+        "resireg-eval",
+        *args[:-1],
+        "variants=[full@n_prototypes:8]",
+        f"hydra.run.dir={tmp_path / 'c'}",
+    )
+    plain = json.loads((tmp_path / "c" / "results.json").read_text())
+    assert plain["final"] == second["final"]
+
+
+def test_bad_feature_cache_value_names_the_key(tmp_path, tiny_export):
+    proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+               "feature_cache=3", f"hydra.run.dir={tmp_path}", check=False)  # fmt: skip
+    assert proc.returncode != 0 and "feature_cache=3" in proc.stderr + proc.stdout
