@@ -10,7 +10,9 @@ def test_entry_point_modules_import_no_heavy_library():
         "import sys\n"
         "import resireg_train.cli.train, resireg_train.cli.eval, resireg_train.cli.report\n"
         "import resireg_train.validation, resireg_train.results, resireg.variant_names\n"
-        "heavy = ('torch', 'lightning', 'open_clip', 'timm', 'datasets', 'pandas', 'matplotlib')\n"
+        "import resireg_train.cli.playground, resireg_train.playground.examples\n"
+        "heavy = ('torch', 'lightning', 'open_clip', 'timm', 'datasets', 'pandas', 'matplotlib',\n"
+        "         'gradio', 'skimage')\n"
         "print(sorted(m for m in heavy if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -32,3 +34,22 @@ def test_a_bad_value_is_reported_without_loading_torch(tmp_path):
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False True", out.stdout + out.stderr
+
+
+def test_playground_answers_help_and_bad_arguments_before_torch_and_gradio():
+    code = (
+        "import sys\n"
+        "from resireg_train.cli.playground import main\n"
+        "for argv in (['--help'], [], ['--encoder', 'tiny', '--port', '70000'],\n"
+        "             ['--encoder', 'nope'], ['--encoder', 'resireg_vlm']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit as exit:\n"
+        "        print(exit.code)\n"
+        "print(sorted(m for m in ('torch', 'gradio') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.splitlines()[-6:] == ["0", "2", "2", "2", "2", "[]"], out.stdout + out.stderr
+    assert "--port=70000: expected 1..65535" in out.stderr
+    assert "--encoder='nope': no such config" in out.stderr and "'clip_vit_b16'" in out.stderr
+    assert "--model-path is required with --encoder='resireg_vlm'" in out.stderr
