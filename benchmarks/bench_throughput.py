@@ -93,15 +93,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from torch import nn
 
+from _common import build_model, resireg_defaults
 from resireg import reconstruct
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
 from resireg.variants import build_variant
 
-ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf"
 VARIANT_NAMES = ("VLM", "VLM + Lite", "VLM + Full")
 CPU_BATCH_SIZES = (1, 2, 4)
 CUDA_BATCH_SIZES = (1, 2, 4, 8, 16, 32)
@@ -298,23 +295,9 @@ def record_kmeans() -> Iterator[list[tuple[int, int | None]]]:
 
 
 # --------------------------------------------------------------------------- the benchmark
-def _load_yaml(path: Path) -> dict:
-    with open(path) as f:
-        return yaml.safe_load(f)
-
-
-def build_model(tiny: bool) -> ResiregVLM:
-    """The 25M VLM with random weights (or the tests' tiny one); the tiny text tower."""
-    if tiny:
-        return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
-    backbone = {**_load_yaml(CONF / "model" / "backbone" / "eupe_vit_s16.yaml"), "weights": None}
-    head = dict(_load_yaml(CONF / "model" / "vlm25m.yaml")["head"])
-    return ResiregVLM.build(backbone, head, TINY_TEXT).eval()
-
-
 def build_reconstructions() -> dict[str, nn.Module]:
     """Lite and Full with the defaults of ``conf/resireg/default.yaml``."""
-    cfg = _load_yaml(CONF / "resireg" / "default.yaml")
+    cfg = resireg_defaults()
     return {
         "lite": build_variant("lite", **cfg["lite"]),
         "full": build_variant("full", **cfg["full"]),

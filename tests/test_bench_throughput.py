@@ -184,7 +184,7 @@ def test_backbone_and_head_flops_match_flop_counter():
 def test_full_flops_match_flop_counter(kwargs):
     """ReSiReg Full with the recorded k-means iterations and distance rows (default: conf's
     36 prototypes)."""
-    cfg = bench._load_yaml(bench.CONF / "resireg" / "default.yaml")["full"]
+    cfg = bench.resireg_defaults()["full"]
     full = ReSiRegFull(**{**cfg, **kwargs})
     inter, lang = torch.randn(2, 384, 3, 4), torch.randn(2, 512, 3, 4)
     with bench.record_kmeans() as runs:
@@ -200,7 +200,7 @@ def test_full_flops_match_flop_counter(kwargs):
 
 def test_full_flops_at_protocol_size_match_flop_counter():
     """One real-size batch (2 x 36 x 48, s = 2: 13,824 points) of random features."""
-    cfg = bench._load_yaml(bench.CONF / "resireg" / "default.yaml")["full"]
+    cfg = bench.resireg_defaults()["full"]
     full = ReSiRegFull(**cfg)
     inter, lang = torch.randn(2, 384, 36, 48), torch.randn(2, 512, 36, 48)
     with bench.record_kmeans() as runs:
