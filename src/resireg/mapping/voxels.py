@@ -74,8 +74,9 @@ _Map = TypeVar("_Map", bound="_SparseVoxels")
 class _SparseVoxels:
     """Sorted packed keys of the occupied voxels and the accumulator row of each.
 
-    Subclasses own the accumulators (``[capacity, ...]`` tensors, rows in order of first
-    occupation) and grow them in :meth:`_grow`.
+    The accumulators are ``[capacity, ...]`` tensors named in ``_acc`` (rows in order of
+    first occupation), given by the subclass with zero rows; :meth:`_grow` enlarges them all
+    alike.
     """
 
     def __init__(self, voxel_size: float, device: torch.device | str) -> None:
@@ -84,16 +85,18 @@ class _SparseVoxels:
         self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted
         self._rows = torch.empty(0, dtype=torch.int64, device=self.device)  # row of each key
         self._size = 0  # occupied voxels = rows in use
+        self._acc: dict[str, Tensor] = {}
 
     def __len__(self) -> int:
         """Number of occupied voxels."""
         return self._size
 
     def _grow(self, capacity: int) -> None:
-        raise NotImplementedError
-
-    def _accumulators(self) -> tuple[Tensor, ...]:
-        raise NotImplementedError
+        """Reallocate every accumulator with ``capacity`` rows, keeping the rows in use."""
+        for name, old in self._acc.items():
+            new = old.new_zeros((capacity, *old.shape[1:]))
+            new[: self._size] = old[: self._size]
+            self._acc[name] = new
 
     def reserve(self, voxels: int) -> None:
         """Make room for ``voxels`` occupied voxels in all, so adding up to that many grows nothing."""
@@ -107,11 +110,11 @@ class _SparseVoxels:
     @property
     def nbytes(self) -> int:
         """Bytes held by the map's tensors, the geometric reserve of the accumulators included."""
-        held = (self._keys, self._rows, *self._accumulators())
+        held = (self._keys, self._rows, *self._acc.values())
         return sum(t.numel() * t.element_size() for t in held)
 
     def _capacity(self) -> int:
-        raise NotImplementedError
+        return next(iter(self._acc.values())).shape[0]
 
     def _check_points(self, points: Tensor, n: int | None = None) -> Tensor:
         if not isinstance(points, Tensor) or points.ndim != 2 or points.shape[1] != 3:
@@ -194,8 +197,10 @@ class VoxelMap(_SparseVoxels):
     def __init__(self, voxel_size: float, dim: int, device: torch.device | str = "cpu") -> None:
         super().__init__(voxel_size, device)
         self.dim = _check_count("dim", dim)
-        self._sums = torch.zeros(0, self.dim, dtype=torch.float64, device=self.device)
-        self._counts = torch.zeros(0, dtype=torch.int64, device=self.device)
+        self._acc = {
+            "sums": torch.zeros(0, self.dim, dtype=torch.float64, device=self.device),
+            "counts": torch.zeros(0, dtype=torch.int64, device=self.device),
+        }
 
     def __repr__(self) -> str:
         return (
@@ -203,18 +208,13 @@ class VoxelMap(_SparseVoxels):
             f"voxels={len(self)})"
         )
 
-    def _capacity(self) -> int:
-        return self._sums.shape[0]
+    @property
+    def _sums(self) -> Tensor:  # [capacity, D] float64 feature sums
+        return self._acc["sums"]
 
-    def _accumulators(self) -> tuple[Tensor, ...]:
-        return self._sums, self._counts
-
-    def _grow(self, capacity: int) -> None:
-        sums = torch.zeros(capacity, self.dim, dtype=torch.float64, device=self.device)
-        sums[: self._size] = self._sums[: self._size]
-        counts = torch.zeros(capacity, dtype=torch.int64, device=self.device)
-        counts[: self._size] = self._counts[: self._size]
-        self._sums, self._counts = sums, counts
+    @property
+    def _counts(self) -> Tensor:  # [capacity] int64 points per voxel
+        return self._acc["counts"]
 
     def add(self, points: Tensor, features: Tensor) -> None:
         """Add points and their features to the running sums.
@@ -301,7 +301,9 @@ class LabelVoxelMap(_SparseVoxels):
         self.ignore_index = ignore_index
         self.ignored = 0
         self.out_of_range = 0
-        self._votes = torch.zeros(0, self.num_classes, dtype=torch.int64, device=self.device)
+        self._acc = {
+            "votes": torch.zeros(0, self.num_classes, dtype=torch.int64, device=self.device)
+        }
 
     def __repr__(self) -> str:
         return (
@@ -309,16 +311,9 @@ class LabelVoxelMap(_SparseVoxels):
             f"device={self.device}, voxels={len(self)})"
         )
 
-    def _capacity(self) -> int:
-        return self._votes.shape[0]
-
-    def _accumulators(self) -> tuple[Tensor, ...]:
-        return (self._votes,)
-
-    def _grow(self, capacity: int) -> None:
-        votes = torch.zeros(capacity, self.num_classes, dtype=torch.int64, device=self.device)
-        votes[: self._size] = self._votes[: self._size]
-        self._votes = votes
+    @property
+    def _votes(self) -> Tensor:  # [capacity, K] int64 class votes
+        return self._acc["votes"]
 
     def add(self, points: Tensor, labels: Tensor) -> None:
         """Add one vote per labelled point.
