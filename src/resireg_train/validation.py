@@ -21,7 +21,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
-__all__ = ["ConfigError", "PRECISIONS", "TASKS", "check_devices", "validate", "validate_eval"]
+__all__ = [
+    "ConfigError",
+    "ENCODER_REPORT_KEYS",
+    "PRECISIONS",
+    "TASKS",
+    "check_devices",
+    "encoder_kwargs",
+    "validate",
+    "validate_eval",
+]
 
 #: Evaluation precisions -> the torch dtype name of their autocast (``None``: fp32, no autocast).
 PRECISIONS: dict[str, str | None] = {
@@ -39,6 +48,16 @@ _MISSING = object()
 #: Device kinds of ``device`` / ``prior.device`` (``cuda:N`` included).
 _DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
 _ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt", "tips", "otas")
+#: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
+#: of ``resireg.models.build_encoder``.
+ENCODER_REPORT_KEYS = ("name", "third_party")
+
+
+def encoder_kwargs(entry: Any) -> dict[str, Any]:
+    """``build_encoder``'s keywords (``kind`` and the builder's keys) of an encoder entry."""
+    return {k: v for k, v in entry.items() if k not in ENCODER_REPORT_KEYS}
+
+
 _PRECISIONS = {
     "32-true", "32", "bf16-mixed", "16-mixed", "bf16-true", "16-true", "64-true", "64",
     "transformer-engine", "transformer-engine-float16",

@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
 from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
-from resireg_train.validation import check_devices, validate_eval
+from resireg_train.validation import check_devices, encoder_kwargs, validate_eval
 
 if TYPE_CHECKING:
     import torch
@@ -149,7 +149,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
 
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
-    spec = {k: v for k, v in params["encoder"].items() if k not in ("name", "third_party")}
+    spec = encoder_kwargs(params["encoder"])
     encoder = build_encoder(**spec, device=_device(cfg.device), config_key="encoder")
     n_parameters = count_parameters(encoder)
     update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,

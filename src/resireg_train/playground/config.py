@@ -68,6 +68,8 @@ def encoder_spec(
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
+    from resireg_train.validation import encoder_kwargs
+
     conf = Path(config_dir or _config_dir())
     name = encoder or "resireg_vlm"
     if name.endswith((".yaml", ".yml")) or "/" in name:
@@ -85,7 +87,7 @@ def encoder_spec(
         spec = OmegaConf.to_container(root.encoder, resolve=True)
     except OmegaConfBaseException as err:
         raise ValueError(f"--encoder={name!r}: cannot resolve {path}: {err}") from err
-    spec = {k: v for k, v in spec.items() if k not in ("name", "third_party")}
+    spec = encoder_kwargs(spec)
     if spec.get("kind") == "resireg_vlm" and not spec.get("path"):
         raise ValueError(
             f"--model-path is required with --encoder={name!r}: an export folder "
