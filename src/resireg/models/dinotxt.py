@@ -62,14 +62,13 @@ from collections.abc import Sequence
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import check_hub_source, require_online
-from resireg.models.images import tokens_to_grid
+from resireg.models.images import resize_square, tokens_to_grid
 
 __all__ = ["DINOTXT_ENTRY_POINT", "DINOTXT_CHECKPOINTS", "DinoTxtEncoder"]
 
@@ -184,10 +183,7 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         self.input_rule.check_size(images)
         b, _, h, w = images.shape
         p = self.patch_size
-        x = images.to(self.device, torch.float32)
-        if self.image_size is not None:
-            size = (self.image_size, self.image_size)
-            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        x = resize_square(images.to(self.device, torch.float32), self.image_size)
         gh, gw = x.shape[-2] // p, x.shape[-1] // p
         visual = self.model.visual_model
         with torch.no_grad():

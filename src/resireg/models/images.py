@@ -14,7 +14,13 @@ import torch.nn.functional as F
 from PIL import Image
 from torch import Tensor
 
-__all__ = ["pil_to_tensor", "patch_grid_size", "resize_to_patch_grid", "tokens_to_grid"]
+__all__ = [
+    "pil_to_tensor",
+    "patch_grid_size",
+    "resize_to_patch_grid",
+    "resize_square",
+    "tokens_to_grid",
+]
 
 
 #: PIL modes of 16-bit (and 32-bit integer) single-channel images, e.g. 16-bit PNGs.
@@ -57,6 +63,14 @@ def resize_to_patch_grid(image: Tensor, short_side: int | None, patch_size: int)
     return F.interpolate(
         image[None], size=size, mode="bilinear", align_corners=False, antialias=True
     )[0]
+
+
+def resize_square(images: Tensor, size: int | None) -> Tensor:
+    """A normalised batch ``[B, 3, H, W]`` -> ``[B, 3, size, size]`` (bilinear), the input of an
+    encoder with a fixed square resolution (dino.txt's 518, TIPSv2's 574); ``None`` keeps it."""
+    if size is None:
+        return images
+    return F.interpolate(images, size=(size, size), mode="bilinear", align_corners=False)
 
 
 def tokens_to_grid(tokens: Tensor, size: tuple[int, int], grid: tuple[int, int]) -> Tensor:

@@ -78,7 +78,7 @@ from torch import Tensor, nn
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import WeightsUnavailableError
-from resireg.models.images import tokens_to_grid
+from resireg.models.images import resize_square, tokens_to_grid
 
 __all__ = [
     "TIPS_TOKENIZER_URL",
@@ -544,10 +544,7 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         self.input_rule.check_size(images)
         _, _, h, w = images.shape
         p = self.patch_size
-        x = images.to(self.device, torch.float32)
-        if self.image_size is not None:
-            size = (self.image_size, self.image_size)
-            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        x = resize_square(images.to(self.device, torch.float32), self.image_size)
         native = (x.shape[-2] // p, x.shape[-1] // p)
         with torch.no_grad():
             cls, patches, values = self.visual.dense_features(x)
