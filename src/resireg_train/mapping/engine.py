@@ -249,11 +249,15 @@ class MappingTask:
         with timed("encoder"):
             out = encoder.encode(x)
         shared: dict = {}  # work common to the configurations of this batch (apply_variant)
+        grids: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}  # patch points per grid
         for name, variant in variants.items():
             with timed(f"reconstruction/{name}"):
                 dense = apply_variant(variant, out.intermediates, out.language, shared=shared)
             with timed("fusion"), _fp32(device):
-                points, valid = patch_points(depth, k_img, pose, tuple(dense.shape[-2:]))
+                grid = tuple(dense.shape[-2:])
+                if grid not in grids:  # configurations on one grid share their points
+                    grids[grid] = patch_points(depth, k_img, pose, grid)
+                points, valid = grids[grid]
                 feats = dense.permute(0, 2, 3, 1)[valid]
                 if state["maps"][name] is None:
                     state["maps"][name] = VoxelMap(self.voxel_size, feats.shape[-1], device)
