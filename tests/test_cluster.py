@@ -190,3 +190,49 @@ def test_kmeans_bounds_skip_distance_rows():
     )
     assert result.n_iter == n_iter
     assert np.array_equal(result.labels.numpy(), labels)
+
+
+def test_assign_rows_bounds_hold_for_exact_distances():
+    """The float32 bounds of a computed row bound the float64 distances: the upper one the
+    distance to the nearest centroid, each group's lower one the distance to the group's
+    other centroids, also for points that sit nearly on a centroid or a boundary."""
+    from resireg.cluster import _GROUP, _assign_rows, _sq_error
+
+    g = torch.Generator().manual_seed(3)
+    c = torch.randn(10, 16, generator=g)  # 10 centroids: groups of 4, 4 and 2 (padded)
+    near = c[torch.arange(200) % 10] + 1e-4 * torch.randn(200, 16, generator=g)
+    between = 0.5 * (c[:100:1][torch.arange(100) % 10] + c[(torch.arange(100) + 1) % 10])
+    x = torch.cat([near, between, torch.randn(200, 16, generator=g) * 3])
+    x_sq, c_sq = (x * x).sum(1), (c * c).sum(1)
+    groups = -(-10 // _GROUP)
+    err = _sq_error(x_sq, float(c_sq.max()), 16)
+    labels, upper, lower = _assign_rows(x, x_sq, c, c_sq, err, groups)
+    exact = torch.cdist(x.double(), c.double())  # [N, 10]
+    assert (upper.double() >= exact.gather(1, labels[:, None]).squeeze(1)).all()
+    others = exact.scatter(1, labels[:, None], float("inf"))
+    slack = err.double().sqrt() * 1.01  # not vacuous: within the rounding bound of exact
+    own = exact.gather(1, labels[:, None]).squeeze(1)
+    assert (upper.double() - own <= slack).all()
+    for j in range(groups):
+        cols = others[:, j * _GROUP : (j + 1) * _GROUP].amin(1)
+        assert (lower[:, j].double() <= cols).all()
+        finite = cols.isfinite()
+        assert (cols[finite] - lower[finite, j].double() <= slack[finite]).all()
+    clear = torch.cat([torch.arange(200), torch.arange(300, 500)])  # not the midpoints (ties)
+    assert torch.equal(labels[clear], exact.argmin(1)[clear])
+
+
+def test_grouped_bounds_skip_more_rows_than_hamerly_with_the_same_result(monkeypatch):
+    """Groups of centroids (Yinyang) vs one group of all centroids (Hamerly's single lower
+    bound): the same labels, centroids and iterations, fewer distance rows."""
+    import resireg.cluster as cluster
+
+    x = torch.nn.functional.normalize(_mixture(n=6000, d=32, k=40, spread=2.0), dim=1)
+    grouped = kmeans(x, 40, seed=1)
+    monkeypatch.setattr(cluster, "_GROUP", 40)
+    hamerly = kmeans(x, 40, seed=1)
+    assert grouped.n_iter == hamerly.n_iter >= 5
+    assert torch.equal(grouped.labels, hamerly.labels)
+    assert torch.equal(grouped.centroids, hamerly.centroids)
+    both = 2 * x.shape[0]  # the first and the final assignment compute every row
+    assert grouped.dist_rows - both < 0.8 * (hamerly.dist_rows - both)
