@@ -19,7 +19,7 @@ from _sam import save_tiny_sam
 
 pytest.importorskip("transformers")
 
-from resireg.priors import SamPrior, masks_to_instances  # noqa: E402
+from resireg.priors import SAM_DEFAULTS, SamPrior, masks_to_instances  # noqa: E402
 from resireg.reconstruct import ReSiRegFull, ReSiRegLite  # noqa: E402
 
 # Settings that make the random tiny SAM return many overlapping masks quickly: 16 point
@@ -296,6 +296,30 @@ def test_a_prior_configuration_without_a_prior_is_a_config_error():
     validate_eval({**cfg, "prior": {"kind": "sam2", "model": "facebook/sam2.1-hiera-tiny"}})
     with pytest.raises(ConfigError, match=r"prior\.box_nms_thresh=2"):
         validate_eval({**cfg, "prior": {"kind": "sam2", "model": "m", "box_nms_thresh": 2}})
+
+
+@pytest.mark.parametrize(
+    ("name", "bad"),
+    [("points_per_side", 0), ("points_per_batch", 1.5), ("pred_iou_thresh", -0.1),
+     ("stability_score_thresh", True), ("stability_score_offset", float("nan")),
+     ("mask_threshold", "0"), ("box_nms_thresh", 2), ("crop_n_layers", -1),
+     ("crop_overlap_ratio", 1.01), ("crop_n_points_downscale_factor", 0)],
+)  # fmt: skip
+def test_the_config_check_and_the_provider_reject_a_setting_alike(tiny_sam, name, bad):
+    """One rule per SAM setting: resireg-eval's config check fails fast with the message the
+    provider itself would give (so neither accepts what the other rejects)."""
+    from resireg_train.validation import ConfigError, validate_eval
+
+    cfg = {"model_path": "x", "encoder": {"kind": "resireg_vlm", "name": "ours",
+           "third_party": False}, "variants": ["full+prior"]}  # fmt: skip
+    with pytest.raises(ValueError) as provider:
+        SamPrior(model=str(tiny_sam), **{name: bad})
+    assert str(provider.value).startswith(f"prior.{name}=")
+    with pytest.raises(ConfigError) as config:
+        validate_eval({**cfg, "prior": {"kind": "sam2", "model": "m", name: bad}})
+    assert str(provider.value) in str(config.value)
+    SamPrior(model=str(tiny_sam), **{name: SAM_DEFAULTS[name]})  # the default passes both
+    validate_eval({**cfg, "prior": {"kind": "sam2", "model": "m", name: SAM_DEFAULTS[name]}})
 
 
 # ----------------------------------------------------------------------------- entry point

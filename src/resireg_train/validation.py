@@ -19,6 +19,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
 __all__ = [
@@ -201,22 +202,13 @@ _EVAL_RULES: dict[str, Rule] = {
     "optimized_metric": (_opt_str, "null or a metric name"),
     "feature_cache": (_opt_str, "null or a directory for stored encoder outputs"),
     # the segmentation prior (conf/prior/sam2.yaml), absent with prior=null
-    "prior.kind": (lambda v: v == "sam2", "sam2"),
+    "prior.kind": (lambda v: v in PRIOR_KINDS, f"one of {list(PRIOR_KINDS)}"),
     "prior.model": (lambda v: isinstance(v, str) and bool(v), "a hub id or a local directory"),
     "prior.device": (
         lambda v: v is None or (isinstance(v, str) and v.split(":")[0] in _DEVICE_KINDS),
         "null (the evaluation's device), auto, cpu, cuda, cuda:N or mps",
     ),
-    "prior.points_per_side": _integer(1),
-    "prior.points_per_batch": _integer(1),
-    "prior.pred_iou_thresh": (_unit, "a number in [0, 1]"),
-    "prior.stability_score_thresh": (_unit, "a number in [0, 1]"),
-    "prior.stability_score_offset": (_num, "a number"),
-    "prior.mask_threshold": (_num, "a number"),
-    "prior.box_nms_thresh": (_unit, "a number in [0, 1]"),
-    "prior.crop_n_layers": _integer(0),
-    "prior.crop_overlap_ratio": (_unit, "a number in [0, 1]"),
-    "prior.crop_n_points_downscale_factor": _integer(1),
+    **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.priors.settings
     "task": (lambda v: v in TASKS, f"one of {list(TASKS)}"),
     # the 3D task's dataset (conf/dataset/scannet.yaml)
     "dataset.scenes": (

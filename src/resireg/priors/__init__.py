@@ -10,11 +10,36 @@ take its output as ``prior`` (docs/design.md sections 4.2, 4.3, 4.3c) and
 - :func:`masks_to_instances`: overlapping binary masks -> one instance-id map (the
   smaller mask wins; see its docstring).
 
-Imports torch only; ``transformers`` loads when a :class:`SamPrior` is built.
+The names load on first use (PEP 562): :mod:`resireg.priors.settings` (the settings and
+their rules) imports no torch; the rest imports torch, and ``transformers`` loads when a
+:class:`SamPrior` is built.
 """
 
 from __future__ import annotations
 
-from resireg.priors.sam import PRIOR_KINDS, SAM_DEFAULTS, SamPrior, build_prior, masks_to_instances
+import importlib
+from typing import Any
 
-__all__ = ["PRIOR_KINDS", "SAM_DEFAULTS", "SamPrior", "build_prior", "masks_to_instances"]
+__all__ = [
+    "PRIOR_KINDS",
+    "SAM_DEFAULTS",
+    "SAM_RULES",
+    "SamPrior",
+    "build_prior",
+    "masks_to_instances",
+]
+
+_SOURCES = {
+    "PRIOR_KINDS": "resireg.priors.settings",
+    "SAM_DEFAULTS": "resireg.priors.settings",
+    "SAM_RULES": "resireg.priors.settings",
+    "SamPrior": "resireg.priors.sam",
+    "build_prior": "resireg.priors.sam",
+    "masks_to_instances": "resireg.priors.sam",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _SOURCES:
+        return getattr(importlib.import_module(_SOURCES[name]), name)
+    raise AttributeError(f"module 'resireg.priors' has no attribute {name!r}")

@@ -15,7 +15,6 @@ mask threshold 0.0, box NMS 0.7, no crop layers), not to the pipeline's own defa
 
 from __future__ import annotations
 
-import math
 import os
 from typing import Any
 
@@ -25,30 +24,16 @@ from PIL import Image
 from torch import Tensor
 
 from resireg.models.hub import WeightsUnavailableError, hf_cached, require_online
+from resireg.priors.settings import PRIOR_KINDS, SAM_DEFAULTS, SAM_RULES
 
-__all__ = ["PRIOR_KINDS", "SAM_DEFAULTS", "SamPrior", "build_prior", "masks_to_instances"]
-
-#: SAM 2's automatic-mask-generation defaults, the keyword arguments of :class:`SamPrior`.
-SAM_DEFAULTS: dict[str, Any] = {
-    "points_per_side": 32,
-    "points_per_batch": 64,
-    "pred_iou_thresh": 0.8,
-    "stability_score_thresh": 0.95,
-    "stability_score_offset": 1.0,
-    "mask_threshold": 0.0,
-    "box_nms_thresh": 0.7,
-    "crop_n_layers": 0,
-    "crop_overlap_ratio": 512 / 1500,
-    "crop_n_points_downscale_factor": 1,
-}
-
-_INTEGERS = {
-    "points_per_side": 1,
-    "points_per_batch": 1,
-    "crop_n_layers": 0,
-    "crop_n_points_downscale_factor": 1,
-}
-_UNIT = ("pred_iou_thresh", "stability_score_thresh", "box_nms_thresh", "crop_overlap_ratio")
+__all__ = [
+    "PRIOR_KINDS",
+    "SAM_DEFAULTS",
+    "SAM_RULES",
+    "SamPrior",
+    "build_prior",
+    "masks_to_instances",
+]
 
 
 def masks_to_instances(masks: Tensor, scores: Tensor | None = None) -> Tensor:
@@ -202,18 +187,9 @@ class SamPrior:
         self._generator = self._load(self.model_name)
 
     def _check(self, settings: dict[str, Any]) -> None:
-        for name, minimum in _INTEGERS.items():
-            v = settings[name]
-            if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-                raise ValueError(f"{self.key}.{name}={v!r}: expected an integer >= {minimum}")
-        for name in _UNIT:
-            v = settings[name]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:
-                raise ValueError(f"{self.key}.{name}={v!r}: expected a number in [0, 1]")
-        for name in ("stability_score_offset", "mask_threshold"):
-            v = settings[name]
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"{self.key}.{name}={v!r}: expected a finite number")
+        for name, (ok, expected) in SAM_RULES.items():
+            if not ok(settings[name]):
+                raise ValueError(f"{self.key}.{name}={settings[name]!r}: expected {expected}")
 
     def _load(self, model: str) -> Any:
         """The ``mask-generation`` pipeline of ``Sam2Model`` + ``Sam2ImageProcessor``."""
@@ -310,10 +286,6 @@ class SamPrior:
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.settings.items())
         return f"SamPrior(model={self.model_name!r}, device={str(self.device)!r}, {args})"
-
-
-#: Prior kinds of :func:`build_prior` (``kind`` of ``conf/prior/*.yaml``).
-PRIOR_KINDS = ("sam2",)
 
 
 def build_prior(

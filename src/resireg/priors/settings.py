@@ -1,0 +1,62 @@
+"""The prior providers' settings and what each accepts, without importing torch.
+
+The evaluation's config checks (``resireg_train.validation``) read them before anything heavy
+is loaded, so a bad ``prior.<name>`` value is reported at once; :class:`resireg.priors.SamPrior`
+checks its keywords against the same rules.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["PRIOR_KINDS", "SAM_DEFAULTS", "SAM_RULES"]
+
+#: Prior kinds of :func:`resireg.priors.build_prior` (``kind`` of ``conf/prior/*.yaml``).
+PRIOR_KINDS = ("sam2",)
+
+#: SAM 2's automatic-mask-generation defaults, keywords of :class:`resireg.priors.SamPrior`.
+SAM_DEFAULTS: dict[str, Any] = {
+    "points_per_side": 32,
+    "points_per_batch": 64,
+    "pred_iou_thresh": 0.8,
+    "stability_score_thresh": 0.95,
+    "stability_score_offset": 1.0,
+    "mask_threshold": 0.0,
+    "box_nms_thresh": 0.7,
+    "crop_n_layers": 0,
+    "crop_overlap_ratio": 512 / 1500,
+    "crop_n_points_downscale_factor": 1,
+}
+
+
+def _is_int(v: Any, minimum: int) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= minimum
+
+
+def _is_finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _integer(minimum: int) -> tuple[Callable[[Any], bool], str]:
+    return (lambda v: _is_int(v, minimum)), f"an integer >= {minimum}"
+
+
+_UNIT = ((lambda v: _is_finite(v) and 0 <= v <= 1), "a number in [0, 1]")
+_FINITE = (_is_finite, "a finite number")
+
+#: What each keyword of :data:`SAM_DEFAULTS` accepts: ``name -> (check, expectation)``, one
+#: source for :class:`resireg.priors.SamPrior` and the evaluation's ``prior.<name>`` checks.
+SAM_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "points_per_side": _integer(1),
+    "points_per_batch": _integer(1),
+    "pred_iou_thresh": _UNIT,
+    "stability_score_thresh": _UNIT,
+    "stability_score_offset": _FINITE,
+    "mask_threshold": _FINITE,
+    "box_nms_thresh": _UNIT,
+    "crop_n_layers": _integer(0),
+    "crop_overlap_ratio": _UNIT,
+    "crop_n_points_downscale_factor": _integer(1),
+}
