@@ -18,6 +18,7 @@ images at ``--short-side``. Class prompts are embedded once per task and not tim
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 
 import torch
@@ -44,6 +45,10 @@ def _total(times: list[tuple[float, float]]) -> tuple[float, float]:
     return sum(t[0] for t in times), sum(t[1] for t in times)
 
 
+def _median(times: list[tuple[float, float]]) -> tuple[float, float]:
+    return statistics.median(t[0] for t in times), statistics.median(t[1] for t in times)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -57,6 +62,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--no-jobs", action="store_true", help="skip the one-pass-per-setting form (slowest)"
     )
+    parser.add_argument(
+        "--repeats", type=int, default=1,
+        help="rounds of the forms, interleaved (load drifts over minutes on a shared machine); "
+        "the table shows each form's median and the ratios' range over the rounds",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -71,11 +81,16 @@ def main(argv: list[str] | None = None) -> None:
     for task in tasks.values():
         task.prototypes(model)  # the class prompts, once (not timed)
     configs = [f"full@n_prototypes:{n}" for n in args.counts]
-    jobs = None
-    if not args.no_jobs:
-        jobs = _total([_seconds(t, model, [c]) for t in tasks.values() for c in configs])
-    together = _total([_seconds(t, model, configs) for t in tasks.values()])
-    single = _total([_seconds(t, model, configs[:1]) for t in tasks.values()])
+    rounds: dict[str, list[tuple[float, float]]] = {"jobs": [], "together": [], "single": []}
+    for _ in range(max(1, args.repeats)):
+        if not args.no_jobs:
+            rounds["jobs"].append(
+                _total([_seconds(t, model, [c]) for t in tasks.values() for c in configs])
+            )
+        rounds["together"].append(_total([_seconds(t, model, configs) for t in tasks.values()]))
+        rounds["single"].append(_total([_seconds(t, model, configs[:1]) for t in tasks.values()]))
+    jobs = _median(rounds["jobs"]) if rounds["jobs"] else None
+    together, single = _median(rounds["together"]), _median(rounds["single"])
     size = "25M (ViT-S/16)" if args.vits else "smoke"
     n_b, n_c = len(args.batch_sizes), len(configs)
     print(f"{size}: {args.images} images, batch sizes {args.batch_sizes}, counts {args.counts}")
@@ -89,6 +104,12 @@ def main(argv: list[str] | None = None) -> None:
     for form, passes, (wall, cpu) in forms:
         print(f"| {form} | {passes} | {wall:.2f} | {wall / single[0]:.2f} | {cpu:.2f} | "
               f"{cpu / single[1]:.2f} |")  # fmt: skip
+    if len(rounds["single"]) > 1:
+        for key, form in (("jobs", f"{n_b * n_c} jobs"), ("together", f"{n_b} x {n_c}")):
+            ratios = [a[0] / b[0] for a, b in zip(rounds[key], rounds["single"], strict=False)]
+            if ratios:
+                print(f"{form} / {n_b} x 1, wall, per round: "
+                      + ", ".join(f"{r:.2f}" for r in ratios))  # fmt: skip
 
 
 if __name__ == "__main__":
