@@ -112,3 +112,31 @@ def test_predict_equals_upsample_then_argmax():
     logits = torch.einsum("bdhw,kd->bkhw", F.normalize(dense, dim=1), F.normalize(protos, dim=1))
     ref = torch.softmax(100 * F.interpolate(logits, size=(23, 31), mode="nearest"), dim=1).argmax(1)
     assert torch.equal(labels, ref)
+
+
+@pytest.mark.parametrize("reduce_zero_label", [False, True])
+def test_update_grid_equals_update_of_the_upsampled_prediction(reduce_zero_label):
+    """The engine's per-batch form (label blocks against the grid, then the grid prediction)
+    gives the confusion matrix of upsampling the prediction to the label (predict + update),
+    also for sizes that are not multiples of the grid and with ignored pixels."""
+    from resireg.ovss import predict_grid
+
+    g = torch.Generator().manual_seed(0)
+    k = 6
+    dense, protos = torch.randn(3, 8, 5, 7, generator=g), torch.randn(k, 8, generator=g)
+    sizes = [(37, 53), (5, 7), (12, 30)]  # upsampling by 7.4 x 7.57, 1, 2.4 x 4.29
+    top = k + 1 if reduce_zero_label else k
+    labels = [torch.randint(0, top, size, generator=g) for size in sizes]
+    labels[0][:4, :9] = 255  # ignored pixels
+    reference = SegmentationMetric(k, reduce_zero_label=reduce_zero_label)
+    for i, label in enumerate(labels):
+        reference.update(predict(dense[i : i + 1], protos, label.shape)[0], label)
+    ours = SegmentationMetric(k, reduce_zero_label=reduce_zero_label)
+    pred = predict_grid(dense, protos)
+    for i, label in enumerate(labels):
+        ours.update_grid(pred[i], ours.blocks(label, (5, 7)))
+    assert reference.confusion.sum() > 0
+    assert torch.equal(ours.confusion, reference.confusion)
+    # An invalid class id is rejected by blocks as by update.
+    with pytest.raises(ValueError, match="class id 9"):
+        ours.blocks(torch.full((4, 4), 9), (5, 7))

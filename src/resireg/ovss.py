@@ -28,6 +28,7 @@ __all__ = [
     "average_prompts",
     "text_prototypes",
     "predict",
+    "predict_grid",
     "label_problem",
     "SegmentationMetric",
 ]
@@ -145,24 +146,40 @@ def text_prototypes(
     return average_prompts(embeds, len(class_names))
 
 
+def predict_grid(dense: Tensor, prototypes: Tensor, temperature: float = 100.0) -> Tensor:
+    """Class prediction ``[B, h, w]`` (int64) at the features' own grid, from dense features
+    ``[B, D, h, w]`` and class prototypes ``[K, D]``: cosine similarity, softmax with
+    ``temperature``, argmax. :func:`predict` brings it to the label size.
+
+    The softmax does not change the argmax; it is kept so the computation is the protocol's
+    as written (docs/design.md section 5).
+    """
+    dense = F.normalize(dense.float(), dim=1)
+    protos = F.normalize(prototypes.float().to(dense.device), dim=1)
+    logits = torch.einsum("bdhw,kd->bkhw", dense, protos)
+    return torch.softmax(temperature * logits, dim=1).argmax(dim=1)
+
+
 def predict(
     dense: Tensor, prototypes: Tensor, size: tuple[int, int], temperature: float = 100.0
 ) -> Tensor:
     """Per-pixel class prediction ``[B, H, W]`` (int64) from dense features ``[B, D, h, w]``.
 
-    Cosine similarity of every feature with every prototype ``[K, D]`` gives ``[B, K, h, w]``
-    logits; softmax with ``temperature`` and argmax; the prediction is brought to the label
-    size ``(H, W)`` with nearest upsampling. Nearest upsampling copies whole logit vectors,
-    so taking the argmax before upsampling gives exactly the label map of upsampling first,
-    at a fraction of the memory (``K x H x W`` floats per image for ADE20K's 150 classes).
-    The softmax does not change the argmax; it is kept so the computation is the
-    protocol's as written (docs/design.md section 5).
+    :func:`predict_grid`'s labels brought to the label size ``(H, W)`` with nearest
+    upsampling. Nearest upsampling copies whole logit vectors, so taking the argmax before
+    upsampling gives exactly the label map of upsampling first, at a fraction of the memory
+    (``K x H x W`` floats per image for ADE20K's 150 classes).
     """
-    dense = F.normalize(dense.float(), dim=1)
-    protos = F.normalize(prototypes.float().to(dense.device), dim=1)
-    logits = torch.einsum("bdhw,kd->bkhw", dense, protos)
-    labels = torch.softmax(temperature * logits, dim=1).argmax(dim=1, keepdim=True).float()
+    labels = predict_grid(dense, prototypes, temperature).unsqueeze(1).float()
     return F.interpolate(labels, size=size, mode="nearest").squeeze(1).long()
+
+
+def _nearest_source(grid: tuple[int, int], size: tuple[int, int]) -> Tensor:
+    """``[H * W]`` (int64): the cell of a ``grid`` that nearest upsampling to ``size`` copies
+    into each pixel, taken from ``F.interpolate`` itself so it is :func:`predict`'s rule."""
+    h, w = grid
+    cells = torch.arange(h * w, dtype=torch.float64).view(1, 1, h, w)
+    return F.interpolate(cells, size=size, mode="nearest").reshape(-1).long()
 
 
 def label_problem(
@@ -218,12 +235,9 @@ class SegmentationMetric:
     def reset(self) -> None:
         self.confusion.zero_()
 
-    def update(self, pred: Tensor, target: Tensor) -> None:
-        if pred.shape != target.shape:
-            raise ValueError(
-                f"pred shape {tuple(pred.shape)} does not match target shape {tuple(target.shape)}"
-            )
-        pred = pred.detach().reshape(-1).long().cpu()
+    def _scored(self, target: Tensor) -> tuple[Tensor, Tensor]:
+        """``target`` flattened with ``reduce_zero_label`` applied, and the mask of its
+        scored pixels (not ``ignore_index``); a ValueError names an invalid class id."""
         target = target.detach().reshape(-1).long().cpu()
         problem = label_problem(target, self.num_classes, self.ignore_index, self.reduce_zero_label)
         if problem:
@@ -234,12 +248,51 @@ class SegmentationMetric:
                 torch.full_like(target, self.ignore_index),
                 target - 1,
             )
-        valid = target != self.ignore_index
-        pred, target = pred[valid], target[valid]
+        return target, target != self.ignore_index
+
+    def _check_pred(self, pred: Tensor) -> None:
         if bool(((pred < 0) | (pred >= self.num_classes)).any()):
             raise ValueError(f"pred holds a class outside 0..{self.num_classes - 1}")
+
+    def update(self, pred: Tensor, target: Tensor) -> None:
+        if pred.shape != target.shape:
+            raise ValueError(
+                f"pred shape {tuple(pred.shape)} does not match target shape {tuple(target.shape)}"
+            )
+        pred = pred.detach().reshape(-1).long().cpu()
+        target, valid = self._scored(target)
+        pred, target = pred[valid], target[valid]
+        self._check_pred(pred)
         k = self.num_classes
         self.confusion += torch.bincount(target * k + pred, minlength=k * k).reshape(k, k)
+
+    def blocks(self, target: Tensor, grid: tuple[int, int]) -> Tensor:
+        """``[h * w, K]`` (int32): for each cell of a prediction ``grid``, how many scored
+        pixels of each class of ``target`` ``[H, W]`` it covers under :func:`predict`'s
+        nearest upsampling.
+
+        What :meth:`update_grid` needs of a label. It depends on the label and the grid only,
+        so an evaluation that scores several configurations of one batch computes it once per
+        image instead of preparing the full-size label for every configuration.
+        """
+        target_2d = target
+        target, valid = self._scored(target)
+        cells = _nearest_source(grid, tuple(target_2d.shape[-2:]))
+        k, n_cells = self.num_classes, grid[0] * grid[1]
+        counts = torch.bincount(cells[valid] * k + target[valid], minlength=n_cells * k)
+        return counts.reshape(n_cells, k).int()
+
+    def update_grid(self, pred: Tensor, blocks: Tensor) -> None:
+        """Add a prediction at the grid (``[h, w]``, :func:`predict_grid`) against a label's
+        :meth:`blocks`: the same confusion as ``update(predict(...), target)``, whose
+        upsampled prediction gives every pixel its cell's class."""
+        pred = pred.detach().reshape(-1).long().cpu()
+        if pred.numel() != blocks.shape[0]:
+            raise ValueError(f"pred has {pred.numel()} cells, blocks {blocks.shape[0]}")
+        self._check_pred(pred)
+        k = self.num_classes
+        by_pred = torch.zeros(k, k, dtype=blocks.dtype).index_add_(0, pred, blocks)
+        self.confusion += by_pred.T  # rows: ground truth, columns: prediction
 
     def compute(self) -> dict[str, float | list[float]]:
         cm = self.confusion.double()

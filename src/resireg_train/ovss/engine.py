@@ -7,8 +7,11 @@ One engine serves the ``ReSiRegEval`` training callback, ``resireg-eval`` and
 Per batch (images of one size, see :meth:`SegmentationSet.batches`): the encoder runs once
 (``encode``); each variant of :func:`resireg.variants.build_variants` turns its
 (intermediates, language tokens) into dense features; every image is then predicted
-against the text prototypes (:func:`resireg.ovss.predict`) at its label's full resolution
-and scored in one confusion matrix per variant (docs/design.md section 5).
+against the text prototypes at the features' grid (:func:`resireg.ovss.predict_grid`) and
+scored at its label's full resolution in one confusion matrix per variant (docs/design.md
+section 5): each label is counted once per batch against the grid's cells
+(:meth:`SegmentationMetric.blocks`), which gives the confusion of the nearest-upsampled
+prediction (:func:`resireg.ovss.predict`) without upsampling it for every configuration.
 """
 
 from __future__ import annotations
@@ -25,7 +28,13 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
 from resireg.models import DenseEncoder, DenseOutput
-from resireg.ovss import TEMPLATES, SegmentationMetric, average_prompts, class_prompts, predict
+from resireg.ovss import (
+    TEMPLATES,
+    SegmentationMetric,
+    average_prompts,
+    class_prompts,
+    predict_grid,
+)
 from resireg.variant_names import takes_prior
 from resireg.variants import apply_variant
 from resireg_train.ovss.datasets import SegmentationSet, SkippedSample, collate_segmentation
@@ -336,11 +345,17 @@ class OVSSTask:
             with timed("prior"):
                 seg = prior(batch["image"]).to(out.intermediates.device)
         shared: dict = {}  # work common to the configurations of this batch (apply_variant)
+        # Each label against a prediction grid (bb's patch grid, Lite's and Full's upsampled
+        # one), computed once per grid whatever the number of configurations on it.
+        blocks: dict[tuple[int, ...], list[Tensor]] = {}
         for name, variant in variants.items():
             s = seg if takes_prior(name) else None
             with timed(f"reconstruction/{name}"):
                 dense = apply_variant(variant, out.intermediates, out.language, s, shared=shared)
             with timed("metric"):
-                for i, label in enumerate(batch["label"]):
-                    pred = predict(dense[i : i + 1], protos, tuple(label.shape), self.temperature)
-                    metrics[name].update(pred[0], label)
+                grid = tuple(dense.shape[-2:])
+                if grid not in blocks:
+                    blocks[grid] = [metrics[name].blocks(label, grid) for label in batch["label"]]
+                pred = predict_grid(dense, protos, self.temperature)
+                for i, label_blocks in enumerate(blocks[grid]):
+                    metrics[name].update_grid(pred[i], label_blocks)
