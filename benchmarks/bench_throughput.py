@@ -54,7 +54,7 @@ every formula against it, exactly, on the real modules.
   over chunks of images; the Cholesky factors are applied elementwise); projection on the
   small grid ``2 B h w Dv r``; k-means++ ``2 n r (1 + t (K - 1))``; k-means ``2 K r R`` for
   the R point-to-all-centroids distance rows it computed (``KMeansResult.dist_rows``: n for
-  the first and for the final assignment, and in between only the points whose Hamerly
+  the first and for the final assignment, and in between only the points whose distance
   bounds fail; plain Lloyd would compute ``R = n (I + 1)`` for I iterations) plus
   ``2 K^2 r`` per iteration for the centroid separations of the bounds; mixing ``2 n K Dl``.
   I and R are data-dependent: they are recorded from the timed calls; the table reports

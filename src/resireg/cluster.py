@@ -7,9 +7,11 @@ the host per batch would cost more than the clustering itself (see
 ``benchmarks/bench_reconstruct.py`` for the measured comparison).
 
 :func:`kmeans` is scikit-learn's ``KMeans(init="k-means++", n_init=1)``: greedy k-means++
-seeding, then Lloyd iterations stopped by scikit-learn's tolerance rule, with Hamerly's
-distance bounds so that an iteration computes distances only for the points whose nearest
-centroid might have changed (same labels, centroids and iteration count as plain Lloyd).
+seeding, then Lloyd iterations stopped by scikit-learn's tolerance rule, with distance
+bounds (Hamerly's upper bound, Yinyang's grouped lower bounds, both widened by a rigorous
+float rounding bound) so that an iteration computes distances only for the points whose
+nearest centroid might have changed (same labels, centroids and iteration count as plain
+Lloyd).
 :func:`gram` forms the symmetric product ``Y^T Y`` of the PCA at 2/3 of a matrix product.
 """
 
