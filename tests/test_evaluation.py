@@ -234,3 +234,38 @@ def test_many_configurations_in_one_pass_equal_separate_runs(vlm):
     assert "val/ovss/synthetic/miou_full@n_prototypes:4" in together.scores()
     with pytest.raises(ValueError, match=r"expected <variant>@<key>:<value>"):
         build_variants(["full@n_prototypes=4"])
+
+
+@pytest.mark.parametrize(
+    ("overrides", "error", "message"),
+    [
+        (["task=scannet3d", "dataset=scannet", "dataset.path=/nonexistent/scannet"],
+         FileNotFoundError, r"dataset\.path='/nonexistent/scannet': no such folder"),
+        (["dataset=orad3d", "dataset.path=/nonexistent/orad"],
+         FileNotFoundError, r"dataset\.path='/nonexistent/orad': no /nonexistent/orad/"),
+        (["dataset=ade20k", "dataset.path=./no/such/ade"],
+         FileNotFoundError, r"dataset\.path='\./no/such/ade' does not exist"),
+        (["dataset=synthetic", "variants=[full+prior]", "prior=sam2",
+          "prior.model=/nonexistent/sam"],
+         FileNotFoundError, r"prior\.model='/nonexistent/sam': no such directory"),
+    ],
+)  # fmt: skip
+def test_a_missing_dataset_or_prior_model_fails_before_the_encoder_loads(
+    monkeypatch, tmp_path, overrides, error, message
+):
+    """resireg-eval checks the dataset folder and the prior's model before building the
+    encoder (minutes for a large backbone): the error names the key, no encoder is built."""
+    from hydra import compose, initialize_config_dir
+
+    import resireg.models
+    from resireg_train.cli.eval import evaluate
+    from resireg_train.cli.task import CONFIG_DIR
+
+    def no_encoder(*args, **kwargs):
+        raise AssertionError("the encoder was built before the sources were checked")
+
+    monkeypatch.setattr(resireg.models, "build_encoder", no_encoder)
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", ["model_path=x", f"paths.output_dir={tmp_path}", *overrides])
+    with pytest.raises(error, match=message):
+        evaluate(cfg)

@@ -23,18 +23,22 @@ from typing import Any
 __all__ = [
     "PRIOR_KINDS",
     "SAM_DEFAULTS",
+    "SAM_MODEL",
     "SAM_RULES",
     "SamPrior",
     "build_prior",
+    "check_sam_source",
     "masks_to_instances",
 ]
 
 _SOURCES = {
     "PRIOR_KINDS": "resireg.priors.settings",
     "SAM_DEFAULTS": "resireg.priors.settings",
+    "SAM_MODEL": "resireg.priors.settings",
     "SAM_RULES": "resireg.priors.settings",
     "SamPrior": "resireg.priors.sam",
     "build_prior": "resireg.priors.sam",
+    "check_sam_source": "resireg.priors.sam",
     "masks_to_instances": "resireg.priors.sam",
 }
 

@@ -24,9 +24,10 @@ from PIL import Image
 from torch import Tensor
 
 from resireg.models.hub import WeightsUnavailableError, hf_cached, require_online
-from resireg.priors.settings import PRIOR_KINDS, SAM_DEFAULTS, SAM_RULES
+from resireg.priors.settings import PRIOR_KINDS, SAM_DEFAULTS, SAM_MODEL, SAM_RULES
 
 __all__ = [
+    "check_sam_source",
     "PRIOR_KINDS",
     "SAM_DEFAULTS",
     "SAM_RULES",
@@ -114,6 +115,33 @@ def _is_local(model: str) -> bool:
     return os.path.isdir(os.path.expanduser(model))
 
 
+def _sam_hint(key: str) -> str:
+    return (
+        f"Set {key}.model to a local directory holding a transformers SAM 2 checkpoint "
+        "(Sam2Model.save_pretrained + Sam2ImageProcessor.save_pretrained), or download it "
+        "once with network access (it is then cached)."
+    )
+
+
+def check_sam_source(model: str, key: str = "prior") -> bool:
+    """Whether ``model`` (``<key>.model``) is a local directory (``True``) or a hub id that is
+    cached or reachable (``False``); otherwise the error :class:`SamPrior` would raise, so a
+    caller can fail before loading anything else (``resireg-eval`` checks it before the
+    encoder). No model is loaded.
+
+    Raises:
+        FileNotFoundError: a path (not an ``org/name`` hub id) that is not a directory.
+        WeightsUnavailableError: a hub id neither cached nor reachable (names ``<key>.model``).
+    """
+    if _is_local(model):
+        return True
+    if model.startswith((".", "/", "~", os.sep)) or model.count("/") > 1:  # a path, not org/name
+        raise FileNotFoundError(f"{key}.model={model!r}: no such directory")
+    if not hf_cached(model, "config.json"):
+        require_online(f"{key}.model={model!r} (SAM 2 weights)", "huggingface.co", _sam_hint(key))
+    return False
+
+
 class SamPrior:
     """SAM 2.1 automatic masks -> instance-id maps, a prior provider for ReSiReg.
 
@@ -149,7 +177,7 @@ class SamPrior:
 
     def __init__(
         self,
-        model: str = "facebook/sam2.1-hiera-tiny",
+        model: str = SAM_MODEL,
         device: str | torch.device = "cpu",
         points_per_side: int = SAM_DEFAULTS["points_per_side"],
         points_per_batch: int = SAM_DEFAULTS["points_per_batch"],
@@ -200,20 +228,7 @@ class SamPrior:
                 f"{self.key}: the SAM 2 prior needs transformers with SAM 2 "
                 "(pip install 'resireg[priors]')"
             ) from err
-        hint = (
-            f"Set {self.key}.model to a local directory holding a transformers SAM 2 "
-            "checkpoint (Sam2Model.save_pretrained + Sam2ImageProcessor.save_pretrained), "
-            "or download it once with network access (it is then cached)."
-        )
-        local = _is_local(model)
-        if not local:
-            if model.startswith((".", "/", "~", os.sep)) or model.count("/") > 1:
-                # a path, not a hub id (``org/name``)
-                raise FileNotFoundError(f"{self.key}.model={model!r}: no such directory")
-            if not hf_cached(model, "config.json"):
-                require_online(
-                    f"{self.key}.model={model!r} (SAM 2 weights)", "huggingface.co", hint
-                )
+        local = check_sam_source(model, self.key)
         source = os.path.expanduser(model) if local else model
         try:
             net = Sam2Model.from_pretrained(source)
@@ -221,7 +236,7 @@ class SamPrior:
         except OSError as err:
             raise WeightsUnavailableError(
                 f"{self.key}.model={model!r}: cannot load a transformers SAM 2 checkpoint "
-                f"({err}). {hint}"
+                f"({err}). {_sam_hint(self.key)}"
             ) from err
         net = net.to(self.device).eval()
         return pipeline("mask-generation", model=net, image_processor=processor, device=self.device)

@@ -11,10 +11,13 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["PRIOR_KINDS", "SAM_DEFAULTS", "SAM_RULES"]
+__all__ = ["PRIOR_KINDS", "SAM_DEFAULTS", "SAM_MODEL", "SAM_RULES"]
 
 #: Prior kinds of :func:`resireg.priors.build_prior` (``kind`` of ``conf/prior/*.yaml``).
 PRIOR_KINDS = ("sam2",)
+
+#: The SAM 2 checkpoint of a prior whose ``model`` is unset (``conf/prior/sam2.yaml`` sets it).
+SAM_MODEL = "facebook/sam2.1-hiera-tiny"
 
 #: SAM 2's automatic-mask-generation defaults, keywords of :class:`resireg.priors.SamPrior`.
 SAM_DEFAULTS: dict[str, Any] = {

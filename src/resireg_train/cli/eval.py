@@ -128,6 +128,25 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     return run_task(cfg, _evaluate)
 
 
+def _check_sources(params: dict[str, Any], variants: Any) -> None:
+    """Fail on a missing dataset folder or segmentation-prior model before the encoder loads
+    (a large backbone takes minutes): the builders' own checks, run early."""
+    from resireg.variant_names import takes_prior
+
+    if params["task"] == "scannet3d":
+        from resireg_train.mapping.scannet import check_scannet_source, scannet_source
+
+        check_scannet_source(*scannet_source(params["dataset"], "dataset"), "dataset")
+    else:
+        from resireg_train.ovss.datasets import check_segmentation_source
+
+        check_segmentation_source(params["dataset"], "dataset")
+    if any(takes_prior(v) for v in variants):
+        from resireg.priors import SAM_MODEL, check_sam_source
+
+        check_sam_source(str(params["prior"].get("model") or SAM_MODEL), "prior")
+
+
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg)
@@ -149,6 +168,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
 
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
+    _check_sources(params, variants)
     spec = encoder_kwargs(params["encoder"])
     encoder = build_encoder(**spec, device=_device(cfg.device), config_key="encoder")
     n_parameters = count_parameters(encoder)

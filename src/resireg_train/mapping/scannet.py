@@ -79,6 +79,23 @@ DEFAULT_SCENES: tuple[str, ...] = (
 _LABEL_DIRS = ("label-filt", "{scene}_2d-label-filt/label-filt")
 
 
+def check_scannet_source(root: str | Path, scenes: Sequence[str], key: str = "dataset") -> None:
+    """A FileNotFoundError naming ``<key>.path`` or ``<key>.scenes`` unless ``root`` is a folder
+    holding every scene folder. :class:`ScanNetFrames` starts with it; ``resireg-eval`` calls
+    it before loading the encoder, so a wrong path costs no model load."""
+    folder = Path(root).expanduser()
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"{key}.path={str(root)!r}: no such folder (the ScanNet root holding "
+            f"<scene>/{{color,depth,pose,intrinsic,label-filt}}); set {key}.path"
+        )
+    if not scenes:
+        raise ValueError(f"{key}.scenes=[]: name at least one scene")
+    missing = [s for s in scenes if not (folder / s).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"{key}.scenes: {missing} not found under {key}.path={str(root)!r}")
+
+
 def read_label_map(path: str | Path, key: str = "dataset.label_map") -> dict[int, int]:
     """``{raw ScanNet id: NYU40 id}`` from ``scannetv2-labels.combined.tsv`` (tab-separated,
     columns ``id`` and ``nyu40id``; rows with an empty NYU40 id are left out)."""
@@ -175,18 +192,7 @@ class ScanNetFrames(torch.utils.data.Dataset):
         )
         self.short_side = short_side
         self.patch_size = patch_size
-        if not self.root.is_dir():
-            raise FileNotFoundError(
-                f"{key}.path={str(root)!r}: no such folder (the ScanNet root holding "
-                "<scene>/{color,depth,pose,intrinsic,label-filt}); set dataset.path"
-            )
-        if not scenes:
-            raise ValueError(f"{key}.scenes=[]: name at least one scene")
-        missing = [s for s in scenes if not (self.root / s).is_dir()]
-        if missing:
-            raise FileNotFoundError(
-                f"{key}.scenes: {missing} not found under {key}.path={str(root)!r}"
-            )
+        check_scannet_source(root, scenes, key)
         label_path = Path(label_map).expanduser() if label_map else self.root / LABEL_MAP_FILE
         self.lookup = label_lookup(read_label_map(label_path, f"{key}.label_map"))
         self.scenes = tuple(scenes)
@@ -345,6 +351,15 @@ _KEYS = {"name", "kind", "path", "label_map", "scenes", "frame_skip", "image_siz
          "gt_resolution", "short_side", "limit", "voxel_size", "gt_unlabelled"}  # fmt: skip
 
 
+def scannet_source(spec: Mapping[str, Any], key: str = "dataset") -> tuple[str, list[str]]:
+    """The root folder and the scenes of a ``conf/dataset/scannet.yaml`` entry (the 12
+    validation scenes when ``scenes`` is unset); check them with
+    :func:`check_scannet_source`."""
+    if not spec.get("path"):
+        raise ValueError(f"{key}.path={spec.get('path')!r}: set the ScanNet root folder")
+    return str(spec["path"]), list(spec.get("scenes") or DEFAULT_SCENES)
+
+
 def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset") -> ScanNetFrames:
     """:class:`ScanNetFrames` from a ``conf/dataset/scannet.yaml`` entry (keys: ``path``,
     ``label_map``, ``scenes``, ``frame_skip``, ``image_size``, ``gt_resolution``,
@@ -357,12 +372,11 @@ def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset"
         raise ValueError(
             f"{key}: unknown keys {sorted(unknown)} for kind 'scannet' ({sorted(_KEYS)})"
         )
-    if not spec.get("path"):
-        raise ValueError(f"{key}.path={spec.get('path')!r}: set the ScanNet root folder")
+    root, scenes = scannet_source(spec, key)
     gt = spec.get("gt_resolution")
     return ScanNetFrames(
-        spec["path"],
-        list(spec.get("scenes") or DEFAULT_SCENES),
+        root,
+        scenes,
         label_map=spec.get("label_map"),
         frame_skip=int(spec.get("frame_skip", 10)),
         image_size=tuple(spec.get("image_size") or (640, 864)),

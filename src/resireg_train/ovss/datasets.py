@@ -59,6 +59,8 @@ log = logging.getLogger(__name__)
 
 IGNORE_INDEX = 255
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+#: The hub dataset of ADE20K when `path` is unset (conf/dataset/ade20k.yaml).
+ADE20K_HUB_ID = "zhoubolei/scene_parse_150"
 
 #: ORAD-3D's polygon tags (``gt_image_multi_seg``) -> vocabulary class.
 ORAD3D_POLYGON_TAGS: dict[str, str] = {
@@ -297,7 +299,7 @@ def _synthetic(name: str, spec: Mapping[str, Any], key: str, common: dict) -> Se
 
 # ------------------------------------------------------------------------------ ADE20K
 def _ade20k(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
-    path = str(spec.get("path", "zhoubolei/scene_parse_150"))
+    path = str(spec.get("path", ADE20K_HUB_ID))
     split = str(spec.get("split", "validation"))
     common = {**common, "reduce_zero_label": True}
     local = Path(path).expanduser()
@@ -366,14 +368,49 @@ def _ade20k_folder(
     )
 
 
+def _check_hub_id(path: str, key: str) -> None:
+    """``<key>.path`` names no local folder: a FileNotFoundError if it is a path rather than
+    a hub id."""
+    if path.startswith(("/", ".", "~")):
+        raise FileNotFoundError(f"{key}.path={path!r} does not exist")
+
+
+def _orad3d_root(spec: Mapping[str, Any], key: str) -> Path:
+    """``<path>/<split>``, the folder of the ORAD-3D sequences; an error naming ``<key>.path``
+    unless it exists."""
+    if "path" not in spec:
+        raise ValueError(f"{key}.path is required: the ORAD-3D folder holding <split>/<sequence>/")
+    root = Path(str(spec["path"])).expanduser() / str(spec.get("split", "validation"))
+    if not root.is_dir():
+        raise FileNotFoundError(
+            f"{key}.path={spec['path']!r}: no {root} folder (expected <path>/<split>/<sequence>/"
+            "{image_data,gt_image,gt_image_multi_seg})"
+        )
+    return root
+
+
+def check_segmentation_source(spec: Mapping[str, Any], key: str = "dataset") -> None:
+    """The checks of :func:`build_segmentation_set` that need no model: a missing ORAD-3D
+    folder, or an ADE20K ``path`` that is neither a folder nor a hub id, raise the error the
+    build would. ``resireg-eval`` calls it before loading the encoder (whose patch size the
+    build needs), so a wrong path costs no model load. A hub dataset's availability is
+    checked when it loads."""
+    kind = spec.get("kind")
+    if kind == "orad3d":
+        _orad3d_root(spec, key)
+    elif kind == "ade20k":
+        path = str(spec.get("path", ADE20K_HUB_ID))
+        if not Path(path).expanduser().is_dir():
+            _check_hub_id(path, key)
+
+
 def _load_hub_table(path: str, spec: Mapping[str, Any], split: str, key: str, local: bool):
     """A map-style ``datasets.Dataset``: a local parquet folder, or the hub (cached or online)."""
     from datasets import load_dataset
 
     if local:
         return load_dataset(path, split=split)
-    if path.startswith(("/", ".", "~")):
-        raise FileNotFoundError(f"{key}.path={path!r} does not exist")
+    _check_hub_id(path, key)
     name = spec.get("config", "scene_parsing")
     revision = spec.get("revision", "refs/convert/parquet")
     hint = (
@@ -462,14 +499,7 @@ def _match(folder: Path, stem: str, suffixes: Sequence[str]) -> Path | None:
 
 
 def _orad3d(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
-    if "path" not in spec:
-        raise ValueError(f"{key}.path is required: the ORAD-3D folder holding <split>/<sequence>/")
-    root = Path(str(spec["path"])).expanduser() / str(spec.get("split", "validation"))
-    if not root.is_dir():
-        raise FileNotFoundError(
-            f"{key}.path={spec['path']!r}: no {root} folder (expected <path>/<split>/<sequence>/"
-            "{image_data,gt_image,gt_image_multi_seg})"
-        )
+    root = _orad3d_root(spec, key)
     tags = dict(spec.get("polygon_tags") or ORAD3D_POLYGON_TAGS)
     colours = dict(spec.get("gt_image_classes") or ORAD3D_GT_IMAGE_CLASSES)
     items: list[tuple[Path, Path, Path | None]] = []
