@@ -27,17 +27,20 @@ from _common import build_model
 from resireg.models import ResiregVLM
 from resireg.variants import build_variants
 from resireg_train.ovss.datasets import build_segmentation_set
-from resireg_train.ovss.engine import OVSSTask
+from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 BATCH_SIZES = (2, 4, 6, 8, 16, 24, 32)
 COUNTS = tuple(range(24, 133, 12))
 
 
-def _seconds(task: OVSSTask, model: ResiregVLM, names: list[str]) -> tuple[float, float]:
-    """Wall and process CPU seconds of one evaluation pass scoring ``names``."""
+def _seconds(
+    task: OVSSTask, model: ResiregVLM, names: list[str], timer: StageTimer | None = None
+) -> tuple[float, float]:
+    """Wall and process CPU seconds of one evaluation pass scoring ``names`` (its stages
+    added to ``timer``)."""
     variants = build_variants(names, {"full": {"n_components": None}})
     start, cpu = time.perf_counter(), time.process_time()
-    task.run(model, variants)
+    task.run(model, variants, timer=timer)
     return time.perf_counter() - start, time.process_time() - cpu
 
 
@@ -67,6 +70,11 @@ def main(argv: list[str] | None = None) -> None:
         help="rounds of the forms, interleaved (load drifts over minutes on a shared machine); "
         "the table shows each form's median and the ratios' range over the rounds",
     )  # fmt: skip
+    parser.add_argument(
+        "--stages", action="store_true",
+        help="print the stage seconds (encoder, each configuration, metric) of the last round's "
+        "configuration form at the largest batch size",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -87,7 +95,11 @@ def main(argv: list[str] | None = None) -> None:
             rounds["jobs"].append(
                 _total([_seconds(t, model, [c]) for t in tasks.values() for c in configs])
             )
-        rounds["together"].append(_total([_seconds(t, model, configs) for t in tasks.values()]))
+        timer = StageTimer()  # the largest batch size's pass (--stages)
+        rounds["together"].append(
+            _total([_seconds(t, model, configs, timer if b == max(tasks) else None)
+                    for b, t in tasks.items()])
+        )  # fmt: skip
         rounds["single"].append(_total([_seconds(t, model, configs[:1]) for t in tasks.values()]))
     jobs = _median(rounds["jobs"]) if rounds["jobs"] else None
     together, single = _median(rounds["together"]), _median(rounds["single"])
@@ -104,6 +116,9 @@ def main(argv: list[str] | None = None) -> None:
     for form, passes, (wall, cpu) in forms:
         print(f"| {form} | {passes} | {wall:.2f} | {wall / single[0]:.2f} | {cpu:.2f} | "
               f"{cpu / single[1]:.2f} |")  # fmt: skip
+    if args.stages:
+        print(f"stages of the {n_b} x {n_c} form at batch size {max(tasks)}, last round (s): "
+              + ", ".join(f"{k} {v:.2f}" for k, v in timer.seconds.items()))  # fmt: skip
     if len(rounds["single"]) > 1:
         for key, form in (("jobs", f"{n_b * n_c} jobs"), ("together", f"{n_b} x {n_c}")):
             ratios = [a[0] / b[0] for a, b in zip(rounds[key], rounds["single"], strict=False)]

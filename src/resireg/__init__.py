@@ -7,6 +7,7 @@ The top-level names load on first use (PEP 562), so importing a light submodule 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 from typing import Any
 
 __all__ = ["ReSiRegFull", "ReSiRegLite", "PrototypeHeuristic", "VARIANTS", "build_variant"]
@@ -21,7 +22,16 @@ _SOURCES = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _SOURCES:
-        return getattr(importlib.import_module(_SOURCES[name]), name)
-    raise AttributeError(f"module 'resireg' has no attribute {name!r}")
+def lazy_names(package: str, sources: dict[str, str]) -> Callable[[str], Any]:
+    """A PEP 562 module ``__getattr__`` for ``package`` that imports ``sources[name]`` (a
+    module path) on first use of ``name``, so importing the package stays light."""
+
+    def __getattr__(name: str) -> Any:
+        if name in sources:
+            return getattr(importlib.import_module(sources[name]), name)
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return __getattr__
+
+
+__getattr__ = lazy_names("resireg", _SOURCES)

@@ -17,8 +17,7 @@ their rules) imports no torch; the rest imports torch, and ``transformers`` load
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from resireg import lazy_names
 
 __all__ = [
     "PRIOR_KINDS",
@@ -42,8 +41,4 @@ _SOURCES = {
     "masks_to_instances": "resireg.priors.sam",
 }
 
-
-def __getattr__(name: str) -> Any:
-    if name in _SOURCES:
-        return getattr(importlib.import_module(_SOURCES[name]), name)
-    raise AttributeError(f"module 'resireg.priors' has no attribute {name!r}")
+__getattr__ = lazy_names("resireg.priors", _SOURCES)
