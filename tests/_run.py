@@ -3,6 +3,7 @@
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -13,6 +14,14 @@ _MODULES = {
 }
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """The child takes SIGINT as a terminal's Ctrl-C would reach it. A shell that starts the
+    suite in the background (`cmd &`, no job control) makes its children ignore SIGINT, an
+    ignored disposition survives exec, and Python then installs no KeyboardInterrupt handler:
+    the Ctrl-C test would see its signal vanish."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def run(script, *args, timeout=600, check=True, env=None):
     """``script args...`` offline (in ``env``, default this process's environment); returns the
     CompletedProcess (asserts success if ``check``)."""
@@ -21,6 +30,7 @@ def run(script, *args, timeout=600, check=True, env=None):
     proc = subprocess.run(
         [*cmd, *map(str, args)], capture_output=True, text=True, timeout=timeout,
         env={**(os.environ if env is None else env), "HF_HUB_OFFLINE": "1"},
+        preexec_fn=_ctrl_c_as_in_a_terminal,
     )  # fmt: skip
     if check:
         assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
