@@ -356,6 +356,6 @@ class OVSSTask:
                 grid = tuple(dense.shape[-2:])
                 if grid not in blocks:
                     blocks[grid] = [metrics[name].blocks(label, grid) for label in batch["label"]]
-                pred = predict_grid(dense, protos, self.temperature)
-                for i, label_blocks in enumerate(blocks[grid]):
-                    metrics[name].update_grid(pred[i], label_blocks)
+                for i, label_blocks in enumerate(blocks[grid]):  # per image: K x h x w logits
+                    pred = predict_grid(dense[i : i + 1], protos, self.temperature)
+                    metrics[name].update_grid(pred[0], label_blocks)
