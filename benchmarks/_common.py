@@ -41,6 +41,27 @@ def build_model(tiny: bool = False):
     return ResiregVLM.build(backbone, head, TINY_TEXT).eval()
 
 
+def generated_spec(
+    images: int, short_side: int, image_size: list[int] | None = None
+) -> dict[str, Any]:
+    """The dataset entry of ``images`` generated scenes (3:4, ``short_side`` x 4/3 unless
+    ``image_size``) at the protocol's ``short_side``: the benchmarks' stand-in for ADE20K."""
+    size = image_size or [short_side, short_side * 4 // 3]
+    return {"kind": "synthetic", "size": images, "short_side": short_side, "image_size": size}
+
+
+def encode_generated(model: Any, images: int, short_side: int) -> Any:
+    """``model.encode`` of the :func:`generated_spec` images, one batch, no gradients."""
+    import torch
+
+    from resireg_train.ovss.datasets import build_segmentation_set
+
+    data = build_segmentation_set(generated_spec(images, short_side), model.input_rule.patch_size)
+    pixels = torch.stack([data[i]["image"] for i in range(images)])
+    with torch.no_grad():
+        return model.encode(model.input_rule.normalize(pixels))
+
+
 def median_seconds(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:
     """Median wall seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones."""
     for _ in range(warmup):

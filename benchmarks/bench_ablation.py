@@ -23,7 +23,7 @@ import time
 
 import torch
 
-from _common import build_model
+from _common import build_model, generated_spec
 from resireg.models import ResiregVLM
 from resireg.variants import build_variants
 from resireg_train.ovss.datasets import build_segmentation_set
@@ -81,9 +81,10 @@ def main(argv: list[str] | None = None) -> None:
     torch.manual_seed(0)
     model = build_model(tiny=not args.vits)
     # The smoke experiment's eval set (72 x 88 px at short side 64), or 3:4 images.
-    short = args.short_side or 64
-    size = [72, 88] if args.short_side is None else [short, short * 4 // 3]
-    spec = {"kind": "synthetic", "size": args.images, "short_side": short, "image_size": size}
+    if args.short_side is None:
+        spec = generated_spec(args.images, 64, image_size=[72, 88])
+    else:
+        spec = generated_spec(args.images, args.short_side)
     dataset = build_segmentation_set(spec, model.input_rule.patch_size)
     tasks = {b: OVSSTask(dataset, batch_size=b) for b in args.batch_sizes}
     for task in tasks.values():

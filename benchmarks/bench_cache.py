@@ -23,7 +23,7 @@ import time
 
 import torch
 
-from _common import build_model
+from _common import build_model, generated_spec
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache
 from resireg_train.ovss.datasets import build_segmentation_set
@@ -47,9 +47,7 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     model = build_model()
-    short = args.short_side
-    spec = {"kind": "synthetic", "size": args.images, "short_side": short,
-            "image_size": [short, short * 4 // 3]}  # fmt: skip
+    spec = generated_spec(args.images, args.short_side)
     dataset = build_segmentation_set(spec, model.input_rule.patch_size)
     task = OVSSTask(dataset, batch_size=args.batch_size)
     task.prototypes(model)
@@ -70,7 +68,8 @@ def main(argv: list[str] | None = None) -> None:
             total = time.perf_counter() - start
             rows.append((label, total, timer.seconds, cache))
         per_image = rows[1][3].disk_bytes() / args.images
-        print(f"{args.images} images at {short} x {short * 4 // 3} px, batch {args.batch_size}, "
+        height, width = spec["image_size"]
+        print(f"{args.images} images at {height} x {width} px, batch {args.batch_size}, "
               f"{torch.get_num_threads()} threads")  # fmt: skip
         print("| pass | total s | encoder s | cache s | images/s of the stage |")
         print("|---|---:|---:|---:|---:|")

@@ -29,9 +29,8 @@ import torch
 import torch.nn.functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-from _common import build_model, median_seconds
+from _common import build_model, encode_generated, median_seconds
 from resireg.reconstruct import ReSiRegLite
-from resireg_train.ovss.datasets import build_segmentation_set
 
 BACKENDS = {
     "default": None,
@@ -42,13 +41,7 @@ BACKENDS = {
 
 def _features(images: int, short_side: int) -> tuple[torch.Tensor, torch.Tensor]:
     torch.manual_seed(0)
-    model = build_model()
-    size = [short_side, short_side * 4 // 3]
-    spec = {"kind": "synthetic", "size": images, "short_side": short_side, "image_size": size}
-    data = build_segmentation_set(spec, model.input_rule.patch_size)
-    x = torch.stack([data[i]["image"] for i in range(images)])
-    with torch.no_grad():
-        out = model.encode(model.input_rule.normalize(x))
+    out = encode_generated(build_model(), images, short_side)
     return out.intermediates, out.language
 
 

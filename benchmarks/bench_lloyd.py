@@ -20,10 +20,9 @@ import time
 
 import torch
 
-from _common import build_model
+from _common import build_model, encode_generated
 from bench_reconstruct import load_impl
 from resireg.reconstruct import ReSiRegFull
-from resireg_train.ovss.datasets import build_segmentation_set
 
 
 def full_points(n_values: list[int], images: int, short_side: int) -> dict[int, torch.Tensor]:
@@ -31,13 +30,7 @@ def full_points(n_values: list[int], images: int, short_side: int) -> dict[int, 
     import resireg.reconstruct as reconstruct
 
     torch.manual_seed(0)
-    model = build_model()
-    size = [short_side, short_side * 4 // 3]
-    spec = {"kind": "synthetic", "size": images, "short_side": short_side, "image_size": size}
-    dataset = build_segmentation_set(spec, model.input_rule.patch_size)
-    pixels = torch.stack([dataset[i]["image"] for i in range(images)])
-    with torch.no_grad():
-        out = model.encode(model.input_rule.normalize(pixels))
+    out = encode_generated(build_model(), images, short_side)
     points: dict[int, torch.Tensor] = {}
     original = reconstruct.kmeans
 
