@@ -269,3 +269,14 @@ def test_a_missing_dataset_or_prior_model_fails_before_the_encoder_loads(
         cfg = compose("eval", ["model_path=x", f"paths.output_dir={tmp_path}", *overrides])
     with pytest.raises(error, match=message):
         evaluate(cfg)
+
+
+def test_too_many_prototypes_for_a_batch_name_the_variant_and_the_batch_of_images():
+    task = _task(batch_size=4)  # 10 images of 48 x 64 px (3 x 4 patches): batches 4, 4, 2
+    with pytest.raises(ValueError) as err:
+        task.check_variants(build_variants(["full@n_prototypes:97"]), "variants")
+    assert str(err.value) == (
+        "variants.full@n_prototypes:97: n_prototypes=97 exceeds the number of points N=96 "
+        "(B*Hv*s*Wv*s for B=2 intermediates of 3 x 4, upscale=2); dataset 'synthetic' with "
+        "batch_size=4 has a batch of 2 images of 48 x 64 px"
+    )

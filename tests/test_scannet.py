@@ -4,6 +4,7 @@ engine, the Hydra entry point with a tiny encoder, the 3D prototype/batch sweep 
 report, and the errors naming config keys."""
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -192,6 +193,18 @@ def test_missing_root_scene_and_label_map_name_the_key(root, room, tmp_path):
         ScanNetFrames(root, ["scene0050_00"])
     with pytest.raises(FileNotFoundError, match=r"dataset\.label_map: no label map"):
         ScanNetFrames(root, [SCENE], label_map=tmp_path / "none.tsv")
+
+
+def test_too_many_prototypes_for_a_batch_name_the_variant_and_the_batch_of_frames(root, room):
+    frames = _frames(root, room)
+    h, w = frames.grid_size()
+    n = 4 * h * w * 4 + 1  # one more than 4 frames upsampled by s = 2 have points
+    task = MappingTask(frames, batch_size=4, voxel_size=VOXEL)
+    with pytest.raises(ValueError) as err:
+        task.check_variants(build_variants([f"full@n_prototypes:{n}"]), "variants")
+    assert str(err.value).startswith(f"variants.full@n_prototypes:{n}: n_prototypes={n} exceeds")
+    tail = rf"; dataset '{frames.name}' with batch_size=4 has a batch of \d frames of {h} x {w} px$"
+    assert re.search(tail, str(err.value)), str(err.value)
 
 
 # ---------------------------------------------------------------- ground truth

@@ -159,11 +159,8 @@ class MappingTask:
         than a batch has points); the error names ``key.<variant>``."""
         h, w = self.dataset.grid_size()
         shapes = [(len(b), h, w) for b in self.dataset.batches(self.batch_size)]
-        check_variants_on(
-            variants, shapes, self.dataset.patch_size,
-            lambda b, h, w: f"dataset {self.dataset.name!r} with batch_size={self.batch_size} "
-            f"has a batch of {b} frames of {h} x {w} px", key,
-        )  # fmt: skip
+        check_variants_on(variants, shapes, self.dataset.patch_size, self.dataset.name,
+                          self.batch_size, "frames", key)  # fmt: skip
 
     def loader(self) -> DataLoader:
         return DataLoader(

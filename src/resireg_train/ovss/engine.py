@@ -95,12 +95,15 @@ def check_variants_on(
     variants: Mapping[str, nn.Module],
     shapes: Iterable[tuple[int, int, int]],
     patch: int,
-    where: Callable[[int, int, int], str],
+    dataset: str,
+    batch_size: int,
+    unit: str = "images",
     key: str = "",
 ) -> None:
     """Fail before any encoding if a variant cannot run on a batch of ``(images, height,
     width)`` in ``shapes`` (e.g. more prototypes than the batch has points); the error names
-    ``key.<variant>`` and says ``where(b, h, w)`` (which dataset, batch size and images)."""
+    ``key.<variant>`` and the batch: ``dataset 'x' with batch_size=B has a batch of b <unit>
+    of h x w px``."""
     for name, variant in variants.items():
         check = getattr(variant, "check_grid", None)
         if check is None:
@@ -110,7 +113,10 @@ def check_variants_on(
                 check(b, h // patch, w // patch)
             except ValueError as err:
                 label = f"{key}.{name}" if key else name
-                raise ValueError(f"{label}: {err}; {where(b, h, w)}") from err
+                raise ValueError(
+                    f"{label}: {err}; dataset {dataset!r} with batch_size={batch_size} has a "
+                    f"batch of {b} {unit} of {h} x {w} px"
+                ) from err
 
 
 @dataclass
@@ -243,11 +249,8 @@ class OVSSTask:
         more prototypes than a batch has points); the error names ``key.<variant>``."""
         sizes = self.dataset.grid_sizes()
         shapes = [(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)]
-        check_variants_on(
-            variants, shapes, self.dataset.patch_size,
-            lambda b, h, w: f"dataset {self.dataset.name!r} with batch_size={self.batch_size} "
-            f"has a batch of {b} images of {h} x {w} px", key,
-        )  # fmt: skip
+        check_variants_on(variants, shapes, self.dataset.patch_size, self.dataset.name,
+                          self.batch_size, "images", key)  # fmt: skip
 
     def loader(self, rank: int = 0, world_size: int = 1) -> DataLoader:
         return DataLoader(
