@@ -391,6 +391,23 @@ def _dataset_of(job: Job) -> str:
     return str(params.get("name") or job.overrides.get("dataset", "?"))
 
 
+def _per_encoder(
+    jobs: list[Job],
+) -> tuple[list[tuple[Job, str, bool | None, float | None, str]], list[str]]:
+    """Each job with its encoder's name, third-party flag and parameters in millions (one
+    decimal; ``None`` when unknown) and its dataset, and the datasets in first-seen order:
+    what the encoder tables (Table 1, Table 2) read of every job."""
+    out, datasets = [], []
+    for job in jobs:
+        name, third, parameters = _encoder_of(job)
+        dataset = _dataset_of(job)
+        if dataset not in datasets:
+            datasets.append(dataset)
+        millions = round(parameters / 1e6, 1) if parameters else None
+        out.append((job, name, third, millions, dataset))
+    return out, datasets
+
+
 def is_encoder_sweep(jobs: list[Job]) -> bool:
     """Jobs of ``resireg-eval`` that vary the encoder (``sweep=table1``)."""
     return "encoder" in _varying(jobs)
@@ -403,17 +420,13 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
     complete leaves its cells empty and is named in ``<dataset> status``. Two rows follow:
     the mean delta per method over all encoders, and over the third-party ones only."""
     rows: dict[str, dict[str, Any]] = {}
-    datasets: list[str] = []
-    for job in jobs:
-        name, third, parameters = _encoder_of(job)
-        dataset = _dataset_of(job)
-        if dataset not in datasets:
-            datasets.append(dataset)
+    per_job, datasets = _per_encoder(jobs)
+    for job, name, third, millions, dataset in per_job:
         row = rows.setdefault(name, {"encoder": name, "third_party": third, "parameters (M)": None})
         if third is not None:
             row["third_party"] = third
-        if parameters:
-            row["parameters (M)"] = round(parameters / 1e6, 1)
+        if millions:
+            row["parameters (M)"] = millions
         row[f"{dataset} status"] = job.status
         if job.status != "completed":
             continue
@@ -504,12 +517,8 @@ def mapping_table(jobs: list[Job]) -> pd.DataFrame:
     voxels of all scenes (x100), the mean of the scenes' mIoU (x100) and the job's status (a
     job that did not complete leaves its cells empty)."""
     rows: dict[tuple[str, str], dict[str, Any]] = {}
-    datasets: list[str] = []
-    for job in jobs:
-        name, third, parameters = _encoder_of(job)
-        dataset = _dataset_of(job)
-        if dataset not in datasets:
-            datasets.append(dataset)
+    per_job, datasets = _per_encoder(jobs)
+    for job, name, third, millions, dataset in per_job:
         variants = (job.results.get("params") or {}).get("variants") or ["full"]
         for variant in variants:
             base = variant.split("@")[0]
@@ -517,8 +526,8 @@ def mapping_table(jobs: list[Job]) -> pd.DataFrame:
             row = rows.setdefault((name, variant), {"model": label, "encoder": name,
                                                     "variant": variant, "third_party": third,
                                                     "parameters (M)": None})  # fmt: skip
-            if parameters:
-                row["parameters (M)"] = round(parameters / 1e6, 1)
+            if millions:
+                row["parameters (M)"] = millions
             row[f"{dataset} status"] = job.status
             if job.status != "completed":
                 continue
