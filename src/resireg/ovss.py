@@ -275,9 +275,8 @@ class SegmentationMetric:
         so an evaluation that scores several configurations of one batch computes it once per
         image instead of preparing the full-size label for every configuration.
         """
-        target_2d = target
+        cells = _nearest_source(grid, tuple(target.shape[-2:]))
         target, valid = self._scored(target)
-        cells = _nearest_source(grid, tuple(target_2d.shape[-2:]))
         k, n_cells = self.num_classes, grid[0] * grid[1]
         counts = torch.bincount(cells[valid] * k + target[valid], minlength=n_cells * k)
         return counts.reshape(n_cells, k).int()
