@@ -2,7 +2,10 @@
 
 Every expected value is recomputed independently of the adapter: from open_clip's own
 forward pass (hooks on its blocks, ``model.encode_image`` / ``encode_text``) and, for the
-MaskCLIP value path, with plain torch ops on the model's parameters.
+two dense paths (``value``: SC-CLIP's / OTAS's; ``maskclip``: the official MaskCLIP's, with
+the last block's residual and MLP), from the last block's own modules (``ln_1``, its
+``nn.MultiheadAttention`` with every token attending only to itself, ``ln_2``, ``mlp``) and
+the model's ``ln_post`` / ``proj``, or with plain torch ops on the parameters.
 """
 
 import time
@@ -63,7 +66,7 @@ def _reference(model, images, layer):
 
 
 def _value_path_by_hand(model, x):
-    """MaskCLIP language tokens from the last block's input x [B, L, D], plain torch ops."""
+    """Value-path language tokens from the last block's input x [B, L, D], plain torch ops."""
     blk, visual = model.visual.transformer.resblocks[-1], model.visual
     d = x.shape[-1]
     ln = F.layer_norm(x, (d,), blk.ln_1.weight, blk.ln_1.bias, blk.ln_1.eps)
@@ -104,7 +107,8 @@ def test_encode_shapes_on_a_non_square_canvas(enc):
     assert out.intermediates.shape == (2, 768, 3, 5)
     assert out.language.shape == (2, 512, 3, 5)
     assert out.embedding.shape == (2, 512)
-    for t in out:
+    assert out.layers is None  # only encode_layers fills it
+    for t in out[:3]:
         assert t.dtype == torch.float32 and torch.isfinite(t).all()
     with pytest.raises(ValueError, match="not a multiple of the patch size 16"):
         enc.encode(_images(40, 80))
@@ -154,6 +158,104 @@ def test_other_intermediate_layer_and_seeded_rebuild(enc):
     out = other.encode(images)
     torch.testing.assert_close(out.intermediates, _grid(inter[:, 1:], (4, 2)), rtol=1e-4, atol=1e-4)
     assert not torch.allclose(out.intermediates, enc.encode(images).intermediates, atol=1e-3)
+
+
+# ---------------------------------------------------------------------------- dense paths
+def _dense_from_modules(model, x, dense_path):
+    """The language tokens [B, L, embed] of either dense path, from the last block's own
+    modules on its input x [B, L, D]: its nn.MultiheadAttention with a diagonal-only mask
+    (every token attends to itself: softmax(QK^T) = I), then (maskclip) the residual and the
+    block's MLP on ln_2, as chongzhou96/MaskCLIP's TransformerEncoderLayer.forward does
+    (``v += x; v = ffn(norm2(v), identity=v)``); ln_post and proj last."""
+    visual = model.visual
+    blk = visual.transformer.resblocks[-1]
+    n = x.shape[1]
+    diagonal_only = torch.full((n, n), float("-inf")).fill_diagonal_(0.0)
+    with torch.no_grad():
+        a = blk.attn(*[blk.ln_1(x)] * 3, attn_mask=diagonal_only, need_weights=False)[0]
+        if dense_path == "maskclip":
+            y = x + a
+            a = y + blk.mlp(blk.ln_2(y))
+        return visual.ln_post(a) @ visual.proj
+
+
+@pytest.fixture(scope="module")
+def maskclip_enc():
+    return ClipEncoder(B16, weights=None, dense_path="maskclip")  # the same seed: enc's weights
+
+
+@pytest.mark.parametrize("dense_path", ["value", "maskclip"])
+def test_each_dense_path_matches_open_clips_modules(dense_path, enc, maskclip_enc):
+    enc = {"value": enc, "maskclip": maskclip_enc}[dense_path]
+    assert enc.dense_path == dense_path and enc.spec()["dense_path"] == dense_path
+    canvas = (48, 80)
+    images = _images(*canvas)
+    last_in, inter, emb = _reference(enc.model, images, layer=8)
+    expected = _dense_from_modules(enc.model, last_in, dense_path)
+    out = enc.encode(images)
+    grid = (canvas[0] // 16, canvas[1] // 16)
+    torch.testing.assert_close(out.language, _grid(expected[:, 1:], grid), rtol=1e-4, atol=1e-4)
+    # the path changes the language tokens only
+    torch.testing.assert_close(out.intermediates, _grid(inter[:, 1:], grid), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(out.embedding, emb, rtol=1e-4, atol=1e-4)
+
+
+def test_the_two_dense_paths_differ_and_maskclip_is_the_blocks_output_without_attention(
+    enc, maskclip_enc
+):
+    """maskclip = the last block run with the diagonal-only attention mask (what open_clip's
+    own block computes then), value = its attention branch alone."""
+    images = _images(224, 224, b=1)
+    maskclip = maskclip_enc
+    last_in, _, _ = _reference(enc.model, images, layer=0)
+    n = last_in.shape[1]
+    diagonal_only = torch.full((n, n), float("-inf")).fill_diagonal_(0.0)
+    visual = enc.model.visual
+    with torch.no_grad():
+        by_block = visual.ln_post(visual.transformer.resblocks[-1](last_in, attn_mask=diagonal_only))
+        by_block = by_block @ visual.proj
+    out = maskclip.encode(images).language
+    torch.testing.assert_close(out, _grid(by_block[:, 1:], (14, 14)), rtol=1e-4, atol=1e-4)
+    assert not torch.allclose(out, enc.encode(images).language, atol=1e-2)
+
+
+def test_dense_path_is_checked_and_in_the_config():
+    import yaml
+    from pathlib import Path
+
+    with pytest.raises(ValueError, match=r"encoder\.dense_path='clearclip'.*value.*maskclip"):
+        ClipEncoder(B16, weights=None, dense_path="clearclip", config_key="encoder")
+    conf = Path(__file__).resolve().parents[1] / "conf" / "encoder"
+    for name in ("clip_vit_b16", "clip_vit_l14_336"):
+        entry = yaml.safe_load((conf / f"{name}.yaml").read_text())
+        assert entry["dense_path"] == "value", name  # the protocol's default (docs/protocol.md)
+
+
+# ---------------------------------------------------------------------------- layers
+def test_encode_layers_gives_every_requested_block_from_one_pass(enc):
+    images = _images(48, 80)
+    blocks = enc.model.visual.transformer.resblocks
+    seen, hooks = {}, []
+    for i in (0, 5, 11):
+        hooks.append(blocks[i].register_forward_hook(
+            lambda m, a, out, i=i: seen.__setitem__(i, out)))  # fmt: skip
+    calls = []
+    hooks.append(blocks[0].register_forward_pre_hook(lambda m, a: calls.append(1)))
+    try:
+        out = enc.encode_layers(images, [5, -1, 0, 5])
+    finally:
+        for h in hooks:
+            h.remove()
+    assert len(calls) == 1  # one pass for all the blocks
+    assert sorted(out.layers) == [0, 5, 11]  # -1 is block 11; each block once
+    for i, tokens in seen.items():
+        expected = _grid(tokens[:, 1:], (3, 5))
+        torch.testing.assert_close(out.layers[i], expected, rtol=1e-4, atol=1e-4)
+    plain = enc.encode(images)
+    for a, b in zip(out[:3], plain[:3], strict=True):
+        assert torch.equal(a, b)  # the same pass: bitwise what encode gives
+    with pytest.raises(ValueError, match="layer=12 is out of range for ViT-B-16"):
+        enc.encode_layers(images, [3, 12])
 
 
 # ---------------------------------------------------------------------------- text
@@ -219,7 +321,7 @@ def test_local_checkpoint_file(enc, tmp_path, suffix, no_network):
     for k, v in state.items():
         assert torch.equal(loaded.model.state_dict()[k], v), k
     images = _images(48, 48)
-    for a, b in zip(loaded.encode(images), enc.encode(images), strict=True):
+    for a, b in zip(loaded.encode(images)[:3], enc.encode(images)[:3], strict=True):
         torch.testing.assert_close(a, b)
 
 

@@ -182,10 +182,12 @@ def _reference_labels(tokens, n_clusters=24, n_components=12, side=16):
     return F.interpolate(grid, size=(side, side), mode="nearest")[0, 0].long()
 
 
-def _reference_maskclip(model, x, side):
+def _reference_maskclip(model, x, side, dense_path="value"):
     """maskclip_onnx's patch encodings ([B, 512, h, w]) and global embedding of canvas x:
     shorter side to 224, conv stem, positional embedding interpolated (bicubic, +0.1
-    offset), all blocks but the last, the last block's value path, ln_post, proj."""
+    offset), all blocks but the last, the last block's value path, ln_post, proj. With
+    ``dense_path="maskclip"`` the value path is followed by the last block's residual and
+    its MLP on ln_2 (the official MaskCLIP's ``v += x; v = ffn(norm2(v), identity=v)``)."""
     h, w = x.shape[-2:]
     size = (side, int(side * w / h)) if w > h else (int(side * h / w), side)
     x = _resize(x, size)
@@ -209,6 +211,9 @@ def _reference_maskclip(model, x, side):
     ln = F.layer_norm(t, (d,), last.ln_1.weight, last.ln_1.bias, last.ln_1.eps)
     v = F.linear(ln, last.attn.in_proj_weight[2 * d :], last.attn.in_proj_bias[2 * d :])
     v = F.linear(v, last.attn.out_proj.weight, last.attn.out_proj.bias)
+    if dense_path == "maskclip":
+        y = t + v
+        v = y + last.mlp(last.ln_2(y))
     dense = visual.ln_post(v[:, 1:]) @ visual.proj
     embedding = visual.ln_post(last(t)[:, 0]) @ visual.proj
     return dense.mT.reshape(x.shape[0], -1, gh, gw), embedding
@@ -317,6 +322,24 @@ def test_square_clip_pass_is_open_clips_own(encoder):
     torch.testing.assert_close(emb, embedding, atol=1e-5, rtol=1e-5)
 
 
+def test_maskclip_dense_path_on_otas_clip_pass(fake_repo, offline, encoder):
+    """dense_path="maskclip" keeps the last block's residual and MLP in OTAS's CLIP pass
+    (positions interpolated on a non-square canvas); the default is OTAS's value path."""
+    assert encoder.dense_path == "value" and encoder.spec()["dense_path"] == "value"
+    torch.manual_seed(0)
+    maskclip = _build(fake_repo, dense_path="maskclip")
+    assert maskclip.clip.dense_path == "maskclip" and maskclip.spec()["dense_path"] == "maskclip"
+    x = _canvas(70, 98, seed=3)
+    with torch.no_grad():
+        expected, embedding = _reference_maskclip(maskclip.clip.model, x, CLIP_SIDE, "maskclip")
+        value, _ = _reference_maskclip(maskclip.clip.model, x, CLIP_SIDE)
+    maps, emb = maskclip.clip_dense(x)
+    torch.testing.assert_close(maps, expected, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(emb, embedding, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(encoder.clip_dense(x)[0], value, atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(maps, value, atol=1e-2)
+
+
 def test_pooling_on_a_small_example():
     labels = torch.tensor([[0, 0, 2], [1, 1, 2], [1, 1, 2]])
     feats = torch.randn(4, 3, 3)
@@ -384,6 +407,10 @@ def test_bad_arguments(fake_repo, offline, tmp_path):
         _build(fake_repo, n_clusters=300)
     with pytest.raises(ValueError, match=r"model\.n_components=0"):
         _build(fake_repo, n_components=0)
+    with pytest.raises(ValueError, match=r"model\.dense_path='values'"):
+        _build(fake_repo, dense_path="values")
+    with pytest.raises(ValueError, match=r"model\.clip\.dense_path: set model\.dense_path"):
+        _build(fake_repo, clip={"weights": None, "image_size": CLIP_SIDE, "dense_path": "value"})
 
 
 # ------------------------------------------------------------------ offline

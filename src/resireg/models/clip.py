@@ -5,11 +5,29 @@ One frozen open_clip ``CLIP`` model gives everything:
 - ``intermediates`` ``[B, width, H/p, W/p]``: the tokens of one earlier block
   (``intermediate_layer``): that block's output (the residual stream, no final norm),
   class token dropped, patch tokens reshaped to the grid. Default: SC-CLIP's mid-level
-  block (see :class:`ClipEncoder`).
-- ``language`` ``[B, embed_dim, H/p, W/p]``: MaskCLIP's dense tokens, the **value path of
-  the last block**: ``ln_post(out_proj(V(ln_1(x)))) @ proj`` where ``x`` is the last
-  block's input and ``V`` the value slice of its attention's ``in_proj``. Attention is
-  dropped (every token keeps its own value), and so are the block's residual and MLP.
+  block (see :class:`ClipEncoder`). :meth:`ClipEncoder.encode_layers` returns, from the
+  same single pass, the tokens of every block it is asked for (``DenseOutput.layers``: the
+  CLIP layer sweep, docs/design.md section 5).
+- ``language`` ``[B, embed_dim, H/p, W/p]``: the dense tokens of the last block with its
+  attention replaced by the identity (every token attends only to itself), then
+  ``ln_post`` and ``proj``. With ``x`` the last block's input and
+  ``a = ls_1(out_proj(V(ln_1(x))))`` (``V`` the value slice of its attention's
+  ``in_proj``), ``dense_path`` chooses what follows:
+
+  - ``"value"`` (default): ``ln_post(a) @ proj``. The block's residual and MLP are dropped
+    too. This is the value path of SC-CLIP's last block (SuleBai/SC-CLIP
+    ``clip/model.py``, ``VisionTransformer.forward``: ``custom_attn`` with no residual or
+    MLP, then ``ln_post @ proj``), of ClearCLIP / NACLIP / SCLIP, and of the MaskCLIP port
+    OTAS ships (SimonSchwaiger/otas ``src/foundation_models/maskclip_onnx/model.py``,
+    ``ResidualAttentionBlock.forward_v``, whose comment says adding the residual or the MLP
+    "degrades the performance").
+  - ``"maskclip"``: ``ln_post(y + ls_2(mlp(ln_2(y)))) @ proj`` with ``y = x + a``: the
+    official MaskCLIP release (chongzhou96/MaskCLIP ``mmseg/models/backbones/vit.py``,
+    ``TransformerEncoderLayer.forward`` with ``return_qkv``: ``v += x`` then
+    ``v = self.ffn(self.norm2(v), identity=v)``; ``final_norm`` and the ``MaskClipHead``
+    ``proj`` follow), which keeps the residual and the MLP.
+
+  Why ``value`` is the default: docs/protocol.md section 2.
 - ``embedding`` ``[B, embed_dim]``: the ordinary CLIP image embedding (class token,
   ``ln_post``, ``proj``; not normalised), i.e. ``model.encode_image``.
 
@@ -55,12 +73,27 @@ from resireg.models.frozen import FrozenModule
 from resireg.models.hub import hf_cached, require_online
 from resireg.models.images import tokens_to_grid
 
-__all__ = ["CLIP_MODELS", "ClipEncoder"]
+__all__ = ["CLIP_MODELS", "DENSE_PATHS", "ClipEncoder", "check_dense_path"]
 
 #: Supported open_clip model names -> default ``intermediate_layer`` (0-based block index).
 #: ViT-B-16: SC-CLIP's ``pre_adjust_idx = 8`` (the 9th of 12 blocks); ViT-L-14-336: the
 #: same relative depth (18th of 24 blocks), see :class:`ClipEncoder`.
 CLIP_MODELS = {"ViT-B-16": 8, "ViT-L-14-336": 17}
+
+#: ``dense_path`` values: what the last block does to the language tokens (module docstring).
+DENSE_PATHS = ("value", "maskclip")
+
+
+def check_dense_path(dense_path: str, name: str = "dense_path") -> str:
+    """``dense_path`` if it is one of :data:`DENSE_PATHS`, else a ValueError naming the key
+    (``name``, e.g. ``encoder.dense_path``)."""
+    if dense_path not in DENSE_PATHS:
+        raise ValueError(
+            f"{name}={dense_path!r}: expected one of {list(DENSE_PATHS)} "
+            "(value: SC-CLIP's / OTAS's value path; maskclip: the official MaskCLIP, with the "
+            "last block's residual and MLP)"
+        )
+    return dense_path
 
 
 def _offline_hint(model_name: str, key: str = "model") -> str:
@@ -95,7 +128,8 @@ def _check_weights_reachable(model_name: str, weights: str, key: str = "model") 
 
 
 class ClipEncoder(DenseEncoder, FrozenModule):
-    """Frozen OpenAI CLIP ViT as a dense encoder (MaskCLIP language tokens).
+    """Frozen OpenAI CLIP ViT as a dense encoder (the last block's value path as language
+    tokens, with or without its residual and MLP: ``dense_path``).
 
     Args:
         model_name: ``"ViT-B-16"`` (patch 16, width 768, 12 blocks, embed 512) or
@@ -113,6 +147,9 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             ReSiReg clusters and attends with. SC-CLIP's release configures only ViT-B/16; for
             ViT-L-14-336 the default keeps the same relative depth, block 17 (18th of 24).
             SCLIP and MaskCLIP themselves use no intermediate block (only the last block).
+        dense_path: ``"value"`` (default; SC-CLIP's / OTAS's language tokens: no residual or
+            MLP in the last block) or ``"maskclip"`` (the official MaskCLIP code's: the last
+            block's residual and MLP kept); see the module docstring.
         image_size: native input side of the ViT; ``None`` = the model's own (224 / 336). Other
             sizes build the positional embedding at that grid (open_clip interpolates a
             checkpoint's embedding when it loads it).
@@ -131,6 +168,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         device: str | torch.device | None = None,
         seed: int = 0,
         config_key: str = "model",
+        dense_path: str = "value",
     ) -> None:
         super().__init__()
         if model_name not in CLIP_MODELS:
@@ -145,6 +183,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         self.width = int(vision["width"])
         self.embed_dim = int(cfg["embed_dim"])
         self.seed = seed
+        self.dense_path = check_dense_path(dense_path, f"{config_key}.dense_path")
         if self.image_size % self.patch_size:
             raise ValueError(
                 f"image_size={self.image_size} is not a multiple of the patch size {self.patch_size}"
@@ -177,15 +216,21 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             self.to(device)
         self.freeze()
 
-    def _check_layer(self, layer: int) -> int:
+    def _check_layer(self, layer: int, name: str = "intermediate_layer") -> int:
         if isinstance(layer, bool) or not isinstance(layer, int):
-            raise TypeError(f"intermediate_layer={layer!r}: expected an int or None")
+            raise TypeError(f"{name}={layer!r}: expected an int or None")
         if not -self.depth <= layer < self.depth:
             raise ValueError(
-                f"intermediate_layer={layer} is out of range for {self.model_name} "
+                f"{name}={layer} is out of range for {self.model_name} "
                 f"({self.depth} blocks: 0..{self.depth - 1}, or negative from the end)"
             )
         return layer % self.depth
+
+    def check_layers(self, layers: Sequence[int], name: str = "layer") -> tuple[int, ...]:
+        """The blocks of :meth:`encode_layers` as 0-based indices (negative ones counted from
+        the end), sorted and each once; an index out of range is a ValueError naming
+        ``name``."""
+        return tuple(sorted({self._check_layer(layer, name) for layer in layers}))
 
     @staticmethod
     def _check_architecture(model: Any) -> None:
@@ -211,6 +256,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             "intermediate_layer": self.intermediate_layer,
             "image_size": self.image_size,
             "seed": self.seed,
+            "dense_path": self.dense_path,
         }
 
     # ------------------------------------------------------- DenseEncoder interface
@@ -220,7 +266,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
 
     @staticmethod
     def value_path(block: ResidualAttentionBlock, x: Tensor) -> Tensor:
-        """MaskCLIP's value path of ``block`` on its (batch-first) input ``x`` ``[B, L, D]``.
+        """The value path of ``block`` on its (batch-first) input ``x`` ``[B, L, D]``.
 
         ``ls_1(out_proj(V(ln_1(x))))``: the attention branch with every token attending only
         to itself (softmax(QK^T) replaced by the identity), no residual, no MLP. Written by
@@ -232,10 +278,32 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         v = F.linear(block.ln_1(x), attn.in_proj_weight[2 * d :], attn.in_proj_bias[2 * d :])
         return block.ls_1(attn.out_proj(v))
 
+    @classmethod
+    def dense_tokens(cls, block: ResidualAttentionBlock, x: Tensor, dense_path: str) -> Tensor:
+        """The last block's dense tokens ``[B, L, D]`` (before ``ln_post`` and ``proj``) on its
+        batch-first input ``x``: :meth:`value_path` alone (``"value"``), or with the block's
+        residual and MLP (``"maskclip"``: ``y = x + value_path``, ``y + ls_2(mlp(ln_2(y)))``,
+        the official MaskCLIP's ``TransformerEncoderLayer.forward``)."""
+        values = cls.value_path(block, x)
+        if check_dense_path(dense_path) == "value":
+            return values
+        y = x + values
+        return y + block.ls_2(block.mlp(block.ln_2(y)))
+
     @torch.no_grad()
     def encode(self, images: Tensor) -> DenseOutput:
         """Normalised images ``[B, 3, H, W]`` -> (intermediates ``[B, width, H/p, W/p]``,
         language tokens ``[B, embed_dim, H/p, W/p]``, embedding ``[B, embed_dim]``), float32."""
+        return self._encode(images, ())
+
+    @torch.no_grad()
+    def encode_layers(self, images: Tensor, layers: Sequence[int]) -> DenseOutput:
+        """:meth:`encode`, plus ``layers``: ``{block: [B, width, H/p, W/p]}``, the output of
+        every block in ``layers`` (0-based, negative from the end; keyed by the 0-based
+        index) taken as ``intermediates`` is, all from the same single pass."""
+        return self._encode(images, self.check_layers(layers))
+
+    def _encode(self, images: Tensor, layers: tuple[int, ...]) -> DenseOutput:
         self._input_rule.check_size(images)
         h, w = images.shape[-2:]
         p, s = self.patch_size, self.image_size
@@ -246,19 +314,22 @@ class ClipEncoder(DenseEncoder, FrozenModule):
 
         tokens = visual._embeds(x)  # conv1, class token, positional embedding, ln_pre
         transformer = visual.transformer
-        if not transformer.batch_first:
+        batch_first = transformer.batch_first
+        if not batch_first:
             tokens = tokens.transpose(0, 1)
         blocks = transformer.resblocks
-        inter = lang = None
+        wanted = {self.intermediate_layer, *layers}
+        seen: dict[int, Tensor] = {}  # block index -> its output, batch-first
+        lang = None
         for i, block in enumerate(blocks):
-            if i == len(blocks) - 1:  # the last block's input feeds the value path
-                last_in = tokens if transformer.batch_first else tokens.transpose(0, 1)
-                lang = self.value_path(block, last_in)
+            if i == len(blocks) - 1:  # the last block's input feeds the language tokens
+                last_in = tokens if batch_first else tokens.transpose(0, 1)
+                lang = self.dense_tokens(block, last_in, self.dense_path)
             tokens = block(tokens)
-            if i == self.intermediate_layer:
-                inter = tokens
-        if not transformer.batch_first:
-            tokens, inter = tokens.transpose(0, 1), inter.transpose(0, 1)
+            if i in wanted:
+                seen[i] = tokens if batch_first else tokens.transpose(0, 1)
+        if not batch_first:
+            tokens = tokens.transpose(0, 1)
 
         pooled, _ = visual._pool(tokens)  # open_clip's own pooling (class token, ln_post)
         embedding = pooled @ visual.proj
@@ -266,12 +337,13 @@ class ClipEncoder(DenseEncoder, FrozenModule):
 
         g = s // p
         grid = (h // p, w // p)
+        maps = {i: tokens_to_grid(t[:, 1:], (g, g), grid) for i, t in seen.items()}
         return DenseOutput(
-            tokens_to_grid(inter[:, 1:], (g, g), grid),
+            maps[self.intermediate_layer],
             tokens_to_grid(lang[:, 1:], (g, g), grid),
             embedding.float(),
+            {i: maps[i] for i in layers} if layers else None,
         )
-
     def text_features(self, texts: Sequence[str]) -> Tensor:
         """open_clip's text embeddings ``[K, embed_dim]`` (float32, not normalised)."""
         tokens = self.tokenizer(list(texts)).to(self.device)

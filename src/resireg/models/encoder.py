@@ -7,6 +7,9 @@ produces, from one forward pass,
   (ReSiReg clusters / attends over them),
 - ``language`` ``[B, Dl, h', w']``: language-aligned dense tokens,
 - ``embedding`` ``[B, De]`` or ``None``: a global image embedding, when the model has one,
+- ``layers`` ``{block: [B, Dv, h, w]}`` or ``None``: the intermediates of several blocks from
+  the same pass, only from an encoder's ``encode_layers(images, layers)`` (the CLIP layer
+  sweep; ``None`` from ``encode``),
 
 and embeds text queries into the language space (``encode_text -> [K, Dl]``, unit norm).
 Text goes through two steps so an evaluation can run a frozen text tower once and still
@@ -69,11 +72,13 @@ class InputRule:
 
 
 class DenseOutput(NamedTuple):
-    """One encoder pass (see the module docstring)."""
+    """One encoder pass (see the module docstring). ``layers`` defaults to ``None``, so the
+    three-field form ``DenseOutput(intermediates, language, embedding)`` is unchanged."""
 
     intermediates: Tensor
     language: Tensor
     embedding: Tensor | None
+    layers: dict[int, Tensor] | None = None
 
 
 class DenseEncoder(nn.Module, ABC):

@@ -7,7 +7,8 @@ OTAS is training-free and has no weights of its own: its public release
 ``src/foundation_models/maskclip_onnx/{model,interpolate}.py``) composes two public models:
 DINOv2 ViT-S/14 with 4 registers (``dinov2_vits14_reg4_pretrain.pth``, the checkpoint of
 ``torch.hub`` ``facebookresearch/dinov2`` ``dinov2_vits14_reg``) and OpenAI CLIP ViT-B/16
-(``ViT-B-16.pt``, run through MaskCLIP's value path). What its single-view embedding
+(``ViT-B-16.pt``, run through the value path of RogerQi's ``maskclip_onnx`` port of
+MaskCLIP, which drops the last block's residual and MLP). What its single-view embedding
 (``language_map.embed_image``, with the ``OTAS_small.json`` configuration that its
 ``inference.single_inference`` loads by default) does to one image, and therefore this
 adapter, per image of the batch:
@@ -27,14 +28,18 @@ adapter, per image of the batch:
    random_state=0)`` (``cluster_model_type="kmeans"``; defaults ``k-means++``, one
    initialisation, 300 iterations, ``tol=1e-4``, Lloyd) gives one label per token; the label
    map is resized (nearest) to ``shared_feat_resolution`` x ``shared_feat_resolution`` (16).
-3. **MaskCLIP** (``clip_pipe``, ``maskclip_onnx``): the image's shorter side resized to
+3. **CLIP dense tokens** (``clip_pipe``, ``maskclip_onnx``): the image's shorter side resized to
    ``clip_input_size`` (224, aspect kept: ``transforms.Resize(224)``) and normalised with the
    **ImageNet** mean / std (OTAS's ``t_clip``, not CLIP's own); conv stem (a remainder of
    fewer than 16 pixels is dropped), class token, positional embedding interpolated to the
    ``(H/16, W/16)`` grid (bicubic, ``scale_factor=((H/16 + 0.1) / 14, (W/16 + 0.1) / 14)``,
    no antialiasing; left as is for a 14 x 14 grid of a square image), ``ln_pre``, all blocks
    but the last, then the last block's value path ``out_proj(V(ln_1(x)))`` (no attention,
-   residual or MLP), ``ln_post``, ``proj`` -> ``[512, H/16, W/16]``.
+   residual or MLP: ``maskclip_onnx/model.py``, ``ResidualAttentionBlock.forward_v``, whose
+   comment says adding the residual or the MLP degrades the result), ``ln_post``, ``proj``
+   -> ``[512, H/16, W/16]``. This is ``dense_path="value"`` (the default);
+   ``dense_path="maskclip"`` keeps the residual and the MLP as the official MaskCLIP code
+   does (:class:`~resireg.models.clip.ClipEncoder`), a departure from OTAS.
 4. **Shared grid** (``clip_shared_feat_map``): the CLIP map is sampled onto the square
    ``S x S`` grid (``S = shared_feat_resolution``) by nearest lookup, row ``i`` <- source row
    ``floor(i * H_src / S)`` (column likewise).
@@ -81,7 +86,12 @@ import torch.nn.functional as F
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
-from resireg.models.clip import CLIP_MODELS, ClipEncoder, _check_weights_reachable
+from resireg.models.clip import (
+    CLIP_MODELS,
+    ClipEncoder,
+    _check_weights_reachable,
+    check_dense_path,
+)
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import check_hub_source, require_online
@@ -121,7 +131,7 @@ def _positive_int(value: Any, name: str) -> int:
 
 
 class OtasEncoder(DenseEncoder, FrozenModule):
-    """Frozen OTAS (DINOv2 ViT-S/14 reg4 clusters pooling MaskCLIP ViT-B/16 tokens).
+    """Frozen OTAS (DINOv2 ViT-S/14 reg4 clusters pooling CLIP ViT-B/16 value-path tokens).
 
     See the module docstring for what is computed. Defaults are OTAS's ``OTAS_small.json``
     (the configuration of its 2D inference helper).
@@ -131,9 +141,11 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         source: ``"github"`` or ``"local"``.
         entry_point: the DINOv2 hub entry point (``dinov2_vits14_reg``).
         clip: :class:`ClipEncoder` arguments (``model_name``, ``weights``, ``seed``) of the
-            MaskCLIP model; ``None`` = OpenAI ViT-B-16 (``{"weights": "openai"}``). Errors
+            CLIP model; ``None`` = OpenAI ViT-B-16 (``{"weights": "openai"}``). Errors
             name ``<config_key>.clip.<key>``. (``image_size`` would build CLIP at another
             native size: OTAS uses the native 224, so only tiny tests set it.)
+        dense_path: the CLIP tokens pooled per mask: ``"value"`` (OTAS's own, default) or
+            ``"maskclip"`` (the official MaskCLIP's, residual and MLP kept); see step 3.
         dino_input_size: side of the square DINOv2 input (a multiple of 14).
         dino_scale_factor: bilinear upsampling of the DINOv2 token grid before clustering.
         shared_feat_resolution: side ``S`` of OTAS's square output grid.
@@ -161,6 +173,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         n_components: int = 12,
         clip_input_size: int = 224,
         output_grid: str = "canvas",
+        dense_path: str = "value",
         device: str | torch.device | None = None,
         config_key: str = "model",
         **kwargs: Any,
@@ -188,6 +201,11 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             if not os.path.isfile(path):
                 require_online(f"DINOv2 weights {ckpt!r}", _WEIGHTS_HOST, _hint(key), hf=False)
         clip_args = {"weights": "openai", **dict(clip or {})}
+        if "dense_path" in clip_args:
+            raise ValueError(
+                f"{key}.clip.dense_path: set {key}.dense_path instead (OTAS's CLIP path)"
+            )
+        check_dense_path(dense_path, f"{key}.dense_path")  # before any model loads
         clip_model = clip_args.get("model_name", "ViT-B-16")
         clip_weights = clip_args["weights"]
         if clip_model in CLIP_MODELS and isinstance(clip_weights, str):
@@ -220,7 +238,8 @@ class OtasEncoder(DenseEncoder, FrozenModule):
                 f"{key}.n_components={n_components}: at most {min(tokens, self.dino_dim)}"
             )
         self.dino = dino
-        self.clip = ClipEncoder(**clip_args, config_key=f"{key}.clip")
+        self.clip = ClipEncoder(**clip_args, dense_path=dense_path, config_key=f"{key}.clip")
+        self.dense_path = self.clip.dense_path
         self.embed_dim = self.clip.embed_dim
         self._input_rule = InputRule(self.patch_size, IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD)
         self.to(torch.device(device if device is not None else "cpu"))
@@ -242,6 +261,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             "n_components": self.n_components,
             "clip_input_size": self.clip_input_size,
             "output_grid": self.output_grid,
+            "dense_path": self.dense_path,
         }
 
     # ------------------------------------------------------------------ interface
@@ -324,8 +344,9 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         return F.interpolate(labels, size=(s, s), mode="nearest")[0, 0].long()
 
     def clip_dense(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """Step 3: MaskCLIP tokens ``[B, 512, H'/16, W'/16]`` and the CLIP image embedding
-        ``[B, 512]`` of the canvas with its shorter side resized to ``clip_input_size``."""
+        """Step 3: CLIP's dense tokens (``dense_path``) ``[B, 512, H'/16, W'/16]`` and the CLIP
+        image embedding ``[B, 512]`` of the canvas with its shorter side resized to
+        ``clip_input_size``."""
         h, w = x.shape[-2:]
         s = self.clip_input_size
         # torchvision's Resize(s): the shorter side to s, the longer one truncated.
@@ -349,7 +370,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         out = last(tokens)
         if not transformer.batch_first:
             tokens, out = tokens.transpose(0, 1), out.transpose(0, 1)
-        values = ClipEncoder.value_path(last, tokens)[:, 1:]
+        values = ClipEncoder.dense_tokens(last, tokens, self.dense_path)[:, 1:]
         dense = visual.ln_post(values) @ visual.proj  # [B, gh*gw, 512]
         embedding = visual.ln_post(out[:, 0]) @ visual.proj
         maps = dense.float().transpose(1, 2).reshape(dense.shape[0], -1, gh, gw)
