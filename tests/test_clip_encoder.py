@@ -9,11 +9,13 @@ the model's ``ln_post`` / ``proj``, or with plain torch ops on the parameters.
 """
 
 import time
+from pathlib import Path
 
 import open_clip
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
 from huggingface_hub import constants as hf_constants
 from PIL import Image
 from safetensors.torch import save_file
@@ -212,7 +214,9 @@ def test_the_two_dense_paths_differ_and_maskclip_is_the_blocks_output_without_at
     diagonal_only = torch.full((n, n), float("-inf")).fill_diagonal_(0.0)
     visual = enc.model.visual
     with torch.no_grad():
-        by_block = visual.ln_post(visual.transformer.resblocks[-1](last_in, attn_mask=diagonal_only))
+        by_block = visual.ln_post(
+            visual.transformer.resblocks[-1](last_in, attn_mask=diagonal_only)
+        )
         by_block = by_block @ visual.proj
     out = maskclip.encode(images).language
     torch.testing.assert_close(out, _grid(by_block[:, 1:], (14, 14)), rtol=1e-4, atol=1e-4)
@@ -220,9 +224,6 @@ def test_the_two_dense_paths_differ_and_maskclip_is_the_blocks_output_without_at
 
 
 def test_dense_path_is_checked_and_in_the_config():
-    import yaml
-    from pathlib import Path
-
     with pytest.raises(ValueError, match=r"encoder\.dense_path='clearclip'.*value.*maskclip"):
         ClipEncoder(B16, weights=None, dense_path="clearclip", config_key="encoder")
     conf = Path(__file__).resolve().parents[1] / "conf" / "encoder"

@@ -344,6 +344,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             embedding.float(),
             {i: maps[i] for i in layers} if layers else None,
         )
+
     def text_features(self, texts: Sequence[str]) -> Tensor:
         """open_clip's text embeddings ``[K, embed_dim]`` (float32, not normalised)."""
         tokens = self.tokenizer(list(texts)).to(self.device)
