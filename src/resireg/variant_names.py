@@ -10,7 +10,15 @@ from __future__ import annotations
 import ast
 from typing import Any
 
-__all__ = ["PRIOR_SUFFIX", "PRIOR_VARIANTS", "VARIANTS", "parse_variant", "takes_prior"]
+__all__ = [
+    "LAYER_KEY",
+    "PRIOR_SUFFIX",
+    "PRIOR_VARIANTS",
+    "VARIANTS",
+    "parse_variant",
+    "takes_prior",
+    "variant_layer",
+]
 
 #: Names of :func:`resireg.variants.build_variant`, in the report order of the paper's Table 1.
 VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
@@ -19,6 +27,12 @@ VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
 #: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it.
 PRIOR_SUFFIX = "+prior"
 PRIOR_VARIANTS: tuple[str, ...] = ("lite", "full")
+
+
+#: ``<variant>@layer:<block>``: the configuration runs on that encoder block's intermediates
+#: (``lite@layer:5``; the CLIP layer sweep, docs/design.md section 5). It is an instruction to
+#: the evaluation, not a parameter of the variant: :func:`parse_variant` leaves it out.
+LAYER_KEY = "layer"
 
 
 def takes_prior(name: str) -> bool:
@@ -34,7 +48,8 @@ def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
     repeated; values are Python literals, else strings such as ``auto``). The syntax passes
     through Hydra's command line (``variants=[bb,full@n_prototypes:24]``) and YAML unquoted.
     A ``+prior`` suffix on the name (``full+prior@n_prototypes:24``) is not part of the base
-    (``"full"``); :func:`takes_prior` reads it.
+    (``"full"``); :func:`takes_prior` reads it. Nor is ``@layer:<block>`` one of the
+    overrides; :func:`variant_layer` reads it.
     """
     base, *items = str(name).split("@")
     base = base.removesuffix(PRIOR_SUFFIX)
@@ -47,4 +62,22 @@ def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
             overrides[key] = ast.literal_eval(text)
         except (ValueError, SyntaxError):
             overrides[key] = text
+    overrides.pop(LAYER_KEY, None)
     return base, overrides
+
+
+def variant_layer(name: str) -> int | None:
+    """The encoder block of ``@layer:<block>`` in configuration ``name`` (``"lite@layer:5"`` ->
+    5, negative counts from the end), or ``None`` (the encoder's own intermediates). A value
+    that is not an integer is a ValueError naming the configuration."""
+    layer = None
+    for item in str(name).split("@")[1:]:
+        key, _, text = item.partition(":")
+        if key == LAYER_KEY:
+            try:
+                layer = ast.literal_eval(text)
+            except (ValueError, SyntaxError):
+                layer = text
+            if isinstance(layer, bool) or not isinstance(layer, int):
+                raise ValueError(f"{name!r}: @{LAYER_KEY}: takes a block index, got {text!r}")
+    return layer

@@ -9,15 +9,17 @@ image's ``intermediates`` and ``language`` tokens, later jobs read them instead 
 **Key.** A cache folder is ``<dir>/<digest>``, the digest of everything the outputs depend
 on: the encoder's config entry, a fingerprint of its weights (a hash of every parameter and
 buffer, so re-trained or re-downloaded weights never read stale features), the dataset's
-config entry (source, split, limit) and its resolution (``short_side``, patch size), and the
-evaluation precision. Change any of them and the jobs use (and fill) a new folder; the old
-one is never read again (delete it to reclaim the disk). ``key.json`` in the folder says in
-words what it holds. Each stored image also records its file name (``describe``): an entry
-whose file differs from the dataset's (a folder whose images were added or renamed) is a
-miss and is encoded again.
+config entry (source, split, limit) and its resolution (``short_side``, patch size), the
+evaluation precision and, for configurations on other blocks (``@layer:<block>``), the blocks
+whose intermediates are stored beside the encoder's own. Change any of them and the jobs use
+(and fill) a new folder; the old one is never read again (delete it to reclaim the disk).
+``key.json`` in the folder says in words what it holds. Each stored image also records its
+file name (``describe``): an entry whose file differs from the dataset's (a folder whose
+images were added or renamed) is a miss and is encoded again.
 
 **Layout.** ``shard-<writer>-<n>.safetensors`` holds the tensors of up to ``shard_images``
-images (``<index>/intermediates``, ``<index>/language``, in the dtype the encoder produced)
+images (``<index>/intermediates``, ``<index>/language``, ``<index>/layer/<block>`` for each
+block of the key, in the dtype the encoder produced)
 and ``shard-<writer>-<n>.json`` lists them. Both are written atomically (temporary file,
 then rename; the listing after its shard), so concurrent jobs filling the same folder never
 see a partial shard and never overwrite each other's files. A job interrupted mid-dataset
@@ -99,6 +101,7 @@ class FeatureCache:
         if not key_file.exists():
             write_atomic(key_file, json.dumps(self.key, indent=2, default=str), "cache key")
         self.describe = describe
+        self.layers: tuple[int, ...] = tuple(self.key.get("layers") or ())
         self.shard_images = shard_images
         self._writer = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self._shards_written = 0
@@ -117,9 +120,12 @@ class FeatureCache:
         dataset_spec: Mapping[str, Any],
         patch_size: int,
         precision: str,
+        layers: Sequence[int] = (),
     ) -> dict[str, Any]:
-        """The cache key of ``encoder`` (built from ``encoder_spec``) on a dataset."""
-        return {
+        """The cache key of ``encoder`` (built from ``encoder_spec``) on a dataset; ``layers``:
+        the encoder blocks whose intermediates are stored too (``encode_layers``; the key of a
+        cache without them is unchanged)."""
+        key = {
             "format": _FORMAT,
             "encoder": dict(encoder_spec),
             "weights": weights_fingerprint(encoder),
@@ -127,6 +133,12 @@ class FeatureCache:
             "resolution": {"short_side": dataset_spec.get("short_side"), "patch": patch_size},
             "precision": str(precision),
         }
+        if layers:
+            key["layers"] = sorted({int(b) for b in layers})
+        return key
+
+    def _fields(self) -> tuple[str, ...]:
+        return _FIELDS + tuple(f"layer/{b}" for b in self.layers)
 
     def refresh(self) -> None:
         """Read the listings of every complete shard in the folder (other jobs' included)."""
@@ -142,7 +154,7 @@ class FeatureCache:
     def __len__(self) -> int:
         return len(self._entries)
 
-    def _tensors(self, index: int) -> tuple[Tensor, Tensor] | None:
+    def _tensors(self, index: int) -> tuple[Tensor, ...] | None:
         entry = self._entries.get(index)
         if entry is None or entry[1] != self.describe(index):
             return None
@@ -150,26 +162,39 @@ class FeatureCache:
         handle = self._handles.get(shard)
         if handle is None:
             handle = self._handles[shard] = safe_open(self.folder / shard, framework="pt")
-        return tuple(handle.get_tensor(f"{index}/{f}") for f in _FIELDS)  # type: ignore[return-value]
+        return tuple(handle.get_tensor(f"{index}/{f}") for f in self._fields())
 
     def get(self, indices: Sequence[int], device: torch.device | str = "cpu") -> DenseOutput | None:
         """The stored outputs of the images ``indices`` stacked as one batch on ``device``
-        (``embedding`` is not stored: ``None``), or ``None`` if any is missing."""
+        (``embedding`` is not stored: ``None``; ``layers`` when the key has blocks), or
+        ``None`` if any is missing."""
         found = [self._tensors(i) for i in indices]
         if any(f is None for f in found):
             self.misses += 1
             return None
         self.hits += 1
-        inter, lang = (torch.stack([f[k] for f in found]).to(device) for k in range(2))  # type: ignore[index]
-        return DenseOutput(inter, lang, None)
+        inter, lang, *blocks = (
+            torch.stack([f[k] for f in found]).to(device)  # type: ignore[index]
+            for k in range(len(self._fields()))
+        )
+        layers = dict(zip(self.layers, blocks, strict=True)) if self.layers else None
+        return DenseOutput(inter, lang, None, layers)
 
     def put(self, indices: Iterable[int], out: DenseOutput) -> None:
-        """Store one encoded batch (image ``i`` of ``indices`` is row ``i`` of ``out``)."""
+        """Store one encoded batch (image ``i`` of ``indices`` is row ``i`` of ``out``); its
+        ``layers`` must hold exactly the key's blocks."""
+        if self.layers and sorted(out.layers or {}) != list(self.layers):
+            raise ValueError(
+                f"the feature cache {self.folder} stores blocks {list(self.layers)}, the batch "
+                f"has {sorted(out.layers or {})}"
+            )
+        tensors = {f: getattr(out, f) for f in _FIELDS}
+        tensors.update({f"layer/{b}": out.layers[b] for b in self.layers})  # type: ignore[index]
         for row, index in enumerate(indices):
             if index in self._entries or index in self._pending:
                 continue
             self._pending[index] = {
-                f: getattr(out, f)[row].detach().to("cpu", copy=True).contiguous() for f in _FIELDS
+                f: t[row].detach().to("cpu", copy=True).contiguous() for f, t in tensors.items()
             }
         if len(self._pending) >= self.shard_images:
             self.flush()

@@ -17,6 +17,8 @@ with its status and error. Writes, into the sweep folder (or ``--out``):
   ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
+- For the CLIP layer sweep (configurations ``<variant>@layer:<block>``, ``sweep=clip_layers``):
+  ``layer_sweep.csv`` / ``.md`` / ``.png``, mIoU of each variant against the block index.
 
 An explicit metric must be one the sweep's results hold (a ``final`` or ``best`` key of
 some job); anything else is a :class:`ValueError` that lists them.
@@ -34,7 +36,7 @@ import pandas as pd
 import yaml
 
 from resireg.heuristic import PrototypeHeuristic
-from resireg.variant_names import takes_prior
+from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import parse_variant
 from resireg_train.results import RESULTS_FILE, metric_mode, read_results
 
@@ -48,12 +50,16 @@ __all__ = [
     "curves_figure",
     "grid_statuses",
     "heatmap_figure",
+    "is_layer_sweep",
     "known_metrics",
+    "layer_sweep_figure",
+    "layer_sweep_table",
     "mapping_table",
     "plot_curves",
     "plot_heatmap",
     "prototype_grid",
     "report",
+    "write_layer_sweep",
 ]
 
 BATCH_KEY, PROTOTYPES_KEY = "batch_size", "full.n_prototypes"
@@ -566,6 +572,127 @@ def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     return files
 
 
+# ------------------------------------------------------------- CLIP layer sweep
+LAYER_SWEEP_FILES = ("layer_sweep.csv", "layer_sweep.md", "layer_sweep.png")
+VARIANT_ORDER = ("bb", *METHODS)
+
+
+def _layer_configs(job: Job) -> list[tuple[str, str, int]]:
+    """``(configuration, variant label, block)`` of every ``<variant>@layer:<block>``
+    configuration a job scored (its ``params.variants``); the label keeps ``+prior``."""
+    out = []
+    for name in (job.results.get("params") or {}).get("variants") or []:
+        try:
+            block = variant_layer(name)
+            base = parse_variant(name)[0]
+        except ValueError:
+            continue
+        if block is not None:
+            out.append((name, base + ("+prior" if takes_prior(name) else ""), block))
+    return out
+
+
+def _variant_order(label: str) -> tuple[int, str]:
+    """Sort key of a variant label: the paper's order (BB, Calib, Lite, Full), then the rest."""
+    base = label.removesuffix("+prior")
+    return (VARIANT_ORDER.index(base) if base in VARIANT_ORDER else len(VARIANT_ORDER), label)
+
+
+def is_layer_sweep(jobs: list[Job]) -> bool:
+    """Some job scored configurations on other encoder blocks (``sweep=clip_layers``)."""
+    return any(_layer_configs(job) for job in jobs)
+
+
+def layer_sweep_table(jobs: list[Job]) -> pd.DataFrame:
+    """One row per (encoder, dataset, variant, block) of a layer sweep: mIoU and f-mIoU (x100;
+    empty unless the job completed) and the job's status. The backbone alone (``bb``, no
+    intermediates) of the same jobs follows each (encoder, dataset) with an empty block: the
+    reference the blocks are compared with. Negative blocks are the jobs' own spelling; the
+    rows are sorted by encoder, dataset, variant (the paper's order) and block."""
+    rows = []
+    per_job, _ = _per_encoder(jobs)
+    for job, name, _, _, dataset in per_job:
+        configs = _layer_configs(job)
+        if not configs:
+            continue
+        final = job.results.get("final", {}) if job.status == "completed" else {}
+        names = (job.results.get("params") or {}).get("variants") or []
+        entries = [*configs, *(("bb", "bb", None) for n in names if n == "bb")]
+        for config, variant, block in entries:
+            row = {"encoder": name, "dataset": dataset, "variant": variant, "block": block}
+            for key in ("miou", "fmiou"):
+                value = final.get(f"val/ovss/{dataset}/{key}_{config}")
+                row[key] = 100 * value if value is not None else math.nan
+            row["status"] = job.status
+            rows.append(row)
+    columns = ["encoder", "dataset", "variant", "block", "miou", "fmiou", "status"]
+    table = pd.DataFrame(rows, columns=columns)
+    table["block"] = table["block"].astype("Int64")
+    order = table["variant"].map(lambda v: _variant_order(v)[0])
+    return (
+        table.assign(_order=order)
+        .sort_values(["encoder", "dataset", "_order", "variant", "block"], ignore_index=True)
+        .drop(columns="_order")
+    )
+
+
+def layer_sweep_figure(table: pd.DataFrame) -> Figure:
+    """mIoU (x100) against the block index: one panel per (encoder, dataset), one line per
+    variant, the backbone alone as a dashed horizontal line; a block without a value (the
+    job did not complete) is a gap in its line."""
+    from matplotlib.ticker import MaxNLocator
+
+    panels = list(table.groupby(["encoder", "dataset"], sort=False))
+    fig = _agg_figure(6.5 * len(panels), 4.5)
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, ((encoder, dataset), part) in zip(axes, panels, strict=True):
+        blocks = part.dropna(subset=["block"])
+        for variant, line in blocks.groupby("variant", sort=False):
+            label = METHOD_NAMES.get(variant, variant)
+            ax.plot(line["block"].astype(int), line["miou"], marker="o", markersize=4, label=label)
+        bb = part.loc[part["block"].isna() & (part["variant"] == "bb"), "miou"].dropna()
+        if not bb.empty:
+            ax.axhline(
+                float(bb.iloc[0]), color="0.4", linestyle="--", label="BB (no intermediates)"
+            )
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_xlabel("intermediate block (0-based)")
+        ax.set_ylabel("mIoU (x100)")
+        ax.set_title(f"{encoder} / {dataset}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    return fig
+
+
+def write_layer_sweep(jobs: list[Job], out: Path) -> dict[str, Path]:
+    """``layer_sweep.csv`` (:func:`layer_sweep_table`), ``layer_sweep.md`` (per encoder and
+    dataset: mIoU per block and variant, the backbone alone, the best block of each variant)
+    and ``layer_sweep.png`` (:func:`layer_sweep_figure`)."""
+    table = layer_sweep_table(jobs)
+    files = {f"layer_sweep_{f.rsplit('.', 1)[1]}": out / f for f in LAYER_SWEEP_FILES}
+    table.to_csv(files["layer_sweep_csv"], index=False)
+    lines = ["# CLIP intermediate-layer sweep (mIoU x100 per intermediate block)"]
+    for (encoder, dataset), part in table.groupby(["encoder", "dataset"], sort=False):
+        blocks = part.dropna(subset=["block"])
+        grid = blocks.pivot_table(index="block", columns="variant", values="miou",
+                                  aggfunc="max", dropna=False)  # fmt: skip
+        grid = grid[sorted(grid.columns, key=_variant_order)]
+        grid = grid.rename(columns=lambda v: METHOD_NAMES.get(v, v))
+        shown = grid.astype(object).where(grid.notna(), None)
+        lines += ["", f"## {encoder} / {dataset}", "",
+                  shown.to_markdown(floatfmt=".1f", missingval="")]  # fmt: skip
+        bb = part.loc[part["block"].isna() & (part["variant"] == "bb"), "miou"].dropna()
+        if not bb.empty:
+            lines += ["", f"BB (no intermediates): {float(bb.iloc[0]):.1f}."]
+        best = [f"{column}: block {int(grid[column].idxmax())} ({grid[column].max():.1f})"
+                for column in grid.columns if grid[column].notna().any()]  # fmt: skip
+        if best:
+            lines += ["", "Best block: " + "; ".join(best) + "."]
+    files["layer_sweep_md"].write_text("\n".join(lines) + "\n")
+    layer_sweep_figure(table).savefig(files["layer_sweep_png"], dpi=DPI)
+    return files
+
+
 def report(
     sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
 ) -> dict[str, Path]:
@@ -622,6 +749,9 @@ def report(
         curves = out / "curves.png"
         if plot_curves(jobs, metric, curves):
             files["curves"] = curves
+    if is_layer_sweep(jobs):  # sweep=clip_layers
+        files.update(write_layer_sweep(jobs, out))
+        lines += ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]
     failed = [j for j in jobs if j.status != "completed"]
     if failed:
         lines += ["", "## Jobs that did not complete", ""]

@@ -20,7 +20,13 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
-from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
+from resireg.variant_names import (
+    PRIOR_VARIANTS,
+    VARIANTS,
+    parse_variant,
+    takes_prior,
+    variant_layer,
+)
 
 __all__ = [
     "ConfigError",
@@ -130,9 +136,18 @@ _RULES: dict[str, Rule] = {
 def _variant_ok(name: Any) -> bool:
     try:
         base = parse_variant(str(name))[0]
+        variant_layer(str(name))  # @layer:<block> takes an integer
     except ValueError:
         return False
     return base in (PRIOR_VARIANTS if takes_prior(str(name)) else VARIANTS)
+
+
+def _on_layer(name: Any) -> bool:
+    """Whether configuration ``name`` runs on another encoder block (``lite@layer:5``)."""
+    try:
+        return variant_layer(str(name)) is not None
+    except ValueError:
+        return False  # reported by the variants rule
 
 
 def _unit(v: Any) -> bool:
@@ -154,7 +169,8 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
         f"{prefix}variants": (
             lambda v: isinstance(v, list) and len(v) > 0 and all(_variant_ok(n) for n in v),
             f"a non-empty list of {list(VARIANTS)}, each optionally with overrides "
-            f"(full@n_prototypes:24); {list(PRIOR_VARIANTS)} also with the prior (full+prior)",
+            f"(full@n_prototypes:24); {list(PRIOR_VARIANTS)} also with the prior (full+prior); "
+            "on another encoder block: lite@layer:5",
         ),
         f"{prefix}full.n_prototypes": (
             lambda v: v == "auto" or (_int(v) and v >= 1),
@@ -298,6 +314,8 @@ def validate_eval(cfg: DictConfig | dict) -> None:
         )
     if with_prior and task == "scannet3d":
         errors.append(f"variants={variants!r}: +prior configurations are scored by task=ovss only")
+    if task == "scannet3d" and isinstance(variants, list) and any(map(_on_layer, variants)):
+        errors.append(f"variants={variants!r}: @layer: configurations are scored by task=ovss only")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
 

@@ -17,10 +17,10 @@ One frozen open_clip ``CLIP`` model gives everything:
   - ``"value"`` (default): ``ln_post(a) @ proj``. The block's residual and MLP are dropped
     too. This is the value path of SC-CLIP's last block (SuleBai/SC-CLIP
     ``clip/model.py``, ``VisionTransformer.forward``: ``custom_attn`` with no residual or
-    MLP, then ``ln_post @ proj``), of ClearCLIP / NACLIP / SCLIP, and of the MaskCLIP port
-    OTAS ships (SimonSchwaiger/otas ``src/foundation_models/maskclip_onnx/model.py``,
-    ``ResidualAttentionBlock.forward_v``, whose comment says adding the residual or the MLP
-    "degrades the performance").
+    MLP, then ``ln_post @ proj``), of ClearCLIP and NACLIP (``arch="reduced"``), and of the
+    MaskCLIP port OTAS ships (SimonSchwaiger/otas
+    ``src/foundation_models/maskclip_onnx/model.py``, ``ResidualAttentionBlock.forward_v``,
+    whose comment says adding the residual or the MLP "degrades the performance").
   - ``"maskclip"``: ``ln_post(y + ls_2(mlp(ln_2(y)))) @ proj`` with ``y = x + a``: the
     official MaskCLIP release (chongzhou96/MaskCLIP ``mmseg/models/backbones/vit.py``,
     ``TransformerEncoderLayer.forward`` with ``return_qkv``: ``v += x`` then

@@ -186,9 +186,10 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cache = None
     if cfg.get("feature_cache"):
         from resireg_train.cache import FeatureCache
+        from resireg_train.ovss.engine import requested_layers
 
         key = FeatureCache.key_for(encoder, params["encoder"], params["dataset"], patch,
-                                   str(cfg.precision))  # fmt: skip
+                                   str(cfg.precision), requested_layers(encoder, variants))  # fmt: skip
         cache = FeatureCache(cfg.feature_cache, key, dataset.describe)
         log.info("feature cache %s: %d images stored", cache.folder, len(cache))
     timer = StageTimer()

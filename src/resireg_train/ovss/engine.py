@@ -12,6 +12,13 @@ scored at its label's full resolution in one confusion matrix per variant (docs/
 section 5): each label is counted once per batch against the grid's cells
 (:meth:`SegmentationMetric.blocks`), which gives the confusion of the nearest-upsampled
 prediction (:func:`resireg.ovss.predict`) without upsampling it for every configuration.
+
+A configuration ``<variant>@layer:<block>`` (``lite@layer:5``; the CLIP layer sweep, docs/design.md
+section 5) runs on that encoder block's intermediates instead of the encoder's own: the
+encoder's ``encode_layers`` returns every block the configurations ask for from the same
+single pass (``DenseOutput.layers``), and each configuration takes its block's tensor. Work
+the configurations of a batch share (:func:`resireg.variants.apply_variant`) is shared only
+between configurations on the same block.
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ from resireg.ovss import (
     class_prompts,
     predict_grid,
 )
-from resireg.variant_names import takes_prior
+from resireg.variant_names import parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.ovss.datasets import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.validation import PRECISIONS
@@ -43,7 +50,15 @@ from resireg_train.validation import PRECISIONS
 if TYPE_CHECKING:
     from resireg_train.cache import FeatureCache
 
-__all__ = ["OVSSTask", "OVSSResult", "StageTimer", "check_variants_on", "inference"]
+__all__ = [
+    "OVSSTask",
+    "OVSSResult",
+    "StageTimer",
+    "check_variants_on",
+    "configuration_layers",
+    "inference",
+    "requested_layers",
+]
 
 
 class StageTimer:
@@ -117,6 +132,50 @@ def check_variants_on(
                     f"{label}: {err}; dataset {dataset!r} with batch_size={batch_size} has a "
                     f"batch of {b} {unit} of {h} x {w} px"
                 ) from err
+
+
+def configuration_layers(
+    encoder: DenseEncoder, names: Iterable[str], key: str = "variants"
+) -> dict[str, int | None]:
+    """Each configuration's encoder block (``@layer:<block>``, as the encoder's 0-based index)
+    or ``None`` (the encoder's own intermediates). Fails before any encoding, naming the
+    configuration and ``key``, when the encoder returns no per-block intermediates (it needs
+    ``encode_layers`` and ``check_layers``, as :class:`~resireg.models.clip.ClipEncoder` has),
+    when the block does not exist, or for ``bb`` (it uses no intermediates)."""
+    out: dict[str, int | None] = {}
+    for name in names:
+        layer = variant_layer(name)
+        out[name] = layer
+        if layer is None:
+            continue
+        if parse_variant(name)[0] == "bb":
+            raise ValueError(
+                f"{key}: {name!r}: bb scores the language tokens alone; @layer: applies to the "
+                "variants that use the intermediates (calib, lite, full)"
+            )
+        check = getattr(encoder, "check_layers", None)
+        if check is None or not callable(getattr(encoder, "encode_layers", None)):
+            raise ValueError(
+                f"{key}: {name!r}: {type(encoder).__name__} returns no per-block intermediates "
+                "(encode_layers); @layer: needs a CLIP encoder (encoder=clip_vit_b16 or "
+                "clip_vit_l14_336)"
+            )
+        (out[name],) = check([layer], f"{key}: {name!r}: layer")
+    return out
+
+
+def requested_layers(
+    encoder: DenseEncoder, names: Iterable[str], key: str = "variants"
+) -> tuple[int, ...]:
+    """The encoder blocks the configurations ``names`` run on (:func:`configuration_layers`),
+    sorted, each once; ``()`` when none asks for one (then ``encode`` runs, not
+    ``encode_layers``)."""
+    return _blocks(configuration_layers(encoder, names, key))
+
+
+def _blocks(layer_of: Mapping[str, int | None]) -> tuple[int, ...]:
+    """The blocks of :func:`configuration_layers`' output, sorted, each once."""
+    return tuple(sorted({layer for layer in layer_of.values() if layer is not None}))
 
 
 @dataclass
@@ -282,8 +341,10 @@ class OVSSTask:
             timer: collects seconds per stage (``data``, ``encoder``, ``cache`` (reads),
                 ``prior``, ``reconstruction/<variant>``, ``metric``).
             cache: stored encoder outputs of this dataset (read where present, written
-                where missing); its key must match ``encoder``, the dataset and
-                ``precision`` (:meth:`resireg_train.cache.FeatureCache.key_for`).
+                where missing); its key must match ``encoder``, the dataset,
+                ``precision`` and the blocks the configurations run on
+                (:meth:`resireg_train.cache.FeatureCache.key_for` with
+                ``layers=requested_layers(encoder, variants)``).
             prior: segmentation-prior provider (:class:`resireg.priors.SamPrior`), needed
                 when a configuration takes the prior (``full+prior``): called once per batch
                 on its resized images before normalisation (timer stage ``prior``); its map
@@ -292,6 +353,14 @@ class OVSSTask:
         needs_prior = [v for v in variants if takes_prior(v)]
         if needs_prior and prior is None:
             raise ValueError(f"variants {needs_prior} take a segmentation prior; pass prior=")
+        layer_of = configuration_layers(encoder, variants)
+        layers = _blocks(layer_of)
+        if cache is not None and tuple(cache.layers) != layers:
+            raise ValueError(
+                f"the feature cache {cache.folder} holds the intermediates of blocks "
+                f"{list(cache.layers)}, the configurations run on {list(layers)}: build its key "
+                "with FeatureCache.key_for(..., layers=requested_layers(encoder, variants))"
+            )
         timed = timer or _no_timer
         k = len(self.dataset.classes)
         metrics = {
@@ -315,7 +384,8 @@ class OVSSTask:
                     result.skipped_samples.extend(batch["skipped"])
                     if batch["image"] is None:
                         continue
-                    self._score(encoder, batch, variants, protos, metrics, timed, cache, prior)
+                    self._score(encoder, batch, variants, protos, metrics, timed, cache, prior,
+                                layer_of)  # fmt: skip
                     result.images += len(batch["label"])
                     result.batch_sizes[len(batch["label"])] += 1
         finally:
@@ -324,9 +394,10 @@ class OVSSTask:
         return result
 
     @staticmethod
-    def _encode(encoder, batch, timed, cache) -> DenseOutput:
+    def _encode(encoder, batch, timed, cache, layers=()) -> DenseOutput:
         """The encoder's outputs for the batch: from ``cache`` when it holds every image,
-        else one ``encode`` (stored in ``cache`` if given)."""
+        else one ``encode`` (``encode_layers`` when configurations run on ``layers``; stored
+        in ``cache`` if given)."""
         if cache is not None:
             with timed("cache"):
                 out = cache.get(batch["index"], encoder.device)
@@ -334,27 +405,32 @@ class OVSSTask:
                 return out
         x = encoder.input_rule.normalize(batch["image"].to(encoder.device))
         with timed("encoder"):
-            out = encoder.encode(x)
+            out = encoder.encode_layers(x, layers) if layers else encoder.encode(x)
         if cache is not None:
             cache.put(batch["index"], out)
         return out
 
     def _score(
-        self, encoder, batch, variants, protos, metrics, timed, cache=None, prior=None
-    ) -> None:
-        out = self._encode(encoder, batch, timed, cache)
+        self, encoder, batch, variants, protos, metrics, timed, cache=None, prior=None,
+        layer_of=None,
+    ) -> None:  # fmt: skip
+        layer_of = layer_of or dict.fromkeys(variants)
+        out = self._encode(encoder, batch, timed, cache, _blocks(layer_of))
         seg = None  # the prior's instance map, once per batch, shared by the +prior configs
         if prior is not None and any(takes_prior(v) for v in variants):
             with timed("prior"):
                 seg = prior(batch["image"]).to(out.intermediates.device)
-        shared: dict = {}  # work common to the configurations of this batch (apply_variant)
+        # Work common to the configurations of this batch on one block (apply_variant).
+        shared: dict[int | None, dict] = defaultdict(dict)
         # Each label against a prediction grid (bb's patch grid, Lite's and Full's upsampled
         # one), computed once per grid whatever the number of configurations on it.
         blocks: dict[tuple[int, ...], list[Tensor]] = {}
         for name, variant in variants.items():
             s = seg if takes_prior(name) else None
+            layer = layer_of[name]
+            inter = out.intermediates if layer is None else out.layers[layer]
             with timed(f"reconstruction/{name}"):
-                dense = apply_variant(variant, out.intermediates, out.language, s, shared=shared)
+                dense = apply_variant(variant, inter, out.language, s, shared=shared[layer])
             with timed("metric"):
                 grid = tuple(dense.shape[-2:])
                 if grid not in blocks:
