@@ -3,12 +3,14 @@
 ``build_encoder(kind, **kwargs)`` with ``kind``:
 
 - ``resireg_vlm``: our 25M VLM from an export (``path``; :meth:`ResiregVLM.from_pretrained`),
-- ``clip``: OpenAI CLIP through open_clip, MaskCLIP language tokens (:class:`ClipEncoder`),
+- ``clip``: OpenAI CLIP through open_clip, the last block's value path (or, with
+  ``dense_path="maskclip"``, the official MaskCLIP's tokens) as language tokens
+  (:class:`ClipEncoder`),
 - ``radio``: C-RADIO through ``torch.hub`` with a language adaptor (:class:`RadioEncoder`),
 - ``radseg``: RADSeg through ``torch.hub``, one pass (:class:`RadSegEncoder`),
 - ``dinotxt``: dino.txt through ``torch.hub`` (:class:`DinoTxtEncoder`),
 - ``tips``: TIPSv2 from the release's ``.npz`` files (:class:`TipsEncoder`),
-- ``otas``: OTAS, DINOv2 clusters pooling MaskCLIP tokens (:class:`OtasEncoder`); these two
+- ``otas``: OTAS, DINOv2 clusters pooling CLIP value-path tokens (:class:`OtasEncoder`); these two
   are the backbone-only references of the paper's Table 1.
 
 What each gives ReSiReg (intermediates, language tokens, resolution, text path, source) is
