@@ -1,4 +1,4 @@
-"""3D semantic mapping with dense vision-language features (torch, numpy, scipy only).
+"""3D semantic mapping with dense vision-language features (torch, numpy, scipy, scikit-learn).
 
 Patch points from depth, intrinsics and pose (:mod:`.geometry`), every pixel at its patch's
 depth as (patch, voxel, count) pairs (:mod:`.lifting`), sparse voxel maps of running feature
