@@ -254,7 +254,8 @@ def ground_truth_labels(gt: LabelVoxelMap, rule: str, num_classes: int, ignore: 
     for ``rayfronts`` the votes are put in RayFronts' column order (the ignore class first) and
     averaged in float32 (its ``pointcloud_to_sparse_voxels(aggregation="mean")``), and each
     labelled class's prompt is its one-hot vector with ``1e-10`` elsewhere
-    (``ImageSemSegEncoder.encode_labels``)."""
+    (``ImageSemSegEncoder.encode_labels``); a voxel with no labelled vote is not scored (with
+    fewer than 11 classes RayFronts would give it the first class)."""
     k = num_classes
     votes = gt.votes
     if rule == "drop":
@@ -267,7 +268,12 @@ def ground_truth_labels(gt: LabelVoxelMap, rule: str, num_classes: int, ignore: 
     prompts = torch.full((k, k + 1), _GT_EPS, dtype=torch.float32, device=votes.device)
     prompts[torch.arange(k), torch.arange(1, k + 1)] = 1.0
     # prompt_denoising_thresh 0 removes no class: the rule is the threshold alone
-    return classify(mean, prompts, threshold=_GT_THRESHOLD, none=ignore)
+    label = classify(mean, prompts, threshold=_GT_THRESHOLD, none=ignore)
+    # A voxel without a labelled vote has the same cosine to every class, so its probability
+    # is 1/K: below 0.1 for K >= 11 (ScanNet's 37), but with fewer classes RayFronts' rule
+    # labels it as the first class. That contradicts the rule's intent (an ignored pixel never
+    # labels a voxel), so such a voxel is not scored (docs/protocol.md section 5).
+    return torch.where(votes[:, :k].sum(1) == 0, ignore, label)
 
 
 class MappingTask:
@@ -461,9 +467,11 @@ class MappingTask:
                                     p.prompt_denoising, none=k)  # fmt: skip
                     if p.knn == 0:
                         at_gt = transfer_labels_by_voxel(vmap.indices, pred, state["gt"].indices, k)
-                    else:
-                        at_gt = transfer_labels(centres, pred, state["gt"].centres(),
-                                                min(p.knn, len(vmap)))  # fmt: skip
+                    else:  # the mode's ties go to the smaller label: in RayFronts' numbering
+                        # "no prediction" is 0, the smallest, so it is voted in that numbering
+                        shifted = transfer_labels(centres, (pred + 1) % (k + 1),
+                                                  state["gt"].centres(), min(p.knn, len(vmap)))
+                        at_gt = (shifted - 1) % (k + 1)  # fmt: skip
                 result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
                 result.feature_voxels[name][state["name"]] = len(vmap) if vmap is not None else 0
 
