@@ -464,7 +464,8 @@ def test_fused_plane_frames_map_to_wall_voxels():
 
 
 def test_bench_mapping_smoke_and_its_room_is_the_box():
-    """benchmarks/bench_mapping.py: section 1 runs, and its ray-cast depth lies on the room."""
+    """benchmarks/bench_mapping.py: sections 1 and 4 run, and its ray-cast depth lies on the
+    room."""
     import importlib.util
     from pathlib import Path
 
@@ -472,8 +473,10 @@ def test_bench_mapping_smoke_and_its_room_is_the_box():
     spec = importlib.util.spec_from_file_location("bench_mapping", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    report = bench.main(["--smoke", "--sections", "1"])
-    assert set(report) == {"fusion"} and report["fusion"]["ReSiReg"]["voxels"] > 0
+    report = bench.main(["--smoke", "--sections", "1", "4"])
+    assert set(report) == {"fusion", "lifting"} and report["fusion"]["ReSiReg"]["voxels"] > 0
+    assert [r["grid"] for r in report["lifting"]] == ["VLM", "ReSiReg"]
+    assert all(r["pairs_per_patch"] >= 1 and r["pairs"] > 0 for r in report["lifting"])
     depth, k, poses = next(bench.room_frames(3, (48, 64), batch=3))
     points, valid = unproject(depth, k, poses)
     assert 0.9 < valid.float().mean() < 1.0  # 2% holes

@@ -18,6 +18,7 @@ pose (RayFronts unprojects such frames to non-finite points; the project drops t
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
@@ -553,3 +554,44 @@ def test_defaults_and_allowed_values_are_the_configs():
                          ("metric", metric_module.METRICS), ("lattice", ("round", "floor"))):  # fmt: skip
         check = rules[f"dataset.{key}"][0]
         assert all(check(v) for v in allowed) and not check("other"), key
+
+
+# ------------------------------------------------------------------ the protocol record
+def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
+    """resireg_train.protocol: the 3D record is the dataset entry's protocol keys (only those);
+    the 2D record the entry's keys, the temperature, the built set's reduce_zero_label, class
+    list and templates, and the encoder's dense_path where its config has one. Table 1 prints
+    the protocol the jobs share; jobs with two protocols get one line each."""
+    from types import SimpleNamespace
+
+    from resireg_train.protocol import MAPPING_KEYS, protocol_record, protocol_text
+    from resireg_train.report import collect, write_encoder_table
+
+    spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
+    record = protocol_record({"task": "scannet3d", "dataset": spec, "encoder": {"kind": "radseg"}})
+    assert record["name"] == "rayfronts_semseg_eval"
+    assert set(record["settings"]) == set(MAPPING_KEYS) and record["settings"]["knn"] == 1
+    ade = {"name": "ade20k", "kind": "ade20k", "short_side": 576, "path": "x"}
+    dataset = SimpleNamespace(reduce_zero_label=True, classes=("wall",) * 150)
+    clip = {"kind": "clip", "dense_path": "maskclip"}
+    two_d = protocol_record({"task": "ovss", "dataset": ade, "encoder": clip, "temperature": 100.0},
+                            dataset)  # fmt: skip
+    assert two_d == {"name": "ovss/ade20k", "settings": {
+        "short_side": 576, "temperature": 100.0, "reduce_zero_label": True,
+        "classes": "ade20k (150)", "templates": "open_clip OPENAI_IMAGENET_TEMPLATES (80)",
+        "encoder.dense_path": "maskclip"}}  # fmt: skip
+    assert protocol_text(two_d).startswith("ovss/ade20k: short_side=576, temperature=100.0, ")
+
+    sweep = tmp_path / "sweep"
+    for n, (encoder, short) in enumerate((("clip", 576), ("radio", 576), ("tips", 448))):
+        job = sweep / f"{n}_encoder={encoder}"
+        (job / ".hydra").mkdir(parents=True)
+        (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump([f"encoder={encoder}"]))
+        rec = {"name": "ovss/ade20k", "settings": {"short_side": short}}
+        results = {"status": "completed", "final": {"val/ovss/ade20k/miou_bb": 0.1},
+                   "params": {"dataset": {"name": "ade20k"}, "encoder": {"name": encoder}},
+                   "protocol": rec}  # fmt: skip
+        (job / "results.json").write_text(json.dumps(results))
+    text = write_encoder_table(collect(sweep), tmp_path)["table1_md"].read_text()
+    assert "Protocol (jobs 0, 1): ovss/ade20k: short_side=576" in text
+    assert "Protocol (jobs 2): ovss/ade20k: short_side=448" in text

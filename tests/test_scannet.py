@@ -516,7 +516,9 @@ def test_report_of_3d_jobs_fits_the_heuristic_from_the_3d_metric(tmp_path):
         variants = [f"full@n_prototypes:{c}" for c in counts]
         final = {f"{prefix}@n_prototypes:{c}": v for c, v in zip(counts, values, strict=True)}
         results = {"status": "completed", "final": final,
-                   "params": {"task": "scannet3d", "variants": variants}}  # fmt: skip
+                   "params": {"task": "scannet3d", "variants": variants},
+                   "protocol": {"name": "rayfronts_semseg_eval",
+                                "settings": {"voxel_size": 0.2, "knn": 1}}}  # fmt: skip
         (job / "results.json").write_text(json.dumps(results))
     files = report(sweep)
     assert files["heatmap"].stat().st_size > 0
@@ -531,6 +533,7 @@ def test_report_of_3d_jobs_fits_the_heuristic_from_the_3d_metric(tmp_path):
     summary = files["md"].read_text()
     assert f"## {prefix}: batch size x prototypes" in summary
     assert "|            4 | 0.2000 | 0.3500 | 0.3000 |" in summary
+    assert "Protocol: rayfronts_semseg_eval: voxel_size=0.2, knn=1" in summary
 
 
 # ------------------------------------------------------- a newcomer's 3D run (issue 22, 16)
