@@ -16,7 +16,7 @@ Storage: rows of a dense accumulator in order of first occupation, plus the voxe
 int64 keys kept sorted with the row of each key. ``add`` finds the keys of new points with
 ``torch.searchsorted`` (one ``torch.unique`` per call), appends rows for unseen voxels (capacity
 grows geometrically, so appending is amortised O(1) per voxel) and scatters with ``index_add_``:
-vectorised, no Python loop over points, chunked so no temporary exceeds ~64 MB. Everything stays
+vectorised, no Python loop over points, chunked so no temporary exceeds ~8 MB. Everything stays
 on the map's device. Results are returned in key order, which is the lexicographic order of the
 ``(i, j, k)`` indices (the order of ``numpy.unique(indices, axis=0)``), whatever order the points
 came in.
@@ -37,8 +37,10 @@ __all__ = ["LATTICES", "VoxelMap", "LabelVoxelMap", "check_lattice", "voxel_cent
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 _MAX_INDEX = _OFFSET - 1
-# Elements per temporary in add (float64: 64 MB).
-_CHUNK_ELEMENTS = 1 << 23
+# Elements per float64 temporary in add, add_pairs and features (8 MB): glibc serves such blocks
+# from its heap once freed, while one over its 32 MB mmap threshold is page-faulted afresh on
+# every call, which on a 512-d frame costs more than the additions (docs/benchmarks.md).
+_CHUNK_ELEMENTS = 1 << 20
 
 
 #: Voxel lattices (module docstring).
@@ -335,12 +337,10 @@ class VoxelMap(_SparseVoxels):
         counts = counts.to(device=self.device, dtype=torch.int64)
         source = source.to(self.device)
         self._counts.index_add_(0, rows, counts)
+        features = features.to(device=self.device, dtype=torch.float64)  # once per source row
         step = max(1, _CHUNK_ELEMENTS // self.dim)
         for start in range(0, m, step):
-            sel = source[start : start + step]
-            chunk = features.index_select(0, sel.to(features.device)).to(
-                device=self.device, dtype=torch.float64
-            )
+            chunk = features.index_select(0, source[start : start + step])
             chunk.mul_(counts[start : start + step, None])
             self._sums.index_add_(0, rows[start : start + step], chunk)
 
@@ -357,7 +357,7 @@ class VoxelMap(_SparseVoxels):
         """Voxel centres ``[M, 3]`` and L2-normalised mean features ``[M, D]``, both float32.
 
         ``mean / max(||mean||, 1e-12)`` computed in float64 (a zero mean stays zero), in row
-        chunks, so a query needs the float32 result plus one ~64 MB temporary, not a float64
+        chunks, so a query needs the float32 result plus one ~8 MB temporary, not a float64
         copy of the map.
         """
         unit = torch.empty(self._size, self.dim, dtype=torch.float32, device=self.device)
