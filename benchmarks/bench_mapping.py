@@ -28,12 +28,23 @@ The RGB frame is 640 x 864 at patch 16: the VLM's grid is 40 x 54 (``bb``), ReSi
    first frame, the bytes the map's tensors hold (``VoxelMap.nbytes``, reserve included), the
    voxel count and the seconds spent in ``add``.
 
+4. Lifting under the literal reading (``dataset.points: pixel``) against today's per-patch
+   fusion (``points: patch``), per frame at the protocol's RGB-D resolution 640 x 864 (the
+   room ray-cast at that size, ScanNet's intrinsics scaled by ``c s``), ``--dim`` features, voxel
+   ``--voxel``, for both grids: ``patch`` = ``patch_points`` + ``VoxelMap.add``; ``pairs`` =
+   ``pixel_pairs`` + ``VoxelMap.add_pairs`` (every pixel at its patch's depth, fused as (patch,
+   voxel, count) pairs); ``per pixel`` = ``pixel_points`` + ``VoxelMap.add`` of every pixel with
+   its patch's feature (the same voxel means, computed point by point). Each into a copy of a
+   map already holding ``--warm`` frames lifted the same way (with reserve), one frame per call;
+   the three alternate within each of ``--repeats`` rounds (after a warm-up round), medians
+   reported, with the ratio to ``patch`` and the (patch, voxel) pairs per patch.
+
 ``--smoke`` runs everything with tiny sizes (tiny VLM, 48 x 64 depth, 64 x 96 images, 12
 frames, dim 16): seconds for sections 1 and 2, about half a minute with section 3 (its four
 processes each import torch).
 
     python benchmarks/bench_mapping.py [--frames 500] [--dim 512] [--voxel 0.05] [--batch 8]
-        [--repeats 3] [--threads N] [--sections 1 2 3] [--smoke]
+        [--repeats 3] [--warm 10] [--threads N] [--sections 1 2 3 4] [--smoke]
 
 On a shared machine, ``--threads 1`` gives steadier figures: with more threads than free
 cores, torch's OpenMP workers wait on each other (here, 2 cores under a load of 8: ``argsort``
@@ -54,7 +65,7 @@ from typing import Any
 import torch
 
 from _common import build_model, median_seconds, resireg_defaults
-from resireg.mapping import VoxelMap, patch_points
+from resireg.mapping import VoxelMap, patch_points, pixel_pairs, pixel_points
 
 ROOM = (8.0, 8.0, 3.0)
 #: ScanNet's depth intrinsics (scene0050_00, 480 x 640).
@@ -199,6 +210,53 @@ def cost_split(args: argparse.Namespace) -> list[tuple[str, float]]:
     return rows
 
 
+def lifting_cost(args: argparse.Namespace, grids: dict[str, tuple[int, int]]) -> list[dict]:
+    """Section 4 of the docstring: seconds per frame of the three liftings, per grid."""
+    hw = args.image
+    frames = list(room_frames(args.warm + 1, hw, batch=1, seed=8))
+    *warm, (depth, k, pose) = frames
+    gen = torch.Generator().manual_seed(9)
+    out = []
+    for name, grid in grids.items():
+        feats = random_features(grid[0] * grid[1], args.dim, gen)
+
+        def patch(d, kk, p, vmap, grid=grid, feats=feats):
+            points, valid = patch_points(d, kk, p, grid)
+            vmap.add(points[valid], feats[valid.reshape(-1)])
+
+        def pairs(d, kk, p, vmap, grid=grid, feats=feats):
+            index, source, count = pixel_pairs(d, kk, p, grid, args.voxel)
+            vmap.add_pairs(index, count, feats, source)
+
+        def per_pixel(d, kk, p, vmap, grid=grid, feats=feats):
+            points, valid, cell = pixel_points(d, kk, p, grid)
+            vmap.add(points[valid], feats[cell.expand_as(valid)[valid]])
+
+        ways = {"patch": patch, "pairs": pairs, "per pixel": per_pixel}
+        bases = {}
+        for way, fn in ways.items():
+            base = VoxelMap(args.voxel, args.dim)
+            for d, kk, p in warm:
+                (pairs if way == "per pixel" else fn)(d, kk, p, base)  # same map either way
+            bases[way] = base
+        n_pairs = len(pixel_pairs(depth, k, pose, grid, args.voxel)[0])
+        n_patches = int(patch_points(depth, k, pose, grid)[1].sum())
+        # room for every voxel the frame can add (at most one per patch / per pair)
+        room = {"patch": n_patches, "pairs": n_pairs, "per pixel": n_pairs}
+        seconds: dict[str, list[float]] = {way: [] for way in ways}
+        for _ in range(args.repeats + 1):  # the first round warms up
+            for way, fn in ways.items():
+                vmap = bases[way].clone()
+                vmap.reserve(len(vmap) + room[way])
+                start = time.perf_counter()
+                fn(depth, k, pose, vmap)
+                seconds[way].append(time.perf_counter() - start)
+        row = {"grid": name, "hw": grid, "pairs_per_patch": n_pairs / n_patches}
+        row.update({way: statistics.median(t[1:]) for way, t in seconds.items()})
+        out.append(row)
+    return out
+
+
 def peak_rss_mb() -> float:
     """Peak resident set of this process's address space (``VmHWM`` of /proc/self/status).
 
@@ -273,12 +331,13 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--scene-voxels", type=float, nargs="+", default=[0.05, 0.2])
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--warm", type=int, default=10, help="frames in the map (section 4)")
     parser.add_argument(
         "--sections",
         type=int,
         nargs="+",
-        choices=[1, 2, 3],
-        default=[1, 2, 3],
+        choices=[1, 2, 3, 4],
+        default=[1, 2, 3, 4],
         help="which measurements to run (docstring)",
     )
     parser.add_argument("--smoke", action="store_true", help="tiny sizes (docstring)")
@@ -289,7 +348,7 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     args.image, args.depth_hw, args.patch = (640, 864), (480, 640), 16
     if args.smoke:
         args.image, args.depth_hw, args.frames, args.dim = (64, 96), (48, 64), 12, 16
-        args.batch, args.repeats = 2, 1
+        args.batch, args.repeats, args.warm = 2, 1, 2
     return args
 
 
@@ -346,6 +405,21 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 f"{r['grid_name']:7s} | {r['voxel']:7.2f} | {r['points']:10,d} | "
                 f"{r['voxels']:7,d} | {r['map_mb']:6.1f} | {r['rss_before_mb']:26.0f} | "
                 f"{r['rss_peak_mb']:11.0f} | {r['seconds']:5.1f}"
+            )
+    if 4 in args.sections:
+        print(
+            f"\n4. Lifting per frame at {args.image[0]}x{args.image[1]}, dim {args.dim}, voxel "
+            f"{args.voxel} m, into a {args.warm}-frame map, median of {args.repeats} alternating"
+        )
+        print("grid          | pairs per patch | patch ms | pairs ms | per pixel ms | "
+              "pairs / patch (time) | per pixel / patch (time)")  # fmt: skip
+        report["lifting"] = lifting_cost(args, grids)
+        for r in report["lifting"]:
+            print(
+                f"{r['grid']:7s} {r['hw'][0]:>3d}x{r['hw'][1]:<3d} | {r['pairs_per_patch']:15.2f} | "
+                f"{1000 * r['patch']:8.1f} | {1000 * r['pairs']:8.1f} | "
+                f"{1000 * r['per pixel']:12.1f} | {r['pairs'] / r['patch']:20.2f} | "
+                f"{r['per pixel'] / r['patch']:24.1f}"
             )
     return report
 

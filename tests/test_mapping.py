@@ -42,9 +42,15 @@ def project(world: np.ndarray, k: np.ndarray, cam_to_world: np.ndarray) -> np.nd
     return uvw[..., :2] / uvw[..., 2:]
 
 
-def numpy_voxel_means(points: np.ndarray, feats: np.ndarray, v: float):
-    """Reference: np.floor indices, np.unique(axis=0), np.add.at sums, np.bincount counts."""
-    idx = np.floor(points.astype(np.float64) / v).astype(np.int64)
+def numpy_index(points: np.ndarray, v: float, lattice: str) -> np.ndarray:
+    """Voxel indices: np.rint (half to even, RayFronts' torch.round) or np.floor of p / v."""
+    op = np.rint if lattice == "round" else np.floor
+    return op(points.astype(np.float64) / v).astype(np.int64)
+
+
+def numpy_voxel_means(points: np.ndarray, feats: np.ndarray, v: float, lattice: str = "round"):
+    """Reference: np.rint / np.floor indices, np.unique(axis=0), np.add.at sums, bincount."""
+    idx = numpy_index(points, v, lattice)
     uniq, inv = np.unique(idx, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     sums = np.zeros((len(uniq), feats.shape[1]))
@@ -194,18 +200,23 @@ def test_geometry_input_errors():
 # ----------------------------------------------------------------------------- VoxelMap
 
 
+@pytest.mark.parametrize("lattice", ["round", "floor"])
 @pytest.mark.parametrize("voxel_size", [0.05, 0.2, 0.3])
-def test_voxel_means_equal_numpy(voxel_size):
+def test_voxel_means_equal_numpy(voxel_size, lattice):
     points, feats = random_cloud(3000, 12, seed=1)
-    vmap = VoxelMap(voxel_size, 12)
+    vmap = VoxelMap(voxel_size, 12, lattice=lattice)
     vmap.add(points, feats)
-    uniq, counts, means = numpy_voxel_means(points.numpy(), feats.numpy(), voxel_size)
+    uniq, counts, means = numpy_voxel_means(points.numpy(), feats.numpy(), voxel_size, lattice)
     assert len(vmap) == len(uniq)
     np.testing.assert_array_equal(vmap.indices.numpy(), uniq)
     np.testing.assert_array_equal(vmap.counts.numpy(), counts)
     np.testing.assert_allclose(vmap.means().numpy(), means, rtol=1e-12, atol=1e-15)
     centres, unit = vmap.features()
-    np.testing.assert_allclose(centres.numpy(), ((uniq + 0.5) * voxel_size), atol=1e-6)
+    if lattice == "round":  # RayFronts' centres: float32(index) * v in float32, bit for bit
+        expect = uniq.astype(np.float32) * np.float32(voxel_size)
+        np.testing.assert_array_equal(centres.numpy(), expect)
+    else:
+        np.testing.assert_allclose(centres.numpy(), ((uniq + 0.5) * voxel_size), atol=1e-6)
     ref = means / np.maximum(np.linalg.norm(means, axis=1, keepdims=True), 1e-12)
     assert unit.dtype == torch.float32 and centres.dtype == torch.float32
     np.testing.assert_allclose(unit.numpy(), ref, atol=1e-6)
@@ -249,7 +260,7 @@ def test_voxel_means_equal_open3d_voxel_down_sample():
     down = cloud.voxel_down_sample(v)
     ref_xyz, ref_rgb = np.asarray(down.points), np.asarray(down.colors)
     order = np.lexsort(np.floor(ref_xyz / v).T[::-1])
-    vmap = VoxelMap(v, 6)
+    vmap = VoxelMap(v, 6, lattice="floor")
     vmap.add(torch.from_numpy(xyz), torch.from_numpy(np.concatenate([xyz, rgb], 1)))
     assert len(vmap) == len(ref_xyz)
     np.testing.assert_array_equal(vmap.indices.numpy(), np.floor(ref_xyz[order] / v))
@@ -258,15 +269,21 @@ def test_voxel_means_equal_open3d_voxel_down_sample():
 
 
 def test_voxel_boundaries_and_large_coordinates():
-    # Points exactly on voxel faces belong to the upper voxel; -0.05 to index -1 at 0.05 m.
+    # floor: points exactly on voxel faces belong to the upper voxel; -0.05 to index -1.
     pts = torch.tensor(
         [[0.0, 0.0, 0.0], [0.05, -0.05, 0.0999], [-1e-9, 0.0, 0.0], [1000.0, -2000.0, 50.0]],
         dtype=torch.float64,
     )
-    vmap = VoxelMap(0.05, 2)
+    vmap = VoxelMap(0.05, 2, lattice="floor")
     vmap.add(pts, torch.ones(4, 2))
     expected = np.floor(pts.numpy() / 0.05).astype(np.int64)
     np.testing.assert_array_equal(vmap.indices.numpy(), np.unique(expected, axis=0))
+    # round: voxel faces at (i + 1/2) v, a point exactly on one goes to the even index
+    # (torch.round, as RayFronts): at 0.25 m, +-0.125 -> 0, 0.375 -> 2; 0.24 -> 1, -0.26 -> -1.
+    half = torch.tensor([[0.125, -0.125, 0.375], [0.24, 0.26, -0.26]], dtype=torch.float64)
+    rmap = VoxelMap(0.25, 2)
+    rmap.add(half, torch.ones(2, 2))
+    assert sorted(map(tuple, rmap.indices.tolist())) == [(0, 0, 2), (1, 1, -1)]
     with pytest.raises(ValueError, match="voxel indices beyond"):
         vmap.add(torch.tensor([[1e6, 0.0, 0.0]]), torch.ones(1, 2))
 
@@ -346,7 +363,7 @@ def test_label_votes_and_argmax_equal_numpy():
     for chunk in np.array_split(rng.permutation(4000), 7):
         lmap.add(points[chunk], torch.from_numpy(labels[chunk]).to(torch.int16))
     keep = (labels >= 0) & (labels < 5)
-    idx = np.floor(points.numpy()[keep].astype(np.float64) / 0.2).astype(np.int64)
+    idx = numpy_index(points.numpy()[keep], 0.2, "round")
     uniq, inv = np.unique(idx, axis=0, return_inverse=True)
     votes = np.zeros((len(uniq), 5), dtype=np.int64)
     np.add.at(votes, (inv.reshape(-1), labels[keep]), 1)
@@ -354,7 +371,7 @@ def test_label_votes_and_argmax_equal_numpy():
     np.testing.assert_array_equal(lmap.votes.numpy(), votes)
     centres, winners = lmap.labels()
     np.testing.assert_array_equal(winners.numpy(), np.argmax(votes, axis=1))  # first max
-    np.testing.assert_allclose(centres.numpy(), (uniq + 0.5) * 0.2, atol=1e-6)
+    np.testing.assert_allclose(centres.numpy(), uniq * 0.2, atol=1e-6)
     assert lmap.ignored == int((labels == 255).sum())
     assert lmap.out_of_range == int(((labels == -1) | (labels == 7)).sum())
 
@@ -365,7 +382,7 @@ def test_label_tie_goes_to_lowest_id_and_ignored_make_no_voxel():
     lmap.add(inside, torch.tensor([3, 1, 3, 1]))  # 2 votes each for 3 and 1
     lmap.add(torch.tensor([[5.5, 0.0, 0.0], [6.5, 0.0, 0.0]]), torch.tensor([255, 255]))
     centres, winners = lmap.labels()
-    assert winners.tolist() == [1] and centres.tolist() == [[0.5, 0.5, 0.5]]
+    assert winners.tolist() == [1] and centres.tolist() == [[0.0, 0.0, 0.0]]
     assert lmap.counts.tolist() == [4] and lmap.ignored == 2 and lmap.out_of_range == 0
     with pytest.raises(ValueError, match="ignore_index=3"):
         LabelVoxelMap(1.0, 6, ignore_index=3)
@@ -447,7 +464,8 @@ def test_fused_plane_frames_map_to_wall_voxels():
 
 
 def test_bench_mapping_smoke_and_its_room_is_the_box():
-    """benchmarks/bench_mapping.py: section 1 runs, and its ray-cast depth lies on the room."""
+    """benchmarks/bench_mapping.py: sections 1 and 4 run, and its ray-cast depth lies on the
+    room."""
     import importlib.util
     from pathlib import Path
 
@@ -455,8 +473,10 @@ def test_bench_mapping_smoke_and_its_room_is_the_box():
     spec = importlib.util.spec_from_file_location("bench_mapping", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    report = bench.main(["--smoke", "--sections", "1"])
-    assert set(report) == {"fusion"} and report["fusion"]["ReSiReg"]["voxels"] > 0
+    report = bench.main(["--smoke", "--sections", "1", "4"])
+    assert set(report) == {"fusion", "lifting"} and report["fusion"]["ReSiReg"]["voxels"] > 0
+    assert [r["grid"] for r in report["lifting"]] == ["VLM", "ReSiReg"]
+    assert all(r["pairs_per_patch"] >= 1 and r["pairs"] > 0 for r in report["lifting"])
     depth, k, poses = next(bench.room_frames(3, (48, 64), batch=3))
     points, valid = unproject(depth, k, poses)
     assert 0.9 < valid.float().mean() < 1.0  # 2% holes

@@ -55,6 +55,7 @@ __all__ = [
     "layer_sweep_figure",
     "layer_sweep_table",
     "mapping_table",
+    "protocol_lines",
     "plot_curves",
     "plot_heatmap",
     "prototype_grid",
@@ -497,6 +498,8 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
         "## Mean Δ per method (over encoders and datasets)",
         "",
         method_means(table).to_markdown(floatfmt="+.2f"),
+        "",
+        *protocol_lines(jobs),
     ]
     files["table1_md"].write_text("\n".join(lines) + "\n")
     return files
@@ -504,6 +507,9 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
 
 # ------------------------------------------------------------ 3D mapping table (Table 2)
 MAPPING_PREFIX = "val/scannet3d/"
+#: Table 2's score columns: (key of ``final`` before ``_<variant>``, column name).
+MAPPING_COLUMNS = (("miou", "mIoU"), ("fmiou", "f-mIoU"), ("pooled_miou", "mIoU (pooled)"),
+                   ("pooled_fmiou", "f-mIoU (pooled)"))  # fmt: skip
 
 
 def is_mapping_sweep(jobs: list[Job]) -> bool:
@@ -519,9 +525,10 @@ def is_mapping_sweep(jobs: list[Job]) -> bool:
 
 def mapping_table(jobs: list[Job]) -> pd.DataFrame:
     """The paper's Table 2 from a 3D mapping sweep: one row per encoder and variant scored
-    (``encoder + Full``), its parameter count, and per dataset the mIoU and f-mIoU over the
-    voxels of all scenes (x100), the mean of the scenes' mIoU (x100) and the job's status (a
-    job that did not complete leaves its cells empty)."""
+    (``encoder + Full``), its parameter count, and per dataset the mIoU and f-mIoU as the mean
+    of the scenes' values (the table's figure, RayFronts' per-scene evaluation), the same two
+    pooled over the voxels of all scenes (x100) and the job's status (a job that did not
+    complete leaves its cells empty)."""
     rows: dict[tuple[str, str], dict[str, Any]] = {}
     per_job, datasets = _per_encoder(jobs)
     for job, name, third, millions, dataset in per_job:
@@ -538,35 +545,47 @@ def mapping_table(jobs: list[Job]) -> pd.DataFrame:
             if job.status != "completed":
                 continue
             final = job.results.get("final", {})
-            for key, column in (("miou", "mIoU"), ("fmiou", "f-mIoU")):
+            for key, column in MAPPING_COLUMNS:
                 value = final.get(f"{MAPPING_PREFIX}{dataset}/{key}_{variant}")
                 if value is not None:
                     row[f"{dataset} {column}"] = 100 * value
-            scenes = [
-                s["scores"][variant]["miou"]
-                for s in (job.results.get("per_scene") or {}).values()
-                if variant in s.get("scores", {}) and not math.isnan(s["scores"][variant]["miou"])
-            ]
-            if scenes:
-                row[f"{dataset} mIoU (scene mean)"] = 100 * sum(scenes) / len(scenes)
     columns = ["model", "encoder", "variant", "third_party", "parameters (M)"]
     for dataset in datasets:
-        columns += [f"{dataset} mIoU", f"{dataset} f-mIoU", f"{dataset} mIoU (scene mean)",
-                    f"{dataset} status"]  # fmt: skip
+        columns += [f"{dataset} {column}" for _, column in MAPPING_COLUMNS]
+        columns.append(f"{dataset} status")
     return pd.DataFrame(list(rows.values())).reindex(columns=columns)
 
 
+def protocol_lines(jobs: list[Job]) -> list[str]:
+    """The evaluation protocol of the jobs (``results.json``'s ``protocol``, docs/protocol.md):
+    one line when they share it, else one per protocol with its jobs; nothing when no job
+    recorded one."""
+    from resireg_train.protocol import protocol_text
+
+    seen: dict[str, list[int]] = {}
+    for job in jobs:
+        record = job.results.get("protocol")
+        if record:
+            seen.setdefault(protocol_text(record), []).append(job.number)
+    if len(seen) == 1:
+        return [f"Protocol: {next(iter(seen))}"]
+    return [f"Protocol (jobs {', '.join(map(str, n))}): {text}" for text, n in seen.items()]
+
+
 def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
-    """``table2.csv`` and ``table2.md``."""
+    """``table2.csv`` and ``table2.md`` (the table, then the protocol)."""
     table = mapping_table(jobs)
     files = {"table2_csv": out / "table2.csv", "table2_md": out / "table2.md"}
     table.to_csv(files["table2_csv"], index=False)
     shown = table.drop(columns=["encoder", "variant", "third_party"])
     shown = shown.astype(object).where(shown.notna(), None)
     lines = [
-        "# 3D semantic mapping on ScanNet (mIoU / f-mIoU x100 over the voxels of all scenes)",
+        "# 3D semantic mapping on ScanNet (x100; mIoU / f-mIoU: mean over scenes; pooled: one "
+        "confusion over the voxels of all scenes)",
         "",
         shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+        "",
+        *protocol_lines(jobs),
     ]
     files["table2_md"].write_text("\n".join(lines) + "\n")
     return files
@@ -730,7 +749,8 @@ def report(
         grid = prototype_grid(jobs, metric)
         files["heatmap"] = out / "heatmap.png"
         plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
-        lines += ["", f"## {metric}: batch size x prototypes", "", grid.to_markdown(floatfmt=".4f")]
+        lines += ["", f"## {metric}: batch size x prototypes", "", grid.to_markdown(floatfmt=".4f"),
+                  "", *protocol_lines(jobs)]  # fmt: skip
         if grid.notna().to_numpy().any():
             heuristic, best = fit_heuristic(grid)
             files["heuristic"] = out / "prototype_heuristic.json"

@@ -233,9 +233,34 @@ _EVAL_RULES: dict[str, Rule] = {
     ),
     "dataset.frame_skip": _integer(0),
     "dataset.image_size": (lambda v: _size(v), "[height, width], two integers >= 1"),
-    "dataset.gt_resolution": (lambda v: v is None or _size(v), "null or [height, width]"),
     "dataset.voxel_size": _number(0, strict=True),
-    "dataset.gt_unlabelled": (lambda v: v in ("vote", "drop"), "vote or drop"),
+}
+
+# The 3D protocol's keys of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
+# section 4), checked when dataset.kind is scannet (2D entries may use some of the names).
+_SCANNET_RULES: dict[str, Rule] = {
+    "dataset.gt_resolution": (
+        lambda v: v in ("image", "label") or _size(v), "image, label or [height, width]"
+    ),
+    "dataset.gt_unlabelled": (lambda v: v in ("rayfronts", "vote", "drop"),
+                              "one of ['rayfronts', 'vote', 'drop']"),  # fmt: skip
+    "dataset.resize": (lambda v: v in ("torch", "exact"), "one of ['torch', 'exact']"),
+    "dataset.intrinsics": (lambda v: v in ("multiply", "half_pixel"),
+                           "one of ['multiply', 'half_pixel']"),  # fmt: skip
+    "dataset.lattice": (lambda v: v in ("round", "floor"), "one of ['round', 'floor']"),
+    "dataset.points": (lambda v: v in ("patch", "pixel"), "one of ['patch', 'pixel']"),
+    "dataset.knn": _integer(0),
+    "dataset.prediction_threshold": (lambda v: v is None or (_num(v) and 0 < v < 1),
+                                     "null or a number in (0, 1)"),  # fmt: skip
+    "dataset.prompt_denoising": (lambda v: v is None or (_num(v) and 0 < v < 1),
+                                 "null or a number in (0, 1)"),  # fmt: skip
+    "dataset.metric": (lambda v: v in ("rayfronts", "union"), "one of ['rayfronts', 'union']"),
+    "dataset.class_names": (lambda v: v in ("label_map", "nyu40"), "one of ['label_map', 'nyu40']"),
+    "dataset.classes_to_ignore": (
+        lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v),
+        "a list of class names (NYU40 names, e.g. otherprop)",
+    ),
+    "dataset.protocol": (lambda v: isinstance(v, str) and bool(v), "a name for the protocol"),
 }
 
 
@@ -300,6 +325,11 @@ def validate_eval(cfg: DictConfig | dict) -> None:
             "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
         )
     task, kind = _get(cfg, "task"), _get(cfg, "dataset.kind")
+    if kind == "scannet":
+        for key, (check, expected) in _SCANNET_RULES.items():
+            value = _get(cfg, key)
+            if value is not _MISSING and not check(value):
+                errors.append(f"{key}={value!r}: expected {expected}")
     if task == "scannet3d" and kind != "scannet":
         errors.append(f"dataset.kind={kind!r}: task=scannet3d needs dataset=scannet (or another "
                       "config of kind scannet)")  # fmt: skip

@@ -1,9 +1,10 @@
-"""3D semantic mapping with dense vision-language features (torch, numpy, scipy only).
+"""3D semantic mapping with dense vision-language features (torch, numpy, scipy, scikit-learn).
 
-Patch points from depth, intrinsics and pose (:mod:`.geometry`), sparse voxel maps of running
-feature sums and of ground-truth class votes (:mod:`.voxels`), and queries: cosine
-classification and nearest-neighbour label transfer (:mod:`.query`). Conventions:
-docs/design.md section 10.1.
+Patch points from depth, intrinsics and pose (:mod:`.geometry`), every pixel at its patch's
+depth as (patch, voxel, count) pairs (:mod:`.lifting`), sparse voxel maps of running feature
+sums and of ground-truth class votes (:mod:`.voxels`), and queries: cosine classification
+(optionally with RayFronts' prediction threshold and prompt denoising) and k-nearest-neighbour
+label transfer (:mod:`.query`). Conventions: docs/design.md section 10.1.
 
 Typical online use, one batch of frames at a time::
 
@@ -20,8 +21,15 @@ from resireg.mapping.geometry import (
     scale_intrinsics,
     unproject,
 )
-from resireg.mapping.query import classify, nearest, transfer_labels
-from resireg.mapping.voxels import LabelVoxelMap, VoxelMap, voxel_indices
+from resireg.mapping.lifting import pixel_pairs, pixel_points
+from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
+from resireg.mapping.voxels import (
+    LATTICES,
+    LabelVoxelMap,
+    VoxelMap,
+    voxel_centres,
+    voxel_indices,
+)
 
 __all__ = [
     "scale_intrinsics",
@@ -29,10 +37,15 @@ __all__ = [
     "nearest_downsample",
     "unproject",
     "patch_points",
+    "pixel_points",
+    "pixel_pairs",
+    "LATTICES",
     "VoxelMap",
     "LabelVoxelMap",
     "voxel_indices",
+    "voxel_centres",
     "classify",
     "nearest",
     "transfer_labels",
+    "transfer_labels_by_voxel",
 ]

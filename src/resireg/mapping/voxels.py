@@ -1,15 +1,22 @@
 """Sparse voxel maps: running feature sums (:class:`VoxelMap`) and class votes (:class:`LabelVoxelMap`).
 
-A point ``p`` (metres) falls in the voxel of integer index ``floor(p / voxel_size)`` (per axis),
-whose centre is ``(index + 0.5) * voxel_size``. A map stores, for the occupied voxels only, a
-per-voxel accumulator (feature sum and point count, or class votes), so memory grows with the
-occupied voxels and a map can grow frame by frame.
+A point ``p`` (metres) falls in the voxel of an integer index per axis, by one of two lattices
+(:data:`LATTICES`, docs/design.md section 10.1):
+
+- ``"round"`` (the default): index ``round(p / voxel_size)`` (half to even, as ``torch.round``),
+  centre ``index * voxel_size``: RayFronts' ``geometry3d.pointcloud_to_sparse_voxels``, whose
+  evaluation (``scripts/semseg_eval.py``) the paper's Table 2 follows;
+- ``"floor"``: index ``floor(p / voxel_size)``, centre ``(index + 0.5) * voxel_size``.
+
+The index is computed in float64 (``points.double() / voxel_size``). A map stores, for the
+occupied voxels only, a per-voxel accumulator (feature sum and point count, or class votes), so
+memory grows with the occupied voxels and a map can grow frame by frame.
 
 Storage: rows of a dense accumulator in order of first occupation, plus the voxels' packed
 int64 keys kept sorted with the row of each key. ``add`` finds the keys of new points with
 ``torch.searchsorted`` (one ``torch.unique`` per call), appends rows for unseen voxels (capacity
 grows geometrically, so appending is amortised O(1) per voxel) and scatters with ``index_add_``:
-vectorised, no Python loop over points, chunked so no temporary exceeds ~64 MB. Everything stays
+vectorised, no Python loop over points, chunked so no temporary exceeds ~8 MB. Everything stays
 on the map's device. Results are returned in key order, which is the lexicographic order of the
 ``(i, j, k)`` indices (the order of ``numpy.unique(indices, axis=0)``), whatever order the points
 came in.
@@ -24,19 +31,52 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-__all__ = ["VoxelMap", "LabelVoxelMap", "voxel_indices"]
+__all__ = ["LATTICES", "VoxelMap", "LabelVoxelMap", "check_lattice", "voxel_centres", "voxel_indices"]
 
 # Packed key: 21 bits per axis, index + 2**20 in [0, 2**21); 63 bits in all (non-negative int64).
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 _MAX_INDEX = _OFFSET - 1
-# Elements per temporary in add (float64: 64 MB).
-_CHUNK_ELEMENTS = 1 << 23
+# Elements per float64 temporary in add, add_pairs and features (8 MB): glibc serves such blocks
+# from its heap once freed, while one over its 32 MB mmap threshold is page-faulted afresh on
+# every call, which on a 512-d frame costs more than the additions (docs/benchmarks.md).
+_CHUNK_ELEMENTS = 1 << 20
 
 
-def voxel_indices(points: Tensor, voxel_size: float) -> Tensor:
-    """Integer voxel indices ``floor(points / voxel_size)`` ``[N, 3]`` int64 (float64 division)."""
-    return torch.floor(points.to(torch.float64) / voxel_size).to(torch.int64)
+#: Voxel lattices (module docstring).
+LATTICES = ("round", "floor")
+
+
+def check_lattice(lattice: str) -> str:
+    if lattice not in LATTICES:
+        raise ValueError(f"lattice={lattice!r}: expected one of {LATTICES}")
+    return lattice
+
+
+def lattice_index(scaled: Tensor, lattice: str = "round") -> Tensor:
+    """Integer voxel indices of coordinates already divided by the voxel size (float64):
+    ``round`` (half to even) or ``floor``, as int64."""
+    op = torch.round if check_lattice(lattice) == "round" else torch.floor
+    return op(scaled).to(torch.int64)
+
+
+def voxel_indices(points: Tensor, voxel_size: float, lattice: str = "round") -> Tensor:
+    """Integer voxel indices ``[N, 3]`` int64 of ``points`` ``[N, 3]``: ``round(points /
+    voxel_size)`` or ``floor(...)`` by ``lattice`` (float64 division; module docstring)."""
+    return lattice_index(points.to(torch.float64) / voxel_size, lattice)
+
+
+def voxel_centres(index: Tensor, voxel_size: float, lattice: str = "round") -> Tensor:
+    """``[M, 3]`` float32 centres of voxel indices ``[M, 3]``.
+
+    ``round``: ``index * voxel_size`` computed in float32 (``float32(index) * voxel_size``), as
+    RayFronts' ``pointcloud_to_sparse_voxels`` computes its centres, so the two give the same
+    float32 values and nearest-neighbour ties between lattice points resolve alike.
+    ``floor``: ``(index + 0.5) * voxel_size`` in float64, then rounded to float32.
+    """
+    if check_lattice(lattice) == "round":
+        return index.to(torch.float32) * voxel_size
+    return ((index.to(torch.float64) + 0.5) * voxel_size).to(torch.float32)
 
 
 def _pack(index: Tensor) -> Tensor:
@@ -79,8 +119,9 @@ class _SparseVoxels:
     alike.
     """
 
-    def __init__(self, voxel_size: float, device: torch.device | str) -> None:
+    def __init__(self, voxel_size: float, device: torch.device | str, lattice: str) -> None:
         self.voxel_size = _check_voxel_size(voxel_size)
+        self.lattice = check_lattice(lattice)
         self.device = torch.device(device)
         self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted
         self._rows = torch.empty(0, dtype=torch.int64, device=self.device)  # row of each key
@@ -134,11 +175,15 @@ class _SparseVoxels:
 
     def _rows_of(self, points: Tensor) -> Tensor:
         """Accumulator rows ``[N]`` of the points' voxels; unseen voxels get new rows."""
-        index = voxel_indices(points, self.voxel_size)
+        return self._rows_of_index(voxel_indices(points, self.voxel_size, self.lattice), points)
+
+    def _rows_of_index(self, index: Tensor, points: Tensor | None = None) -> Tensor:
+        """Accumulator rows ``[N]`` of voxel indices ``[N, 3]``; unseen voxels get new rows."""
         if index.numel() and int(index.abs().max()) > _MAX_INDEX:
-            bad = float(points.abs().max())
+            where = f"points with |coordinate| {float(points.abs().max()):g} m" if points is not None \
+                else f"voxel indices up to {int(index.abs().max())}"
             raise ValueError(
-                f"points with |coordinate| {bad:g} m: voxel indices beyond +-{_MAX_INDEX} "
+                f"{where}: voxel indices beyond +-{_MAX_INDEX} "
                 f"at voxel_size={self.voxel_size:g} (keys pack 21 bits per axis)"
             )
         keys, inverse = torch.unique(_pack(index), return_inverse=True)  # sorted unique keys
@@ -175,8 +220,22 @@ class _SparseVoxels:
         return _unpack(self._keys)
 
     def centres(self) -> Tensor:
-        """``[M, 3]`` float32 voxel centres ``(index + 0.5) * voxel_size`` (float64, then rounded)."""
-        return ((self.indices.to(torch.float64) + 0.5) * self.voxel_size).to(torch.float32)
+        """``[M, 3]`` float32 voxel centres of :attr:`indices` (:func:`voxel_centres`)."""
+        return voxel_centres(self.indices, self.voxel_size, self.lattice)
+
+    def find(self, index: Tensor) -> Tensor:
+        """Position in :attr:`indices` order ``[N]`` (int64) of each voxel index ``[N, 3]``,
+        ``-1`` where the map has no such voxel (no voxel is created)."""
+        index = index.to(device=self.device, dtype=torch.int64)
+        out = torch.full((index.shape[0],), -1, dtype=torch.int64, device=self.device)
+        inside = (index.abs() <= _MAX_INDEX).all(dim=1)
+        keys = _pack(index[inside])
+        pos = torch.searchsorted(self._keys, keys).clamp_max(max(self._size - 1, 0))
+        hit = self._keys[pos] == keys if self._size else torch.zeros_like(keys, dtype=torch.bool)
+        found = torch.full_like(keys, -1)
+        found[hit] = pos[hit]
+        out[inside] = found
+        return out
 
 
 class VoxelMap(_SparseVoxels):
@@ -192,10 +251,13 @@ class VoxelMap(_SparseVoxels):
         voxel_size: voxel edge in metres (> 0).
         dim: feature dimension ``D``.
         device: where the map's tensors live (points and features are moved there).
+        lattice: ``"round"`` or ``"floor"`` (module docstring).
     """
 
-    def __init__(self, voxel_size: float, dim: int, device: torch.device | str = "cpu") -> None:
-        super().__init__(voxel_size, device)
+    def __init__(
+        self, voxel_size: float, dim: int, device: torch.device | str = "cpu", lattice: str = "round"
+    ) -> None:
+        super().__init__(voxel_size, device, lattice)
         self.dim = _check_count("dim", dim)
         self._acc = {
             "sums": torch.zeros(0, self.dim, dtype=torch.float64, device=self.device),
@@ -205,7 +267,7 @@ class VoxelMap(_SparseVoxels):
     def __repr__(self) -> str:
         return (
             f"VoxelMap(voxel_size={self.voxel_size}, dim={self.dim}, device={self.device}, "
-            f"voxels={len(self)})"
+            f"lattice={self.lattice!r}, voxels={len(self)})"
         )
 
     @property
@@ -242,6 +304,46 @@ class VoxelMap(_SparseVoxels):
             chunk = features[start : start + step].to(device=self.device, dtype=torch.float64)
             self._sums.index_add_(0, rows[start : start + step], chunk)
 
+    def add_pairs(self, index: Tensor, counts: Tensor, features: Tensor, source: Tensor) -> None:
+        """Add points given as (voxel, feature) pairs with multiplicities.
+
+        Pair ``i`` stands for ``counts[i]`` points of voxel ``index[i]`` that all carry the
+        feature ``features[source[i]]`` (e.g. the pixels of one patch that fall in one voxel,
+        :func:`resireg.mapping.pixel_pairs`): the voxel's sum grows by ``counts[i] *
+        features[source[i]]`` and its count by ``counts[i]``. For float32 features the product
+        is exact in float64 (24 + 31 bits), so the map equals the one ``add`` builds from the
+        points one by one, up to the order of the float64 sums.
+
+        Args:
+            index: ``[M, 3]`` int64 voxel indices (this map's lattice, :func:`voxel_indices`).
+            counts: ``[M]`` integer multiplicities (>= 1).
+            features: ``[P, D]`` features (any floating dtype).
+            source: ``[M]`` int64 rows of ``features``.
+        """
+        if not isinstance(features, Tensor) or features.ndim != 2 or features.shape[1] != self.dim:
+            shape = tuple(features.shape) if isinstance(features, Tensor) else type(features)
+            raise ValueError(f"features of shape {shape}: expected [P, {self.dim}]")
+        if not features.is_floating_point():
+            raise ValueError(f"features of dtype {features.dtype}: expected floating point")
+        m = index.shape[0]
+        if index.shape != (m, 3) or counts.shape != (m,) or source.shape != (m,):
+            raise ValueError(
+                f"index {tuple(index.shape)}, counts {tuple(counts.shape)}, source "
+                f"{tuple(source.shape)}: expected [M, 3], [M], [M]"
+            )
+        if m == 0:
+            return
+        rows = self._rows_of_index(index.to(device=self.device, dtype=torch.int64))
+        counts = counts.to(device=self.device, dtype=torch.int64)
+        source = source.to(self.device)
+        self._counts.index_add_(0, rows, counts)
+        features = features.to(device=self.device, dtype=torch.float64)  # once per source row
+        step = max(1, _CHUNK_ELEMENTS // self.dim)
+        for start in range(0, m, step):
+            chunk = features.index_select(0, source[start : start + step])
+            chunk.mul_(counts[start : start + step, None])
+            self._sums.index_add_(0, rows[start : start + step], chunk)
+
     @property
     def counts(self) -> Tensor:
         """``[M]`` int64 points per voxel, in the order of :attr:`indices`."""
@@ -255,7 +357,7 @@ class VoxelMap(_SparseVoxels):
         """Voxel centres ``[M, 3]`` and L2-normalised mean features ``[M, D]``, both float32.
 
         ``mean / max(||mean||, 1e-12)`` computed in float64 (a zero mean stays zero), in row
-        chunks, so a query needs the float32 result plus one ~64 MB temporary, not a float64
+        chunks, so a query needs the float32 result plus one ~8 MB temporary, not a float64
         copy of the map.
         """
         unit = torch.empty(self._size, self.dim, dtype=torch.float32, device=self.device)
@@ -281,6 +383,7 @@ class LabelVoxelMap(_SparseVoxels):
         num_classes: number of classes ``K``.
         ignore_index: the "no label" id; must lie outside ``0 .. K - 1``.
         device: where the map's tensors live.
+        lattice: ``"round"`` or ``"floor"`` (module docstring).
     """
 
     def __init__(
@@ -289,8 +392,9 @@ class LabelVoxelMap(_SparseVoxels):
         num_classes: int,
         ignore_index: int = 255,
         device: torch.device | str = "cpu",
+        lattice: str = "round",
     ) -> None:
-        super().__init__(voxel_size, device)
+        super().__init__(voxel_size, device, lattice)
         self.num_classes = _check_count("num_classes", num_classes)
         if isinstance(ignore_index, bool) or not isinstance(ignore_index, int):
             raise ValueError(f"ignore_index={ignore_index!r}: expected an integer")
@@ -308,7 +412,7 @@ class LabelVoxelMap(_SparseVoxels):
     def __repr__(self) -> str:
         return (
             f"LabelVoxelMap(voxel_size={self.voxel_size}, num_classes={self.num_classes}, "
-            f"device={self.device}, voxels={len(self)})"
+            f"device={self.device}, lattice={self.lattice!r}, voxels={len(self)})"
         )
 
     @property

@@ -134,9 +134,9 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
     from resireg.variant_names import takes_prior
 
     if params["task"] == "scannet3d":
-        from resireg_train.mapping.scannet import check_scannet_source, scannet_source
+        from resireg_train.mapping.scannet import check_scannet_spec
 
-        check_scannet_source(*scannet_source(params["dataset"], "dataset"), "dataset")
+        check_scannet_spec(params["dataset"], "dataset")
     else:
         from resireg_train.ovss.datasets import check_segmentation_source
 
@@ -165,6 +165,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg.variants import build_variants
     from resireg_train.ovss.datasets import build_segmentation_set
     from resireg_train.ovss.engine import OVSSTask, StageTimer
+    from resireg_train.protocol import protocol_record
 
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
@@ -181,6 +182,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         return run_scannet3d(cfg, out, encoder, variants, params)
     patch = encoder.input_rule.patch_size
     dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
+    update_results(out, protocol=protocol_record(params, dataset))
     task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
     task.check_variants(variants)
     cache = None

@@ -14,7 +14,7 @@ from collections.abc import Iterator
 import numpy as np
 from PIL import Image
 
-__all__ = ["SYNTHETIC_CLASSES", "SyntheticScenes"]
+__all__ = ["SYNTHETIC_CLASSES", "SyntheticScenes", "paint"]
 
 #: Classes of the synthetic world (label ids in this order).
 SYNTHETIC_CLASSES: tuple[str, ...] = (
@@ -43,6 +43,20 @@ _COLOURS = np.array(
 )
 _BACKGROUNDS = (0, 1, 2, 3, 7)  # classes that can fill a scene
 _TEMPLATES = ("a photo of {}.", "a picture showing {}.", "{} in a scene.", "an image of {}.")
+
+
+def paint(mask: np.ndarray, rng: np.random.Generator, noise: float) -> np.ndarray:
+    """The pixels of a class map ``mask`` ``[H, W]`` (class ids): each class's colour and
+    texture (stripes whose period and direction depend on the class, in image coordinates),
+    plus Gaussian noise of std ``noise`` drawn from ``rng``; uint8 RGB ``[H, W, 3]``. The 3D
+    synthetic room paints its boxes with it too (``resireg_train.mapping.synthetic``)."""
+    yy, xx = np.mgrid[0 : mask.shape[0], 0 : mask.shape[1]]
+    image = _COLOURS[mask].copy()
+    period = 4.0 + 2.0 * mask
+    phase = np.where(mask % 2 == 0, yy, xx) / period
+    image += 25.0 * np.sin(2 * np.pi * phase)[..., None]
+    image += rng.normal(0.0, noise, size=image.shape)
+    return np.clip(image, 0, 255).astype(np.uint8)
 
 
 class SyntheticScenes:
@@ -97,18 +111,13 @@ class SyntheticScenes:
                 cy, cx = y0 + ch / 2, x0 + cw / 2
                 shape = ((yy - cy) / (ch / 2)) ** 2 + ((xx - cx) / (cw / 2)) ** 2 <= 1.0
             mask[shape] = cls
-        image = _COLOURS[mask].copy()
-        # Class texture: stripes whose period and direction depend on the class.
-        period = 4.0 + 2.0 * mask
-        phase = np.where(mask % 2 == 0, yy, xx) / period
-        image += 25.0 * np.sin(2 * np.pi * phase)[..., None]
-        image += rng.normal(0.0, self.noise, size=image.shape)
+        image = paint(mask, rng, self.noise)
         present = [SYNTHETIC_CLASSES[c] for c in np.unique(mask)]
         rng.shuffle(present)
         names = ", ".join(present[:-1]) + f" and {present[-1]}" if len(present) > 1 else present[0]
         caption = str(rng.choice(_TEMPLATES)).format(names)
         return {
-            "image": Image.fromarray(np.clip(image, 0, 255).astype(np.uint8)),
+            "image": Image.fromarray(image),
             "caption": caption,
             "mask": mask,
         }

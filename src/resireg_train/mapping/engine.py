@@ -1,37 +1,49 @@
-"""The 3D semantic-mapping task (paper Table 2, Fig. 4b; docs/design.md section 10).
+"""The 3D semantic-mapping task (paper Table 2, Fig. 4b; docs/design.md section 10.2).
 
 Per scene, batches of consecutive kept frames (:meth:`ScanNetFrames.batches`; ReSiReg Full's
 batch = scene is a video window). Per batch the encoder runs once (``encode``) and every
 variant / configuration is applied to that one output, as in the OVSS engine (through
 :func:`resireg.variants.apply_variant`, so Full's configurations share one PCA per batch).
-Each variant's features are placed at the world points of its own grid's patch centres
-(:func:`resireg.mapping.patch_points` from the ``image_size`` depth, intrinsics and pose)
+Each variant's features are lifted to 3D on its own grid (:class:`MappingProtocol` ``points``)
 and fused into one :class:`~resireg.mapping.VoxelMap` per variant (running sums; the
-L2-normalised mean is read at scene end).
+L2-normalised mean is read at scene end):
+
+- ``patch`` (default): one point per patch, its centre unprojected with the patch's depth
+  (:func:`resireg.mapping.patch_points`): OTAS's ``src/model.py`` ``batch_embed_rgbd``, the
+  code the paper's sentence describes;
+- ``pixel``: every pixel of a lifted patch at the patch's depth with the patch's feature, as
+  (patch, voxel, count) pairs (:func:`resireg.mapping.pixel_pairs`).
 
 The ground truth is built independently of any feature grid: every pixel of the label image at
 ``gt_resolution`` is unprojected with the depth at that resolution and votes for its class in
-a :class:`~resireg.mapping.LabelVoxelMap` of the same voxel size. With ``gt_unlabelled:
-vote`` (default, RayFronts' ground-truth lifting) ignored pixels (255: unlabelled, the
-"other" classes) vote as one extra class, and a voxel they win is not scored; with ``drop``
-they cast no vote.
+a :class:`~resireg.mapping.LabelVoxelMap` of the same lattice. ``gt_unlabelled`` (:data:`GT_RULES`):
+
+- ``rayfronts`` (default): RayFronts' ``semseg_eval.py`` ``compute_semseg_gt``: the one-hot
+  labels with the ignore class (pixels of ignored classes vote for it) are averaged per voxel
+  and labelled by ``compute_semseg_preds(votes, one-hot prompts of the labelled classes, 0,
+  0.1)``: softmax of 100 x the cosine to the labelled classes only, ignored below 0.1, so
+  ignored pixels never outvote labelled ones but can dilute them;
+- ``vote``: ignored pixels vote as one more class; a voxel they win (argmax) is not scored;
+- ``drop``: ignored pixels cast no vote.
 
 At scene end each variant's voxel features are classified against the class text prototypes
 (the OVSS task's text path: 80 templates, ``text_features`` once, ``dense_text``, averaged;
-cosine argmax), the predictions are transferred to the ground-truth voxel centres by nearest
-neighbour (no smoothing), and one confusion matrix per variant is accumulated per scene and
-over all scenes (:class:`resireg.ovss.SegmentationMetric`: mIoU over classes present in the
-ground truth or the prediction, f-mIoU weighted by ground-truth voxels).
+cosine argmax, or RayFronts' rule with ``prediction_threshold`` / ``prompt_denoising``), the
+predictions are transferred to the ground-truth voxels (``knn``: the mode of the ``k`` nearest
+predicted voxels, RayFronts' ``align_labels_with_knn``; 0: the same voxel or no prediction) and
+scored per scene (:mod:`resireg_train.mapping.metric`).
 
 Precision: ``"32"`` or ``"bf16"`` applies to the encoder pass and the variants, as in the OVSS
-engine; unprojection, fusion, the ground truth and the classification always run with
-autocast off (fp32 / fp64).
+engine; lifting, fusion, the ground truth and the classification always run with autocast off
+(fp32 / fp64).
 """
 
 from __future__ import annotations
 
+import csv
+import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -40,16 +52,19 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader
 
 from resireg.mapping import (
+    LATTICES,
     LabelVoxelMap,
     VoxelMap,
     classify,
     patch_points,
+    pixel_pairs,
     transfer_labels,
+    transfer_labels_by_voxel,
     unproject,
 )
 from resireg.models import DenseEncoder
-from resireg.ovss import SegmentationMetric
 from resireg.variants import apply_variant
+from resireg_train.mapping import metric as metrics
 from resireg_train.mapping.scannet import ScanNetFrames, collate_frames
 from resireg_train.ovss.datasets import SkippedSample
 from resireg_train.ovss.engine import (
@@ -60,21 +75,74 @@ from resireg_train.ovss.engine import (
     inference,
 )
 
-__all__ = ["GT_UNLABELLED", "MappingResult", "MappingTask", "run_scannet3d"]
+__all__ = ["GT_RULES", "POINTS", "TASK_KEYS", "MappingProtocol", "MappingResult", "MappingTask",
+           "run_scannet3d"]  # fmt: skip
 
-#: How ignored ground-truth pixels enter the voxel votes (module docstring).
-GT_UNLABELLED = ("vote", "drop")
+#: How ignored ground-truth pixels enter the voxel labels (module docstring).
+GT_RULES = ("rayfronts", "vote", "drop")
+#: How features are lifted to 3D (module docstring).
+POINTS = ("patch", "pixel")
+#: RayFronts' ground-truth rule: ``compute_semseg_preds(votes, prompts, 0, 0.1)``, and the
+#: ``eps`` of its ``ImageSemSegEncoder.encode_labels`` one-hot prompts.
+_GT_THRESHOLD, _GT_EPS = 0.1, 1e-10
+
+
+@dataclass(frozen=True)
+class MappingProtocol:
+    """The task's settings (the ``conf/dataset/scannet.yaml`` keys of the same names, which
+    hold the protocol's values and document each; a test keeps these defaults equal to them).
+
+    Attributes:
+        voxel_size: voxel edge in metres (feature maps and ground truth).
+        lattice: ``round`` or ``floor`` (:mod:`resireg.mapping.voxels`).
+        gt_unlabelled: :data:`GT_RULES`.
+        points: :data:`POINTS`.
+        knn: neighbours of the label transfer (0: same voxel only).
+        prediction_threshold: ``None`` or RayFronts' "no prediction" probability.
+        prompt_denoising: ``None`` or RayFronts' prompt-denoising probability.
+        metric: :data:`resireg_train.mapping.metric.METRICS`.
+    """
+
+    voxel_size: float = 0.05
+    lattice: str = "round"
+    gt_unlabelled: str = "rayfronts"
+    points: str = "patch"
+    knn: int = 1
+    prediction_threshold: float | None = None
+    prompt_denoising: float | None = None
+    metric: str = "rayfronts"
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("lattice", LATTICES), ("gt_unlabelled", GT_RULES),
+                              ("points", POINTS), ("metric", metrics.METRICS)):  # fmt: skip
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name}={getattr(self, name)!r}: expected one of {allowed}")
+        if isinstance(self.knn, bool) or not isinstance(self.knn, int) or self.knn < 0:
+            raise ValueError(f"knn={self.knn!r}: expected an integer >= 0")
+        if not self.voxel_size > 0:
+            raise ValueError(f"voxel_size={self.voxel_size!r}: expected a number > 0")
+
+    @classmethod
+    def from_spec(cls, spec: Mapping[str, Any]) -> MappingProtocol:
+        """The settings a dataset entry holds (absent keys keep the defaults)."""
+        return cls(**{f.name: spec[f.name] for f in fields(cls) if f.name in spec})
+
+
+#: The dataset-entry keys the task reads (:class:`MappingProtocol`).
+TASK_KEYS = tuple(f.name for f in fields(MappingProtocol))
 
 
 @dataclass
 class MappingResult:
-    """Confusion matrices (overall and per scene) per variant, and frame counts."""
+    """Per variant and scene the voxel confusion matrix, and frame / voxel counts."""
 
     dataset: str
-    metrics: dict[str, SegmentationMetric]
-    scene_metrics: dict[str, dict[str, SegmentationMetric]] = field(default_factory=dict)
+    classes: tuple[str, ...]
+    metric: str = "rayfronts"
+    confusions: dict[str, dict[str, Tensor]] = field(default_factory=dict)  # variant -> scene
     frames: dict[str, int] = field(default_factory=dict)
     voxels: dict[str, int] = field(default_factory=dict)
+    feature_voxels: dict[str, dict[str, int]] = field(default_factory=dict)  # variant -> scene
     skipped_samples: list[SkippedSample] = field(default_factory=list)
     dropped_samples: list[SkippedSample] = field(default_factory=list)
 
@@ -83,24 +151,43 @@ class MappingResult:
         """Frames mapped, over all scenes."""
         return sum(self.frames.values())
 
+    def pooled(self, variant: str) -> Tensor:
+        """The variant's confusion matrix summed over the scenes."""
+        k = len(self.classes)
+        total = torch.zeros(k, k + 1, dtype=torch.int64)
+        for matrix in self.confusions[variant].values():
+            total += matrix
+        return total
+
+    def scene_scores(self, variant: str) -> dict[str, dict[str, Any]]:
+        return {s: metrics.scores(m, self.metric) for s, m in self.confusions[variant].items()}
+
     def scores(self, prefix: str = "val/scannet3d") -> dict[str, float]:
-        """``{"<prefix>/<dataset>/miou_<variant>": ..., ".../fmiou_<variant>": ...}`` of the
-        confusion matrix summed over all scenes (every ground-truth voxel counts once)."""
+        """Per variant: ``miou_<v>``, ``fmiou_<v>``, ``acc_<v>``, each the mean over the scenes
+        (the table's figure), and ``pooled_miou_<v>``, ... of the confusion summed over the
+        scenes, under ``<prefix>/<dataset>/``."""
         out = {}
-        for variant, metric in self.metrics.items():
-            computed = metric.compute()
-            out[f"{prefix}/{self.dataset}/miou_{variant}"] = float(computed["miou"])
-            out[f"{prefix}/{self.dataset}/fmiou_{variant}"] = float(computed["fmiou"])
+        for variant in self.confusions:
+            per_scene = self.scene_scores(variant).values()
+            pooled = metrics.scores(self.pooled(variant), self.metric)
+            for name in ("miou", "fmiou", "acc"):
+                mean = metrics.mean_over_scenes([s[name] for s in per_scene])
+                out[f"{prefix}/{self.dataset}/{name}_{variant}"] = mean
+            for name in ("miou", "fmiou", "acc"):
+                out[f"{prefix}/{self.dataset}/pooled_{name}_{variant}"] = pooled[name]
         return out
 
     def per_scene(self) -> dict[str, dict[str, Any]]:
-        """Per scene: frames, ground-truth voxels and each variant's mIoU / f-mIoU."""
-        out = {}
-        for scene, metrics in self.scene_metrics.items():
+        """Per scene: frames, scored ground-truth voxels and each variant's mIoU / f-mIoU / acc
+        and feature voxels."""
+        out: dict[str, dict[str, Any]] = {}
+        for scene in self.frames:
             scores = {}
-            for variant, metric in metrics.items():
-                c = metric.compute()
-                scores[variant] = {"miou": float(c["miou"]), "fmiou": float(c["fmiou"])}
+            for variant in self.confusions:
+                if scene in self.confusions[variant]:
+                    c = metrics.scores(self.confusions[variant][scene], self.metric)
+                    scores[variant] = {"miou": c["miou"], "fmiou": c["fmiou"], "acc": c["acc"],
+                                       "voxels": self.feature_voxels[variant].get(scene, 0)}  # fmt: skip
             out[scene] = {
                 "frames": self.frames.get(scene, 0),
                 "gt_voxels": self.voxels.get(scene, 0),
@@ -109,7 +196,48 @@ class MappingResult:
         return out
 
     def per_class_iou(self) -> dict[str, list[float]]:
-        return {v: m.compute()["per_class_iou"] for v, m in self.metrics.items()}
+        """Per variant the pooled per-class IoU (NaN where undefined)."""
+        return {v: metrics.scores(self.pooled(v), self.metric)["iou"] for v in self.confusions}
+
+    def write_csv(self, out: Path) -> dict[str, str]:
+        """Per variant, next to ``results.json``: ``scannet3d/<variant>/<scene>_class_results.csv``
+        (per class: index, label, tp, fp, fn, iou, fiou) and ``scannet3d/<variant>/summary.csv``
+        (per scene: miou, fmiou, acc, voxels; then the mean over scenes and the pooled row):
+        RayFronts' ``semseg_final_class_results.csv`` / ``..._summary_results.csv``. Returns
+        ``{variant: folder}`` relative to ``out``."""
+        written = {}
+        k = len(self.classes)
+        for variant, scenes in self.confusions.items():
+            folder = Path("scannet3d") / re.sub(r"[^\w.@=+-]", "_", variant)
+            (out / folder).mkdir(parents=True, exist_ok=True)
+            rows = []
+            for scene, matrix in [*scenes.items(), ("pooled", self.pooled(variant))]:
+                c = metrics.scores(matrix, self.metric)
+                cm = matrix.double()
+                tp, freq = cm.diagonal(), cm.sum(1)
+                fp = cm[:, :k].sum(0) - tp
+                total = float(freq.sum())
+                with (out / folder / f"{scene}_class_results.csv").open("w", newline="") as f:
+                    writer = csv.writer(f)
+                    writer.writerow(["index", "label", "tp", "fp", "fn", "iou", "fiou"])
+                    for i, name in enumerate(self.classes):
+                        fiou = float(freq[i]) / total * c["iou"][i] if total else float("nan")
+                        writer.writerow([i, name, int(tp[i]), int(fp[i]), int(freq[i] - tp[i]),
+                                         c["iou"][i], fiou])  # fmt: skip
+                if scene != "pooled":
+                    rows.append([scene, c["miou"], c["fmiou"], c["acc"],
+                                 int(freq.sum())])  # fmt: skip
+            pooled = metrics.scores(self.pooled(variant), self.metric)
+            mean = [metrics.mean_over_scenes([r[i] for r in rows]) for i in (1, 2, 3)]
+            with (out / folder / "summary.csv").open("w", newline="") as f:
+                writer = csv.writer(f)
+                writer.writerow(["scene_name", "miou", "fmiou", "acc", "gt_voxels"])
+                writer.writerows(rows)
+                writer.writerow(["mean over scenes", *mean, sum(r[4] for r in rows)])
+                writer.writerow(["pooled", pooled["miou"], pooled["fmiou"], pooled["acc"],
+                                 sum(r[4] for r in rows)])  # fmt: skip
+            written[variant] = str(folder)
+        return written
 
 
 def _fp32(device: torch.device) -> torch.autocast:
@@ -118,34 +246,63 @@ def _fp32(device: torch.device) -> torch.autocast:
     return torch.autocast(device.type, enabled=False)
 
 
+def ground_truth_labels(gt: LabelVoxelMap, rule: str, num_classes: int, ignore: int) -> Tensor:
+    """The label of every ground-truth voxel (in :attr:`LabelVoxelMap.indices` order) from its
+    votes under ``rule`` (module docstring); ``ignore`` where it is not scored.
+
+    ``rayfronts`` and ``vote`` maps hold ``K + 1`` vote columns, the last for ignored pixels;
+    for ``rayfronts`` the votes are put in RayFronts' column order (the ignore class first) and
+    averaged in float32 (its ``pointcloud_to_sparse_voxels(aggregation="mean")``), and each
+    labelled class's prompt is its one-hot vector with ``1e-10`` elsewhere
+    (``ImageSemSegEncoder.encode_labels``); a voxel with no labelled vote is not scored (with
+    fewer than 11 classes RayFronts would give it the first class)."""
+    k = num_classes
+    votes = gt.votes
+    if rule == "drop":
+        return torch.argmax(votes, dim=1)
+    if rule == "vote":
+        label = torch.argmax(votes, dim=1)
+        return torch.where(label >= k, ignore, label)
+    mean = torch.cat([votes[:, k:], votes[:, :k]], dim=1).float()
+    mean /= votes.sum(1, keepdim=True).float()
+    prompts = torch.full((k, k + 1), _GT_EPS, dtype=torch.float32, device=votes.device)
+    prompts[torch.arange(k), torch.arange(1, k + 1)] = 1.0
+    # prompt_denoising_thresh 0 removes no class: the rule is the threshold alone
+    label = classify(mean, prompts, threshold=_GT_THRESHOLD, none=ignore)
+    # A voxel without a labelled vote has the same cosine to every class, so its probability
+    # is 1/K: below 0.1 for K >= 11 (ScanNet's 37), but with fewer classes RayFronts' rule
+    # labels it as the first class. That contradicts the rule's intent (an ignored pixel never
+    # labels a voxel), so such a voxel is not scored (docs/protocol.md section 5).
+    return torch.where(votes[:, :k].sum(1) == 0, ignore, label)
+
+
 class MappingTask:
     """3D semantic mapping of a :class:`ScanNetFrames` set (module docstring).
 
     Args:
         dataset: the frames.
         batch_size: consecutive frames per encoder pass (Full's scene).
-        voxel_size: voxel edge in metres, for the feature maps and the ground truth.
+        protocol: the task's settings (:class:`MappingProtocol`); keywords of it may be given
+            directly instead (``voxel_size=0.1``).
         num_workers: DataLoader workers reading and resizing frames.
-        gt_unlabelled: ``vote`` or ``drop`` (module docstring).
     """
 
     def __init__(
         self,
         dataset: ScanNetFrames,
         batch_size: int = 8,
-        voxel_size: float = 0.05,
+        protocol: MappingProtocol | None = None,
         num_workers: int = 0,
-        gt_unlabelled: str = "vote",
+        **settings: Any,
     ) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        if gt_unlabelled not in GT_UNLABELLED:
-            raise ValueError(f"gt_unlabelled={gt_unlabelled!r}: expected one of {GT_UNLABELLED}")
         self.dataset = dataset
         self.batch_size = batch_size
-        self.voxel_size = float(voxel_size)
+        base = asdict(protocol) if protocol is not None else {}
+        self.protocol = MappingProtocol(**{**base, **settings})
+        self.voxel_size = float(self.protocol.voxel_size)
         self.num_workers = num_workers
-        self.gt_unlabelled = gt_unlabelled
         # The OVSS task's text path (class prompts, text_features once, dense_text, averaging);
         # it reads only the dataset's class names.
         self.text = OVSSTask(dataset, batch_size)  # type: ignore[arg-type]
@@ -188,11 +345,12 @@ class MappingTask:
                 ``reconstruction/<variant>``, ``fusion``, ``ground_truth``, ``metric``).
         """
         timed = timer or _no_timer
-        k = len(self.dataset.classes)
-        ignore = self.dataset.ignore_index
         result = MappingResult(
             self.dataset.name,
-            {v: SegmentationMetric(k, ignore) for v in variants},
+            tuple(self.dataset.classes),
+            self.protocol.metric,
+            confusions={v: {} for v in variants},
+            feature_voxels={v: {} for v in variants},
             dropped_samples=list(self.dataset.dropped),
         )
         device = encoder.device
@@ -225,17 +383,31 @@ class MappingTask:
 
     def _start_scene(self, scene: int, variants, device: torch.device) -> dict[str, Any]:
         k = len(self.dataset.classes)
+        with_ignored = self.protocol.gt_unlabelled in ("rayfronts", "vote")
         return {
             "scene": scene,
             "name": self.dataset.scenes[scene],
             "maps": dict.fromkeys(variants),  # VoxelMap per variant, made at its first batch
             "gt": LabelVoxelMap(
                 self.voxel_size,
-                k + 1 if self.gt_unlabelled == "vote" else k,
-                ignore_index=-1 if self.gt_unlabelled == "vote" else self.dataset.ignore_index,
+                k + 1 if with_ignored else k,
+                ignore_index=-1 if with_ignored else self.dataset.ignore_index,
                 device=device,
+                lattice=self.protocol.lattice,
             ),  # fmt: skip
         }
+
+    def _lift(self, depth, k_img, pose, grid, cache):
+        """The lifted points of a feature grid, shared by the configurations on that grid:
+        ``("patch", points, valid)`` or ``("pixel", index, patch, count)``."""
+        if grid not in cache:
+            p = self.protocol
+            if p.points == "patch":
+                cache[grid] = ("patch", *patch_points(depth, k_img, pose, grid))
+            else:
+                cache[grid] = ("pixel", *pixel_pairs(depth, k_img, pose, grid, p.voxel_size,
+                                                      p.lattice))  # fmt: skip
+        return cache[grid]
 
     def _map_batch(self, encoder, batch, variants, state, timed) -> None:
         device = encoder.device
@@ -246,25 +418,29 @@ class MappingTask:
         with timed("encoder"):
             out = encoder.encode(x)
         shared: dict = {}  # work common to the configurations of this batch (apply_variant)
-        grids: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}  # patch points per grid
+        lifted: dict[tuple[int, int], tuple] = {}  # lifted points per grid
         for name, variant in variants.items():
             with timed(f"reconstruction/{name}"):
                 dense = apply_variant(variant, out.intermediates, out.language, shared=shared)
             with timed("fusion"), _fp32(device):
-                grid = tuple(dense.shape[-2:])
-                if grid not in grids:  # configurations on one grid share their points
-                    grids[grid] = patch_points(depth, k_img, pose, grid)
-                points, valid = grids[grid]
-                feats = dense.permute(0, 2, 3, 1)[valid]
+                kind, *geometry = self._lift(depth, k_img, pose, tuple(dense.shape[-2:]), lifted)
+                feats = dense.permute(0, 2, 3, 1)
                 if state["maps"][name] is None:
-                    state["maps"][name] = VoxelMap(self.voxel_size, feats.shape[-1], device)
-                state["maps"][name].add(points[valid], feats.float())
+                    state["maps"][name] = VoxelMap(self.voxel_size, feats.shape[-1], device,
+                                                   lattice=self.protocol.lattice)  # fmt: skip
+                if kind == "patch":
+                    points, valid = geometry
+                    state["maps"][name].add(points[valid], feats[valid].float())
+                else:
+                    index, patch, count = geometry
+                    flat = feats.reshape(-1, feats.shape[-1]).float()
+                    state["maps"][name].add_pairs(index, count, flat, patch)
         with timed("ground_truth"), _fp32(device):
             label = batch["gt_label"].to(device)
             points, valid = unproject(
                 batch["gt_depth"].to(device), batch["gt_intrinsics"].to(device), pose
             )
-            if self.gt_unlabelled == "vote":  # ignored pixels vote as class K
+            if self.protocol.gt_unlabelled != "drop":  # ignored pixels vote as class K
                 label = torch.where(label == self.dataset.ignore_index, len(self.dataset.classes),
                                     label)  # fmt: skip
             state["gt"].add(points[valid], label[valid])
@@ -272,26 +448,32 @@ class MappingTask:
     def _finish_scene(self, state, protos, result: MappingResult, timed) -> None:
         k = len(self.dataset.classes)
         ignore = self.dataset.ignore_index
+        p = self.protocol
         with timed("metric"), _fp32(torch.device(state["gt"].device)):
-            centres, gt = state["gt"].labels()
-            gt = torch.where(gt >= k, ignore, gt)  # won by ignored pixels: not scored
+            gt = ground_truth_labels(state["gt"], p.gt_unlabelled, k, ignore)
             result.voxels[state["name"]] = int((gt != ignore).sum())
-            scene_metrics = {}
             for name, vmap in state["maps"].items():
-                metric = SegmentationMetric(k, ignore)
-                if vmap is not None and len(vmap) and len(centres):
-                    vox, feats = vmap.features()
-                    pred = classify(feats, protos.to(feats.device))
-                    at_gt = transfer_labels(vox, pred, centres)
-                    metric.update(at_gt.cpu(), gt.cpu())
-                elif len(centres):  # no valid feature point at all: nothing predicted
-                    raise RuntimeError(
-                        f"scene {state['name']}: variant {name} placed no point in the map "
-                        "(no valid depth at its patch centres)"
-                    )
-                result.metrics[name].confusion += metric.confusion
-                scene_metrics[name] = metric
-            result.scene_metrics[state["name"]] = scene_metrics
+                scored = int((gt != ignore).sum())
+                if vmap is None or not len(vmap):
+                    if scored:  # no valid feature point at all: nothing predicted
+                        raise RuntimeError(
+                            f"scene {state['name']}: variant {name} placed no point in the map "
+                            "(no valid depth at its patch centres)"
+                        )
+                    at_gt = torch.full_like(gt, k)
+                else:
+                    centres, feats = vmap.features()
+                    pred = classify(feats, protos.to(feats.device), p.prediction_threshold,
+                                    p.prompt_denoising, none=k)  # fmt: skip
+                    if p.knn == 0:
+                        at_gt = transfer_labels_by_voxel(vmap.indices, pred, state["gt"].indices, k)
+                    else:  # the mode's ties go to the smaller label: in RayFronts' numbering
+                        # "no prediction" is 0, the smallest, so it is voted in that numbering
+                        shifted = transfer_labels(centres, (pred + 1) % (k + 1),
+                                                  state["gt"].centres(), min(p.knn, len(vmap)))
+                        at_gt = (shifted - 1) % (k + 1)  # fmt: skip
+                result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
+                result.feature_voxels[name][state["name"]] = len(vmap) if vmap is not None else 0
 
 
 def run_scannet3d(
@@ -302,23 +484,21 @@ def run_scannet3d(
     params: Mapping[str, Any],
 ) -> dict[str, Any]:
     """``resireg-eval task=scannet3d``: map the configured scenes with every variant and
-    write ``results.json`` (same fields as the OVSS task, plus ``per_scene`` and
-    ``frames``); returns its content."""
+    write ``results.json`` (same fields as the OVSS task, plus ``per_scene``, ``frames`` and
+    ``protocol``) and the per-scene CSVs (:meth:`MappingResult.write_csv`); returns the
+    record's content."""
     import logging
 
     from resireg_train.mapping.scannet import build_scannet
+    from resireg_train.protocol import protocol_record
     from resireg_train.results import update_results
 
     log = logging.getLogger("resireg_train.cli.eval")
     spec = params["dataset"]
     dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset")
-    task = MappingTask(
-        dataset,
-        int(cfg.batch_size),
-        voxel_size=float(spec.get("voxel_size", 0.05)),
-        num_workers=int(cfg.num_workers),
-        gt_unlabelled=str(spec.get("gt_unlabelled", "vote")),
-    )
+    update_results(out, protocol=protocol_record(params))
+    task = MappingTask(dataset, int(cfg.batch_size), MappingProtocol.from_spec(spec),
+                       num_workers=int(cfg.num_workers))  # fmt: skip
     task.check_variants(variants)
     timer = StageTimer()
     result = task.run(encoder, variants, precision=str(cfg.precision), timer=timer)
@@ -341,6 +521,7 @@ def run_scannet3d(
             for v, ious in result.per_class_iou().items()
         },  # fmt: skip
         per_scene=result.per_scene(),
+        per_scene_csv=result.write_csv(out),
         images=result.images,
         frames=dict(result.frames),
         frames_dropped=len(result.dropped_samples),

@@ -1,4 +1,4 @@
-"""ScanNet v2 frames for the 3D semantic-mapping task (docs/design.md section 10).
+"""ScanNet v2 frames for the 3D semantic-mapping task (docs/design.md section 10.2).
 
 Layout read (the ScanNet ``SensReader`` export plus the ``2d-label-filt`` archive)::
 
@@ -11,10 +11,13 @@ Layout read (the ScanNet ``SensReader`` export plus the ``2d-label-filt`` archiv
         (or <path>/<scene>/<scene>_2d-label-filt/label-filt/<i>.png, the unzipped archive
         as RayFronts reads it)
 
-**Labels.** A raw id maps through the tsv's ``id -> nyu40id`` columns to NYU40, then to the 37
-evaluated classes (:data:`resireg.ovss.SCANNET_CLASSES`, NYU40 without otherstructure,
-otherfurniture, otherprop); 0 (unlabelled), ids absent from the tsv and the three "other"
-classes become 255 (ignored).
+**Classes** (RayFronts' ``ScanNetDataset`` + ``SemSegDataset._init_semseg_mappings``): a raw id
+maps through the tsv's ``id -> nyu40id`` columns to an NYU40 id; the classes are the NYU40 ids
+the label map holds, in id order, named by its ``nyu40class`` column (``class_names:
+label_map``) or by :data:`resireg.ovss.NYU40_CLASSES` (``nyu40``), without
+``classes_to_ignore`` (default otherstructure, otherfurniture, otherprop: RADSeg's
+``evaluation/3d/configs/scannet_radseg.yaml``, 37 classes on ScanNet). Raw id 0 (unlabelled),
+ids absent from the tsv and the ignored classes become 255 (ignored).
 
 **Frames.** ``frame_skip = s`` keeps frame ``i`` when ``i % (s + 1) == 0``: one frame is
 consumed, then ``s`` are dropped (frames 0, 11, 22, ... for ``s = 10``). This is RayFronts'
@@ -22,19 +25,23 @@ consumed, then ``s`` are dropped (frames 0, 11, 22, ... for ``s = 10``). This is
 10" selects the same frames as theirs. Of the kept frames, one whose pose has a non-finite
 entry (ScanNet writes ``-inf`` where tracking was lost) is dropped up front and listed; a
 frame whose colour, depth, label or pose file is missing or cannot be decoded is skipped
-when it is loaded and listed; neither stops the run.
+when it is loaded and listed with that file; neither stops the run.
 
-**Resolution.** Colour is resized (bilinear, antialiased) and depth (nearest-exact) to
-``image_size`` (640 x 864 in the protocol); the depth intrinsics are scaled from the depth
-image to it (:func:`resireg.mapping.scale_intrinsics`). The encoder's input rule then applies
-(``short_side``; sides rounded to its patch size); features are placed in 3D by
-:func:`resireg.mapping.patch_points` from the ``image_size`` depth, so the patch grid follows
-the features' grid exactly. Colour and depth are taken to share the field of view (ScanNet's
-colour and depth intrinsics give the same ~58 degrees horizontally), as RayFronts does.
+**Resolution.** Colour is resized (bilinear, antialiased) and depth by the ``resize`` rule
+(:data:`RESIZES`: ``torch``, ``torch.nn.functional.interpolate(mode="nearest-exact")`` as
+RayFronts; ``exact``: :func:`resireg.mapping.nearest_downsample`) to ``image_size`` (640 x 864 in
+the protocol); the depth intrinsics are scaled from the depth image to it by the
+``intrinsics`` rule (:data:`INTRINSICS`: ``multiply``, ``c' = c s`` as RayFronts; ``half_pixel``,
+:func:`resireg.mapping.scale_intrinsics`). The encoder's input rule then applies
+(``short_side``; sides rounded to its patch size). Colour and depth are taken to share the field
+of view (ScanNet's colour and depth intrinsics give the same ~58 degrees horizontally), as
+RayFronts does.
 
-**Ground truth** uses the label image at ``gt_resolution`` (``null``: the label file's own
-resolution) with the depth nearest-resized to it and the depth intrinsics scaled alike; the
-prototype/batch ablation uses ``[228, 308]``.
+**Ground truth** uses the label image at ``gt_resolution``: ``image`` (default) = ``image_size``,
+the RGB-D resolution, labels resized like depth (RayFronts: labels at ``rgb_resolution`` =
+``depth_resolution``); ``label`` = the label file's own size; or ``[H, W]`` (the
+prototype/batch ablation: ``[228, 308]``). The depth is resized to it by the same ``resize``
+rule and its intrinsics scaled by the ``intrinsics`` rule.
 """
 
 from __future__ import annotations
@@ -53,18 +60,27 @@ from PIL import Image
 
 from resireg.mapping import nearest_downsample, scale_intrinsics
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
-from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
+from resireg.ovss import NYU40_CLASSES
 from resireg_train.files import DECODE_ERRORS
 from resireg_train.ovss.datasets import IGNORE_INDEX, SkippedSample
 
 __all__ = [
+    "CLASS_NAMES",
+    "DEFAULT_IGNORED",
     "DEFAULT_SCENES",
+    "GT_RESOLUTIONS",
+    "INTRINSICS",
     "LABEL_MAP_FILE",
+    "RESIZES",
     "ScanNetFrames",
     "build_scannet",
+    "check_scannet_spec",
     "collate_frames",
+    "evaluated_classes",
     "label_lookup",
     "read_label_map",
+    "resize_nearest",
+    "scale_camera",
 ]
 
 log = logging.getLogger(__name__)
@@ -77,6 +93,50 @@ DEFAULT_SCENES: tuple[str, ...] = (
     "scene0011_00", "scene0011_01",
 )  # fmt: skip
 _LABEL_DIRS = ("label-filt", "{scene}_2d-label-filt/label-filt")
+#: Nearest resize rules of depth and labels (module docstring).
+RESIZES = ("torch", "exact")
+#: Intrinsics scaling rules (module docstring).
+INTRINSICS = ("multiply", "half_pixel")
+#: Where the names of the classes come from (module docstring).
+CLASS_NAMES = ("label_map", "nyu40")
+#: ``gt_resolution`` values besides ``[H, W]`` (module docstring).
+GT_RESOLUTIONS = ("image", "label")
+#: The classes RADSeg's ScanNet config leaves out (``classes_to_ignore``).
+DEFAULT_IGNORED = ("otherstructure", "otherfurniture", "otherprop")
+
+
+def resize_nearest(image: torch.Tensor, size: tuple[int, int], rule: str) -> torch.Tensor:
+    """Nearest resize of the last two axes of a depth or label map ``[..., H, W]`` by ``rule``:
+    ``torch`` (``F.interpolate(mode="nearest-exact")`` in float32, RayFronts' depth and label
+    resize; integer labels come back as int64) or ``exact`` (the integer rule of
+    :func:`resireg.mapping.nearest_downsample`)."""
+    if tuple(image.shape[-2:]) == tuple(size):
+        return image
+    if rule == "exact":
+        return nearest_downsample(image, size)
+    if rule != "torch":
+        raise ValueError(f"resize={rule!r}: expected one of {RESIZES}")
+    lead = image.shape[:-2]
+    x = image.reshape(1, -1, *image.shape[-2:]).float()
+    out = torch.nn.functional.interpolate(x, size=tuple(size), mode="nearest-exact")
+    out = out.reshape(*lead, *size)
+    return out if image.is_floating_point() else out.long()
+
+
+def scale_camera(
+    intrinsics: torch.Tensor, from_hw: tuple[int, int], to_hw: tuple[int, int], rule: str
+) -> torch.Tensor:
+    """Intrinsics ``[3, 3]`` of an image resized from ``from_hw`` to ``to_hw`` by ``rule``:
+    ``multiply`` (``K[0] *= W'/W``, ``K[1] *= H'/H``: RayFronts' ``ScanNetDataset``) or
+    ``half_pixel`` (:func:`resireg.mapping.scale_intrinsics`: ``c' = (c + 0.5) s - 0.5``)."""
+    if rule == "half_pixel":
+        return scale_intrinsics(intrinsics, from_hw, to_hw)
+    if rule != "multiply":
+        raise ValueError(f"intrinsics={rule!r}: expected one of {INTRINSICS}")
+    out = intrinsics.to(torch.float64).clone()
+    out[0] *= to_hw[1] / from_hw[1]
+    out[1] *= to_hw[0] / from_hw[0]
+    return out.to(intrinsics.dtype)
 
 
 def check_scannet_source(root: str | Path, scenes: Sequence[str], key: str = "dataset") -> None:
@@ -96,9 +156,12 @@ def check_scannet_source(root: str | Path, scenes: Sequence[str], key: str = "da
         raise FileNotFoundError(f"{key}.scenes: {missing} not found under {key}.path={str(root)!r}")
 
 
-def read_label_map(path: str | Path, key: str = "dataset.label_map") -> dict[int, int]:
-    """``{raw ScanNet id: NYU40 id}`` from ``scannetv2-labels.combined.tsv`` (tab-separated,
-    columns ``id`` and ``nyu40id``; rows with an empty NYU40 id are left out)."""
+def read_label_map(
+    path: str | Path, key: str = "dataset.label_map"
+) -> tuple[dict[int, int], dict[int, str]]:
+    """``({raw ScanNet id: NYU40 id}, {NYU40 id: nyu40class name})`` from
+    ``scannetv2-labels.combined.tsv`` (tab-separated, columns ``id`` and ``nyu40id``, and
+    ``nyu40class`` if present; rows with an empty NYU40 id are left out)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(
@@ -112,21 +175,58 @@ def read_label_map(path: str | Path, key: str = "dataset.label_map") -> dict[int
             raise ValueError(
                 f"{key}={str(path)!r}: no column(s) {sorted(missing)} (found {reader.fieldnames})"
             )
-        out = {}
+        raw_to_nyu, names = {}, {}
         for row in reader:
             if str(row["id"]).strip() and str(row["nyu40id"]).strip():
-                out[int(row["id"])] = int(row["nyu40id"])
-    return out
+                nyu = int(row["nyu40id"])
+                raw_to_nyu[int(row["id"])] = nyu
+                name = str(row.get("nyu40class") or "").strip()
+                if nyu not in names and name:
+                    names[nyu] = name
+    return raw_to_nyu, names
 
 
-def label_lookup(raw_to_nyu40: Mapping[int, int]) -> np.ndarray:
-    """A ``[65536]`` uint8 table: raw uint16 label id -> index in :data:`SCANNET_CLASSES`, or
-    255 for unlabelled (0), unknown ids and NYU40 ids outside the 37 evaluated classes."""
-    index = {name: i for i, name in enumerate(SCANNET_CLASSES)}
+def evaluated_classes(
+    raw_to_nyu40: Mapping[int, int],
+    nyu40_names: Mapping[int, str],
+    class_names: str = "label_map",
+    ignore: Sequence[str] = DEFAULT_IGNORED,
+    key: str = "dataset",
+) -> tuple[tuple[int, ...], tuple[str, ...]]:
+    """The evaluated classes: ``(NYU40 ids, names)`` in id order (module docstring).
+
+    The NYU40 ids (1..40) the label map uses, named by its ``nyu40class`` column
+    (``label_map``; an id without a name there takes NYU40's) or by NYU40's names (``nyu40``),
+    without the names in ``ignore``. A name in ``ignore`` that is neither an NYU40 class nor a
+    class of the label map is an error naming ``<key>.classes_to_ignore``."""
+    if class_names not in CLASS_NAMES:
+        raise ValueError(f"{key}.class_names={class_names!r}: expected one of {CLASS_NAMES}")
+    ids = sorted({n for n in raw_to_nyu40.values() if 1 <= n <= len(NYU40_CLASSES)})
+    name = {
+        n: (nyu40_names.get(n) if class_names == "label_map" else None) or NYU40_CLASSES[n - 1]
+        for n in ids
+    }
+    unknown = sorted(set(ignore) - set(name.values()) - set(NYU40_CLASSES))
+    if unknown:
+        raise ValueError(
+            f"{key}.classes_to_ignore={list(ignore)!r}: {unknown} name no NYU40 class nor a "
+            f"class of the label map (its classes: {[name[n] for n in ids]})"
+        )
+    kept = [n for n in ids if name[n] not in set(ignore)]
+    if not kept:
+        raise ValueError(f"{key}.classes_to_ignore={list(ignore)!r}: no class is left to evaluate")
+    return tuple(kept), tuple(name[n] for n in kept)
+
+
+def label_lookup(raw_to_nyu40: Mapping[int, int], class_ids: Sequence[int]) -> np.ndarray:
+    """A ``[65536]`` uint8 table: raw uint16 label id -> index of its NYU40 id in
+    ``class_ids`` (:func:`evaluated_classes`), or 255 for unlabelled (0), unknown ids and NYU40
+    ids that are not evaluated."""
+    index = {nyu: i for i, nyu in enumerate(class_ids)}
     table = np.full(1 << 16, IGNORE_INDEX, dtype=np.uint8)
     for raw, nyu in raw_to_nyu40.items():
-        if 0 < raw < (1 << 16) and 1 <= nyu <= len(NYU40_CLASSES):
-            table[raw] = index.get(NYU40_CLASSES[nyu - 1], IGNORE_INDEX)
+        if 0 < raw < (1 << 16):
+            table[raw] = index.get(nyu, IGNORE_INDEX)
     return table
 
 
@@ -147,22 +247,48 @@ class _Frame:
     pose: np.ndarray
 
 
+class _FrameError(Exception):
+    """A frame file that could not be read: the file and why (a :class:`SkippedSample`)."""
+
+    def __init__(self, path: Path, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path, self.reason = path, reason
+
+
+def _read_image(path: Path, what: str, decode: Any = np.asarray) -> Any:
+    """``decode`` of the image at ``path`` (its pixels as an array by default); a missing or
+    undecodable file is a :class:`_FrameError` naming that file (PIL decodes lazily: a
+    truncated PNG fails in ``np.asarray``, after ``Image.open`` succeeded)."""
+    try:
+        with Image.open(path) as im:
+            return decode(im)
+    except FileNotFoundError:
+        raise _FrameError(path, f"missing {what} file") from None
+    except (*DECODE_ERRORS, RuntimeError) as err:
+        raise _FrameError(path, f"unreadable {what}: {err}") from None
+
+
 class ScanNetFrames(torch.utils.data.Dataset):
     """The kept frames of the chosen scenes, scene by scene in frame order.
 
     Item ``i`` (:meth:`__getitem__`) is a dict of tensors, or a :class:`SkippedSample`
-    naming the frame's file and why it was not used:
+    naming the frame's file that could not be read (colour, depth or label) and why:
 
     - ``image`` float ``[3, h, w]`` in [0, 1]: colour at ``image_size``, then the encoder's
       input rule (``short_side``, patch size),
     - ``depth`` float ``[H, W]`` metres at ``image_size`` and ``intrinsics`` ``[3, 3]`` for it,
     - ``gt_label`` int64 ``[Hg, Wg]`` (class ids, 255 = ignore), ``gt_depth`` ``[Hg, Wg]``
-      and ``gt_intrinsics`` ``[3, 3]`` at ``gt_resolution`` (the label file's size if null),
+      and ``gt_intrinsics`` ``[3, 3]`` at ``gt_resolution``,
     - ``pose`` float64 ``[4, 4]`` camera-to-world, ``scene`` (position in :attr:`scenes`),
       ``frame`` (frame number) and ``index`` (item index).
 
+    Args (module docstring): ``resize`` in :data:`RESIZES`, ``intrinsics`` in
+    :data:`INTRINSICS`, ``gt_resolution`` ``"image"``, ``"label"`` or ``(H, W)``,
+    ``class_names`` in :data:`CLASS_NAMES`, ``classes_to_ignore`` class names.
+
     Attributes:
         scenes: scene names; :attr:`frames_per_scene` item indices per scene.
+        classes: the evaluated class names; :attr:`class_ids` their NYU40 ids.
         dropped: the kept-by-skip frames dropped for a non-finite pose (or an unreadable
             pose file), as :class:`SkippedSample`.
     """
@@ -174,27 +300,44 @@ class ScanNetFrames(torch.utils.data.Dataset):
         label_map: str | Path | None = None,
         frame_skip: int = 10,
         image_size: tuple[int, int] = (640, 864),
-        gt_resolution: tuple[int, int] | None = None,
+        gt_resolution: str | tuple[int, int] = "image",
         short_side: int | None = None,
         patch_size: int = 16,
         limit: int | None = None,
         name: str = "scannet",
         key: str = "dataset",
+        resize: str = "torch",
+        intrinsics: str = "multiply",
+        class_names: str = "label_map",
+        classes_to_ignore: Sequence[str] = DEFAULT_IGNORED,
     ) -> None:
         self.name = name
-        self.classes = SCANNET_CLASSES
         self.ignore_index = IGNORE_INDEX
         self.root = Path(root).expanduser()
         self.frame_skip = int(frame_skip)
         self.image_size = (int(image_size[0]), int(image_size[1]))
-        self.gt_resolution = (
-            None if gt_resolution is None else (int(gt_resolution[0]), int(gt_resolution[1]))
-        )
+        if isinstance(gt_resolution, str):
+            if gt_resolution not in GT_RESOLUTIONS:
+                raise ValueError(
+                    f"{key}.gt_resolution={gt_resolution!r}: expected {GT_RESOLUTIONS} or [H, W]"
+                )
+            self.gt_resolution: str | tuple[int, int] = gt_resolution
+        else:
+            self.gt_resolution = (int(gt_resolution[0]), int(gt_resolution[1]))
+        for option, value, allowed in (("resize", resize, RESIZES),
+                                       ("intrinsics", intrinsics, INTRINSICS)):  # fmt: skip
+            if value not in allowed:
+                raise ValueError(f"{key}.{option}={value!r}: expected one of {allowed}")
+        self.resize, self.intrinsics_rule = resize, intrinsics
         self.short_side = short_side
         self.patch_size = patch_size
         check_scannet_source(root, scenes, key)
         label_path = Path(label_map).expanduser() if label_map else self.root / LABEL_MAP_FILE
-        self.lookup = label_lookup(read_label_map(label_path, f"{key}.label_map"))
+        raw_to_nyu, nyu_names = read_label_map(label_path, f"{key}.label_map")
+        self.class_ids, self.classes = evaluated_classes(
+            raw_to_nyu, nyu_names, class_names, tuple(classes_to_ignore), key
+        )
+        self.lookup = label_lookup(raw_to_nyu, self.class_ids)
         self.scenes = tuple(scenes)
         self.intrinsics: list[np.ndarray] = []
         self.depth_sizes: list[tuple[int, int]] = []
@@ -283,31 +426,29 @@ class ScanNetFrames(torch.utils.data.Dataset):
 
     def _load(self, frame: _Frame) -> dict[str, Any]:
         k = torch.from_numpy(self.intrinsics[frame.scene])
-        with Image.open(frame.color) as im:
-            colour = pil_to_tensor(im)
-        with Image.open(frame.depth) as im:
-            depth_mm = np.asarray(im).astype(np.float32)
-        with Image.open(frame.label) as im:
-            raw = np.asarray(im)
+        colour = _read_image(frame.color, "colour", pil_to_tensor)
+        depth_mm = _read_image(frame.depth, "depth").astype(np.float32)
+        raw = _read_image(frame.label, "label")
         if depth_mm.ndim != 2:
-            raise ValueError(f"depth has shape {depth_mm.shape}: expected one channel")
+            raise _FrameError(frame.depth, f"depth has shape {depth_mm.shape}: expected one channel")
         if raw.ndim != 2:
-            raise ValueError(f"label has shape {raw.shape}: expected one channel")
+            raise _FrameError(frame.label, f"label has shape {raw.shape}: expected one channel")
         depth = torch.from_numpy(depth_mm / 1000.0)
         size = tuple(depth.shape)
         image = resize_to_patch_grid(_resize_rgb(colour, self.image_size), self.short_side,
                                      self.patch_size)  # fmt: skip
         label = torch.from_numpy(self.lookup[raw.astype(np.int64)].astype(np.int64))
-        gt_size = self.gt_resolution or tuple(label.shape)
-        if tuple(label.shape) != gt_size:
-            label = nearest_downsample(label, gt_size)
+        gt_size = {"image": self.image_size, "label": tuple(label.shape)}.get(
+            self.gt_resolution, self.gt_resolution  # type: ignore[arg-type]
+        )
+        rule, camera = self.resize, self.intrinsics_rule
         return {
             "image": image,
-            "depth": nearest_downsample(depth, self.image_size),
-            "intrinsics": scale_intrinsics(k, size, self.image_size).float(),
-            "gt_label": label,
-            "gt_depth": nearest_downsample(depth, gt_size),
-            "gt_intrinsics": scale_intrinsics(k, size, gt_size).float(),
+            "depth": resize_nearest(depth, self.image_size, rule),
+            "intrinsics": scale_camera(k, size, self.image_size, camera).float(),
+            "gt_label": resize_nearest(label, gt_size, rule),
+            "gt_depth": resize_nearest(depth, gt_size, rule),
+            "gt_intrinsics": scale_camera(k, size, gt_size, camera).float(),
             "pose": torch.from_numpy(frame.pose),
             "scene": frame.scene,
             "frame": frame.index,
@@ -317,10 +458,8 @@ class ScanNetFrames(torch.utils.data.Dataset):
         frame = self.frames[index]
         try:
             item = self._load(frame)
-        except FileNotFoundError as err:
-            return SkippedSample(index, self.describe(index), f"missing file: {err.filename}")
-        except (*DECODE_ERRORS, RuntimeError) as err:
-            return SkippedSample(index, self.describe(index), f"unreadable: {err}")
+        except _FrameError as err:
+            return SkippedSample(index, str(err.path), err.reason)
         item["index"] = index
         return item
 
@@ -347,8 +486,11 @@ def collate_frames(items: list[dict[str, Any] | SkippedSample]) -> dict[str, Any
     return out
 
 
-_KEYS = {"name", "kind", "path", "label_map", "scenes", "frame_skip", "image_size",
-         "gt_resolution", "short_side", "limit", "voxel_size", "gt_unlabelled"}  # fmt: skip
+#: Keys of a ``conf/dataset/scannet.yaml`` entry read by :class:`ScanNetFrames`, by the task
+#: (:data:`resireg_train.mapping.engine.TASK_KEYS`) and the entry's own (name, kind, path, protocol).
+READER_KEYS = ("label_map", "frame_skip", "image_size", "gt_resolution", "short_side", "limit",
+               "resize", "intrinsics", "class_names", "classes_to_ignore")  # fmt: skip
+_ENTRY_KEYS = ("name", "kind", "path", "scenes", "protocol")
 
 
 def scannet_source(spec: Mapping[str, Any], key: str = "dataset") -> tuple[str, list[str]]:
@@ -360,30 +502,39 @@ def scannet_source(spec: Mapping[str, Any], key: str = "dataset") -> tuple[str, 
     return str(spec["path"]), list(spec.get("scenes") or DEFAULT_SCENES)
 
 
+def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
+    """What can be checked of a ScanNet entry before the encoder loads (a large backbone takes
+    minutes): the root and scene folders (:func:`check_scannet_source`), the label map and
+    ``classes_to_ignore`` against its classes (:func:`evaluated_classes`); each error names
+    its key."""
+    root, scenes = scannet_source(spec, key)
+    check_scannet_source(root, scenes, key)
+    label_map = spec.get("label_map")
+    path = Path(label_map).expanduser() if label_map else Path(root).expanduser() / LABEL_MAP_FILE
+    raw_to_nyu, names = read_label_map(path, f"{key}.label_map")
+    evaluated_classes(raw_to_nyu, names, str(spec.get("class_names", CLASS_NAMES[0])),
+                      tuple(spec.get("classes_to_ignore", DEFAULT_IGNORED)), key)  # fmt: skip
+
+
 def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset") -> ScanNetFrames:
-    """:class:`ScanNetFrames` from a ``conf/dataset/scannet.yaml`` entry (keys: ``path``,
-    ``label_map``, ``scenes``, ``frame_skip``, ``image_size``, ``gt_resolution``,
-    ``short_side``, ``limit`` (kept frames per scene); ``voxel_size`` and ``gt_unlabelled``
-    are the task's, :class:`~resireg_train.mapping.engine.MappingTask`)."""
+    """:class:`ScanNetFrames` from a ``conf/dataset/scannet.yaml`` entry: the entry's keys
+    (``name``, ``kind``, ``path``, ``scenes``, ``protocol``), the reader's (:data:`READER_KEYS`)
+    and the task's (:data:`resireg_train.mapping.engine.TASK_KEYS`, read by
+    :class:`~resireg_train.mapping.engine.MappingTask`); any other key is an error."""
+    from resireg_train.mapping.engine import TASK_KEYS
+
     if spec.get("kind") != "scannet":
         raise ValueError(f"{key}.kind={spec.get('kind')!r}: the scannet3d task needs 'scannet'")
-    unknown = set(spec) - _KEYS
+    known = {*_ENTRY_KEYS, *READER_KEYS, *TASK_KEYS}
+    unknown = set(spec) - known
     if unknown:
         raise ValueError(
-            f"{key}: unknown keys {sorted(unknown)} for kind 'scannet' ({sorted(_KEYS)})"
+            f"{key}: unknown keys {sorted(unknown)} for kind 'scannet' ({sorted(known)})"
         )
     root, scenes = scannet_source(spec, key)
-    gt = spec.get("gt_resolution")
-    return ScanNetFrames(
-        root,
-        scenes,
-        label_map=spec.get("label_map"),
-        frame_skip=int(spec.get("frame_skip", 10)),
-        image_size=tuple(spec.get("image_size") or (640, 864)),
-        gt_resolution=tuple(gt) if gt else None,
-        short_side=spec.get("short_side"),
-        patch_size=patch_size,
-        limit=spec.get("limit"),
-        name=str(spec.get("name") or "scannet"),
-        key=key,
-    )
+    options = {k: spec[k] for k in READER_KEYS if spec.get(k) is not None or k == "limit"}
+    for size in ("image_size", "gt_resolution"):
+        if isinstance(options.get(size), (list, tuple)):
+            options[size] = tuple(int(v) for v in options[size])
+    return ScanNetFrames(root, scenes, patch_size=patch_size,
+                         name=str(spec.get("name") or "scannet"), key=key, **options)  # fmt: skip

@@ -6,8 +6,18 @@ The world is z-up, in metres. The room ``[0, X] x [0, Y] x [0, Z]`` is closed by
 door on a wall, and a plant, whose NYU40 class ``otherprop`` is not evaluated). A camera
 circles inside the room looking across it. Per frame, depth is ray-cast exactly (slab test
 per box, nearest hit; the camera's ``z`` is the depth), the label is the hit box's raw
-ScanNet id, and the RGB pixel is the hit class's colour (:data:`NYU40_COLOURS`, all pairs
->= 85 levels apart), so a test encoder can read the class back from the colour.
+ScanNet id, and the RGB pixel shows the hit box's class. Two worlds (:data:`WORLDS`):
+
+- ``smoke`` (default of the command line): the label map names the boxes' classes with the
+  2D synthetic world's vocabulary (:data:`resireg_train.data.synthetic.SYNTHETIC_CLASSES`:
+  walls "building", floor "road", ceiling "sky", ...) and every pixel is painted with that
+  class's colour, stripes and noise (:func:`resireg_train.data.synthetic.paint`, the training
+  data of ``experiment=smoke``), so a smoke-trained model recognises the room's classes and
+  scores above chance (the door is not evaluated here: the vocabulary has 8 names);
+- ``nyu40``: ScanNet's own names (wall, floor, ..., the plant's otherprop not evaluated) and
+  flat colours (:data:`NYU40_COLOURS`, all pairs >= 85 levels apart), so a test encoder can
+  read the class back from the colour. A model trained on anything else knows none of these
+  words for these flat colours: expect scores near zero.
 
 Written (``write_scene(root, scene)``)::
 
@@ -20,7 +30,7 @@ Written (``write_scene(root, scene)``)::
 
 One frame (``bad_pose_frame``) gets the all ``-inf`` pose that ScanNet writes where tracking
 failed, so the reader's drop rule is exercised. ``python -m resireg_train.mapping.synthetic
-OUT`` writes the default scene (``synthetic0000_00``) under ``OUT``.
+OUT [--world smoke|nyu40]`` writes the default scene (``synthetic0000_00``) under ``OUT``.
 """
 
 from __future__ import annotations
@@ -37,6 +47,8 @@ __all__ = [
     "Box",
     "NYU40_COLOURS",
     "RAW_LABELS",
+    "SMOKE_LABELS",
+    "WORLDS",
     "SyntheticRoom",
     "look_at",
     "ray_cast",
@@ -57,6 +69,26 @@ RAW_LABELS: dict[int, tuple[str, int, str]] = {
     35: ("plant", 40, "otherprop"),
     36: ("ceiling", 22, "ceiling"),
 }
+
+#: The smoke world's rows: raw id -> (raw_category, nyu40id, class name of the 2D synthetic
+#: world). The door and the plant are otherprop (not evaluated); their pixels are painted as
+#: "building" and "tree".
+SMOKE_LABELS: dict[int, tuple[str, int, str]] = {
+    1: ("wall", 1, "building"),
+    2: ("chair", 5, "person"),
+    3: ("floor", 2, "road"),
+    4: ("table", 7, "tree"),
+    5: ("door", 40, "otherprop"),
+    6: ("couch", 6, "water"),
+    7: ("cabinet", 3, "grass"),
+    11: ("bed", 4, "car"),
+    35: ("plant", 40, "otherprop"),
+    36: ("ceiling", 22, "sky"),
+}
+#: The smoke world's painted class of the two unevaluated boxes.
+_SMOKE_PAINT = {5: "building", 35: "tree"}
+#: The room's label worlds (module docstring).
+WORLDS = ("smoke", "nyu40")
 
 #: One RGB colour per NYU40 id (0 = unlabelled): the 64 colours of a 4-level grid, levels
 #: 0, 85, 170, 255, so any two colours differ by >= 85 in some channel.
@@ -200,37 +232,63 @@ def _matrix_text(m: np.ndarray) -> str:
     return "\n".join(" ".join(f"{v:.9g}" for v in row) for row in m) + "\n"
 
 
-def write_label_map(root: str | Path) -> Path:
-    """``<root>/scannetv2-labels.combined.tsv`` with the rows of :data:`RAW_LABELS`."""
+def _rows(world: str) -> dict[int, tuple[str, int, str]]:
+    if world not in WORLDS:
+        raise ValueError(f"world={world!r}: expected one of {WORLDS}")
+    return SMOKE_LABELS if world == "smoke" else RAW_LABELS
+
+
+def write_label_map(root: str | Path, world: str = "nyu40") -> Path:
+    """``<root>/scannetv2-labels.combined.tsv`` with the rows of the ``world``
+    (:data:`RAW_LABELS` or :data:`SMOKE_LABELS`)."""
     path = Path(root) / "scannetv2-labels.combined.tsv"
     path.parent.mkdir(parents=True, exist_ok=True)
     lines = ["\t".join(_TSV_COLUMNS)]
-    for raw, (name, nyu, nyu_name) in RAW_LABELS.items():
+    for raw, (name, nyu, nyu_name) in _rows(world).items():
         lines.append("\t".join(map(str, (raw, name, name, 1, nyu, nyu_name))))
     path.write_text("\n".join(lines) + "\n")
     return path
 
 
+def _painter(world: str, seed: int):
+    """``raw ids [H, W] -> uint8 RGB [H, W, 3]`` of the ``world`` (module docstring)."""
+    if world == "nyu40":
+        nyu_of_raw = np.zeros(max(RAW_LABELS) + 1, dtype=np.int64)
+        for raw, (_, nyu, _) in RAW_LABELS.items():
+            nyu_of_raw[raw] = nyu
+        return lambda raw, i: NYU40_COLOURS[nyu_of_raw[raw]]
+    from resireg_train.data.synthetic import SYNTHETIC_CLASSES, paint
+
+    cls_of_raw = np.zeros(max(SMOKE_LABELS) + 1, dtype=np.int64)
+    for raw, (_, _, name) in SMOKE_LABELS.items():
+        cls_of_raw[raw] = SYNTHETIC_CLASSES.index(_SMOKE_PAINT.get(raw, name))
+    noise = 12.0  # conf/data/synthetic.yaml's training scenes use SyntheticScenes' default
+    return lambda raw, i: paint(cls_of_raw[raw], np.random.default_rng([seed, i]), noise)
+
+
 def write_scene(
-    root: str | Path, scene: str = "synthetic0000_00", room: SyntheticRoom | None = None
+    root: str | Path,
+    scene: str = "synthetic0000_00",
+    room: SyntheticRoom | None = None,
+    world: str = "nyu40",
+    seed: int = 0,
 ) -> Path:
     """Write ``room`` (default :class:`SyntheticRoom`) as ScanNet scene ``scene`` under
-    ``root`` (and the label map at ``root``); returns the scene folder."""
+    ``root`` (and the label map of ``world`` at ``root``); ``seed`` seeds the smoke world's
+    pixel noise. Returns the scene folder."""
     room = room or SyntheticRoom()
     folder = Path(root) / scene
     for sub in ("color", "depth", "pose", "intrinsic", "label-filt"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
-    write_label_map(root)
+    write_label_map(root, world)
+    painter = _painter(world, seed)
     k4 = np.eye(4)
     k4[:3, :3] = room.intrinsics
     for name in ("intrinsic_color.txt", "intrinsic_depth.txt"):
         (folder / "intrinsic" / name).write_text(_matrix_text(k4))
-    nyu_of_raw = np.zeros(max(RAW_LABELS) + 1, dtype=np.int64)
-    for raw, (_, nyu, _) in RAW_LABELS.items():
-        nyu_of_raw[raw] = nyu
     for i in range(room.frames):
         depth, raw = room.render(i)
-        colour = NYU40_COLOURS[nyu_of_raw[raw]]
+        colour = painter(raw, i)
         Image.fromarray(colour).save(folder / "color" / f"{i}.jpg", quality=100, subsampling=0)
         mm = np.clip(np.rint(depth * 1000.0), 0, 65535).astype(np.uint16)
         Image.fromarray(mm).save(folder / "depth" / f"{i}.png")
@@ -250,9 +308,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--height", type=int, default=SyntheticRoom.image_size[0])
     parser.add_argument("--width", type=int, default=SyntheticRoom.image_size[1])
     parser.add_argument("--focal", type=float, default=SyntheticRoom.focal)
+    parser.add_argument("--world", choices=WORLDS, default="smoke",
+                        help="smoke: the classes and textures experiment=smoke learns; nyu40: "
+                             "ScanNet's names, flat colours (module docstring)")  # fmt: skip
     args = parser.parse_args(argv)
     room = SyntheticRoom(image_size=(args.height, args.width), focal=args.focal, frames=args.frames)
-    print(write_scene(args.root, args.scene, room))
+    print(write_scene(args.root, args.scene, room, world=args.world))
 
 
 if __name__ == "__main__":
