@@ -10,7 +10,14 @@ from __future__ import annotations
 import ast
 from typing import Any
 
-__all__ = ["PRIOR_SUFFIX", "PRIOR_VARIANTS", "VARIANTS", "parse_variant", "takes_prior"]
+__all__ = [
+    "LITE_ATTENTION",
+    "PRIOR_SUFFIX",
+    "PRIOR_VARIANTS",
+    "VARIANTS",
+    "parse_variant",
+    "takes_prior",
+]
 
 #: Names of :func:`resireg.variants.build_variant`, in the report order of the paper's Table 1.
 VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
@@ -19,6 +26,11 @@ VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
 #: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it.
 PRIOR_SUFFIX = "+prior"
 PRIOR_VARIANTS: tuple[str, ...] = ("lite", "full")
+
+#: How ReSiReg Lite computes its attention (``lite.attention``, docs/design.md section 4.3):
+#: ``auto`` (by device: ``sdpa`` on CUDA, ``factorised`` elsewhere), ``sdpa`` (PyTorch's fused
+#: attention on the upsampled points) or ``factorised`` (from the coarse grid's Gram matrix).
+LITE_ATTENTION: tuple[str, ...] = ("auto", "sdpa", "factorised")
 
 
 def takes_prior(name: str) -> bool:
