@@ -36,9 +36,12 @@ __all__ = [
 _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
 # Factorised Lite (ReSiRegLite._factorised), in elements: a block of queries' Gram rows
 # interpolated on the query side ([queries, h w]), and a tile of their similarities to every
-# key ([N, queries]; 4 MB in float32 stays in the cache between its elementwise passes).
-_FACTORISED_BLOCK = 4 * 1024 * 1024
-_FACTORISED_TILE = 1024 * 1024
+# key ([N, queries]). Measured on 2 cores at the protocol's size (6,912 points, one image):
+# tiles of 1M, 4M, 8M, 16M elements took 0.46, 0.50, 0.49, 0.81 s on one thread, and 2.3,
+# 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
+# pass is a parallel region whose barrier waits for a descheduled thread): 4M is the middle.
+_FACTORISED_BLOCK = 8 * 1024 * 1024
+_FACTORISED_TILE = 4 * 1024 * 1024
 
 
 def _check_positive_int(name: str, value: object) -> int:
@@ -93,6 +96,23 @@ def _nearest(x: Tensor, size: tuple[int, int]) -> Tensor:
     if tuple(x.shape[-2:]) == tuple(size):
         return x
     return F.interpolate(x, size=size, mode="nearest")
+
+
+def _token_index(
+    lang_size: tuple[int, int], grid: tuple[int, int], scale: int, device: torch.device
+) -> tuple[Tensor, bool]:
+    """The language token of every point of the upsampled grid (``scale`` x ``grid``), as
+    :func:`_nearest` picks it (the nearest resize of the token index map, so exactly
+    ``F.interpolate``'s choice): ``([N] indices into the row-major token grid, whether token
+    j is the s x s block j)``, the latter when the language grid is the intermediates'."""
+    (hl, wl), (h, w) = lang_size, grid
+    size = (h * scale, w * scale)
+    index = torch.arange(hl * wl, dtype=torch.float64, device=device).view(1, 1, hl, wl)
+    token = _nearest(index, size).view(-1).long()
+    rows = torch.arange(size[0], device=device).div(scale, rounding_mode="floor")
+    cols = torch.arange(size[1], device=device).div(scale, rounding_mode="floor")
+    block = (rows.unsqueeze(1) * w + cols).view(-1)
+    return token, (hl, wl) == (h, w) and torch.equal(token, block)
 
 
 def _linear_interp_matrix(size: int, scale: int, device: torch.device) -> Tensor:
@@ -584,15 +604,7 @@ class ReSiRegLite(nn.Module):
         big_h, big_w = hv * s, wv * s
         n, hw = big_h * big_w, hv * wv
         dev = x.device
-        # Language token of every upsampled point (nearest resize of the index map: exactly
-        # F.interpolate's choice); an s x s block of one coarse token when the grids match.
-        token = _nearest(
-            torch.arange(hl * wl, dtype=torch.float64, device=dev).view(1, 1, hl, wl),
-            (big_h, big_w),
-        ).view(n).long()
-        block_of = torch.arange(big_h, device=dev).div(s, rounding_mode="floor").unsqueeze(1) * wv
-        block_of = (block_of + torch.arange(big_w, device=dev).div(s, rounding_mode="floor")).view(n)
-        blocks = (hl, wl) == (hv, wv) and torch.equal(token, block_of)
+        token, blocks = _token_index((hl, wl), (hv, wv), s, dev)
         inst = _Instances(prior, (big_h, big_w)) if prior is not None else None
         fade = math.exp(-alpha)  # an instance key's weight for a patch outside it
         # exp(alpha (cos - 1)) is taken as exp2(scale (cos - 1)): CPU exp2 is twice as fast.
@@ -618,27 +630,24 @@ class ReSiRegLite(nn.Module):
                 q0, q1 = r0 * s * big_w, r1 * s * big_w
                 left = left[0, :, s * (r0 - c0) : s * (r1 - c0)].permute(1, 2, 0).reshape(-1, hw)
                 left.mul_(inv[q0:q1].mul(scale))  # the query's factor folded in: log2(e) alpha r_p
-                sums = x.new_empty(hl * wl, q1 - q0)  # [h_l w_l, queries]: weights per token
-                norm = x.new_empty(q1 - q0) if self.tau > 0 else None  # softmax denominators
-                for t0 in range(0, q1 - q0, tile):
-                    t1 = min(q1 - q0, t0 + tile)
-                    side = left[t0:t1].T.contiguous().view(1, hv, wv, t1 - t0)
+                for t0 in range(q0, q1, tile):
+                    t1 = min(q1, t0 + tile)
+                    side = left[t0 - q0 : t1 - q0].T.contiguous().view(1, hv, wv, t1 - t0)
                     # Key side: (U G U^T) for these queries, [N keys, queries], channels-last.
                     sim = _upsample(side.permute(0, 3, 1, 2), s)[0].permute(1, 2, 0)
                     weights = sim.reshape(n, t1 - t0).mul_(inv).sub_(scale).clamp_max_(0.0).exp2_()
-                    sums[:, t0:t1] = self._token_sums(weights, token, blocks, (hv, wv, s), hl * wl)
-                    if norm is not None:  # gate: lambda = w / Z >= tau, then the sums again
-                        norm[t0:t1] = sums[:, t0:t1].sum(0)
+                    sums = self._token_sums(weights, token, blocks, (hv, wv, s), hl * wl)
+                    norm = None
+                    if self.tau > 0:  # gate: lambda = w / Z >= tau, then the sums again
+                        norm = sums.sum(0)  # the softmax denominators [queries]
                         if extra is not None:
-                            norm[t0:t1] += extra["norm"][q0 + t0 : q0 + t1]
-                        weights.mul_(weights >= self.tau * norm[t0:t1])
-                        sums[:, t0:t1] = self._token_sums(
-                            weights, token, blocks, (hv, wv, s), hl * wl
-                        )
-                block_out = out[i, q0:q1]
-                torch.mm(sums.T, tokens, out=block_out)
-                if extra is not None:
-                    self._add_prior(block_out, extra, q0, q1, norm, fade)
+                            norm += extra["norm"][t0:t1]
+                        weights.mul_(weights >= self.tau * norm)
+                        sums = self._token_sums(weights, token, blocks, (hv, wv, s), hl * wl)
+                    tile_out = out[i, t0:t1]
+                    torch.mm(sums.T, tokens, out=tile_out)  # [queries, Dl]
+                    if extra is not None:
+                        self._add_prior(tile_out, extra, t0, t1, norm, fade)
         _normalise_(out, dim=2)
         return out.transpose(1, 2).reshape(b, dl, big_h, big_w)
 
@@ -684,7 +693,7 @@ class ReSiRegLite(nn.Module):
         extra: dict[str, Tensor],
         q0: int,
         q1: int,
-        norm: Tensor,
+        norm: Tensor | None,
         fade: float,
     ) -> None:
         """Add the instance keys' share (:meth:`_prior_terms`) to the numerators ``out``
