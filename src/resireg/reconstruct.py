@@ -25,6 +25,7 @@ from resireg.variant_names import LITE_ATTENTION
 
 __all__ = [
     "FullShared",
+    "factorised_blocks",
     "ReSiRegFull",
     "ReSiRegLite",
     "upsampled_moments",
@@ -96,6 +97,18 @@ def _nearest(x: Tensor, size: tuple[int, int]) -> Tensor:
     if tuple(x.shape[-2:]) == tuple(size):
         return x
     return F.interpolate(x, size=size, mode="nearest")
+
+
+def factorised_blocks(h: int, w: int, scale: int) -> list[tuple[int, int, int, int]]:
+    """The query blocks of factorised Lite on an ``h x w`` grid upsampled by ``scale``:
+    ``(r0, r1, c0, c1)``, coarse query rows ``r0:r1`` (their upsampled rows
+    ``scale*r0:scale*r1``) and the coarse rows ``c0:c1`` their bilinear weights read (one
+    above and one below), each block's ``[queries, h w]`` Gram rows within
+    ``_FACTORISED_BLOCK`` elements (at least one coarse row)."""
+    rows = max(1, _FACTORISED_BLOCK // max(1, scale * scale * w * h * w))
+    return [
+        (r0, min(h, r0 + rows), max(0, r0 - 1), min(h, r0 + rows + 1)) for r0 in range(0, h, rows)
+    ]
 
 
 def _token_index(
@@ -610,7 +623,6 @@ class ReSiRegLite(nn.Module):
         # exp(alpha (cos - 1)) is taken as exp2(scale (cos - 1)): CPU exp2 is twice as fast.
         scale = alpha * math.log2(math.e)
         out = x.new_empty(b, n, dl)
-        rows = max(1, _FACTORISED_BLOCK // max(1, s * big_w * hw))  # coarse query rows per block
         tile = max(1, _FACTORISED_TILE // n)  # queries per key-side tile
         for i in range(b):
             pts = x[i].permute(1, 2, 0).reshape(hw, dv)  # [h w, Dv] coarse points
@@ -620,9 +632,7 @@ class ReSiRegLite(nn.Module):
             extra = None
             if inst is not None:
                 extra = self._prior_terms(inst, i, n, tokens[token], fade)
-            for r0 in range(0, hv, rows):
-                r1 = min(hv, r0 + rows)
-                c0, c1 = max(0, r0 - 1), min(hv, r1 + 1)  # the coarse rows these queries read
+            for r0, r1, c0, c1 in factorised_blocks(hv, wv, s):
                 gram_rows = pts[c0 * wv : c1 * wv] @ pts.T  # [(c1 - c0) w, h w]
                 # Query side: U G restricted to this block's queries (channels-last, so the
                 # result's rows are the queries, each a row of h w Gram entries).
