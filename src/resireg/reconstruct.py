@@ -40,9 +40,10 @@ _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
 # key ([N, queries]). Measured on 2 cores at the protocol's size (6,912 points, one image):
 # tiles of 1M, 4M, 8M, 16M elements took 0.46, 0.50, 0.49, 0.81 s on one thread, and 2.3,
 # 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
-# pass is a parallel region whose barrier waits for a descheduled thread): 4M is the middle.
+# pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
+# passes win there): 8M (32 MB in float32) is the compromise.
 _FACTORISED_BLOCK = 8 * 1024 * 1024
-_FACTORISED_TILE = 4 * 1024 * 1024
+_FACTORISED_TILE = 8 * 1024 * 1024
 
 
 def _check_positive_int(name: str, value: object) -> int:
