@@ -146,10 +146,12 @@ def throughput(args: argparse.Namespace, peak_bf16: float | None) -> dict[str, A
 
 
 def _features(args: argparse.Namespace, images: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The 25M architecture's (or the tiny one's) features of ``images`` random images."""
+    """The 25M architecture's (or the tiny one's) features of ``images`` random images. Weights
+    and images are drawn on the CPU, so every device (and the CPU reference) sees the same."""
     torch.manual_seed(0)
     model = build_model(args.dry_run).to(args.device)
-    x = torch.randn(images, 3, args.height, args.width, device=args.device)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(images, 3, args.height, args.width, generator=g).to(args.device)
     with torch.no_grad(), _autocast(args):
         out = model.encode(x)
     return out.intermediates.float(), out.language.float()
