@@ -3,7 +3,9 @@
 Setting of the issue: 8 images of a 36 x 48 patch grid, 384-d intermediates, 512-d
 language tokens, upscale 2 -> 55,296 points, 36 components, 36 prototypes. The
 intermediates carry region structure (a smooth random field of region codes plus
-noise) so k-means sees clusters as it does on real ViT features. All timings of one run
+noise; ``--features regions``) so k-means sees clusters as it does on real ViT features, or
+smooth mixtures of directions plus noise (``--features mixture``, soft cluster borders; both
+by default, one section each). All timings of one run
 are reported as ratios because absolute times on a shared 2-core machine drift; the
 timed paths are interleaved (A, B, A, B, ...) and each keeps its fastest call, so a burst
 of load elsewhere hits all of them alike.
@@ -26,6 +28,7 @@ One run prints:
 figures come from the same script:
 
     python benchmarks/bench_reconstruct.py [--threads 2] [--repeats 7] [--seeds 20] [--impl DIR]
+        [--features regions mixture] [--no-forward]
 """
 
 from __future__ import annotations
@@ -61,6 +64,28 @@ def make_features(b=8, h=36, w=48, dv=384, dl=512, regions=48, seed=0):
     inter = codes[labels].permute(0, 3, 1, 2) + 0.5 * torch.randn(b, dv, h, w, generator=g)
     lang = torch.randn(b, dl, h, w, generator=g)
     return inter, lang
+
+
+def make_mixture_features(
+    b=8, h=36, w=48, dv=384, dl=512, directions=24, temperature=0.15, noise=0.3, seed=0
+):
+    """Structured features like ViT tokens: every point a mixture of ``directions`` random
+    unit directions (scaled by 4), the mixture weights smooth in space (a softmax of a
+    bicubically upsampled random field at ``temperature``), plus Gaussian noise. Unlike
+    :func:`make_features`' hard regions, neighbouring points blend, so the clusters have soft
+    borders and Lloyd takes tens of iterations."""
+    g = torch.Generator().manual_seed(seed)
+    logits = F.interpolate(
+        torch.randn(b, directions, h // 6, w // 6, generator=g), size=(h, w), mode="bicubic"
+    )
+    weights = torch.softmax(logits / temperature, dim=1)
+    axes = F.normalize(torch.randn(directions, dv, generator=g), dim=1) * 4
+    inter = torch.einsum("bkhw,kd->bdhw", weights, axes)
+    inter = inter + noise * torch.randn(b, dv, h, w, generator=g)
+    return inter, torch.randn(b, dl, h, w, generator=g)
+
+
+FEATURES = {"regions": make_features, "mixture": make_mixture_features}
 
 
 def load_impl(directory: str | None) -> tuple[ModuleType, ModuleType]:
@@ -199,15 +224,27 @@ def main() -> None:
         "--seeds", type=int, default=20, help="k-means seeds for the inertia comparison"
     )
     parser.add_argument(
+        "--features", nargs="+", choices=list(FEATURES), default=list(FEATURES),
+        help="regions: hard regions of codes + noise; mixture: smooth mixtures of directions",
+    )  # fmt: skip
+    parser.add_argument(
         "--impl", default=None, help="directory with cluster.py and reconstruct.py to time"
     )
     parser.add_argument("--no-forward", action="store_true", help="skip the Full/Lite forwards")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
     cluster, reconstruct = load_impl(args.impl)
+    for kind in args.features:
+        torch.manual_seed(0)
+        inter, lang = FEATURES[kind]()
+        print(f"\n## features: {kind}")
+        compare(args, cluster, reconstruct, inter, lang, forward=not args.no_forward)
+
+
+def compare(args, cluster, reconstruct, inter, lang, forward: bool) -> None:
+    """One feature kind: the timing table, the inertia comparison, the stage profile and
+    (``forward``) the Full/Lite forwards."""
     modules = {"cluster": cluster, "reconstruct": reconstruct}
-    inter, lang = make_features()
     points = F.interpolate(inter, scale_factor=2, mode="bilinear", align_corners=False)
     points = points.permute(0, 2, 3, 1).reshape(-1, inter.shape[1]).contiguous()
     r, n = args.components, args.prototypes
@@ -260,7 +297,7 @@ def main() -> None:
             km = KMeans(n_clusters=n, n_init=1, random_state=seed).fit(z_sk)
             inertias_sk.append(km.inertia_)
             iters_sk.append(km.n_iter_)
-        if not args.no_forward:
+        if forward:
             fwd = interleaved_best(
                 {
                     "full": lambda: full(inter, lang),
@@ -293,7 +330,7 @@ def main() -> None:
     for name, seconds in rows:
         if seconds > 0 or name.startswith("normalisation"):
             print(f"| {name} | {seconds * 1e3:.1f} | {seconds / profile_total:.0%} |")
-    if not args.no_forward:
+    if forward:
         print(
             f"\nReSiReg Full forward {fwd['full']:.3f} s ({fwd['full'] / t_resireg:.2f}x its "
             f"clustering); ReSiReg Lite forward {fwd['lite']:.3f} s ({fwd['lite'] / fwd['full']:.2f}x Full)"

@@ -43,9 +43,13 @@ every formula against it, exactly, on the real modules.
 - Head (same blocks at the backbone width, ``N_h = P + 1`` tokens, registers off, depth 2):
   ``2 (24 N_h D^2 + 4 N_h^2 D) + 2 N_h D D_out`` (final Linear to D_out = 512 on every token).
 - Lite at upscale s on an h x w grid: queries AND keys are the upsampled points of the same
-  image, ``N = s^2 h w`` each (``k = q`` in ``ReSiRegLite.forward``), and with tau = 0 SDPA
-  runs on q, k, v zero-padded to ``W = max(Dv, Dl)``: ``4 B N^2 W``. (tau > 0, the chunked
-  explicit path: ``2 B N^2 (Dv + Dl)``.) The segmentation prior (extra keys) is not used here.
+  image, ``N = s^2 h w`` each. Its ``sdpa`` computation (the default on CUDA): with tau = 0
+  SDPA runs on q, k, v zero-padded to ``W = max(Dv, Dl)``: ``4 B N^2 W``. (tau > 0, the
+  chunked explicit path: ``2 B N^2 (Dv + Dl)``.) Its ``factorised`` computation (the default
+  elsewhere, docs/design.md section 4.3): the coarse Gram rows of each query block (with the
+  row above and below) and the per-token weight sums times the coarse tokens, about
+  ``B (2 (h w)^2 Dv + 2 N h w Dl)`` (:func:`lite_flops`). The segmentation prior (extra keys)
+  is not used here.
 - Full (the batch is one scene; ``n = B s^2 h w`` points, K prototypes, r = min(components,
   Dv), ``t = 2 + floor(ln K)`` k-means++ candidates per step), as ``resireg.reconstruct`` /
   ``resireg.cluster`` compute it: PCA moments from the small grid, ``U_a^T U_a`` of both axes
@@ -62,8 +66,9 @@ every formula against it, exactly, on the real modules.
 
 Numbers at 576 x 768 (h x w = 36 x 48, s = 2, Dv = 384, Dl = 512), per image: backbone
 129.97 GFLOP (N = 1733: blocks 128.95 + patch embedding 1.02), head 22.10 GFLOP, Lite
-97.84 GFLOP (N = 6912 at W = 512; 85.61 without the padding of the 384-d queries and keys:
-the padding costs 14%), Full 0.64 GFLOP (moments 0.32, projection 0.05, seeding 0.02,
+97.84 GFLOP by SDPA (N = 6912 at W = 512; 85.61 without the padding of the 384-d queries and
+keys: the padding costs 14%) and 14.65 GFLOP factorised (Gram rows 2.42, token product
+12.23), Full 0.64 GFLOP (moments 0.32, projection 0.05, seeding 0.02,
 mixing 0.25) + 0.018 GFLOP per distance pass (at least 2 passes: 0.68 GFLOP; plain Lloyd at
 the 100-iteration cap, 101 passes: 2.45 GFLOP); per image nearly independent of the batch
 size, as n grows with B. The issue's "4 N^2 D = 98 GFLOP against roughly 130 GFLOP for the
@@ -149,12 +154,28 @@ def head_flops(
 
 
 def lite_flops(
-    batch: int, h: int, w: int, *, dv: int = 384, dl: int = 512, upscale: int = 2, tau: float = 0.0
+    batch: int,
+    h: int,
+    w: int,
+    *,
+    dv: int = 384,
+    dl: int = 512,
+    upscale: int = 2,
+    tau: float = 0.0,
+    attention: str = "sdpa",
 ) -> int:
-    """ReSiReg Lite's attention (no prior): ``N = s^2 h w`` queries and keys per image;
-    tau = 0: SDPA at the padded width ``max(dv, dl)``, ``4 B N^2 W``; tau > 0:
-    ``2 B N^2 (dv + dl)``."""
+    """ReSiReg Lite's matrix products (no prior), ``N = s^2 h w`` queries and keys per image.
+
+    ``attention="sdpa"``: tau = 0, SDPA at the padded width ``max(dv, dl)``, ``4 B N^2 W``;
+    tau > 0, the explicit chunks, ``2 B N^2 (dv + dl)``. ``"factorised"`` (any tau): per
+    query block of :func:`resireg.reconstruct.factorised_blocks`, the Gram rows of the coarse
+    rows it reads, ``2 (c1 - c0) w * h w * dv``, and the product of the per-token weight sums
+    with the coarse tokens, ``2 N h w dl`` (the language grid is the intermediates')."""
     n = upscale * upscale * h * w
+    if attention == "factorised":
+        blocks = reconstruct.factorised_blocks(h, w, upscale)
+        gram = sum(2 * (c1 - c0) * w * h * w * dv for _, _, c0, c1 in blocks)
+        return batch * (gram + 2 * n * h * w * dl)
     if tau == 0:
         return 4 * batch * n * n * max(dv, dl)
     return 2 * batch * n * n * (dv + dl)
@@ -429,8 +450,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             )  # fmt: skip
         if stage == "lite":
             return lite_flops(
-                batch, h, w, dv=dim, dl=head.out_dim, upscale=lite.upscale, tau=lite.tau
-            )
+                batch, h, w, dv=dim, dl=head.out_dim, upscale=lite.upscale, tau=lite.tau,
+                attention=lite.resolve_attention(device),
+            )  # fmt: skip
         return full_flops(
             batch, h, w, iterations=iterations, distance_rows=rows, dv=dim, dl=head.out_dim,
             upscale=full.upscale,
@@ -510,6 +532,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         n_tok = h * w + 1 + bb.num_registers
         n_head = h * w + 1 + (bb.num_registers if head.use_registers else 0)
         n_up = lite.upscale**2 * h * w
+        lite_path = lite.resolve_attention(device)
+        if lite_path == "factorised":  # its main product: weight sums [N, h w] x tokens
+            lite_dtype = torch.promote_types(lite_dtype, torch.float32)
+            lite_matmul = (n_up, h * w, head.out_dim)
+        else:  # one image's scores [N, W] x [W, N]
+            lite_matmul = (n_up, max(dim, head.out_dim), n_up)
         k_full = full.resolve_prototypes(b)
         r_full = min(full.n_components or k_full, dim)
         # stage, label, callable, dtype of its products, the similar matmul (m, k, n)
@@ -518,8 +546,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
              (b * n_tok, dim, dim)),
             ("head", "language head", lambda: model.head(feats), compute_dtype,
              (b * n_head, dim, dim)),
-            ("lite", "ReSiReg Lite (attention)", lambda: lite(inter, language), lite_dtype,
-             (n_up, max(dim, head.out_dim), n_up)),
+            ("lite", f"ReSiReg Lite ({lite_path})", lambda: lite(inter, language), lite_dtype,
+             lite_matmul),
             ("full", "ReSiReg Full (PCA + k-means + mixing)", lambda: full(inter, language),
              torch.float32, (b * full.upscale**2 * h * w, r_full, k_full)),
         ]  # fmt: skip

@@ -148,13 +148,19 @@ def test_median_seconds_returns_none_on_oom_only():
     assert bench.median_seconds(lambda: None, 3, cpu) >= 0
 
 
+@pytest.mark.parametrize("attention", ["sdpa", "factorised"])
 @pytest.mark.parametrize("tau", [0.0, 0.1])
 @pytest.mark.parametrize("batch,h,w", [(1, 3, 4), (2, 4, 6)])
-def test_lite_flops_match_flop_counter(batch, h, w, tau):
-    """The SDPA path (tau = 0, padded to max(Dv, Dl)) and the chunked explicit path."""
+def test_lite_flops_match_flop_counter(batch, h, w, tau, attention, monkeypatch):
+    """The SDPA path (tau = 0, padded to max(Dv, Dl)), the chunked explicit path, and the
+    factorised path (with blocks small enough that the Gram rows overlap)."""
+    from resireg import reconstruct
+
+    monkeypatch.setattr(reconstruct, "_FACTORISED_BLOCK", 2 * 2 * 4 * h * w)  # 2 coarse rows
     inter, lang = torch.randn(batch, 384, h, w), torch.randn(batch, 512, h, w)
-    lite = ReSiRegLite(alpha=10.0, tau=tau, upscale=2)
-    expected = bench.lite_flops(batch, h, w, dv=384, dl=512, upscale=2, tau=tau)
+    lite = ReSiRegLite(alpha=10.0, tau=tau, upscale=2, attention=attention)
+    expected = bench.lite_flops(batch, h, w, dv=384, dl=512, upscale=2, tau=tau,
+                                attention=attention)  # fmt: skip
     assert _count(lambda: lite(inter, lang)) == expected
 
 
@@ -224,6 +230,9 @@ def test_flop_numbers_of_the_docstring():
     assert bench.head_flops(1, 36 * 48) / gflop == pytest.approx(22.10, abs=0.005)
     assert bench.lite_flops(1, 36, 48) / gflop == pytest.approx(97.84, abs=0.005)
     assert bench.lite_flops(1, 36, 48, tau=0.1) / gflop == pytest.approx(85.61, abs=0.005)
+    factorised = bench.lite_flops(1, 36, 48, attention="factorised") / gflop
+    assert factorised == pytest.approx(14.65, abs=0.005)
+    assert 2 * 6912 * 1728 * 512 / gflop == pytest.approx(12.23, abs=0.005)  # token product
     plain = bench.full_flops_breakdown(1, 36, 48, iterations=0)  # one distance pass
     assert {k: round(v / gflop, 2) for k, v in plain.items()} == {
         "moments": 0.32, "projection": 0.05, "seeding": 0.02, "kmeans": 0.02, "mixing": 0.25,

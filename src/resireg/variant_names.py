@@ -12,6 +12,7 @@ from typing import Any
 
 __all__ = [
     "LAYER_KEY",
+    "LITE_ATTENTION",
     "PRIOR_SUFFIX",
     "PRIOR_VARIANTS",
     "VARIANTS",
@@ -27,6 +28,11 @@ VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
 #: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it.
 PRIOR_SUFFIX = "+prior"
 PRIOR_VARIANTS: tuple[str, ...] = ("lite", "full")
+
+#: How ReSiReg Lite computes its attention (``lite.attention``, docs/design.md section 4.3):
+#: ``auto`` (by device: ``sdpa`` on CUDA, ``factorised`` elsewhere), ``sdpa`` (PyTorch's fused
+#: attention on the upsampled points) or ``factorised`` (from the coarse grid's Gram matrix).
+LITE_ATTENTION: tuple[str, ...] = ("auto", "sdpa", "factorised")
 
 
 #: ``<variant>@layer:<block>``: the configuration runs on that encoder block's intermediates

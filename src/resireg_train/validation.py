@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.variant_names import (
+    LITE_ATTENTION,
     PRIOR_VARIANTS,
     VARIANTS,
     parse_variant,
@@ -191,6 +192,10 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
         f"{prefix}lite.alpha": _number(0, strict=True),
         f"{prefix}lite.tau": (_unit, "a number in [0, 1]"),
         f"{prefix}lite.upscale": _integer(1),
+        f"{prefix}lite.attention": (
+            lambda v: v in LITE_ATTENTION,
+            f"one of {list(LITE_ATTENTION)}",
+        ),
         f"{prefix}batch_size": _integer(1),
         f"{prefix}num_workers": _integer(0),
         f"{prefix}precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
