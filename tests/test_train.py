@@ -4,6 +4,7 @@ import csv
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -12,10 +13,11 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import evaluate_export
+from _run import _MODULES, evaluate_export
 from resireg.models import ResiregVLM
 from resireg_train.cli.task import CONFIG_DIR, optimized_value
 from resireg_train.cli.train import build, train
@@ -352,6 +354,48 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path):
     assert len(folders) == 3, folders
     errors = {json.loads((f / "results.json").read_text())["error"] for f in folders}
     assert len(errors) == 3  # each run recorded its own failure in its own folder
+
+
+def test_sweeps_started_in_the_same_second_get_their_own_sweep_folders(tmp_path, tiny_export):
+    """Two `resireg-eval -m` and two `resireg-train -m` started together (issue 22, case 2):
+    every sweep folder carries the run id, so no two share one: each eval job writes its own
+    results.json and eval.log, and no training job is refused a folder another sweep took
+    (each records its own config error, not a FileExistsError)."""
+
+    def start(script, *args):
+        exe = shutil.which(script)
+        cmd = [exe] if exe else [sys.executable, "-m", _MODULES[script]]
+        return subprocess.Popen([*cmd, "-m", *args, f"paths.log_dir={tmp_path}"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+
+    evals = [start("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+                   "dataset.size=4", "num_workers=0", "variants=[bb]", f"seed={i}",
+                   "batch_size=2,4") for i in (1, 2)]  # fmt: skip
+    trains = [start("resireg-train", "experiment=smoke", f"model.optimizer.lr=-{i},-{i}.5")
+              for i in (1, 2)]  # fmt: skip
+    outputs = [p.communicate(timeout=600)[0] for p in evals + trains]
+    assert [p.returncode for p in evals] == [0, 0], outputs[0][-2000:] + outputs[1][-2000:]
+    for name, seeds in (("eval", {1, 2}), ("smoke", None)):
+        sweeps = sorted((tmp_path / name / "multirun").iterdir())
+        assert len(sweeps) == 2 and all(re.search(r"_[0-9a-f]{6}$", s.name) for s in sweeps), sweeps
+        jobs = [j for s in sweeps for j in sorted(s.iterdir()) if j.is_dir()]
+        assert len(jobs) == 4, jobs
+        results = [json.loads((j / "results.json").read_text()) for j in jobs]
+        if name == "eval":
+            assert all(r["status"] == "completed" for r in results)
+            for sweep in sweeps:  # a sweep's jobs share its seed; the other sweep's never
+                (seed,) = {
+                    yaml.safe_load((j / ".hydra" / "config.yaml").read_text())["seed"]
+                    for j in sweep.iterdir() if j.is_dir()
+                }  # fmt: skip
+                seeds.discard(seed)
+            assert seeds == set()
+            assert all((j / "eval.log").read_text().count("output dir:") == 1 for j in jobs)
+        else:
+            errors = [r["error"] for r in results]
+            assert all("model.optimizer.lr=" in e and "expected a number > 0" in e
+                       for e in errors), errors  # fmt: skip
 
 
 def test_a_new_run_refuses_a_folder_that_holds_another_run(tmp_path):

@@ -96,15 +96,23 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
 def _refuse_occupied(out: Path) -> None:
     """A new run never shares a folder with another (their metrics.csv, checkpoints and
     results.json would interleave): a folder already holding a run record is refused unless
-    the run resumes it. Default folders are unique (time + run id); this guards a
-    ``hydra.run.dir`` given by hand."""
+    the run resumes it. Default folders are unique (time + run id, for sweeps too); this
+    guards a folder given by hand."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
     previous = read_results(out)
-    if previous:
-        raise FileExistsError(
-            f"hydra.run.dir={out} already holds a run ({previous.get('name')!r}, status "
-            f"{previous.get('status')!r}): resume it with ckpt_path=last, or give this run its "
-            "own folder (leave hydra.run.dir unset for a new, unique one)"
-        )
+    if not previous:
+        return
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        where, unset = f"the sweep job's folder {out} (hydra.sweep.dir/subdir)", "hydra.sweep.dir"
+    else:
+        where, unset = f"hydra.run.dir={out}", "hydra.run.dir"
+    raise FileExistsError(
+        f"{where} already holds a run ({previous.get('name')!r}, status "
+        f"{previous.get('status')!r}): resume it with ckpt_path=last, or give this run its "
+        f"own folder (leave {unset} unset for a new, unique one)"
+    )
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
