@@ -310,3 +310,36 @@ def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
     cfg, taken = with_export_settings(sweep)
     assert cfg.variants[0] == "full@n_prototypes:24" and "variants" not in taken  # the sweep file
     assert with_export_settings(off) == (off, [])
+
+
+# ------------------------------------------------- nothing scored (issue 22, case 3)
+def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path, tiny_export):
+    """No image scored is no score: the run fails (non-zero exit through Hydra), its error
+    gives the counts and the first file, and results.json still names every skipped one."""
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.eval import NothingScoredError, evaluate
+    from resireg_train.cli.task import CONFIG_DIR
+
+    bad = poisoned_ade_folder(tmp_path / "ade")
+    for sub in ("images", "annotations"):
+        for f in (tmp_path / "ade" / sub / "validation").iterdir():
+            if f"{f.stem}.jpg" not in bad:
+                f.unlink()
+    out = tmp_path / "run"
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", overrides=[
+            f"model_path={tiny_export}", "dataset=ade20k", f"dataset.path={tmp_path / 'ade'}",
+            "dataset.short_side=32", "num_workers=0", "variants=[bb]", f"paths.output_dir={out}",
+        ])  # fmt: skip
+    with pytest.raises(NothingScoredError) as err:
+        evaluate(cfg)
+    first = sorted(bad)[0]
+    assert re.match(
+        rf"dataset=ade20k: no image was scored: 4 of 4 images skipped \(unreadable or invalid\); "
+        rf"the first: \S+/{first}: .*{bad[first]}", str(err.value)
+    ), str(err.value)
+    results = _results(out)
+    assert results["status"] == "failed" and results["error"].endswith(str(err.value))
+    assert results["images"] == 0 and results["skipped"] == 4
+    assert {Path(s["file"]).name for s in results["skipped_samples"]} == set(bad)

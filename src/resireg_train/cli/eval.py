@@ -178,7 +178,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     if params["task"] == "scannet3d":  # 3D semantic mapping (docs/design.md section 10)
         from resireg_train.mapping.engine import run_scannet3d
 
-        return run_scannet3d(cfg, out, encoder, variants, params)
+        return _require_scored(run_scannet3d(cfg, out, encoder, variants, params), "frame")
     patch = encoder.input_rule.patch_size
     dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
     task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
@@ -205,9 +205,8 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     if result.skipped:
         log.warning(result.skip_report())
     classes = dataset.classes
-    return update_results(
+    record = update_results(
         out,
-        status="completed",
         final=scores,
         per_class_iou={
             v: dict(zip(classes, ious, strict=True)) for v, ious in result.per_class_iou().items()
@@ -218,6 +217,31 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
         **({"feature_cache": cache.summary()} if cache is not None else {}),
+    )
+    _require_scored(record, "image")
+    return update_results(out, status="completed")
+
+
+class NothingScoredError(RuntimeError):
+    """Every image (3D: frame) of the dataset was skipped: there is no score to report."""
+
+
+def _require_scored(record: dict[str, Any], unit: str) -> dict[str, Any]:
+    """``record`` (a run's ``results.json``) if it scored at least one ``unit``; else raise
+    :class:`NothingScoredError` with the skip counts: a score over nothing (mIoU NaN) is a
+    failed run, never a completed one."""
+    if record.get("images", 0) > 0:
+        return record
+    skipped, dropped = int(record.get("skipped") or 0), int(record.get("frames_dropped") or 0)
+    samples = record.get("skipped_samples") or []
+    counts = f"{skipped} of {skipped + dropped} {unit}s skipped (unreadable or invalid)"
+    if dropped:
+        counts += f", {dropped} dropped (non-finite pose)"
+    first = f"; the first: {samples[0]['file']}: {samples[0]['reason']}" if samples else ""
+    name = (record.get("params") or {}).get("dataset", {}).get("name")
+    raise NothingScoredError(
+        f"dataset={name}: no {unit} was scored: {counts}{first} (results.json's "
+        "skipped_samples names each with its reason)"
     )
 
 
