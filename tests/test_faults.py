@@ -28,7 +28,12 @@ def _train(out, *overrides, check=True, **kwargs):
 
 
 def _results(out):
-    return json.loads((Path(out) / "results.json").read_text())
+    """The run's results.json as a strict JSON parser reads it (a bare NaN is an error)."""
+
+    def refuse(name):
+        raise ValueError(f"results.json is not strict JSON: {name}")
+
+    return json.loads((Path(out) / "results.json").read_text(), parse_constant=refuse)
 
 
 # --------------------------------------------------------------------- bad labels (item 3)
@@ -342,4 +347,8 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
     results = _results(out)
     assert results["status"] == "failed" and results["error"].endswith(str(err.value))
     assert results["images"] == 0 and results["skipped"] == 4
+    # Its scores over nothing are NaN: null in the file (strict JSON, case 4), and listed.
+    assert set(results["final"].values()) == {None}
+    nan = results["non_finite"]["NaN"]
+    assert {"/final/" + k.replace("/", "~1") for k in results["final"]} <= set(nan)
     assert {Path(s["file"]).name for s in results["skipped_samples"]} == set(bad)
