@@ -15,3 +15,13 @@ class SigintAt(L.Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if trainer.current_epoch == self.epoch and batch_idx == self.batch:
             os.kill(os.getpid(), signal.SIGINT)
+
+
+class RaiseAt(L.Callback):
+    """Raises ``RuntimeError(message)`` when training starts: a crash, not a config error."""
+
+    def __init__(self, message: str = "injected crash") -> None:
+        self.message = message
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        raise RuntimeError(self.message)

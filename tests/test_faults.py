@@ -342,7 +342,8 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
     first = sorted(bad)[0]
     assert re.match(
         rf"dataset=ade20k: no image was scored: 4 of 4 images skipped \(unreadable or invalid\); "
-        rf"the first: \S+/{first}: .*{bad[first]}", str(err.value)
+        rf"the first: \S+/{first}: .*{bad[first]}",
+        str(err.value),
     ), str(err.value)
     results = _results(out)
     assert results["status"] == "failed" and results["error"].endswith(str(err.value))
@@ -352,3 +353,45 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
     nan = results["non_finite"]["NaN"]
     assert {"/final/" + k.replace("/", "~1") for k in results["final"]} <= set(nan)
     assert {Path(s["file"]).name for s in results["skipped_samples"]} == set(bad)
+
+
+# ------------------------------------------- errors in the log files (issue 22, case 5)
+def _env_with_tests():
+    return {**os.environ,
+            "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+
+
+def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed_job(tmp_path):
+    """Config errors of a 3-job training multirun: each job's train.log holds its error, the
+    console shows no traceback for them (case 13) and ends with one line per failed job. A
+    crash (not a config error) puts its traceback into train.log as well."""
+    proc = run("resireg-train", "-m", *SMOKE, "model.optimizer.lr=-1,-2,-3",
+               f"paths.log_dir={tmp_path}", check=False)  # fmt: skip
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    (sweep,) = (tmp_path / "smoke" / "multirun").iterdir()
+    jobs = sorted(
+        (p for p in sweep.iterdir() if p.is_dir()), key=lambda p: int(p.name.split("_")[0])
+    )
+    tail = proc.stderr.strip().splitlines()[-4:]
+    assert tail[0] == (f"resireg-train: 3 of 3 jobs failed (sweep {sweep}; resireg-report {sweep} "
+                       "lists every job):")  # fmt: skip
+    for n, (line, job) in enumerate(zip(tail[1:], jobs, strict=True)):
+        lr = -(n + 1)
+        assert line == (
+            f"  job {n} ({job.name}): resireg_train.validation.ConfigError: invalid config: "
+            f"model.optimizer.lr={lr}: expected a number > 0; model.scheduler.min_lr=1e-05: "
+            f"expected <= model.optimizer.lr={lr}"
+        )
+        log = (job / "train.log").read_text()
+        assert f"run failed: resireg_train.validation.ConfigError: invalid config:\n  " \
+               f"model.optimizer.lr={lr}: expected a number > 0" in log, log  # fmt: skip
+        assert _results(job)["status"] == "failed"
+
+    out = tmp_path / "crash"
+    proc = _train(out, "trainer.max_epochs=1", "+callbacks.crash._target_=_faults.RaiseAt",
+                  check=False, env=_env_with_tests())  # fmt: skip
+    assert proc.returncode == 1 and "RuntimeError: injected crash" in proc.stderr
+    log = (out / "train.log").read_text()
+    assert re.search(r"\[ERROR\] - run failed: RuntimeError: injected crash\nTraceback \(most "
+                     r"recent call last\):\n(.*\n)*.*_faults\.py.*on_train_start", log), log  # fmt: skip

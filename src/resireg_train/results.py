@@ -23,6 +23,7 @@ from resireg_train.files import write_atomic
 __all__ = [
     "NON_FINITE",
     "RESULTS_FILE",
+    "flat",
     "metric_mode",
     "read_results",
     "strict_json",
@@ -50,6 +51,15 @@ def metric_mode(name: str) -> str | None:
     if any(tag in lower for tag in _HIGHER):
         return "max"
     return None
+
+
+def flat(text: str) -> str:
+    """A multi-line message (``invalid config:`` and one indented line per key) as one line:
+    ``invalid config: a=1: expected ...; b=2: expected ...``, for a table row or a list."""
+    lines = [line.strip() for line in str(text).splitlines() if line.strip()]
+    if len(lines) <= 1:
+        return lines[0] if lines else ""
+    return f"{lines[0]} {'; '.join(lines[1:])}"
 
 
 def _pointer(path: tuple[Any, ...]) -> str:

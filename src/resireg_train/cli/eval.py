@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
 from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
-from resireg_train.validation import check_devices, encoder_kwargs, validate_eval
+from resireg_train.validation import ConfigError, check_devices, encoder_kwargs, validate_eval
 
 if TYPE_CHECKING:
     import torch
@@ -182,7 +182,10 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     patch = encoder.input_rule.patch_size
     dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
     task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
-    task.check_variants(variants)
+    try:  # a setting the dataset's batches cannot take (more prototypes than points)
+        task.check_variants(variants)
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
     cache = None
     if cfg.get("feature_cache"):
         from resireg_train.cache import FeatureCache

@@ -1,6 +1,14 @@
 """What the Hydra mains share: where the configs live, the run-folder name resolver, and
-the task wrapper that records a failure in ``results.json`` and returns the value a
-sweeper optimises."""
+the task wrapper that records a failure in ``results.json`` and in the run's log file, and
+returns the value a sweeper optimises.
+
+How a failure is reported (docs/design.md section 9): ``results.json`` gets the status and
+the one-line error, the run's log file (``train.log`` / ``eval.log``) the error with its
+traceback, and the console either Hydra's traceback (an unexpected crash) or, for an error
+whose message says everything (a bad config value, a refused resume, a file that cannot be
+written, an unavailable download, a dataset of which nothing could be scored), that message
+alone. A multirun ends with one line per failed job.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +16,7 @@ import hashlib
 import logging
 import os
 import secrets
+import sys
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -15,13 +24,18 @@ from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import CompactHydraException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.results import update_results
+from resireg_train.files import WriteError
+from resireg_train.results import flat, update_results
+from resireg_train.validation import ConfigError
 
 __all__ = [
     "CONFIG_DIR",
     "RUN_ID",
+    "JobFailed",
     "hydra_entry_point",
     "optimized_value",
     "register_resolvers",
@@ -96,9 +110,26 @@ def run_task(
         raise SystemExit(130) from None
     except BaseException as exc:
         if rank_zero:
-            error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+            error = error_text(exc)
             _record(out, status="failed", error=error)
+            _to_log_files(f"run failed: {error}", exc)
         raise
+
+
+def error_text(exc: BaseException) -> str:
+    """``module.Type: message`` of an exception (what ``results.json`` records)."""
+    return "".join(traceback.format_exception_only(type(exc), exc)).strip()
+
+
+def _to_log_files(message: str, exc: BaseException) -> None:
+    """Write ``message`` to this process's log files only (Hydra's ``<output dir>/<job
+    name>.log``; the console gets the error from Hydra, once), with ``exc``'s traceback
+    unless its message is the whole report (a config error)."""
+    trace = None if isinstance(exc, _reported_types()) else (type(exc), exc, exc.__traceback__)
+    record = logging.LogRecord(log.name, logging.ERROR, __file__, 0, message, None, trace)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
 
 
 def _record(out: Path, **fields: Any) -> None:
@@ -124,16 +155,72 @@ def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
 
 
+class JobFailed(CompactHydraException):
+    """A job failed with an error whose message says what to do: Hydra prints the message
+    alone, not a traceback (the run's log file keeps it; ``HYDRA_FULL_ERROR=1`` shows it)."""
+
+
+def _reported_types() -> tuple[type[BaseException], ...]:
+    """The errors whose message is the whole report (see the module docstring). The classes
+    of modules not loaded yet cannot have been raised, so nothing heavy is imported here."""
+    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError]
+    for module, name in (
+        ("resireg_train.training.checkpoints", "CheckpointError"),
+        ("resireg_train.cli.eval", "NothingScoredError"),
+        ("resireg.models.hub", "WeightsUnavailableError"),
+    ):
+        cls = getattr(sys.modules.get(module), name, None)
+        if cls is not None:
+            types.append(cls)
+    return tuple(types)
+
+
+#: ``(job number, output dir, error)`` of every job of this process that failed.
+_FAILURES: list[tuple[int, Path, str]] = []
+
+
+def _sweep_summary(prog: str, jobs: int) -> str:
+    """One line per failed job of a multirun (Hydra itself reports only the first): its
+    number, folder and its error (on one line)."""
+    sweep = _FAILURES[0][1].parent
+    lines = [f"{prog}: {len(_FAILURES)} of {jobs} jobs failed (sweep {sweep}; "
+             f"resireg-report {sweep} lists every job):"]  # fmt: skip
+    lines += [f"  job {n} ({out.name}): {flat(error)}" for n, out, error in _FAILURES]
+    return "\n".join(lines) + "\n"
+
+
 def hydra_entry_point(
     config_name: str, task: Callable[[DictConfig], dict[str, Any]]
 ) -> Callable[[], float | None]:
     """A console entry point: Hydra composes ``conf/<config_name>.yaml`` with the command
-    line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper."""
+    line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper.
+
+    A failing job is listed; a multirun ends with one line per failed job (on stderr),
+    after Hydra's report of the first one."""
     register_resolvers()
+    prog = f"resireg-{config_name}"
+    jobs = {"multirun": False, "count": 0}
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def main(cfg: DictConfig) -> float | None:
-        log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
-        return optimized_value(cfg, task(cfg))
+        runtime = HydraConfig.get()
+        jobs["multirun"] = runtime.mode == RunMode.MULTIRUN
+        jobs["count"] += 1
+        log.info("output dir: %s", runtime.runtime.output_dir)
+        try:
+            return optimized_value(cfg, task(cfg))
+        except Exception as exc:
+            number = int(runtime.job.get("num") or 0)
+            _FAILURES.append((number, Path(runtime.runtime.output_dir), error_text(exc)))
+            if isinstance(exc, _reported_types()):
+                raise JobFailed(error_text(exc)) from exc
+            raise
 
-    return main
+    def entry() -> float | None:
+        try:
+            return main()
+        finally:
+            if jobs["multirun"] and _FAILURES:
+                sys.stderr.write(_sweep_summary(prog, jobs["count"]))
+
+    return entry
