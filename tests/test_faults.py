@@ -6,6 +6,7 @@ import json
 import os
 import re
 import resource
+import shlex
 import signal
 import subprocess
 import sys
@@ -25,6 +26,12 @@ SMOKE = ("experiment=smoke", "data.steps_per_epoch=4", "callbacks.resireg_eval.n
 
 def _train(out, *overrides, check=True, **kwargs):
     return run("resireg-train", *SMOKE, f"hydra.run.dir={out}", *overrides, check=check, **kwargs)
+
+
+def _env_with_tests():
+    """This environment, with tests/ importable (the fault callbacks of _faults.py)."""
+    return {**os.environ,
+            "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
 
 
 def _results(out):
@@ -87,30 +94,62 @@ def test_poisoned_ade20k_folder_trains_and_evaluates_naming_the_bad_samples(tmp_
 
 
 # ------------------------------------------------------------------------- Ctrl-C (item 4)
+def _snapshot(folder):
+    """Every file under ``folder`` and its bytes."""
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
 @pytest.mark.slow
-def test_ctrl_c_is_recorded_as_interrupted_and_the_run_resumes_on_its_schedule(tmp_path):
+def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tmp_path):
+    """Ctrl-C records the command that resumes the run (issue 22, case 6): the run's own
+    overrides. A resume that composes another config (the bare `ckpt_path=last hydra.run.dir=`,
+    or a longer schedule) and a new run pointed at the folder are refused before anything is
+    written, naming the differing keys; the printed command, run verbatim, completes the run."""
     out = tmp_path / "run"
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
-    }
+    env = _env_with_tests()
     stop = ["+callbacks.stop._target_=_faults.SigintAt", "+callbacks.stop.epoch=1"]
     proc = _train(out, "trainer.max_epochs=3", *stop, check=False, env=env)
     assert proc.returncode == 130, proc.stderr[-2000:]
     results = _results(out)
     assert results["status"] == "interrupted"
-    assert results["error"].startswith("KeyboardInterrupt: interrupted by the user (Ctrl-C)")
-    assert f"ckpt_path=last hydra.run.dir={out}" in results["error"]
+    hint = "KeyboardInterrupt: interrupted by the user (Ctrl-C); resume with "
+    assert results["error"].startswith(hint)
+    command = shlex.split(results["error"][len(hint) :])
+    assert command == ["resireg-train", *SMOKE, "trainer.max_epochs=3", *stop, "ckpt_path=last",
+                       f"hydra.run.dir={out}"]  # fmt: skip
     assert [h["epoch"] for h in results["history"]] == [0]
+    before = _snapshot(out)
 
-    # A longer schedule would jump the learning rate: refused, naming the key and the way out.
-    longer = _train(out, "trainer.max_epochs=5", "ckpt_path=last", check=False)
-    assert longer.returncode != 0
-    error = _results(out)["error"]
-    assert "trainer.max_epochs=5" in error and "planned for 3 epochs" in error
-    assert "model.init_from" in error
+    refused = {
+        "bare": run(
+            "resireg-train", "ckpt_path=last", f"hydra.run.dir={out}", check=False, env=env
+        ),
+        # a longer schedule would jump the learning rate
+        "longer": _train(
+            out, "trainer.max_epochs=5", *stop, "ckpt_path=last", check=False, env=env
+        ),
+        "fresh": _train(out, "trainer.max_epochs=3", check=False, env=env),
+    }
+    for name, proc in refused.items():
+        assert proc.returncode == 1, name
+        assert _snapshot(out) == before, name  # nothing under the run was rewritten
+        (line,) = [x for x in proc.stderr.splitlines() if x.startswith("resireg-train: refused")]
+        if name == "fresh":
+            assert (
+                f"hydra.run.dir={out} already holds a run ('smoke', status 'interrupted')" in line
+            )
+            continue
+        assert f"this command's config differs from the run's ({out}/.hydra/config.yaml)" in line
+        assert f"Resume with the run's own overrides: {shlex.join(command)};" in line
+        assert f"model.init_from={out}/checkpoints/last.ckpt" in line
+        if name == "longer":
+            assert "in 1 key(s): trainer.max_epochs=5 (the run: 3). " in line, line
+        else:  # the default config: the smoke experiment's values are named
+            assert "name='train' (the run: 'smoke')" in line and "and " in line, line
 
-    _train(out, "trainer.max_epochs=3", "ckpt_path=last")
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=600,
+                          env={**env, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
     results = _results(out)
     assert results["status"] == "completed" and results["error"] is None
     assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
@@ -356,11 +395,6 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
 
 
 # ------------------------------------------- errors in the log files (issue 22, case 5)
-def _env_with_tests():
-    return {**os.environ,
-            "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
-
-
 def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed_job(tmp_path):
     """Config errors of a 3-job training multirun: each job's train.log holds its error, the
     console shows no traceback for them (case 13) and ends with one line per failed job. A
