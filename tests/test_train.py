@@ -17,7 +17,7 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import _MODULES, evaluate_export
+from _run import _MODULES, evaluate_export, run
 from resireg.models import ResiregVLM
 from resireg_train.cli.task import CONFIG_DIR, optimized_value
 from resireg_train.cli.train import build, train
@@ -409,3 +409,39 @@ def test_a_new_run_refuses_a_folder_that_holds_another_run(tmp_path):
         train(cfg)
     assert (tmp_path / "metrics.csv").read_text() == "step,train/loss\n0,2.5\n"
     assert json.loads((tmp_path / "results.json").read_text())["status"] == "running"
+
+
+def test_keys_nothing_reads_are_errors_naming_the_known_key(tmp_path, tiny_export):
+    """Issue 22, case 8: Hydra's hint after `batchsize=4` is `+batchsize=4`; the added key
+    is refused (not silently ignored), with the key the user meant, from the command line
+    and from a config file alike; the keys `+` may add (a stage-2 start, a Trainer argument)
+    are not."""
+    proc = run("resireg-eval", "+batchsize=4", f"model_path={tiny_export}", "dataset=synthetic",
+               f"hydra.run.dir={tmp_path / 'eval'}", check=False)  # fmt: skip
+    assert proc.returncode == 1
+    expected = "batchsize=4: no such key, nothing would read it (did you mean batch_size?)"
+    assert expected in proc.stderr, proc.stderr[-2000:]
+    results = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert results["status"] == "failed" and expected in results["error"]
+
+    proc = run("resireg-train", "experiment=smoke", "+batchsize=4", "+model.init_from=/x.ckpt",
+               "+trainer.detect_anomaly=false", "+model.loss.contrastive.scal=2",
+               f"hydra.run.dir={tmp_path / 'train'}", check=False)  # fmt: skip
+    error = json.loads((tmp_path / "train" / "results.json").read_text())["error"]
+    assert proc.returncode == 1 and error.splitlines()[1:] == [
+        "  batchsize=4: no such key, nothing would read it (did you mean data.batch_size?); "
+        "set existing keys without +",
+        "  model.loss.contrastive.scal=2: no such key, nothing would read it (did you mean "
+        "model.loss.contrastive.scale?); set existing keys without +",
+    ], error
+
+    experiment = tmp_path / "conf" / "experiment"
+    experiment.mkdir(parents=True)
+    smoke = (CONFIG_DIR / "experiment" / "smoke.yaml").read_text()
+    (experiment / "typo.yaml").write_text(smoke + "\nbatchsize: 4\n")
+    proc = run("resireg-train", "--config-dir", tmp_path / "conf", "experiment=typo",
+               f"hydra.run.dir={tmp_path / 'file'}", check=False)  # fmt: skip
+    assert proc.returncode == 1
+    assert "batchsize=4: no such key, nothing would read it (did you mean data.batch_size?)" in (
+        proc.stderr
+    ), proc.stderr[-2000:]

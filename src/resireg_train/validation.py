@@ -14,7 +14,8 @@ imports torch when it runs).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import difflib
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -23,12 +24,14 @@ from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
 __all__ = [
+    "ADDABLE",
     "ConfigError",
     "ENCODER_REPORT_KEYS",
     "PRECISIONS",
     "TASKS",
     "check_devices",
     "encoder_kwargs",
+    "unknown_key_errors",
     "validate",
     "validate_eval",
 ]
@@ -251,6 +254,75 @@ def _errors(cfg: DictConfig, rules: dict[str, Rule]) -> list[str]:
     return errors
 
 
+#: Where a ``+key=value`` override may add a key (a new callback or logger, a Lightning
+#: ``Trainer`` or optimizer argument: their constructors reject unknown ones; the stage-2 start,
+#: README "Stage 2"), per entry point; ``_CLOSED`` parts of them are read key by key.
+ADDABLE = {
+    "train": ("callbacks.", "logger.", "trainer.", "model.optimizer.", "model.init_from"),
+    "eval": (),
+}
+_CLOSED = ("callbacks.resireg_eval.",)
+
+
+def _addable(key: str, addable: Sequence[str]) -> bool:
+    if key.startswith(_CLOSED):
+        return False
+    return any(key == a or (a.endswith(".") and key.startswith(a)) for a in addable)
+
+
+def _nearest(key: str, known: Iterable[str], everywhere: Iterable[str] = ()) -> str:
+    """`` (did you mean x?)``: the known sibling closest to ``key``'s last part, else the key
+    anywhere in the config (``everywhere``: dotted keys) whose last part is closest; or ``""``."""
+    parent, _, name = key.rpartition(".")
+    match = difflib.get_close_matches(name, [k for k in known if k != name], n=1, cutoff=0.6)
+    if match:
+        return f" (did you mean {f'{parent}.' if parent else ''}{match[0]}?)"
+    by_name: dict[str, str] = {}
+    for full in sorted(everywhere, key=lambda k: (k.count("."), k)):  # the shallowest first
+        if full != key:
+            by_name.setdefault(full.rpartition(".")[2], full)
+    match = difflib.get_close_matches(name, list(by_name), n=1, cutoff=0.6)
+    return f" (did you mean {by_name[match[0]]}?)" if match else ""
+
+
+def _paths(node: Any, prefix: str = "") -> list[str]:
+    """Every dotted key of a plain nested dict (inner nodes included)."""
+    if not isinstance(node, dict):
+        return []
+    return [p for k, v in node.items() for p in (f"{prefix}{k}", *_paths(v, f"{prefix}{k}."))]
+
+
+def unknown_key_errors(
+    cfg: DictConfig,
+    added: Iterable[str] = (),
+    addable: Sequence[str] = (),
+    top_level: Iterable[str] | None = None,
+) -> list[str]:
+    """Keys that nothing reads, each named with the closest known one: every key a ``+``
+    override added (``added``) outside ``addable`` sections (``+batchsize=4`` next to
+    ``batch_size``), and, given ``top_level`` (the top-level keys ``conf/`` defines), every
+    top-level key outside it, wherever it came from (an experiment, a sweep, a user's file)."""
+    errors = []
+    everywhere = _paths(OmegaConf.to_container(cfg, resolve=False))
+    for key in added:
+        if _addable(key, addable):
+            continue
+        parent = key.rpartition(".")[0]
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        siblings = [str(k) for k in node.keys()] if OmegaConf.is_dict(node) else []
+        hint = _nearest(key, siblings, everywhere)
+        errors.append(f"{key}={_get(cfg, key)!r}: no such key, nothing would read it{hint}; "
+                      "set existing keys without +")  # fmt: skip
+    if top_level is not None:
+        known = set(top_level)
+        for key in cfg:
+            if key not in known and key not in added:
+                hint = _nearest(str(key), known, everywhere)
+                errors.append(f"{key}={_get(cfg, str(key))!r}: no such key, nothing would read "
+                              f"it{hint}")  # fmt: skip
+    return errors
+
+
 def _device_errors(
     key: str, device: Any, fix: str = "use cpu, or auto to take a GPU only where there is one"
 ) -> list[str]:
@@ -273,11 +345,14 @@ def _device_errors(
     return []
 
 
-def validate_eval(cfg: DictConfig | dict) -> None:
-    """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing all."""
+def validate_eval(
+    cfg: DictConfig | dict, added: Iterable[str] = (), top_level: Iterable[str] | None = None
+) -> None:
+    """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing
+    all. ``added`` and ``top_level``: see :func:`unknown_key_errors`."""
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
-    errors = _errors(cfg, _EVAL_RULES)
+    errors = unknown_key_errors(cfg, added, ADDABLE["eval"], top_level) + _errors(cfg, _EVAL_RULES)
     if _get(cfg, "encoder.kind") == "resireg_vlm" and not _get(cfg, "model_path"):
         errors.append(
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
@@ -302,15 +377,18 @@ def validate_eval(cfg: DictConfig | dict) -> None:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
 
 
-def validate(cfg: DictConfig | dict) -> None:
+def validate(
+    cfg: DictConfig | dict, added: Iterable[str] = (), top_level: Iterable[str] | None = None
+) -> None:
     """Check value types and ranges of a training config; raise :class:`ConfigError` listing all.
 
     Also checks the cross-field rules: ``min_lr <= lr``, ``logit_scale.init <= max``, a
-    teacher config whenever the distillation scale is > 0, and a source ``probability`` > 0.
+    teacher config whenever the distillation scale is > 0, and a source ``probability`` > 0;
+    and keys nothing reads (``added``, ``top_level``: see :func:`unknown_key_errors`).
     """
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
-    errors = _errors(cfg, _RULES)
+    errors = unknown_key_errors(cfg, added, ADDABLE["train"], top_level) + _errors(cfg, _RULES)
     values = {k: _get(cfg, k) for k in (
         "model.optimizer.lr", "model.scheduler.min_lr", "model.logit_scale.init",
         "model.logit_scale.max", "model.loss.distill.scale", "model.teacher", "data.sources",

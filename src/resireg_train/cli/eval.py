@@ -36,7 +36,13 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
+from resireg_train.cli.task import (
+    CONFIG_DIR,
+    added_keys,
+    hydra_entry_point,
+    run_task,
+    top_level_keys,
+)
 from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
 from resireg_train.validation import ConfigError, check_devices, encoder_kwargs, validate_eval
@@ -149,7 +155,7 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
 
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
-    validate_eval(cfg)
+    validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
     check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",

@@ -32,7 +32,13 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.cli.task import error_text, hydra_entry_point, run_task
+from resireg_train.cli.task import (
+    added_keys,
+    error_text,
+    hydra_entry_point,
+    run_task,
+    top_level_keys,
+)
 from resireg_train.results import RESULTS_FILE, read_results, update_results
 from resireg_train.validation import ConfigError, check_devices, validate
 
@@ -237,7 +243,7 @@ def _refuse_occupied(out: Path, multirun: bool | None = None) -> None:
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
-    validate(cfg)
+    validate(cfg, added_keys(), top_level_keys("train") if HydraConfig.initialized() else None)
     check_devices(cfg)
     import hydra
     import lightning as L
