@@ -358,3 +358,38 @@ def test_one_job_per_batch_size_reports_what_one_job_per_setting_reports(tmp_pat
     assert grid_jobs.shape == (2, 2) and not grid_jobs.isna().to_numpy().any()
     pd.testing.assert_frame_equal(grid_jobs, grid_passes, check_exact=True)
     assert fit_jobs == fit_passes
+
+
+def test_a_one_encoder_table1_or_table2_sweep_still_writes_its_table(tmp_path):
+    """Issue 22, case 9: `sweep=table1 encoder=clip_vit_b16` (or table2) cut to one encoder
+    varies no encoder, and its table was not written."""
+    encoder = {"name": "clip_vit_b16", "kind": "clip", "third_party": True, "parameters": 150e6}
+    sweep = tmp_path / "table1"
+    for n, dataset in enumerate(("ade20k", "orad3d")):
+        final = {f"val/ovss/{dataset}/miou_{v}": 0.2 + 0.1 * i
+                 for i, v in enumerate(("bb", "calib", "lite", "full"))}  # fmt: skip
+        _job(sweep, n, {"sweep": "table1", "encoder": "clip_vit_b16", "dataset": dataset},
+             {"name": "table1", "status": "completed", "final": final, "encoder": encoder,
+              "params": {"dataset": {"name": dataset}, "encoder": encoder}})  # fmt: skip
+    files = report(sweep)
+    assert files["table1_md"].is_file()
+    (row,) = [r for r in _rows(files["table1_csv"]) if r["encoder"] == "clip_vit_b16"]
+    assert (
+        float(row["ade20k Full Δ"]) == pytest.approx(30.0) and row["orad3d status"] == "completed"
+    )
+
+    sweep = tmp_path / "table2"
+    final = {"val/scannet3d/scannet/miou_full": 0.3, "val/scannet3d/scannet/fmiou_full": 0.4}
+    _job(sweep, 0, {"sweep": "table2", "encoder": "clip_vit_b16"},
+         {"name": "table2", "status": "completed", "final": final, "encoder": encoder,
+          "params": {"task": "scannet3d", "variants": ["full"], "dataset": {"name": "scannet"},
+                     "encoder": encoder}})  # fmt: skip
+    files = report(sweep)
+    (row,) = _rows(files["table2_csv"])
+    assert row["model"] == "clip_vit_b16 + Full" and float(row["scannet mIoU"]) == 30.0
+    # A one-encoder sweep of another kind (the prototype ablation) gets no encoder table.
+    sweep = tmp_path / "ablation"
+    for n, b in enumerate((2, 4)):
+        _job(sweep, n, {"sweep": "prototype_batch", "batch_size": b},
+             {"name": "prototype_batch", "status": "completed", "final": {MIOU: 0.1 * n}})  # fmt: skip
+    assert "table1_md" not in report(sweep) and "table2_md" not in report(sweep)

@@ -13,7 +13,8 @@ with its status and error. Writes, into the sweep folder (or ``--out``):
   ``val/scannet3d/...``): ``heatmap.png`` (batch size x prototype count, mIoU of ReSiReg Full) and
   ``prototype_heuristic.json``: ``n(B)`` fitted to the best prototype count of every
   batch size, loadable by ``ReSiRegFull(n_prototypes="auto", heuristic=PATH)``.
-- For encoder sweeps: ``table1.md`` / ``.csv`` (2D OVSS, the paper's Table 1) or, for
+- For encoder sweeps (the encoder varies, or ``sweep=table1`` / ``table2`` cut to one
+  encoder): ``table1.md`` / ``.csv`` (2D OVSS, the paper's Table 1) or, for
   ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
@@ -408,9 +409,19 @@ def _per_encoder(
     return out, datasets
 
 
+#: The sweeps (``conf/sweep/``, also their run ``name``) whose report is an encoder table.
+ENCODER_SWEEPS = ("table1", "table2")
+
+
 def is_encoder_sweep(jobs: list[Job]) -> bool:
-    """Jobs of ``resireg-eval`` that vary the encoder (``sweep=table1``)."""
-    return "encoder" in _varying(jobs)
+    """Jobs of ``resireg-eval`` that vary the encoder, or of an encoder-table sweep
+    (``sweep=table1`` / ``table2``) cut to one encoder on the command line."""
+    if "encoder" in _varying(jobs):
+        return True
+    return any(
+        j.overrides.get("sweep") in ENCODER_SWEEPS or j.results.get("name") in ENCODER_SWEEPS
+        for j in jobs
+    )
 
 
 def encoder_table(jobs: list[Job]) -> pd.DataFrame:
