@@ -2,6 +2,8 @@
 
 import csv
 import json
+import math
+import re
 import shlex
 import sys
 
@@ -393,3 +395,53 @@ def test_a_one_encoder_table1_or_table2_sweep_still_writes_its_table(tmp_path):
         _job(sweep, n, {"sweep": "prototype_batch", "batch_size": b},
              {"name": "prototype_batch", "status": "completed", "final": {MIOU: 0.1 * n}})  # fmt: skip
     assert "table1_md" not in report(sweep) and "table2_md" not in report(sweep)
+
+
+def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cover(tmp_path):
+    """Issue 22, case 10: a multi-line error (with a `|`) stays in its summary.md row; a
+    failed job's cells are empty in every table (never `nan`); the mean rows name the
+    encoders they average over."""
+    sweep = tmp_path / "table1"
+    error = ("resireg_train.validation.ConfigError: invalid config:\n  full.alpha=0: expected a "
+             "number > 0\n  lite.tau=2: expected a number in [0, 1] | or null")  # fmt: skip
+    jobs = [("ours", False, 0.25, None), ("clip", True, 0.5, None), ("radio", True, None, error)]
+    for n, (name, third, bb, err) in enumerate(jobs):
+        encoder = {"name": name, "third_party": third, "parameters": 1e6}
+        results = {"name": "table1", "encoder": encoder, "params": {"dataset": {"name": "ade20k"}}}
+        if err is None:
+            final = {
+                f"val/ovss/ade20k/miou_{v}": bb + 0.1 * i for i, v in enumerate(("bb", "full"))
+            }
+            results.update(status="completed", final=final)
+        else:
+            results.update(status="failed", error=err, final={"val/ovss/ade20k/miou_bb": math.nan})
+        _job(sweep, n, {"encoder": name, "dataset": "ade20k"}, results)
+    files = report(sweep)
+    summary = files["md"].read_text()
+    rows = [line for line in summary.splitlines() if line.startswith("|")]
+    assert len(rows) == 2 + 3  # header, rule, one line per job
+    flat = ("resireg_train.validation.ConfigError: invalid config: full.alpha=0: expected a number "
+            "> 0; lite.tau=2: expected a number in [0, 1] \\| or null")  # fmt: skip
+    cells = [c.strip() for c in re.split(r"(?<!\\)\|", rows[-1])[1:-1]]  # unescaped pipes
+    assert cells[:3] == ["2", "radio", "failed"] and cells[-1] == flat, cells
+    assert cells[3:-1] == [""] * (len(cells) - 4)  # its NaN score: an empty cell
+    assert f"- job 2 (2_encoder=radio,dataset=ade20k): **failed**: {flat.replace(chr(92), '')}" in (
+        summary
+    )
+    table1 = files["table1_md"].read_text()
+    for text in (summary, table1):
+        assert "nan" not in text.lower(), text
+    lines = {
+        line.split("|")[1].strip(): line for line in table1.splitlines() if line.count("|") > 3
+    }
+    radio = [c.strip() for c in lines["radio"].split("|")[1:-1]]
+    assert radio[3:-1] == [""] * (len(radio) - 4) and radio[-1] == "failed"  # cells empty
+    assert lines["mean Δ, all encoders"].rstrip(" |").endswith("over 2 of 3 (not radio: failed)")
+    assert (
+        lines["mean Δ, third-party encoders"]
+        .rstrip(" |")
+        .endswith("over 1 of 2 (not radio: failed)")
+    )
+    assert "Over the 2 of 3 encoder x dataset jobs that completed." in table1
+    csv_means = {r["encoder"]: r for r in _rows(files["table1_csv"])}
+    assert float(csv_means["mean Δ, all encoders"]["ade20k Full Δ"]) == pytest.approx(10.0)

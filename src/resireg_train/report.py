@@ -37,7 +37,7 @@ import yaml
 from resireg.heuristic import PrototypeHeuristic
 from resireg.variant_names import takes_prior
 from resireg.variants import parse_variant
-from resireg_train.results import RESULTS_FILE, metric_mode, read_results
+from resireg_train.results import RESULTS_FILE, flat, metric_mode, read_results
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -51,6 +51,7 @@ __all__ = [
     "heatmap_figure",
     "known_metrics",
     "mapping_table",
+    "markdown",
     "plot_curves",
     "plot_heatmap",
     "prototype_grid",
@@ -106,6 +107,19 @@ def collect(sweep_dir: str | Path) -> list[Job]:
             "pass the multirun folder, e.g. outputs/<name>/multirun/<time>"
         )
     return sorted(jobs, key=lambda j: j.number)
+
+
+def markdown(frame: pd.DataFrame, floatfmt: str, index: bool = False) -> str:
+    """``frame`` as a Markdown table, rendered one way in every table of the report: text on
+    one line (a multi-line error would split its row) with ``|`` escaped, and a missing value
+    (NaN, ``None``: a job that did not complete, a mean over nothing) as an empty cell."""
+
+    def cell(value: Any) -> Any:
+        return flat(value).replace("|", "\\|") if isinstance(value, str) else value
+
+    shown = frame.map(cell)
+    shown = shown.astype(object).where(shown.notna(), None)  # tabulate blanks None, not NaN
+    return shown.to_markdown(index=index, floatfmt=floatfmt, missingval="")
 
 
 def _varying(jobs: list[Job]) -> list[str]:
@@ -462,12 +476,24 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
     deltas = [c for c in columns if c.endswith(" Δ")]
     third_party = table["third_party"].fillna(False).astype(bool)
     averages = []
-    for label, mask in (("mean Δ, all encoders", slice(None)),
+    for label, mask in (("mean Δ, all encoders", pd.Series(True, index=table.index)),
                         ("mean Δ, third-party encoders", third_party)):  # fmt: skip
-        averages.append(
-            {"encoder": label, **table.loc[mask, deltas].astype(float).mean().to_dict()}
-        )
+        row = {"encoder": label, **table.loc[mask, deltas].astype(float).mean().to_dict()}
+        for dataset in datasets:  # which encoders the means of this dataset cover
+            row[f"{dataset} status"] = _covered(table.loc[mask], dataset)
+        averages.append(row)
     return pd.concat([table, pd.DataFrame(averages)], ignore_index=True).reindex(columns=columns)
+
+
+def _covered(rows: pd.DataFrame, dataset: str) -> str:
+    """``"over 2 of 3 (not x: failed)"``: the encoders of ``rows`` whose ``dataset`` job
+    completed (only they have deltas), and those left out with their status."""
+    statuses = rows[f"{dataset} status"].fillna("missing")
+    left = [f"{e}: {s}" for e, s in zip(rows["encoder"], statuses, strict=True) if s != "completed"]
+    done = len(rows) - len(left)
+    if not left:
+        return f"over all {done}" if done else "no encoder"
+    return f"over {done} of {len(rows)} (not {', '.join(left)})"
 
 
 def method_means(table: pd.DataFrame) -> pd.DataFrame:
@@ -493,15 +519,22 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     table.to_csv(files["table1_csv"], index=False)
     shown = table.copy()
     shown["third_party"] = shown["third_party"].map({True: "yes", False: "no (ours)"})
-    shown = shown.astype(object).where(shown.notna(), None)  # tabulate blanks None, not NaN
+    body = table[~table["encoder"].str.startswith("mean Δ")]
+    statuses = body[[c for c in body.columns if c.endswith(" status")]].stack()
     lines = [
         "# ReSiReg across encoders (mIoU x100; Δ = method - BB)",
         "",
-        shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+        "Deltas and their means are over the jobs that completed; a mean row's status column "
+        "says which encoders it covers.",
+        "",
+        markdown(shown, floatfmt=".1f"),
         "",
         "## Mean Δ per method (over encoders and datasets)",
         "",
-        method_means(table).to_markdown(floatfmt="+.2f"),
+        f"Over the {int((statuses == 'completed').sum())} of {len(statuses)} encoder x dataset "
+        "jobs that completed.",
+        "",
+        markdown(method_means(table), floatfmt="+.2f", index=True),
     ]
     files["table1_md"].write_text("\n".join(lines) + "\n")
     return files
@@ -567,11 +600,10 @@ def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     files = {"table2_csv": out / "table2.csv", "table2_md": out / "table2.md"}
     table.to_csv(files["table2_csv"], index=False)
     shown = table.drop(columns=["encoder", "variant", "third_party"])
-    shown = shown.astype(object).where(shown.notna(), None)
     lines = [
         "# 3D semantic mapping on ScanNet (mIoU / f-mIoU x100 over the voxels of all scenes)",
         "",
-        shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+        markdown(shown, floatfmt=".1f"),
     ]
     files["table2_md"].write_text("\n".join(lines) + "\n")
     return files
@@ -602,7 +634,7 @@ def report(
         "",
         "Common overrides: " + (", ".join(f"`{k}={v}`" for k, v in constant.items()) or "none"),
         "",
-        table.fillna({"error": ""}).to_markdown(index=False, floatfmt=".4f"),
+        markdown(table, floatfmt=".4f"),
     ]
     if is_encoder_sweep(jobs) and is_mapping_sweep(jobs):
         files.update(write_mapping_table(jobs, out))
@@ -614,7 +646,11 @@ def report(
         grid = prototype_grid(jobs, metric)
         files["heatmap"] = out / "heatmap.png"
         plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
-        lines += ["", f"## {metric}: batch size x prototypes", "", grid.to_markdown(floatfmt=".4f")]
+        cells = grid.map(lambda v: f"{v:.4f}").where(
+            grid.notna(), grid_statuses(jobs, metric, grid)
+        )
+        lines += ["", f"## {metric}: batch size x prototypes", "", "A cell without a value reads "
+                  "its job's status.", "", markdown(cells, floatfmt=".4f", index=True)]  # fmt: skip
         if grid.notna().to_numpy().any():
             heuristic, best = fit_heuristic(grid)
             files["heuristic"] = out / "prototype_heuristic.json"
@@ -636,6 +672,7 @@ def report(
     failed = [j for j in jobs if j.status != "completed"]
     if failed:
         lines += ["", "## Jobs that did not complete", ""]
-        lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {j.error}" for j in failed]
+        lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {flat(j.error or '')}"
+                  for j in failed]  # fmt: skip
     files["md"].write_text("\n".join(lines) + "\n")
     return files
