@@ -429,3 +429,44 @@ def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed
     log = (out / "train.log").read_text()
     assert re.search(r"\[ERROR\] - run failed: RuntimeError: injected crash\nTraceback \(most "
                      r"recent call last\):\n(.*\n)*.*_faults\.py.*on_train_start", log), log  # fmt: skip
+
+
+# --------------------------------- a final status that cannot be written (issue 22, case 11)
+_RUN_TASK = (
+    "import sys\n"
+    "from omegaconf import OmegaConf\n"
+    "from resireg_train.cli.task import run_task\n"
+    "from resireg_train.results import update_results\n"
+    "def body(cfg, out):\n"
+    "    if sys.argv[2] == 'crash':\n"
+    "        raise RuntimeError('x' * 8000)  # a failure too long to record under the limit\n"
+    "    return update_results(out, status='completed', final={'m': 0.5}, pad='x' * 8000)\n"
+    "run_task(OmegaConf.create({'name': 'n', 'paths': {'output_dir': sys.argv[1]}}), body)\n"
+)
+
+
+@pytest.mark.parametrize("how", ["record", "crash"])
+def test_a_final_status_reaches_the_record_or_stderr_says_it_could_not(tmp_path, how):
+    """A process that may not write files over 4 KB (RLIMIT_FSIZE, as a nearly full disk):
+    its small `running` record is written, the large final one is not. `record`: the run
+    fails on that write and its `failed` status (short) reaches results.json. `crash`: the
+    `failed` record, holding a long error, cannot be written either: stderr says so, naming
+    the status the record still reads. Both exit non-zero."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _RUN_TASK, str(tmp_path), how], capture_output=True, text=True,
+        preexec_fn=_file_size_limit(4096), timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    results = _results(tmp_path)
+    if how == "record":
+        assert results["status"] == "failed"
+        assert results["error"] == (f"resireg_train.files.WriteError: could not write the run "
+                                    f"record {tmp_path}/results.json: File too large")  # fmt: skip
+    else:
+        assert results["status"] == "running"
+        said = proc.stderr.splitlines()[0]
+        assert said.startswith(
+            f"error: could not record status 'failed' in {tmp_path}/results.json (could not "
+            f"write the run record {tmp_path}/results.json: File too large); it still reads "
+            "status 'running' although the run ended 'failed': RuntimeError: xxx"
+        ), said[:400]

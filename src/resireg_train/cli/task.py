@@ -29,7 +29,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.files import WriteError
-from resireg_train.results import flat, update_results
+from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
 from resireg_train.validation import ConfigError
 
 __all__ = [
@@ -170,24 +170,39 @@ def error_text(exc: BaseException) -> str:
     return "".join(traceback.format_exception_only(type(exc), exc)).strip()
 
 
-def _to_log_files(message: str, exc: BaseException) -> None:
+def _to_log_files(message: str, exc: BaseException | None) -> None:
     """Write ``message`` to this process's log files only (Hydra's ``<output dir>/<job
     name>.log``; the console gets the error from Hydra, once), with ``exc``'s traceback
     unless its message is the whole report (a config error)."""
-    trace = None if isinstance(exc, _reported_types()) else (type(exc), exc, exc.__traceback__)
+    trace = None
+    if exc is not None and not isinstance(exc, _reported_types()):
+        trace = (type(exc), exc, exc.__traceback__)
     record = logging.LogRecord(log.name, logging.ERROR, __file__, 0, message, None, trace)
     for handler in logging.getLogger().handlers:
         if isinstance(handler, logging.FileHandler):
-            handler.handle(record)
+            handler.handle(record)  # (a handler that cannot write reports it on stderr)
 
 
 def _record(out: Path, **fields: Any) -> None:
     """Update ``results.json`` without hiding the error being recorded if this write fails
-    too (e.g. on the full disk that failed the run)."""
+    too (e.g. on the full disk that failed the run): then stderr (and the log file, if it
+    can be written) says which status could not be recorded and what the record still reads
+    (``running``), and the caller's exception or exit status makes the exit code non-zero."""
     try:
         update_results(out, **fields)
     except OSError as err:
-        log.error("could not record %s in results.json: %s", fields, err)
+        try:
+            stale = read_results(out).get("status")
+        except (OSError, ValueError):
+            stale = None
+        message = (
+            f"could not record status {fields.get('status')!r} in {out / RESULTS_FILE} ({err}); "
+            f"it still reads status {stale!r} although the run ended {fields.get('status')!r}: "
+            f"{flat(str(fields.get('error')))}"
+        )
+        sys.stderr.write(f"error: {message}\n")
+        sys.stderr.flush()
+        _to_log_files(message, None)
 
 
 def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
