@@ -15,12 +15,15 @@ imports torch when it runs).
 from __future__ import annotations
 
 import difflib
+import os
 from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
+from resireg.sources import export_source_problem
 from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
 __all__ = [
@@ -31,6 +34,7 @@ __all__ = [
     "TASKS",
     "check_devices",
     "encoder_kwargs",
+    "init_from_problem",
     "unknown_key_errors",
     "validate",
     "validate_eval",
@@ -353,11 +357,16 @@ def validate_eval(
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
     errors = unknown_key_errors(cfg, added, ADDABLE["eval"], top_level) + _errors(cfg, _EVAL_RULES)
-    if _get(cfg, "encoder.kind") == "resireg_vlm" and not _get(cfg, "model_path"):
+    model_path = _get(cfg, "model_path")
+    if _get(cfg, "encoder.kind") == "resireg_vlm" and not model_path:
         errors.append(
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
             "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
         )
+    elif _get(cfg, "encoder.kind") == "resireg_vlm" and isinstance(model_path, str):
+        problem = export_source_problem(model_path)
+        if problem:
+            errors.append(f"model_path={model_path!r}: {problem}")
     task, kind = _get(cfg, "task"), _get(cfg, "dataset.kind")
     if task == "scannet3d" and kind != "scannet":
         errors.append(f"dataset.kind={kind!r}: task=scannet3d needs dataset=scannet (or another "
@@ -405,6 +414,9 @@ def validate(
             f"model.loss.distill.scale={distill!r}: distillation needs a model.teacher config "
             "(or set the scale to 0)"
         )
+    init_from = _get(cfg, "model.init_from")
+    if isinstance(init_from, str) and (problem := init_from_problem(init_from)):
+        errors.append(f"model.init_from={init_from!r}: {problem}")
     text = _get(cfg, "model.text")
     if isinstance(text, dict) and text.get("kind") == "pretrained":
         weights = text.get("weights")
@@ -428,6 +440,20 @@ def validate(
                 errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
+
+
+def init_from_problem(source: str | os.PathLike) -> str | None:
+    """Why ``model.init_from`` cannot be loaded (``None`` when it can be tried): it must be a
+    training checkpoint file or an export folder (``ResiregModule.load_trained``)."""
+    path = Path(source).expanduser()
+    if path.is_file():
+        return None
+    if path.is_dir():
+        if (path / "model.safetensors").is_file():
+            return None
+        return "a folder without model.safetensors: not a ResiregVLM export"
+    return ("no such file or folder: expected a training checkpoint (<run>/checkpoints/last.ckpt) "
+            "or an export folder (<run>/export)")  # fmt: skip
 
 
 def check_devices(cfg: DictConfig | dict) -> None:

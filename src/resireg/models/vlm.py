@@ -30,6 +30,7 @@ from resireg.models.eupe import EUPEBackbone
 from resireg.models.head import LanguageHead
 from resireg.models.hub import require_online
 from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
+from resireg.sources import is_repo_id
 
 __all__ = ["ResiregVLM"]
 
@@ -213,7 +214,7 @@ def _export_dir(source: str | os.PathLike) -> Path:
     if path.is_dir():
         return path
     text = os.fspath(source)
-    if path.exists() or text.count("/") != 1 or text.startswith(("/", ".", "~")):
+    if path.exists() or not is_repo_id(text):  # (resireg.sources: the config checks' rule too)
         raise FileNotFoundError(
             f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"
         )
