@@ -18,7 +18,7 @@ import difflib
 import os
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -29,10 +29,12 @@ from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes
 __all__ = [
     "ADDABLE",
     "ConfigError",
+    "ENCODER_IMPORTS",
     "ENCODER_REPORT_KEYS",
     "PRECISIONS",
     "TASKS",
     "check_devices",
+    "encoder_import_errors",
     "encoder_kwargs",
     "init_from_problem",
     "unknown_key_errors",
@@ -59,6 +61,80 @@ _ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt", "tips", "
 #: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
 #: of ``resireg.models.build_encoder``.
 ENCODER_REPORT_KEYS = ("name", "third_party")
+
+
+class Needs(NamedTuple):
+    """A module an encoder's code imports: the pip distribution that provides it, who imports
+    it, and when (``None``: always; else a test of the encoder entry)."""
+
+    module: str
+    dist: str
+    who: str
+    when: Callable[[dict], bool] | None = None
+
+
+_SIGLIP = "NVlabs/RADIO radio/siglip2_adaptor.py (its SigLIP 2 adaptors)"
+_RADIO = (
+    Needs("einops", "einops", "NVlabs/RADIO hubconf.py (dependencies) and radio/*.py"),
+    Needs(
+        "distutils",
+        "setuptools",
+        "NVlabs/RADIO radio/extra_models.py (Python >= 3.12: setuptools provides distutils)",
+    ),
+)
+_BPE = "facebookresearch/dinov2 dinov2/thirdparty/CLIP (the dino.txt BPE tokenizer)"
+#: What an encoder kind imports beyond the core install: its own code in ``resireg.models``
+#: and the upstream hub code it loads, read in those repositories (NVlabs/RADIO ``hubconf.py``
+#: and ``radio/``; RADSeg-OVSS/RADSeg ``hubconf.py`` and ``radseg/``, which loads NVlabs/RADIO;
+#: facebookresearch/dinov2 ``hubconf.py`` and ``dinov2/``). The ``encoders`` extra installs
+#: them all (pyproject.toml lists them beside each encoder); :func:`encoder_import_errors`
+#: checks them before a model loads. ``clip`` and ``resireg_vlm`` need only the core.
+ENCODER_IMPORTS: dict[str, tuple[Needs, ...]] = {
+    "radio": (
+        *_RADIO,
+        Needs("transformers", "transformers", _SIGLIP, lambda e: e.get("adaptor") != "clip"),
+    ),
+    "radseg": (
+        Needs("segment_anything", "segment-anything", "RADSeg hubconf.py, radseg/radseg.py"),
+        Needs("skimage", "scikit-image", "RADSeg radseg/sam_utils.py"),
+        Needs("typing_extensions", "typing-extensions", "RADSeg radseg/base.py, radseg.py"),
+        *_RADIO,
+        Needs("transformers", "transformers", f"{_SIGLIP}, which RADSeg loads"),
+    ),
+    "dinotxt": (
+        Needs("ftfy", "ftfy", _BPE),
+        Needs("regex", "regex", _BPE),
+        Needs(
+            "requests",
+            "requests",
+            "facebookresearch/dinov2 dinov2/hub/dinotxt.py "
+            "get_tokenizer (downloads the vocabulary: vocab=null)",
+            lambda e: e.get("vocab") is None,
+        ),
+    ),
+    "tips": (Needs("sentencepiece", "sentencepiece", "resireg.models.tips (its tokenizer)"),),
+    "otas": (Needs("sklearn", "scikit-learn", "resireg.models.otas (k-means)"),),
+}
+
+
+def encoder_import_errors(entry: Any, key: str = "encoder") -> list[str]:
+    """One message per module the encoder ``entry`` needs (:data:`ENCODER_IMPORTS`) that is
+    not installed (found with ``importlib.util.find_spec``, nothing is imported), naming who
+    imports it and the extra that installs it."""
+    import importlib.util
+
+    if not isinstance(entry, dict):
+        return []
+    errors = []
+    for module, dist, who, when in ENCODER_IMPORTS.get(entry.get("kind"), ()):
+        if when is not None and not when(entry):
+            continue
+        if importlib.util.find_spec(module) is None:
+            errors.append(
+                f"{key}.kind={entry.get('kind')!r}: {who} imports {module}, which is not "
+                f'installed: pip install -e ".[encoders]" (or pip install {dist})'
+            )
+    return errors
 
 
 def encoder_kwargs(entry: Any) -> dict[str, Any]:
@@ -367,6 +443,7 @@ def validate_eval(
         problem = export_source_problem(model_path)
         if problem:
             errors.append(f"model_path={model_path!r}: {problem}")
+    errors += encoder_import_errors(_get(cfg, "encoder"))
     task, kind = _get(cfg, "task"), _get(cfg, "dataset.kind")
     if task == "scannet3d" and kind != "scannet":
         errors.append(f"dataset.kind={kind!r}: task=scannet3d needs dataset=scannet (or another "
