@@ -16,6 +16,7 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
 from PIL import Image
 
 from _run import run
@@ -445,3 +446,26 @@ def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cov
     assert "Over the 2 of 3 encoder x dataset jobs that completed." in table1
     csv_means = {r["encoder"]: r for r in _rows(files["table1_csv"])}
     assert float(csv_means["mean Δ, all encoders"]["ade20k Full Δ"]) == pytest.approx(10.0)
+
+
+def test_the_job_counts_the_readme_and_the_sweep_files_state_are_the_sweeps_own():
+    """Issue 22, case 13: the README said Table 1 runs 8 encoders; it runs 10. The comment
+    after every `sweep=table1` / `sweep=table2 model_path=...` command of the README and the
+    sweep files (`# 10 encoders x 2 datasets`, `# 10 x 2 = 20 jobs`, `# Table 2: 10 jobs`)
+    matches the sweep's own axes."""
+    readme = (CONFIG_DIR.parent / "README.md").read_text().splitlines()
+    for name, datasets in (("table1", None), ("table2", 1)):  # table2: ScanNet alone
+        sweep = CONFIG_DIR / "sweep" / f"{name}.yaml"
+        params = OmegaConf.load(sweep).hydra.sweeper.params
+        axes = [len(str(params.encoder).split(",")),
+                datasets or len(str(params.dataset).split(","))]  # fmt: skip
+        lines = [x for x in readme + sweep.read_text().splitlines()
+                 if f"sweep={name} model_path=" in x]  # fmt: skip
+        assert len(lines) == 2, lines
+        for line in lines:
+            comment = line.rsplit("#", 1)[1].replace("Table 2:", "")
+            numbers = [int(n) for n in re.findall(r"\d+", comment)]
+            if "encoders x" in comment:
+                assert numbers == axes, line
+            else:
+                assert numbers[-1] == math.prod(axes), line

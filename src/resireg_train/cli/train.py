@@ -247,11 +247,12 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     check_devices(cfg)
     import hydra
     import lightning as L
+    from lightning.pytorch.callbacks import ProgressBar
 
     from resireg_train.ovss.callback import ReSiRegEval
     from resireg_train.tracking import ResultsTracker, ResumableCSVLogger
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
-    from resireg_train.training.console import EpochLog, quiet_library_noise
+    from resireg_train.training.console import EpochLog, on_terminal, quiet_library_noise
 
     quiet_library_noise()
     L.seed_everything(cfg.seed, workers=True)
@@ -269,12 +270,18 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
     loggers = [ResumableCSVLogger(out, resume_step=resume_step), *_instantiate_all(cfg.logger)]
+    configured = _instantiate_all(cfg.callbacks)
+    bar = {}
+    if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
+        configured = [c for c in configured if not isinstance(c, ProgressBar)]
+        bar = {"enable_progress_bar": False}
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
         logger=loggers,
-        callbacks=[*_instantiate_all(cfg.callbacks), ResultsTracker(out), EpochLog(), *callbacks],
+        callbacks=[*configured, ResultsTracker(out), EpochLog(), *callbacks],
         plugins=[AtomicCheckpointIO()],
         default_root_dir=str(out),
+        **bar,
     )
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
