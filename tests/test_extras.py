@@ -12,7 +12,7 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 from resireg_train.cli.task import CONFIG_DIR
-from resireg_train.validation import ENCODER_IMPORTS, ConfigError, validate_eval
+from resireg_train.validation import ENCODER_IMPORTS, ConfigError, check_available
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -72,10 +72,10 @@ def test_a_missing_module_is_named_before_the_encoder_loads(monkeypatch):
                         lambda name, *a: None if name in ("segment_anything", "transformers")
                         else real(name, *a))  # fmt: skip
     with pytest.raises(ConfigError) as err:
-        validate_eval(radseg)
+        check_available(radseg)
     assert (
         "encoder.kind='radseg': RADSeg hubconf.py, radseg/radseg.py imports segment_anything, "
         'which is not installed: pip install -e ".[encoders]" (or pip install segment-anything)'
     ) in str(err.value)
     assert "NVlabs/RADIO radio/siglip2_adaptor.py" in str(err.value)
-    validate_eval(clip)  # the CLIP adaptor of RADIO does not import transformers
+    check_available(clip)  # the CLIP adaptor of RADIO does not import transformers

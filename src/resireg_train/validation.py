@@ -34,6 +34,7 @@ __all__ = [
     "PRECISIONS",
     "TASKS",
     "check_devices",
+    "check_available",
     "encoder_import_errors",
     "encoder_kwargs",
     "init_from_problem",
@@ -88,7 +89,8 @@ _BPE = "facebookresearch/dinov2 dinov2/thirdparty/CLIP (the dino.txt BPE tokeniz
 #: and ``radio/``; RADSeg-OVSS/RADSeg ``hubconf.py`` and ``radseg/``, which loads NVlabs/RADIO;
 #: facebookresearch/dinov2 ``hubconf.py`` and ``dinov2/``). The ``encoders`` extra installs
 #: them all (pyproject.toml lists them beside each encoder); :func:`encoder_import_errors`
-#: checks them before a model loads. ``clip`` and ``resireg_vlm`` need only the core.
+#: (through :func:`check_available`) checks them before a model loads. ``clip`` and
+#: ``resireg_vlm`` need only the core.
 ENCODER_IMPORTS: dict[str, tuple[Needs, ...]] = {
     "radio": (
         *_RADIO,
@@ -406,12 +408,15 @@ def unknown_key_errors(
 def _device_errors(
     key: str, device: Any, fix: str = "use cpu, or auto to take a GPU only where there is one"
 ) -> list[str]:
-    """A device this machine does not have (checked before any model is built)."""
-    import torch
-
+    """A device this machine does not have (checked before any model is built; torch is
+    imported only to ask about a GPU or MPS)."""
     if not isinstance(device, str):
         return []
     kind, _, index = device.partition(":")
+    if kind not in ("cuda", "gpu", "mps"):
+        return []
+    import torch
+
     if kind in ("cuda", "gpu"):
         if not torch.cuda.is_available():
             return [f"{key}={device!r}: this machine has no CUDA GPU "
@@ -433,17 +438,11 @@ def validate_eval(
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
     errors = unknown_key_errors(cfg, added, ADDABLE["eval"], top_level) + _errors(cfg, _EVAL_RULES)
-    model_path = _get(cfg, "model_path")
-    if _get(cfg, "encoder.kind") == "resireg_vlm" and not model_path:
+    if _get(cfg, "encoder.kind") == "resireg_vlm" and not _get(cfg, "model_path"):
         errors.append(
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
             "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
         )
-    elif _get(cfg, "encoder.kind") == "resireg_vlm" and isinstance(model_path, str):
-        problem = export_source_problem(model_path)
-        if problem:
-            errors.append(f"model_path={model_path!r}: {problem}")
-    errors += encoder_import_errors(_get(cfg, "encoder"))
     task, kind = _get(cfg, "task"), _get(cfg, "dataset.kind")
     if task == "scannet3d" and kind != "scannet":
         errors.append(f"dataset.kind={kind!r}: task=scannet3d needs dataset=scannet (or another "
@@ -491,9 +490,6 @@ def validate(
             f"model.loss.distill.scale={distill!r}: distillation needs a model.teacher config "
             "(or set the scale to 0)"
         )
-    init_from = _get(cfg, "model.init_from")
-    if isinstance(init_from, str) and (problem := init_from_problem(init_from)):
-        errors.append(f"model.init_from={init_from!r}: {problem}")
     text = _get(cfg, "model.text")
     if isinstance(text, dict) and text.get("kind") == "pretrained":
         weights = text.get("weights")
@@ -531,6 +527,30 @@ def init_from_problem(source: str | os.PathLike) -> str | None:
         return "a folder without model.safetensors: not a ResiregVLM export"
     return ("no such file or folder: expected a training checkpoint (<run>/checkpoints/last.ckpt) "
             "or an export folder (<run>/export)")  # fmt: skip
+
+
+def check_available(cfg: DictConfig | dict) -> None:
+    """Check that this machine has what a config names, before torch loads: the export of
+    ``model_path`` (resireg-eval, ``encoder=resireg_vlm``; :func:`resireg.sources.
+    export_source_problem`), the checkpoint or export of ``model.init_from`` (resireg-train;
+    :func:`init_from_problem`) and the modules the encoder's code imports
+    (:func:`encoder_import_errors`); raise :class:`ConfigError` listing every problem. Separate
+    from :func:`validate`, as :func:`check_devices` is: a valid config names files and needs
+    packages that another machine may have."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    errors = []
+    model_path = _get(cfg, "model_path")
+    if _get(cfg, "encoder.kind") == "resireg_vlm" and isinstance(model_path, str) and model_path:
+        if problem := export_source_problem(model_path):
+            errors.append(f"model_path={model_path!r}: {problem}")
+    init_from = _get(cfg, "model.init_from")
+    if isinstance(init_from, str) and (problem := init_from_problem(init_from)):
+        errors.append(f"model.init_from={init_from!r}: {problem}")
+    errors += encoder_import_errors(_get(cfg, "encoder"))
+    if errors:
+        raise ConfigError("this machine does not have what the config names:\n  "
+                          + "\n  ".join(errors))  # fmt: skip
 
 
 def check_devices(cfg: DictConfig | dict) -> None:

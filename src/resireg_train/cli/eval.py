@@ -45,7 +45,13 @@ from resireg_train.cli.task import (
 )
 from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
-from resireg_train.validation import ConfigError, check_devices, encoder_kwargs, validate_eval
+from resireg_train.validation import (
+    ConfigError,
+    check_available,
+    check_devices,
+    encoder_kwargs,
+    validate_eval,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -156,6 +162,7 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
+    check_available(cfg)
     check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",

@@ -239,17 +239,13 @@ def _reported_types() -> tuple[type[BaseException], ...]:
     return tuple(types)
 
 
-#: ``(job number, output dir, error)`` of every job of this process that failed.
-_FAILURES: list[tuple[int, Path, str]] = []
-
-
-def _sweep_summary(prog: str, jobs: int) -> str:
+def _sweep_summary(prog: str, jobs: int, failures: list[tuple[int, Path, str]]) -> str:
     """One line per failed job of a multirun (Hydra itself reports only the first): its
-    number, folder and its error (on one line)."""
-    sweep = _FAILURES[0][1].parent
-    lines = [f"{prog}: {len(_FAILURES)} of {jobs} jobs failed (sweep {sweep}; "
+    number, folder and its error (on one line); ``failures``: ``(number, folder, error)``."""
+    sweep = failures[0][1].parent
+    lines = [f"{prog}: {len(failures)} of {jobs} jobs failed (sweep {sweep}; "
              f"resireg-report {sweep} lists every job):"]  # fmt: skip
-    lines += [f"  job {n} ({out.name}): {flat(error)}" for n, out, error in _FAILURES]
+    lines += [f"  job {n} ({out.name}): {flat(error)}" for n, out, error in failures]
     return "\n".join(lines) + "\n"
 
 
@@ -264,6 +260,7 @@ def hydra_entry_point(
     register_resolvers()
     prog = f"resireg-{config_name}"
     jobs = {"multirun": False, "count": 0}
+    failures: list[tuple[int, Path, str]] = []  # the jobs of this process that failed
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def main(cfg: DictConfig) -> float | None:
@@ -275,7 +272,7 @@ def hydra_entry_point(
             return optimized_value(cfg, task(cfg))
         except Exception as exc:
             number = int(runtime.job.get("num") or 0)
-            _FAILURES.append((number, Path(runtime.runtime.output_dir), error_text(exc)))
+            failures.append((number, Path(runtime.runtime.output_dir), error_text(exc)))
             if isinstance(exc, _reported_types()):
                 raise JobFailed(error_text(exc)) from exc
             raise
@@ -284,7 +281,7 @@ def hydra_entry_point(
         try:
             return main()
         finally:
-            if jobs["multirun"] and _FAILURES:
-                sys.stderr.write(_sweep_summary(prog, jobs["count"]))
+            if jobs["multirun"] and failures:
+                sys.stderr.write(_sweep_summary(prog, jobs["count"], failures))
 
     return entry

@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import re
 import shlex
 import sys
 from collections.abc import Sequence
@@ -40,7 +41,7 @@ from resireg_train.cli.task import (
     top_level_keys,
 )
 from resireg_train.results import RESULTS_FILE, read_results, update_results
-from resireg_train.validation import ConfigError, check_devices, validate
+from resireg_train.validation import ConfigError, check_available, check_devices, validate
 
 if TYPE_CHECKING:
     import lightning as L
@@ -129,7 +130,16 @@ def resume_command(
     def kept(items: Sequence[str]) -> list[str]:
         return [o for o in items if o.split("=", 1)[0].lstrip("+~") not in _RESUME_SET]
 
-    words = ["resireg-train", *kept(task), *kept(hydra), "ckpt_path=last", f"hydra.run.dir={out}"]
+    folder = str(out)
+    if not re.fullmatch(r"[\w/.\-:~+@%]+", folder):  # a sweep job's folder: "=" and ","
+        folder = '"' + folder.replace("\\", "\\\\").replace('"', '\\"') + '"'  # Hydra's quoting
+    words = [
+        "resireg-train",
+        *kept(task),
+        *kept(hydra),
+        "ckpt_path=last",
+        f"hydra.run.dir={folder}",
+    ]
     if multirun:
         words.append("hydra.mode=RUN")
     return " ".join(shlex.quote(str(w)) for w in words)
@@ -244,6 +254,7 @@ def _refuse_occupied(out: Path, multirun: bool | None = None) -> None:
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
     validate(cfg, added_keys(), top_level_keys("train") if HydraConfig.initialized() else None)
+    check_available(cfg)
     check_devices(cfg)
     import hydra
     import lightning as L
