@@ -1,6 +1,7 @@
 """The on-disk feature cache: exact outputs, invalidation, partial fills, and resireg-eval."""
 
 import json
+import os
 
 import pytest
 import torch
@@ -147,3 +148,41 @@ def test_bad_feature_cache_value_names_the_key(tmp_path, tiny_export):
     proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
                "feature_cache=3", f"hydra.run.dir={tmp_path}", check=False)  # fmt: skip
     assert proc.returncode != 0 and "feature_cache=3" in proc.stderr + proc.stdout
+
+
+def test_resireg_eval_names_sets_aside_and_re_encodes_a_damaged_shard(tmp_path, tiny_export):
+    """A shard overwritten in place (same size: 0xFF over its second half) and, once
+    re-encoded, the new shard truncated: each later job names it in a warning and in
+    results.json, encodes its images again and scores what the clean cache gave."""
+    cache = tmp_path / "cache"
+    args = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=6", "num_workers=0",
+            "variants=[bb,full]", "full.n_prototypes=6", f"feature_cache={cache}"]  # fmt: skip
+
+    def job(name):
+        proc = run("resireg-eval", *args, f"hydra.run.dir={tmp_path / name}")
+        return proc.stdout + proc.stderr, json.loads((tmp_path / name / "results.json").read_text())
+
+    def damage(how):
+        (shard,) = cache.glob("*/shard-*.safetensors")
+        size = shard.stat().st_size
+        if how == "overwritten":  # same size, other bytes
+            with open(shard, "r+b") as f:
+                f.seek(size // 2)
+                f.write(b"\xff" * (size - size // 2))
+            assert shard.stat().st_size == size
+            return shard, "content differs from its listing's digest"
+        os.truncate(shard, size // 3)
+        return shard, f"{size // 3} bytes, its listing says {size}"
+
+    _, clean = job("clean")
+    for how in ("overwritten", "truncated"):  # the second damages the re-encoded shard
+        shard, reason = damage(how)
+        said, results = job(how)
+        assert f"damaged shard {shard} ({reason})" in said, said[-2000:]
+        summary = results["feature_cache"]
+        assert summary["damaged"] == [{"file": str(shard), "reason": reason}], how
+        assert summary["damaged_shards"] == 1 and summary["hits"] == 0
+        assert summary["bytes_written"] > 0  # its images were encoded and stored again
+        assert results["status"] == "completed" and results["final"] == clean["final"], how
+        assert shard.with_name(f"{shard.name}.damaged").is_file()  # set aside, never read again
+        assert not shard.with_suffix(".json").exists()

@@ -266,7 +266,8 @@ def test_a_missing_dataset_or_prior_model_fails_before_the_encoder_loads(
 
     monkeypatch.setattr(resireg.models, "build_encoder", no_encoder)
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("eval", ["model_path=x", f"paths.output_dir={tmp_path}", *overrides])
+        # model_path: a repo id's form passes the export check (the encoder is never built)
+        cfg = compose("eval", ["model_path=owner/x", f"paths.output_dir={tmp_path}", *overrides])
     with pytest.raises(error, match=message):
         evaluate(cfg)
 

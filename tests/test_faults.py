@@ -6,6 +6,7 @@ import json
 import os
 import re
 import resource
+import shlex
 import signal
 import subprocess
 import sys
@@ -27,8 +28,19 @@ def _train(out, *overrides, check=True, **kwargs):
     return run("resireg-train", *SMOKE, f"hydra.run.dir={out}", *overrides, check=check, **kwargs)
 
 
+def _env_with_tests():
+    """This environment, with tests/ importable (the fault callbacks of _faults.py)."""
+    return {**os.environ,
+            "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+
+
 def _results(out):
-    return json.loads((Path(out) / "results.json").read_text())
+    """The run's results.json as a strict JSON parser reads it (a bare NaN is an error)."""
+
+    def refuse(name):
+        raise ValueError(f"results.json is not strict JSON: {name}")
+
+    return json.loads((Path(out) / "results.json").read_text(), parse_constant=refuse)
 
 
 # --------------------------------------------------------------------- bad labels (item 3)
@@ -82,30 +94,62 @@ def test_poisoned_ade20k_folder_trains_and_evaluates_naming_the_bad_samples(tmp_
 
 
 # ------------------------------------------------------------------------- Ctrl-C (item 4)
+def _snapshot(folder):
+    """Every file under ``folder`` and its bytes."""
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
 @pytest.mark.slow
-def test_ctrl_c_is_recorded_as_interrupted_and_the_run_resumes_on_its_schedule(tmp_path):
+def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tmp_path):
+    """Ctrl-C records the command that resumes the run (issue 22, case 6): the run's own
+    overrides. A resume that composes another config (the bare `ckpt_path=last hydra.run.dir=`,
+    or a longer schedule) and a new run pointed at the folder are refused before anything is
+    written, naming the differing keys; the printed command, run verbatim, completes the run."""
     out = tmp_path / "run"
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
-    }
+    env = _env_with_tests()
     stop = ["+callbacks.stop._target_=_faults.SigintAt", "+callbacks.stop.epoch=1"]
     proc = _train(out, "trainer.max_epochs=3", *stop, check=False, env=env)
     assert proc.returncode == 130, proc.stderr[-2000:]
     results = _results(out)
     assert results["status"] == "interrupted"
-    assert results["error"].startswith("KeyboardInterrupt: interrupted by the user (Ctrl-C)")
-    assert f"ckpt_path=last hydra.run.dir={out}" in results["error"]
+    hint = "KeyboardInterrupt: interrupted by the user (Ctrl-C); resume with "
+    assert results["error"].startswith(hint)
+    command = shlex.split(results["error"][len(hint) :])
+    assert command == ["resireg-train", *SMOKE, "trainer.max_epochs=3", *stop, "ckpt_path=last",
+                       f"hydra.run.dir={out}"]  # fmt: skip
     assert [h["epoch"] for h in results["history"]] == [0]
+    before = _snapshot(out)
 
-    # A longer schedule would jump the learning rate: refused, naming the key and the way out.
-    longer = _train(out, "trainer.max_epochs=5", "ckpt_path=last", check=False)
-    assert longer.returncode != 0
-    error = _results(out)["error"]
-    assert "trainer.max_epochs=5" in error and "planned for 3 epochs" in error
-    assert "model.init_from" in error
+    refused = {
+        "bare": run(
+            "resireg-train", "ckpt_path=last", f"hydra.run.dir={out}", check=False, env=env
+        ),
+        # a longer schedule would jump the learning rate
+        "longer": _train(
+            out, "trainer.max_epochs=5", *stop, "ckpt_path=last", check=False, env=env
+        ),
+        "fresh": _train(out, "trainer.max_epochs=3", check=False, env=env),
+    }
+    for name, proc in refused.items():
+        assert proc.returncode == 1, name
+        assert _snapshot(out) == before, name  # nothing under the run was rewritten
+        (line,) = [x for x in proc.stderr.splitlines() if x.startswith("resireg-train: refused")]
+        if name == "fresh":
+            assert (
+                f"hydra.run.dir={out} already holds a run ('smoke', status 'interrupted')" in line
+            )
+            continue
+        assert f"this command's config differs from the run's ({out}/.hydra/config.yaml)" in line
+        assert f"Resume with the run's own overrides: {shlex.join(command)};" in line
+        assert f"model.init_from={out}/checkpoints/last.ckpt" in line
+        if name == "longer":
+            assert "in 1 key(s): trainer.max_epochs=5 (the run: 3). " in line, line
+        else:  # the default config: the smoke experiment's values are named
+            assert "name='train' (the run: 'smoke')" in line and "and " in line, line
 
-    _train(out, "trainer.max_epochs=3", "ckpt_path=last")
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=600,
+                          env={**env, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
     results = _results(out)
     assert results["status"] == "completed" and results["error"] is None
     assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
@@ -219,20 +263,26 @@ def test_no_readable_checkpoint_fails_naming_the_files_and_the_options(tmp_path)
 # ------------------------------------------------------------------ batch-job logs (item 5)
 @pytest.mark.slow
 def test_train_log_and_piped_stdout_have_one_line_per_epoch_and_no_noise(two_epochs):
+    """One line per epoch in train.log and the piped stdout, numbered as the checkpoint files
+    are (from 0, as Lightning's bar; issue 22, case 13), no progress bar drawn into the pipe,
+    none of the silenced library messages."""
     out, proc = two_epochs
-    line = re.compile(r"epoch (\d)/2 \| train/logit_scale=\S+ train/loss=\S+ .*train/lr=\S+ .*"
+    line = re.compile(r"epoch (\d)/1 \| train/logit_scale=\S+ train/loss=\S+ .*train/lr=\S+ .*"
                       r"val/ovss/synthetic/miou_full=\S+ .*data/skipped_invalid=0 "
                       r"data/skipped_small=0 \| 4 steps \| [\d.]+ s$")  # fmt: skip
     logged = [
         m.group(1) for m in map(line.search, (out / "train.log").read_text().splitlines()) if m
     ]
-    assert logged == ["1", "2"]
+    assert logged == ["0", "1"]
     printed = [m.group(1) for m in map(line.search, proc.stdout.splitlines()) if m]
-    assert printed == ["1", "2"]
+    assert printed == ["0", "1"]
+    files = sorted(p.name for p in (out / "checkpoints").glob("epoch*.ckpt"))
+    assert files == [f"epoch00{n}.ckpt" for n in printed]
+    assert [h["epoch"] for h in _results(out)["history"]] == [int(n) for n in printed]
     said = proc.stdout + proc.stderr
     for noise in ("in eval mode at the start of training", "litlogger", "LeafSpec",
-                  "has `__len__` defined"):  # fmt: skip
-        assert noise not in said, noise
+                  "has `__len__` defined", "it/s", "Epoch 1/1"):  # fmt: skip
+        assert noise not in said, noise  # (the last two: a progress bar)
 
 
 def test_skipped_caption_examples_are_reported_once_per_epoch_with_the_epoch_totals(caplog):
@@ -250,11 +300,11 @@ def test_skipped_caption_examples_are_reported_once_per_epoch_with_the_epoch_tot
     with caplog.at_level("INFO"):
         callback.on_train_epoch_end(trainer, None)
     (line,) = [r.getMessage() for r in caplog.records if r.levelname == "INFO"]
-    assert re.fullmatch(r"epoch 2/3 \| train/loss=2\.5 data/skipped_invalid=3 "
+    assert re.fullmatch(r"epoch 1/2 \| train/loss=2\.5 data/skipped_invalid=3 "
                         r"data/skipped_small=2 \| 8 steps \| [\d.]+ s", line)  # fmt: skip
     (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert (
-        warning == "epoch 2: skipped 5 caption examples (invalid 3, small 2; all workers and ranks)"
+        warning == "epoch 1: skipped 5 caption examples (invalid 3, small 2; all workers and ranks)"
     )
 
 
@@ -310,3 +360,119 @@ def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
     cfg, taken = with_export_settings(sweep)
     assert cfg.variants[0] == "full@n_prototypes:24" and "variants" not in taken  # the sweep file
     assert with_export_settings(off) == (off, [])
+
+
+# ------------------------------------------------- nothing scored (issue 22, case 3)
+def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path, tiny_export):
+    """No image scored is no score: the run fails (non-zero exit through Hydra), its error
+    gives the counts and the first file, and results.json still names every skipped one."""
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.eval import NothingScoredError, evaluate
+    from resireg_train.cli.task import CONFIG_DIR
+
+    bad = poisoned_ade_folder(tmp_path / "ade")
+    for sub in ("images", "annotations"):
+        for f in (tmp_path / "ade" / sub / "validation").iterdir():
+            if f"{f.stem}.jpg" not in bad:
+                f.unlink()
+    out = tmp_path / "run"
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", overrides=[
+            f"model_path={tiny_export}", "dataset=ade20k", f"dataset.path={tmp_path / 'ade'}",
+            "dataset.short_side=32", "num_workers=0", "variants=[bb]", f"paths.output_dir={out}",
+        ])  # fmt: skip
+    with pytest.raises(NothingScoredError) as err:
+        evaluate(cfg)
+    first = sorted(bad)[0]
+    assert re.match(
+        rf"dataset=ade20k: no image was scored: 4 of 4 images skipped \(unreadable or invalid\); "
+        rf"the first: \S+/{first}: .*{bad[first]}",
+        str(err.value),
+    ), str(err.value)
+    results = _results(out)
+    assert results["status"] == "failed" and results["error"].endswith(str(err.value))
+    assert results["images"] == 0 and results["skipped"] == 4
+    # Its scores over nothing are NaN: null in the file (strict JSON, case 4), and listed.
+    assert set(results["final"].values()) == {None}
+    nan = results["non_finite"]["NaN"]
+    assert {"/final/" + k.replace("/", "~1") for k in results["final"]} <= set(nan)
+    assert {Path(s["file"]).name for s in results["skipped_samples"]} == set(bad)
+
+
+# ------------------------------------------- errors in the log files (issue 22, case 5)
+def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed_job(tmp_path):
+    """Config errors of a 3-job training multirun: each job's train.log holds its error, the
+    console shows no traceback for them (case 13) and ends with one line per failed job. A
+    crash (not a config error) puts its traceback into train.log as well."""
+    proc = run("resireg-train", "-m", *SMOKE, "model.optimizer.lr=-1,-2,-3",
+               f"paths.log_dir={tmp_path}", check=False)  # fmt: skip
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    (sweep,) = (tmp_path / "smoke" / "multirun").iterdir()
+    jobs = sorted(
+        (p for p in sweep.iterdir() if p.is_dir()), key=lambda p: int(p.name.split("_")[0])
+    )
+    tail = proc.stderr.strip().splitlines()[-4:]
+    assert tail[0] == (f"resireg-train: 3 of 3 jobs failed (sweep {sweep}; resireg-report {sweep} "
+                       "lists every job):")  # fmt: skip
+    for n, (line, job) in enumerate(zip(tail[1:], jobs, strict=True)):
+        lr = -(n + 1)
+        assert line == (
+            f"  job {n} ({job.name}): resireg_train.validation.ConfigError: invalid config: "
+            f"model.optimizer.lr={lr}: expected a number > 0; model.scheduler.min_lr=1e-05: "
+            f"expected <= model.optimizer.lr={lr}"
+        )
+        log = (job / "train.log").read_text()
+        assert f"run failed: resireg_train.validation.ConfigError: invalid config:\n  " \
+               f"model.optimizer.lr={lr}: expected a number > 0" in log, log  # fmt: skip
+        assert _results(job)["status"] == "failed"
+
+    out = tmp_path / "crash"
+    proc = _train(out, "trainer.max_epochs=1", "+callbacks.crash._target_=_faults.RaiseAt",
+                  check=False, env=_env_with_tests())  # fmt: skip
+    assert proc.returncode == 1 and "RuntimeError: injected crash" in proc.stderr
+    log = (out / "train.log").read_text()
+    assert re.search(r"\[ERROR\] - run failed: RuntimeError: injected crash\nTraceback \(most "
+                     r"recent call last\):\n(.*\n)*.*_faults\.py.*on_train_start", log), log  # fmt: skip
+
+
+# --------------------------------- a final status that cannot be written (issue 22, case 11)
+_RUN_TASK = (
+    "import sys\n"
+    "from omegaconf import OmegaConf\n"
+    "from resireg_train.cli.task import run_task\n"
+    "from resireg_train.results import update_results\n"
+    "def body(cfg, out):\n"
+    "    if sys.argv[2] == 'crash':\n"
+    "        raise RuntimeError('x' * 8000)  # a failure too long to record under the limit\n"
+    "    return update_results(out, status='completed', final={'m': 0.5}, pad='x' * 8000)\n"
+    "run_task(OmegaConf.create({'name': 'n', 'paths': {'output_dir': sys.argv[1]}}), body)\n"
+)
+
+
+@pytest.mark.parametrize("how", ["record", "crash"])
+def test_a_final_status_reaches_the_record_or_stderr_says_it_could_not(tmp_path, how):
+    """A process that may not write files over 4 KB (RLIMIT_FSIZE, as a nearly full disk):
+    its small `running` record is written, the large final one is not. `record`: the run
+    fails on that write and its `failed` status (short) reaches results.json. `crash`: the
+    `failed` record, holding a long error, cannot be written either: stderr says so, naming
+    the status the record still reads. Both exit non-zero."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _RUN_TASK, str(tmp_path), how], capture_output=True, text=True,
+        preexec_fn=_file_size_limit(4096), timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stderr[-2000:]
+    results = _results(tmp_path)
+    if how == "record":
+        assert results["status"] == "failed"
+        assert results["error"] == (f"resireg_train.files.WriteError: could not write the run "
+                                    f"record {tmp_path}/results.json: File too large")  # fmt: skip
+    else:
+        assert results["status"] == "running"
+        said = proc.stderr.splitlines()[0]
+        assert said.startswith(
+            f"error: could not record status 'failed' in {tmp_path}/results.json (could not "
+            f"write the run record {tmp_path}/results.json: File too large); it still reads "
+            "status 'running' although the run ended 'failed': RuntimeError: xxx"
+        ), said[:400]

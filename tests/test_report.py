@@ -2,6 +2,8 @@
 
 import csv
 import json
+import math
+import re
 import shlex
 import sys
 
@@ -14,6 +16,7 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
 from PIL import Image
 
 from _run import run
@@ -358,3 +361,111 @@ def test_one_job_per_batch_size_reports_what_one_job_per_setting_reports(tmp_pat
     assert grid_jobs.shape == (2, 2) and not grid_jobs.isna().to_numpy().any()
     pd.testing.assert_frame_equal(grid_jobs, grid_passes, check_exact=True)
     assert fit_jobs == fit_passes
+
+
+def test_a_one_encoder_table1_or_table2_sweep_still_writes_its_table(tmp_path):
+    """Issue 22, case 9: `sweep=table1 encoder=clip_vit_b16` (or table2) cut to one encoder
+    varies no encoder, and its table was not written."""
+    encoder = {"name": "clip_vit_b16", "kind": "clip", "third_party": True, "parameters": 150e6}
+    sweep = tmp_path / "table1"
+    for n, dataset in enumerate(("ade20k", "orad3d")):
+        final = {f"val/ovss/{dataset}/miou_{v}": 0.2 + 0.1 * i
+                 for i, v in enumerate(("bb", "calib", "lite", "full"))}  # fmt: skip
+        _job(sweep, n, {"sweep": "table1", "encoder": "clip_vit_b16", "dataset": dataset},
+             {"name": "table1", "status": "completed", "final": final, "encoder": encoder,
+              "params": {"dataset": {"name": dataset}, "encoder": encoder}})  # fmt: skip
+    files = report(sweep)
+    assert files["table1_md"].is_file()
+    (row,) = [r for r in _rows(files["table1_csv"]) if r["encoder"] == "clip_vit_b16"]
+    assert (
+        float(row["ade20k Full Δ"]) == pytest.approx(30.0) and row["orad3d status"] == "completed"
+    )
+
+    sweep = tmp_path / "table2"
+    final = {"val/scannet3d/scannet/miou_full": 0.3, "val/scannet3d/scannet/fmiou_full": 0.4}
+    _job(sweep, 0, {"sweep": "table2", "encoder": "clip_vit_b16"},
+         {"name": "table2", "status": "completed", "final": final, "encoder": encoder,
+          "params": {"task": "scannet3d", "variants": ["full"], "dataset": {"name": "scannet"},
+                     "encoder": encoder}})  # fmt: skip
+    files = report(sweep)
+    (row,) = _rows(files["table2_csv"])
+    assert row["model"] == "clip_vit_b16 + Full" and float(row["scannet mIoU"]) == 30.0
+    # A one-encoder sweep of another kind (the prototype ablation) gets no encoder table.
+    sweep = tmp_path / "ablation"
+    for n, b in enumerate((2, 4)):
+        _job(sweep, n, {"sweep": "prototype_batch", "batch_size": b},
+             {"name": "prototype_batch", "status": "completed", "final": {MIOU: 0.1 * n}})  # fmt: skip
+    assert "table1_md" not in report(sweep) and "table2_md" not in report(sweep)
+
+
+def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cover(tmp_path):
+    """Issue 22, case 10: a multi-line error (with a `|`) stays in its summary.md row; a
+    failed job's cells are empty in every table (never `nan`); the mean rows name the
+    encoders they average over."""
+    sweep = tmp_path / "table1"
+    error = ("resireg_train.validation.ConfigError: invalid config:\n  full.alpha=0: expected a "
+             "number > 0\n  lite.tau=2: expected a number in [0, 1] | or null")  # fmt: skip
+    jobs = [("ours", False, 0.25, None), ("clip", True, 0.5, None), ("radio", True, None, error)]
+    for n, (name, third, bb, err) in enumerate(jobs):
+        encoder = {"name": name, "third_party": third, "parameters": 1e6}
+        results = {"name": "table1", "encoder": encoder, "params": {"dataset": {"name": "ade20k"}}}
+        if err is None:
+            final = {
+                f"val/ovss/ade20k/miou_{v}": bb + 0.1 * i for i, v in enumerate(("bb", "full"))
+            }
+            results.update(status="completed", final=final)
+        else:
+            results.update(status="failed", error=err, final={"val/ovss/ade20k/miou_bb": math.nan})
+        _job(sweep, n, {"encoder": name, "dataset": "ade20k"}, results)
+    files = report(sweep)
+    summary = files["md"].read_text()
+    rows = [line for line in summary.splitlines() if line.startswith("|")]
+    assert len(rows) == 2 + 3  # header, rule, one line per job
+    flat = ("resireg_train.validation.ConfigError: invalid config: full.alpha=0: expected a number "
+            "> 0; lite.tau=2: expected a number in [0, 1] \\| or null")  # fmt: skip
+    cells = [c.strip() for c in re.split(r"(?<!\\)\|", rows[-1])[1:-1]]  # unescaped pipes
+    assert cells[:3] == ["2", "radio", "failed"] and cells[-1] == flat, cells
+    assert cells[3:-1] == [""] * (len(cells) - 4)  # its NaN score: an empty cell
+    assert f"- job 2 (2_encoder=radio,dataset=ade20k): **failed**: {flat.replace(chr(92), '')}" in (
+        summary
+    )
+    table1 = files["table1_md"].read_text()
+    for text in (summary, table1):
+        assert "nan" not in text.lower(), text
+    lines = {
+        line.split("|")[1].strip(): line for line in table1.splitlines() if line.count("|") > 3
+    }
+    radio = [c.strip() for c in lines["radio"].split("|")[1:-1]]
+    assert radio[3:-1] == [""] * (len(radio) - 4) and radio[-1] == "failed"  # cells empty
+    assert lines["mean Δ, all encoders"].rstrip(" |").endswith("over 2 of 3 (not radio: failed)")
+    assert (
+        lines["mean Δ, third-party encoders"]
+        .rstrip(" |")
+        .endswith("over 1 of 2 (not radio: failed)")
+    )
+    assert "Over the 2 of 3 encoder x dataset jobs that completed." in table1
+    csv_means = {r["encoder"]: r for r in _rows(files["table1_csv"])}
+    assert float(csv_means["mean Δ, all encoders"]["ade20k Full Δ"]) == pytest.approx(10.0)
+
+
+def test_the_job_counts_the_readme_and_the_sweep_files_state_are_the_sweeps_own():
+    """Issue 22, case 13: the README said Table 1 runs 8 encoders; it runs 10. The comment
+    after every `sweep=table1` / `sweep=table2 model_path=...` command of the README and the
+    sweep files (`# 10 encoders x 2 datasets`, `# 10 x 2 = 20 jobs`, `# Table 2: 10 jobs`)
+    matches the sweep's own axes."""
+    readme = (CONFIG_DIR.parent / "README.md").read_text().splitlines()
+    for name, datasets in (("table1", None), ("table2", 1)):  # table2: ScanNet alone
+        sweep = CONFIG_DIR / "sweep" / f"{name}.yaml"
+        params = OmegaConf.load(sweep).hydra.sweeper.params
+        axes = [len(str(params.encoder).split(",")),
+                datasets or len(str(params.dataset).split(","))]  # fmt: skip
+        lines = [x for x in readme + sweep.read_text().splitlines()
+                 if f"sweep={name} model_path=" in x]  # fmt: skip
+        assert len(lines) == 2, lines
+        for line in lines:
+            comment = line.rsplit("#", 1)[1].replace("Table 2:", "")
+            numbers = [int(n) for n in re.findall(r"\d+", comment)]
+            if "encoders x" in comment:
+                assert numbers == axes, line
+            else:
+                assert numbers[-1] == math.prod(axes), line

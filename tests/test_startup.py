@@ -53,3 +53,39 @@ def test_playground_answers_help_and_bad_arguments_before_torch_and_gradio():
     assert "--port=70000: expected 1..65535" in out.stderr
     assert "--encoder='nope': no such config" in out.stderr and "'clip_vit_b16'" in out.stderr
     assert "--model-path is required with --encoder='resireg_vlm'" in out.stderr
+
+
+def test_late_source_checks_answer_before_torch_loads(tmp_path):
+    """Issue 22, case 12: a model_path, model.init_from or --model-path that names no export
+    (or checkpoint) is reported by the config check, with torch never imported (it took 7-10 s,
+    after the model was built)."""
+    code = (
+        "import sys\n"
+        "script, *sys.argv[1:] = sys.argv[1:]\n"
+        "module = {'eval': 'resireg_train.cli.eval', 'train': 'resireg_train.cli.train',\n"
+        "          'playground': 'resireg_train.cli.playground'}[script]\n"
+        "main = __import__(module, fromlist=['main']).main\n"
+        "try:\n"
+        "    main()\n"
+        "except SystemExit as exit:\n"
+        "    print('exit', exit.code, 'torch' in sys.modules)\n"
+    )
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = {
+        "eval": (["model_path=/nope", "dataset=synthetic"],
+                 "model_path='/nope': '/nope' is not an export folder (and not a Hugging Face "
+                 "repo id 'owner/name')"),
+        "train": (["experiment=smoke", "+model.init_from=/nope"],
+                  "model.init_from='/nope': no such file or folder: expected a training "
+                  "checkpoint (<run>/checkpoints/last.ckpt) or an export folder (<run>/export)"),
+        "playground": (["--model-path", str(empty)],
+                       f"--model-path: '{empty}' holds no config.json (not a ResiregVLM export)"),
+    }  # fmt: skip
+    for script, (args, expected) in cases.items():
+        if script != "playground":
+            args = [*args, f"hydra.run.dir={tmp_path / script}"]
+        out = subprocess.run([sys.executable, "-c", code, script, *args], capture_output=True,
+                             text=True, timeout=120)  # fmt: skip
+        assert out.stdout.splitlines()[-1] in ("exit 1 False", "exit 2 False"), out.stdout
+        assert expected in out.stderr, (script, out.stderr[-2000:])

@@ -4,6 +4,7 @@ import csv
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -12,10 +13,11 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import evaluate_export
+from _run import _MODULES, evaluate_export, run
 from resireg.models import ResiregVLM
 from resireg_train.cli.task import CONFIG_DIR, optimized_value
 from resireg_train.cli.train import build, train
@@ -232,7 +234,7 @@ def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path)
     assert a["global_step"] == b["global_step"] == 12
     assert a["state_dict"].keys() == b["state_dict"].keys()
     # Equal up to float noise: the frozen text tower embeds a caption in a different batch
-    # after the resume (its cache starts empty), which moves results by ~1e-7.
+    # after the resume (its cache starts empty), ~1e-7, carried on by the remaining steps.
     for key in a["state_dict"]:
         torch.testing.assert_close(a["state_dict"][key], b["state_dict"][key], atol=1e-6, rtol=0)
     rows_a = _read_csv(tmp_path / "straight/metrics.csv")
@@ -253,6 +255,29 @@ def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path)
     assert optimized_value(cfg("x", "optimized_metric=train/loss"), results) == best
     with pytest.raises(KeyError, match="optimized_metric='val/nope'"):
         optimized_value(cfg("x", "optimized_metric=val/nope"), results)
+
+
+def test_without_the_caption_cache_a_resume_is_bitwise_the_uninterrupted_run(tmp_path):
+    """The guarantee a resume keeps (issue 22, case 13): with model.text.cache_size=0 each
+    batch embeds its own captions, so a run crashed after epoch 0 and resumed ends bit for
+    bit where the uninterrupted run does (with the cache it differs at float-rounding level,
+    see test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics)."""
+
+    def cfg(name, *extra):
+        return _compose("experiment=smoke", f"paths.output_dir={tmp_path / name}",
+                        "trainer.max_epochs=2", "data.steps_per_epoch=3",
+                        "model.text.cache_size=0", "~callbacks.progress_bar",
+                        "~callbacks.resireg_eval", *extra)  # fmt: skip
+
+    train(cfg("straight"))
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(cfg("resumed"), callbacks=[_CrashAt(1)])
+    train(cfg("resumed", "ckpt_path=last"))
+    a = torch.load(tmp_path / "straight/checkpoints/last.ckpt", weights_only=False)
+    b = torch.load(tmp_path / "resumed/checkpoints/last.ckpt", weights_only=False)
+    assert a["global_step"] == b["global_step"] == 6
+    assert a["state_dict"].keys() == b["state_dict"].keys()
+    assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
 
 
 def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
@@ -354,6 +379,48 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path):
     assert len(errors) == 3  # each run recorded its own failure in its own folder
 
 
+def test_sweeps_started_in_the_same_second_get_their_own_sweep_folders(tmp_path, tiny_export):
+    """Two `resireg-eval -m` and two `resireg-train -m` started together (issue 22, case 2):
+    every sweep folder carries the run id, so no two share one: each eval job writes its own
+    results.json and eval.log, and no training job is refused a folder another sweep took
+    (each records its own config error, not a FileExistsError)."""
+
+    def start(script, *args):
+        exe = shutil.which(script)
+        cmd = [exe] if exe else [sys.executable, "-m", _MODULES[script]]
+        return subprocess.Popen([*cmd, "-m", *args, f"paths.log_dir={tmp_path}"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                env={**os.environ, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+
+    evals = [start("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+                   "dataset.size=4", "num_workers=0", "variants=[bb]", f"seed={i}",
+                   "batch_size=2,4") for i in (1, 2)]  # fmt: skip
+    trains = [start("resireg-train", "experiment=smoke", f"model.optimizer.lr=-{i},-{i}.5")
+              for i in (1, 2)]  # fmt: skip
+    outputs = [p.communicate(timeout=600)[0] for p in evals + trains]
+    assert [p.returncode for p in evals] == [0, 0], outputs[0][-2000:] + outputs[1][-2000:]
+    for name, seeds in (("eval", {1, 2}), ("smoke", None)):
+        sweeps = sorted((tmp_path / name / "multirun").iterdir())
+        assert len(sweeps) == 2 and all(re.search(r"_[0-9a-f]{6}$", s.name) for s in sweeps), sweeps
+        jobs = [j for s in sweeps for j in sorted(s.iterdir()) if j.is_dir()]
+        assert len(jobs) == 4, jobs
+        results = [json.loads((j / "results.json").read_text()) for j in jobs]
+        if name == "eval":
+            assert all(r["status"] == "completed" for r in results)
+            for sweep in sweeps:  # a sweep's jobs share its seed; the other sweep's never
+                (seed,) = {
+                    yaml.safe_load((j / ".hydra" / "config.yaml").read_text())["seed"]
+                    for j in sweep.iterdir() if j.is_dir()
+                }  # fmt: skip
+                seeds.discard(seed)
+            assert seeds == set()
+            assert all((j / "eval.log").read_text().count("output dir:") == 1 for j in jobs)
+        else:
+            errors = [r["error"] for r in results]
+            assert all("model.optimizer.lr=" in e and "expected a number > 0" in e
+                       for e in errors), errors  # fmt: skip
+
+
 def test_a_new_run_refuses_a_folder_that_holds_another_run(tmp_path):
     """A hand-pointed hydra.run.dir: the second fresh run stops before touching anything,
     so the two never append to one metrics.csv; resuming the folder is allowed."""
@@ -365,3 +432,39 @@ def test_a_new_run_refuses_a_folder_that_holds_another_run(tmp_path):
         train(cfg)
     assert (tmp_path / "metrics.csv").read_text() == "step,train/loss\n0,2.5\n"
     assert json.loads((tmp_path / "results.json").read_text())["status"] == "running"
+
+
+def test_keys_nothing_reads_are_errors_naming_the_known_key(tmp_path, tiny_export):
+    """Issue 22, case 8: Hydra's hint after `batchsize=4` is `+batchsize=4`; the added key
+    is refused (not silently ignored), with the key the user meant, from the command line
+    and from a config file alike; the keys `+` may add (a stage-2 start, a Trainer argument)
+    are not."""
+    proc = run("resireg-eval", "+batchsize=4", f"model_path={tiny_export}", "dataset=synthetic",
+               f"hydra.run.dir={tmp_path / 'eval'}", check=False)  # fmt: skip
+    assert proc.returncode == 1
+    expected = "batchsize=4: no such key, nothing would read it (did you mean batch_size?)"
+    assert expected in proc.stderr, proc.stderr[-2000:]
+    results = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert results["status"] == "failed" and expected in results["error"]
+
+    proc = run("resireg-train", "experiment=smoke", "+batchsize=4", "+model.init_from=/x.ckpt",
+               "+trainer.detect_anomaly=false", "+model.loss.contrastive.scal=2",
+               f"hydra.run.dir={tmp_path / 'train'}", check=False)  # fmt: skip
+    error = json.loads((tmp_path / "train" / "results.json").read_text())["error"]
+    assert proc.returncode == 1 and error.splitlines()[1:] == [
+        "  batchsize=4: no such key, nothing would read it (did you mean data.batch_size?); "
+        "set existing keys without +",
+        "  model.loss.contrastive.scal=2: no such key, nothing would read it (did you mean "
+        "model.loss.contrastive.scale?); set existing keys without +",
+    ], error
+
+    experiment = tmp_path / "conf" / "experiment"
+    experiment.mkdir(parents=True)
+    smoke = (CONFIG_DIR / "experiment" / "smoke.yaml").read_text()
+    (experiment / "typo.yaml").write_text(smoke + "\nbatchsize: 4\n")
+    proc = run("resireg-train", "--config-dir", tmp_path / "conf", "experiment=typo",
+               f"hydra.run.dir={tmp_path / 'file'}", check=False)  # fmt: skip
+    assert proc.returncode == 1
+    assert "batchsize=4: no such key, nothing would read it (did you mean data.batch_size?)" in (
+        proc.stderr
+    ), proc.stderr[-2000:]

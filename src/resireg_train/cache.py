@@ -19,11 +19,20 @@ images were added or renamed) is a miss and is encoded again.
 
 **Layout.** ``shard-<writer>-<n>.safetensors`` holds the tensors of up to ``shard_images``
 images (``<index>/intermediates``, ``<index>/language``, ``<index>/layer/<block>`` for each
-block of the key, in the dtype the encoder produced)
-and ``shard-<writer>-<n>.json`` lists them. Both are written atomically (temporary file,
+block of the key, in the dtype the encoder produced) and ``shard-<writer>-<n>.json`` lists
+them, with the shard's size and BLAKE2b digest. Both are written atomically (temporary file,
 then rename; the listing after its shard), so concurrent jobs filling the same folder never
 see a partial shard and never overwrite each other's files. A job interrupted mid-dataset
 leaves its complete shards behind, and the next job encodes only what is missing.
+
+**Integrity.** Atomic writes guard against crashes, not against what happens to a file
+later (a bad disk block, a copy cut short, a user's tool). Every shard is therefore checked
+against its listing's size and digest when a job first reads from it, before any tensor of
+it is used: a shard that differs (or that safetensors cannot parse, or that lacks a listed
+tensor) is *damaged*. It is named in a warning and in ``summary()["damaged"]``
+(``results.json``), set aside as ``<shard>.damaged`` (its listing removed, so no later job
+reads it), and its images count as missing: they are encoded again, so the scores equal
+those of a clean cache.
 
 Why not ``datasets``' own cache: its Arrow rows would have to hold ``[D, h, w]`` tensors of
 differing grid sizes as nested lists, and its fingerprint is of the processing function, not
@@ -34,6 +43,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import uuid
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -49,10 +59,24 @@ from resireg.models import DenseOutput
 from resireg.models.encoders import encoder_modules
 from resireg_train.files import write_atomic
 
-__all__ = ["FeatureCache", "weights_fingerprint"]
+__all__ = ["FeatureCache", "file_digest", "weights_fingerprint"]
 
-_FORMAT = 1
+log = logging.getLogger(__name__)
+
+#: 2: listings carry the shard's size and digest (folders of format 1 are never read).
+_FORMAT = 2
 _FIELDS = ("intermediates", "language")
+_CHUNK = 1 << 22  # bytes hashed per read: 4 MiB
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """BLAKE2b (16-byte) hex digest of a file's bytes, read in chunks (a shard can be
+    hundreds of MB; ``hashlib.file_digest`` needs Python 3.11)."""
+    digest = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        while chunk := f.read(_CHUNK):
+            digest.update(chunk)
+    return digest.hexdigest()
 
 
 def weights_fingerprint(encoder: torch.nn.Module) -> str:
@@ -107,7 +131,10 @@ class FeatureCache:
         self._shards_written = 0
         self._pending: dict[int, dict[str, Tensor]] = {}
         self._entries: dict[int, tuple[str, str]] = {}  # index -> (shard file, file name)
-        self._handles: dict[str, Any] = {}
+        self._expected: dict[str, tuple[int, str]] = {}  # shard -> (size, digest) as listed
+        self._handles: dict[str, Any] = {}  # shards verified and opened
+        self._bad: set[str] = set()  # shards found damaged (never read again by this job)
+        self.damaged: list[dict[str, str]] = []  # [{"file", "reason"}] found by this job
         self.hits = 0
         self.misses = 0
         self.bytes_written = 0
@@ -144,25 +171,72 @@ class FeatureCache:
         """Read the listings of every complete shard in the folder (other jobs' included)."""
         for listing in sorted(self.folder.glob("shard-*.json")):
             shard = listing.with_suffix(".safetensors").name
+            if shard in self._bad:
+                continue
             try:
-                files = json.loads(listing.read_text())["images"]
-            except (OSError, ValueError, KeyError):
+                content = json.loads(listing.read_text())
+                files, size, digest = content["images"], int(content["bytes"]), content["blake2b"]
+            except (OSError, ValueError, KeyError, TypeError):
                 continue  # unreadable listing: its images count as missing
+            self._expected.setdefault(shard, (size, str(digest)))
             for index, name in files.items():
                 self._entries.setdefault(int(index), (shard, name))
 
     def __len__(self) -> int:
         return len(self._entries)
 
+    def _open(self, shard: str) -> Any:
+        """The shard's safetensors handle, after checking its size and digest against its
+        listing (once per shard and job); ``None`` if it is damaged (see :meth:`_damaged`)."""
+        handle = self._handles.get(shard)
+        if handle is not None:
+            return handle
+        path = self.folder / shard
+        size, digest = self._expected[shard]
+        try:
+            actual = path.stat().st_size
+            if actual != size:
+                return self._damaged(shard, f"{actual} bytes, its listing says {size}")
+            if file_digest(path) != digest:
+                return self._damaged(shard, "content differs from its listing's digest")
+            handle = safe_open(path, framework="pt")
+        except Exception as err:  # noqa: BLE001 - I/O and safetensors parse errors alike
+            return self._damaged(shard, f"unreadable ({type(err).__name__}: {err})")
+        self._handles[shard] = handle
+        return handle
+
+    def _damaged(self, shard: str, reason: str) -> None:
+        """Record a damaged shard, warn naming it, set it aside (``<shard>.damaged``, listing
+        removed) and forget its images, which are then encoded again; other shards listing
+        the same images (a concurrent job's) take their place."""
+        path = self.folder / shard
+        self._bad.add(shard)
+        self.damaged.append({"file": str(path), "reason": reason})
+        log.warning("feature cache: damaged shard %s (%s); set aside as %s.damaged, its images "
+                    "are encoded again", path, reason, shard)  # fmt: skip
+        try:  # set aside, for a look; another job may have done so already
+            path.with_suffix(".json").unlink(missing_ok=True)
+            path.replace(path.with_name(f"{shard}.damaged"))
+        except OSError:
+            pass
+        self._entries = {i: e for i, e in self._entries.items() if e[0] != shard}
+        self._expected.pop(shard, None)
+        self.refresh()
+        return None
+
     def _tensors(self, index: int) -> tuple[Tensor, ...] | None:
         entry = self._entries.get(index)
         if entry is None or entry[1] != self.describe(index):
             return None
-        shard, _ = entry
-        handle = self._handles.get(shard)
+        shard = entry[0]
+        handle = self._open(shard)
         if handle is None:
-            handle = self._handles[shard] = safe_open(self.folder / shard, framework="pt")
-        return tuple(handle.get_tensor(f"{index}/{f}") for f in self._fields())
+            return None
+        try:
+            return tuple(handle.get_tensor(f"{index}/{f}") for f in self._fields())
+        except Exception as err:  # noqa: BLE001 - a listed tensor the shard does not hold
+            self._handles.pop(shard, None)
+            return self._damaged(shard, f"unreadable ({type(err).__name__}: {err})")
 
     def get(self, indices: Sequence[int], device: torch.device | str = "cpu") -> DenseOutput | None:
         """The stored outputs of the images ``indices`` stacked as one batch on ``device``
@@ -208,7 +282,10 @@ class FeatureCache:
         data = save(tensors)
         write_atomic(self.folder / f"{stem}.safetensors", data, "feature cache shard")
         files = {str(i): self.describe(i) for i in self._pending}
-        write_atomic(self.folder / f"{stem}.json", json.dumps({"images": files}), "cache listing")
+        digest = hashlib.blake2b(data, digest_size=16).hexdigest()
+        listing = {"images": files, "bytes": len(data), "blake2b": digest}
+        write_atomic(self.folder / f"{stem}.json", json.dumps(listing), "cache listing")
+        self._expected[f"{stem}.safetensors"] = (len(data), digest)
         self.bytes_written += len(data)
         for index in self._pending:
             self._entries[index] = (f"{stem}.safetensors", files[str(index)])
@@ -227,4 +304,6 @@ class FeatureCache:
             "misses": self.misses,
             "bytes_written": self.bytes_written,
             "disk_bytes": self.disk_bytes(),
+            "damaged_shards": len(self.damaged),
+            "damaged": list(self.damaged),
         }

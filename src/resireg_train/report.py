@@ -13,7 +13,8 @@ with its status and error. Writes, into the sweep folder (or ``--out``):
   ``val/scannet3d/...``): ``heatmap.png`` (batch size x prototype count, mIoU of ReSiReg Full) and
   ``prototype_heuristic.json``: ``n(B)`` fitted to the best prototype count of every
   batch size, loadable by ``ReSiRegFull(n_prototypes="auto", heuristic=PATH)``.
-- For encoder sweeps: ``table1.md`` / ``.csv`` (2D OVSS, the paper's Table 1) or, for
+- For encoder sweeps (the encoder varies, or ``sweep=table1`` / ``table2`` cut to one
+  encoder): ``table1.md`` / ``.csv`` (2D OVSS, the paper's Table 1) or, for
   ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
@@ -38,7 +39,7 @@ import yaml
 from resireg.heuristic import PrototypeHeuristic
 from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import parse_variant
-from resireg_train.results import RESULTS_FILE, metric_mode, read_results
+from resireg_train.results import RESULTS_FILE, flat, metric_mode, read_results
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -55,6 +56,7 @@ __all__ = [
     "layer_sweep_figure",
     "layer_sweep_table",
     "mapping_table",
+    "markdown",
     "protocol_lines",
     "plot_curves",
     "plot_heatmap",
@@ -112,6 +114,19 @@ def collect(sweep_dir: str | Path) -> list[Job]:
             "pass the multirun folder, e.g. outputs/<name>/multirun/<time>"
         )
     return sorted(jobs, key=lambda j: j.number)
+
+
+def markdown(frame: pd.DataFrame, floatfmt: str, index: bool = False) -> str:
+    """``frame`` as a Markdown table, rendered one way in every table of the report: text on
+    one line (a multi-line error would split its row) with ``|`` escaped, and a missing value
+    (NaN, ``None``: a job that did not complete, a mean over nothing) as an empty cell."""
+
+    def cell(value: Any) -> Any:
+        return flat(value).replace("|", "\\|") if isinstance(value, str) else value
+
+    shown = frame.map(cell)
+    shown = shown.astype(object).where(shown.notna(), None)  # tabulate blanks None, not NaN
+    return shown.to_markdown(index=index, floatfmt=floatfmt, missingval="")
 
 
 def _varying(jobs: list[Job]) -> list[str]:
@@ -415,9 +430,19 @@ def _per_encoder(
     return out, datasets
 
 
+#: The sweeps (``conf/sweep/``, also their run ``name``) whose report is an encoder table.
+ENCODER_SWEEPS = ("table1", "table2")
+
+
 def is_encoder_sweep(jobs: list[Job]) -> bool:
-    """Jobs of ``resireg-eval`` that vary the encoder (``sweep=table1``)."""
-    return "encoder" in _varying(jobs)
+    """Jobs of ``resireg-eval`` that vary the encoder, or of an encoder-table sweep
+    (``sweep=table1`` / ``table2``) cut to one encoder on the command line."""
+    if "encoder" in _varying(jobs):
+        return True
+    return any(
+        j.overrides.get("sweep") in ENCODER_SWEEPS or j.results.get("name") in ENCODER_SWEEPS
+        for j in jobs
+    )
 
 
 def encoder_table(jobs: list[Job]) -> pd.DataFrame:
@@ -458,12 +483,24 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
     deltas = [c for c in columns if c.endswith(" Δ")]
     third_party = table["third_party"].fillna(False).astype(bool)
     averages = []
-    for label, mask in (("mean Δ, all encoders", slice(None)),
+    for label, mask in (("mean Δ, all encoders", pd.Series(True, index=table.index)),
                         ("mean Δ, third-party encoders", third_party)):  # fmt: skip
-        averages.append(
-            {"encoder": label, **table.loc[mask, deltas].astype(float).mean().to_dict()}
-        )
+        row = {"encoder": label, **table.loc[mask, deltas].astype(float).mean().to_dict()}
+        for dataset in datasets:  # which encoders the means of this dataset cover
+            row[f"{dataset} status"] = _covered(table.loc[mask], dataset)
+        averages.append(row)
     return pd.concat([table, pd.DataFrame(averages)], ignore_index=True).reindex(columns=columns)
+
+
+def _covered(rows: pd.DataFrame, dataset: str) -> str:
+    """``"over 2 of 3 (not x: failed)"``: the encoders of ``rows`` whose ``dataset`` job
+    completed (only they have deltas), and those left out with their status."""
+    statuses = rows[f"{dataset} status"].fillna("missing")
+    left = [f"{e}: {s}" for e, s in zip(rows["encoder"], statuses, strict=True) if s != "completed"]
+    done = len(rows) - len(left)
+    if not left:
+        return f"over all {done}" if done else "no encoder"
+    return f"over {done} of {len(rows)} (not {', '.join(left)})"
 
 
 def method_means(table: pd.DataFrame) -> pd.DataFrame:
@@ -489,15 +526,22 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     table.to_csv(files["table1_csv"], index=False)
     shown = table.copy()
     shown["third_party"] = shown["third_party"].map({True: "yes", False: "no (ours)"})
-    shown = shown.astype(object).where(shown.notna(), None)  # tabulate blanks None, not NaN
+    body = table[~table["encoder"].str.startswith("mean Δ")]
+    statuses = body[[c for c in body.columns if c.endswith(" status")]].stack()
     lines = [
         "# ReSiReg across encoders (mIoU x100; Δ = method - BB)",
         "",
-        shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+        "Deltas and their means are over the jobs that completed; a mean row's status column "
+        "says which encoders it covers.",
+        "",
+        markdown(shown, floatfmt=".1f"),
         "",
         "## Mean Δ per method (over encoders and datasets)",
         "",
-        method_means(table).to_markdown(floatfmt="+.2f"),
+        f"Over the {int((statuses == 'completed').sum())} of {len(statuses)} encoder x dataset "
+        "jobs that completed.",
+        "",
+        markdown(method_means(table), floatfmt="+.2f", index=True),
         "",
         *protocol_lines(jobs),
     ]
@@ -578,12 +622,11 @@ def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     files = {"table2_csv": out / "table2.csv", "table2_md": out / "table2.md"}
     table.to_csv(files["table2_csv"], index=False)
     shown = table.drop(columns=["encoder", "variant", "third_party"])
-    shown = shown.astype(object).where(shown.notna(), None)
     lines = [
         "# 3D semantic mapping on ScanNet (x100; mIoU / f-mIoU: mean over scenes; pooled: one "
         "confusion over the voxels of all scenes)",
         "",
-        shown.to_markdown(index=False, floatfmt=".1f", missingval=""),
+        markdown(shown, floatfmt=".1f"),
         "",
         *protocol_lines(jobs),
     ]
@@ -697,9 +740,7 @@ def write_layer_sweep(jobs: list[Job], out: Path) -> dict[str, Path]:
                                   aggfunc="max", dropna=False)  # fmt: skip
         grid = grid[sorted(grid.columns, key=_variant_order)]
         grid = grid.rename(columns=lambda v: METHOD_NAMES.get(v, v))
-        shown = grid.astype(object).where(grid.notna(), None)
-        lines += ["", f"## {encoder} / {dataset}", "",
-                  shown.to_markdown(floatfmt=".1f", missingval="")]  # fmt: skip
+        lines += ["", f"## {encoder} / {dataset}", "", markdown(grid, floatfmt=".1f", index=True)]
         bb = part.loc[part["block"].isna() & (part["variant"] == "bb"), "miou"].dropna()
         if not bb.empty:
             lines += ["", f"BB (no intermediates): {float(bb.iloc[0]):.1f}."]
@@ -737,7 +778,7 @@ def report(
         "",
         "Common overrides: " + (", ".join(f"`{k}={v}`" for k, v in constant.items()) or "none"),
         "",
-        table.fillna({"error": ""}).to_markdown(index=False, floatfmt=".4f"),
+        markdown(table, floatfmt=".4f"),
     ]
     if is_encoder_sweep(jobs) and is_mapping_sweep(jobs):
         files.update(write_mapping_table(jobs, out))
@@ -749,7 +790,11 @@ def report(
         grid = prototype_grid(jobs, metric)
         files["heatmap"] = out / "heatmap.png"
         plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
-        lines += ["", f"## {metric}: batch size x prototypes", "", grid.to_markdown(floatfmt=".4f"),
+        cells = grid.map(lambda v: f"{v:.4f}").where(
+            grid.notna(), grid_statuses(jobs, metric, grid)
+        )
+        lines += ["", f"## {metric}: batch size x prototypes", "", "A cell without a value reads "
+                  "its job's status.", "", markdown(cells, floatfmt=".4f", index=True),
                   "", *protocol_lines(jobs)]  # fmt: skip
         if grid.notna().to_numpy().any():
             heuristic, best = fit_heuristic(grid)
@@ -775,6 +820,7 @@ def report(
     failed = [j for j in jobs if j.status != "completed"]
     if failed:
         lines += ["", "## Jobs that did not complete", ""]
-        lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {j.error}" for j in failed]
+        lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {flat(j.error or '')}"
+                  for j in failed]  # fmt: skip
     files["md"].write_text("\n".join(lines) + "\n")
     return files

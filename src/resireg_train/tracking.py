@@ -10,7 +10,9 @@ at the end of every epoch, so an interrupted or failed run still reports how far
      "history": [{"epoch": 0, "step": 8, "train/loss": 2.7, ...}, ...]}
 
 "Best" is the minimum for losses and the maximum for accuracies, retrieval and IoU metrics;
-other values (learning rate, logit scale, skip counts) are reported as final only.
+other values (learning rate, logit scale, skip counts) are reported as final only. The file is
+strict JSON: a NaN or infinite value is written as ``null`` and listed under ``non_finite``
+(:mod:`resireg_train.results`).
 """
 
 from __future__ import annotations

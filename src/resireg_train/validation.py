@@ -14,12 +14,16 @@ imports torch when it runs).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
+import difflib
+import os
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
 
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
+from resireg.sources import export_source_problem
 from resireg.variant_names import (
     LITE_ATTENTION,
     PRIOR_VARIANTS,
@@ -30,12 +34,18 @@ from resireg.variant_names import (
 )
 
 __all__ = [
+    "ADDABLE",
     "ConfigError",
+    "ENCODER_IMPORTS",
     "ENCODER_REPORT_KEYS",
     "PRECISIONS",
     "TASKS",
     "check_devices",
+    "check_available",
+    "encoder_import_errors",
     "encoder_kwargs",
+    "init_from_problem",
+    "unknown_key_errors",
     "validate",
     "validate_eval",
 ]
@@ -59,6 +69,81 @@ _ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt", "tips", "
 #: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
 #: of ``resireg.models.build_encoder``.
 ENCODER_REPORT_KEYS = ("name", "third_party")
+
+
+class Needs(NamedTuple):
+    """A module an encoder's code imports: the pip distribution that provides it, who imports
+    it, and when (``None``: always; else a test of the encoder entry)."""
+
+    module: str
+    dist: str
+    who: str
+    when: Callable[[dict], bool] | None = None
+
+
+_SIGLIP = "NVlabs/RADIO radio/siglip2_adaptor.py (its SigLIP 2 adaptors)"
+_RADIO = (
+    Needs("einops", "einops", "NVlabs/RADIO hubconf.py (dependencies) and radio/*.py"),
+    Needs(
+        "distutils",
+        "setuptools",
+        "NVlabs/RADIO radio/extra_models.py (Python >= 3.12: setuptools provides distutils)",
+    ),
+)
+_BPE = "facebookresearch/dinov2 dinov2/thirdparty/CLIP (the dino.txt BPE tokenizer)"
+#: What an encoder kind imports beyond the core install: its own code in ``resireg.models``
+#: and the upstream hub code it loads, read in those repositories (NVlabs/RADIO ``hubconf.py``
+#: and ``radio/``; RADSeg-OVSS/RADSeg ``hubconf.py`` and ``radseg/``, which loads NVlabs/RADIO;
+#: facebookresearch/dinov2 ``hubconf.py`` and ``dinov2/``). The ``encoders`` extra installs
+#: them all (pyproject.toml lists them beside each encoder); :func:`encoder_import_errors`
+#: (through :func:`check_available`) checks them before a model loads. ``clip`` and
+#: ``resireg_vlm`` need only the core.
+ENCODER_IMPORTS: dict[str, tuple[Needs, ...]] = {
+    "radio": (
+        *_RADIO,
+        Needs("transformers", "transformers", _SIGLIP, lambda e: e.get("adaptor") != "clip"),
+    ),
+    "radseg": (
+        Needs("segment_anything", "segment-anything", "RADSeg hubconf.py, radseg/radseg.py"),
+        Needs("skimage", "scikit-image", "RADSeg radseg/sam_utils.py"),
+        Needs("typing_extensions", "typing-extensions", "RADSeg radseg/base.py, radseg.py"),
+        *_RADIO,
+        Needs("transformers", "transformers", f"{_SIGLIP}, which RADSeg loads"),
+    ),
+    "dinotxt": (
+        Needs("ftfy", "ftfy", _BPE),
+        Needs("regex", "regex", _BPE),
+        Needs(
+            "requests",
+            "requests",
+            "facebookresearch/dinov2 dinov2/hub/dinotxt.py "
+            "get_tokenizer (downloads the vocabulary: vocab=null)",
+            lambda e: e.get("vocab") is None,
+        ),
+    ),
+    "tips": (Needs("sentencepiece", "sentencepiece", "resireg.models.tips (its tokenizer)"),),
+    "otas": (Needs("sklearn", "scikit-learn", "resireg.models.otas (k-means)"),),
+}
+
+
+def encoder_import_errors(entry: Any, key: str = "encoder") -> list[str]:
+    """One message per module the encoder ``entry`` needs (:data:`ENCODER_IMPORTS`) that is
+    not installed (found with ``importlib.util.find_spec``, nothing is imported), naming who
+    imports it and the extra that installs it."""
+    import importlib.util
+
+    if not isinstance(entry, dict):
+        return []
+    errors = []
+    for module, dist, who, when in ENCODER_IMPORTS.get(entry.get("kind"), ()):
+        if when is not None and not when(entry):
+            continue
+        if importlib.util.find_spec(module) is None:
+            errors.append(
+                f"{key}.kind={entry.get('kind')!r}: {who} imports {module}, which is not "
+                f'installed: pip install -e ".[encoders]" (or pip install {dist})'
+            )
+    return errors
 
 
 def encoder_kwargs(entry: Any) -> dict[str, Any]:
@@ -297,15 +382,87 @@ def _errors(cfg: DictConfig, rules: dict[str, Rule]) -> list[str]:
     return errors
 
 
+#: Where a ``+key=value`` override may add a key (a new callback or logger, a Lightning
+#: ``Trainer`` or optimizer argument: their constructors reject unknown ones; the stage-2 start,
+#: README "Stage 2"), per entry point; ``_CLOSED`` parts of them are read key by key.
+ADDABLE = {
+    "train": ("callbacks.", "logger.", "trainer.", "model.optimizer.", "model.init_from"),
+    "eval": (),
+}
+_CLOSED = ("callbacks.resireg_eval.",)
+
+
+def _addable(key: str, addable: Sequence[str]) -> bool:
+    if key.startswith(_CLOSED):
+        return False
+    return any(key == a or (a.endswith(".") and key.startswith(a)) for a in addable)
+
+
+def _nearest(key: str, known: Iterable[str], everywhere: Iterable[str] = ()) -> str:
+    """`` (did you mean x?)``: the known sibling closest to ``key``'s last part, else the key
+    anywhere in the config (``everywhere``: dotted keys) whose last part is closest; or ``""``."""
+    parent, _, name = key.rpartition(".")
+    match = difflib.get_close_matches(name, [k for k in known if k != name], n=1, cutoff=0.6)
+    if match:
+        return f" (did you mean {f'{parent}.' if parent else ''}{match[0]}?)"
+    by_name: dict[str, str] = {}
+    for full in sorted(everywhere, key=lambda k: (k.count("."), k)):  # the shallowest first
+        if full != key:
+            by_name.setdefault(full.rpartition(".")[2], full)
+    match = difflib.get_close_matches(name, list(by_name), n=1, cutoff=0.6)
+    return f" (did you mean {by_name[match[0]]}?)" if match else ""
+
+
+def _paths(node: Any, prefix: str = "") -> list[str]:
+    """Every dotted key of a plain nested dict (inner nodes included)."""
+    if not isinstance(node, dict):
+        return []
+    return [p for k, v in node.items() for p in (f"{prefix}{k}", *_paths(v, f"{prefix}{k}."))]
+
+
+def unknown_key_errors(
+    cfg: DictConfig,
+    added: Iterable[str] = (),
+    addable: Sequence[str] = (),
+    top_level: Iterable[str] | None = None,
+) -> list[str]:
+    """Keys that nothing reads, each named with the closest known one: every key a ``+``
+    override added (``added``) outside ``addable`` sections (``+batchsize=4`` next to
+    ``batch_size``), and, given ``top_level`` (the top-level keys ``conf/`` defines), every
+    top-level key outside it, wherever it came from (an experiment, a sweep, a user's file)."""
+    errors = []
+    everywhere = _paths(OmegaConf.to_container(cfg, resolve=False))
+    for key in added:
+        if _addable(key, addable):
+            continue
+        parent = key.rpartition(".")[0]
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        siblings = [str(k) for k in node.keys()] if OmegaConf.is_dict(node) else []
+        hint = _nearest(key, siblings, everywhere)
+        errors.append(f"{key}={_get(cfg, key)!r}: no such key, nothing would read it{hint}; "
+                      "set existing keys without +")  # fmt: skip
+    if top_level is not None:
+        known = set(top_level)
+        for key in cfg:
+            if key not in known and key not in added:
+                hint = _nearest(str(key), known, everywhere)
+                errors.append(f"{key}={_get(cfg, str(key))!r}: no such key, nothing would read "
+                              f"it{hint}")  # fmt: skip
+    return errors
+
+
 def _device_errors(
     key: str, device: Any, fix: str = "use cpu, or auto to take a GPU only where there is one"
 ) -> list[str]:
-    """A device this machine does not have (checked before any model is built)."""
-    import torch
-
+    """A device this machine does not have (checked before any model is built; torch is
+    imported only to ask about a GPU or MPS)."""
     if not isinstance(device, str):
         return []
     kind, _, index = device.partition(":")
+    if kind not in ("cuda", "gpu", "mps"):
+        return []
+    import torch
+
     if kind in ("cuda", "gpu"):
         if not torch.cuda.is_available():
             return [f"{key}={device!r}: this machine has no CUDA GPU "
@@ -319,11 +476,14 @@ def _device_errors(
     return []
 
 
-def validate_eval(cfg: DictConfig | dict) -> None:
-    """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing all."""
+def validate_eval(
+    cfg: DictConfig | dict, added: Iterable[str] = (), top_level: Iterable[str] | None = None
+) -> None:
+    """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing
+    all. ``added`` and ``top_level``: see :func:`unknown_key_errors`."""
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
-    errors = _errors(cfg, _EVAL_RULES)
+    errors = unknown_key_errors(cfg, added, ADDABLE["eval"], top_level) + _errors(cfg, _EVAL_RULES)
     if _get(cfg, "encoder.kind") == "resireg_vlm" and not _get(cfg, "model_path"):
         errors.append(
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
@@ -355,15 +515,18 @@ def validate_eval(cfg: DictConfig | dict) -> None:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
 
 
-def validate(cfg: DictConfig | dict) -> None:
+def validate(
+    cfg: DictConfig | dict, added: Iterable[str] = (), top_level: Iterable[str] | None = None
+) -> None:
     """Check value types and ranges of a training config; raise :class:`ConfigError` listing all.
 
     Also checks the cross-field rules: ``min_lr <= lr``, ``logit_scale.init <= max``, a
-    teacher config whenever the distillation scale is > 0, and a source ``probability`` > 0.
+    teacher config whenever the distillation scale is > 0, and a source ``probability`` > 0;
+    and keys nothing reads (``added``, ``top_level``: see :func:`unknown_key_errors`).
     """
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
-    errors = _errors(cfg, _RULES)
+    errors = unknown_key_errors(cfg, added, ADDABLE["train"], top_level) + _errors(cfg, _RULES)
     values = {k: _get(cfg, k) for k in (
         "model.optimizer.lr", "model.scheduler.min_lr", "model.logit_scale.init",
         "model.logit_scale.max", "model.loss.distill.scale", "model.teacher", "data.sources",
@@ -403,6 +566,44 @@ def validate(cfg: DictConfig | dict) -> None:
                 errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
+
+
+def init_from_problem(source: str | os.PathLike) -> str | None:
+    """Why ``model.init_from`` cannot be loaded (``None`` when it can be tried): it must be a
+    training checkpoint file or an export folder (``ResiregModule.load_trained``)."""
+    path = Path(source).expanduser()
+    if path.is_file():
+        return None
+    if path.is_dir():
+        if (path / "model.safetensors").is_file():
+            return None
+        return "a folder without model.safetensors: not a ResiregVLM export"
+    return ("no such file or folder: expected a training checkpoint (<run>/checkpoints/last.ckpt) "
+            "or an export folder (<run>/export)")  # fmt: skip
+
+
+def check_available(cfg: DictConfig | dict) -> None:
+    """Check that this machine has what a config names, before torch loads: the export of
+    ``model_path`` (resireg-eval, ``encoder=resireg_vlm``; :func:`resireg.sources.
+    export_source_problem`), the checkpoint or export of ``model.init_from`` (resireg-train;
+    :func:`init_from_problem`) and the modules the encoder's code imports
+    (:func:`encoder_import_errors`); raise :class:`ConfigError` listing every problem. Separate
+    from :func:`validate`, as :func:`check_devices` is: a valid config names files and needs
+    packages that another machine may have."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    errors = []
+    model_path = _get(cfg, "model_path")
+    if _get(cfg, "encoder.kind") == "resireg_vlm" and isinstance(model_path, str) and model_path:
+        if problem := export_source_problem(model_path):
+            errors.append(f"model_path={model_path!r}: {problem}")
+    init_from = _get(cfg, "model.init_from")
+    if isinstance(init_from, str) and (problem := init_from_problem(init_from)):
+        errors.append(f"model.init_from={init_from!r}: {problem}")
+    errors += encoder_import_errors(_get(cfg, "encoder"))
+    if errors:
+        raise ConfigError("this machine does not have what the config names:\n  "
+                          + "\n  ".join(errors))  # fmt: skip
 
 
 def check_devices(cfg: DictConfig | dict) -> None:

@@ -30,6 +30,7 @@ from resireg.models.eupe import EUPEBackbone
 from resireg.models.head import LanguageHead
 from resireg.models.hub import require_online
 from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
+from resireg.sources import is_repo_id
 
 __all__ = ["ResiregVLM"]
 
@@ -75,6 +76,7 @@ class ResiregVLM(DenseEncoder):
         intermediate_layer: int | None = None,
     ) -> None:
         super().__init__()
+        _check_sizes(backbone, head, text, text_proj)
         self.backbone = backbone
         self.head = head
         self.text = text
@@ -202,6 +204,30 @@ class ResiregVLM(DenseEncoder):
         return sorted(trained)
 
 
+def _check_sizes(
+    backbone: EUPEBackbone, head: LanguageHead, text: FrozenTextTower, text_proj: TextProjection
+) -> None:
+    """Raise ``ValueError`` naming both sizes where two parts do not fit together: the head
+    reads the backbone's tokens, the text projection reads the tower's pooled output, and the
+    projection's dense half is what the head's patch tokens are scored against."""
+    problems = []
+    head_in = head.proj.in_features
+    if head_in != backbone.embed_dim:
+        problems.append(
+            f"the head takes {head_in}-d tokens but the backbone gives {backbone.embed_dim}-d"
+        )
+    if text_proj.in_features != text.out_dim:
+        problems.append(f"the text projection takes {text_proj.in_features}-d inputs but the text "
+                        f"tower gives {text.out_dim}-d")  # fmt: skip
+    if text_proj.out_features != 2 * head.out_dim:
+        problems.append(
+            f"the text projection's dense half is {text_proj.out_features // 2}-d "
+            f"({text_proj.out_features} outputs) but the head's patch tokens are {head.out_dim}-d"
+        )
+    if problems:
+        raise ValueError("ResiregVLM parts do not fit: " + "; ".join(problems))
+
+
 def _export_dir(source: str | os.PathLike) -> Path:
     """The local folder of an export: ``source`` itself, or a Hugging Face snapshot.
 
@@ -213,7 +239,7 @@ def _export_dir(source: str | os.PathLike) -> Path:
     if path.is_dir():
         return path
     text = os.fspath(source)
-    if path.exists() or text.count("/") != 1 or text.startswith(("/", ".", "~")):
+    if path.exists() or not is_repo_id(text):  # (resireg.sources: the config checks' rule too)
         raise FileNotFoundError(
             f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"
         )

@@ -36,10 +36,22 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, run_task
+from resireg_train.cli.task import (
+    CONFIG_DIR,
+    added_keys,
+    hydra_entry_point,
+    run_task,
+    top_level_keys,
+)
 from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
-from resireg_train.validation import check_devices, encoder_kwargs, validate_eval
+from resireg_train.validation import (
+    ConfigError,
+    check_available,
+    check_devices,
+    encoder_kwargs,
+    validate_eval,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -149,7 +161,8 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
 
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
-    validate_eval(cfg)
+    validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
+    check_available(cfg)
     check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",
@@ -179,12 +192,15 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     if params["task"] == "scannet3d":  # 3D semantic mapping (docs/design.md section 10)
         from resireg_train.mapping.engine import run_scannet3d
 
-        return run_scannet3d(cfg, out, encoder, variants, params)
+        return _require_scored(run_scannet3d(cfg, out, encoder, variants, params), "frame")
     patch = encoder.input_rule.patch_size
     dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
     update_results(out, protocol=protocol_record(params, dataset))
     task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
-    task.check_variants(variants)
+    try:  # a setting the dataset's batches cannot take (more prototypes than points)
+        task.check_variants(variants)
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
     cache = None
     if cfg.get("feature_cache"):
         from resireg_train.cache import FeatureCache
@@ -208,9 +224,8 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     if result.skipped:
         log.warning(result.skip_report())
     classes = dataset.classes
-    return update_results(
+    record = update_results(
         out,
-        status="completed",
         final=scores,
         per_class_iou={
             v: dict(zip(classes, ious, strict=True)) for v, ious in result.per_class_iou().items()
@@ -221,6 +236,31 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
         **({"feature_cache": cache.summary()} if cache is not None else {}),
+    )
+    _require_scored(record, "image")
+    return update_results(out, status="completed")
+
+
+class NothingScoredError(RuntimeError):
+    """Every image (3D: frame) of the dataset was skipped: there is no score to report."""
+
+
+def _require_scored(record: dict[str, Any], unit: str) -> dict[str, Any]:
+    """``record`` (a run's ``results.json``) if it scored at least one ``unit``; else raise
+    :class:`NothingScoredError` with the skip counts: a score over nothing (mIoU NaN) is a
+    failed run, never a completed one."""
+    if record.get("images", 0) > 0:
+        return record
+    skipped, dropped = int(record.get("skipped") or 0), int(record.get("frames_dropped") or 0)
+    samples = record.get("skipped_samples") or []
+    counts = f"{skipped} of {skipped + dropped} {unit}s skipped (unreadable or invalid)"
+    if dropped:
+        counts += f", {dropped} dropped (non-finite pose)"
+    first = f"; the first: {samples[0]['file']}: {samples[0]['reason']}" if samples else ""
+    name = (record.get("params") or {}).get("dataset", {}).get("name")
+    raise NothingScoredError(
+        f"dataset={name}: no {unit} was scored: {counts}{first} (results.json's "
+        "skipped_samples names each with its reason)"
     )
 
 

@@ -83,10 +83,16 @@ def main(argv: list[str] | None = None) -> None:
     from resireg_train.playground.config import encoder_spec, resireg_defaults
 
     try:
-        encoder_spec(args.encoder, args.model_path)
+        spec = encoder_spec(args.encoder, args.model_path)
         resireg_defaults()
     except ValueError as err:
         parser.exit(2, f"resireg-playground: error: {err}\n")
+    if spec.get("kind") == "resireg_vlm":  # the loader's rule, before torch (resireg.sources)
+        from resireg.sources import export_source_problem
+
+        problem = export_source_problem(spec["path"])
+        if problem:
+            parser.exit(2, f"resireg-playground: error: --model-path: {problem}\n")
     os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no request leaves the machine
     # torch, the models and Gradio load only now.
     try:

@@ -1,6 +1,14 @@
 """What the Hydra mains share: where the configs live, the run-folder name resolver, and
-the task wrapper that records a failure in ``results.json`` and returns the value a
-sweeper optimises."""
+the task wrapper that records a failure in ``results.json`` and in the run's log file, and
+returns the value a sweeper optimises.
+
+How a failure is reported (docs/design.md section 9): ``results.json`` gets the status and
+the one-line error, the run's log file (``train.log`` / ``eval.log``) the error with its
+traceback, and the console either Hydra's traceback (an unexpected crash) or, for an error
+whose message says everything (a bad config value, a refused resume, a file that cannot be
+written, an unavailable download, a dataset of which nothing could be scored), that message
+alone. A multirun ends with one line per failed job.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +16,7 @@ import hashlib
 import logging
 import os
 import secrets
+import sys
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -15,18 +24,25 @@ from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import CompactHydraException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.results import update_results
+from resireg_train.files import WriteError
+from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
+from resireg_train.validation import ConfigError
 
 __all__ = [
     "CONFIG_DIR",
     "RUN_ID",
+    "JobFailed",
+    "added_keys",
     "hydra_entry_point",
     "optimized_value",
     "register_resolvers",
     "run_task",
     "safe_dirname",
+    "top_level_keys",
 ]
 
 log = logging.getLogger(__name__)
@@ -50,6 +66,53 @@ def safe_dirname(text: str, max_length: int = 200) -> str:
         digest = hashlib.sha1(name.encode()).hexdigest()[:8]
         name = f"{name[: max_length - 9]}-{digest}"
     return name
+
+
+def top_level_keys(config_name: str) -> set[str]:
+    """The top-level keys ``conf/<config_name>.yaml`` defines: its own fields, its groups
+    (``data``, ``model``...; ``experiment`` and ``sweep`` too), and the fields of the groups
+    it places at the top level (``resireg@_here_``: ``variants``, ``lite``, ``full``...)."""
+    raw = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / f"{config_name}.yaml"))
+    keys = {k for k in raw if k not in ("defaults", "hydra")}
+    for entry in raw.get("defaults") or []:
+        if not isinstance(entry, dict):
+            continue  # _self_
+        for spec, option in entry.items():
+            group, _, package = spec.partition("@")
+            if package == "_here_" and option:
+                placed = OmegaConf.load(CONFIG_DIR / group / f"{option}.yaml")
+                keys |= {k for k in placed if k != "defaults"}
+            else:
+                keys.add(package.split(".")[0] if package else group.split("/")[0])
+    return keys
+
+
+def added_keys() -> list[str]:
+    """The config keys this job's ``+key=value`` / ``++key=value`` overrides added (command
+    line or sweep; not the ``+group=option`` of a config group), ``[]`` outside Hydra. A
+    ``++`` override counts only if the config would not hold its key without it."""
+    if not HydraConfig.initialized():
+        return []
+    from hydra import compose
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    runtime = HydraConfig.get()
+    roots = [Path(src.path) for src in runtime.runtime.config_sources
+             if src.schema == "file"] or [CONFIG_DIR]  # fmt: skip
+    given = list(runtime.overrides.task)
+    added, forced = [], []
+    for override in OverridesParser.create().parse_overrides(given):
+        key = override.key_or_group
+        if not (override.is_add() or override.is_force_add()) or "/" in key:
+            continue
+        if any((root / key.replace(".", "/")).is_dir() for root in roots):
+            continue  # a config group: +prior=sam2
+        (forced if override.is_force_add() else added).append(key)
+    if forced:
+        plain = compose(runtime.job.config_name,
+                        overrides=[o for o in given if not o.startswith("+")])  # fmt: skip
+        added += [k for k in forced if OmegaConf.select(plain, k, default=None) is None]
+    return added
 
 
 #: A short random token drawn once per process: two runs started in the same second (a job
@@ -96,18 +159,50 @@ def run_task(
         raise SystemExit(130) from None
     except BaseException as exc:
         if rank_zero:
-            error = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+            error = error_text(exc)
             _record(out, status="failed", error=error)
+            _to_log_files(f"run failed: {error}", exc)
         raise
+
+
+def error_text(exc: BaseException) -> str:
+    """``module.Type: message`` of an exception (what ``results.json`` records)."""
+    return "".join(traceback.format_exception_only(type(exc), exc)).strip()
+
+
+def _to_log_files(message: str, exc: BaseException | None) -> None:
+    """Write ``message`` to this process's log files only (Hydra's ``<output dir>/<job
+    name>.log``; the console gets the error from Hydra, once), with ``exc``'s traceback
+    unless its message is the whole report (a config error)."""
+    trace = None
+    if exc is not None and not isinstance(exc, _reported_types()):
+        trace = (type(exc), exc, exc.__traceback__)
+    record = logging.LogRecord(log.name, logging.ERROR, __file__, 0, message, None, trace)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)  # (a handler that cannot write reports it on stderr)
 
 
 def _record(out: Path, **fields: Any) -> None:
     """Update ``results.json`` without hiding the error being recorded if this write fails
-    too (e.g. on the full disk that failed the run)."""
+    too (e.g. on the full disk that failed the run): then stderr (and the log file, if it
+    can be written) says which status could not be recorded and what the record still reads
+    (``running``), and the caller's exception or exit status makes the exit code non-zero."""
     try:
         update_results(out, **fields)
     except OSError as err:
-        log.error("could not record %s in results.json: %s", fields, err)
+        try:
+            stale = read_results(out).get("status")
+        except (OSError, ValueError):
+            stale = None
+        message = (
+            f"could not record status {fields.get('status')!r} in {out / RESULTS_FILE} ({err}); "
+            f"it still reads status {stale!r} although the run ended {fields.get('status')!r}: "
+            f"{flat(str(fields.get('error')))}"
+        )
+        sys.stderr.write(f"error: {message}\n")
+        sys.stderr.flush()
+        _to_log_files(message, None)
 
 
 def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
@@ -124,16 +219,69 @@ def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
 
 
+class JobFailed(CompactHydraException):
+    """A job failed with an error whose message says what to do: Hydra prints the message
+    alone, not a traceback (the run's log file keeps it; ``HYDRA_FULL_ERROR=1`` shows it)."""
+
+
+def _reported_types() -> tuple[type[BaseException], ...]:
+    """The errors whose message is the whole report (see the module docstring). The classes
+    of modules not loaded yet cannot have been raised, so nothing heavy is imported here."""
+    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError]
+    for module, name in (
+        ("resireg_train.training.checkpoints", "CheckpointError"),
+        ("resireg_train.cli.eval", "NothingScoredError"),
+        ("resireg.models.hub", "WeightsUnavailableError"),
+    ):
+        cls = getattr(sys.modules.get(module), name, None)
+        if cls is not None:
+            types.append(cls)
+    return tuple(types)
+
+
+def _sweep_summary(prog: str, jobs: int, failures: list[tuple[int, Path, str]]) -> str:
+    """One line per failed job of a multirun (Hydra itself reports only the first): its
+    number, folder and its error (on one line); ``failures``: ``(number, folder, error)``."""
+    sweep = failures[0][1].parent
+    lines = [f"{prog}: {len(failures)} of {jobs} jobs failed (sweep {sweep}; "
+             f"resireg-report {sweep} lists every job):"]  # fmt: skip
+    lines += [f"  job {n} ({out.name}): {flat(error)}" for n, out, error in failures]
+    return "\n".join(lines) + "\n"
+
+
 def hydra_entry_point(
     config_name: str, task: Callable[[DictConfig], dict[str, Any]]
 ) -> Callable[[], float | None]:
     """A console entry point: Hydra composes ``conf/<config_name>.yaml`` with the command
-    line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper."""
+    line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper.
+
+    A failing job is listed; a multirun ends with one line per failed job (on stderr),
+    after Hydra's report of the first one."""
     register_resolvers()
+    prog = f"resireg-{config_name}"
+    jobs = {"multirun": False, "count": 0}
+    failures: list[tuple[int, Path, str]] = []  # the jobs of this process that failed
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def main(cfg: DictConfig) -> float | None:
-        log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
-        return optimized_value(cfg, task(cfg))
+        runtime = HydraConfig.get()
+        jobs["multirun"] = runtime.mode == RunMode.MULTIRUN
+        jobs["count"] += 1
+        log.info("output dir: %s", runtime.runtime.output_dir)
+        try:
+            return optimized_value(cfg, task(cfg))
+        except Exception as exc:
+            number = int(runtime.job.get("num") or 0)
+            failures.append((number, Path(runtime.runtime.output_dir), error_text(exc)))
+            if isinstance(exc, _reported_types()):
+                raise JobFailed(error_text(exc)) from exc
+            raise
 
-    return main
+    def entry() -> float | None:
+        try:
+            return main()
+        finally:
+            if jobs["multirun"] and failures:
+                sys.stderr.write(_sweep_summary(prog, jobs["count"], failures))
+
+    return entry

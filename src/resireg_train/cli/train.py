@@ -4,6 +4,11 @@
     resireg-train experiment=vlm25m_stage1 trainer=ddp  # the 25M VLM, stage 1, all GPUs
     resireg-train experiment=vlm25m_stage1 ckpt_path=last hydra.run.dir=<the run's folder>
 
+A resume takes the run's own overrides (the interrupted run prints the command, and
+``results.json`` records it). :class:`RunFolderCheck` refuses, before Hydra writes anything
+into the folder, a resume whose composed config differs from the run's
+(``.hydra/config.yaml``), naming the keys, and a new run pointed at a folder that holds one.
+
 The run's output folder receives the resolved config (``.hydra/``), ``metrics.csv`` (always),
 the optional TensorBoard / MLflow logs (``logger=``), ``checkpoints/`` (``last.ckpt`` every
 epoch), ``results.json`` (final and best metrics, status) and ``export/`` (the trained
@@ -15,20 +20,33 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import re
+import shlex
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import yaml
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.cli.task import hydra_entry_point, run_task
-from resireg_train.results import read_results, update_results
-from resireg_train.validation import check_devices, validate
+from resireg_train.cli.task import (
+    added_keys,
+    error_text,
+    hydra_entry_point,
+    run_task,
+    top_level_keys,
+)
+from resireg_train.results import RESULTS_FILE, read_results, update_results
+from resireg_train.validation import ConfigError, check_available, check_devices, validate
 
 if TYPE_CHECKING:
     import lightning as L
 
-__all__ = ["build", "train", "main"]
+__all__ = ["RunFolderCheck", "build", "main", "resume_command", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -81,42 +99,171 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
         callbacks: extra callbacks (added to the configured ones).
     """
     body = functools.partial(_fit, callbacks=callbacks)
-    out = cfg.paths.output_dir
+    out = Path(cfg.paths.output_dir)
     rank_zero = _process_rank() == 0
     if rank_zero and cfg.ckpt_path is None:
-        _refuse_occupied(Path(out))
-    return run_task(
-        cfg,
-        body,
-        rank_zero=rank_zero,
-        resume_hint=f"resume with ckpt_path=last hydra.run.dir={out}",
+        _refuse_occupied(out)  # (a single run's folder was checked before Hydra wrote to it)
+    if HydraConfig.initialized():
+        runtime = HydraConfig.get()
+        multirun = runtime.mode == RunMode.MULTIRUN
+        command = resume_command(runtime.overrides.task, runtime.overrides.hydra, out, multirun)
+    else:  # called from Python: the caller knows its config
+        command = f"ckpt_path=last and paths.output_dir={out} (with this run's config)"
+    return run_task(cfg, body, rank_zero=rank_zero, resume_hint=f"resume with {command}")
+
+
+#: Keys a resume may change: the resume itself.
+_RESUME_FREE = ("ckpt_path",)
+#: Overrides a resume command sets itself (or must not repeat: the sweep's own folders).
+_RESUME_SET = ("ckpt_path", "hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir",
+               "hydra.mode", "hydra.output_subdir", "hydra.job.name")  # fmt: skip
+
+
+def resume_command(
+    task: Sequence[str], hydra: Sequence[str], out: Path, multirun: bool = False
+) -> str:
+    """The command that resumes the run in ``out``: ``resireg-train`` with the run's own
+    overrides (``task``: the command line's, a sweep job's swept values included; ``hydra``:
+    Hydra's), ``ckpt_path=last hydra.run.dir=<out>``, and for a sweep job ``hydra.mode=RUN``
+    (it resumes that job alone), shell-quoted."""
+
+    def kept(items: Sequence[str]) -> list[str]:
+        return [o for o in items if o.split("=", 1)[0].lstrip("+~") not in _RESUME_SET]
+
+    folder = str(out)
+    if not re.fullmatch(r"[\w/.\-:~+@%]+", folder):  # a sweep job's folder: "=" and ","
+        folder = '"' + folder.replace("\\", "\\\\").replace('"', '\\"') + '"'  # Hydra's quoting
+    words = [
+        "resireg-train",
+        *kept(task),
+        *kept(hydra),
+        "ckpt_path=last",
+        f"hydra.run.dir={folder}",
+    ]
+    if multirun:
+        words.append("hydra.mode=RUN")
+    return " ".join(shlex.quote(str(w)) for w in words)
+
+
+def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    """``{"model.optimizer.lr": 0.003, ...}`` of a nested dict (lists are values)."""
+    if isinstance(node, dict) and node:
+        out: dict[str, Any] = {}
+        for key, value in node.items():
+            out.update(_leaves(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: node}
+
+
+_ABSENT = "<absent>"
+
+
+def _differences(run: dict[str, Any], this: dict[str, Any]) -> list[str]:
+    """``key=<this value> (the run: <its value>)`` of every leaf that differs, the shallowest
+    keys first (``trainer.max_epochs`` before a dataset's ``split``)."""
+    a, b = _leaves(run), _leaves(this)
+    keys = sorted(
+        (k for k in set(a) | set(b) if k.split(".")[0] not in _RESUME_FREE),
+        key=lambda k: (k.count("."), k),
+    )
+    return [
+        f"{k}={b.get(k, _ABSENT)!r} (the run: {a.get(k, _ABSENT)!r})"
+        for k in keys
+        if a.get(k, _ABSENT) != b.get(k, _ABSENT)
+    ]
+
+
+def check_resume(out: Path, composed: DictConfig) -> None:
+    """Refuse a resume of the run in ``out`` whose config (``composed``, without its
+    ``hydra`` node) differs from the run's ``.hydra/config.yaml``: ``ConfigError`` naming the
+    differing keys (up to 8, and how many more), the run's overrides and this command's, the
+    command that resumes the run with its own overrides, and the way to train on with other
+    settings. A folder without a stored config (a run started from Python) is not checked."""
+    stored = out / ".hydra" / "config.yaml"
+    if not stored.is_file():
+        return
+    run = OmegaConf.to_container(OmegaConf.load(stored), resolve=False)
+    this = OmegaConf.to_container(composed, resolve=False)
+    this.pop("hydra", None)
+    differences = _differences(run, this)
+    if not differences:
+        return
+    shown = "; ".join(differences[:8])
+    if len(differences) > 8:
+        shown += f"; and {len(differences) - 8} more"
+    hydra_file = out / ".hydra" / "hydra.yaml"
+    recorded = yaml.safe_load(hydra_file.read_text())["hydra"] if hydra_file.is_file() else {}
+    overrides = recorded.get("overrides") or {}
+    task = yaml.safe_load((out / ".hydra" / "overrides.yaml").read_text()) or []
+    command = resume_command(task, overrides.get("hydra") or [], out,
+                             recorded.get("mode") == "MULTIRUN")  # fmt: skip
+    given = list(composed.hydra.overrides.task) if "hydra" in composed else []
+    raise ConfigError(
+        f"ckpt_path={composed.get('ckpt_path')}: this command's config differs from the run's "
+        f"({stored}) in {len(differences)} key(s): {shown}. The run's overrides: "
+        f"{' '.join(task) or 'none'}; this command's: {' '.join(given) or 'none'}. Nothing under "
+        f"{out} was changed. Resume with the run's own overrides: {command}; to train on with "
+        f"other settings, start a new run from its weights: "
+        f"model.init_from={out / 'checkpoints' / 'last.ckpt'}"
     )
 
 
-def _refuse_occupied(out: Path) -> None:
+class RunFolderCheck(Callback):
+    """Hydra callback (``conf/train.yaml``, ``hydra.callbacks``): checks a single run's
+    folder before Hydra writes anything into it (``.hydra/``, the log file), so a refused
+    command leaves an existing run exactly as it was. A resume (``ckpt_path`` set) must
+    compose the run's config (:func:`check_resume`); a new run must not be pointed at a
+    folder holding another (:func:`_refuse_occupied`). Sweep jobs get fresh folders (time
+    and run id); ranks > 0 of a DDP run re-launched by Lightning skip the check."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if _process_rank() != 0:
+            return
+        out = Path(str(config.hydra.run.dir))
+        try:
+            if config.get("ckpt_path") is None:
+                _refuse_occupied(out, multirun=False)
+            elif (out / RESULTS_FILE).is_file():
+                check_resume(out, config)
+        except (ConfigError, FileExistsError) as err:
+            # Hydra turns a callback's exception into a warning and runs the job anyway: exit.
+            sys.stderr.write(f"resireg-train: refused: {error_text(err)}\n")
+            raise SystemExit(1) from None
+
+
+def _refuse_occupied(out: Path, multirun: bool | None = None) -> None:
     """A new run never shares a folder with another (their metrics.csv, checkpoints and
     results.json would interleave): a folder already holding a run record is refused unless
-    the run resumes it. Default folders are unique (time + run id); this guards a
-    ``hydra.run.dir`` given by hand."""
+    the run resumes it. Default folders are unique (time + run id, for sweeps too); this
+    guards a folder given by hand."""
     previous = read_results(out)
-    if previous:
-        raise FileExistsError(
-            f"hydra.run.dir={out} already holds a run ({previous.get('name')!r}, status "
-            f"{previous.get('status')!r}): resume it with ckpt_path=last, or give this run its "
-            "own folder (leave hydra.run.dir unset for a new, unique one)"
-        )
+    if not previous:
+        return
+    if multirun is None:
+        multirun = HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    if multirun:
+        where, unset = f"the sweep job's folder {out} (hydra.sweep.dir/subdir)", "hydra.sweep.dir"
+    else:
+        where, unset = f"hydra.run.dir={out}", "hydra.run.dir"
+    raise FileExistsError(
+        f"{where} already holds a run ({previous.get('name')!r}, status "
+        f"{previous.get('status')!r}): resume it with ckpt_path=last, or give this run its "
+        f"own folder (leave {unset} unset for a new, unique one)"
+    )
 
 
 def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
-    validate(cfg)
+    validate(cfg, added_keys(), top_level_keys("train") if HydraConfig.initialized() else None)
+    check_available(cfg)
     check_devices(cfg)
     import hydra
     import lightning as L
+    from lightning.pytorch.callbacks import ProgressBar
 
     from resireg_train.ovss.callback import ReSiRegEval
     from resireg_train.tracking import ResultsTracker, ResumableCSVLogger
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
-    from resireg_train.training.console import EpochLog, quiet_library_noise
+    from resireg_train.training.console import EpochLog, on_terminal, quiet_library_noise
 
     quiet_library_noise()
     L.seed_everything(cfg.seed, workers=True)
@@ -134,12 +281,18 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
     loggers = [ResumableCSVLogger(out, resume_step=resume_step), *_instantiate_all(cfg.logger)]
+    configured = _instantiate_all(cfg.callbacks)
+    bar = {}
+    if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
+        configured = [c for c in configured if not isinstance(c, ProgressBar)]
+        bar = {"enable_progress_bar": False}
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
         logger=loggers,
-        callbacks=[*_instantiate_all(cfg.callbacks), ResultsTracker(out), EpochLog(), *callbacks],
+        callbacks=[*configured, ResultsTracker(out), EpochLog(), *callbacks],
         plugins=[AtomicCheckpointIO()],
         default_root_dir=str(out),
+        **bar,
     )
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)

@@ -3,7 +3,9 @@
 ``EpochLog`` writes one line per epoch (losses, learning rate, evaluation scores, skipped
 examples, steps, seconds) through :mod:`logging`, so it reaches the run's ``train.log``
 (Hydra's file handler) always, and the console when stdout is not a terminal (a batch
-job, ``nohup``, a pipe): on a terminal the progress bar shows the same values.
+job, ``nohup``, a pipe): on a terminal the progress bar shows the same values. The progress
+bar is drawn only on a terminal (:func:`on_terminal`; ``resireg-train`` leaves it out
+otherwise, where its redraws would fill the log with control characters).
 
 :func:`quiet_library_noise` silences the messages every run would print that are not the
 user's business (see the README's "What a run prints").
@@ -22,7 +24,7 @@ import lightning as L
 
 from resireg_train.tracking import epoch_metrics
 
-__all__ = ["EpochLog", "epoch_line", "quiet_library_noise"]
+__all__ = ["EpochLog", "epoch_line", "on_terminal", "quiet_library_noise"]
 
 log = logging.getLogger(__name__)
 #: Hydra's default log line format (conf/hydra keeps Hydra's job_logging).
@@ -38,6 +40,13 @@ _NOISE_WARNINGS = (
      "the caption stream shards itself per worker and rank, so its length is exact"),
     (r"`isinstance\(treespec, LeafSpec\)` is deprecated",
      "Lightning's own use of a torch API, nothing a user can change"),
+    (r"It is recommended to use `self\.log\('[^']*', \.\.\., sync_dist=True\)`",
+     "no metric is logged with sync_dist on purpose: every cross-rank value is reduced "
+     "explicitly by all ranks at one point (docs/design.md section 9), and the contrastive "
+     "loss is already the global batch's on every rank"),
+    (r"Checkpoint directory .* exists and is not empty",
+     "a resume writes into its own run's checkpoints/ (a new run never takes a folder that "
+     "holds a run: resireg_train.cli.train refuses it)"),
 )  # fmt: skip
 #: Log records (logger name, message start) silenced the same way.
 _NOISE_RECORDS = (("lightning", "💡 Tip:"),)  # an advertisement for a cloud logger
@@ -70,6 +79,12 @@ def quiet_library_noise() -> None:
                 handler.addFilter(_DROP)
 
 
+def on_terminal() -> bool:
+    """Whether this process's stdout is a terminal (where a progress bar belongs)."""
+    isatty = getattr(sys.stdout, "isatty", None)
+    return bool(isatty and isatty())
+
+
 def _format(value: float) -> str:
     if math.isnan(value) or value == 0 or 1e-3 <= abs(value) < 1e4:
         return f"{value:.4g}"
@@ -78,14 +93,16 @@ def _format(value: float) -> str:
 
 def epoch_line(epoch: int, max_epochs: int, metrics: dict[str, float], steps: int,
                seconds: float) -> str:  # fmt: skip
-    """``epoch 2/6 | train/loss=2.83 ... | 8 steps | 3.1 s``: the epoch-level metrics sorted
+    """``epoch 1/5 | train/loss=2.83 ... | 8 steps | 3.1 s``: the epoch-level metrics sorted
     by name, training first, then evaluation (mIoU; the f-mIoU stay in ``results.json``), then
-    data counts."""
+    data counts. Epochs are numbered from 0 to ``max_epochs - 1``, as Lightning's progress bar
+    shows them and as the checkpoint files (``epoch001.ckpt``) and ``results.json`` (``epoch``)
+    number them, so the console, the files and the record name an epoch alike."""
     order = {"train": 0, "val": 1, "data": 2}
     shown = [k for k in metrics if "/fmiou_" not in k]
     names = sorted(shown, key=lambda k: (order.get(k.split("/")[0], 3), k))
     values = " ".join(f"{k}={_format(metrics[k])}" for k in names)
-    return f"epoch {epoch + 1}/{max_epochs} | {values} | {steps} steps | {seconds:.1f} s"
+    return f"epoch {epoch}/{max_epochs - 1} | {values} | {steps} steps | {seconds:.1f} s"
 
 
 class _NotOnTerminal(logging.Filter):
@@ -162,7 +179,7 @@ class EpochLog(L.Callback):
             detail = ", ".join(f"{reason} {n}" for reason, n in sorted(skipped.items()))
             log.warning(
                 "epoch %d: skipped %d caption examples (%s; all workers and ranks)",
-                trainer.current_epoch + 1, sum(skipped.values()), detail,
+                trainer.current_epoch, sum(skipped.values()), detail,
             )  # fmt: skip
 
     def state_dict(self) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from resireg.models import ResiregVLM, build_teacher
 from resireg_train.training.losses import ContrastiveLoss, distill_loss, warmup_factor
+from resireg_train.validation import init_from_problem
 
 __all__ = ["ResiregModule"]
 
@@ -270,13 +271,12 @@ class ResiregModule(L.LightningModule):
         Returns:
             The names of the loaded tensors.
         """
-        path = Path(source)
+        problem = init_from_problem(source)  # the config check's rule (resireg-train)
+        if problem:
+            raise FileNotFoundError(f"model.init_from={str(source)!r}: {problem}")
+        path = Path(source).expanduser()
         if path.is_dir():
             return [f"vlm.{k}" for k in self.vlm.load_trained(path)]
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"model.init_from={str(source)!r} is neither a checkpoint nor an export directory"
-            )
         state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
         wanted = ("vlm.head.", "vlm.text_proj.", "logit_scale")
         trained = {k: v for k, v in state.items() if k.startswith(wanted)}
