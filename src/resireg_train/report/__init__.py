@@ -1,0 +1,154 @@
+"""Sweep reports (``resireg-report SWEEP_DIR``): one table (and plots) from a Hydra multirun folder.
+
+Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
+(``.hydra/overrides.yaml``) and ``results.json``. A job that failed, was interrupted
+(Ctrl-C; resumable), is still running or never wrote ``results.json`` stays in the table
+with its status and error. Writes, into the sweep folder (or ``--out``):
+
+- ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
+  jobs, status, the scores (final values; for training runs also the best of the chosen
+  metric) and the error.
+- For the prototype/batch ablation (jobs varying ``batch_size`` and ``full.n_prototypes``,
+  2D or 3D: the metric is whichever ``.../miou_full`` the jobs recorded, ``val/ovss/...`` or
+  ``val/scannet3d/...``): ``heatmap.png`` (batch size x prototype count, mIoU of ReSiReg Full) and
+  ``prototype_heuristic.json``: ``n(B)`` fitted to the best prototype count of every
+  batch size, loadable by ``ReSiRegFull(n_prototypes="auto", heuristic=PATH)``.
+- For encoder sweeps (the encoder varies, or ``sweep=table1`` / ``table2`` cut to one
+  encoder): ``table1.md`` / ``.csv`` (2D OVSS, the paper's Table 1) or, for
+  ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
+- For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
+  per epoch for every run.
+- For the CLIP layer sweep (configurations ``<variant>@layer:<block>``, ``sweep=clip_layers``):
+  ``layer_sweep.csv`` / ``.md`` / ``.png``, mIoU of each variant against the block index.
+
+An explicit metric must be one the sweep's results hold (a ``final`` or ``best`` key of
+some job); anything else is a :class:`ValueError` that lists them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from resireg_train.report.figures import (
+    DPI,
+    curves_figure,
+    heatmap_figure,
+    layer_sweep_figure,
+    plot_curves,
+    plot_heatmap,
+)
+from resireg_train.report.jobs import (
+    STATUSES,
+    Job,
+    check_metric,
+    collect,
+    count_statuses,
+    default_metric,
+    known_metrics,
+    varying_keys,
+)
+from resireg_train.report.prototypes import (
+    fit_heuristic,
+    grid_statuses,
+    is_prototype_sweep,
+    prototype_grid,
+)
+from resireg_train.report.summary import summary_table
+from resireg_train.report.tables import (
+    LAYER_SWEEP_FILES,
+    encoder_table,
+    is_encoder_sweep,
+    is_layer_sweep,
+    is_mapping_sweep,
+    layer_sweep_table,
+    mapping_table,
+    markdown,
+    method_means,
+    protocol_lines,
+    write_encoder_table,
+    write_layer_sweep,
+    write_mapping_table,
+)
+from resireg_train.results import flat
+
+__all__ = [
+    "DPI", "STATUSES", "Job", "check_metric", "collect", "count_statuses", "curves_figure",
+    "default_metric", "encoder_table", "fit_heuristic", "grid_statuses", "heatmap_figure",
+    "is_encoder_sweep", "is_layer_sweep", "is_mapping_sweep", "known_metrics",
+    "layer_sweep_figure", "layer_sweep_table", "mapping_table", "markdown", "method_means",
+    "plot_curves", "plot_heatmap", "protocol_lines", "prototype_grid", "report", "summary_table",
+    "write_encoder_table", "write_layer_sweep", "write_mapping_table",
+]  # fmt: skip
+
+
+def report(
+    sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
+) -> dict[str, Path]:
+    """Write the sweep's summary (and plots / heuristic where they apply); returns the files.
+
+    Raises :class:`ValueError` (before writing anything) when ``metric`` is given and no
+    job's results hold it."""
+    jobs = collect(sweep_dir)
+    if metric:
+        check_metric(jobs, metric)
+    out = Path(out) if out else Path(sweep_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    metric = metric or default_metric(jobs)
+    table = summary_table(jobs, metric)
+    files = {"csv": out / "summary.csv", "md": out / "summary.md"}
+    table.to_csv(files["csv"], index=False)
+
+    constant = {k: v for k, v in jobs[0].overrides.items() if k not in varying_keys(jobs)}
+    lines = [
+        f"# Sweep {Path(sweep_dir).resolve()}",
+        "",
+        f"{len(jobs)} jobs: {count_statuses(table['status'])}",
+        "",
+        "Common overrides: " + (", ".join(f"`{k}={v}`" for k, v in constant.items()) or "none"),
+        "",
+        markdown(table, floatfmt=".4f"),
+    ]
+    if is_encoder_sweep(jobs) and is_mapping_sweep(jobs):
+        files.update(write_mapping_table(jobs, out))
+        lines += ["", f"3D mapping table (the paper's Table 2): `{files['table2_md'].name}`."]
+    elif is_encoder_sweep(jobs):
+        files.update(write_encoder_table(jobs, out))
+        lines += ["", f"Encoder table (the paper's Table 1): `{files['table1_md'].name}`."]
+    if metric and is_prototype_sweep(jobs):
+        grid = prototype_grid(jobs, metric)
+        files["heatmap"] = out / "heatmap.png"
+        plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
+        cells = grid.map(lambda v: f"{v:.4f}").where(
+            grid.notna(), grid_statuses(jobs, metric, grid)
+        )
+        lines += ["", f"## {metric}: batch size x prototypes", "", "A cell without a value reads "
+                  "its job's status.", "", markdown(cells, floatfmt=".4f", index=True),
+                  "", *protocol_lines(jobs)]  # fmt: skip
+        if grid.notna().to_numpy().any():
+            heuristic, best = fit_heuristic(grid)
+            files["heuristic"] = out / "prototype_heuristic.json"
+            heuristic.save(files["heuristic"])
+            lines += [
+                "",
+                "## Prototype heuristic",
+                "",
+                f"Best prototype count per batch size: {best}.",
+                f"Fit: n(B) = round({heuristic.intercept:.3f} + {heuristic.slope:.3f} * ln B), "
+                f"clipped to [{heuristic.min_prototypes}, {heuristic.max_prototypes}] "
+                f"(`{files['heuristic'].name}`; use with "
+                '`ReSiRegFull(n_prototypes="auto", heuristic=PATH)`).',
+            ]
+    if metric and any(j.results.get("history") for j in jobs):
+        curves = out / "curves.png"
+        if plot_curves(jobs, metric, curves):
+            files["curves"] = curves
+    if is_layer_sweep(jobs):  # sweep=clip_layers
+        files.update(write_layer_sweep(jobs, out))
+        lines += ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]
+    failed = [j for j in jobs if j.status != "completed"]
+    if failed:
+        lines += ["", "## Jobs that did not complete", ""]
+        lines += [f"- job {j.number} ({j.path.name}): **{j.status}**: {flat(j.error or '')}"
+                  for j in failed]  # fmt: skip
+    files["md"].write_text("\n".join(lines) + "\n")
+    return files

@@ -1,0 +1,105 @@
+"""The prototype/batch ablation (2D or 3D): the batch size x prototype count grid of ReSiReg
+Full's mIoU and the heuristic ``n(B)`` fitted to the best count of every batch size."""
+
+from __future__ import annotations
+
+import math
+
+import pandas as pd
+
+from resireg.heuristic import PrototypeHeuristic
+from resireg.variant_names import takes_prior
+from resireg.variants import parse_variant
+from resireg_train.report.jobs import BATCH_KEY, PROTOTYPES_KEY, Job, job_scores, varying_keys
+
+__all__ = [
+    "fit_heuristic", "grid_statuses", "is_prototype_sweep", "prototype_configs", "prototype_grid",
+]  # fmt: skip
+
+
+def is_prototype_sweep(jobs: list[Job]) -> bool:
+    """A batch size x prototype count grid: jobs vary the batch size, and the prototype
+    count too (one per job) or score several counts each."""
+    varying = varying_keys(jobs)
+    return BATCH_KEY in varying and (
+        PROTOTYPES_KEY in varying or any(len(prototype_configs(j)) > 1 for j in jobs)
+    )
+
+
+def prototype_configs(job: Job) -> dict[int, str]:
+    """``{prototype count: configuration}`` of the ``full@n_prototypes:<n>`` configurations a
+    job scored in one pass (its ``params.variants``, recorded before it ran)."""
+    names = (job.results.get("params") or {}).get("variants") or []
+    out = {}
+    for name in names:
+        try:
+            base, overrides = parse_variant(name)
+        except ValueError:
+            continue
+        if takes_prior(name):  # full+prior@n_prototypes:<n> is not a cell of the grid
+            continue
+        n = overrides.get("n_prototypes")
+        if base == "full" and isinstance(n, int) and not isinstance(n, bool):
+            out[n] = name
+    return out
+
+
+def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
+    """One row per (job, prototype count) of the grid: batch size, prototype count, ``metric``
+    (NaN unless the job completed) and status. A job either set ``full.n_prototypes`` (one
+    count per job) or scored several ``full@n_prototypes:<n>`` configurations in one pass;
+    ``metric`` names Full's score (``.../miou_full``), each configuration's is
+    ``.../miou_full@n_prototypes:<n>``."""
+    cells = []
+    for job in jobs:
+        try:
+            batch = int(job.overrides[BATCH_KEY])
+        except (KeyError, ValueError):
+            continue
+        scores = job_scores(job.results) if job.status == "completed" else {}
+        if PROTOTYPES_KEY in job.overrides:
+            try:
+                counts = {int(job.overrides[PROTOTYPES_KEY]): metric}
+            except ValueError:
+                continue
+        else:
+            counts = {n: metric + name[len("full") :] for n, name in prototype_configs(job).items()}
+        for protos, name in counts.items():
+            value = scores.get(name, math.nan)
+            cells.append(
+                {BATCH_KEY: batch, PROTOTYPES_KEY: protos, metric: value, "status": job.status}
+            )
+    return pd.DataFrame(cells, columns=[BATCH_KEY, PROTOTYPES_KEY, metric, "status"])
+
+
+def prototype_grid(jobs: list[Job], metric: str) -> pd.DataFrame:
+    """mIoU per (batch size, prototype count); NaN where the job did not complete."""
+    return (
+        _grid_cells(jobs, metric)
+        .pivot_table(
+            index=BATCH_KEY, columns=PROTOTYPES_KEY, values=metric, aggfunc="max", dropna=False
+        )
+        .sort_index()
+        .sort_index(axis=1)
+    )
+
+
+def grid_statuses(jobs: list[Job], metric: str, grid: pd.DataFrame) -> pd.DataFrame:
+    """The status of each cell of ``grid`` (``"missing"`` where no job ran that pair; the
+    statuses joined by ``/`` where several jobs did)."""
+    return (
+        _grid_cells(jobs, metric)
+        .groupby([BATCH_KEY, PROTOTYPES_KEY])["status"]
+        .agg(lambda s: "/".join(sorted(set(s))))
+        .unstack()
+        .reindex(index=grid.index, columns=grid.columns)
+        .fillna("missing")
+    )
+
+
+def fit_heuristic(grid: pd.DataFrame) -> tuple[PrototypeHeuristic, dict[int, int]]:
+    """The best prototype count of every batch size with a result, and the fitted ``n(B)``."""
+    best = {int(b): int(row.idxmax()) for b, row in grid.iterrows() if row.notna().any()}
+    if not best:
+        raise ValueError("no completed job in the prototype/batch grid: nothing to fit")
+    return PrototypeHeuristic.fit(list(best), list(best.values())), best
