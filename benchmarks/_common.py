@@ -54,7 +54,7 @@ def encode_generated(model: Any, images: int, short_side: int) -> Any:
     """``model.encode`` of the :func:`generated_spec` images, one batch, no gradients."""
     import torch
 
-    from resireg_train.ovss.datasets import build_segmentation_set
+    from resireg_train.data.segmentation import build_segmentation_set
 
     data = build_segmentation_set(generated_spec(images, short_side), model.input_rule.patch_size)
     pixels = torch.stack([data[i]["image"] for i in range(images)])

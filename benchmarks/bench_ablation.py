@@ -26,7 +26,7 @@ import torch
 from _common import build_model, generated_spec
 from resireg.models import ResiregVLM
 from resireg.variants import build_variants
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 BATCH_SIZES = (2, 4, 6, 8, 16, 24, 32)

@@ -30,7 +30,7 @@ from hydra import compose, initialize_config_dir
 from resireg.variants import build_variants
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.cli.train import build
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 STAGES = ("data", "encoder", "reconstruction/bb", "reconstruction/lite",

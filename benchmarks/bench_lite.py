@@ -46,7 +46,7 @@ from _common import build_model, generated_spec, median_seconds
 from bench_reconstruct import load_impl
 from resireg.reconstruct import ReSiRegLite
 from resireg.variants import build_variant
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.data.segmentation import build_segmentation_set
 
 BACKENDS = {
     "default": None,

@@ -4,7 +4,7 @@ of predictions on the synthetic ScanNet-format rooms under the default protocol
 RayFronts' configs' settings together, and this project's earlier protocol
 (``conf/dataset/scannet_legacy.yaml``), in one run.
 
-Setting. Two rooms (``resireg_train.mapping.synthetic``, ``--world nyu40``: ScanNet's class
+Setting. Two rooms (``resireg_train.data.scannet_room``, ``--world nyu40``: ScanNet's class
 names, flat colours), 160 x 212 frames rendered and resized to 212 x 282 (the 4/3 of ScanNet's 480 x
 640 -> 640 x 864), frame skip 0, voxel 0.1 m (the rooms are 4 m across). The encoder, unless
 ``--model-path`` names an export of ours: a colour oracle on a coarse grid (8 x 8-pixel patches:
@@ -32,9 +32,9 @@ import yaml
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES
 from resireg.variants import build_variants
+from resireg_train.data.scannet import READER_KEYS, ScanNetFrames
+from resireg_train.data.scannet_room import NYU40_COLOURS, Box, SyntheticRoom, write_scene
 from resireg_train.mapping.engine import TASK_KEYS, MappingProtocol, MappingTask
-from resireg_train.mapping.scannet import READER_KEYS, ScanNetFrames
-from resireg_train.mapping.synthetic import NYU40_COLOURS, Box, SyntheticRoom, write_scene
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 SCENES = ("synthetic0000_00", "synthetic0001_00")
@@ -122,7 +122,9 @@ def score(root: Path, spec: dict[str, Any], encoder: DenseEncoder) -> dict[str, 
         reader["gt_resolution"] = tuple(reader["gt_resolution"])
     frames = ScanNetFrames(root, SCENES, patch_size=encoder.input_rule.patch_size, **reader)
     protocol = MappingProtocol.from_spec({**{k: spec[k] for k in TASK_KEYS}, "voxel_size": VOXEL})
-    result = MappingTask(frames, batch_size=4, protocol=protocol).run(encoder, build_variants(["bb"]))
+    result = MappingTask(frames, batch_size=4, protocol=protocol).run(
+        encoder, build_variants(["bb"])
+    )
     s = result.scores()
     p = "val/scannet3d/scannet"
     per_scene = result.per_scene()
@@ -161,7 +163,9 @@ def main(argv: Sequence[str] | None = None) -> list[tuple[str, dict[str, float]]
           f"({RENDER[0]}x{RENDER[1]} -> {IMAGE[0]}x{IMAGE[1]}), voxel {VOXEL} m; x100; "
           f"mIoU / f-mIoU = mean over the 2 scenes, pooled = one confusion over both ({seconds:.0f} s)")  # fmt: skip
     print()
-    print("| protocol | mIoU | f-mIoU | pooled mIoU | pooled f-mIoU | GT voxels | feature voxels | classes |")
+    print(
+        "| protocol | mIoU | f-mIoU | pooled mIoU | pooled f-mIoU | GT voxels | feature voxels | classes |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for label, r in rows:
         print(f"| {label} | {100 * r['miou']:.1f} | {100 * r['fmiou']:.1f} | "

@@ -10,7 +10,7 @@ from _run import run
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache, weights_fingerprint
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 SPEC = {"name": "synthetic", "kind": "synthetic", "size": 6, "image_size": [40, 56],

@@ -22,7 +22,7 @@ from safetensors.torch import save_file
 
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
-from resireg.models.clip import ClipEncoder
+from resireg.models.zoo.clip import ClipEncoder
 from resireg.reconstruct import ReSiRegLite
 
 B16 = "ViT-B-16"

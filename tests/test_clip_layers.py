@@ -18,13 +18,13 @@ from hydra import compose, initialize_config_dir
 from PIL import Image
 
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
-from resireg.models.clip import ClipEncoder
+from resireg.models.zoo.clip import ClipEncoder
 from resireg.ovss import TEMPLATES
 from resireg.variant_names import parse_variant, variant_layer
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache
 from resireg_train.cli.task import CONFIG_DIR
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSTask, requested_layers
 from resireg_train.report import collect, layer_sweep_table, report
 from resireg_train.validation import ConfigError, validate_eval

@@ -22,8 +22,8 @@ import torch
 import torch.nn.functional as F
 
 import resireg.models.hub as hub_module
-from resireg.models.dinotxt import DINOTXT_CHECKPOINTS, DINOTXT_ENTRY_POINT, DinoTxtEncoder
 from resireg.models.hub import WeightsUnavailableError
+from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DINOTXT_ENTRY_POINT, DinoTxtEncoder
 
 WIDTH, EMBED, SIDE = 32, 64, 56  # backbone width, text/image embedding width, fake native size
 VOCAB = "dinov2/hub/bpe_simple_vocab_16e6.txt.gz"  # inside the fake repo

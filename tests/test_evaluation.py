@@ -8,8 +8,8 @@ from sklearn.metrics import confusion_matrix, jaccard_score
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
 from resireg.ovss import predict, text_prototypes
 from resireg.variants import build_variant, build_variants
+from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES
-from resireg_train.ovss.datasets import build_segmentation_set
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 SPEC = {"kind": "synthetic", "size": 10, "image_size": [40, 56], "seed": 5, "short_side": 48}

@@ -8,7 +8,7 @@ the real attribute layout (``patch_size``, ``embed_dim``, ``num_register_tokens`
 CLS and 4 registers removed) at a tiny width (32) and depth (1). Expected values are
 recomputed here from the models' own modules and plain torch / numpy / scikit-learn, never
 through the adapter's helpers: OTAS's steps as written in its ``src/model.py`` and
-``maskclip_onnx`` (see :mod:`resireg.models.otas`).
+``maskclip_onnx`` (see :mod:`resireg.models.zoo.otas`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from sklearn.decomposition import PCA
 
 import resireg.models.hub as hub_module
 from resireg.models.hub import WeightsUnavailableError
-from resireg.models.otas import OTAS_CHECKPOINTS, OTAS_ENTRY_POINT, OtasEncoder
+from resireg.models.zoo.otas import OTAS_CHECKPOINTS, OTAS_ENTRY_POINT, OtasEncoder
 
 WIDTH = 32  # fake DINOv2 width
 EMBED = 512  # CLIP ViT-B/16 embedding

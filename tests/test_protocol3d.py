@@ -40,6 +40,14 @@ from resireg.mapping import (
 )
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
 from resireg.variants import build_variants
+from resireg_train.data.scannet import (
+    CLASS_NAMES,
+    INTRINSICS,
+    RESIZES,
+    ScanNetFrames,
+    resize_nearest,
+)
+from resireg_train.data.scannet_room import Box, SyntheticRoom, write_scene
 from resireg_train.mapping import metric as metric_module
 from resireg_train.mapping.engine import (
     GT_RULES,
@@ -48,14 +56,6 @@ from resireg_train.mapping.engine import (
     MappingTask,
     ground_truth_labels,
 )
-from resireg_train.mapping.scannet import (
-    CLASS_NAMES,
-    INTRINSICS,
-    RESIZES,
-    ScanNetFrames,
-    resize_nearest,
-)
-from resireg_train.mapping.synthetic import Box, SyntheticRoom, write_scene
 from test_scannet import _ClassFromColour
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
@@ -399,7 +399,9 @@ def test_pixel_pairs_equal_the_per_pixel_reference_exactly(lattice, grid):
     rows = ((2 * np.arange(120) + 1) * h) // (2 * 120)
     cols = ((2 * np.arange(160) + 1) * w) // (2 * 160)
     d = depth.numpy().astype(np.float64)
-    z = d[:, ((2 * np.arange(h) + 1) * 120) // (2 * h)][:, :, ((2 * np.arange(w) + 1) * 160) // (2 * w)]
+    z = d[:, ((2 * np.arange(h) + 1) * 120) // (2 * h)][
+        :, :, ((2 * np.arange(w) + 1) * 160) // (2 * w)
+    ]
     kk = k.numpy().astype(np.float64)
     keys, feat_rows = [], []
     for b in range(2):
@@ -435,7 +437,9 @@ def test_transfer_k_and_same_voxel_by_hand():
     # 5 nearest of x=0.1: labels 7 3 3 5 5 -> 3 (2 votes) vs 5 (2): smaller 3; of x=3.9:
     # 5 5 3 3 7 -> 3; of x=10: 9 5 5 3 3 -> 3
     assert transfer_labels(src, labels, tgt, 5).tolist() == [3, 3, 3]
-    by_voxel = transfer_labels_by_voxel(src.long(), labels, torch.tensor([[3, 0, 0], [5, 0, 0]]), 99)
+    by_voxel = transfer_labels_by_voxel(
+        src.long(), labels, torch.tensor([[3, 0, 0], [5, 0, 0]]), 99
+    )
     assert by_voxel.tolist() == [5, 99]
 
 
@@ -456,8 +460,14 @@ def test_prediction_threshold_and_denoising_equal_compute_semseg_preds():
     assert int((ref == 0).sum()) == 5_000 and set(ref.tolist()) == {0, 1, 2, 3, 4}
     kept = rf_compute_semseg_preds(feats, protos, 0, 0.1, 10_000)  # no denoising: class 5 stays
     assert int((kept == 0).sum()) == 4_000 and int((kept == 6).sum()) == 1_000
-    assert torch.equal(torch.where(classify(feats, protos, threshold=0.1) < 0, 0,
-                                   classify(feats, protos, threshold=0.1) + 1), kept)
+    assert torch.equal(
+        torch.where(
+            classify(feats, protos, threshold=0.1) < 0,
+            0,
+            classify(feats, protos, threshold=0.1) + 1,
+        ),
+        kept,
+    )
     plain = classify(feats, protos)
     assert not torch.equal(plain, got)
     assert torch.equal(plain, torch.argmax(F.normalize(feats) @ F.normalize(protos).T, dim=1))
@@ -474,7 +484,7 @@ def test_resize_and_intrinsics_rules():
     assert int((torch_cols != exact_cols).sum()) >= 1
     labels = torch.arange(12).reshape(3, 4)
     assert resize_nearest(labels, (6, 8), "torch").dtype == torch.int64
-    from resireg_train.mapping.scannet import scale_camera
+    from resireg_train.data.scannet import scale_camera
 
     k = torch.tensor([[577.6, 0.0, 318.9], [0.0, 578.7, 242.7], [0.0, 0.0, 1.0]])
     mul = scale_camera(k, (480, 640), (640, 864), "multiply")

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
-from resireg.models.radio import RADIO_CHECKPOINTS, RadioEncoder, RadSegEncoder
+from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadioEncoder, RadSegEncoder
 
 FAKE_RADIO = textwrap.dedent(
     '''

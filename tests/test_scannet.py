@@ -18,14 +18,14 @@ from _run import run
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
 from resireg.variants import build_variants
-from resireg_train.mapping.engine import MappingTask
-from resireg_train.mapping.scannet import ScanNetFrames, evaluated_classes, label_lookup
-from resireg_train.mapping.synthetic import (
+from resireg_train.data.scannet import ScanNetFrames, evaluated_classes, label_lookup
+from resireg_train.data.scannet_room import (
     NYU40_COLOURS,
     RAW_LABELS,
     SyntheticRoom,
     write_scene,
 )
+from resireg_train.mapping.engine import MappingTask
 
 TEST_CONF = Path(__file__).parent / "conf"
 SCENE = "synthetic0000_00"
@@ -170,10 +170,16 @@ def test_frame_rules_skip_drop_and_scaled_intrinsics(root, room, tmp_path):
     half = np.array([[f / 2, 0, (cx + 0.5) / 2 - 0.5], [0, f / 2, (cy + 0.5) / 2 - 0.5], [0, 0, 1]])
     np.testing.assert_allclose(item["gt_intrinsics"].numpy(), half, rtol=1e-6)
     multiplied = _frames(root, room, image_size=(96, 128), gt_resolution=(24, 32))[0]
-    np.testing.assert_allclose(multiplied["intrinsics"].numpy(),
-                               [[2 * f, 0, 2 * cx], [0, 2 * f, 2 * cy], [0, 0, 1]], rtol=1e-6)
-    np.testing.assert_allclose(multiplied["gt_intrinsics"].numpy(),
-                               [[f / 2, 0, cx / 2], [0, f / 2, cy / 2], [0, 0, 1]], rtol=1e-6)
+    np.testing.assert_allclose(
+        multiplied["intrinsics"].numpy(),
+        [[2 * f, 0, 2 * cx], [0, 2 * f, 2 * cy], [0, 0, 1]],
+        rtol=1e-6,
+    )
+    np.testing.assert_allclose(
+        multiplied["gt_intrinsics"].numpy(),
+        [[f / 2, 0, cx / 2], [0, f / 2, cy / 2], [0, 0, 1]],
+        rtol=1e-6,
+    )
     assert item["image"].shape == (3, 96, 128) and item["depth"].shape == (96, 128)
     assert item["gt_label"].shape == (24, 32) and item["gt_depth"].shape == (24, 32)
     depth = np.asarray(Image.open(root / SCENE / "depth" / "0.png")) / 1000
@@ -554,7 +560,7 @@ def test_a_smoke_trained_model_scores_above_chance_on_the_smoke_room(tmp_path):
         f"paths.log_dir={logs}")  # fmt: skip
     (export,) = logs.glob("smoke/*/export")
     room = tmp_path / "scannet_synthetic"
-    subprocess.run([sys.executable, "-m", "resireg_train.mapping.synthetic", str(room)],
+    subprocess.run([sys.executable, "-m", "resireg_train.data.scannet_room", str(room)],
                    check=True, capture_output=True)  # fmt: skip
     run("resireg-eval", f"model_path={export}", "task=scannet3d", "dataset=scannet_synthetic",
         f"dataset.path={room}", "variants=[bb,full]", "batch_size=4", "num_workers=0",

@@ -11,12 +11,12 @@ from PIL import Image
 
 from resireg.models import WeightsUnavailableError
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
-from resireg_train.data.synthetic import SyntheticScenes
-from resireg_train.ovss.datasets import (
+from resireg_train.data.segmentation import (
     build_segmentation_set,
     collate_segmentation,
     orad3d_label,
 )
+from resireg_train.data.synthetic import SyntheticScenes
 
 
 def _save(array, path):
@@ -39,7 +39,7 @@ def test_synthetic_set_resizes_images_and_keeps_full_resolution_masks():
 
 
 def _mixed_sizes_set(sizes):
-    from resireg_train.ovss.datasets import SegmentationSet
+    from resireg_train.data.segmentation import SegmentationSet
 
     return SegmentationSet(
         "mixed", ("a", "b"), load=None, header_size=lambda i: sizes[i], length=len(sizes),
@@ -232,7 +232,7 @@ def poisoned_ade_folder(root):
 def test_bad_ade20k_samples_are_skipped_naming_file_and_reason(tmp_path):
     import re
 
-    from resireg_train.ovss.datasets import SkippedSample
+    from resireg_train.data.segmentation import SkippedSample
 
     bad = poisoned_ade_folder(tmp_path)
     ds = build_segmentation_set({"kind": "ade20k", "path": str(tmp_path), "short_side": 32}, 16)

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 import resireg.models.hub as hub_module
 from resireg.models.hub import WeightsUnavailableError
-from resireg.models.tips import (
+from resireg.models.zoo.tips import (
     TIPS_TOKENIZER_URL,
     TIPS_VARIANTS,
     TIPS_WEIGHTS_URL,

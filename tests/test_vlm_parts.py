@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
-from resireg.models.eupe import EUPEBackbone
-from resireg.models.head import LanguageHead
-from resireg.models.text import FrozenTextTower, TextProjection
+from resireg.models.vlm.eupe import EUPEBackbone
+from resireg.models.vlm.head import LanguageHead
+from resireg.models.vlm.text import FrozenTextTower, TextProjection
 
 
 @pytest.fixture(scope="module")

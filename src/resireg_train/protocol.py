@@ -48,7 +48,9 @@ def protocol_record(params: Mapping[str, Any], dataset: Any = None) -> dict[str,
 
             settings.setdefault("reduce_zero_label", bool(dataset.reduce_zero_label))
             settings.setdefault("classes", f"{spec.get('kind')} ({len(dataset.classes)})")
-            settings.setdefault("templates", f"open_clip OPENAI_IMAGENET_TEMPLATES ({len(TEMPLATES)})")
+            settings.setdefault(
+                "templates", f"open_clip OPENAI_IMAGENET_TEMPLATES ({len(TEMPLATES)})"
+            )
     if "dense_path" in encoder:
         settings["encoder.dense_path"] = encoder["dense_path"]
     name = spec.get("protocol") or f"{task}/{spec.get('kind', '?')}"

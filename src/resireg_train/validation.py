@@ -121,8 +121,8 @@ ENCODER_IMPORTS: dict[str, tuple[Needs, ...]] = {
             lambda e: e.get("vocab") is None,
         ),
     ),
-    "tips": (Needs("sentencepiece", "sentencepiece", "resireg.models.tips (its tokenizer)"),),
-    "otas": (Needs("sklearn", "scikit-learn", "resireg.models.otas (k-means)"),),
+    "tips": (Needs("sentencepiece", "sentencepiece", "resireg.models.zoo.tips (its tokenizer)"),),
+    "otas": (Needs("sklearn", "scikit-learn", "resireg.models.zoo.otas (k-means)"),),
 }
 
 
@@ -330,20 +330,29 @@ _EVAL_RULES: dict[str, Rule] = {
 # section 4), checked when dataset.kind is scannet (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
     "dataset.gt_resolution": (
-        lambda v: v in ("image", "label") or _size(v), "image, label or [height, width]"
+        lambda v: v in ("image", "label") or _size(v),
+        "image, label or [height, width]",
     ),
-    "dataset.gt_unlabelled": (lambda v: v in ("rayfronts", "vote", "drop"),
-                              "one of ['rayfronts', 'vote', 'drop']"),  # fmt: skip
+    "dataset.gt_unlabelled": (
+        lambda v: v in ("rayfronts", "vote", "drop"),
+        "one of ['rayfronts', 'vote', 'drop']",
+    ),  # fmt: skip
     "dataset.resize": (lambda v: v in ("torch", "exact"), "one of ['torch', 'exact']"),
-    "dataset.intrinsics": (lambda v: v in ("multiply", "half_pixel"),
-                           "one of ['multiply', 'half_pixel']"),  # fmt: skip
+    "dataset.intrinsics": (
+        lambda v: v in ("multiply", "half_pixel"),
+        "one of ['multiply', 'half_pixel']",
+    ),  # fmt: skip
     "dataset.lattice": (lambda v: v in ("round", "floor"), "one of ['round', 'floor']"),
     "dataset.points": (lambda v: v in ("patch", "pixel"), "one of ['patch', 'pixel']"),
     "dataset.knn": _integer(0),
-    "dataset.prediction_threshold": (lambda v: v is None or (_num(v) and 0 < v < 1),
-                                     "null or a number in (0, 1)"),  # fmt: skip
-    "dataset.prompt_denoising": (lambda v: v is None or (_num(v) and 0 < v < 1),
-                                 "null or a number in (0, 1)"),  # fmt: skip
+    "dataset.prediction_threshold": (
+        lambda v: v is None or (_num(v) and 0 < v < 1),
+        "null or a number in (0, 1)",
+    ),  # fmt: skip
+    "dataset.prompt_denoising": (
+        lambda v: v is None or (_num(v) and 0 < v < 1),
+        "null or a number in (0, 1)",
+    ),  # fmt: skip
     "dataset.metric": (lambda v: v in ("rayfronts", "union"), "one of ['rayfronts', 'union']"),
     "dataset.class_names": (lambda v: v in ("label_map", "nyu40"), "one of ['label_map', 'nyu40']"),
     "dataset.classes_to_ignore": (

@@ -163,9 +163,7 @@ def transfer_labels(source: Tensor, labels: Tensor, targets: Tensor, k: int = 1)
     return out.to(labels.device)
 
 
-def transfer_labels_by_voxel(
-    source: Tensor, labels: Tensor, targets: Tensor, fill: int
-) -> Tensor:
+def transfer_labels_by_voxel(source: Tensor, labels: Tensor, targets: Tensor, fill: int) -> Tensor:
     """Label of every target voxel from the source voxel of the same index, else ``fill``.
 
     RayFronts' ``k = 0`` alignment (``align_labels_with_vox_grid``: the union of both voxel

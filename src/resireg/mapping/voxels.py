@@ -31,7 +31,14 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-__all__ = ["LATTICES", "VoxelMap", "LabelVoxelMap", "check_lattice", "voxel_centres", "voxel_indices"]
+__all__ = [
+    "LATTICES",
+    "VoxelMap",
+    "LabelVoxelMap",
+    "check_lattice",
+    "voxel_centres",
+    "voxel_indices",
+]
 
 # Packed key: 21 bits per axis, index + 2**20 in [0, 2**21); 63 bits in all (non-negative int64).
 _BITS = 21
@@ -180,8 +187,11 @@ class _SparseVoxels:
     def _rows_of_index(self, index: Tensor, points: Tensor | None = None) -> Tensor:
         """Accumulator rows ``[N]`` of voxel indices ``[N, 3]``; unseen voxels get new rows."""
         if index.numel() and int(index.abs().max()) > _MAX_INDEX:
-            where = f"points with |coordinate| {float(points.abs().max()):g} m" if points is not None \
+            where = (
+                f"points with |coordinate| {float(points.abs().max()):g} m"
+                if points is not None
                 else f"voxel indices up to {int(index.abs().max())}"
+            )
             raise ValueError(
                 f"{where}: voxel indices beyond +-{_MAX_INDEX} "
                 f"at voxel_size={self.voxel_size:g} (keys pack 21 bits per axis)"
@@ -255,7 +265,11 @@ class VoxelMap(_SparseVoxels):
     """
 
     def __init__(
-        self, voxel_size: float, dim: int, device: torch.device | str = "cpu", lattice: str = "round"
+        self,
+        voxel_size: float,
+        dim: int,
+        device: torch.device | str = "cpu",
+        lattice: str = "round",
     ) -> None:
         super().__init__(voxel_size, device, lattice)
         self.dim = _check_count("dim", dim)

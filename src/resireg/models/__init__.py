@@ -1,19 +1,30 @@
-"""Dense encoders: the interface, the encoder zoo (CLIP, RADIO, RADSeg, dino.txt) and the
-25M dense VLM with its parts (EUPE, head, SigLIP 2 text, teachers)."""
+"""Dense encoders: the interface (``encoder``, ``images``; ``hub`` and ``frozen`` for loaders), the
+encoder zoo (``zoo/``: CLIP, RADIO, RADSeg, dino.txt, TIPSv2, OTAS) and the 25M dense VLM with
+its parts (``vlm/``: EUPE, head, SigLIP 2 text); ``encoders`` builds any of them by kind."""
 
-from resireg.models.clip import CLIP_MODELS, ClipEncoder
-from resireg.models.dinotxt import DinoTxtEncoder
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.encoders import ENCODERS, build_encoder, count_parameters
-from resireg.models.eupe import EUPE_MODELS, BackboneOutput, EUPEBackbone
-from resireg.models.head import HeadOutput, LanguageHead
 from resireg.models.hub import WeightsUnavailableError
-from resireg.models.otas import OtasEncoder
-from resireg.models.radio import RadioEncoder, RadSegEncoder
-from resireg.models.teacher import ConvTeacher, RadSegTeacher, build_teacher
-from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
-from resireg.models.tips import TipsEncoder
-from resireg.models.vlm import ResiregVLM
+from resireg.models.vlm import (
+    EUPE_MODELS,
+    BackboneOutput,
+    EUPEBackbone,
+    FrozenTextTower,
+    HeadOutput,
+    LanguageHead,
+    ResiregVLM,
+    TextProjection,
+    dense_text_half,
+)
+from resireg.models.zoo import (
+    CLIP_MODELS,
+    ClipEncoder,
+    DinoTxtEncoder,
+    OtasEncoder,
+    RadioEncoder,
+    RadSegEncoder,
+    TipsEncoder,
+)
 
 __all__ = [
     "DenseEncoder",
@@ -35,9 +46,6 @@ __all__ = [
     "HeadOutput",
     "LanguageHead",
     "WeightsUnavailableError",
-    "ConvTeacher",
-    "RadSegTeacher",
-    "build_teacher",
     "FrozenTextTower",
     "TextProjection",
     "dense_text_half",

@@ -24,13 +24,13 @@ from typing import Any
 
 import torch
 
-from resireg.models.clip import ClipEncoder
-from resireg.models.dinotxt import DinoTxtEncoder
 from resireg.models.encoder import DenseEncoder
-from resireg.models.otas import OtasEncoder
-from resireg.models.radio import RadioEncoder, RadSegEncoder
-from resireg.models.tips import TipsEncoder
 from resireg.models.vlm import ResiregVLM
+from resireg.models.zoo.clip import ClipEncoder
+from resireg.models.zoo.dinotxt import DinoTxtEncoder
+from resireg.models.zoo.otas import OtasEncoder
+from resireg.models.zoo.radio import RadioEncoder, RadSegEncoder
+from resireg.models.zoo.tips import TipsEncoder
 
 __all__ = ["ENCODERS", "build_encoder", "count_parameters", "encoder_modules"]
 

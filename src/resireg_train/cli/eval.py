@@ -146,11 +146,11 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
     from resireg.variant_names import takes_prior
 
     if params["task"] == "scannet3d":
-        from resireg_train.mapping.scannet import check_scannet_spec
+        from resireg_train.data.scannet import check_scannet_spec
 
         check_scannet_spec(params["dataset"], "dataset")
     else:
-        from resireg_train.ovss.datasets import check_segmentation_source
+        from resireg_train.data.segmentation import check_segmentation_source
 
         check_segmentation_source(params["dataset"], "dataset")
     if any(takes_prior(v) for v in variants):
@@ -176,7 +176,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg.models import build_encoder, count_parameters
     from resireg.variant_names import takes_prior
     from resireg.variants import build_variants
-    from resireg_train.ovss.datasets import build_segmentation_set
+    from resireg_train.data.segmentation import build_segmentation_set
     from resireg_train.ovss.engine import OVSSTask, StageTimer
     from resireg_train.protocol import protocol_record
 

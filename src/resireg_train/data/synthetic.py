@@ -49,7 +49,7 @@ def paint(mask: np.ndarray, rng: np.random.Generator, noise: float) -> np.ndarra
     """The pixels of a class map ``mask`` ``[H, W]`` (class ids): each class's colour and
     texture (stripes whose period and direction depend on the class, in image coordinates),
     plus Gaussian noise of std ``noise`` drawn from ``rng``; uint8 RGB ``[H, W, 3]``. The 3D
-    synthetic room paints its boxes with it too (``resireg_train.mapping.synthetic``)."""
+    synthetic room paints its boxes with it too (``resireg_train.data.scannet_room``)."""
     yy, xx = np.mgrid[0 : mask.shape[0], 0 : mask.shape[1]]
     image = _COLOURS[mask].copy()
     period = 4.0 + 2.0 * mask

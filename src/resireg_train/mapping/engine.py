@@ -64,9 +64,9 @@ from resireg.mapping import (
 )
 from resireg.models import DenseEncoder
 from resireg.variants import apply_variant
+from resireg_train.data.scannet import ScanNetFrames, collate_frames
+from resireg_train.data.segmentation import SkippedSample
 from resireg_train.mapping import metric as metrics
-from resireg_train.mapping.scannet import ScanNetFrames, collate_frames
-from resireg_train.ovss.datasets import SkippedSample
 from resireg_train.ovss.engine import (
     OVSSTask,
     StageTimer,
@@ -469,8 +469,12 @@ class MappingTask:
                         at_gt = transfer_labels_by_voxel(vmap.indices, pred, state["gt"].indices, k)
                     else:  # the mode's ties go to the smaller label: in RayFronts' numbering
                         # "no prediction" is 0, the smallest, so it is voted in that numbering
-                        shifted = transfer_labels(centres, (pred + 1) % (k + 1),
-                                                  state["gt"].centres(), min(p.knn, len(vmap)))
+                        shifted = transfer_labels(
+                            centres,
+                            (pred + 1) % (k + 1),
+                            state["gt"].centres(),
+                            min(p.knn, len(vmap)),
+                        )
                         at_gt = (shifted - 1) % (k + 1)  # fmt: skip
                 result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
                 result.feature_voxels[name][state["name"]] = len(vmap) if vmap is not None else 0
@@ -489,7 +493,7 @@ def run_scannet3d(
     record's content."""
     import logging
 
-    from resireg_train.mapping.scannet import build_scannet
+    from resireg_train.data.scannet import build_scannet
     from resireg_train.protocol import protocol_record
     from resireg_train.results import update_results
 

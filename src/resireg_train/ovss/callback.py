@@ -11,7 +11,7 @@ import lightning as L
 import torch.distributed as dist
 
 from resireg.variants import VARIANTS, build_variants
-from resireg_train.ovss.datasets import build_segmentation_set
+from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSResult, OVSSTask
 from resireg_train.ovss.settings import save_settings
 
@@ -45,7 +45,7 @@ class ReSiRegEval(L.Callback):
 
     Args:
         datasets: ``{name: spec}`` segmentation datasets (see
-            :func:`~resireg_train.ovss.datasets.build_segmentation_set`).
+            :func:`~resireg_train.data.segmentation.build_segmentation_set`).
         variants: names of :func:`resireg.variants.build_variant` (``bb``, ``calib``, ``lite``,
             ``full``).
         every_n_epochs: evaluation interval in epochs.

@@ -44,7 +44,7 @@ from resireg.ovss import (
 )
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
-from resireg_train.ovss.datasets import SegmentationSet, SkippedSample, collate_segmentation
+from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.validation import PRECISIONS
 
 if TYPE_CHECKING:
@@ -140,7 +140,7 @@ def configuration_layers(
     """Each configuration's encoder block (``@layer:<block>``, as the encoder's 0-based index)
     or ``None`` (the encoder's own intermediates). Fails before any encoding, naming the
     configuration and ``key``, when the encoder returns no per-block intermediates (it needs
-    ``encode_layers`` and ``check_layers``, as :class:`~resireg.models.clip.ClipEncoder` has),
+    ``encode_layers`` and ``check_layers``, as :class:`~resireg.models.zoo.clip.ClipEncoder` has),
     when the block does not exist, or for ``bb`` (it uses no intermediates)."""
     out: dict[str, int | None] = {}
     for name in names:

@@ -16,7 +16,7 @@ from timm.layers import trunc_normal_
 from timm.models.vision_transformer import Block
 from torch import Tensor, nn
 
-from resireg.models.eupe import BackboneOutput
+from resireg.models.vlm.eupe import BackboneOutput
 
 __all__ = ["HeadOutput", "LanguageHead"]
 

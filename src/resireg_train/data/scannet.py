@@ -61,8 +61,8 @@ from PIL import Image
 from resireg.mapping import nearest_downsample, scale_intrinsics
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import NYU40_CLASSES
+from resireg_train.data.segmentation import IGNORE_INDEX, SkippedSample
 from resireg_train.files import DECODE_ERRORS
-from resireg_train.ovss.datasets import IGNORE_INDEX, SkippedSample
 
 __all__ = [
     "CLASS_NAMES",
@@ -430,7 +430,9 @@ class ScanNetFrames(torch.utils.data.Dataset):
         depth_mm = _read_image(frame.depth, "depth").astype(np.float32)
         raw = _read_image(frame.label, "label")
         if depth_mm.ndim != 2:
-            raise _FrameError(frame.depth, f"depth has shape {depth_mm.shape}: expected one channel")
+            raise _FrameError(
+                frame.depth, f"depth has shape {depth_mm.shape}: expected one channel"
+            )
         if raw.ndim != 2:
             raise _FrameError(frame.label, f"label has shape {raw.shape}: expected one channel")
         depth = torch.from_numpy(depth_mm / 1000.0)
@@ -439,7 +441,8 @@ class ScanNetFrames(torch.utils.data.Dataset):
                                      self.patch_size)  # fmt: skip
         label = torch.from_numpy(self.lookup[raw.astype(np.int64)].astype(np.int64))
         gt_size = {"image": self.image_size, "label": tuple(label.shape)}.get(
-            self.gt_resolution, self.gt_resolution  # type: ignore[arg-type]
+            self.gt_resolution,
+            self.gt_resolution,  # type: ignore[arg-type]
         )
         rule, camera = self.resize, self.intrinsics_rule
         return {

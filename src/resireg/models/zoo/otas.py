@@ -39,7 +39,7 @@ adapter, per image of the batch:
    comment says adding the residual or the MLP degrades the result), ``ln_post``, ``proj``
    -> ``[512, H/16, W/16]``. This is ``dense_path="value"`` (the default);
    ``dense_path="maskclip"`` keeps the residual and the MLP as the official MaskCLIP code
-   does (:class:`~resireg.models.clip.ClipEncoder`), a departure from OTAS.
+   does (:class:`~resireg.models.zoo.clip.ClipEncoder`), a departure from OTAS.
 4. **Shared grid** (``clip_shared_feat_map``): the CLIP map is sampled onto the square
    ``S x S`` grid (``S = shared_feat_resolution``) by nearest lookup, row ``i`` <- source row
    ``floor(i * H_src / S)`` (column likewise).
@@ -86,16 +86,16 @@ import torch.nn.functional as F
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
-from resireg.models.clip import (
+from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
+from resireg.models.frozen import FrozenModule
+from resireg.models.hub import check_hub_source, require_online
+from resireg.models.images import tokens_to_grid
+from resireg.models.zoo.clip import (
     CLIP_MODELS,
     ClipEncoder,
     _check_weights_reachable,
     check_dense_path,
 )
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
-from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source, require_online
-from resireg.models.images import tokens_to_grid
 
 __all__ = ["OTAS_ENTRY_POINT", "OTAS_CHECKPOINTS", "OtasEncoder"]
 

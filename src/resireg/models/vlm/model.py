@@ -26,10 +26,10 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor, nn
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
-from resireg.models.eupe import EUPEBackbone
-from resireg.models.head import LanguageHead
 from resireg.models.hub import require_online
-from resireg.models.text import FrozenTextTower, TextProjection, dense_text_half
+from resireg.models.vlm.eupe import EUPEBackbone
+from resireg.models.vlm.head import LanguageHead
+from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half
 from resireg.sources import is_repo_id
 
 __all__ = ["ResiregVLM"]

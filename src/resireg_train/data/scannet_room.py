@@ -29,7 +29,7 @@ Written (``write_scene(root, scene)``)::
     <root>/<scene>/label-filt/<i>.png            uint16 raw ScanNet ids, 0 = unlabelled
 
 One frame (``bad_pose_frame``) gets the all ``-inf`` pose that ScanNet writes where tracking
-failed, so the reader's drop rule is exercised. ``python -m resireg_train.mapping.synthetic
+failed, so the reader's drop rule is exercised. ``python -m resireg_train.data.scannet_room
 OUT [--world smoke|nyu40]`` writes the default scene (``synthetic0000_00``) under ``OUT``.
 """
 
