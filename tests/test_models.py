@@ -13,15 +13,14 @@ from resireg.models import (
     TINY_BACKBONE,
     TINY_HEAD,
     TINY_TEXT,
-    ConvTeacher,
     EUPEBackbone,
     FrozenTextTower,
     LanguageHead,
-    RadSegTeacher,
     ResiregVLM,
     WeightsUnavailableError,
 )
 from resireg.models import hub as hub_module
+from resireg_train.training.teacher import ConvTeacher, RadSegTeacher
 
 TINY = {"embed_dim": 64, "depth": 2, "num_heads": 2}
 NAME = "vit_small_patch16_dinov3_qkvb.eupe_lvd1689m"
