@@ -164,6 +164,7 @@ def test_dense_output_shapes_and_dtypes(kind, built):
     torch.testing.assert_close(queries.norm(dim=-1), torch.ones(len(TEXTS)), rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow  # rebuilds every encoder (CLIP ViT-B/16 twice, with OTAS's)
 @pytest.mark.parametrize("kind", sorted(ENCODERS))
 def test_spec_round_trip(kind, built):
     enc, x, out = built[kind]
