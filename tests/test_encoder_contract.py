@@ -202,3 +202,26 @@ def test_offline_and_not_cached_fails_at_once_naming_the_key(kind, tmp_path, mon
     message = str(err.value)
     for fragment in expected:
         assert fragment in message, (fragment, message)
+
+
+def test_block_index_rule():
+    """The one block-index rule (resireg.models.encoder.block_indices, over timm's
+    feature_take_indices) against Python's own indexing of the block list: negative indices
+    count from the end, an int n is the last n blocks; anything else names the key and value."""
+    from resireg.models.encoder import block_index, block_indices
+
+    blocks = list(range(12))
+    for i in range(-12, 12):
+        assert block_index(12, i, "intermediate_layer") == blocks[i]
+    assert block_indices(12, [3, -1, 0]) == (blocks[3], blocks[-1], blocks[0])  # order kept
+    for n in (1, 5, 12):
+        assert block_indices(12, n) == tuple(blocks[-n:])
+    with pytest.raises(ValueError, match=r"intermediate_layer=12 is out of range for ViT-B-16"):
+        block_index(12, 12, "intermediate_layer", "ViT-B-16")
+    with pytest.raises(ValueError, match=r"layer=-13 is out of range"):
+        block_indices(12, [0, -13])
+    with pytest.raises(ValueError, match=r"layer=13: the last 13 blocks, but the model has 12"):
+        block_indices(12, 13)
+    for bad in (True, "3", 2.0, [1.5], None):
+        with pytest.raises(TypeError, match=r"layer="):
+            block_indices(12, bad)

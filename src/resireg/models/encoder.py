@@ -58,16 +58,11 @@ def block_indices(
     """
     from timm.models._features import feature_take_indices
 
-    def bad(value: Any) -> bool:
-        return isinstance(value, bool) or not isinstance(value, int)
+    def is_int(value: Any) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool)
 
-    if isinstance(indices, bool) or not isinstance(indices, (int, Sequence)):
-        indices_ok = False
-    else:
-        indices_ok = isinstance(indices, int) or (
-            not isinstance(indices, str) and not any(map(bad, indices))
-        )
-    if not indices_ok:
+    listed = isinstance(indices, Sequence) and not isinstance(indices, str)
+    if not (is_int(indices) or (listed and all(map(is_int, indices)))):
         raise TypeError(f"{name}={indices!r}: expected an int or a list of ints (block indices)")
     span = f"{owner} ({depth} blocks: 0..{depth - 1}, or negative from the end)"
     if isinstance(indices, int):  # timm: the last n blocks
