@@ -137,7 +137,9 @@ def check_sam_source(model: str, key: str = "prior") -> bool:
         return True
     if model.startswith((".", "/", "~", os.sep)) or model.count("/") > 1:  # a path, not org/name
         raise FileNotFoundError(f"{key}.model={model!r}: no such directory")
-    require_hf_files(model, ["config.json"], f"{key}.model={model!r} (SAM 2 weights)", _sam_hint(key))
+    require_hf_files(
+        model, ["config.json"], f"{key}.model={model!r} (SAM 2 weights)", _sam_hint(key)
+    )
     return False
 
 

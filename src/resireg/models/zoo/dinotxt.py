@@ -134,7 +134,9 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         # Fail at once, before torch.hub asks for anything it cannot reach.
         check_hub_source(repo, source, "dino.txt", _hint(key), key)
         if entry_point == DINOTXT_ENTRY_POINT:
-            require_hub_checkpoints(DINOTXT_CHECKPOINTS, "dino.txt weights", _WEIGHTS_HOST, _hint(key))
+            require_hub_checkpoints(
+                DINOTXT_CHECKPOINTS, "dino.txt weights", _WEIGHTS_HOST, _hint(key)
+            )
         if vocab is None:
             require_online(
                 f"the dino.txt vocabulary ({_VOCAB})", _WEIGHTS_HOST, _hint(key), hf=False
