@@ -230,7 +230,17 @@ def clustering(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _teacher_repo(root: Path, tiny: bool) -> Path:
-    """A local torch.hub repository exposing ``radseg_encoder`` (:data:`RADSEG_HUBCONF`)."""
+    """A local torch.hub repository exposing ``radseg_encoder`` (:data:`RADSEG_HUBCONF`).
+
+    The teacher loads through RADSeg's loader, whose offline checks need what the real RADSeg
+    reads from torch's hub cache (NVlabs/RADIO's code, RADIO's checkpoint); the stand-in reads
+    neither, so ``root / "hub"`` holds an empty copy of each, to be passed to ``torch.hub.set_dir``.
+    """
+    from resireg.models.zoo.radio import RADIO_CHECKPOINTS
+
+    (root / "hub" / "NVlabs_RADIO_main").mkdir(parents=True, exist_ok=True)
+    (root / "hub" / "checkpoints").mkdir(exist_ok=True)
+    (root / "hub" / "checkpoints" / RADIO_CHECKPOINTS["c-radio_v3-b"]).touch()
     repo = root / "RADSeg"
     repo.mkdir(parents=True, exist_ok=True)
     size = {"width": 64, "depth": 2, "heads": 2, "lang": 48} if tiny else {
@@ -262,8 +272,10 @@ def train_step(args: argparse.Namespace, peak_bf16: float | None) -> list[dict[s
     device = torch.device(args.device)
     cuda = device.type == "cuda"
     rows = []
+    hub_dir = torch.hub.get_dir()
     with tempfile.TemporaryDirectory() as tmp:
         repo = _teacher_repo(Path(tmp), args.dry_run)
+        torch.hub.set_dir(str(Path(tmp) / "hub"))
         for label, teacher in (
             ("without teacher", None),
             ("with RADSeg-sized teacher", {"kind": "radseg", "repo": str(repo), "source": "local"}),
@@ -306,6 +318,7 @@ def train_step(args: argparse.Namespace, peak_bf16: float | None) -> list[dict[s
             })  # fmt: skip
             del module, optimizer, batch
             bt._free(device)
+        torch.hub.set_dir(hub_dir)
     return rows
 
 

@@ -1,6 +1,5 @@
 """Models: EUPE loading (timm and Meta formats), frozen parts, head, text cache, export."""
 
-import textwrap
 import time
 
 import pytest
@@ -9,6 +8,7 @@ import torch
 from PIL import Image
 from safetensors.torch import save_file
 
+from _fake_hubs import offline_hub, radio_repo, radseg_repo
 from resireg.models import (
     TINY_BACKBONE,
     TINY_HEAD,
@@ -186,7 +186,7 @@ def test_intermediate_layer_is_that_blocks_output():
     torch.testing.assert_close(out.intermediates, grid(final), rtol=1e-5, atol=1e-5)
     assert torch.equal(out0.language, out.language)  # the head still reads final-norm tokens
     assert not torch.allclose(out0.intermediates, out.intermediates)
-    with pytest.raises(ValueError, match=r"intermediate_layer=5: expected null or a block index"):
+    with pytest.raises(ValueError, match=r"intermediate_layer=5 is out of range for .*\(2 blocks"):
         ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT, intermediate_layer=5)
 
 
@@ -289,13 +289,70 @@ def test_offline_hub_requests_fail_fast(tmp_path, monkeypatch):
 
 def test_unreachable_github_names_local_alternative(monkeypatch):
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
-    with pytest.raises(WeightsUnavailableError, match="source=local"):
+    monkeypatch.setattr(torch.hub, "load", _hub_load_forbidden)
+    with pytest.raises(WeightsUnavailableError, match="source=local") as err:
         RadSegTeacher()
+    message = str(err.value)
+    assert "model.teacher.repo=/path/to/RADSeg" in message
+    assert "model.teacher.source=local" in message and "model.loss.distill.scale=0" in message
 
 
-def test_radseg_teacher_through_local_torch_hub(tmp_path):
+def _hub_load_forbidden(*args, **kwargs):
+    raise AssertionError("torch.hub.load must not run when the offline checks fail")
+
+
+def test_radseg_teacher_gets_radsegs_offline_checks(tmp_path, monkeypatch):
+    """The teacher loads through the one RADSeg loader (resireg.models.zoo.radio.load_radseg):
+    with a local RADSeg clone but RADIO's code (which RADSeg torch.hub.loads itself) or its
+    checkpoint neither cached nor reachable, it fails at once, before torch.hub.load."""
+    repo = radseg_repo(tmp_path / "RADSeg")
+    hub = offline_hub(monkeypatch, tmp_path / "hub")  # no RADIO code, no checkpoint
+    monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
+    monkeypatch.setattr(torch.hub, "load", _hub_load_forbidden)
+    start = time.monotonic()
+    with pytest.raises(WeightsUnavailableError, match="NVlabs_RADIO_main"):
+        RadSegTeacher(repo=repo, source="local")
+    radio_repo(hub / "NVlabs_RADIO_main")  # RADIO's code cached, its checkpoint not
+    with pytest.raises(WeightsUnavailableError, match=r"huggingface\.co.*model\.teacher\.repo="):
+        RadSegTeacher(repo=repo, source="local")
+    assert time.monotonic() - start < 2.0
+
+
+def test_radseg_teacher_is_radsegs_language_map(tmp_path, monkeypatch):
+    """Against RADSeg's structure (tests/_fake_hubs.py FAKE_RADSEG): the teacher's features are
+    RADSeg's own language-aligned map of the un-normalised images (a second load, RADSeg's
+    documented API), resized to the student's grid; and the same as the dense encoder's
+    language tokens (both over the one loader)."""
+    import torch.nn.functional as F
+    from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
+
+    from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadSegEncoder
+
+    offline_hub(monkeypatch, tmp_path / "hub", RADIO_CHECKPOINTS.values(), radio_code=True)
+    repo = radseg_repo(tmp_path / "RADSeg")
+    teacher = RadSegTeacher(repo=repo, source="local")
+    rgb = torch.rand(2, 3, 48, 64, generator=torch.Generator().manual_seed(3))
+    mean = torch.tensor(IMAGENET_DEFAULT_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_DEFAULT_STD).view(1, 3, 1, 1)
+    out = teacher((rgb - mean) / std, (5, 6))
+
+    ref = torch.hub.load(repo, "radseg_encoder", source="local", slide_crop=0, device="cpu")
+    with torch.no_grad():
+        lang = ref.align_spatial_features_with_language(ref.encode_image_to_feat_map(rgb))
+    assert teacher.out_dim == lang.shape[1] == ref.lang_adaptor.head_mlp.final[-1].out_features
+    expected = F.interpolate(lang, size=(5, 6), mode="bilinear", align_corners=False)
+    torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)
+
+    encoder = RadSegEncoder(repo=repo, source="local")
+    dense = encoder.encode(encoder.preprocess(rgb)).language
+    torch.testing.assert_close(teacher.dense((rgb - mean) / std), dense, rtol=1e-4, atol=1e-5)
+    assert not any(p.requires_grad for p in teacher.parameters())
+
+
+def test_radseg_teacher_through_local_torch_hub(tmp_path, monkeypatch):
     """The real torch.hub path (source='local') against a repo with RADSeg's entry-point API."""
-    _radseg_repo(tmp_path / "RADSeg")
+    offline_hub(monkeypatch, tmp_path / "hub", ["c-radio_v3-b_half.pth.tar"], radio_code=True)
+    radseg_repo(tmp_path / "RADSeg", standin=True)
     teacher = RadSegTeacher(repo=str(tmp_path / "RADSeg"), source="local")
     assert teacher.encoder.calls == {
         "model_version": "c-radio_v3-b",
@@ -306,12 +363,13 @@ def test_radseg_teacher_through_local_torch_hub(tmp_path):
     _check_radseg_teacher(teacher)
 
 
-def test_radseg_teacher_is_built_per_rank_on_the_modules_device(tmp_path):
+def test_radseg_teacher_is_built_per_rank_on_the_modules_device(tmp_path, monkeypatch):
     """The training module builds the teacher in setup, on the device Lightning gives the rank
     (here 'meta', standing in for cuda:N), and RADSeg receives its inputs there."""
     from resireg_train.training.module import ResiregModule
 
-    _radseg_repo(tmp_path / "RADSeg")
+    offline_hub(monkeypatch, tmp_path / "hub", ["c-radio_v3-b_half.pth.tar"], radio_code=True)
+    radseg_repo(tmp_path / "RADSeg", standin=True)
     teacher = {"kind": "radseg", "repo": str(tmp_path / "RADSeg"), "source": "local"}
     module = ResiregModule(TINY_BACKBONE, TINY_HEAD, TINY_TEXT, teacher=teacher,
                            loss={"distill": {"scale": 0.1}})  # fmt: skip
@@ -321,42 +379,6 @@ def test_radseg_teacher_is_built_per_rank_on_the_modules_device(tmp_path):
     assert module.teacher.encoder.calls["device"] == "meta"
     assert module.teacher.out_dim == 24 and module.distill_head.in_features == 24
     assert module.distill_head.weight.device.type == "meta"
-
-
-def _radseg_repo(repo):
-    """A local torch.hub repo exposing RADSeg's ``radseg_encoder`` entry point."""
-    repo.mkdir()
-    (repo / "hubconf.py").write_text(
-        textwrap.dedent(
-            """
-            dependencies = ["torch"]
-            import torch
-
-            class _Encoder:
-                # Like RADSegEncoder: a plain object (no .to()) whose modules stay on the
-                # device it was built for; inputs must arrive there.
-                def __init__(self, model_version, lang_model, slide_crop, device=None, **kw):
-                    self.device = torch.device(device or "cuda")
-                    self.calls = {"model_version": model_version, "lang_model": lang_model,
-                                  "slide_crop": slide_crop, "device": str(self.device)}
-                    self.proj = torch.nn.Conv2d(3, 40, 16, stride=16).to(self.device)
-                    self.lang = torch.nn.Conv2d(40, 24, 1).to(self.device)
-                def get_nearest_size(self, h, w):
-                    return (h // 16) * 16, (w // 16) * 16
-                def encode_image_to_feat_map(self, rgb):
-                    assert rgb.device == self.device, (rgb.device, self.device)
-                    if rgb.device.type != "meta":
-                        assert rgb.min() >= 0 and rgb.max() <= 1  # RADIO takes [0, 1] RGB
-                    return self.proj(rgb)
-                def align_spatial_features_with_language(self, feat):
-                    assert feat.device == self.device
-                    return self.lang(feat)
-
-            def radseg_encoder(model_version="c-radio_v3-b", lang_model="siglip2", **kwargs):
-                return _Encoder(model_version, lang_model, **kwargs)
-            """
-        )
-    )
 
 
 def _check_radseg_teacher(teacher):

@@ -1,6 +1,6 @@
 """OtasEncoder offline: a local torch.hub repo for DINOv2 and a random-init open_clip ViT-B/16.
 
-The fake hub repo's ``hubconf.py`` exposes ``dinov2_vits14_reg`` like facebookresearch/dinov2:
+The fake hub repo's ``hubconf.py`` (``tests/_fake_hubs.py``: ``DINOV2_HUBCONF``) exposes ``dinov2_vits14_reg`` like facebookresearch/dinov2:
 it takes ``pretrained`` and keyword overrides and returns a ``DinoVisionTransformer`` with
 the real attribute layout (``patch_size``, ``embed_dim``, ``num_register_tokens``,
 ``interpolate_antialias`` / ``interpolate_offset`` read at every call, ``pos_embed`` on a
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import inspect
 import math
-import textwrap
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 
 import resireg.models.hub as hub_module
+from _fake_hubs import dinov2_repo
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS, OTAS_ENTRY_POINT, OtasEncoder
 
@@ -37,85 +37,10 @@ EMBED = 512  # CLIP ViT-B/16 embedding
 CLIP_SIDE = 64  # CLIP's native side here (4 x 4 positional grid) and OTAS's CLIP input side
 CONF = Path(__file__).resolve().parents[1] / "conf" / "encoder" / "otas.yaml"
 
-_HUBCONF = """
-    import math
-
-    import torch
-    from torch import nn
-
-    dependencies = ["torch"]
-
-
-    class DinoVisionTransformer(nn.Module):
-        def __init__(self, img_size=518, patch_size=14, embed_dim=32, depth=1, num_heads=2,
-                     num_register_tokens=0, interpolate_antialias=False, interpolate_offset=0.1):
-            super().__init__()
-            self.patch_size, self.embed_dim = patch_size, embed_dim
-            self.num_register_tokens = num_register_tokens
-            self.interpolate_antialias = interpolate_antialias
-            self.interpolate_offset = interpolate_offset
-            m = img_size // patch_size
-            self.patch_embed = nn.Conv2d(3, embed_dim, patch_size, stride=patch_size)
-            self.cls_token = nn.Parameter(torch.randn(1, 1, embed_dim))
-            self.pos_embed = nn.Parameter(torch.randn(1, 1 + m * m, embed_dim))
-            self.register_tokens = nn.Parameter(torch.randn(1, num_register_tokens, embed_dim))
-            self.mask_token = nn.Parameter(torch.zeros(1, embed_dim))
-            self.blocks = nn.ModuleList(
-                nn.TransformerEncoderLayer(embed_dim, num_heads, 2 * embed_dim, dropout=0.0,
-                                           batch_first=True, norm_first=True)
-                for _ in range(depth))
-            self.norm = nn.LayerNorm(embed_dim, eps=1e-6)
-
-        def interpolate_pos_encoding(self, x, w, h):  # DINOv2's rule (w, h = rows, cols)
-            n = self.pos_embed.shape[1] - 1
-            if x.shape[1] - 1 == n and w == h:
-                return self.pos_embed
-            w0, h0 = w // self.patch_size, h // self.patch_size
-            m = int(math.sqrt(n))
-            if self.interpolate_offset:
-                size = {"scale_factor": ((w0 + self.interpolate_offset) / m,
-                                         (h0 + self.interpolate_offset) / m)}
-            else:
-                size = {"size": (w0, h0)}
-            patch = self.pos_embed[:, 1:].reshape(1, m, m, -1).permute(0, 3, 1, 2)
-            patch = nn.functional.interpolate(patch, mode="bicubic",
-                                              antialias=self.interpolate_antialias, **size)
-            patch = patch.permute(0, 2, 3, 1).reshape(1, w0 * h0, -1)
-            return torch.cat([self.pos_embed[:, :1], patch], dim=1)
-
-        def prepare_tokens_with_masks(self, x, masks=None):
-            _, _, w, h = x.shape
-            x = self.patch_embed(x).flatten(2).transpose(1, 2)
-            x = torch.cat([self.cls_token.expand(x.shape[0], -1, -1), x], dim=1)
-            x = x + self.interpolate_pos_encoding(x, w, h)
-            regs = self.register_tokens.expand(x.shape[0], -1, -1)
-            return torch.cat([x[:, :1], regs, x[:, 1:]], dim=1)
-
-        def forward_features(self, x, masks=None):
-            x = self.prepare_tokens_with_masks(x, masks)
-            for blk in self.blocks:
-                x = blk(x)
-            x_norm = self.norm(x)
-            r = self.num_register_tokens
-            return {"x_norm_clstoken": x_norm[:, 0], "x_norm_regtokens": x_norm[:, 1 : r + 1],
-                    "x_norm_patchtokens": x_norm[:, r + 1 :], "x_prenorm": x, "masks": masks}
-
-        def forward(self, *args, is_training=False, **kwargs):
-            ret = self.forward_features(*args, **kwargs)
-            return ret if is_training else ret["x_norm_clstoken"]
-
-
-    def dinov2_vits14_reg(*, pretrained=True, **kwargs):
-        return DinoVisionTransformer(num_register_tokens=4, interpolate_antialias=True,
-                                     interpolate_offset=0.0, **kwargs)
-"""
-
 
 @pytest.fixture(scope="module")
 def fake_repo(tmp_path_factory):
-    repo = tmp_path_factory.mktemp("dinov2")
-    (repo / "hubconf.py").write_text(textwrap.dedent(_HUBCONF))
-    return repo
+    return Path(dinov2_repo(tmp_path_factory.mktemp("dinov2")))
 
 
 def _refuse(host, timeout):
@@ -386,7 +311,8 @@ def test_config_keys_are_constructor_defaults(encoder):
     conf = yaml.safe_load(CONF.read_text())
     assert (conf["name"], conf["kind"], conf["third_party"]) == ("otas", "otas", True)
     keys = {k: v for k, v in conf.items() if k not in ("name", "kind", "third_party")}
-    assert set(keys) == set(encoder.spec())  # every constructor argument, nothing else
+    assert set(keys) == set(encoder.spec()) - {"kind"}  # every constructor argument, nothing else
+    assert encoder.spec()["kind"] == "otas"
     defaults = inspect.signature(OtasEncoder).parameters
     for k, v in keys.items():
         if k != "clip":
@@ -414,22 +340,6 @@ def test_bad_arguments(fake_repo, offline, tmp_path):
 
 
 # ------------------------------------------------------------------ offline
-def test_github_offline_fails_at_once_naming_the_key(monkeypatch):
-    monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
-
-    def no_hub(*args, **kwargs):
-        raise AssertionError("torch.hub.load must not be reached offline")
-
-    monkeypatch.setattr(torch.hub, "load", no_hub)
-    start = time.monotonic()
-    with pytest.raises(WeightsUnavailableError) as err:
-        OtasEncoder()
-    assert time.monotonic() - start < 2
-    message = str(err.value)
-    assert "github.com" in message
-    assert "model.repo=/path/to/dinov2" in message and "model.source=local" in message
-
-
 def test_uncached_dinov2_weights_offline_fail_at_once(fake_repo, monkeypatch, tmp_path):
     _offline(monkeypatch, tmp_path / "hub", cached=False)
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)

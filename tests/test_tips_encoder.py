@@ -18,12 +18,21 @@ import math
 import sys
 import time
 
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
 import resireg.models.hub as hub_module
+from _fake_hubs import (
+    TIPS_GRID,
+    TIPS_P,
+    TIPS_STEM,
+    TIPS_TINY,
+    TIPS_WIDTH,
+    TipsWordTokenizer,
+    train_sentencepiece,
+    write_tips_release,
+)
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.tips import (
     TIPS_TOKENIZER_URL,
@@ -34,110 +43,9 @@ from resireg.models.zoo.tips import (
     TipsVisionTransformer,
 )
 
-P, WIDTH, DEPTH, HEADS, GRID, VOCAB, TEXT_MLP = 14, 32, 2, 2, 4, 64, 48
-STEM = "tips_v2_oss_tiny14"
-TINY = {
-    "width": WIDTH,
-    "depth": DEPTH,
-    "heads": HEADS,
-    "mlp_hidden": 64,
-    "ffn": "mlp",
-    "text_layers": 1,
-    "text_heads": HEADS,
-    "text_mlp": TEXT_MLP,
-    "pos_grid": GRID,
-    "vocab_size": VOCAB,
-    "stem": STEM,
-}
-
-
-class WordTokenizer:
-    """A stand-in for the SentencePiece model: one id per word (1..VOCAB-1), 0 never used."""
-
-    def __init__(self):
-        self.seen = []
-
-    def encode(self, text):
-        self.seen.append(text)
-        return [1 + sum(map(ord, w)) % (VOCAB - 1) for w in text.split()]
-
-
-def _vision_shapes(width, depth, pos_grid, ffn, mlp_hidden, patch=P):
-    d = width
-    shapes = {
-        "cls_token": (1, 1, d),
-        "pos_embed": (1, 1 + pos_grid**2, d),
-        "register_tokens": (1, 1, d),
-        "mask_token": (1, d),
-        "patch_embed.proj.weight": (d, 3, patch, patch),
-        "patch_embed.proj.bias": (d,),
-        "norm.weight": (d,),
-        "norm.bias": (d,),
-    }
-    for i in range(depth):
-        b = f"blocks.{i}."
-        shapes.update({
-            b + "norm1.weight": (d,), b + "norm1.bias": (d,),
-            b + "attn.qkv.weight": (3 * d, d), b + "attn.qkv.bias": (3 * d,),
-            b + "attn.proj.weight": (d, d), b + "attn.proj.bias": (d,),
-            b + "ls1.gamma": (d,),
-            b + "norm2.weight": (d,), b + "norm2.bias": (d,),
-            b + "ls2.gamma": (d,),
-        })  # fmt: skip
-        if ffn == "swiglu":
-            h = (int(mlp_hidden * 2 / 3) + 7) // 8 * 8
-            shapes.update({
-                b + "mlp.w12.weight": (2 * h, d), b + "mlp.w12.bias": (2 * h,),
-                b + "mlp.w3.weight": (d, h), b + "mlp.w3.bias": (d,),
-            })  # fmt: skip
-        else:
-            shapes.update({
-                b + "mlp.fc1.weight": (mlp_hidden, d), b + "mlp.fc1.bias": (mlp_hidden,),
-                b + "mlp.fc2.weight": (d, mlp_hidden), b + "mlp.fc2.bias": (d,),
-            })  # fmt: skip
-    return shapes
-
-
-def _text_shapes(width, layers, mlp, vocab):
-    d = width
-    shapes = {
-        "token_embedding.weight": (vocab, d),
-        "ln_final.weight": (d,),
-        "ln_final.bias": (d,),
-        "temperature": (),
-    }
-    for i in range(layers):
-        b = f"transformer.resblocks.{i}."
-        shapes.update({
-            b + "attn.in_proj_weight": (3 * d, d), b + "attn.in_proj_bias": (3 * d,),
-            b + "attn.out_proj.weight": (d, d), b + "attn.out_proj.bias": (d,),
-            b + "ln_1.weight": (d,), b + "ln_1.bias": (d,),
-            b + "mlp.c_fc.weight": (mlp, d), b + "mlp.c_fc.bias": (mlp,),
-            b + "mlp.c_proj.weight": (d, mlp), b + "mlp.c_proj.bias": (d,),
-            b + "ln_2.weight": (d,), b + "ln_2.bias": (d,),
-        })  # fmt: skip
-    return shapes
-
-
-def _random(shapes, seed):
-    rng = np.random.default_rng(seed)
-    out = {}
-    for name, shape in shapes.items():
-        x = rng.standard_normal(shape).astype(np.float32)
-        scale = 0.1 if name.endswith(("norm1.weight", "norm2.weight", "gamma")) else 0.2
-        offset = 1.0 if name.endswith(("norm.weight", "norm1.weight", "norm2.weight")) else 0.0
-        out[name] = offset + scale * x if shape else np.float32(0.07)
-    return out
-
-
-def _write_release(folder, ffn="mlp", seed=0):
-    """``<STEM>_vision.npz``, ``<STEM>_text.npz`` and ``tokenizer.model`` in ``folder``."""
-    vision = _random(_vision_shapes(WIDTH, DEPTH, GRID, ffn, TINY["mlp_hidden"]), seed)
-    text = _random(_text_shapes(WIDTH, 1, TEXT_MLP, VOCAB), seed + 1)
-    np.savez(folder / f"{STEM}_vision.npz", **vision)
-    np.savez(folder / f"{STEM}_text.npz", **text)
-    (folder / "tokenizer.model").write_bytes(b"not read: a tokenizer object is passed")
-    return vision, text
+# The tiny release of tests/_fake_hubs.py under this module's short names.
+P, WIDTH, GRID, STEM, TINY = TIPS_P, TIPS_WIDTH, TIPS_GRID, TIPS_STEM, TIPS_TINY
+WordTokenizer, _write_release = TipsWordTokenizer, write_tips_release
 
 
 @pytest.fixture(scope="module")
@@ -461,13 +369,7 @@ def test_tokenizer_file_needs_sentencepiece(release, monkeypatch):
 def test_sentencepiece_tokenizer_file(tmp_path):
     """A real SentencePiece model file (trained here), loaded by path like tokenizer.model."""
     spm = pytest.importorskip("sentencepiece")
-    corpus = tmp_path / "corpus.txt"
-    corpus.write_text("\n".join(["a photo of a cat", "a photo of the sky", "road and tree"] * 20))
-    prefix = str(tmp_path / "sp")
-    spm.SentencePieceTrainer.train(
-        input=str(corpus), model_prefix=prefix, vocab_size=VOCAB // 2, model_type="unigram",
-        pad_id=0, unk_id=1, bos_id=-1, eos_id=-1, hard_vocab_limit=False,
-    )  # fmt: skip
+    prefix = str(train_sentencepiece(tmp_path))[: -len(".model")]
     folder = tmp_path / "release"
     folder.mkdir()
     _write_release(folder)

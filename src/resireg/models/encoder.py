@@ -18,8 +18,13 @@ follow a trainable projection: ``text_features`` (frozen, cacheable) then ``dens
 normalises.
 
 ``preprocess``, ``encode_image`` and ``similarity`` are shared by every encoder, so a new
-backbone implements ``input_rule``, ``encode`` and ``encode_text`` (docs/design.md
+backbone implements ``input_rule``, ``encode``, ``encode_text`` and ``spec`` (its
+construction config: ``build_encoder(**encoder.spec())`` rebuilds it; docs/design.md
 section 3).
+
+An encoder that takes a block index (CLIP's ``intermediate_layer`` and its layer sweep, the
+EUPE backbone's ``intermediate_layer``) reads it with :func:`block_indices`, the one rule:
+timm's ``feature_take_indices``.
 """
 
 from __future__ import annotations
@@ -37,7 +42,52 @@ from torch import Tensor, nn
 from resireg.models.images import pil_to_tensor, resize_to_patch_grid
 from resireg.variants import build_variant
 
-__all__ = ["InputRule", "DenseOutput", "DenseEncoder"]
+__all__ = ["InputRule", "DenseOutput", "DenseEncoder", "block_index", "block_indices"]
+
+
+def block_indices(
+    depth: int, indices: int | Sequence[int], name: str = "layer", owner: str = "the model"
+) -> tuple[int, ...]:
+    """Block indices of a ``depth``-block model as 0-based indices, in the given order.
+
+    The rule is timm's (``timm.models._features.feature_take_indices``, which timm's
+    ``forward_intermediates`` applies): a sequence lists blocks, a negative index counts from
+    the end (``-1`` = the last block); an int ``n`` means the last ``n`` blocks. A block that
+    does not exist, or a value that is not an int, is an error naming ``name`` and the value
+    (``owner`` says whose blocks: ``ViT-B-16``). Used by every encoder that takes a block.
+    """
+    from timm.models._features import feature_take_indices
+
+    def is_int(value: Any) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool)
+
+    listed = isinstance(indices, Sequence) and not isinstance(indices, str)
+    if not (is_int(indices) or (listed and all(map(is_int, indices)))):
+        raise TypeError(f"{name}={indices!r}: expected an int or a list of ints (block indices)")
+    span = f"{owner} ({depth} blocks: 0..{depth - 1}, or negative from the end)"
+    if isinstance(indices, int):  # timm: the last n blocks
+        try:
+            return tuple(feature_take_indices(depth, indices)[0])
+        except AssertionError:  # timm's _assert
+            raise ValueError(
+                f"{name}={indices}: the last {indices} blocks, but {owner} has {depth} "
+                f"(expected 1..{depth}, or a list of block indices)"
+            ) from None
+    taken = []
+    for index in indices:  # one at a time, so that the message names the wrong one
+        try:
+            taken += feature_take_indices(depth, [index])[0]
+        except AssertionError:
+            raise ValueError(f"{name}={index} is out of range for {span}") from None
+    return tuple(taken)
+
+
+def block_index(depth: int, index: int, name: str = "layer", owner: str = "the model") -> int:
+    """One block (:func:`block_indices` of ``[index]``) as a 0-based index."""
+    if isinstance(index, bool) or not isinstance(index, int):
+        raise TypeError(f"{name}={index!r}: expected an int (a block index)")
+    (taken,) = block_indices(depth, [index], name, owner)
+    return taken
 
 
 @dataclass(frozen=True)
@@ -96,6 +146,13 @@ class DenseEncoder(nn.Module, ABC):
     @abstractmethod
     def encode_text(self, texts: Sequence[str]) -> Tensor:
         """Unit-norm text queries ``[K, Dl]`` in the language tokens' space."""
+
+    def spec(self) -> dict[str, Any]:
+        """The JSON-able construction config: ``{"kind": <encoder kind>, <parameter>: ...}``
+        (``device`` aside), such that ``resireg.models.build_encoder(**spec)`` builds the same
+        encoder (same architecture, weights source and settings). Every encoder of the registry
+        implements it; an encoder outside it (a test double, a benchmark oracle) has none."""
+        raise NotImplementedError(f"{type(self).__name__} has no construction config (spec)")
 
     # Text in two steps; the defaults suit an encoder with no trainable text part.
     def text_features(self, texts: Sequence[str]) -> Tensor:

@@ -25,6 +25,7 @@ from typing import Any
 import torch
 
 from resireg.models.encoder import DenseEncoder
+from resireg.models.hub import WeightsUnavailableError
 from resireg.models.vlm import ResiregVLM
 from resireg.models.zoo.clip import ClipEncoder
 from resireg.models.zoo.dinotxt import DinoTxtEncoder
@@ -40,7 +41,10 @@ def _resireg_vlm(
 ) -> ResiregVLM:
     if not path:
         raise ValueError(f"{config_key}.path is required: an export folder or a hub repo id")
-    return ResiregVLM.from_pretrained(path, map_location=device or "cpu")
+    try:
+        return ResiregVLM.from_pretrained(path, map_location=device or "cpu")
+    except WeightsUnavailableError as err:  # name the key, as every other kind does
+        raise WeightsUnavailableError(f"{config_key}.path={path!r}: {err}") from err
 
 
 #: ``kind`` -> builder taking the entry's keys, ``device`` and ``config_key``.

@@ -23,7 +23,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
-from resireg.models.hub import WeightsUnavailableError, hf_cached, require_online
+from resireg.models.hub import WeightsUnavailableError, require_hf_files
 from resireg.priors.settings import PRIOR_KINDS, SAM_DEFAULTS, SAM_MODEL, SAM_RULES
 
 __all__ = [
@@ -137,8 +137,9 @@ def check_sam_source(model: str, key: str = "prior") -> bool:
         return True
     if model.startswith((".", "/", "~", os.sep)) or model.count("/") > 1:  # a path, not org/name
         raise FileNotFoundError(f"{key}.model={model!r}: no such directory")
-    if not hf_cached(model, "config.json"):
-        require_online(f"{key}.model={model!r} (SAM 2 weights)", "huggingface.co", _sam_hint(key))
+    require_hf_files(
+        model, ["config.json"], f"{key}.model={model!r} (SAM 2 weights)", _sam_hint(key)
+    )
     return False
 
 

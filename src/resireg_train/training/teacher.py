@@ -40,7 +40,7 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source
+from resireg.models.zoo.radio import load_radseg
 
 __all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
 
@@ -73,7 +73,8 @@ class RadSegTeacher(_FrozenTeacher):
         slide_crop: RADSeg's sliding-window crop (0 = single pass).
         device: where RADSeg builds and runs RADIO (default: CPU); inputs are moved there
             and outputs moved back to the input's device.
-        **kwargs: passed to ``radseg_encoder``.
+        config_key: the config prefix named in errors.
+        **kwargs: passed to ``radseg_encoder`` (through :func:`load_radseg`).
     """
 
     def __init__(
@@ -86,22 +87,15 @@ class RadSegTeacher(_FrozenTeacher):
         std: Sequence[float] = IMAGENET_DEFAULT_STD,
         slide_crop: int = 0,
         device: str | torch.device | None = None,
+        config_key: str = "model.teacher",
         **kwargs: Any,
     ) -> None:
         super().__init__()
         self.encoder_device = torch.device(device if device is not None else "cpu")
-        check_hub_source(
-            repo,
-            source,
-            "RADSeg (and its RADIO weights)",
-            "Clone RADSeg-OVSS/RADSeg elsewhere and pass model.teacher.repo=/path/to/RADSeg "
-            "model.teacher.source=local (RADIO's weights must be in the torch hub cache), "
-            "or disable distillation (model.loss.distill.scale=0).",
-            "model.teacher",
-        )
-        self.encoder = torch.hub.load(
-            repo, "radseg_encoder", source=source, model_version=model_version, lang_model=lang_model,
-            slide_crop=slide_crop, device=str(self.encoder_device), **kwargs,
+        self.encoder = load_radseg(
+            repo, source, model_version, lang_model, self.encoder_device, config_key,
+            hint_extra=", or disable distillation (model.loss.distill.scale=0)",
+            slide_crop=slide_crop, **kwargs,
         )  # fmt: skip
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)

@@ -27,8 +27,9 @@ import torch
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
+from resireg.models.encoder import block_index
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import hf_cached, require_online
+from resireg.models.hub import require_hf_files
 
 __all__ = ["EUPE_MODELS", "BackboneOutput", "EUPEBackbone"]
 
@@ -89,10 +90,11 @@ class EUPEBackbone(FrozenModule):
         elif weights == "hub":
             cfg = timm.models.get_pretrained_cfg(self.model_name)
             repo = cfg.hf_hub_id if cfg is not None else None
-            if repo and not hf_cached(repo, "model.safetensors"):
-                require_online(
+            if repo:
+                require_hf_files(
+                    repo,
+                    ["model.safetensors"],
                     f"EUPE weights {repo!r}",
-                    "huggingface.co",
                     "Pass a local checkpoint instead: model.backbone.weights=/path/to/EUPE-ViT-S.pt "
                     "(Meta's original file) or a timm .safetensors file, or weights=null for random init.",
                 )
@@ -114,19 +116,12 @@ class EUPEBackbone(FrozenModule):
         self.depth = len(model.blocks)
         self.freeze()
 
-    def check_layer(self, layer: int | None) -> int | None:
-        """``layer`` if it names a block (negative counts from the end), else a ValueError."""
-        if layer is None:
-            return None
-        if (
-            isinstance(layer, bool)
-            or not isinstance(layer, int)
-            or not -self.depth <= layer < self.depth
-        ):
-            raise ValueError(
-                f"intermediate_layer={layer!r}: expected null or a block index in "
-                f"[{-self.depth}, {self.depth - 1}] ({self.model_name} has {self.depth} blocks)"
-            )
+    def check_layer(self, layer: int | None, name: str = "intermediate_layer") -> int | None:
+        """``layer`` (``None``, or a block index: negative counts from the end) if it names a
+        block, else a ValueError naming ``name`` (the rule of
+        :func:`~resireg.models.encoder.block_index`)."""
+        if layer is not None:
+            block_index(self.depth, layer, name, self.model_name)
         return layer
 
     def forward(self, images: Tensor, intermediate_layer: int | None = None) -> BackboneOutput:

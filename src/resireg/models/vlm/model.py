@@ -83,6 +83,7 @@ class ResiregVLM(DenseEncoder):
         self.text_proj = text_proj
         self.intermediate_layer = backbone.check_layer(intermediate_layer)
         self._input_rule = InputRule(backbone.patch_size, backbone.mean, backbone.std)
+        self.export_source: str | None = None  # set by from_pretrained (spec)
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -133,6 +134,17 @@ class ResiregVLM(DenseEncoder):
         """Projected text embeddings ``[K, 1024]`` matching ``encode(...).embedding`` (training;
         tower outputs come from the caption cache)."""
         return self.text_proj(self.text(list(texts)).to(self.device))
+
+    def spec(self) -> dict[str, Any]:
+        """``{"kind": "resireg_vlm", "path": <export>}``: the encoder config that rebuilds this
+        model, for a model loaded by :meth:`from_pretrained` (the export holds the weights);
+        a model built in Python has none until it is saved and loaded (ValueError)."""
+        if self.export_source is None:
+            raise ValueError(
+                "this ResiregVLM was not loaded from an export: save_pretrained(directory), then "
+                "from_pretrained(directory) gives one with an encoder config (kind resireg_vlm)"
+            )
+        return {"kind": "resireg_vlm", "path": self.export_source}
 
     # ---------------------------------------------------------------- save / load
     def config(self) -> dict[str, Any]:
@@ -187,6 +199,7 @@ class ResiregVLM(DenseEncoder):
                 {"backbone": model.backbone, "text": model.text},
             )
         model.load_trained(path)
+        model.export_source = os.fspath(source)
         return model.to(map_location).eval()
 
     def load_trained(self, directory: str | os.PathLike) -> list[str]:

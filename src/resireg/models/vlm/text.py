@@ -24,7 +24,7 @@ from open_clip.transformer import TextTransformer
 from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import WeightsUnavailableError, hf_cached, require_online
+from resireg.models.hub import WeightsUnavailableError, require_hf_files, require_open_clip_tag
 
 __all__ = ["FrozenTextTower", "TextProjection", "dense_text_half"]
 
@@ -85,19 +85,7 @@ class FrozenTextTower(FrozenModule):
         }
         local = os.path.isfile(os.fspath(weights))
         if not local:
-            from open_clip.pretrained import get_pretrained_cfg
-
-            cfg = get_pretrained_cfg(model_name, weights)
-            if not cfg:
-                raise ValueError(f"open_clip has no pretrained tag {weights!r} for {model_name!r}")
-            repo = (cfg.get("hf_hub") or "").rstrip("/")
-            if not any(
-                hf_cached(repo, f)
-                for f in ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
-            ):
-                require_online(
-                    f"open_clip weights {model_name}/{weights}", "huggingface.co", _OFFLINE_HINT
-                )
+            require_open_clip_tag(model_name, weights, "model.text.weights", _OFFLINE_HINT)
         model = open_clip.create_model(model_name, pretrained=weights)
         tower = model.text
         tok = cls._tokenizer(model_name, tokenizer)
@@ -117,8 +105,9 @@ class FrozenTextTower(FrozenModule):
             )
         hf_name = cfg.get("hf_tokenizer_name")
         if hf_name:
-            if not hf_cached(hf_name, "tokenizer_config.json"):
-                require_online(f"tokenizer {hf_name!r}", "huggingface.co", _OFFLINE_HINT)
+            require_hf_files(
+                hf_name, ["tokenizer_config.json"], f"tokenizer {hf_name!r}", _OFFLINE_HINT
+            )
         try:
             return open_clip.get_tokenizer(model_name)
         except Exception as err:  # HF tokenizer could not be fetched or built

@@ -68,12 +68,12 @@ import torch.nn.functional as F
 from open_clip.transformer import ResidualAttentionBlock
 from torch import Tensor
 
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
+from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule, block_index
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import hf_cached, require_online
+from resireg.models.hub import require_open_clip_tag
 from resireg.models.images import tokens_to_grid
 
-__all__ = ["CLIP_MODELS", "DENSE_PATHS", "ClipEncoder", "check_dense_path"]
+__all__ = ["CLIP_MODELS", "DENSE_PATHS", "ClipEncoder", "check_dense_path", "require_clip_weights"]
 
 #: Supported open_clip model names -> default ``intermediate_layer`` (0-based block index).
 #: ViT-B-16: SC-CLIP's ``pre_adjust_idx = 8`` (the 9th of 12 blocks); ViT-L-14-336: the
@@ -96,35 +96,17 @@ def check_dense_path(dense_path: str, name: str = "dense_path") -> str:
     return dense_path
 
 
-def _offline_hint(model_name: str, key: str = "model") -> str:
-    return (
+def require_clip_weights(model_name: str, weights: str, key: str = "model") -> None:
+    """Raise :class:`~resireg.models.hub.WeightsUnavailableError` at once when the open_clip
+    tag ``weights`` of ``model_name`` is neither cached nor downloadable (the hint names
+    ``<key>.weights``); an unknown tag is a ValueError naming it
+    (:func:`~resireg.models.hub.require_open_clip_tag`)."""
+    hint = (
         f"Pass a local file instead: {key}.weights=/path/to/open_clip_pytorch_model.bin (an "
         f"open_clip checkpoint of {model_name} with OpenAI weights, .bin / .pt / .safetensors), "
         f"or {key}.weights=null for a random init."
     )
-
-
-def _check_weights_reachable(model_name: str, weights: str, key: str = "model") -> None:
-    """Raise :class:`WeightsUnavailableError` at once when the tag's weights are neither
-    cached nor downloadable (mirrors :meth:`FrozenTextTower.pretrained`)."""
-    from open_clip.pretrained import get_pretrained_cfg
-
-    cfg = get_pretrained_cfg(model_name, weights)
-    if not cfg:
-        raise ValueError(
-            f"{key}.weights={weights!r} is neither an existing file nor an open_clip pretrained "
-            f"tag of {model_name!r} (tags: {open_clip.list_pretrained_tags_by_model(model_name)})"
-        )
-    what = f"open_clip weights {model_name}/{weights}"
-    if cfg.get("hf_hub"):
-        # open_clip's convention: 'org/model/' (default file names) or 'org/model/file'.
-        repo, name = os.path.split(cfg["hf_hub"])
-        names = (name,) if name else ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
-        if not any(hf_cached(repo, f) for f in names):
-            require_online(what, "huggingface.co", _offline_hint(model_name, key))
-    elif cfg.get("url"):
-        host = cfg["url"].split("://", 1)[-1].split("/", 1)[0]
-        require_online(what, host, _offline_hint(model_name, key), hf=False)
+    require_open_clip_tag(model_name, weights, f"{key}.weights", hint)
 
 
 class ClipEncoder(DenseEncoder, FrozenModule):
@@ -193,7 +175,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             default if intermediate_layer is None else intermediate_layer
         )
         if self.weights is not None and not os.path.isfile(self.weights):
-            _check_weights_reachable(model_name, self.weights, config_key)
+            require_clip_weights(model_name, self.weights, config_key)
 
         kwargs: dict[str, Any] = {"force_quick_gelu": True}
         if self.image_size != vision["image_size"]:
@@ -217,20 +199,14 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         self.freeze()
 
     def _check_layer(self, layer: int, name: str = "intermediate_layer") -> int:
-        if isinstance(layer, bool) or not isinstance(layer, int):
-            raise TypeError(f"{name}={layer!r}: expected an int or None")
-        if not -self.depth <= layer < self.depth:
-            raise ValueError(
-                f"{name}={layer} is out of range for {self.model_name} "
-                f"({self.depth} blocks: 0..{self.depth - 1}, or negative from the end)"
-            )
-        return layer % self.depth
+        """One block as a 0-based index (:func:`~resireg.models.encoder.block_index`)."""
+        return block_index(self.depth, layer, name, self.model_name)
 
     def check_layers(self, layers: Sequence[int], name: str = "layer") -> tuple[int, ...]:
-        """The blocks of :meth:`encode_layers` as 0-based indices (negative ones counted from
-        the end), sorted and each once; an index out of range is a ValueError naming
-        ``name``."""
-        return tuple(sorted({self._check_layer(layer, name) for layer in layers}))
+        """The blocks of :meth:`encode_layers` as 0-based indices (the rule of
+        :func:`~resireg.models.encoder.block_indices`: negative ones counted from the end),
+        sorted and each once; an index out of range is a ValueError naming ``name``."""
+        return tuple(sorted({block_index(self.depth, i, name, self.model_name) for i in layers}))
 
     @staticmethod
     def _check_architecture(model: Any) -> None:
@@ -249,8 +225,9 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             raise ValueError("ClipEncoder needs an OpenAI-style CLIP ViT (class token, packed qkv)")
 
     def spec(self) -> dict[str, Any]:
-        """Constructor arguments that rebuild this encoder (``device`` aside)."""
+        """``kind`` and the constructor arguments that rebuild this encoder (``device`` aside)."""
         return {
+            "kind": "clip",
             "model_name": self.model_name,
             "weights": self.weights,
             "intermediate_layer": self.intermediate_layer,

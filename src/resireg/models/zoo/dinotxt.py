@@ -67,7 +67,7 @@ from torch import Tensor
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source, require_online
+from resireg.models.hub import check_hub_source, require_hub_checkpoints, require_online
 from resireg.models.images import resize_square, tokens_to_grid
 
 __all__ = ["DINOTXT_ENTRY_POINT", "DINOTXT_CHECKPOINTS", "DinoTxtEncoder"]
@@ -134,16 +134,18 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         # Fail at once, before torch.hub asks for anything it cannot reach.
         check_hub_source(repo, source, "dino.txt", _hint(key), key)
         if entry_point == DINOTXT_ENTRY_POINT:
-            ckpt = os.path.join(torch.hub.get_dir(), "checkpoints")
-            missing = [f for f in DINOTXT_CHECKPOINTS if not os.path.isfile(os.path.join(ckpt, f))]
-            if missing:
-                require_online(f"dino.txt weights {missing}", _WEIGHTS_HOST, _hint(key), hf=False)
+            require_hub_checkpoints(
+                DINOTXT_CHECKPOINTS, "dino.txt weights", _WEIGHTS_HOST, _hint(key)
+            )
         if vocab is None:
             require_online(
                 f"the dino.txt vocabulary ({_VOCAB})", _WEIGHTS_HOST, _hint(key), hf=False
             )
 
         model = torch.hub.load(repo, entry_point, source=source, **kwargs)
+        self.repo, self.source, self.entry_point = repo, source, entry_point
+        self.vocab = None if vocab is None else os.fspath(vocab)
+        self.hub_kwargs = dict(kwargs)  # torch.hub.load's (spec)
         visual = model.visual_model
         if not (visual.use_class_token and visual.use_patch_tokens):
             raise ValueError(
@@ -173,6 +175,19 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
             return importlib.import_module(f"{hub_pkg}.dinotxt").get_tokenizer()
         tokenizer_cls = importlib.import_module(f"{text_pkg}.tokenizer").Tokenizer
         return tokenizer_cls(vocab_path=os.fspath(vocab))
+
+    def spec(self) -> dict[str, Any]:
+        """``kind`` and the constructor arguments that rebuild this encoder (``device`` aside)."""
+        return {
+            "kind": "dinotxt",
+            "repo": self.repo,
+            "source": self.source,
+            "entry_point": self.entry_point,
+            "image_size": self.image_size,
+            "vocab": self.vocab,
+            "text_batch_size": self.text_batch_size,
+            **self.hub_kwargs,
+        }
 
     # ------------------------------------------------------------------ interface
     @property

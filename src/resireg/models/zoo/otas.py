@@ -88,14 +88,9 @@ from torch import Tensor
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source, require_online
+from resireg.models.hub import check_hub_source, require_hub_checkpoints
 from resireg.models.images import tokens_to_grid
-from resireg.models.zoo.clip import (
-    CLIP_MODELS,
-    ClipEncoder,
-    _check_weights_reachable,
-    check_dense_path,
-)
+from resireg.models.zoo.clip import CLIP_MODELS, ClipEncoder, check_dense_path, require_clip_weights
 
 __all__ = ["OTAS_ENTRY_POINT", "OTAS_CHECKPOINTS", "OtasEncoder"]
 
@@ -192,14 +187,13 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         self.clip_input_size = _positive_int(clip_input_size, f"{key}.clip_input_size")
         self.output_grid = output_grid
         self.repo, self.source, self.entry_point = repo, source, entry_point
+        self.hub_kwargs = dict(kwargs)  # torch.hub.load's / the entry point's (spec)
 
         # Fail at once, before torch.hub asks for anything it cannot reach.
         check_hub_source(repo, source, "DINOv2 for OTAS", _hint(key), key)
         ckpt = OTAS_CHECKPOINTS.get(entry_point)
         if ckpt is not None and kwargs.get("pretrained", True):
-            path = os.path.join(torch.hub.get_dir(), "checkpoints", ckpt)
-            if not os.path.isfile(path):
-                require_online(f"DINOv2 weights {ckpt!r}", _WEIGHTS_HOST, _hint(key), hf=False)
+            require_hub_checkpoints([ckpt], "DINOv2 weights", _WEIGHTS_HOST, _hint(key))
         clip_args = {"weights": "openai", **dict(clip or {})}
         if "dense_path" in clip_args:
             raise ValueError(
@@ -210,7 +204,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         clip_weights = clip_args["weights"]
         if clip_model in CLIP_MODELS and isinstance(clip_weights, str):
             if not os.path.isfile(clip_weights):  # the open_clip tag must be cached or reachable
-                _check_weights_reachable(clip_model, clip_weights, f"{key}.clip")
+                require_clip_weights(clip_model, clip_weights, f"{key}.clip")
 
         dino = torch.hub.load(repo, entry_point, source=source, **kwargs)
         for attr in ("patch_size", "embed_dim", "forward_features"):
@@ -246,8 +240,9 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         self.freeze()
 
     def spec(self) -> dict[str, Any]:
-        """Constructor arguments that rebuild this encoder (``device`` aside)."""
+        """``kind`` and the constructor arguments that rebuild this encoder (``device`` aside)."""
         return {
+            "kind": "otas",
             "repo": self.repo,
             "source": self.source,
             "entry_point": self.entry_point,
@@ -262,6 +257,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             "clip_input_size": self.clip_input_size,
             "output_grid": self.output_grid,
             "dense_path": self.dense_path,
+            **self.hub_kwargs,
         }
 
     # ------------------------------------------------------------------ interface

@@ -95,7 +95,12 @@ from torch import Tensor, nn
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source, require_online
+from resireg.models.hub import (
+    check_hub_source,
+    hub_repo_cached,
+    require_hub_checkpoints,
+    require_hub_repo,
+)
 from resireg.models.images import tokens_to_grid
 
 __all__ = [
@@ -103,6 +108,7 @@ __all__ = [
     "DEFAULT_ADAPTORS",
     "RadioEncoder",
     "RadSegEncoder",
+    "load_radseg",
     "radio_hub_cached",
     "require_radio_for_radseg",
     "require_radio_weights",
@@ -125,6 +131,7 @@ RADIO_CHECKPOINTS = {
 DEFAULT_ADAPTORS = {"c-radio_v3": "siglip2", "c-radio_v4": "siglip2-g"}
 
 _WEIGHTS_HOST = "huggingface.co"
+_RADIO_REPO = "NVlabs/RADIO"
 
 
 # ------------------------------------------------------------------ shared helpers
@@ -134,25 +141,19 @@ def radio_hub_cached() -> str | None:
     ``torch.hub.load("NVlabs/RADIO", ...)`` (what RADSeg calls) uses it when GitHub is
     unreachable.
     """
-    for ref in ("main", "master"):
-        path = os.path.join(torch.hub.get_dir(), f"NVlabs_RADIO_{ref}")
-        if os.path.isdir(path):
-            return path
-    return None
+    return hub_repo_cached(_RADIO_REPO)
 
 
 def require_radio_for_radseg() -> None:
     """Fail at once when RADSeg could get RADIO's code neither from the hub cache nor GitHub."""
-    if radio_hub_cached() is None:
-        target = os.path.join(torch.hub.get_dir(), "NVlabs_RADIO_main")
-        require_online(
-            "RADSeg loads NVlabs/RADIO through torch.hub and it",
-            "github.com",
-            f"Put a clone of NVlabs/RADIO at {target} (RADIO's checkpoint in "
-            f"{os.path.join(torch.hub.get_dir(), 'checkpoints')} and its text model in the "
-            "Hugging Face cache).",
-            hf=False,
-        )
+    target = os.path.join(torch.hub.get_dir(), "NVlabs_RADIO_main")
+    require_hub_repo(
+        _RADIO_REPO,
+        "RADSeg loads NVlabs/RADIO through torch.hub and it",
+        f"Put a clone of NVlabs/RADIO at {target} (RADIO's checkpoint in "
+        f"{os.path.join(torch.hub.get_dir(), 'checkpoints')} and its text model in the "
+        "Hugging Face cache).",
+    )
 
 
 def require_radio_weights(version: str, hint: str) -> None:
@@ -162,10 +163,47 @@ def require_radio_weights(version: str, hint: str) -> None:
     version, is left to RADIO).
     """
     ckpt = RADIO_CHECKPOINTS.get(version)
-    if ckpt is not None and not os.path.isfile(
-        os.path.join(torch.hub.get_dir(), "checkpoints", ckpt)
-    ):
-        require_online(f"RADIO weights {ckpt!r}", _WEIGHTS_HOST, hint, hf=False)
+    if ckpt is not None:
+        require_hub_checkpoints([ckpt], "RADIO weights", _WEIGHTS_HOST, hint)
+
+
+def load_radseg(
+    repo: str = "RADSeg-OVSS/RADSeg",
+    source: str = "github",
+    model_version: str = "c-radio_v3-b",
+    lang_model: str = "siglip2",
+    device: str | torch.device | None = None,
+    key: str = "model",
+    hint_extra: str = "",
+    **kwargs: Any,
+) -> Any:
+    """RADSeg's ``RADSegEncoder`` through ``torch.hub``: the one RADSeg loader (the dense
+    encoder :class:`RadSegEncoder` and the distillation teacher both use it).
+
+    Checks first, failing at once with a message that names ``<key>.repo`` /
+    ``<key>.source`` (and ``hint_extra``, e.g. how to do without RADSeg): the repo / source
+    pair, RADIO's code (RADSeg itself ``torch.hub.load`` s ``NVlabs/RADIO``: the hub cache or
+    GitHub) and RADIO's checkpoint (the hub cache or its host). Then
+    ``torch.hub.load(repo, "radseg_encoder", model_version=, lang_model=, device=, **kwargs)``
+    (``kwargs``: ``radseg_encoder`` 's, e.g. ``slide_crop``, ``scra_scaling``, or
+    ``torch.hub.load`` 's). RADSeg keeps its modules on ``device`` (default CPU); the result
+    is a plain object, not an ``nn.Module``.
+    """
+    hint = (
+        f"Clone RADSeg-OVSS/RADSeg elsewhere and pass {key}.repo=/path/to/RADSeg "
+        f"{key}.source=local (NVlabs/RADIO must be in the torch hub cache as "
+        f"{os.path.join(torch.hub.get_dir(), 'NVlabs_RADIO_main')}, with its checkpoint "
+        f"in checkpoints/){hint_extra}."
+    )
+    check_hub_source(repo, source, "RADSeg", hint, key)
+    require_radio_for_radseg()
+    require_radio_weights(model_version, hint)
+    if source == "github":
+        kwargs.setdefault("skip_validation", True)
+    return torch.hub.load(
+        repo, "radseg_encoder", source=source, model_version=model_version,
+        lang_model=lang_model, device=str(torch.device(device or "cpu")), **kwargs,
+    )  # fmt: skip
 
 
 def external_input_rule(radio: nn.Module) -> tuple[InputRule, torch.dtype | None]:
@@ -238,6 +276,7 @@ class RadioEncoder(DenseEncoder, FrozenModule):
         )
         check_hub_source(repo, source, "RADIO", hint, key)
         require_radio_weights(version, hint)
+        self.repo, self.source, self.hub_kwargs = repo, source, dict(kwargs)  # (spec)
         kwargs.setdefault("progress", False)
         if source == "github":
             kwargs.setdefault("skip_validation", True)
@@ -256,6 +295,17 @@ class RadioEncoder(DenseEncoder, FrozenModule):
         self._input_rule, self._input_dtype = external_input_rule(model)
         self.to(torch.device(device) if device is not None else "cpu")
         self.freeze()
+
+    def spec(self) -> dict[str, Any]:
+        """``kind`` and the constructor arguments that rebuild this encoder (``device`` aside)."""
+        return {
+            "kind": "radio",
+            "repo": self.repo,
+            "source": self.source,
+            "version": self.version,
+            "adaptor": self.adaptor_name,
+            **self.hub_kwargs,
+        }
 
     @property
     def adaptor(self) -> nn.Module:
@@ -332,27 +382,29 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
                 f"RadSegEncoder runs one pass without prediction: {bad} is not supported "
                 f"(fixed: {self._FIXED})"
             )
-        hint = (
-            f"Clone RADSeg-OVSS/RADSeg elsewhere and pass {key}.repo=/path/to/RADSeg "
-            f"{key}.source=local (NVlabs/RADIO must be in the torch hub cache as "
-            f"{os.path.join(torch.hub.get_dir(), 'NVlabs_RADIO_main')}, with its checkpoint "
-            "in checkpoints/)."
-        )
-        check_hub_source(repo, source, "RADSeg", hint, key)
-        require_radio_for_radseg()
-        require_radio_weights(model_version, hint)
-        if source == "github":
-            kwargs.setdefault("skip_validation", True)
+        self.repo, self.source, self.hub_kwargs = repo, source, dict(kwargs)  # (spec)
         self.encoder_device = torch.device(device if device is not None else "cpu")
-        self.encoder = torch.hub.load(
-            repo, "radseg_encoder", source=source, model_version=model_version,
-            lang_model=lang_model, device=str(self.encoder_device), **self._FIXED, **kwargs,
+        self.encoder = load_radseg(
+            repo, source, model_version, lang_model, self.encoder_device, key,
+            **self._FIXED, **kwargs,
         )  # fmt: skip
         self.model_version = model_version
         self.lang_model = lang_model
         self.intermediates = intermediates
         self._input_rule, self._input_dtype = external_input_rule(self.encoder.model)
         self.freeze()
+
+    def spec(self) -> dict[str, Any]:
+        """``kind`` and the constructor arguments that rebuild this encoder (``device`` aside)."""
+        return {
+            "kind": "radseg",
+            "repo": self.repo,
+            "source": self.source,
+            "model_version": self.model_version,
+            "lang_model": self.lang_model,
+            "intermediates": self.intermediates,
+            **self.hub_kwargs,
+        }
 
     def freeze(self) -> None:
         super().freeze()

@@ -67,7 +67,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -522,6 +522,7 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         self.text_batch_size = int(text_batch_size)
         vision_path, text_path, tok = _resolve_files(arch, weights, text_weights, tokenizer, key)
         self.weights, self.text_weights = vision_path, text_path
+        self.tokenizer_path = tok if isinstance(tok, str) else None
         self.tokenizer = SentencePieceTokenizer(tok) if isinstance(tok, str) else tok
 
         with torch.device("meta"):  # no random init of ~1.5B parameters: the files fill them
@@ -534,6 +535,27 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         _load(self.text, text_state, text_path, key)
         self.to(torch.device(device if device is not None else "cpu"))
         self.freeze()
+
+    def spec(self) -> dict[str, Any]:
+        """``kind`` and the constructor arguments that rebuild this encoder (``device`` aside):
+        the release size by name (else every :class:`TipsArch` field) and the resolved file
+        paths. An encoder built with a tokenizer *object* has no such config (ValueError)."""
+        if self.tokenizer_path is None:
+            raise ValueError(
+                f"this TipsEncoder was built with a tokenizer object "
+                f"({type(self.tokenizer).__name__}); only a tokenizer file has a config"
+            )
+        named = [n for n, arch in TIPS_VARIANTS.items() if arch == self.arch]
+        return {
+            "kind": "tips",
+            "variant": named[0] if named else asdict(self.arch),
+            "weights": self.weights,
+            "text_weights": self.text_weights,
+            "tokenizer": self.tokenizer_path,
+            "image_size": self.image_size,
+            "language_tokens": self.language_tokens,
+            "text_batch_size": self.text_batch_size,
+        }
 
     # ------------------------------------------------------------------ interface
     @property
