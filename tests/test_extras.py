@@ -79,3 +79,54 @@ def test_a_missing_module_is_named_before_the_encoder_loads(monkeypatch):
     ) in str(err.value)
     assert "NVlabs/RADIO radio/siglip2_adaptor.py" in str(err.value)
     check_available(clip)  # the CLIP adaptor of RADIO does not import transformers
+
+
+def _imported_distributions(package, module_level=True):
+    """Third-party distributions a package imports, from the source's own AST: its module-level
+    imports, or every import (functions' lazy ones too: transformers, sentencepiece, sklearn)."""
+    import ast
+
+    root = Path(__file__).parents[1] / "src" / package
+    top = set()
+    for path in root.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in tree.body if module_level else ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module] if isinstance(node, ast.ImportFrom) and not node.level else [])  # fmt: skip
+            top |= {n.split(".")[0] for n in names if n}
+    top -= set(sys.stdlib_module_names) | {"resireg", "resireg_train", "__future__"}
+    dists = importlib.metadata.packages_distributions()
+    return {module: {canonicalize_name(d) for d in dists[module]} for module in sorted(top)}
+
+
+def test_the_core_install_is_what_resireg_imports_and_train_carries_the_rest():
+    """Issue 23 item 4: `resireg` installs alone (a robot's inference): what its modules import
+    at module level is a core dependency, every core dependency is imported by it (torchvision:
+    by open_clip's transforms), what it imports lazily is core or an extra; Lightning, Hydra and
+    datasets live in the `train` extra, which `dev` includes."""
+    core = _names(PYPROJECT["project"]["dependencies"])
+    train, dev = _names(EXTRAS["train"]), _names(EXTRAS["dev"])
+    for module, dists in _imported_distributions("resireg").items():
+        assert dists & core, f"resireg imports {module} at module level; not a core dependency"
+    anywhere = _imported_distributions("resireg", module_level=False)
+    needed = set().union(*anywhere.values())
+    unused = core - needed
+    assert unused <= {"torchvision"}, f"core dependencies resireg never imports: {unused}"
+    for module, dists in anywhere.items():
+        assert dists & (core | dev), f"resireg imports {module}; in no extra"
+    for module, dists in _imported_distributions("resireg_train").items():
+        assert dists & (core | train | dev), f"resireg_train imports {module}; in no extra"
+    assert {"lightning", "hydra-core", "datasets"} <= train
+    assert not {"lightning", "hydra-core", "datasets"} & core
+    assert train <= dev
+
+
+def test_resireg_train_names_the_train_extra_when_it_is_missing(monkeypatch):
+    """Without the train extra, importing resireg_train says which distributions to install."""
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "lightning" else real(name, *a))  # fmt: skip
+    for name in [m for m in sys.modules if m == "resireg_train"]:
+        monkeypatch.delitem(sys.modules, name)
+    with pytest.raises(ImportError, match=r"'train' extra \(lightning not installed\).*\[train\]"):
+        importlib.import_module("resireg_train")
