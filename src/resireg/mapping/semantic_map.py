@@ -75,20 +75,22 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
 
 def pca_colours(features: Tensor, sample: int = 100_000, seed: int = 0) -> Tensor:
     """``[M, D]`` features -> ``[M, 3]`` uint8 colours: their first three principal components
-    (``torch.pca_lowrank`` on up to ``sample`` rows, centred by their mean), each scaled from its
-    1st..99th percentile to 0..255. Each component's sign is fixed so its largest loading is
-    positive (a deterministic colouring)."""
+    (the top eigenvectors of the float64 covariance of up to ``sample`` rows, ``torch.linalg.eigh``:
+    exact and deterministic, ``D x D`` whatever ``M``), each scaled from its 1st..99th percentile
+    to 0..255. Each component's sign is fixed so its largest loading is positive."""
     x = features.float()
     if x.shape[0] == 0:
         return torch.zeros(0, 3, dtype=torch.uint8)
     g = torch.Generator().manual_seed(seed)
     rows = torch.randperm(x.shape[0], generator=g)[:sample] if x.shape[0] > sample else None
     fit = x if rows is None else x[rows.to(x.device)]
-    mean = fit.mean(0, keepdim=True)
+    mean = fit.double().mean(0, keepdim=True)
     q = min(3, *fit.shape)
-    _, _, v = torch.pca_lowrank(fit - mean, q=q, center=False, niter=4)
+    centred = fit.double() - mean
+    _, vectors = torch.linalg.eigh(centred.T @ centred)  # ascending eigenvalues
+    v = vectors[:, -q:].flip(1)
     v = v * torch.sign(v.gather(0, v.abs().argmax(0, keepdim=True)))
-    proj = (x - mean) @ v  # [M, q]
+    proj = ((x.double() - mean) @ v).float()  # [M, q]
     lo = torch.quantile(proj[:sample], 0.01, dim=0)
     hi = torch.quantile(proj[:sample], 0.99, dim=0)
     unit = ((proj - lo) / (hi - lo).clamp_min(1e-12)).clamp(0, 1)
@@ -115,7 +117,7 @@ def _palette(labels: Tensor) -> Tensor:
     i = torch.floor(h * 6)
     f = h * 6 - i
     s, v = 0.75, 0.95
-    p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
+    p, q, t = torch.full_like(h, v * (1 - s)), v * (1 - s * f), v * (1 - s * (1 - f))
     vv = torch.full_like(h, v)
     table = [(vv, t, p), (q, vv, p), (p, vv, t), (p, q, vv), (t, p, vv), (vv, p, q)]
     out = torch.zeros(h.shape[0], 3, dtype=torch.float64)
