@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 #: ``source.kind`` values.
 SOURCES = ("rosbag", "tum", "scannet")
-_COMMON = ("kind", "path", "tolerance", "frame_skip", "limit")
+_COMMON = ("kind", "path", "tolerance", "max_pose_gap", "frame_skip", "limit")
 _KEYS = {
     "rosbag": (*_COMMON, "colour_topic", "depth_topic", "camera_info_topic", "pose_topic",
                "tf_topic", "tf_static_topic", "world_frame", "camera_frame", "depth_scale"),
@@ -60,13 +60,14 @@ def build_source(spec: dict[str, Any], key: str = "source"):
                            tf=spec["tf_topic"], tf_static=spec["tf_static_topic"],
                            world_frame=spec["world_frame"], camera_frame=spec["camera_frame"])  # fmt: skip
         return BagSource(spec["path"], topics, float(spec["tolerance"]),
-                         float(spec["depth_scale"]), key)  # fmt: skip
+                         float(spec["depth_scale"]), key, float(spec["max_pose_gap"]))  # fmt: skip
     if kind == "tum":
         from resireg_train.data.tum import TumSource
 
         intr = spec.get("intrinsics")
         return TumSource(spec["path"], float(spec["tolerance"]), str(spec["camera"]),
-                         list(intr) if intr is not None else None, key=key)  # fmt: skip
+                         list(intr) if intr is not None else None, key=key,
+                         max_pose_gap=float(spec["max_pose_gap"]))  # fmt: skip
     from resireg_train.data.scannet import scannet_rgbd
 
     folder = Path(str(spec["path"])).expanduser()
@@ -103,8 +104,10 @@ def _device(name: str):
 
 
 def _identity(cfg: DictConfig) -> dict[str, Any]:
-    """What a resumed run must share with the saved map: the source and the map's settings."""
+    """What a resumed run must share with the saved map: the source (but ``limit``: a run cut
+    short by it resumes without it) and the map's settings."""
     source = OmegaConf.to_container(cfg.source, resolve=True)
+    source.pop("limit", None)
     keep = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
             "short_side")  # fmt: skip
     return {"source": source, **{k: OmegaConf.to_container(cfg, resolve=True)[k] for k in keep}}

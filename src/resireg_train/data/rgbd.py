@@ -11,9 +11,11 @@ could not be decoded or paired, with the reason); :class:`FrameCounts` tallies t
 stream (colour) within a tolerance, ties to the earlier one (``numpy.searchsorted``), as TUM's
 ``associate.py`` does for one pair (it also makes the pairs one-to-one; a depth stream faster
 than colour here reuses a colour image). **Poses.** :class:`PoseTrack` interpolates a stamped
-pose stream at a time ``t``: the samples just before and after ``t``, both within the tolerance
-of ``t``, give the translation linearly and the rotation by spherical linear interpolation
-(``scipy.spatial.transform.Slerp``); a time outside the track or in a gap wider than that has no
+pose stream at a time ``t``, as tf2 does: between the samples just before and after ``t``, the
+translation linearly and the rotation by spherical linear interpolation
+(``scipy.spatial.transform.Slerp``), provided the two are at most ``max_gap`` seconds apart; a
+time before the first or after the last sample takes that sample if it is within ``tolerance``
+(tf2 would refuse to extrapolate at all), else has no
 pose. These modules import numpy, torch, scipy and PIL only (no Lightning, no Hydra).
 """
 
@@ -133,11 +135,13 @@ class PoseTrack:
     Args:
         stamps: ``[N]`` seconds (any order; sorted here, a repeated stamp keeps its last pose).
         poses: ``[N, 4, 4]`` rigid transforms.
-        tolerance: the largest distance in seconds from ``t`` to each of its two neighbours.
+        tolerance: seconds a time may lie before the first / after the last sample.
+        max_gap: the longest interval in seconds between two samples interpolated across.
         static: one pose valid at every time (``/tf_static``).
     """
 
-    def __init__(self, stamps, poses, tolerance: float = 0.05, static: bool = False) -> None:
+    def __init__(self, stamps, poses, tolerance: float = 0.02, max_gap: float = 0.5,
+                 static: bool = False) -> None:  # fmt: skip
         stamps = np.asarray(stamps, dtype=np.float64).reshape(-1)
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         if stamps.shape[0] != poses.shape[0] or stamps.shape[0] == 0:
@@ -146,7 +150,7 @@ class PoseTrack:
         stamps, poses = stamps[order], poses[order]
         last = np.append(stamps[1:] != stamps[:-1], True)  # a repeated stamp: its last pose
         self.stamps, self.poses = stamps[last], poses[last]
-        self.tolerance = float(tolerance)
+        self.tolerance, self.max_gap = float(tolerance), float(max_gap)
         self.static = static
         self._slerp = (
             Slerp(self.stamps, Rotation.from_matrix(self.poses[:, :3, :3]))
@@ -164,10 +168,12 @@ class PoseTrack:
         i = int(np.searchsorted(s, t, side="left"))
         if i < s.size and s[i] == t:
             return self.poses[i]
-        if i == 0 or i == s.size:
-            return None
+        if i == 0:
+            return self.poses[0] if s[0] - t <= self.tolerance else None
+        if i == s.size:
+            return self.poses[-1] if t - s[-1] <= self.tolerance else None
         t0, t1 = s[i - 1], s[i]
-        if t - t0 > self.tolerance or t1 - t > self.tolerance:
+        if t1 - t0 > self.max_gap:
             return None
         w = (t - t0) / (t1 - t0)
         out = np.eye(4)

@@ -21,8 +21,8 @@ Topics (:class:`BagTopics`, the ``source.*`` keys of ``conf/map.yaml``):
 Every depth message is a candidate frame (stamp = its ``header.stamp``): the colour image of
 the nearest stamp within ``tolerance`` seconds (:func:`resireg_train.data.rgbd.pair_nearest`),
 the latest ``CameraInfo`` received up to then (else the first), the pose interpolated at its
-stamp (:class:`~resireg_train.data.rgbd.PoseTrack`, each tf edge its own track; static edges
-hold at every time). A candidate without a colour image within the tolerance is ``unpaired``,
+stamp (:class:`~resireg_train.data.rgbd.PoseTrack`, each tf edge its own track, interpolated
+across gaps of up to ``max_pose_gap`` seconds; static edges hold at every time). A candidate without a colour image within the tolerance is ``unpaired``,
 one without a pose ``no_pose``, one whose depth or colour message cannot be decoded
 ``undecodable`` (named ``topic@stamp``, with the reason); each is counted and skipped.
 Colour messages no depth message took are counted in :attr:`BagSource.unpaired_colour`.
@@ -162,8 +162,8 @@ class _TfTree:
     """The tf graph: per (parent, child) edge a :class:`PoseTrack`; :meth:`lookup` composes the
     chain from one frame to another at a time (edges walked either way, inverted backwards)."""
 
-    def __init__(self, tolerance: float) -> None:
-        self.tolerance = tolerance
+    def __init__(self, tolerance: float, max_gap: float) -> None:
+        self.tolerance, self.max_gap = tolerance, max_gap
         self.samples: dict[tuple[str, str], list[tuple[float, np.ndarray]]] = defaultdict(list)
         self.static: set[tuple[str, str]] = set()
         self.tracks: dict[tuple[str, str], PoseTrack] = {}
@@ -177,7 +177,7 @@ class _TfTree:
     def build(self) -> None:
         for edge, items in self.samples.items():
             stamps, poses = zip(*items, strict=True)
-            self.tracks[edge] = PoseTrack(stamps, np.stack(poses), self.tolerance,
+            self.tracks[edge] = PoseTrack(stamps, np.stack(poses), self.tolerance, self.max_gap,
                                           static=edge in self.static)  # fmt: skip
 
     @property
@@ -230,8 +230,10 @@ class BagSource:
         path: the bag (a ROS 2 bag folder, an ``.mcap`` / ``.db3`` file's folder, or a ROS 1
             ``.bag`` file).
         topics: :class:`BagTopics`.
-        tolerance: seconds between a depth image and its colour image / pose neighbours.
+        tolerance: seconds between a depth image and its colour image, and beyond the ends of
+            a pose stream.
         depth_scale: metres per unit of ``16UC1`` depth.
+        max_pose_gap: the longest interval between two pose samples interpolated across.
         key: the config key named in errors.
     """
 
@@ -242,6 +244,7 @@ class BagSource:
         tolerance: float = 0.02,
         depth_scale: float = 0.001,
         key: str = "source",
+        max_pose_gap: float = 0.5,
     ) -> None:
         from rosbags.highlevel import AnyReader
 
@@ -251,6 +254,7 @@ class BagSource:
         if not tolerance > 0:
             raise ValueError(f"{key}.tolerance={tolerance!r}: expected seconds > 0")
         self.topics, self.tolerance, self.depth_scale, self.key = topics, tolerance, depth_scale, key
+        self.max_pose_gap = float(max_pose_gap)
         self._reader_cls = AnyReader
         self.unpaired_colour = 0
         self._scan()
@@ -289,7 +293,7 @@ class BagSource:
                                              required=False)  # fmt: skip
             if t.pose is None and not (tf_conns or static_conns):
                 self._connections(reader, t.tf, _TF, "tf_topic")  # the error, listing topics
-            self.tf = _TfTree(self.tolerance)
+            self.tf = _TfTree(self.tolerance, self.max_pose_gap)
             infos: list[tuple[float, np.ndarray]] = []
             poses: list[tuple[float, np.ndarray]] = []
             self.pose_frame: str | None = None
@@ -298,22 +302,22 @@ class BagSource:
             self.bad: dict[tuple[str, int], str] = {}  # (topic, bag time) -> reason
             watched = [*self.colour_conns, *self.depth_conns, *info_conns, *pose_conns,
                        *tf_conns, *static_conns]  # fmt: skip
-            static_ids = {c.id for c in static_conns}
+            static_topic = t.tf_static
             for conn, bag_time, raw in reader.messages(connections=watched):
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                 except Exception as err:  # any deserialisation failure: a corrupt message
                     self.bad[(conn.topic, bag_time)] = f"not deserialisable: {err}"
-                    if conn in self.depth_conns:
+                    if conn.topic == t.depth:
                         self.depth_stamps.append((bag_time * 1e-9, bag_time, ""))
                     continue
-                if conn in self.depth_conns:
+                if conn.topic == t.depth:
                     self.depth_stamps.append((_stamp(msg.header), bag_time, msg.header.frame_id))
-                elif conn in self.colour_conns:
+                elif conn.topic == t.colour:
                     self.colour_stamps.append((_stamp(msg.header), bag_time))
-                elif conn in info_conns:
+                elif conn.topic == t.camera_info:
                     infos.append((_stamp(msg.header), _intrinsics(msg)))
-                elif conn in pose_conns:
+                elif conn.topic == t.pose:
                     p = msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose
                     poses.append((_stamp(msg.header), _pose(p)))
                     if self.pose_frame is None:
@@ -321,7 +325,7 @@ class BagSource:
                 else:
                     for tr in msg.transforms:
                         self.tf.add(tr.header.frame_id, tr.child_frame_id, _stamp(tr.header),
-                                    _transform(tr.transform), conn.id in static_ids)  # fmt: skip
+                                    _transform(tr.transform), conn.topic == static_topic)  # fmt: skip
         self.tf.build()
         if not infos:
             raise MissingTopicError(f"{self.key}.camera_info_topic={t.camera_info!r}: no message")
@@ -333,7 +337,7 @@ class BagSource:
             if not poses:
                 raise MissingTopicError(f"{self.key}.pose_topic={t.pose!r}: no message")
             self.pose_track = PoseTrack([s for s, _ in poses], np.stack([m for _, m in poses]),
-                                        self.tolerance)  # fmt: skip
+                                        self.tolerance, self.max_pose_gap)  # fmt: skip
         self.colour_stamps.sort()
         self.depth_stamps.sort()
 
@@ -343,7 +347,7 @@ class BagSource:
         if self.pose_track is not None:
             body = self.pose_track.at(stamp)
             if body is None:
-                return None, f"no pose on {t.pose} within {self.tolerance} s"
+                return None, f"no pose on {t.pose} at {stamp:.6f} (gap or end of the stream)"
             if self.pose_frame and self.pose_frame.lstrip("/") != camera:
                 chain = self.tf.chain(self.pose_frame, camera)
                 if chain is not None:
@@ -359,7 +363,7 @@ class BagSource:
                           f"{self.key}.world_frame / {self.key}.camera_frame)")  # fmt: skip
         pose = self.tf.lookup(chain, stamp)
         if pose is None:
-            return None, f"no tf {t.world_frame} -> {camera} within {self.tolerance} s"
+            return None, f"no tf {t.world_frame} -> {camera} at {stamp:.6f} (gap or end of a stream)"
         return pose, ""
 
     def __iter__(self) -> Iterator[RGBDFrame | SkippedFrame]:
@@ -393,10 +397,10 @@ class BagSource:
         def ready(pos: int) -> bool:
             return pos in out or (pos in colours and pos in depths)
 
-        with self._open() as reader:
-            conns = [*self.colour_conns, *self.depth_conns]
+        with self._open() as reader:  # a new reader: its own connection objects, by topic
+            conns = [c for c in reader.connections if c.topic in (t.colour, t.depth)]
             for conn, bag_time, raw in reader.messages(connections=conns):
-                is_depth = conn in self.depth_conns
+                is_depth = conn.topic == t.depth
                 if is_depth and bag_time in need_depth:
                     pos = need_depth.pop(bag_time)
                     try:

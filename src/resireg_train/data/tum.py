@@ -78,6 +78,7 @@ class TumSource:
         intrinsics: ``[fx, fy, cx, cy]`` or ``None``.
         depth_scale: depth units per metre.
         key: the config key named in errors.
+        max_pose_gap: the longest interval between two ground-truth samples interpolated across.
     """
 
     def __init__(
@@ -88,6 +89,7 @@ class TumSource:
         intrinsics: Sequence[float] | None = None,
         depth_scale: float = DEPTH_SCALE,
         key: str = "source",
+        max_pose_gap: float = 0.5,
     ) -> None:
         self.root = Path(path).expanduser()
         if not self.root.is_dir():
@@ -105,6 +107,7 @@ class TumSource:
         self.depth_times, self.depth_files = read_list(self.root / "depth.txt", key)
         self.trajectory = read_trajectory(self.root / "groundtruth.txt", key)
         self.trajectory.tolerance = self.tolerance
+        self.trajectory.max_gap = float(max_pose_gap)
         self.unpaired_colour = 0
 
     def __iter__(self) -> Iterator[RGBDFrame | SkippedFrame]:
@@ -117,7 +120,7 @@ class TumSource:
                 continue
             pose = self.trajectory.at(float(t))
             if pose is None:
-                yield SkippedFrame(name, f"no groundtruth.txt pose within {self.tolerance} s",
+                yield SkippedFrame(name, f"no groundtruth.txt pose at {t:.6f} (gap or end)",
                                    "no_pose")  # fmt: skip
                 continue
             colour_file = self.root / self.rgb_files[m]
