@@ -218,3 +218,21 @@ def test_pca_colours_follow_sklearn_components():
     inner = (red > 5) & (red < 250)  # not clipped at the percentiles
     corr = np.corrcoef(red[inner], first[inner])[0, 1]
     assert abs(corr) > 0.999
+
+
+def test_python_defaults_are_the_configs():
+    """One source per default: SemanticMap's keyword defaults equal conf/map.yaml's keys (the
+    Python API a robot calls and resireg-map agree), and its POINTS are the 3D task's."""
+    import inspect
+    from pathlib import Path
+
+    import yaml
+
+    from resireg.mapping.semantic_map import POINTS
+    from resireg_train.mapping.engine import POINTS as TASK_POINTS
+
+    conf = yaml.safe_load((Path(__file__).parents[1] / "conf" / "map.yaml").read_text())
+    params = inspect.signature(SemanticMap).parameters
+    for name in ("points", "lattice", "sum_dtype", "max_voxels", "short_side"):
+        assert params[name].default == conf[name], name
+    assert POINTS == TASK_POINTS and conf["points"] in POINTS
