@@ -25,8 +25,8 @@ def encoder():
 
 @pytest.fixture(scope="module")
 def room():
-    """8 frames of 96 x 128 px: uint8 images [B, 3, H, W], depth [B, H, W], K, poses."""
-    r = SyntheticRoom(image_size=(96, 128), focal=80.0, frames=8, bad_pose_frame=None)
+    """8 frames of 64 x 96 px: uint8 images [B, 3, H, W], depth [B, H, W], K, poses."""
+    r = SyntheticRoom(image_size=(64, 96), focal=60.0, frames=8, bad_pose_frame=None)
     depth, images, poses = [], [], []
     for i in range(r.frames):
         d, raw = r.render(i)
@@ -72,7 +72,7 @@ def test_windows_equal_numpy_voxel_means_of_the_encoder_features(encoder, room):
     keys, means = numpy_voxel_means(pts, feats, VOXEL)
     assert smap.indices.tolist() == keys.tolist()
     np.testing.assert_allclose(smap.features()[1].numpy(), means, atol=1e-6)
-    assert smap.frames == 8 and smap.windows == 2 and len(smap) == len(keys) > 50
+    assert smap.frames == 8 and smap.windows == 2 and len(smap) == len(keys) > 30
 
 
 def test_full_treats_the_window_as_one_scene(encoder, room):

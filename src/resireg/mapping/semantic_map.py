@@ -42,7 +42,7 @@ from torch import Tensor, nn
 from resireg.mapping.geometry import patch_points
 from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
-from resireg.mapping.voxels import SUM_DTYPES, VoxelMap, check_lattice
+from resireg.mapping.voxels import SUM_DTYPES, VoxelMap, check_lattice, voxel_indices
 from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import apply_variant, build_variants
 
@@ -276,9 +276,13 @@ class SemanticMap:
         float in [0, 1]): the encoder's input rule, one encoder pass, the configuration applied
         to the window (with the prior if it takes one). Every module in eval mode for the pass
         (each module's mode restored), autocast off."""
-        if self.encoder is None:
-            raise ValueError("this map has no encoder: pass features to fuse() instead")
-        raw = self.resized(images)
+        return self._encode_resized(self.resized(images))
+
+    @torch.no_grad()
+    def _encode_resized(self, raw: Tensor) -> Tensor:
+        """:meth:`encode` of images already resized by :meth:`resized`."""
+        if self.takes_prior and self.prior is None:
+            raise ValueError(f"configuration={self.configuration!r} takes a prior: pass prior=")
         x = self.encoder.input_rule.normalize(raw)
         modes = {m: m.training for m in self.encoder.modules()}
         self.encoder.eval()
@@ -299,6 +303,8 @@ class SemanticMap:
         if not isinstance(images, Tensor) or images.ndim != 4 or images.shape[1] != 3:
             shape = tuple(images.shape) if isinstance(images, Tensor) else type(images)
             raise ValueError(f"images of shape {shape}: expected an RGB [B, 3, H, W] tensor")
+        if self.encoder is None:
+            raise ValueError("this map has no encoder: pass features to fuse() instead")
         rule = self.encoder.input_rule
         return torch.stack([rule.resize(im, self.short_side) for im in images]).to(
             self.encoder.device
@@ -322,9 +328,10 @@ class SemanticMap:
                 f"depth of shape {tuple(depth.shape)}: expected [{images.shape[0]}, H, W], one "
                 f"per image of {tuple(images.shape)}"
             )
-        dense = self.encode(images)
-        colour = self.resized(images) if self.colours is not None else None
-        return self.fuse(dense, depth, intrinsics, cam_to_world, colour=colour)
+        raw = self.resized(images)
+        dense = self._encode_resized(raw)
+        return self.fuse(dense, depth, intrinsics, cam_to_world,
+                         colour=raw if self.colours is not None else None)  # fmt: skip
 
     @torch.no_grad()
     def fuse(
@@ -373,8 +380,6 @@ class SemanticMap:
                 index, patch, count = geometry
             before = len(vmap)
             if self.max_voxels is not None:
-                from resireg.mapping.voxels import voxel_indices
-
                 probe = index if index is not None else voxel_indices(pts, self.voxel_size,
                                                                       self.lattice)  # fmt: skip
                 new = vmap.count_new(probe)

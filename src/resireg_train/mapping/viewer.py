@@ -40,9 +40,13 @@ class RerunView:
         self.rec = rr.RecordingStream("resireg-map")
         if save:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
+        if save and spawn:  # both sinks: the file and the viewer (spawned, then connected)
+            self.rec.spawn(connect=False)
+            self.rec.set_sinks(rr.FileSink(str(save)), rr.GrpcSink())
+        elif save:
             self.rec.save(str(save))
-        if spawn:
-            self.rec.spawn(connect=not save)
+        elif spawn:
+            self.rec.spawn()
         self.query = query
         self.centres: list[np.ndarray] = []
 
