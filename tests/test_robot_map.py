@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from resireg.mapping import SemanticMap, VoxelMap, patch_points
 from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
 from resireg_train.data.rgbd import FrameCounts, RGBDFrame, SkippedFrame, pair_nearest, windows
+from resireg_train.data.scannet_room import SyntheticRoom
 
 rosbags = pytest.importorskip("rosbags")
 from resireg_train.data.room_bag import COLOUR_LAG, DT, T0, TOPICS, room_frames, write_bag  # noqa: E402
@@ -245,3 +246,29 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     proc = run("resireg-map", *common, "source.colour_topic=/nope", f"hydra.run.dir={tmp_path}/x",
                check=False)  # fmt: skip
     assert proc.returncode != 0 and "/cam/depth (sensor_msgs/msg/Image)" in proc.stderr
+
+
+def test_scannet_export_source(tmp_path):
+    """A ScanNet scene export (no labels needed): frames in order, depth = uint16 mm / 1000, the
+    depth intrinsics, the poses; the -inf pose ScanNet writes where tracking was lost reaches
+    the windows, which drop it as no_pose."""
+    from resireg_train.data.scannet import scannet_rgbd
+    from resireg_train.data.scannet_room import write_scene
+
+    room = SyntheticRoom(frames=5, bad_pose_frame=2)
+    folder = write_scene(tmp_path, "scene0000_00", room)
+    records = list(scannet_rgbd(folder))
+    assert len(records) == 5 and all(isinstance(r, RGBDFrame) for r in records)
+    for i, frame in enumerate(records):
+        mm = np.asarray(Image.open(folder / "depth" / f"{i}.png")).astype(np.float32)
+        np.testing.assert_array_equal(frame.depth, mm / 1000.0)
+        np.testing.assert_allclose(frame.intrinsics, room.intrinsics, atol=1e-9)
+        assert frame.image.shape == (*room.image_size, 3)
+        if i != 2:
+            np.testing.assert_allclose(frame.pose, room.pose(i), atol=1e-8)
+    counts = FrameCounts()
+    batches = list(windows(iter(records), 2, counts))
+    assert [len(b["name"]) for b in batches] == [2, 2] and dict(counts.skipped) == {"no_pose": 1}
+    assert counts.read == 5 and "pose" not in str(batches[0]["name"])
+    with pytest.raises(FileNotFoundError, match="source.path=.*no color/ folder"):
+        next(scannet_rgbd(tmp_path / "nothing"))
