@@ -134,7 +134,10 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     update_results(out, params=params)
     timer: dict[str, float] = defaultdict(float)
     start = time.perf_counter()
-    source = build_source(spec)
+    try:  # a wrong path, a missing topic: the message says it all (no traceback)
+        source = build_source(spec)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(str(err)) from err
     timer["open_source"] += time.perf_counter() - start
     torch.manual_seed(int(cfg.seed))
     encoder = build_encoder(**encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True)),
