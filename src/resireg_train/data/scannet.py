@@ -506,6 +506,15 @@ def scannet_source(spec: Mapping[str, Any], key: str = "dataset") -> tuple[str, 
     return str(spec["path"]), list(spec.get("scenes") or DEFAULT_SCENES)
 
 
+def _require(spec: Mapping[str, Any], names: Sequence[str], key: str) -> None:
+    """A ValueError naming ``<key>.<name>`` for each of ``names`` the entry lacks (``conf/`` is
+    the one source of the defaults)."""
+    missing = [n for n in names if n not in spec]
+    if missing:
+        raise ValueError(f"{key}: no {', '.join(f'{key}.{n}' for n in missing)} (see "
+                         "conf/dataset/scannet.yaml)")  # fmt: skip
+
+
 def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
     """What can be checked of a ScanNet entry before the encoder loads (a large backbone takes
     minutes): the root and scene folders (:func:`check_scannet_source`), the label map and
@@ -516,8 +525,9 @@ def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
     label_map = spec.get("label_map")
     path = Path(label_map).expanduser() if label_map else Path(root).expanduser() / LABEL_MAP_FILE
     raw_to_nyu, names = read_label_map(path, f"{key}.label_map")
-    evaluated_classes(raw_to_nyu, names, str(spec.get("class_names", CLASS_NAMES[0])),
-                      tuple(spec.get("classes_to_ignore", DEFAULT_IGNORED)), key)  # fmt: skip
+    _require(spec, ("class_names", "classes_to_ignore"), key)
+    evaluated_classes(raw_to_nyu, names, str(spec["class_names"]),
+                      tuple(spec["classes_to_ignore"]), key)  # fmt: skip
 
 
 def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset") -> ScanNetFrames:
@@ -536,7 +546,8 @@ def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset"
             f"{key}: unknown keys {sorted(unknown)} for kind 'scannet' ({sorted(known)})"
         )
     root, scenes = scannet_source(spec, key)
-    options = {k: spec[k] for k in READER_KEYS if spec.get(k) is not None or k == "limit"}
+    _require(spec, READER_KEYS, key)  # conf/dataset/scannet.yaml holds every one: no fallback
+    options = {k: spec[k] for k in READER_KEYS}
     for size in ("image_size", "gt_resolution"):
         if isinstance(options.get(size), (list, tuple)):
             options[size] = tuple(int(v) for v in options[size])
