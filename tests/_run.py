@@ -11,6 +11,7 @@ _MODULES = {
     "resireg-train": "resireg_train.cli.train",
     "resireg-eval": "resireg_train.cli.eval",
     "resireg-report": "resireg_train.cli.report",
+    "resireg-map": "resireg_train.cli.map",
 }
 
 

@@ -11,8 +11,9 @@ def test_entry_point_modules_import_no_heavy_library():
         "import resireg_train.cli.train, resireg_train.cli.eval, resireg_train.cli.report\n"
         "import resireg_train.validation, resireg_train.results, resireg.variant_names\n"
         "import resireg_train.cli.playground, resireg_train.playground.examples\n"
+        "import resireg_train.cli.map\n"
         "heavy = ('torch', 'lightning', 'open_clip', 'timm', 'datasets', 'pandas', 'matplotlib',\n"
-        "         'gradio', 'skimage')\n"
+        "         'gradio', 'skimage', 'rosbags', 'rerun')\n"
         "print(sorted(m for m in heavy if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

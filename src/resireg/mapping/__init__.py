@@ -4,7 +4,9 @@ Patch points from depth, intrinsics and pose (:mod:`.geometry`), every pixel at 
 depth as (patch, voxel, count) pairs (:mod:`.lifting`), sparse voxel maps of running feature
 sums and of ground-truth class votes (:mod:`.voxels`), and queries: cosine classification
 (optionally with RayFronts' prediction threshold and prompt denoising) and k-nearest-neighbour
-label transfer (:mod:`.query`). Conventions: docs/design.md section 10.1.
+label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`) puts them together
+into the object a robot feeds with posed RGB-D windows and queries by text (docs/design.md
+section 10.3). Conventions: docs/design.md section 10.1.
 
 Typical online use, one batch of frames at a time::
 
@@ -12,6 +14,13 @@ Typical online use, one batch of frames at a time::
     vmap.add(points[valid], feats.permute(0, 2, 3, 1)[valid])
     centres, voxel_feats = vmap.features()
     classes = classify(voxel_feats, text_prototypes)
+
+or, with the encoding and the text path included::
+
+    smap = SemanticMap(encoder, "full", voxel_size=0.05)
+    smap.add(images, depth, K_depth, cam_to_world)   # a window of consecutive frames
+    similarity = smap.query("a red chair")           # [M] per voxel
+    smap.save("map/"); smap.to_ply("map.ply", colour_by="query", text="a red chair")
 """
 
 from resireg.mapping.geometry import (
@@ -23,6 +32,7 @@ from resireg.mapping.geometry import (
 )
 from resireg.mapping.lifting import pixel_pairs, pixel_points
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
+from resireg.mapping.semantic_map import MapFullError, SemanticMap, pca_colours, write_ply
 from resireg.mapping.voxels import (
     LATTICES,
     LabelVoxelMap,
@@ -48,4 +58,8 @@ __all__ = [
     "nearest",
     "transfer_labels",
     "transfer_labels_by_voxel",
+    "SemanticMap",
+    "MapFullError",
+    "pca_colours",
+    "write_ply",
 ]

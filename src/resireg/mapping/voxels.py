@@ -33,6 +33,7 @@ from torch import Tensor
 
 __all__ = [
     "LATTICES",
+    "SUM_DTYPES",
     "VoxelMap",
     "LabelVoxelMap",
     "check_lattice",
@@ -52,6 +53,8 @@ _CHUNK_ELEMENTS = 1 << 20
 
 #: Voxel lattices (module docstring).
 LATTICES = ("round", "floor")
+#: The dtypes of :class:`VoxelMap`'s feature sums, by name.
+SUM_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
 def check_lattice(lattice: str) -> str:
@@ -224,6 +227,51 @@ class _SparseVoxels:
             self._keys, self._rows, self._size = merged_keys, merged_rows, total
         return rows[inverse]
 
+    def count_new(self, index: Tensor) -> int:
+        """How many distinct voxels of the indices ``[N, 3]`` the map does not hold yet (what
+        adding them would occupy; nothing is added). Indices beyond the packable range count as
+        new."""
+        index = index.to(device=self.device, dtype=torch.int64)
+        if index.numel() == 0:
+            return 0
+        inside = (index.abs() <= _MAX_INDEX).all(dim=1)
+        keys = torch.unique(_pack(index[inside]))
+        if not self._size:
+            return int(keys.numel()) + int((~inside).sum())
+        pos = torch.searchsorted(self._keys, keys).clamp_max(self._size - 1)
+        return int((self._keys[pos] != keys).sum()) + int((~inside).sum())
+
+    def state(self) -> dict[str, Tensor]:
+        """The map's content in :attr:`indices` order: ``indices`` ``[M, 3]`` int64 and each
+        accumulator's rows (``sums``, ``counts``; ``votes``), on the host: what
+        :meth:`load_state` takes back (e.g. through ``safetensors``)."""
+        out = {"indices": self.indices.cpu()}
+        out.update({name: acc[self._rows].cpu() for name, acc in self._acc.items()})
+        return out
+
+    def load_state(self, state: dict[str, Tensor]) -> None:
+        """Replace the content with a :meth:`state` of a map of the same kind, voxel size and
+        dtype: adding the same points afterwards gives the same sums, bit for bit, as adding
+        them to the map that was saved."""
+        index = state["indices"].to(device=self.device, dtype=torch.int64)
+        m = index.shape[0]
+        keys = _pack(index)
+        if m and not bool((keys[1:] > keys[:-1]).all()):
+            raise ValueError("state: indices are not distinct and in lexicographic order")
+        acc = {}
+        for name, old in self._acc.items():
+            value = state[name]
+            if value.dtype != old.dtype or tuple(value.shape[1:]) != tuple(old.shape[1:]) or (
+                value.shape[0] != m
+            ):
+                raise ValueError(
+                    f"state[{name!r}] of shape {tuple(value.shape)} and dtype {value.dtype}: "
+                    f"expected {[m, *old.shape[1:]]} {old.dtype}"
+                )
+            acc[name] = value.to(self.device).clone()
+        self._acc, self._keys, self._size = acc, keys, m
+        self._rows = torch.arange(m, dtype=torch.int64, device=self.device)
+
     @property
     def indices(self) -> Tensor:
         """``[M, 3]`` int64 voxel indices, in lexicographic order."""
@@ -252,16 +300,20 @@ class VoxelMap(_SparseVoxels):
     """A sparse voxel map of running feature sums (a map that grows frame by frame).
 
     Per occupied voxel it keeps the float64 sum of the features of every point ever added and
-    their count. Summing float32 features in float64 makes the mean independent of how points were
-    split across :meth:`add` calls and of their order up to float64 rounding (relative
-    ``~1e-16``, far below the float32 result's resolution). Memory: ``8 (D + 1)`` bytes per voxel
-    plus the geometric reserve (at most 1.5x).
+    their count. Summing float32 features in float64 (the default ``dtype``) makes the mean
+    independent of how points were split across :meth:`add` calls and of their order up to
+    float64 rounding (relative ``~1e-16``, far below the float32 result's resolution).
+    ``dtype=torch.float32`` halves the memory of a long recording at a relative rounding of
+    ``~1e-7 x`` the points per voxel in the sums. Memory: ``(s D + 8)`` bytes per voxel for the
+    accumulators (``s`` = 8 or 4 bytes by ``dtype``) plus 16 for its key and row, and the
+    geometric reserve of the accumulators (at most 1.5x; :attr:`nbytes` counts it).
 
     Args:
         voxel_size: voxel edge in metres (> 0).
         dim: feature dimension ``D``.
         device: where the map's tensors live (points and features are moved there).
         lattice: ``"round"`` or ``"floor"`` (module docstring).
+        dtype: ``torch.float64`` (default) or ``torch.float32``, the dtype of the sums.
     """
 
     def __init__(
@@ -270,11 +322,15 @@ class VoxelMap(_SparseVoxels):
         dim: int,
         device: torch.device | str = "cpu",
         lattice: str = "round",
+        dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__(voxel_size, device, lattice)
         self.dim = _check_count("dim", dim)
+        if dtype not in SUM_DTYPES.values():
+            raise ValueError(f"dtype={dtype}: expected one of {list(SUM_DTYPES.values())}")
+        self.dtype = dtype
         self._acc = {
-            "sums": torch.zeros(0, self.dim, dtype=torch.float64, device=self.device),
+            "sums": torch.zeros(0, self.dim, dtype=dtype, device=self.device),
             "counts": torch.zeros(0, dtype=torch.int64, device=self.device),
         }
 
@@ -315,7 +371,7 @@ class VoxelMap(_SparseVoxels):
         self._counts.index_add_(0, rows, torch.ones_like(rows))
         step = max(1, _CHUNK_ELEMENTS // self.dim)
         for start in range(0, rows.numel(), step):
-            chunk = features[start : start + step].to(device=self.device, dtype=torch.float64)
+            chunk = features[start : start + step].to(device=self.device, dtype=self.dtype)
             self._sums.index_add_(0, rows[start : start + step], chunk)
 
     def add_pairs(self, index: Tensor, counts: Tensor, features: Tensor, source: Tensor) -> None:
@@ -355,7 +411,7 @@ class VoxelMap(_SparseVoxels):
         step = max(1, _CHUNK_ELEMENTS // self.dim)
         for start in range(0, m, step):
             chunk = features.index_select(0, source[start : start + step])
-            chunk.mul_(counts[start : start + step, None])
+            chunk = chunk.mul_(counts[start : start + step, None]).to(self.dtype)
             self._sums.index_add_(0, rows[start : start + step], chunk)
 
     @property
@@ -365,7 +421,7 @@ class VoxelMap(_SparseVoxels):
 
     def means(self) -> Tensor:
         """``[M, D]`` float64 mean feature per voxel (not normalised), in :attr:`indices` order."""
-        return self._sums[self._rows] / self._counts[self._rows, None]
+        return self._sums[self._rows].double() / self._counts[self._rows, None]
 
     def features(self) -> tuple[Tensor, Tensor]:
         """Voxel centres ``[M, 3]`` and L2-normalised mean features ``[M, D]``, both float32.
@@ -378,7 +434,7 @@ class VoxelMap(_SparseVoxels):
         step = max(1, _CHUNK_ELEMENTS // self.dim)
         for start in range(0, self._size, step):
             rows = self._rows[start : start + step]
-            mean = self._sums[rows] / self._counts[rows, None]
+            mean = self._sums[rows].double() / self._counts[rows, None]
             unit[start : start + step] = mean / mean.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return self.centres(), unit
 

@@ -81,6 +81,7 @@ __all__ = [
     "read_label_map",
     "resize_nearest",
     "scale_camera",
+    "scannet_rgbd",
 ]
 
 log = logging.getLogger(__name__)
@@ -505,6 +506,15 @@ def scannet_source(spec: Mapping[str, Any], key: str = "dataset") -> tuple[str, 
     return str(spec["path"]), list(spec.get("scenes") or DEFAULT_SCENES)
 
 
+def _require(spec: Mapping[str, Any], names: Sequence[str], key: str) -> None:
+    """A ValueError naming ``<key>.<name>`` for each of ``names`` the entry lacks (``conf/`` is
+    the one source of the defaults)."""
+    missing = [n for n in names if n not in spec]
+    if missing:
+        raise ValueError(f"{key}: no {', '.join(f'{key}.{n}' for n in missing)} (see "
+                         "conf/dataset/scannet.yaml)")  # fmt: skip
+
+
 def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
     """What can be checked of a ScanNet entry before the encoder loads (a large backbone takes
     minutes): the root and scene folders (:func:`check_scannet_source`), the label map and
@@ -515,8 +525,9 @@ def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
     label_map = spec.get("label_map")
     path = Path(label_map).expanduser() if label_map else Path(root).expanduser() / LABEL_MAP_FILE
     raw_to_nyu, names = read_label_map(path, f"{key}.label_map")
-    evaluated_classes(raw_to_nyu, names, str(spec.get("class_names", CLASS_NAMES[0])),
-                      tuple(spec.get("classes_to_ignore", DEFAULT_IGNORED)), key)  # fmt: skip
+    _require(spec, ("class_names", "classes_to_ignore"), key)
+    evaluated_classes(raw_to_nyu, names, str(spec["class_names"]),
+                      tuple(spec["classes_to_ignore"]), key)  # fmt: skip
 
 
 def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset") -> ScanNetFrames:
@@ -535,9 +546,54 @@ def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset"
             f"{key}: unknown keys {sorted(unknown)} for kind 'scannet' ({sorted(known)})"
         )
     root, scenes = scannet_source(spec, key)
-    options = {k: spec[k] for k in READER_KEYS if spec.get(k) is not None or k == "limit"}
+    _require(spec, READER_KEYS, key)  # conf/dataset/scannet.yaml holds every one: no fallback
+    options = {k: spec[k] for k in READER_KEYS}
     for size in ("image_size", "gt_resolution"):
         if isinstance(options.get(size), (list, tuple)):
             options[size] = tuple(int(v) for v in options[size])
     return ScanNetFrames(root, scenes, patch_size=patch_size,
                          name=str(spec.get("name") or "scannet"), key=key, **options)  # fmt: skip
+
+
+def scannet_rgbd(folder: str | Path, key: str = "source"):
+    """The posed RGB-D frames of one scene folder of ScanNet's export layout (module docstring;
+    no labels needed), in frame order, for ``resireg-map``: ``color/<i>.jpg``, ``depth/<i>.png``
+    (uint16 mm), ``pose/<i>.txt``, ``intrinsic/intrinsic_depth.txt``. Colour is resized to the
+    depth image's size (bilinear, antialiased; ScanNet's colour and depth share the field of
+    view, module docstring). Yields :class:`~resireg_train.data.rgbd.RGBDFrame`, or
+    :class:`~resireg_train.data.rgbd.SkippedFrame` for a frame whose file is missing or
+    unreadable; a ``-inf`` pose is passed on (the windows drop it as ``no_pose``)."""
+    from resireg_train.data.rgbd import RGBDFrame, SkippedFrame
+
+    folder = Path(folder).expanduser()
+    for sub in ("color", "depth", "pose"):
+        if not (folder / sub).is_dir():
+            raise FileNotFoundError(f"{key}.path={str(folder)!r}: no {sub}/ folder (a ScanNet "
+                                    "scene export: color/, depth/, pose/, intrinsic/)")  # fmt: skip
+    k_path = folder / "intrinsic" / "intrinsic_depth.txt"
+    if not k_path.is_file():
+        raise FileNotFoundError(f"{key}.path={str(folder)!r}: no intrinsic/intrinsic_depth.txt")
+    k = _read_matrix(k_path, (4, 4))[:3, :3]
+    stems = {int(p.stem): p.stem for p in (folder / "color").glob("*.jpg")
+             if re.fullmatch(r"\d+", p.stem)}  # fmt: skip
+    for i in sorted(stems):
+        stem = stems[i]
+        try:
+            pose = _read_matrix(folder / "pose" / f"{stem}.txt", (4, 4))
+        except (OSError, ValueError) as err:
+            yield SkippedFrame(str(folder / "pose" / f"{stem}.txt"), f"unreadable pose: {err}",
+                               "no_pose")  # fmt: skip
+            continue
+        try:
+            colour = _read_image(folder / "color" / f"{stem}.jpg", "colour", pil_to_tensor)
+            depth = _read_image(folder / "depth" / f"{stem}.png", "depth").astype(np.float32)
+        except _FrameError as err:
+            yield SkippedFrame(str(err.path), err.reason, "undecodable")
+            continue
+        if depth.ndim != 2:
+            yield SkippedFrame(str(folder / "depth" / f"{stem}.png"),
+                               f"depth has shape {depth.shape}: expected one channel", "undecodable")
+            continue
+        rgb = _resize_rgb(colour, depth.shape)
+        image = (rgb * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+        yield RGBDFrame(image, depth / 1000.0, k, pose, float(i), str(folder / "color" / f"{stem}.jpg"))

@@ -5,8 +5,9 @@ batch = scene is a video window). Per batch the encoder runs once (``encode``) a
 variant / configuration is applied to that one output, as in the OVSS engine (through
 :func:`resireg.variants.apply_variant`, so Full's configurations share one PCA per batch).
 Each variant's features are lifted to 3D on its own grid (:class:`MappingProtocol` ``points``)
-and fused into one :class:`~resireg.mapping.VoxelMap` per variant (running sums; the
-L2-normalised mean is read at scene end):
+and fused into one :class:`~resireg.mapping.SemanticMap` per variant (:meth:`SemanticMap.fuse`:
+running sums in a :class:`~resireg.mapping.VoxelMap`; the L2-normalised mean is read at scene
+end). A robot's ``SemanticMap.add`` runs the same lift-and-fuse code on its own windows:
 
 - ``patch`` (default): one point per patch, its centre unprojected with the patch's depth
   (:func:`resireg.mapping.patch_points`): OTAS's ``src/model.py`` ``batch_embed_rgbd``, the
@@ -54,14 +55,13 @@ from torch.utils.data import DataLoader
 from resireg.mapping import (
     LATTICES,
     LabelVoxelMap,
-    VoxelMap,
+    SemanticMap,
     classify,
-    patch_points,
-    pixel_pairs,
     transfer_labels,
     transfer_labels_by_voxel,
     unproject,
 )
+from resireg.mapping.semantic_map import POINTS
 from resireg.models import DenseEncoder
 from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
@@ -80,8 +80,6 @@ __all__ = ["GT_RULES", "POINTS", "TASK_KEYS", "MappingProtocol", "MappingResult"
 
 #: How ignored ground-truth pixels enter the voxel labels (module docstring).
 GT_RULES = ("rayfronts", "vote", "drop")
-#: How features are lifted to 3D (module docstring).
-POINTS = ("patch", "pixel")
 #: RayFronts' ground-truth rule: ``compute_semseg_preds(votes, prompts, 0, 0.1)``, and the
 #: ``eps`` of its ``ImageSemSegEncoder.encode_labels`` one-hot prompts.
 _GT_THRESHOLD, _GT_EPS = 0.1, 1e-10
@@ -123,9 +121,17 @@ class MappingProtocol:
             raise ValueError(f"voxel_size={self.voxel_size!r}: expected a number > 0")
 
     @classmethod
-    def from_spec(cls, spec: Mapping[str, Any]) -> MappingProtocol:
-        """The settings a dataset entry holds (absent keys keep the defaults)."""
-        return cls(**{f.name: spec[f.name] for f in fields(cls) if f.name in spec})
+    def from_spec(cls, spec: Mapping[str, Any], key: str = "dataset") -> MappingProtocol:
+        """The settings of a dataset entry (``conf/dataset/scannet.yaml``), which must hold
+        every one of them: ``conf/`` is their one source of defaults (an entry without one is
+        an error naming ``<key>.<name>``, not a silent Python default)."""
+        missing = [f.name for f in fields(cls) if f.name not in spec]
+        if missing:
+            raise ValueError(
+                f"{key}: no {', '.join(f'{key}.{m}' for m in missing)} (the task's settings; "
+                "conf/dataset/scannet.yaml holds every one)"
+            )
+        return cls(**{f.name: spec[f.name] for f in fields(cls)})
 
 
 #: The dataset-entry keys the task reads (:class:`MappingProtocol`).
@@ -384,10 +390,15 @@ class MappingTask:
     def _start_scene(self, scene: int, variants, device: torch.device) -> dict[str, Any]:
         k = len(self.dataset.classes)
         with_ignored = self.protocol.gt_unlabelled in ("rayfronts", "vote")
+        p = self.protocol
         return {
             "scene": scene,
             "name": self.dataset.scenes[scene],
-            "maps": dict.fromkeys(variants),  # VoxelMap per variant, made at its first batch
+            "maps": {  # one map per variant: the fusion a robot's SemanticMap.add runs
+                name: SemanticMap(None, variant, self.voxel_size, points=p.points,
+                                  lattice=p.lattice, colour=False, device=device)
+                for name, variant in variants.items()
+            },  # fmt: skip
             "gt": LabelVoxelMap(
                 self.voxel_size,
                 k + 1 if with_ignored else k,
@@ -396,18 +407,6 @@ class MappingTask:
                 lattice=self.protocol.lattice,
             ),  # fmt: skip
         }
-
-    def _lift(self, depth, k_img, pose, grid, cache):
-        """The lifted points of a feature grid, shared by the configurations on that grid:
-        ``("patch", points, valid)`` or ``("pixel", index, patch, count)``."""
-        if grid not in cache:
-            p = self.protocol
-            if p.points == "patch":
-                cache[grid] = ("patch", *patch_points(depth, k_img, pose, grid))
-            else:
-                cache[grid] = ("pixel", *pixel_pairs(depth, k_img, pose, grid, p.voxel_size,
-                                                      p.lattice))  # fmt: skip
-        return cache[grid]
 
     def _map_batch(self, encoder, batch, variants, state, timed) -> None:
         device = encoder.device
@@ -418,23 +417,12 @@ class MappingTask:
         with timed("encoder"):
             out = encoder.encode(x)
         shared: dict = {}  # work common to the configurations of this batch (apply_variant)
-        lifted: dict[tuple[int, int], tuple] = {}  # lifted points per grid
+        lifted: dict[tuple[int, int], tuple] = {}  # lifted points per grid, shared by the maps
         for name, variant in variants.items():
             with timed(f"reconstruction/{name}"):
                 dense = apply_variant(variant, out.intermediates, out.language, shared=shared)
             with timed("fusion"), _fp32(device):
-                kind, *geometry = self._lift(depth, k_img, pose, tuple(dense.shape[-2:]), lifted)
-                feats = dense.permute(0, 2, 3, 1)
-                if state["maps"][name] is None:
-                    state["maps"][name] = VoxelMap(self.voxel_size, feats.shape[-1], device,
-                                                   lattice=self.protocol.lattice)  # fmt: skip
-                if kind == "patch":
-                    points, valid = geometry
-                    state["maps"][name].add(points[valid], feats[valid].float())
-                else:
-                    index, patch, count = geometry
-                    flat = feats.reshape(-1, feats.shape[-1]).float()
-                    state["maps"][name].add_pairs(index, count, flat, patch)
+                state["maps"][name].fuse(dense, depth, k_img, pose, lifted=lifted)
         with timed("ground_truth"), _fp32(device):
             label = batch["gt_label"].to(device)
             points, valid = unproject(
@@ -454,7 +442,7 @@ class MappingTask:
             result.voxels[state["name"]] = int((gt != ignore).sum())
             for name, vmap in state["maps"].items():
                 scored = int((gt != ignore).sum())
-                if vmap is None or not len(vmap):
+                if not len(vmap):
                     if scored:  # no valid feature point at all: nothing predicted
                         raise RuntimeError(
                             f"scene {state['name']}: variant {name} placed no point in the map "
@@ -477,7 +465,7 @@ class MappingTask:
                         )
                         at_gt = (shifted - 1) % (k + 1)  # fmt: skip
                 result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
-                result.feature_voxels[name][state["name"]] = len(vmap) if vmap is not None else 0
+                result.feature_voxels[name][state["name"]] = len(vmap)
 
 
 def run_scannet3d(
