@@ -99,3 +99,35 @@ def test_subsample_and_bad_candidates():
         elbo_prototype_count(x, [0, 4])
     with pytest.raises(ValueError, match="exceed"):
         elbo_prototype_count(x[:10], [4, 20])
+
+
+def _scene(n_regions: int, seed: int) -> torch.Tensor:
+    """``[2, 32, 12, 16]`` intermediates whose points carry one of ``n_regions`` features
+    (plus small noise), region per point drawn at random."""
+    gen = torch.Generator().manual_seed(seed)
+    feats = torch.randn(n_regions, 32, generator=gen) * 3
+    region = torch.randint(n_regions, (2, 12, 16), generator=gen)
+    x = feats[region] + 0.05 * torch.randn(2, 12, 16, 32, generator=gen)
+    return x.permute(0, 3, 1, 2).contiguous()
+
+
+@pytest.mark.parametrize("n_components", [None, 12])
+def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
+    """ReSiRegFull(n_prototypes="elbo") chooses the scene's region count and then gives
+    exactly what Full with that count gives; the counts of every batch are kept."""
+    from resireg.reconstruct import ReSiRegFull
+
+    x = _scene(5, seed=0)
+    language = torch.randn(2, 16, 12, 16, generator=torch.Generator().manual_seed(1))
+    elbo = ReSiRegFull(
+        n_prototypes="elbo", elbo_candidates=[3, 5, 8, 12], n_components=n_components, upscale=1
+    )
+    out = elbo(x, language)
+    assert elbo.chosen == [5]
+    fixed = ReSiRegFull(n_prototypes=5, n_components=n_components, upscale=1)
+    torch.testing.assert_close(out, fixed(x, language), rtol=0, atol=0)
+    elbo(_scene(8, seed=2), language)
+    assert elbo.chosen == [5, 8]
+    assert elbo.check_grid(2, 12, 16) == 12  # the grid must hold the largest candidate
+    with pytest.raises(ValueError, match="elbo_candidates"):
+        ReSiRegFull(n_prototypes="elbo")
