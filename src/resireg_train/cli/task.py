@@ -121,11 +121,15 @@ RUN_ID = secrets.token_hex(3)
 
 
 def register_resolvers() -> None:
-    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``)."""
+    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
+    ``optuna_storage`` and ``optuna_trials`` in ``conf/hparams_search``)."""
     if not OmegaConf.has_resolver("safe_dirname"):
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
+    from resireg_train.search import register_search_resolvers
+
+    register_search_resolvers()  # conf/hparams_search/: the Optuna study in the sweep folder
 
 
 def run_task(
