@@ -6,7 +6,8 @@ The study lives in SQLite inside the sweep folder (``${optuna_storage:${hydra.sw
 so the same command with ``hydra.sweep.dir=<that folder>`` resumes it: the sweeper loads the
 study (``load_if_exists``), and ``hydra.sweeper.n_trials`` is the search's total
 (``${optuna_trials:...}``), less the trials already finished, so finished trials are neither
-repeated nor counted twice. Optuna itself loads only when a search runs or is reported.
+run again nor counted twice, and the sampler's seed moves on by as many
+(``${optuna_seed:...}``) so that the resumed search does not draw their parameters again. Optuna itself loads only when a search runs or is reported.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ __all__ = [
     "load_study",
     "register_search_resolvers",
     "remaining_trials",
+    "resumed_seed",
     "storage_url",
 ]
 
@@ -67,11 +69,20 @@ def remaining_trials(storage: str, study_name: str, total: int) -> int:
     return max(0, int(total) - finished_trials(load_study(str(storage), str(study_name))))
 
 
+def resumed_seed(seed: int, storage: str, study_name: str) -> int:
+    """The sampler's seed: ``seed`` plus the study's finished trials. A new search is
+    reproducible from ``seed``; a resumed one does not replay the random draws (TPE's startup
+    trials) that gave its finished trials their parameters."""
+    return int(seed) + finished_trials(load_study(str(storage), str(study_name)))
+
+
 def register_search_resolvers() -> None:
-    """``optuna_storage`` and ``optuna_trials`` for ``conf/hparams_search/``."""
+    """``optuna_storage``, ``optuna_trials`` and ``optuna_seed`` for ``conf/hparams_search/``."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("optuna_storage"):
         OmegaConf.register_new_resolver("optuna_storage", storage_url)
     if not OmegaConf.has_resolver("optuna_trials"):
         OmegaConf.register_new_resolver("optuna_trials", remaining_trials)
+    if not OmegaConf.has_resolver("optuna_seed"):
+        OmegaConf.register_new_resolver("optuna_seed", resumed_seed)

@@ -136,8 +136,12 @@ def write_optuna_report(
             )
         if len(complete) >= 2 and len(complete[0].params) >= 1:
             evaluator = FanovaImportanceEvaluator(seed=0)
-            ax = optuna_plots.plot_param_importances(study, evaluator=evaluator)
-            files["optuna_importance"] = _save(ax, out / OPTUNA_FILES["optuna_importance"])
+            try:
+                ax = optuna_plots.plot_param_importances(study, evaluator=evaluator)
+            except RuntimeError as err:  # fANOVA: every completed trial scored the same
+                lines += ["", f"No parameter importance: {err}"]
+            else:
+                files["optuna_importance"] = _save(ax, out / OPTUNA_FILES["optuna_importance"])
     lines += ["", f"Trials (`{files['optuna_csv'].name}`):", "",
               table.to_markdown(index=False, floatfmt=".4f")]  # fmt: skip
     return files, lines
