@@ -15,7 +15,7 @@ Lloyd).
 :func:`gram` forms the symmetric product ``Y^T Y`` of the PCA at 2/3 of a matrix product.
 :func:`elbo_prototype_count` chooses a prototype count by the evidence lower bound of a
 variational Bayesian Gaussian mixture (:func:`vb_gmm`, scikit-learn's
-``BayesianGaussianMixture`` with diagonal covariances, docs/design.md section 4.5).
+``BayesianGaussianMixture`` with diagonal covariances, docs/design.md section 4.4b).
 """
 
 from __future__ import annotations
@@ -726,7 +726,7 @@ def elbo_prototype_count(
     tol: float = 1e-3,
 ) -> int:
     """The prototype count among ``candidates`` whose mixture has the largest evidence lower
-    bound (docs/design.md section 4.5).
+    bound (docs/design.md section 4.4b).
 
     For every candidate ``k``: :func:`kmeans` (seed ``seed``) on the points, then
     :func:`vb_gmm` from its labels; the count of the largest :attr:`VBGMMResult.elbo` wins

@@ -355,7 +355,7 @@ class ReSiRegFull(nn.Module):
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
             prototype heuristic as a function of the batch size (see ``heuristic``), or
             ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
-            bound (:func:`resireg.cluster.elbo_prototype_count`, docs/design.md section 4.5).
+            bound (:func:`resireg.cluster.elbo_prototype_count`, docs/design.md section 4.4b).
         n_components: PCA components ``r`` (``None``: equal to the prototype count).
             Clipped to the intermediate dimension.
         alpha: softmax temperature on prototype distances.

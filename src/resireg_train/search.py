@@ -1,4 +1,4 @@
-"""Optuna searches through Hydra (``hparams_search=...``, docs/design.md section 9.3): where a
+"""Optuna searches through Hydra (``hparams_search=...``, docs/design.md section 9, Optuna searches): where a
 search keeps its study, how many trials a resumed search still runs, and the study as the
 report reads it.
 

@@ -244,7 +244,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
 
 def _elbo_counts(variants: dict[str, Any]) -> dict[str, Any]:
     """``{"elbo_prototypes": {configuration: {count: batches}}}`` of the ``full.n_prototypes=
-    elbo`` configurations (the count each batch was given, docs/design.md section 4.5); ``{}``
+    elbo`` configurations (the count each batch was given, docs/design.md section 4.4b); ``{}``
     when none ran."""
     from collections import Counter
 

@@ -1,4 +1,4 @@
-"""The report of an Optuna search (``hparams_search=...``; docs/design.md section 9.3): the
+"""The report of an Optuna search (``hparams_search=...``; docs/design.md section 9, Optuna searches): the
 trials table (each trial's state and value as Optuna recorded them, beside its job's folder,
 status and error), the best trial, and Optuna's own optimisation-history and
 parameter-importance plots (``optuna.visualization.matplotlib``)."""
