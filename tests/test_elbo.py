@@ -131,3 +131,38 @@ def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
     assert elbo.check_grid(2, 12, 16) == 12  # the grid must hold the largest candidate
     with pytest.raises(ValueError, match="elbo_candidates"):
         ReSiRegFull(n_prototypes="elbo")
+
+
+def test_ablation_report_places_the_elbo_count_beside_the_heuristic(tmp_path):
+    """The report's ELBO table reads, per batch size, the grid's best cell, the heuristic's
+    n(B) and the grid's score there, and the elbo configuration's counts and score."""
+    import math
+
+    from resireg_train.report.jobs import Job
+    from resireg_train.report.prototypes import elbo_table, fit_heuristic, prototype_grid
+
+    metric = "val/ovss/synthetic/miou_full"
+    variants = ["full@n_prototypes:4", "full@n_prototypes:8", "full@n_prototypes:elbo"]
+    jobs = []
+    for i, (batch, scores, counts) in enumerate(
+        [(2, (0.3, 0.5, 0.45), {"4": 3, "8": 1}), (4, (0.6, 0.2, 0.55), {"8": 2})]
+    ):
+        final = {
+            f"{metric}@n_prototypes:{n}": v for n, v in zip((4, 8, "elbo"), scores, strict=True)
+        }
+        results = {"status": "completed", "params": {"variants": variants}, "final": final,
+                   "elbo_prototypes": {"full@n_prototypes:elbo": counts}}  # fmt: skip
+        jobs.append(Job(tmp_path / str(i), i, {"batch_size": str(batch)}, results))
+    grid = prototype_grid(jobs, metric)
+    heuristic, best = fit_heuristic(grid)
+    assert best == {2: 8, 4: 4}
+    table = elbo_table(jobs, metric, grid, heuristic).set_index("batch_size")
+    assert list(table["best n (grid)"]) == [8, 4]
+    assert list(table["best mIoU (grid)"]) == [0.5, 0.6]
+    assert list(table["ELBO n (x batches)"]) == ["4 x3, 8 x1", "8 x2"]
+    assert list(table["ELBO mIoU"]) == [0.45, 0.55]
+    for batch in (2, 4):
+        n = heuristic(batch)
+        expected = grid.loc[batch].get(n, math.nan)
+        assert table.loc[batch, "heuristic n(B)"] == n
+        assert table.loc[batch, "heuristic mIoU (grid)"] == pytest.approx(expected, nan_ok=True)

@@ -52,6 +52,7 @@ from resireg_train.report.jobs import (
 )
 from resireg_train.report.optuna import is_optuna_sweep
 from resireg_train.report.prototypes import (
+    elbo_table,
     fit_heuristic,
     grid_statuses,
     is_prototype_sweep,
@@ -142,6 +143,10 @@ def report(
                 f"(`{files['heuristic'].name}`; use with "
                 '`ReSiRegFull(n_prototypes="auto", heuristic=PATH)`).',
             ]
+            elbo = elbo_table(jobs, metric, grid, heuristic)
+            if len(elbo):
+                lines += ["", "## ELBO prototype count beside the heuristic (design 4.4b)", "",
+                          markdown(elbo, floatfmt=".4f")]  # fmt: skip
     if metric and any(j.results.get("history") for j in jobs):
         curves = out / "curves.png"
         if plot_curves(jobs, metric, curves):
