@@ -79,6 +79,7 @@ def test_elbo_is_the_evidence_of_a_single_gaussian(seed):
     assert fit.elbo == pytest.approx(evidence, rel=1e-10)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("true", [3, 5, 8, 12])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_chooses_the_number_of_separated_clusters(true, seed):
@@ -111,6 +112,7 @@ def _scene(n_regions: int, seed: int) -> torch.Tensor:
     return x.permute(0, 3, 1, 2).contiguous()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n_components", [None, 12])
 def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
     """ReSiRegFull(n_prototypes="elbo") chooses the scene's region count and then gives
