@@ -96,3 +96,24 @@ def test_search_survives_a_failed_trial_resumes_and_is_reported(tmp_path, tiny_e
         assert (sweep / name).stat().st_size > 10_000, name
     assert "optuna_history" in proc.stdout
     assert not any(math.isnan(v) for v in ok["value"])
+
+
+@pytest.mark.parametrize("stored", [float("nan"), None, float("inf")])
+def test_a_job_scoring_nan_fails_its_trial_instead_of_ending_the_search(stored):
+    """optuna 2.10 (the sweeper's pin) raises in `tell` for a NaN value, outside the sweeper's
+    per-trial handling: a NaN (or `null` in results.json) score must raise in the job, which the
+    sweeper records as a failed trial; a finite score goes back as a float."""
+    import optuna
+    from omegaconf import OmegaConf
+
+    from resireg_train.cli.task import optimized_value
+
+    cfg = OmegaConf.create({"optimized_metric": "miou_full"})
+    with pytest.raises(ValueError, match=r"optimized_metric='miou_full' is .*not finite"):
+        optimized_value(cfg, {"final": {"miou_full": stored}})
+    assert optimized_value(cfg, {"final": {"miou_full": 0.25}}) == 0.25
+    assert optimized_value(cfg, {"best": {"miou_full": {"value": 0.5, "epoch": 2}}}) == 0.5
+    study = optuna.create_study()  # why the job must not return NaN (optuna 2.x only)
+    if optuna.__version__.startswith("2."):
+        with pytest.raises(ValueError, match="returned nan"):
+            study.tell(study.ask(), float("nan"))

@@ -1,7 +1,7 @@
 """The report of an Optuna search (``hparams_search=...``; docs/design.md section 9, Optuna searches): the
 trials table (each trial's state and value as Optuna recorded them, beside its job's folder,
-status and error), the best trial, and Optuna's own optimisation-history and
-parameter-importance plots (``optuna.visualization.matplotlib``)."""
+status and error), the best trial, and the optimisation-history and parameter-importance
+plots, drawn from Optuna's trials and its importance evaluator."""
 
 from __future__ import annotations
 
@@ -49,7 +49,8 @@ def optuna_study(sweep_dir: str | Path, jobs: list[Job]) -> Any:
     import optuna
 
     storage = storage_url(sweep_dir)
-    names = optuna.get_all_study_names(storage)
+    # get_all_study_summaries: in optuna 2.10 (hydra-optuna-sweeper's pin) and 3.x alike
+    names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
     return load_study(storage, _study_name(Path(sweep_dir), jobs, names))
 
 
@@ -91,14 +92,47 @@ def trials_table(study: Any, jobs: list[Job]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _save(ax: Any, path: Path) -> Path:
-    fig = ax.figure
-    fig.set_size_inches(8, 5)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
+def _save(fig: Any, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return path
+
+
+# The two figures are drawn here from Optuna's own data (its trials, its importance evaluator)
+# rather than by optuna.visualization.matplotlib: the sweeper pins optuna < 3, and optuna 2.10's
+# plotting calls matplotlib.cm.get_cmap, removed in matplotlib 3.9.
+def _history_figure(study: Any, complete: list[Any]) -> Any:
+    """Objective value per trial number and the best so far (Optuna's optimisation history)."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    numbers = np.array([t.number for t in complete])
+    values = np.array([t.value for t in complete], dtype=float)
+    order = np.argsort(numbers)
+    best = (np.maximum if study.direction.name == "MAXIMIZE" else np.minimum).accumulate(
+        values[order]
+    )
+    fig, ax = plt.subplots(figsize=(8, 5))
+    ax.scatter(numbers, values, label="objective value", zorder=3)
+    ax.step(numbers[order], best, where="post", color="tab:red", label="best value")
+    ax.set(
+        xlabel="trial", ylabel="objective value", title=f"Optimisation history: {study.study_name}"
+    )
+    ax.legend()
+    return fig
+
+
+def _importance_figure(importances: dict[str, float]) -> Any:
+    """Horizontal bars of the parameters' importances (Optuna's importance plot)."""
+    import matplotlib.pyplot as plt
+
+    names = sorted(importances, key=importances.get)
+    fig, ax = plt.subplots(figsize=(8, 5))
+    ax.barh(names, [importances[n] for n in names])
+    ax.set(xlabel="importance (mean decrease in impurity)", title="Parameter importances")
+    return fig
 
 
 def write_optuna_report(
@@ -109,10 +143,12 @@ def write_optuna_report(
     ``summary.md``'s Optuna section."""
     import matplotlib
 
-    matplotlib.use("Agg")  # the plots are Optuna's, drawn with pyplot: no display
+    matplotlib.use("Agg")  # no display
     import optuna
-    from optuna.importance import FanovaImportanceEvaluator
-    from optuna.visualization import matplotlib as optuna_plots
+
+    # Mean decrease in impurity (scikit-learn's forest): optuna 2.10's own fANOVA tree (the
+    # sweeper's pin) cannot read scikit-learn >= 1.4's tree values; this one reads both.
+    from optuna.importance import MeanDecreaseImpurityImportanceEvaluator, get_param_importances
 
     study = optuna_study(sweep_dir, jobs)
     table = trials_table(study, jobs)
@@ -132,16 +168,18 @@ def write_optuna_report(
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         if complete:
             files["optuna_history"] = _save(
-                optuna_plots.plot_optimization_history(study), out / OPTUNA_FILES["optuna_history"]
+                _history_figure(study, complete), out / OPTUNA_FILES["optuna_history"]
             )
         if len(complete) >= 2 and len(complete[0].params) >= 1:
-            evaluator = FanovaImportanceEvaluator(seed=0)
+            evaluator = MeanDecreaseImpurityImportanceEvaluator(seed=0)
             try:
-                ax = optuna_plots.plot_param_importances(study, evaluator=evaluator)
-            except RuntimeError as err:  # fANOVA: every completed trial scored the same
+                importances = get_param_importances(study, evaluator=evaluator)
+            except RuntimeError as err:  # every completed trial scored the same
                 lines += ["", f"No parameter importance: {err}"]
             else:
-                files["optuna_importance"] = _save(ax, out / OPTUNA_FILES["optuna_importance"])
+                files["optuna_importance"] = _save(
+                    _importance_figure(importances), out / OPTUNA_FILES["optuna_importance"]
+                )
     lines += ["", f"Trials (`{files['optuna_csv'].name}`):", "",
               table.to_markdown(index=False, floatfmt=".4f")]  # fmt: skip
     return files, lines
