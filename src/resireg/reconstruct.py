@@ -14,13 +14,13 @@ combination of language tokens (before the optional tau gate).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.cluster import PCAResult, PCASpectrum, gram, kmeans
+from resireg.cluster import PCAResult, PCASpectrum, elbo_prototype_count, gram, kmeans
 from resireg.variant_names import LITE_ATTENTION
 
 __all__ = [
@@ -353,7 +353,9 @@ class ReSiRegFull(nn.Module):
 
     Args:
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
-            prototype heuristic as a function of the batch size (see ``heuristic``).
+            prototype heuristic as a function of the batch size (see ``heuristic``), or
+            ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
+            bound (:func:`resireg.cluster.elbo_prototype_count`, docs/design.md section 4.4b).
         n_components: PCA components ``r`` (``None``: equal to the prototype count).
             Clipped to the intermediate dimension.
         alpha: softmax temperature on prototype distances.
@@ -364,6 +366,10 @@ class ReSiRegFull(nn.Module):
         heuristic: with ``n_prototypes="auto"``, a callable ``batch_size -> n`` (e.g.
             :class:`resireg.heuristic.PrototypeHeuristic`) or a path to its JSON file;
             ``None`` reads the file named by ``$RESIREG_PROTOTYPE_HEURISTIC``.
+        elbo_candidates: with ``n_prototypes="elbo"``, the counts to choose from. The bound
+            is fitted on the normalised PCA points of ``n_components`` axes (tied: of as many
+            axes as the largest candidate); Full then runs with the chosen count (tied: on
+            that many axes). :attr:`chosen` lists the count of every batch.
     """
 
     def __init__(
@@ -376,10 +382,23 @@ class ReSiRegFull(nn.Module):
         seed: int = 0,
         max_iter: int = 100,
         heuristic: Callable[[int], int] | str | None = None,
+        elbo_candidates: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.heuristic: Callable[[int], int] | None = None
-        if n_prototypes == "auto":
+        self.elbo_candidates: tuple[int, ...] | None = None
+        #: with ``n_prototypes="elbo"``: the count chosen for every batch run, in order
+        self.chosen: list[int] = []
+        if n_prototypes == "elbo":
+            if not elbo_candidates:
+                raise ValueError(
+                    f"n_prototypes='elbo' needs elbo_candidates (counts to choose from), "
+                    f"got elbo_candidates={elbo_candidates!r}"
+                )
+            self.elbo_candidates = tuple(
+                sorted({_check_positive_int("elbo_candidates", c) for c in elbo_candidates})
+            )
+        elif n_prototypes == "auto":
             from resireg.heuristic import PrototypeHeuristic
 
             self.heuristic = PrototypeHeuristic.resolve(heuristic)
@@ -402,6 +421,8 @@ class ReSiRegFull(nn.Module):
 
     def resolve_prototypes(self, batch_size: int) -> int:
         """Prototype count used for a batch of ``batch_size`` images."""
+        if self.elbo_candidates is not None:  # the most "elbo" can choose
+            return self.elbo_candidates[-1]
         if self.heuristic is not None:
             return _check_positive_int(
                 "n_prototypes (from heuristic)", int(self.heuristic(batch_size))
@@ -441,6 +462,8 @@ class ReSiRegFull(nn.Module):
         n = self.check_grid(b, hv, wv)
         x = intermediates.float()
         spectrum = spectrum if spectrum is not None else upsampled_spectrum(x, s)
+        if self.elbo_candidates is not None:
+            n = self._elbo_count(x, spectrum)
         fit = spectrum.top(self.n_components if self.n_components is not None else n)
         # Project on the small grid (projection commutes with upsampling). The [B*Hv*Wv, r']
         # result is the channels-last layout of the [B, r', Hv, Wv] map, which bilinear
@@ -461,6 +484,19 @@ class ReSiRegFull(nn.Module):
         result = kmeans(z, n, seed=self.seed, max_iter=self.max_iter, dots=dots)
         # The final assignment's distance matrix is the one returned (no second product).
         return result.sq_dists.sqrt_(), (b, hv * s, wv * s)
+
+    def _elbo_count(self, x: Tensor, spectrum: PCASpectrum) -> int:
+        """The count :func:`elbo_prototype_count` chooses for the batch ``x`` ``[B, Dv, Hv,
+        Wv]``, on its normalised PCA points (``n_components`` axes, or the largest
+        candidate's when tied), recorded in :attr:`chosen`."""
+        b, _, hv, wv = x.shape
+        assert self.elbo_candidates is not None
+        fit = spectrum.top(self.n_components or self.elbo_candidates[-1])
+        up = _upsample(_project_grid(x, fit).view(b, hv, wv, -1).permute(0, 3, 1, 2), self.upscale)
+        z = F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
+        n = elbo_prototype_count(z, self.elbo_candidates, seed=self.seed)
+        self.chosen.append(n)
+        return n
 
     def forward(
         self,

@@ -1,4 +1,6 @@
-"""Run records: a CSV logger that survives resume, and ``results.json`` (final + best metrics).
+"""Run records: a CSV logger that survives resume, ``results.json`` (final + best metrics), and
+the W&B runs of ``logger=wandb`` (one per job, named by the project's run id, finished at the
+job's end with the config and ``results.json``'s summary: :func:`wandb_logger`, :func:`wandb_runs`).
 
 ``results.json`` is what sweeps are summarised from (``resireg-report``). It is rewritten
 at the end of every epoch, so an interrupted or failed run still reports how far it got::
@@ -17,9 +19,11 @@ strict JSON: a NaN or infinite value is written as ``null`` and listed under ``n
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +31,16 @@ import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
-from resireg_train.results import metric_mode, update_results
+from resireg_train.results import metric_mode, read_results, update_results
 
 __all__ = [
     "ResumableCSVLogger",
     "ResultsTracker",
     "epoch_metrics",
+    "wandb_logger",
+    "wandb_run_name",
+    "wandb_runs",
+    "wandb_summary",
 ]
 
 
@@ -163,3 +171,71 @@ class ResultsTracker(L.Callback):
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.history = list(state_dict.get("history", []))
+
+
+# ------------------------------------------------------------------------- W&B
+def wandb_run_name(name: str) -> tuple[str, str | None]:
+    """``(run name, group)`` of this job's W&B run: ``<name>-<run id>`` (the run id of the
+    output folder, :data:`resireg_train.cli.task.RUN_ID`), with ``-<job number>`` and the
+    group ``<name>-<run id>`` (the sweep) for a job of a multirun."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from resireg_train.cli.task import RUN_ID
+
+    base = f"{name}-{RUN_ID}"
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        return f"{base}-{HydraConfig.get().job.num}", base
+    return base, None
+
+
+def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
+    """Lightning's ``WandbLogger`` (``conf/logger/wandb.yaml``) with this job's run name and
+    group (:func:`wandb_run_name`); ``WANDB_MODE=offline`` logs without a network."""
+    from lightning.pytorch.loggers import WandbLogger
+
+    run_name, group = wandb_run_name(name)
+    return WandbLogger(name=run_name, project=project, group=group, **kwargs)
+
+
+def wandb_summary(record: dict[str, Any]) -> dict[str, Any]:
+    """``results.json``'s summary as W&B summary values: status, epoch, step, the final values
+    (``final/<metric>``) and the best ones (``best/<metric>``, ``best/<metric>/epoch``);
+    non-finite values (``null`` in the file) are left out."""
+    out: dict[str, Any] = {k: record[k] for k in ("status", "epoch", "global_step", "error")
+                           if record.get(k) is not None}  # fmt: skip
+    out.update({f"final/{k}": v for k, v in (record.get("final") or {}).items() if v is not None})
+    for key, best in (record.get("best") or {}).items():
+        if best.get("value") is not None:
+            out[f"best/{key}"] = best["value"]
+            out[f"best/{key}/epoch"] = best["epoch"]
+    return out
+
+
+@contextlib.contextmanager
+def wandb_runs(loggers: Sequence[Any], cfg: Any, directory: str | os.PathLike) -> Iterator[None]:
+    """Around a job's training: the W&B runs among ``loggers`` get the job's resolved config
+    first and, at the end (failed or not), ``results.json``'s summary (:func:`wandb_summary`),
+    then are finished (exit code 1 if the job raised). Lightning's ``WandbLogger`` never
+    finishes its run, and a run left open takes the next job's logs in a multirun. Without a
+    W&B logger this does nothing (wandb is not imported)."""
+    runs = [lg for lg in loggers if type(lg).__name__ == "WandbLogger"]
+    if not runs:
+        yield
+        return
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.to_container(cfg, resolve=True)
+    experiments = [lg.experiment for lg in runs]  # rank 0: the wandb runs (created here)
+    experiments = [e for e in experiments if hasattr(e, "finish")]  # other ranks: no run
+    for experiment in experiments:
+        experiment.config.update(config, allow_val_change=True)
+    failed = True
+    try:
+        yield
+        failed = False
+    finally:
+        summary = wandb_summary(read_results(directory))
+        for experiment in experiments:
+            experiment.summary.update(summary)
+            experiment.finish(exit_code=1 if failed else 0)

@@ -259,8 +259,14 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
             "on another encoder block: lite@layer:5",
         ),
         f"{prefix}full.n_prototypes": (
-            lambda v: v == "auto" or (_int(v) and v >= 1),
-            "an integer >= 1 or 'auto'",
+            lambda v: v in ("auto", "elbo") or (_int(v) and v >= 1),
+            "an integer >= 1, 'auto' (the fitted heuristic) or 'elbo' (chosen per batch)",
+        ),
+        f"{prefix}full.elbo_candidates": (
+            lambda v: (
+                v is None or (isinstance(v, list) and v and all(_int(c) and c >= 1 for c in v))
+            ),
+            "null or a non-empty list of integers >= 1",
         ),
         f"{prefix}full.n_components": _optional_int(1),
         f"{prefix}full.alpha": _number(0, strict=True),

@@ -234,11 +234,23 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         skipped=result.skipped,
         skipped_samples=[s.as_dict() for s in result.skipped_samples],
         batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
+        **_elbo_counts(variants),
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
         **({"feature_cache": cache.summary()} if cache is not None else {}),
     )
     _require_scored(record, "image")
     return update_results(out, status="completed")
+
+
+def _elbo_counts(variants: dict[str, Any]) -> dict[str, Any]:
+    """``{"elbo_prototypes": {configuration: {count: batches}}}`` of the ``full.n_prototypes=
+    elbo`` configurations (the count each batch was given, docs/design.md section 4.4b); ``{}``
+    when none ran."""
+    from collections import Counter
+
+    counts = {name: dict(sorted(Counter(str(n) for n in v.chosen).items(), key=lambda c: int(c[0])))
+              for name, v in variants.items() if getattr(v, "chosen", None)}  # fmt: skip
+    return {"elbo_prototypes": counts} if counts else {}
 
 
 class NothingScoredError(RuntimeError):

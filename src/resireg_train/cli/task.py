@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import secrets
 import sys
@@ -121,11 +122,15 @@ RUN_ID = secrets.token_hex(3)
 
 
 def register_resolvers() -> None:
-    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``)."""
+    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
+    ``optuna_storage`` and ``optuna_trials`` in ``conf/hparams_search``)."""
     if not OmegaConf.has_resolver("safe_dirname"):
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
+    from resireg_train.search import register_search_resolvers
+
+    register_search_resolvers()  # conf/hparams_search/: the Optuna study in the sweep folder
 
 
 def run_task(
@@ -207,14 +212,24 @@ def _record(out: Path, **fields: Any) -> None:
 
 def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     """The value a sweeper (e.g. Optuna) optimises: ``optimized_metric``'s best value if the
-    run tracked one, else its final value; ``None`` when unset or on ranks other than 0."""
+    run tracked one, else its final value; ``None`` when unset or on ranks other than 0.
+
+    A metric that was logged but is not finite (NaN, stored as ``null`` in ``results.json``)
+    raises: the sweeper then records the trial as failed and goes on (optuna 2.10, which the
+    Optuna sweeper pins, refuses a NaN value in ``tell`` and would end the search)."""
     name = cfg.get("optimized_metric")
     if not name or not results:
         return None
     for section in ("best", "final"):
-        value = results.get(section, {}).get(name)
-        if value is not None:
-            return float(value["value"] if isinstance(value, dict) else value)
+        if name not in results.get(section, {}):
+            continue
+        value = results[section][name]
+        value = value["value"] if isinstance(value, dict) else value
+        if value is None or not math.isfinite(float(value)):
+            raise ValueError(
+                f"optimized_metric={name!r} is {value!r}: not finite, so this job scores nothing"
+            )
+        return float(value)
     logged = sorted(results.get("final", {}))
     raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
 

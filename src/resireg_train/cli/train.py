@@ -261,7 +261,7 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     from lightning.pytorch.callbacks import ProgressBar
 
     from resireg_train.ovss.callback import ReSiRegEval
-    from resireg_train.tracking import ResultsTracker, ResumableCSVLogger
+    from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
     from resireg_train.training.console import EpochLog, on_terminal, quiet_library_noise
 
@@ -286,31 +286,33 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
         configured = [c for c in configured if not isinstance(c, ProgressBar)]
         bar = {"enable_progress_bar": False}
-    trainer: L.Trainer = hydra.utils.instantiate(
-        cfg.trainer,
-        logger=loggers,
-        callbacks=[*configured, ResultsTracker(out), EpochLog(), *callbacks],
-        plugins=[AtomicCheckpointIO()],
-        default_root_dir=str(out),
-        **bar,
-    )
-    try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
-    except SystemExit:
-        # Lightning answers Ctrl-C by shutting down and calling sys.exit(1); say what it was.
-        if trainer.interrupted:
-            raise KeyboardInterrupt from None
-        raise
-    if not trainer.is_global_zero:
-        return {}
-    extra: dict[str, Any] = {}
-    if cfg.export:
-        export = module.vlm.save_pretrained(out / "export")
-        for callback in trainer.callbacks:
-            if isinstance(callback, ReSiRegEval):
-                callback.save_settings(export)
-        extra["export"] = str(export)
-    return update_results(out, **extra)
+    # logger=wandb: one W&B run per job, given the config and results.json, finished here
+    with wandb_runs(loggers, cfg, out):
+        trainer: L.Trainer = hydra.utils.instantiate(
+            cfg.trainer,
+            logger=loggers,
+            callbacks=[*configured, ResultsTracker(out), EpochLog(), *callbacks],
+            plugins=[AtomicCheckpointIO()],
+            default_root_dir=str(out),
+            **bar,
+        )
+        try:
+            trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+        except SystemExit:
+            # Lightning answers Ctrl-C by shutting down and calling sys.exit(1); say what it was.
+            if trainer.interrupted:
+                raise KeyboardInterrupt from None
+            raise
+        if not trainer.is_global_zero:
+            return {}
+        extra: dict[str, Any] = {}
+        if cfg.export:
+            export = module.vlm.save_pretrained(out / "export")
+            for callback in trainer.callbacks:
+                if isinstance(callback, ReSiRegEval):
+                    callback.save_settings(export)
+            extra["export"] = str(export)
+        return update_results(out, **extra)
 
 
 main = hydra_entry_point("train", train)

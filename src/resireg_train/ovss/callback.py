@@ -9,6 +9,7 @@ from typing import Any
 
 import lightning as L
 import torch.distributed as dist
+from omegaconf import OmegaConf
 
 from resireg.variants import VARIANTS, build_variants
 from resireg_train.data.segmentation import build_segmentation_set
@@ -77,9 +78,11 @@ class ReSiRegEval(L.Callback):
             raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
         self.variant_names = list(variants)
+        # plain values (full.elbo_candidates is a list), so that the settings are JSON
         self.variant_params = {
-            "calib": dict(calib or {}), "lite": dict(lite or {}), "full": dict(full or {})
-        }  # fmt: skip
+            k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else dict(v or {})
+            for k, v in (("calib", calib), ("lite", lite), ("full", full))
+        }
         self.variants = build_variants(
             self.variant_names, self.variant_params, key=f"{_KEY}.variants"
         )

@@ -18,6 +18,9 @@ with its status and error. Writes, into the sweep folder (or ``--out``):
   ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
+- For an Optuna search (``hparams_search=...``: ``optuna.db`` in the sweep folder):
+  ``optuna_trials.csv`` (every trial's state, value, parameters, job and error), the best
+  trial in ``summary.md``, and Optuna's ``optuna_history.png`` / ``optuna_importance.png``.
 - For the CLIP layer sweep (configurations ``<variant>@layer:<block>``, ``sweep=clip_layers``):
   ``layer_sweep.csv`` / ``.md`` / ``.png``, mIoU of each variant against the block index.
 
@@ -47,7 +50,9 @@ from resireg_train.report.jobs import (
     known_metrics,
     varying_keys,
 )
+from resireg_train.report.optuna import is_optuna_sweep
 from resireg_train.report.prototypes import (
+    elbo_table,
     fit_heuristic,
     grid_statuses,
     is_prototype_sweep,
@@ -138,6 +143,10 @@ def report(
                 f"(`{files['heuristic'].name}`; use with "
                 '`ReSiRegFull(n_prototypes="auto", heuristic=PATH)`).',
             ]
+            elbo = elbo_table(jobs, metric, grid, heuristic)
+            if len(elbo):
+                lines += ["", "## ELBO prototype count beside the heuristic (design 4.4b)", "",
+                          markdown(elbo, floatfmt=".4f")]  # fmt: skip
     if metric and any(j.results.get("history") for j in jobs):
         curves = out / "curves.png"
         if plot_curves(jobs, metric, curves):
@@ -145,6 +154,12 @@ def report(
     if is_layer_sweep(jobs):  # sweep=clip_layers
         files.update(write_layer_sweep(jobs, out))
         lines += ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]
+    if is_optuna_sweep(sweep_dir):  # hparams_search=...: the study's trials, best, plots
+        from resireg_train.report.optuna import write_optuna_report
+
+        optuna_files, optuna_lines = write_optuna_report(sweep_dir, jobs, out)
+        files.update(optuna_files)
+        lines += optuna_lines
     failed = [j for j in jobs if j.status != "completed"]
     if failed:
         lines += ["", "## Jobs that did not complete", ""]

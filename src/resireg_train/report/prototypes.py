@@ -13,7 +13,8 @@ from resireg.variants import parse_variant
 from resireg_train.report.jobs import BATCH_KEY, PROTOTYPES_KEY, Job, job_scores, varying_keys
 
 __all__ = [
-    "fit_heuristic", "grid_statuses", "is_prototype_sweep", "prototype_configs", "prototype_grid",
+    "ELBO", "elbo_table", "fit_heuristic", "grid_statuses", "is_prototype_sweep",
+    "prototype_configs", "prototype_grid",
 ]  # fmt: skip
 
 
@@ -103,3 +104,44 @@ def fit_heuristic(grid: pd.DataFrame) -> tuple[PrototypeHeuristic, dict[int, int
     if not best:
         raise ValueError("no completed job in the prototype/batch grid: nothing to fit")
     return PrototypeHeuristic.fit(list(best), list(best.values())), best
+
+
+ELBO = "elbo"  # full.n_prototypes=elbo / full@n_prototypes:elbo (docs/design.md section 4.4b)
+
+
+def elbo_table(jobs: list[Job], metric: str, grid: pd.DataFrame,
+               heuristic: PrototypeHeuristic) -> pd.DataFrame:  # fmt: skip
+    """The ELBO prototype count beside the fitted heuristic, per batch size: the grid's best
+    count and mIoU, the heuristic's ``n(B)`` and the grid's mIoU at it (NaN off the grid),
+    and for the ``elbo`` configuration (``full@n_prototypes:elbo`` scored in the job's pass,
+    or a job of ``full.n_prototypes=elbo``) the counts its batches were given
+    (``results.json``'s ``elbo_prototypes``, ``count x batches``) and its mIoU. Empty when no
+    job ran it."""
+    rows = []
+    for job in jobs:
+        try:
+            batch = int(job.overrides[BATCH_KEY])
+        except (KeyError, ValueError):
+            continue
+        if job.overrides.get(PROTOTYPES_KEY) == ELBO:
+            config, score = "full", metric
+        elif any(parse_variant(n) == ("full", {"n_prototypes": ELBO})
+                 for n in (job.results.get("params") or {}).get("variants") or []):  # fmt: skip
+            config, score = f"full@n_prototypes:{ELBO}", f"{metric}@n_prototypes:{ELBO}"
+        else:
+            continue
+        counts = (job.results.get("elbo_prototypes") or {}).get(config) or {}
+        scores = job_scores(job.results) if job.status == "completed" else {}
+        row = grid.loc[batch] if batch in grid.index else pd.Series(dtype=float)
+        n_heuristic = heuristic(batch)
+        rows.append({
+            BATCH_KEY: batch,
+            "best n (grid)": int(row.idxmax()) if row.notna().any() else None,
+            "best mIoU (grid)": row.max() if row.notna().any() else math.nan,
+            "heuristic n(B)": n_heuristic,
+            "heuristic mIoU (grid)": row.get(n_heuristic, math.nan),
+            "ELBO n (x batches)": ", ".join(f"{n} x{c}" for n, c in counts.items()) or None,
+            "ELBO mIoU": scores.get(score, math.nan),
+            "status": job.status,
+        })  # fmt: skip
+    return pd.DataFrame(rows).sort_values(BATCH_KEY) if rows else pd.DataFrame()

@@ -1,0 +1,87 @@
+"""Cost of choosing ReSiReg Full's prototype count by the ELBO (``full.n_prototypes=elbo``)
+against Full's clustering at the protocol's size.
+
+Setting: ``bench_reconstruct.py``'s (8 images of a 36 x 48 grid, 384-d intermediates with
+region structure, upscale 2 -> 55,296 points), the candidates of ``conf/resireg/default.yaml``
+(``full.elbo_candidates``), PCA components tied to the count (``full.n_components: null``).
+One run prints, as ratios to ``ReSiRegFull.assign`` at the chosen count (Full's clustering:
+PCA, projection, upsampling, k-means), the fastest of ``--repeats`` interleaved calls of:
+
+1. the choice alone (:meth:`ReSiRegFull._elbo_count`: projection to the largest candidate's
+   axes, then :func:`resireg.cluster.elbo_prototype_count`: a k-means and a variational
+   mixture per candidate on ``max_points`` points),
+2. ``ReSiRegFull(n_prototypes="elbo").assign``: the choice and the clustering,
+
+and the count chosen, with each candidate's VB iterations and bound.
+
+    python benchmarks/bench_elbo.py [--threads 2] [--repeats 3] [--max-points 4096]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from _common import resireg_defaults
+from bench_reconstruct import interleaved_best, make_features
+from resireg.cluster import kmeans, vb_gmm
+from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    candidates = resireg_defaults()["full"]["elbo_candidates"]
+    inter, _ = make_features()
+    inter = inter.to(args.device)
+    elbo = ReSiRegFull(n_prototypes="elbo", elbo_candidates=candidates, n_components=None)
+    spectrum = upsampled_spectrum(inter.float(), elbo.upscale)
+    chosen = elbo._elbo_count(inter.float(), spectrum)
+    fixed = ReSiRegFull(n_prototypes=chosen, n_components=None)
+    print(f"points {inter.shape[0] * inter.shape[2] * inter.shape[3] * 4}, device {args.device}, "
+          f"threads {args.threads}, candidates {candidates}: chosen {chosen}")  # fmt: skip
+
+    def sync():
+        if inter.device.type == "cuda":
+            torch.cuda.synchronize()
+
+    fns = {
+        "full clustering (assign, chosen n)": lambda: (fixed.assign(inter), sync()),
+        "elbo choice": lambda: (elbo._elbo_count(inter.float(), spectrum), sync()),
+        "elbo assign (choice + clustering)": lambda: (elbo.assign(inter), sync()),
+    }
+    best = interleaved_best(fns, args.repeats)
+    base = best["full clustering (assign, chosen n)"]
+    print("| path | seconds | ratio to Full's clustering |\n|---|---|---|")
+    for name, seconds in best.items():
+        print(f"| {name} | {seconds:.3f} | {seconds / base:.2f} |")
+    # Per candidate: VB iterations and the bound (on the same subsample the choice used).
+    z = _points(elbo, inter.float(), spectrum)
+    print("\n| k | VB iterations | ELBO per point |\n|---|---|---|")
+    for k in candidates:
+        fit = vb_gmm(z, kmeans(z, k, seed=0).labels, k)
+        print(f"| {k} | {fit.n_iter} | {fit.elbo / z.shape[0]:.3f} |")
+
+
+def _points(full: ReSiRegFull, x: torch.Tensor, spectrum) -> torch.Tensor:
+    """The subsample elbo_prototype_count fits (same seed, same draw)."""
+    import torch.nn.functional as F
+
+    from resireg.reconstruct import _project_grid, _upsample
+
+    b, _, hv, wv = x.shape
+    fit = spectrum.top(full.elbo_candidates[-1])
+    up = _upsample(_project_grid(x, fit).view(b, hv, wv, -1).permute(0, 3, 1, 2), full.upscale)
+    z = F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
+    perm = torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(full.seed))[:4096]
+    return z[perm.to(z.device)]
+
+
+if __name__ == "__main__":
+    main()

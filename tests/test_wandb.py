@@ -1,0 +1,91 @@
+"""logger=wandb offline: one W&B run per job of a multirun, each finished, with the job's
+config and results.json's final metrics, read back from the offline run files."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+
+import pytest
+
+from _run import run
+
+pytest.importorskip("wandb")
+from wandb.proto import wandb_internal_pb2  # noqa: E402
+
+_HEADER = b":W&B\xe1\xbe\x00"  # W&B's transaction log: ident, magic 0xBEE1, version 0
+_BLOCK = 32768
+
+
+def _records(path):
+    """The protobuf ``Record`` messages of a ``run-<id>.wandb`` file, read by hand: the file
+    is LevelDB's log format (32 KiB blocks of chunks: crc32 u32, length u16, type u8 with
+    1 full, 2 first, 3 middle, 4 last) after a 7-byte header."""
+    data = path.read_bytes()
+    assert data[:7] == _HEADER
+    pos, pending = 7, b""
+    while pos + 7 <= len(data):
+        left = _BLOCK - pos % _BLOCK
+        if left < 7:  # a block's tail too short for a chunk header is padding
+            pos += left
+            continue
+        _, length, kind = struct.unpack("<IHB", data[pos : pos + 7])
+        if kind == 0:  # zero padding to the block's end
+            pos += left
+            continue
+        chunk, pos = data[pos + 7 : pos + 7 + length], pos + 7 + length
+        pending = chunk if kind in (1, 2) else pending + chunk
+        if kind in (1, 4):
+            record = wandb_internal_pb2.Record()
+            record.ParseFromString(pending)
+            yield record
+
+
+def _read_run(path):
+    """``(display name, group, config, summary, exit code)`` of one offline run."""
+    name = group = exit_code = None
+    config, summary = {}, {}
+    for record in _records(path):
+        kind = record.WhichOneof("record_type")
+        if kind == "run":
+            name, group = record.run.display_name, record.run.run_group
+            config.update({i.key: json.loads(i.value_json) for i in record.run.config.update})
+        elif kind == "config":
+            config.update({i.key: json.loads(i.value_json) for i in record.config.update})
+        elif kind == "summary":
+            summary.update({i.key: json.loads(i.value_json) for i in record.summary.update})
+        elif kind == "exit":
+            exit_code = record.exit.exit_code
+    return name, group, config, summary, exit_code
+
+
+@pytest.mark.slow
+def test_offline_runs_one_per_job_with_config_and_final_metrics(tmp_path):
+    env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true",
+           "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip
+    run("resireg-train", "-m", "experiment=smoke", "logger=wandb", "trainer.max_epochs=1",
+        "data.steps_per_epoch=2", "~callbacks.progress_bar", "export=false",
+        "model.optimizer.lr=1e-3,2e-3", f"paths.log_dir={tmp_path}", env=env)  # fmt: skip
+    (sweep,) = (tmp_path / "smoke" / "multirun").iterdir()
+    jobs = sorted(p for p in sweep.iterdir() if (p / "results.json").is_file())
+    assert len(jobs) == 2
+    names = set()
+    for number, job in enumerate(jobs):
+        files = list(job.glob("wandb/offline-run-*/run-*.wandb"))
+        assert len(files) == 1, files  # one run per job, in the job's folder
+        name, group, config, summary, exit_code = _read_run(files[0])
+        run_id = sweep.name.rsplit("_", 1)[1]  # <date>_<time>_<run id>
+        assert name == f"smoke-{run_id}-{number}" and group == f"smoke-{run_id}"
+        names.add(name)
+        assert exit_code == 0  # finished at the job's end
+        lr = 1e-3 * (number + 1)
+        assert config["model"]["optimizer"]["lr"] == pytest.approx(lr)
+        assert config["paths"]["output_dir"] == str(job)
+        results = json.loads((job / "results.json").read_text())
+        assert summary["status"] == "completed" and summary["epoch"] == results["epoch"]
+        final = {k: v for k, v in results["final"].items() if v is not None}
+        assert final and {k: summary[f"final/{k}"] for k in final} == pytest.approx(final)
+        best = results["best"]["train/loss"]
+        assert summary["best/train/loss"] == pytest.approx(best["value"])
+    assert len(names) == 2
