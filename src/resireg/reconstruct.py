@@ -354,8 +354,9 @@ class ReSiRegFull(nn.Module):
     Args:
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
             prototype heuristic as a function of the batch size (see ``heuristic``).
-        n_components: PCA components ``r`` (``None``: equal to the prototype count).
-            Clipped to the intermediate dimension.
+        n_components: PCA components ``r``; ``None`` (default): equal to the prototype
+            count of the batch (tied, as in the paper's ablation and ``full.n_components:
+            null`` of conf/resireg/default.yaml). Clipped to the intermediate dimension.
         alpha: softmax temperature on prototype distances.
         tau: gate; affinities below ``tau`` are zeroed (no renormalisation).
         upscale: integer bilinear upsampling factor ``s`` of the intermediates.
@@ -369,7 +370,7 @@ class ReSiRegFull(nn.Module):
     def __init__(
         self,
         n_prototypes: int | str = 36,
-        n_components: int | None = 36,
+        n_components: int | None = None,
         alpha: float = 5.0,
         tau: float = 0.0,
         upscale: int = 2,
