@@ -313,8 +313,13 @@ def test_radseg_teacher_is_built_per_rank_on_the_modules_device(tmp_path):
 
     _radseg_repo(tmp_path / "RADSeg")
     teacher = {"kind": "radseg", "repo": str(tmp_path / "RADSeg"), "source": "local"}
-    module = ResiregModule(TINY_BACKBONE, TINY_HEAD, TINY_TEXT, teacher=teacher,
-                           loss={"distill": {"scale": 0.1}})  # fmt: skip
+    module = ResiregModule(
+        TINY_BACKBONE, TINY_HEAD, TINY_TEXT, teacher=teacher,
+        optimizer=torch.optim.AdamW, scheduler={"min_lr": 1e-6}, steps_per_epoch=8,
+        loss={"contrastive": {"scale": 1.0, "warmup_epochs": 0},
+              "distill": {"scale": 0.1, "warmup_epochs": 0}},
+        logit_scale={"init": 1 / 0.07, "max": 100.0},
+    )  # fmt: skip
     assert module.teacher is None  # nothing device-bound is built in __init__
     module._device = torch.device("meta")  # what Lightning sets before calling setup
     module.setup("fit")

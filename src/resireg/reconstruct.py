@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.cluster import PCAResult, PCASpectrum, gram, kmeans
-from resireg.variant_names import LITE_ATTENTION
+from resireg.specs.variants import check_variant_kwargs
 
 __all__ = [
     "FullShared",
@@ -50,14 +50,6 @@ def _check_positive_int(name: str, value: object) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     return value
-
-
-def _check_alpha_tau(alpha: float, tau: float) -> tuple[float, float]:
-    if not isinstance(alpha, (int, float)) or not math.isfinite(alpha) or alpha <= 0:
-        raise ValueError(f"alpha must be a finite number > 0, got {alpha!r}")
-    if not isinstance(tau, (int, float)) or not (0.0 <= tau <= 1.0):
-        raise ValueError(f"tau must lie in [0, 1], got {tau!r}")
-    return float(alpha), float(tau)
 
 
 def _check_inputs(intermediates: Tensor, language: Tensor, prior: Tensor | None) -> None:
@@ -379,21 +371,23 @@ class ReSiRegFull(nn.Module):
         heuristic: Callable[[int], int] | str | None = None,
     ) -> None:
         super().__init__()
+        # the rules of resireg.specs.variants (also those of the full.* config checks)
+        check_variant_kwargs("full", {
+            "n_prototypes": n_prototypes, "n_components": n_components, "alpha": alpha,
+            "tau": tau, "upscale": upscale, "seed": seed, "max_iter": max_iter,
+            "heuristic": heuristic,
+        })  # fmt: skip
         self.heuristic: Callable[[int], int] | None = None
         if n_prototypes == "auto":
             from resireg.heuristic import PrototypeHeuristic
 
             self.heuristic = PrototypeHeuristic.resolve(heuristic)
-        else:
-            _check_positive_int("n_prototypes", n_prototypes)
-        if n_components is not None:
-            _check_positive_int("n_components", n_components)
         self.n_prototypes = n_prototypes
         self.n_components = n_components
-        self.alpha, self.tau = _check_alpha_tau(alpha, tau)
-        self.upscale = _check_positive_int("upscale", upscale)
-        self.seed = int(seed)
-        self.max_iter = _check_positive_int("max_iter", max_iter)
+        self.alpha, self.tau = float(alpha), float(tau)
+        self.upscale = upscale
+        self.seed = seed
+        self.max_iter = max_iter
 
     def extra_repr(self) -> str:
         return (
@@ -545,10 +539,12 @@ class ReSiRegLite(nn.Module):
         self, alpha: float = 10.0, tau: float = 0.0, upscale: int = 2, attention: str = "auto"
     ) -> None:
         super().__init__()
-        self.alpha, self.tau = _check_alpha_tau(alpha, tau)
-        self.upscale = _check_positive_int("upscale", upscale)
-        if attention not in LITE_ATTENTION:
-            raise ValueError(f"attention must be one of {list(LITE_ATTENTION)}, got {attention!r}")
+        # the rules of resireg.specs.variants (also those of the lite.* config checks)
+        check_variant_kwargs(
+            "lite", {"alpha": alpha, "tau": tau, "upscale": upscale, "attention": attention}
+        )
+        self.alpha, self.tau = float(alpha), float(tau)
+        self.upscale = upscale
         self.attention = attention
 
     def extra_repr(self) -> str:

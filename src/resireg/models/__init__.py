@@ -1,6 +1,7 @@
 """Dense encoders: the interface (``encoder``, ``images``; ``hub`` and ``frozen`` for loaders), the
-encoder zoo (``zoo/``: CLIP, RADIO, RADSeg, dino.txt, TIPSv2, OTAS) and the 25M dense VLM with
-its parts (``vlm/``: EUPE, head, SigLIP 2 text); ``encoders`` builds any of them by kind."""
+encoder zoo (``zoo/``) and the 25M dense VLM with its parts (``vlm/``: EUPE, head, SigLIP 2 text);
+``encoders`` builds any of them by kind, the kinds being the table of
+:mod:`resireg.specs.encoders`."""
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.encoders import ENCODERS, build_encoder, count_parameters
