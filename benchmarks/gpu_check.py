@@ -241,7 +241,7 @@ def _teacher_repo(root: Path, tiny: bool) -> Path:
 
 
 def _train_module(args: argparse.Namespace, teacher: dict | None):
-    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from _common import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg_train.training.module import ResiregModule
 
     if args.dry_run:

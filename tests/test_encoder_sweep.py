@@ -24,9 +24,6 @@ def test_every_encoder_config_names_a_known_kind_and_builds_its_class_arguments(
 
     assert set(ENCODER_SPECS) == set(ENCODERS)  # the factory reads the table's kinds
     names = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))
-    assert names == ["clip_vit_b16", "clip_vit_l14_336", "dinotxt", "otas", "radio_v3b_clip",
-                     "radio_v3b_siglip2", "radio_v4_siglip2", "radseg", "resireg_vlm",
-                     "tipsv2"]  # fmt: skip
     assert sorted(encoder_configs()) == names  # the table names every conf/encoder/ file
     sweep = OmegaConf.load(CONFIG_DIR / "sweep" / "table1.yaml")
     assert sorted(sweep.hydra.sweeper.params.encoder.split(",")) == names

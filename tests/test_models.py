@@ -9,10 +9,8 @@ import torch
 from PIL import Image
 from safetensors.torch import save_file
 
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import (
-    TINY_BACKBONE,
-    TINY_HEAD,
-    TINY_TEXT,
     EUPEBackbone,
     FrozenTextTower,
     LanguageHead,

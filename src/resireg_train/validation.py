@@ -7,9 +7,10 @@ that ``min_lr`` must not exceed ``lr``. :func:`validate` (``resireg-train``) and
 (the ``resireg`` config group) and the evaluation pass settings are checked by one rule set
 in both, under their prefix.
 
-This module is imported before anything heavy: it needs only OmegaConf and the names of the
-ReSiReg variants (no torch: a bad value is reported before torch loads; ``check_devices``
-imports torch when it runs).
+This module is imported before anything heavy: it needs only OmegaConf and the spec tables
+(``resireg.specs``: the variants' names and parameter rules, which the classes check too; the
+encoder kinds and what they import), no torch: a bad value is reported before torch loads
+(``check_devices`` imports torch when it runs).
 """
 
 from __future__ import annotations

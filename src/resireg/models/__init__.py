@@ -52,21 +52,3 @@ __all__ = [
     "dense_text_half",
     "ResiregVLM",
 ]
-
-#: Model sizes used by tests and the smoke experiment: same architectures, tiny widths.
-TINY_BACKBONE = {
-    "model_name": "eupe_vit_s16",
-    "weights": None,
-    "embed_dim": 64,
-    "depth": 2,
-    "num_heads": 2,
-}
-TINY_HEAD = {"out_dim": 48, "num_heads": 8, "drop_path": 0.0}
-TINY_TEXT = {
-    "kind": "tiny",
-    "width": 64,
-    "layers": 2,
-    "heads": 2,
-    "out_dim": 96,
-    "context_length": 32,
-}

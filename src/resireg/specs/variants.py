@@ -11,6 +11,7 @@ keyword defaults equal them (tests/test_specs.py composes the config and compare
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -106,7 +107,7 @@ VARIANT_SPECS: dict[str, VariantSpec] = {
                 ),
                 "n_components": optional_int(1),
                 "heuristic": (
-                    (lambda v: v is None or isinstance(v, str) or callable(v)),
+                    (lambda v: v is None or isinstance(v, (str, os.PathLike)) or callable(v)),
                     "null, a prototype_heuristic.json path or a callable",
                 ),
                 "alpha": number(0, strict=True, finite=True),

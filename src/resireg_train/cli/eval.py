@@ -47,10 +47,12 @@ from resireg_train.cli.task import (
 from resireg_train.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
 from resireg_train.validation import (
+    ENCODER_SWEEPS,
     ConfigError,
     check_available,
     check_devices,
     encoder_kwargs,
+    sweep_config_errors,
     validate_eval,
 )
 
@@ -164,6 +166,8 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
+    if cfg.get("name") in ENCODER_SWEEPS and (errors := sweep_config_errors(CONFIG_DIR)):
+        raise ConfigError("conf/ disagrees with the encoder table:\n  " + "\n  ".join(errors))
     check_available(cfg)
     check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
