@@ -56,7 +56,7 @@ def number(minimum: float, strict: bool = False, finite: bool = False) -> Rule:
             return False
         return v > minimum if strict else v >= minimum
 
-    what = f"a {'finite ' if finite else ''}number {'>' if strict else '>='} {minimum:g}"
+    what = f"a number {'>' if strict else '>='} {minimum:g}{' (finite)' if finite else ''}"
     return check, what
 
 

@@ -131,7 +131,7 @@ BASELINE = "bb"
 
 def check_variant_kwargs(name: str, values: dict[str, Any]) -> None:
     """The rules of variant ``name`` on a class's keywords (``ValueError`` naming the first
-    bad one: ``alpha must be a finite number > 0, got -1.0``)."""
+    bad one: ``alpha must be a number > 0 (finite), got -1.0``)."""
     from resireg.specs.rules import check_kwargs
 
     check_kwargs(VARIANT_SPECS[name].params, values)
