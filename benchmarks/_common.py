@@ -20,6 +20,12 @@ def load_yaml(path: Path) -> dict[str, Any]:
         return yaml.safe_load(f)
 
 
+#: The tiny model of ``experiment=smoke`` (random init, same architectures), read from conf/.
+TINY_BACKBONE = load_yaml(CONF / "model" / "backbone" / "tiny.yaml")
+TINY_HEAD = load_yaml(CONF / "model" / "tiny.yaml")["head"]  # over vlm25m's head
+TINY_TEXT = load_yaml(CONF / "model" / "text" / "tiny.yaml")
+
+
 def resireg_defaults() -> dict[str, Any]:
     """``conf/resireg/default.yaml``: ReSiReg's parameters (``lite``, ``full``, ...)."""
     return load_yaml(CONF / "resireg" / "default.yaml")
@@ -32,7 +38,7 @@ def build_model(tiny: bool = False):
 
     torch and the models are imported here, not at the top, so a process that imports this
     module for its helpers (e.g. the map's memory probe) loads only what it uses."""
-    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+    from resireg.models import ResiregVLM
 
     if tiny:
         return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()

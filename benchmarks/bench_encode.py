@@ -15,8 +15,9 @@ import time
 
 import torch
 
+from _common import TINY_TEXT
 from resireg import ReSiRegFull, ReSiRegLite
-from resireg.models import TINY_TEXT, ResiregVLM
+from resireg.models import ResiregVLM
 
 
 def images_per_second(fn, batch: int, repeats: int) -> float:

@@ -17,10 +17,10 @@ import time
 
 import torch
 
-from resireg.models import TINY_TEXT, ClipEncoder, ResiregVLM
+from _common import TINY_TEXT
+from resireg.models import ClipEncoder, ResiregVLM
+from resireg.specs.variants import VARIANTS
 from resireg.variants import build_variant
-
-VARIANTS = ("bb", "calib", "lite", "full")
 
 
 def _encoders(names: list[str]) -> dict[str, torch.nn.Module]:

@@ -88,7 +88,8 @@ def smoke(repeats: int) -> None:
 
 
 def vits(repeats: int, images: int) -> None:
-    from resireg.models import TINY_TEXT, ResiregVLM
+    from _common import TINY_TEXT
+    from resireg.models import ResiregVLM
 
     backbone = {"model_name": "eupe_vit_s16", "weights": None}  # ViT-S/16, random init
     head = {"out_dim": 512, "depth": 2, "num_heads": 8}

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import platform
 import sys
@@ -250,7 +251,7 @@ def _teacher_repo(root: Path, tiny: bool) -> Path:
 
 
 def _train_module(args: argparse.Namespace, teacher: dict | None):
-    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from _common import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg_train.training.module import ResiregModule
 
     if args.dry_run:
@@ -258,8 +259,13 @@ def _train_module(args: argparse.Namespace, teacher: dict | None):
     else:
         backbone = {**load_yaml(CONF / "model" / "backbone" / "eupe_vit_s16.yaml"), "weights": None}
         head = dict(load_yaml(CONF / "model" / "vlm25m.yaml")["head"])
-    loss = {"distill": {"scale": 0.1 if teacher else 0.0}}
-    module = ResiregModule(backbone, head, TINY_TEXT, teacher=teacher, loss=loss)
+    model = load_yaml(CONF / "model" / "vlm25m.yaml")  # the training settings, no warm-up
+    loss = {"contrastive": {"scale": model["loss"]["contrastive"]["scale"], "warmup_epochs": 0},
+            "distill": {"scale": 0.1 if teacher else 0.0, "warmup_epochs": 0}}  # fmt: skip
+    optimizer = functools.partial(torch.optim.AdamW, lr=model["optimizer"]["lr"])
+    module = ResiregModule(backbone, head, TINY_TEXT, teacher=teacher, loss=loss,
+                           optimizer=optimizer, scheduler=dict(model["scheduler"]),
+                           logit_scale=dict(model["logit_scale"]), steps_per_epoch=1000)  # fmt: skip
     module = module.to(args.device)
     module.setup("fit")
     return module

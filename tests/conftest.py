@@ -25,7 +25,8 @@ def _seed():
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory):
     """An exported tiny ResiregVLM (random init: same architectures, no training)."""
-    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from resireg.models import ResiregVLM
 
     torch.manual_seed(0)
     path = tmp_path_factory.mktemp("export") / "export"

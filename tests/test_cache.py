@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from _run import run
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.models import ResiregVLM
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache, weights_fingerprint
 from resireg_train.data.segmentation import build_segmentation_set

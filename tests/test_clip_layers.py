@@ -17,7 +17,8 @@ import yaml
 from hydra import compose, initialize_config_dir
 from PIL import Image
 
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.models import ResiregVLM
 from resireg.models.zoo.clip import ClipEncoder
 from resireg.ovss import TEMPLATES
 from resireg.variant_names import parse_variant, variant_layer

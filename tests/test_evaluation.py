@@ -5,7 +5,8 @@ import pytest
 import torch
 from sklearn.metrics import confusion_matrix, jaccard_score
 
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.models import ResiregVLM
 from resireg.ovss import predict, text_prototypes
 from resireg.variants import build_variant, build_variants
 from resireg_train.data.segmentation import build_segmentation_set

@@ -9,10 +9,8 @@ from PIL import Image
 from safetensors.torch import save_file
 
 from _fake_hubs import offline_hub, radio_repo, radseg_repo
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import (
-    TINY_BACKBONE,
-    TINY_HEAD,
-    TINY_TEXT,
     EUPEBackbone,
     FrozenTextTower,
     LanguageHead,
@@ -371,8 +369,13 @@ def test_radseg_teacher_is_built_per_rank_on_the_modules_device(tmp_path, monkey
     offline_hub(monkeypatch, tmp_path / "hub", ["c-radio_v3-b_half.pth.tar"], radio_code=True)
     radseg_repo(tmp_path / "RADSeg", standin=True)
     teacher = {"kind": "radseg", "repo": str(tmp_path / "RADSeg"), "source": "local"}
-    module = ResiregModule(TINY_BACKBONE, TINY_HEAD, TINY_TEXT, teacher=teacher,
-                           loss={"distill": {"scale": 0.1}})  # fmt: skip
+    module = ResiregModule(
+        TINY_BACKBONE, TINY_HEAD, TINY_TEXT, teacher=teacher,
+        optimizer=torch.optim.AdamW, scheduler={"min_lr": 1e-6}, steps_per_epoch=8,
+        loss={"contrastive": {"scale": 1.0, "warmup_epochs": 0},
+              "distill": {"scale": 0.1, "warmup_epochs": 0}},
+        logit_scale={"init": 1 / 0.07, "max": 100.0},
+    )  # fmt: skip
     assert module.teacher is None  # nothing device-bound is built in __init__
     module._device = torch.device("meta")  # what Lightning sets before calling setup
     module.setup("fit")

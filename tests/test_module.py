@@ -9,7 +9,7 @@ import torch
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch.utils.data import DataLoader
 
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg_train.data.synthetic import SyntheticScenes
 from resireg_train.training.module import ResiregModule
 
@@ -40,7 +40,11 @@ def _module(**kw):
         "optimizer": functools.partial(torch.optim.AdamW, lr=2e-3, weight_decay=0.05),
         "scheduler": {"min_lr": 1e-5},
         "steps_per_epoch": 8,
-    }
+        "teacher": None,
+        "loss": {"contrastive": {"scale": 1.0, "warmup_epochs": 0},
+                 "distill": {"scale": 0.0, "warmup_epochs": 0}},
+        "logit_scale": {"init": 1 / 0.07, "max": 100.0},
+    }  # fmt: skip
     cfg.update(kw)
     return ResiregModule(**cfg)
 
@@ -129,14 +133,15 @@ def test_loss_scales_follow_warmup_and_distill_only_in_stage1():
     )
     scales = [s for e in (0, 2, 4, 8) for s in m.loss_scales(e)]
     assert scales == pytest.approx([0, 0, 0.5, 0.025, 1, 0.05, 1, 0.1])
-    stage2 = _module(loss={"distill": {"scale": 0.0}}, teacher={"kind": "conv"})
+    stage2 = _module(teacher={"kind": "conv"})  # distill.scale 0
     assert stage2.teacher is None and stage2.distill_head is None
 
 
 def test_distillation_trains_the_distill_head(tmp_path):
     m = _module(
         teacher={"kind": "conv", "out_dim": 20},
-        loss={"distill": {"scale": 0.1, "warmup_epochs": 0}},
+        loss={"contrastive": {"scale": 1.0, "warmup_epochs": 0},
+              "distill": {"scale": 0.1, "warmup_epochs": 0}},
     )
     assert m.distill_head is None  # built with the teacher, on the rank's device, in setup
     m.setup("fit")

@@ -172,7 +172,8 @@ def test_offline_without_cached_weights_names_prior_model(monkeypatch):
 
 # ----------------------------------------------------------------------------- with ReSiReg
 def _encoder():
-    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from resireg.models import ResiregVLM
 
     torch.manual_seed(0)
     return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()

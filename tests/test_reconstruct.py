@@ -509,3 +509,32 @@ def _compare_mixture_clustering(KMeans):
     ])  # fmt: skip
     ref = np.mean([KMeans(8, n_init=1, random_state=s).fit(z).inertia_ for s in seeds])
     assert abs(ours / ref - 1) < 0.01
+
+
+def test_unset_n_components_is_tied_to_the_prototype_count(monkeypatch):
+    """Issue 23: ``ReSiRegFull(n_prototypes=24)`` clusters in a 24-component PCA (tied, as
+    ``full.n_components: null`` in conf/resireg/default.yaml and the paper's ablation), not
+    36. The basis it projects on is compared with scikit-learn's 24-component PCA of the same
+    points (upscale 1: the points are the grid), and the output with an explicit
+    ``n_components=24`` run (and shown to differ from a 36-component one)."""
+    g = torch.Generator().manual_seed(3)
+    inter = torch.randn(2, 64, 8, 8, generator=g)  # Dv = 64 > 36: no clipping hides the rank
+    lang = torch.randn(2, 12, 8, 8, generator=g)
+    used = []
+    project = reconstruct._project_grid
+    monkeypatch.setattr(
+        reconstruct, "_project_grid", lambda x, fit: used.append(fit) or project(x, fit)
+    )
+    out = ReSiRegFull(n_prototypes=24, upscale=1)(inter, lang)
+    (fit,) = used
+    pts = inter.permute(0, 2, 3, 1).reshape(-1, 64).double().numpy()
+    ref = PCA(n_components=24, svd_solver="full").fit(pts).components_  # [24, 64]
+    ours = fit.components.double().numpy()
+    assert ours.shape == ref.shape
+    # the same subspace: the projectors onto both bases are equal
+    np.testing.assert_allclose(ours.T @ ours, ref.T @ ref, atol=1e-5)
+    tied = ReSiRegFull(n_prototypes=24, n_components=24, upscale=1)(inter, lang)
+    wide = ReSiRegFull(n_prototypes=24, n_components=36, upscale=1)(inter, lang)
+    assert torch.equal(out, tied)
+    assert not torch.allclose(out, wide, atol=1e-3)
+    assert ReSiRegFull().n_components is None

@@ -380,7 +380,8 @@ def test_table2_sweep_end_to_end_results_and_report(root, room, tiny_export, tmp
     export's scores equal the engine's run in-process on the same settings; the report's
     Table 2 shows model, parameters, mIoU and f-mIoU as the results hold them (x100).
     (CLIP's text tower is too slow for a test here: 37 classes x 80 prompts.)"""
-    from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM, count_parameters
+    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from resireg.models import ResiregVLM, count_parameters
 
     torch.manual_seed(1)
     other = tmp_path / "export_b"

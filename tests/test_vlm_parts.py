@@ -3,7 +3,8 @@
 import pytest
 import torch
 
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.models import ResiregVLM
 from resireg.models.vlm.eupe import EUPEBackbone
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection

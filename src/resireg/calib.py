@@ -85,6 +85,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.reconstruct import _check_inputs, _check_positive_int
+from resireg.specs.rules import checked
+from resireg.specs.variants import VARIANT_SPECS, check_variant_kwargs
 
 __all__ = ["Calib", "lof_outliers", "negative_outlier_factor", "resolve_anomalies"]
 
@@ -202,13 +204,9 @@ def resolve_anomalies(x: Tensor, anomalous: Tensor) -> Tensor:
 
 
 def _check_contamination(contamination: float) -> float:
-    if (
-        isinstance(contamination, bool)
-        or not isinstance(contamination, (int, float))
-        or not 0.0 <= contamination <= 0.5
-    ):
-        raise ValueError(f"contamination must lie in [0, 0.5], got {contamination!r}")
-    return float(contamination)
+    """The ``calib.contamination`` rule of the variant table, for :func:`lof_outliers`."""
+    rule = VARIANT_SPECS["calib"].params["contamination"]
+    return float(checked("contamination", contamination, rule))
 
 
 class Calib(nn.Module):
@@ -226,14 +224,13 @@ class Calib(nn.Module):
         self, n_neighbors: int = 30, contamination: float = 0.05, threshold: float = 0.4
     ) -> None:
         super().__init__()
-        self.n_neighbors = _check_positive_int("n_neighbors", n_neighbors)
-        self.contamination = _check_contamination(contamination)
-        if (
-            isinstance(threshold, bool)
-            or not isinstance(threshold, (int, float))
-            or not 0.0 <= threshold <= 1.0
-        ):
-            raise ValueError(f"threshold must lie in [0, 1], got {threshold!r}")
+        # the rules of resireg.specs.variants (also those of the calib.* config checks)
+        check_variant_kwargs(
+            "calib",
+            {"n_neighbors": n_neighbors, "contamination": contamination, "threshold": threshold},
+        )
+        self.n_neighbors = n_neighbors
+        self.contamination = float(contamination)
         self.threshold = float(threshold)
 
     def extra_repr(self) -> str:

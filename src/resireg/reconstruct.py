@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.cluster import PCAResult, PCASpectrum, elbo_prototype_count, gram, kmeans
-from resireg.variant_names import LITE_ATTENTION
+from resireg.specs.variants import check_variant_kwargs
 
 __all__ = [
     "FullShared",
@@ -50,14 +50,6 @@ def _check_positive_int(name: str, value: object) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     return value
-
-
-def _check_alpha_tau(alpha: float, tau: float) -> tuple[float, float]:
-    if not isinstance(alpha, (int, float)) or not math.isfinite(alpha) or alpha <= 0:
-        raise ValueError(f"alpha must be a finite number > 0, got {alpha!r}")
-    if not isinstance(tau, (int, float)) or not (0.0 <= tau <= 1.0):
-        raise ValueError(f"tau must lie in [0, 1], got {tau!r}")
-    return float(alpha), float(tau)
 
 
 def _check_inputs(intermediates: Tensor, language: Tensor, prior: Tensor | None) -> None:
@@ -356,8 +348,9 @@ class ReSiRegFull(nn.Module):
             prototype heuristic as a function of the batch size (see ``heuristic``), or
             ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
             bound (:func:`resireg.cluster.elbo_prototype_count`, docs/design.md section 4.4b).
-        n_components: PCA components ``r`` (``None``: equal to the prototype count).
-            Clipped to the intermediate dimension.
+        n_components: PCA components ``r``; ``None`` (default): equal to the prototype
+            count of the batch (tied, as in the paper's ablation and ``full.n_components:
+            null`` of conf/resireg/default.yaml). Clipped to the intermediate dimension.
         alpha: softmax temperature on prototype distances.
         tau: gate; affinities below ``tau`` are zeroed (no renormalisation).
         upscale: integer bilinear upsampling factor ``s`` of the intermediates.
@@ -375,7 +368,7 @@ class ReSiRegFull(nn.Module):
     def __init__(
         self,
         n_prototypes: int | str = 36,
-        n_components: int | None = 36,
+        n_components: int | None = None,
         alpha: float = 5.0,
         tau: float = 0.0,
         upscale: int = 2,
@@ -385,6 +378,12 @@ class ReSiRegFull(nn.Module):
         elbo_candidates: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
+        # the rules of resireg.specs.variants (also those of the full.* config checks)
+        check_variant_kwargs("full", {
+            "n_prototypes": n_prototypes, "n_components": n_components, "alpha": alpha,
+            "tau": tau, "upscale": upscale, "seed": seed, "max_iter": max_iter,
+            "heuristic": heuristic, "elbo_candidates": elbo_candidates,
+        })  # fmt: skip
         self.heuristic: Callable[[int], int] | None = None
         self.elbo_candidates: tuple[int, ...] | None = None
         #: with ``n_prototypes="elbo"``: the count chosen for every batch run, in order
@@ -402,16 +401,12 @@ class ReSiRegFull(nn.Module):
             from resireg.heuristic import PrototypeHeuristic
 
             self.heuristic = PrototypeHeuristic.resolve(heuristic)
-        else:
-            _check_positive_int("n_prototypes", n_prototypes)
-        if n_components is not None:
-            _check_positive_int("n_components", n_components)
         self.n_prototypes = n_prototypes
         self.n_components = n_components
-        self.alpha, self.tau = _check_alpha_tau(alpha, tau)
-        self.upscale = _check_positive_int("upscale", upscale)
-        self.seed = int(seed)
-        self.max_iter = _check_positive_int("max_iter", max_iter)
+        self.alpha, self.tau = float(alpha), float(tau)
+        self.upscale = upscale
+        self.seed = seed
+        self.max_iter = max_iter
 
     def extra_repr(self) -> str:
         return (
@@ -580,10 +575,12 @@ class ReSiRegLite(nn.Module):
         self, alpha: float = 10.0, tau: float = 0.0, upscale: int = 2, attention: str = "auto"
     ) -> None:
         super().__init__()
-        self.alpha, self.tau = _check_alpha_tau(alpha, tau)
-        self.upscale = _check_positive_int("upscale", upscale)
-        if attention not in LITE_ATTENTION:
-            raise ValueError(f"attention must be one of {list(LITE_ATTENTION)}, got {attention!r}")
+        # the rules of resireg.specs.variants (also those of the lite.* config checks)
+        check_variant_kwargs(
+            "lite", {"alpha": alpha, "tau": tau, "upscale": upscale, "attention": attention}
+        )
+        self.alpha, self.tau = float(alpha), float(tau)
+        self.upscale = upscale
         self.attention = attention
 
     def extra_repr(self) -> str:

@@ -1,14 +1,17 @@
-"""The ReSiReg variant names and the configuration syntax, without importing torch.
+"""The ReSiReg configuration syntax (``full+prior@n_prototypes:24``), without importing torch.
 
-The config checks (``resireg_train.validation``) need them before anything heavy is loaded,
-so a bad ``variants=`` value is reported in a fraction of a second; the factories live in
-:mod:`resireg.variants`.
+The config checks (``resireg_train.validation``) need it before anything heavy is loaded,
+so a bad ``variants=`` value is reported in a fraction of a second. The variants themselves
+(names, classes, parameter rules) are one table, :mod:`resireg.specs.variants`; the factory
+is :mod:`resireg.variants`.
 """
 
 from __future__ import annotations
 
 import ast
 from typing import Any
+
+from resireg.specs.variants import LITE_ATTENTION, PRIOR_VARIANTS, VARIANTS
 
 __all__ = [
     "LAYER_KEY",
@@ -21,18 +24,11 @@ __all__ = [
     "variant_layer",
 ]
 
-#: Names of :func:`resireg.variants.build_variant`, in the report order of the paper's Table 1.
-VARIANTS: tuple[str, ...] = ("bb", "calib", "lite", "full")
-
 #: ``<variant>+prior``: the configuration is called with the segmentation prior
-#: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it.
+#: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it
+#: (:data:`PRIOR_VARIANTS`). The names, :data:`VARIANTS`, :data:`PRIOR_VARIANTS` and
+#: :data:`LITE_ATTENTION` come from the variant table, :mod:`resireg.specs.variants`.
 PRIOR_SUFFIX = "+prior"
-PRIOR_VARIANTS: tuple[str, ...] = ("lite", "full")
-
-#: How ReSiReg Lite computes its attention (``lite.attention``, docs/design.md section 4.3):
-#: ``auto`` (by device: ``sdpa`` on CUDA, ``factorised`` elsewhere), ``sdpa`` (PyTorch's fused
-#: attention on the upsampled points) or ``factorised`` (from the coarse grid's Gram matrix).
-LITE_ATTENTION: tuple[str, ...] = ("auto", "sdpa", "factorised")
 
 
 #: ``<variant>@layer:<block>``: the configuration runs on that encoder block's intermediates

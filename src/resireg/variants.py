@@ -12,20 +12,21 @@ and returns unit-norm dense language features ``[B, Dl, h, w]``:
 
 :data:`VARIANTS` lists them in the report order of the paper's Table 1 (BB, Calib, Lite,
 Full). The evaluation engine, the training callback and ``DenseEncoder.encode_image`` build
-variants only through :func:`build_variant`, so a new variant is one more entry in
-:data:`_FACTORIES`.
+variants only through :func:`build_variant`, which takes each class from the variant table
+(:data:`resireg.specs.variants.VARIANT_SPECS`): a new variant is one module, one entry there
+and its defaults in ``conf/resireg/default.yaml`` (docs/design.md section 13).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import Any
 
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.calib import Calib
-from resireg.reconstruct import FullShared, ReSiRegFull, ReSiRegLite
+from resireg.reconstruct import FullShared, ReSiRegFull
+from resireg.specs.variants import VARIANT_SPECS
 from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
 
 __all__ = [
@@ -47,25 +48,14 @@ class BackboneOnly(nn.Module):
         return F.normalize(language.float(), dim=1)
 
 
-_FACTORIES: dict[str, Callable[..., nn.Module]] = {
-    "bb": BackboneOnly,
-    "calib": Calib,
-    "lite": ReSiRegLite,
-    "full": ReSiRegFull,
-}
-
-#: Names :func:`build_variant` knows, in the order results are reported.
-if tuple(_FACTORIES) != VARIANTS:  # the names' one source is resireg.variant_names
-    raise ImportError(f"variant factories {tuple(_FACTORIES)} differ from VARIANTS {VARIANTS}")
-
-
 def build_variant(name: str, **kwargs: Any) -> nn.Module:
     """The variant ``name`` built with ``kwargs`` (``bb`` takes none)."""
-    if name not in _FACTORIES:
+    if name not in VARIANT_SPECS:
         raise ValueError(f"unknown ReSiReg variant {name!r}; choose from {list(VARIANTS)}")
-    if name == "bb" and kwargs:
-        raise ValueError(f"variant 'bb' takes no parameters, got {sorted(kwargs)}")
-    return _FACTORIES[name](**kwargs)
+    spec = VARIANT_SPECS[name]
+    if not spec.params and kwargs:
+        raise ValueError(f"variant {name!r} takes no parameters, got {sorted(kwargs)}")
+    return spec.load()(**kwargs)
 
 
 def build_variants(
@@ -88,7 +78,7 @@ def build_variants(
     if not names:
         raise ValueError(f"{key}=[]: name at least one of {list(VARIANTS)}")
     parsed = {n: parse_variant(n) for n in names}
-    bad = [n for n, (base, _) in parsed.items() if base not in _FACTORIES]
+    bad = [n for n, (base, _) in parsed.items() if base not in VARIANT_SPECS]
     if bad:
         raise ValueError(f"{key}={list(names)}: unknown {bad}; choose from {list(VARIANTS)}")
     if len(parsed) != len(names):

@@ -7,36 +7,34 @@ that ``min_lr`` must not exceed ``lr``. :func:`validate` (``resireg-train``) and
 (the ``resireg`` config group) and the evaluation pass settings are checked by one rule set
 in both, under their prefix.
 
-This module is imported before anything heavy: it needs only OmegaConf and the names of the
-ReSiReg variants (no torch: a bad value is reported before torch loads; ``check_devices``
-imports torch when it runs).
+This module is imported before anything heavy: it needs only OmegaConf and the spec tables
+(``resireg.specs``: the variants' names and parameter rules, which the classes check too; the
+encoder kinds and what they import), no torch: a bad value is reported before torch loads
+(``check_devices`` imports torch when it runs).
 """
 
 from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.sources import export_source_problem
-from resireg.variant_names import (
-    LITE_ATTENTION,
-    PRIOR_VARIANTS,
-    VARIANTS,
-    parse_variant,
-    takes_prior,
-    variant_layer,
-)
+from resireg.specs.encoders import ENCODER_SPECS, Needs, find_encoder
+from resireg.specs.rules import Rule, integer, interval, is_int, is_num, number, optional_int
+from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
+from resireg.variant_names import parse_variant, takes_prior, variant_layer
 
 __all__ = [
     "ADDABLE",
     "ConfigError",
     "ENCODER_IMPORTS",
+    "ENCODER_SWEEPS",
     "ENCODER_REPORT_KEYS",
     "PRECISIONS",
     "TASKS",
@@ -47,6 +45,7 @@ __all__ = [
     "init_from_problem",
     "unknown_key_errors",
     "validate",
+    "sweep_config_errors",
     "validate_eval",
 ]
 
@@ -61,68 +60,16 @@ class ConfigError(ValueError):
 
 
 _MISSING = object()
-#: ``encoder.kind`` values (``resireg.models.ENCODERS``; listed here so the config check does
-#: not import the models).
 #: Device kinds of ``device`` / ``prior.device`` (``cuda:N`` included).
 _DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
-_ENCODER_KINDS = ("resireg_vlm", "clip", "radio", "radseg", "dinotxt", "tips", "otas")
 #: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
 #: of ``resireg.models.build_encoder``.
 ENCODER_REPORT_KEYS = ("name", "third_party")
-
-
-class Needs(NamedTuple):
-    """A module an encoder's code imports: the pip distribution that provides it, who imports
-    it, and when (``None``: always; else a test of the encoder entry)."""
-
-    module: str
-    dist: str
-    who: str
-    when: Callable[[dict], bool] | None = None
-
-
-_SIGLIP = "NVlabs/RADIO radio/siglip2_adaptor.py (its SigLIP 2 adaptors)"
-_RADIO = (
-    Needs("einops", "einops", "NVlabs/RADIO hubconf.py (dependencies) and radio/*.py"),
-    Needs(
-        "distutils",
-        "setuptools",
-        "NVlabs/RADIO radio/extra_models.py (Python >= 3.12: setuptools provides distutils)",
-    ),
-)
-_BPE = "facebookresearch/dinov2 dinov2/thirdparty/CLIP (the dino.txt BPE tokenizer)"
-#: What an encoder kind imports beyond the core install: its own code in ``resireg.models``
-#: and the upstream hub code it loads, read in those repositories (NVlabs/RADIO ``hubconf.py``
-#: and ``radio/``; RADSeg-OVSS/RADSeg ``hubconf.py`` and ``radseg/``, which loads NVlabs/RADIO;
-#: facebookresearch/dinov2 ``hubconf.py`` and ``dinov2/``). The ``encoders`` extra installs
-#: them all (pyproject.toml lists them beside each encoder); :func:`encoder_import_errors`
-#: (through :func:`check_available`) checks them before a model loads. ``clip`` and
-#: ``resireg_vlm`` need only the core.
+#: ``kind -> modules its code imports`` beyond the core install (``Needs``; the encoder table,
+#: :data:`resireg.specs.encoders.ENCODER_SPECS`, holds them): :func:`encoder_import_errors`
+#: (through :func:`check_available`) checks them before a model loads.
 ENCODER_IMPORTS: dict[str, tuple[Needs, ...]] = {
-    "radio": (
-        *_RADIO,
-        Needs("transformers", "transformers", _SIGLIP, lambda e: e.get("adaptor") != "clip"),
-    ),
-    "radseg": (
-        Needs("segment_anything", "segment-anything", "RADSeg hubconf.py, radseg/radseg.py"),
-        Needs("skimage", "scikit-image", "RADSeg radseg/sam_utils.py"),
-        Needs("typing_extensions", "typing-extensions", "RADSeg radseg/base.py, radseg.py"),
-        *_RADIO,
-        Needs("transformers", "transformers", f"{_SIGLIP}, which RADSeg loads"),
-    ),
-    "dinotxt": (
-        Needs("ftfy", "ftfy", _BPE),
-        Needs("regex", "regex", _BPE),
-        Needs(
-            "requests",
-            "requests",
-            "facebookresearch/dinov2 dinov2/hub/dinotxt.py "
-            "get_tokenizer (downloads the vocabulary: vocab=null)",
-            lambda e: e.get("vocab") is None,
-        ),
-    ),
-    "tips": (Needs("sentencepiece", "sentencepiece", "resireg.models.zoo.tips (its tokenizer)"),),
-    "otas": (Needs("sklearn", "scikit-learn", "resireg.models.zoo.otas (k-means)"),),
+    kind: spec.imports for kind, spec in ENCODER_SPECS.items() if spec.imports
 }
 
 
@@ -135,7 +82,8 @@ def encoder_import_errors(entry: Any, key: str = "encoder") -> list[str]:
     if not isinstance(entry, dict):
         return []
     errors = []
-    for module, dist, who, when in ENCODER_IMPORTS.get(entry.get("kind"), ()):
+    spec = find_encoder(entry.get("kind"))
+    for module, dist, who, when in spec.imports if spec is not None else ():
         if when is not None and not when(entry):
             continue
         if importlib.util.find_spec(module) is None:
@@ -157,33 +105,15 @@ _PRECISIONS = {
 }  # fmt: skip
 
 
-def _int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
+_int, _num, _integer, _optional_int = is_int, is_num, integer, optional_int
 
 
 def _opt_str(v: Any) -> bool:
     return v is None or isinstance(v, str)
 
 
-Rule = tuple[Callable[[Any], bool], str]
-
-
-def _integer(minimum: int) -> Rule:
-    return (lambda v: _int(v) and v >= minimum), f"an integer >= {minimum}"
-
-
 def _number(minimum: float, strict: bool = False) -> Rule:
-    if strict:
-        return (lambda v: _num(v) and v > minimum), f"a number > {minimum:g}"
-    return (lambda v: _num(v) and v >= minimum), f"a number >= {minimum:g}"
-
-
-def _optional_int(minimum: int) -> Rule:
-    return (lambda v: v is None or (_int(v) and v >= minimum)), f"null or an integer >= {minimum}"
+    return number(minimum, strict=strict)
 
 
 # key -> (check, what is expected). A key absent from the config is not checked.
@@ -236,8 +166,7 @@ def _on_layer(name: Any) -> bool:
         return False  # reported by the variants rule
 
 
-def _unit(v: Any) -> bool:
-    return _num(v) and 0 <= v <= 1
+_unit = interval(0, 1)[0]
 
 
 def _size(v: Any) -> bool:
@@ -258,35 +187,9 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
             f"(full@n_prototypes:24); {list(PRIOR_VARIANTS)} also with the prior (full+prior); "
             "on another encoder block: lite@layer:5",
         ),
-        f"{prefix}full.n_prototypes": (
-            lambda v: v in ("auto", "elbo") or (_int(v) and v >= 1),
-            "an integer >= 1, 'auto' (the fitted heuristic) or 'elbo' (chosen per batch)",
-        ),
-        f"{prefix}full.elbo_candidates": (
-            lambda v: (
-                v is None or (isinstance(v, list) and v and all(_int(c) and c >= 1 for c in v))
-            ),
-            "null or a non-empty list of integers >= 1",
-        ),
-        f"{prefix}full.n_components": _optional_int(1),
-        f"{prefix}full.alpha": _number(0, strict=True),
-        f"{prefix}full.tau": (_unit, "a number in [0, 1]"),
-        f"{prefix}full.upscale": _integer(1),
-        f"{prefix}full.max_iter": _integer(1),
-        f"{prefix}full.seed": (_int, "an integer"),
-        f"{prefix}calib.n_neighbors": _integer(1),
-        f"{prefix}calib.contamination": (
-            lambda v: _num(v) and 0 <= v <= 0.5,
-            "a number in [0, 0.5]",
-        ),
-        f"{prefix}calib.threshold": (_unit, "a number in [0, 1]"),
-        f"{prefix}lite.alpha": _number(0, strict=True),
-        f"{prefix}lite.tau": (_unit, "a number in [0, 1]"),
-        f"{prefix}lite.upscale": _integer(1),
-        f"{prefix}lite.attention": (
-            lambda v: v in LITE_ATTENTION,
-            f"one of {list(LITE_ATTENTION)}",
-        ),
+        # each variant's parameters, by the rules its class checks (resireg.specs.variants)
+        **{f"{prefix}{name}.{key}": rule for name, spec in VARIANT_SPECS.items()
+           for key, rule in spec.params.items()},  # fmt: skip
         f"{prefix}batch_size": _integer(1),
         f"{prefix}num_workers": _integer(0),
         f"{prefix}precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
@@ -301,7 +204,11 @@ _RULES["callbacks.resireg_eval.every_n_epochs"] = _integer(1)
 _EVAL_RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
     "model_path": (_opt_str, "null or an export folder / Hugging Face repo id"),
-    "encoder.kind": (lambda v: v in _ENCODER_KINDS, f"one of {list(_ENCODER_KINDS)}"),
+    "encoder.kind": (
+        lambda v: find_encoder(v) is not None,
+        f"one of {list(ENCODER_SPECS)} (resireg.specs.encoders) or a kind an installed package "
+        "registers (entry points resireg.encoders)",
+    ),
     "encoder.name": (lambda v: isinstance(v, str) and bool(v), "a name for reports"),
     "encoder.third_party": (lambda v: isinstance(v, bool), "true or false"),
     "device": (
@@ -491,6 +398,56 @@ def _device_errors(
     return []
 
 
+def _needs_model_path(kind: Any) -> bool:
+    """Whether encoder ``kind`` reads ``model_path`` (our VLM's export; the encoder table)."""
+    spec = find_encoder(kind) if isinstance(kind, str) else None
+    return spec is not None and spec.needs_model_path
+
+
+#: The sweeps over every encoder (the paper's Tables 1 and 2; their report is an encoder table).
+ENCODER_SWEEPS = ("table1", "table2")
+
+
+def sweep_config_errors(conf_dir: str | os.PathLike) -> list[str]:
+    """The config check of ``conf/sweep/``: every sweep's ``variants`` are valid configurations,
+    the encoders on an ``encoder`` axis (``hydra.sweeper.params.encoder``) are configurations of
+    the encoder table (:func:`resireg.specs.encoders.encoder_configs`) and those of
+    :data:`ENCODER_SWEEPS` list every one; every ``conf/encoder/`` file is in the table under
+    its ``kind``. One message per problem, naming the file and the key."""
+    from resireg.specs.encoders import encoder_configs
+
+    conf, errors = Path(conf_dir), []
+    known = encoder_configs()
+    for path in sorted((conf / "encoder").glob("*.yaml")):
+        kind = OmegaConf.load(path).get("kind")
+        spec = ENCODER_SPECS.get(kind)
+        if spec is None or path.stem not in spec.configs:
+            errors.append(f"{path.name}: kind={kind!r}: not listed in the encoder table "
+                          "(resireg.specs.encoders.ENCODER_SPECS[kind].configs)")  # fmt: skip
+    errors += [f"encoder/{name}.yaml: named by the encoder table, no such file"
+               for name in known if not (conf / "encoder" / f"{name}.yaml").is_file()]  # fmt: skip
+    for path in sorted((conf / "sweep").glob("*.yaml")):
+        sweep = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        variants = sweep.get("variants")
+        if variants is not None:
+            check, expected = _EVAL_RULES["variants"]
+            if not check(variants):
+                errors.append(f"sweep/{path.name}: variants={variants!r}: expected {expected}")
+        axis = ((sweep.get("hydra") or {}).get("sweeper") or {}).get("params") or {}
+        if "encoder" not in axis:
+            continue
+        names = [n.strip() for n in str(axis["encoder"]).split(",")]
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            errors.append(f"sweep/{path.name}: hydra.sweeper.params.encoder: {unknown} are not "
+                          f"encoders of the table; known: {list(known)}")  # fmt: skip
+        missing = [n for n in known if n not in names]
+        if path.stem in ENCODER_SWEEPS and missing:
+            errors.append(f"sweep/{path.name}: hydra.sweeper.params.encoder lacks {missing}: "
+                          "a sweep over every encoder lists the table's (encoder_configs())")
+    return errors
+
+
 def validate_eval(
     cfg: DictConfig | dict, added: Iterable[str] = (), top_level: Iterable[str] | None = None
 ) -> None:
@@ -499,7 +456,7 @@ def validate_eval(
     if not isinstance(cfg, DictConfig):
         cfg = OmegaConf.create(cfg)
     errors = unknown_key_errors(cfg, added, ADDABLE["eval"], top_level) + _errors(cfg, _EVAL_RULES)
-    if _get(cfg, "encoder.kind") == "resireg_vlm" and not _get(cfg, "model_path"):
+    if _needs_model_path(_get(cfg, "encoder.kind")) and not _get(cfg, "model_path"):
         errors.append(
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "
             "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
@@ -609,7 +566,7 @@ def check_available(cfg: DictConfig | dict) -> None:
         cfg = OmegaConf.create(cfg)
     errors = []
     model_path = _get(cfg, "model_path")
-    if _get(cfg, "encoder.kind") == "resireg_vlm" and isinstance(model_path, str) and model_path:
+    if _needs_model_path(_get(cfg, "encoder.kind")) and isinstance(model_path, str) and model_path:
         if problem := export_source_problem(model_path):
             errors.append(f"model_path={model_path!r}: {problem}")
     init_from = _get(cfg, "model.init_from")

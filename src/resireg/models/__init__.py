@@ -1,6 +1,7 @@
 """Dense encoders: the interface (``encoder``, ``images``; ``hub`` and ``frozen`` for loaders), the
-encoder zoo (``zoo/``: CLIP, RADIO, RADSeg, dino.txt, TIPSv2, OTAS) and the 25M dense VLM with
-its parts (``vlm/``: EUPE, head, SigLIP 2 text); ``encoders`` builds any of them by kind."""
+encoder zoo (``zoo/``) and the 25M dense VLM with its parts (``vlm/``: EUPE, head, SigLIP 2 text);
+``encoders`` builds any of them by kind, the kinds being the table of
+:mod:`resireg.specs.encoders`."""
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.encoders import ENCODERS, build_encoder, count_parameters
@@ -51,21 +52,3 @@ __all__ = [
     "dense_text_half",
     "ResiregVLM",
 ]
-
-#: Model sizes used by tests and the smoke experiment: same architectures, tiny widths.
-TINY_BACKBONE = {
-    "model_name": "eupe_vit_s16",
-    "weights": None,
-    "embed_dim": 64,
-    "depth": 2,
-    "num_heads": 2,
-}
-TINY_HEAD = {"out_dim": 48, "num_heads": 8, "drop_path": 0.0}
-TINY_TEXT = {
-    "kind": "tiny",
-    "width": 64,
-    "layers": 2,
-    "heads": 2,
-    "out_dim": 96,
-    "context_length": 32,
-}

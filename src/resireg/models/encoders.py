@@ -1,5 +1,7 @@
 """Every dense encoder ReSiReg is evaluated on, built by one factory from a config entry.
 
+The kinds and their classes are one table, :data:`resireg.specs.encoders.ENCODER_SPECS`
+(installed packages may add kinds through entry points, ``resireg.encoders``);
 ``build_encoder(kind, **kwargs)`` with ``kind``:
 
 - ``resireg_vlm``: our 25M VLM from an export (``path``; :meth:`ResiregVLM.from_pretrained`),
@@ -19,7 +21,7 @@ tabulated in docs/design.md section 6.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import torch
@@ -27,18 +29,15 @@ import torch
 from resireg.models.encoder import DenseEncoder
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.vlm import ResiregVLM
-from resireg.models.zoo.clip import ClipEncoder
-from resireg.models.zoo.dinotxt import DinoTxtEncoder
-from resireg.models.zoo.otas import OtasEncoder
-from resireg.models.zoo.radio import RadioEncoder, RadSegEncoder
-from resireg.models.zoo.tips import TipsEncoder
+from resireg.specs.encoders import encoder_specs, find_encoder
 
-__all__ = ["ENCODERS", "build_encoder", "count_parameters", "encoder_modules"]
+__all__ = ["ENCODERS", "build_encoder", "count_parameters", "encoder_modules", "load_resireg_vlm"]
 
 
-def _resireg_vlm(
+def load_resireg_vlm(
     path: str, device: torch.device | str | None = None, config_key: str = "model"
 ) -> ResiregVLM:
+    """The ``resireg_vlm`` kind: our VLM from an export folder or a hub repo id."""
     if not path:
         raise ValueError(f"{config_key}.path is required: an export folder or a hub repo id")
     try:
@@ -47,16 +46,25 @@ def _resireg_vlm(
         raise WeightsUnavailableError(f"{config_key}.path={path!r}: {err}") from err
 
 
+class _Builders(Mapping[str, Callable[..., DenseEncoder]]):
+    """``kind -> builder`` read from the encoder table (resireg.specs.encoders, the one list of
+    kinds; installed packages' kinds included), each builder imported on first access."""
+
+    def __getitem__(self, kind: str) -> Callable[..., DenseEncoder]:
+        spec = find_encoder(kind)
+        if spec is None:
+            raise KeyError(kind)
+        return spec.load()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(encoder_specs())
+
+    def __len__(self) -> int:
+        return len(encoder_specs())
+
+
 #: ``kind`` -> builder taking the entry's keys, ``device`` and ``config_key``.
-ENCODERS: dict[str, Callable[..., DenseEncoder]] = {
-    "resireg_vlm": _resireg_vlm,
-    "clip": ClipEncoder,
-    "radio": RadioEncoder,
-    "radseg": RadSegEncoder,
-    "dinotxt": DinoTxtEncoder,
-    "tips": TipsEncoder,
-    "otas": OtasEncoder,
-}
+ENCODERS: Mapping[str, Callable[..., DenseEncoder]] = _Builders()
 
 
 def build_encoder(
@@ -66,10 +74,12 @@ def build_encoder(
     **kwargs: Any,
 ) -> DenseEncoder:
     """The encoder ``kind`` built from its config keys (errors name ``<config_key>.<key>``)."""
-    if kind not in ENCODERS:
-        raise ValueError(f"{config_key}.kind={kind!r}: expected one of {sorted(ENCODERS)}")
+    spec = find_encoder(kind)
+    if spec is None:
+        known = sorted(encoder_specs())
+        raise ValueError(f"{config_key}.kind={kind!r}: expected one of {known}")
     try:
-        return ENCODERS[kind](device=device, config_key=config_key, **kwargs)
+        return spec.load()(device=device, config_key=config_key, **kwargs)
     except TypeError as err:  # an unknown key for this kind
         raise TypeError(f"{config_key} (kind {kind!r}): {err}") from err
 

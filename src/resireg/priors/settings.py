@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["PRIOR_KINDS", "SAM_DEFAULTS", "SAM_MODEL", "SAM_RULES"]
-
-#: Prior kinds of :func:`resireg.priors.build_prior` (``kind`` of ``conf/prior/*.yaml``).
-PRIOR_KINDS = ("sam2",)
+__all__ = ["PRIOR_KINDS", "PRIOR_SPECS", "PriorSpec", "SAM_DEFAULTS", "SAM_MODEL", "SAM_RULES"]
 
 #: The SAM 2 checkpoint of a prior whose ``model`` is unset (``conf/prior/sam2.yaml`` sets it).
 SAM_MODEL = "facebook/sam2.1-hiera-tiny"
@@ -63,3 +61,27 @@ SAM_RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "crop_overlap_ratio": _UNIT,
     "crop_n_points_downscale_factor": _integer(1),
 }
+
+
+@dataclass(frozen=True)
+class PriorSpec:
+    """One prior kind (``resireg.specs``): its provider class, its keywords' rules and the
+    file of its defaults."""
+
+    kind: str
+    target: str
+    params: dict[str, tuple[Callable[[Any], bool], str]]
+    defaults: str
+
+    def load(self) -> Any:
+        """The provider class (imports torch)."""
+        from resireg.specs import load
+
+        return load(self.target)
+
+
+#: Prior kinds of :func:`resireg.priors.build_prior` (``kind`` of ``conf/prior/*.yaml``).
+PRIOR_SPECS: dict[str, PriorSpec] = {
+    "sam2": PriorSpec("sam2", "resireg.priors.sam:SamPrior", SAM_RULES, "conf/prior/sam2.yaml"),
+}
+PRIOR_KINDS: tuple[str, ...] = tuple(PRIOR_SPECS)

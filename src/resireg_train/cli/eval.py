@@ -36,6 +36,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from resireg.specs.encoders import find_encoder
 from resireg_train.cli.task import (
     CONFIG_DIR,
     added_keys,
@@ -43,13 +44,15 @@ from resireg_train.cli.task import (
     run_task,
     top_level_keys,
 )
-from resireg_train.ovss.settings import SETTINGS_FILE, load_settings
+from resireg_train.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
 from resireg_train.validation import (
+    ENCODER_SWEEPS,
     ConfigError,
     check_available,
     check_devices,
     encoder_kwargs,
+    sweep_config_errors,
     validate_eval,
 )
 
@@ -98,7 +101,8 @@ def _defaults() -> DictConfig:
 def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
     """``cfg`` with the export's recorded evaluation settings in place of the values still at
     their default (see the module docstring), and the keys that were taken."""
-    if cfg.encoder.kind != "resireg_vlm" or not cfg.model_path:
+    spec = find_encoder(cfg.encoder.kind)
+    if spec is None or not spec.needs_model_path or not cfg.model_path:  # not our VLM's export
         return cfg, []
     export = Path(str(cfg.model_path)).expanduser()
     if not cfg.get("export_settings", True) or not export.is_dir():
@@ -162,11 +166,12 @@ def _check_sources(params: dict[str, Any], variants: Any) -> None:
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
+    if cfg.get("name") in ENCODER_SWEEPS and (errors := sweep_config_errors(CONFIG_DIR)):
+        raise ConfigError("conf/ disagrees with the encoder table:\n  " + "\n  ".join(errors))
     check_available(cfg)
     check_devices(cfg)
     params = OmegaConf.to_container(cfg, resolve=True)
-    params = {k: params[k] for k in ("model_path", "encoder", "dataset", "variants", "batch_size",
-                                     "precision", "temperature", "calib", "lite", "full")}  # fmt: skip
+    params = {k: params[k] for k in ("model_path", "encoder", "dataset", *SETTING_KEYS)}
     params["task"] = str(cfg.get("task", "ovss"))
     params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
     update_results(out, params=params, settings_from_export=from_export)

@@ -80,14 +80,14 @@ def main(argv: list[str] | None = None) -> None:
     if args.short_side is not None and args.short_side < 1:
         parser.error(f"--short-side={args.short_side}: expected a number of pixels >= 1")
     # The configs first (OmegaConf only): a bad --encoder is reported at once.
-    from resireg_train.playground.config import encoder_spec, resireg_defaults
+    from resireg_train.playground.config import encoder_spec, reads_model_path, resireg_defaults
 
     try:
         spec = encoder_spec(args.encoder, args.model_path)
         resireg_defaults()
     except ValueError as err:
         parser.exit(2, f"resireg-playground: error: {err}\n")
-    if spec.get("kind") == "resireg_vlm":  # the loader's rule, before torch (resireg.sources)
+    if reads_model_path(spec):  # the loader's rule, before torch (resireg.sources)
         from resireg.sources import export_source_problem
 
         problem = export_source_problem(spec["path"])

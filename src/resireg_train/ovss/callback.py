@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from resireg.variants import VARIANTS, build_variants
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSResult, OVSSTask
-from resireg_train.ovss.settings import save_settings
+from resireg_train.ovss.settings import VARIANT_PARAM_KEYS, save_settings
 
 __all__ = ["ReSiRegEval"]
 
@@ -52,7 +52,9 @@ class ReSiRegEval(L.Callback):
         every_n_epochs: evaluation interval in epochs.
         batch_size: images per batch (ReSiReg Full's scene; see ``OVSSTask``).
         num_workers: DataLoader workers per dataset.
-        calib, lite, full: the variants' arguments (the ``resireg`` config group).
+        **variant_params: each variant's arguments by its name (``calib``, ``lite``, ``full``:
+            the ``resireg`` config group; the variant table names them,
+            :data:`~resireg_train.ovss.settings.VARIANT_PARAM_KEYS`).
         precision: ``"32"`` (default, the protocol's fp32) or ``"bf16"``.
         temperature: softmax temperature of the prediction.
     """
@@ -64,11 +66,9 @@ class ReSiRegEval(L.Callback):
         every_n_epochs: int = 1,
         batch_size: int = 8,
         num_workers: int = 0,
-        lite: Mapping[str, Any] | None = None,
-        full: Mapping[str, Any] | None = None,
         precision: str = "32",
-        calib: Mapping[str, Any] | None = None,
         temperature: float = 100.0,
+        **variant_params: Mapping[str, Any] | None,
     ) -> None:
         if not datasets:
             raise ValueError(f"{_KEY}.datasets is empty: configure at least one dataset")
@@ -78,10 +78,14 @@ class ReSiRegEval(L.Callback):
             raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
         self.variant_names = list(variants)
+        unknown = sorted(set(variant_params) - set(VARIANT_PARAM_KEYS))
+        if unknown:
+            raise TypeError(f"{_KEY}: unknown arguments {unknown}; the variants' parameters are "
+                            f"{list(VARIANT_PARAM_KEYS)}")  # fmt: skip
         # plain values (full.elbo_candidates is a list), so that the settings are JSON
         self.variant_params = {
             k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else dict(v or {})
-            for k, v in (("calib", calib), ("lite", lite), ("full", full))
+            for k, v in ((k, variant_params.get(k)) for k in VARIANT_PARAM_KEYS)
         }
         self.variants = build_variants(
             self.variant_names, self.variant_params, key=f"{_KEY}.variants"

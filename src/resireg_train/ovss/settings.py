@@ -9,14 +9,20 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from resireg.specs.variants import VARIANT_SPECS
 from resireg_train.files import write_atomic
 
-__all__ = ["SETTINGS_FILE", "SETTING_KEYS", "load_settings", "save_settings"]
+__all__ = [
+    "SETTINGS_FILE", "SETTING_KEYS", "VARIANT_PARAM_KEYS", "load_settings", "save_settings",
+]  # fmt: skip
 
 #: The file of an export recording the evaluation settings its training run scored it with.
 SETTINGS_FILE = "resireg_eval.json"
+#: The ``resireg`` config group's blocks of variant parameters (``calib``, ``lite``, ``full``:
+#: the variants of the table, resireg.specs.variants, that take parameters).
+VARIANT_PARAM_KEYS = tuple(name for name, spec in VARIANT_SPECS.items() if spec.params)
 #: Which settings it records (the ``resireg`` group and the pass settings of resireg-eval).
-SETTING_KEYS = ("variants", "calib", "lite", "full", "batch_size", "precision", "temperature")
+SETTING_KEYS = ("variants", *VARIANT_PARAM_KEYS, "batch_size", "precision", "temperature")
 
 
 def save_settings(directory: str | os.PathLike, settings: Mapping[str, Any]) -> Path:

@@ -8,13 +8,22 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SLIDERS", "encoder_spec", "resireg_defaults", "protocol_short_side"]
+__all__ = ["SLIDERS", "encoder_spec", "reads_model_path", "resireg_defaults", "protocol_short_side"]
 
 #: The ReSiReg parameters the page exposes as sliders (the rest of the YAML is kept).
 SLIDERS: dict[str, tuple[str, ...]] = {
     "lite": ("alpha", "tau", "upscale"),
     "full": ("n_prototypes", "alpha", "tau", "upscale"),
 }
+
+
+def reads_model_path(spec: dict[str, Any]) -> bool:
+    """Whether the encoder entry ``spec`` is our VLM's export (its kind's ``needs_model_path``
+    in the encoder table, resireg.specs.encoders)."""
+    from resireg.specs.encoders import find_encoder
+
+    found = find_encoder(spec.get("kind"))
+    return found is not None and found.needs_model_path
 
 
 def _config_dir() -> Path:
@@ -88,7 +97,7 @@ def encoder_spec(
     except OmegaConfBaseException as err:
         raise ValueError(f"--encoder={name!r}: cannot resolve {path}: {err}") from err
     spec = encoder_kwargs(spec)
-    if spec.get("kind") == "resireg_vlm" and not spec.get("path"):
+    if reads_model_path(spec) and not spec.get("path"):
         raise ValueError(
             f"--model-path is required with --encoder={name!r}: an export folder "
             "(resireg-train's <run>/export) or a Hugging Face repo id"

@@ -24,9 +24,15 @@ import torch
 from PIL import Image
 
 from resireg.models import DenseEncoder, build_encoder
+from resireg.specs.variants import VARIANT_SPECS
 from resireg.variants import build_variant
 from resireg_train.files import DECODE_ERRORS
-from resireg_train.playground.config import encoder_spec, protocol_short_side, resireg_defaults
+from resireg_train.playground.config import (
+    SLIDERS,
+    encoder_spec,
+    protocol_short_side,
+    resireg_defaults,
+)
 
 __all__ = [
     "LABELS",
@@ -44,10 +50,8 @@ log = logging.getLogger(__name__)
 
 #: Panel key -> title shown in the page (and in the timing table), in display order.
 LABELS: dict[str, str] = {
-    "bb": "BB (language tokens)",
-    "lite": "ReSiReg Lite",
-    "full": "ReSiReg Full",
-    "full_prior": "ReSiReg Full + SAM 2 prior",
+    **{name: VARIANT_SPECS[name].title for name in ("bb", *SLIDERS)},  # the variant table's
+    "full_prior": f"{VARIANT_SPECS['full'].title} + SAM 2 prior",
 }
 
 

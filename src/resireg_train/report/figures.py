@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
+from resireg.specs.variants import BASELINE
 from resireg_train.report.jobs import METHOD_NAMES, Job, varying_keys
 
 if TYPE_CHECKING:
@@ -138,7 +139,7 @@ def layer_sweep_figure(table: pd.DataFrame) -> Figure:
         for variant, line in blocks.groupby("variant", sort=False):
             label = METHOD_NAMES.get(variant, variant)
             ax.plot(line["block"].astype(int), line["miou"], marker="o", markersize=4, label=label)
-        bb = part.loc[part["block"].isna() & (part["variant"] == "bb"), "miou"].dropna()
+        bb = part.loc[part["block"].isna() & (part["variant"] == BASELINE), "miou"].dropna()
         if not bb.empty:
             ax.axhline(
                 float(bb.iloc[0]), color="0.4", linestyle="--", label="BB (no intermediates)"

@@ -11,6 +11,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from resireg.specs.variants import BASELINE, VARIANT_SPECS, VARIANTS
 from resireg_train.results import RESULTS_FILE, metric_mode, read_results
 
 __all__ = [
@@ -119,11 +120,11 @@ def default_metric(jobs: list[Job]) -> str | None:
     return names[0] if names else None
 
 
-#: Post-hoc methods compared with the backbone alone, in the order of the paper's Table 1.
-METHODS = ("calib", "lite", "full")
-
-
-METHOD_NAMES = {"bb": "BB", "calib": "Calib", "lite": "Lite", "full": "Full"}
+#: Post-hoc methods compared with the backbone alone, in the order of the paper's Table 1
+#: (the variant table, resireg.specs.variants, less its baseline).
+METHODS = tuple(name for name in VARIANTS if name != BASELINE)
+#: ``variant -> its label in tables`` (``full -> Full``; the variant table).
+METHOD_NAMES = {name: spec.label for name, spec in VARIANT_SPECS.items()}
 
 
 def encoder_of(job: Job) -> tuple[str, bool | None, int | None]:

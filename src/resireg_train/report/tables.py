@@ -10,11 +10,13 @@ from typing import Any
 
 import pandas as pd
 
+from resireg.specs.variants import BASELINE, VARIANTS
 from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import parse_variant
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
 from resireg_train.results import flat
+from resireg_train.validation import ENCODER_SWEEPS as _ENCODER_SWEEPS
 
 __all__ = [
     "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "encoder_table",
@@ -53,8 +55,9 @@ def protocol_lines(jobs: list[Job]) -> list[str]:
     return [f"Protocol (jobs {', '.join(map(str, n))}): {text}" for text, n in seen.items()]
 
 
-#: The sweeps (``conf/sweep/``, also their run ``name``) whose report is an encoder table.
-ENCODER_SWEEPS = ("table1", "table2")
+#: The sweeps (``conf/sweep/``, also their run ``name``) whose report is an encoder table (one
+#: source with the config check that they list every encoder of resireg.specs.encoders).
+ENCODER_SWEEPS = _ENCODER_SWEEPS
 
 
 def is_encoder_sweep(jobs: list[Job]) -> bool:
@@ -86,9 +89,9 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
         if job.status != "completed":
             continue
         final = job.results.get("final", {})
-        bb = final.get(f"val/ovss/{dataset}/miou_bb")
+        bb = final.get(f"val/ovss/{dataset}/miou_{BASELINE}")
         if bb is not None:
-            row[f"{dataset} BB"] = 100 * bb
+            row[f"{dataset} {METHOD_NAMES[BASELINE]}"] = 100 * bb
         for method in METHODS:
             value = final.get(f"val/ovss/{dataset}/miou_{method}")
             if value is None:
@@ -98,7 +101,7 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
                 row[f"{dataset} {METHOD_NAMES[method]} Δ"] = 100 * (value - bb)
     columns = ["encoder", "third_party", "parameters (M)"]
     for dataset in datasets:
-        columns.append(f"{dataset} BB")
+        columns.append(f"{dataset} {METHOD_NAMES[BASELINE]}")
         for method in METHODS:
             columns += [f"{dataset} {METHOD_NAMES[method]}", f"{dataset} {METHOD_NAMES[method]} Δ"]
         columns.append(f"{dataset} status")
@@ -245,7 +248,7 @@ def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
 LAYER_SWEEP_FILES = ("layer_sweep.csv", "layer_sweep.md", "layer_sweep.png")
 
 
-VARIANT_ORDER = ("bb", *METHODS)
+VARIANT_ORDER = VARIANTS  # the variant table's order
 
 
 def layer_configs(job: Job) -> list[tuple[str, str, int]]:
@@ -288,7 +291,7 @@ def layer_sweep_table(jobs: list[Job]) -> pd.DataFrame:
             continue
         final = job.results.get("final", {}) if job.status == "completed" else {}
         names = (job.results.get("params") or {}).get("variants") or []
-        entries = [*configs, *(("bb", "bb", None) for n in names if n == "bb")]
+        entries = [*configs, *((BASELINE, BASELINE, None) for n in names if n == BASELINE)]
         for config, variant, block in entries:
             row = {"encoder": name, "dataset": dataset, "variant": variant, "block": block}
             for key in ("miou", "fmiou"):
@@ -322,7 +325,7 @@ def write_layer_sweep(jobs: list[Job], out: Path) -> dict[str, Path]:
         grid = grid[sorted(grid.columns, key=variant_order)]
         grid = grid.rename(columns=lambda v: METHOD_NAMES.get(v, v))
         lines += ["", f"## {encoder} / {dataset}", "", markdown(grid, floatfmt=".1f", index=True)]
-        bb = part.loc[part["block"].isna() & (part["variant"] == "bb"), "miou"].dropna()
+        bb = part.loc[part["block"].isna() & (part["variant"] == BASELINE), "miou"].dropna()
         if not bb.empty:
             lines += ["", f"BB (no intermediates): {float(bb.iloc[0]):.1f}."]
         best = [f"{column}: block {int(grid[column].idxmax())} ({grid[column].max():.1f})"

@@ -7,10 +7,9 @@ scale, and (stage 1) the distillation head mapping teacher features to the head 
 
 from __future__ import annotations
 
-import functools
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +28,14 @@ __all__ = ["ResiregModule"]
 _FROZEN_PREFIXES = ("vlm.backbone.", "vlm.text.", "teacher.")
 
 
+def _require(settings: Any, keys: tuple[str, ...], key: str) -> None:
+    """A ValueError naming ``<key>.<k>`` for each of ``keys`` that ``settings`` lacks."""
+    missing = [k for k in keys if not isinstance(settings, Mapping) or k not in settings]
+    if missing:
+        raise ValueError(f"{key}: missing {[f'{key}.{k}' for k in missing]} (conf/model/vlm25m."
+                         "yaml sets them all)")  # fmt: skip
+
+
 class ResiregModule(L.LightningModule):
     """Two-stage training of the dense VLM (docs/design.md section 7).
 
@@ -39,11 +46,16 @@ class ResiregModule(L.LightningModule):
             distillation scale is > 0, and built on the rank's own device in :meth:`setup`.
         optimizer: a partial optimizer, ``params -> torch.optim.Optimizer`` (Hydra
             ``_partial_: true`` in ``conf/model``), with ``lr`` and ``weight_decay``; weight
-            decay is applied to matrices only (timm's ``param_groups_weight_decay``).
+            decay is applied to matrices only (timm's ``param_groups_weight_decay``). ``None``
+            only for a module that does not train (``load_from_checkpoint``: the checkpoint's
+            hyperparameters leave the partial out).
         scheduler: ``{"min_lr"}``: per-step cosine from ``lr`` to ``min_lr``.
         loss: ``{"contrastive": {"scale", "warmup_epochs"}, "distill": {"scale", "warmup_epochs"}}``.
         logit_scale: ``{"init", "max"}`` (learned in log space, clamped after every step).
         steps_per_epoch: optimizer steps per epoch (for fractional-epoch warm-up).
+
+    Only the model parts and ``intermediate_layer`` have defaults (null, as in conf/): the
+    training settings are required keywords, their values in ``conf/model/vlm25m.yaml``.
     """
 
     def __init__(
@@ -52,23 +64,30 @@ class ResiregModule(L.LightningModule):
         head: dict,
         text: dict,
         intermediate_layer: int | None = None,
-        teacher: dict | None = None,
+        *,
+        teacher: dict | None,
         optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-        scheduler: dict | None = None,
-        loss: dict | None = None,
-        logit_scale: dict | None = None,
-        steps_per_epoch: int = 1000,
+        scheduler: dict,
+        loss: dict,
+        logit_scale: dict,
+        steps_per_epoch: int,
     ) -> None:
         super().__init__()
+        # No defaults of its own (conf/model/vlm25m.yaml holds them; a default here would
+        # shadow it): every setting is given, and a missing one is named.
+        _require(scheduler, ("min_lr",), "model.scheduler")
+        _require(logit_scale, ("init", "max"), "model.logit_scale")
+        _require(loss, ("contrastive", "distill"), "model.loss")
+        for part in ("contrastive", "distill"):
+            _require(loss[part], ("scale", "warmup_epochs"), f"model.loss.{part}")
         # The optimizer partial stays out of the checkpoint's hyperparameters, which must load
         # with torch.load(weights_only=True); the run's .hydra/config.yaml records it.
         self.save_hyperparameters(ignore=["optimizer"])
-        self.optimizer_factory = optimizer or functools.partial(torch.optim.AdamW, lr=6e-4)
-        self.sched_cfg = {"min_lr": 1e-6, **(scheduler or {})}
-        loss = loss or {}
-        self.contrastive_cfg = {"scale": 1.0, "warmup_epochs": 0.0, **loss.get("contrastive", {})}
-        self.distill_cfg = {"scale": 0.0, "warmup_epochs": 0.0, **loss.get("distill", {})}
-        ls = {"init": 1 / 0.07, "max": 100.0, **(logit_scale or {})}
+        self.optimizer_factory = optimizer
+        self.sched_cfg = dict(scheduler)
+        self.contrastive_cfg = dict(loss["contrastive"])
+        self.distill_cfg = dict(loss["distill"])
+        ls = dict(logit_scale)
         self.max_log_scale = math.log(ls["max"])
         self.steps_per_epoch = steps_per_epoch
         self._schedule: dict[str, int] | None = None  # this run's cosine length (optimizer steps)
@@ -188,6 +207,9 @@ class ResiregModule(L.LightningModule):
         at most one dimension, and every ``.bias``).
         """
         factory = self.optimizer_factory
+        if factory is None:
+            raise ValueError("model.optimizer is required to train (a module restored from a "
+                             "checkpoint's hyperparameters has none; pass optimizer=...)")
         weight_decay = getattr(factory, "keywords", {}).get("weight_decay", 0.0)
         optimizer = factory(param_groups_weight_decay(self, weight_decay))
         lr = optimizer.defaults["lr"]

@@ -26,7 +26,11 @@ from torch import Tensor, nn
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import WeightsUnavailableError, require_hf_files, require_open_clip_tag
 
-__all__ = ["FrozenTextTower", "TextProjection", "dense_text_half"]
+__all__ = ["CAPTION_CACHE_SIZE", "FrozenTextTower", "TextProjection", "dense_text_half"]
+
+#: Captions whose tower outputs a :class:`FrozenTextTower` keeps (LRU) unless told otherwise:
+#: ``cache_size`` of ``conf/model/text/*.yaml`` (tests/test_specs.py holds the two equal).
+CAPTION_CACHE_SIZE = 200_000
 
 _OFFLINE_HINT = (
     "Pass local files instead: model.text.weights=/path/to/open_clip_model.safetensors (the "
@@ -55,7 +59,7 @@ class FrozenTextTower(FrozenModule):
         tokenizer: Any,
         out_dim: int,
         spec: dict,
-        cache_size: int | None = 200_000,
+        cache_size: int | None = CAPTION_CACHE_SIZE,
     ) -> None:
         super().__init__()
         self.tower = tower
@@ -74,7 +78,7 @@ class FrozenTextTower(FrozenModule):
         model_name: str = "ViT-B-16-SigLIP2",
         weights: str = "webli",
         tokenizer: str | None = None,
-        cache_size: int | None = 200_000,
+        cache_size: int | None = CAPTION_CACHE_SIZE,
     ) -> FrozenTextTower:
         """The SigLIP 2 text tower; ``weights`` is an open_clip tag or a local checkpoint file."""
         spec = {
@@ -124,7 +128,7 @@ class FrozenTextTower(FrozenModule):
         out_dim: int = 96,
         context_length: int = 32,
         seed: int = 0,
-        cache_size: int | None = 200_000,
+        cache_size: int | None = CAPTION_CACHE_SIZE,
     ) -> FrozenTextTower:
         """A random open_clip text transformer with the bundled CLIP BPE tokenizer (offline)."""
         spec = {"kind": "tiny", "width": width, "layers": layers, "heads": heads, "out_dim": out_dim,
@@ -145,7 +149,7 @@ class FrozenTextTower(FrozenModule):
         :meth:`tiny` or :meth:`pretrained`; ``cache_size`` (optional) bounds the caption cache."""
         spec = dict(spec)
         kind = spec.pop("kind")
-        cache_size = spec.pop("cache_size", 200_000)
+        cache_size = spec.pop("cache_size", CAPTION_CACHE_SIZE)
         if cache_size is not None and (
             isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0
         ):

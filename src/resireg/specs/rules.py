@@ -1,0 +1,86 @@
+"""Parameter rules, without importing torch: ``(check, expectation)`` pairs.
+
+A rule is read twice from one place: the config checks (``resireg_train.validation``) report
+``key=value: expected <expectation>`` for a bad config value before anything heavy loads, and
+the classes (:class:`resireg.reconstruct.ReSiRegFull`, ...) raise
+``<name> must be <expectation>, got <value>`` for a bad keyword from Python
+(:func:`check_kwargs`). The tables of :mod:`resireg.specs` hold the rules of each kind.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+__all__ = [
+    "Rule",
+    "check_kwargs",
+    "checked",
+    "integer",
+    "interval",
+    "is_int",
+    "is_num",
+    "number",
+    "one_of",
+    "optional_int",
+]
+
+#: ``(check, what is expected)``: ``check(value)`` is True for an accepted value.
+Rule = tuple[Callable[[Any], bool], str]
+
+
+def is_int(v: Any) -> bool:
+    """An integer, not a bool."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def is_num(v: Any) -> bool:
+    """An int or float, not a bool (NaN and inf included)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def integer(minimum: int) -> Rule:
+    return (lambda v: is_int(v) and v >= minimum), f"an integer >= {minimum}"
+
+
+def optional_int(minimum: int) -> Rule:
+    return (lambda v: v is None or (is_int(v) and v >= minimum)), f"null or an integer >= {minimum}"
+
+
+def number(minimum: float, strict: bool = False, finite: bool = False) -> Rule:
+    """A number ``>= minimum`` (``> minimum`` if ``strict``; not inf if ``finite``)."""
+
+    def check(v: Any) -> bool:
+        if not is_num(v) or math.isnan(v) or (finite and not math.isfinite(v)):
+            return False
+        return v > minimum if strict else v >= minimum
+
+    what = f"a number {'>' if strict else '>='} {minimum:g}{' (finite)' if finite else ''}"
+    return check, what
+
+
+def interval(low: float, high: float) -> Rule:
+    """A number in ``[low, high]`` (NaN fails every comparison)."""
+    return (lambda v: is_num(v) and low <= v <= high), f"a number in [{low:g}, {high:g}]"
+
+
+def one_of(choices: Iterable[Any]) -> Rule:
+    choices = tuple(choices)
+    return (lambda v: v in choices), f"one of {list(choices)}"
+
+
+def checked(name: str, value: Any, rule: Rule) -> Any:
+    """``value`` if ``rule`` accepts it, else ``ValueError("<name> must be <expected>, got
+    <value>")``."""
+    check, expected = rule
+    if not check(value):
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+    return value
+
+
+def check_kwargs(rules: Mapping[str, Rule], values: Mapping[str, Any]) -> None:
+    """:func:`checked` for each of ``values`` that ``rules`` has a rule for."""
+    for name, value in values.items():
+        if name in rules:
+            checked(name, value, rules[name])

@@ -1,0 +1,144 @@
+"""The ReSiReg variants: one entry each, in the report order of the paper's Table 1.
+
+Every reader takes the names, classes and parameter rules from :data:`VARIANT_SPECS`:
+:func:`resireg.variants.build_variant` (the class), the classes' ``__init__`` (the rules),
+``resireg_train.validation`` (``full.alpha=...`` and ``variants=[...]`` checks), the training
+callback and ``resireg-eval`` (which settings are a variant's), the report (labels, order,
+the baseline of the deltas) and the playground (titles). Defaults live in
+``conf/resireg/default.yaml`` (one block per variant with parameters); the classes' own
+keyword defaults equal them (tests/test_specs.py composes the config and compares).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from resireg.specs.rules import Rule, integer, interval, is_int, number, one_of, optional_int
+
+__all__ = [
+    "BASELINE",
+    "DEFAULTS_FILE",
+    "LITE_ATTENTION",
+    "PRIOR_VARIANTS",
+    "VARIANTS",
+    "VARIANT_SPECS",
+    "VariantSpec",
+    "check_variant_kwargs",
+]
+
+#: Where the variants' defaults live (the ``resireg`` config group; key = the variant name).
+DEFAULTS_FILE = "conf/resireg/default.yaml"
+
+#: How ReSiReg Lite computes its attention (``lite.attention``, docs/design.md section 4.3):
+#: ``auto`` (by device: ``sdpa`` on CUDA, ``factorised`` elsewhere), ``sdpa`` (PyTorch's fused
+#: attention on the upsampled points) or ``factorised`` (from the coarse grid's Gram matrix).
+LITE_ATTENTION: tuple[str, ...] = ("auto", "sdpa", "factorised")
+
+
+@dataclass(frozen=True)
+class VariantSpec:
+    """One variant: ``variant(intermediates, language, prior=None) -> [B, Dl, h, w]``.
+
+    Attributes:
+        name: the config name (``variants=[..., name]``, the ``<name>.<key>`` settings).
+        target: its class, ``"module:Class"`` (loaded on first build).
+        label: its name in reports and table columns (``Full``).
+        title: its name in the playground (``ReSiReg Full``).
+        params: ``keyword -> rule`` of the class (the class checks them with the same rules).
+        takes_prior: whether ``<name>+prior`` is scored with a segmentation prior.
+    """
+
+    name: str
+    target: str
+    label: str
+    title: str
+    params: dict[str, Rule] = field(default_factory=dict)
+    takes_prior: bool = False
+
+    @property
+    def defaults(self) -> str:
+        """Where this variant's defaults live: ``<file>:<key>``."""
+        return f"{DEFAULTS_FILE}:{self.name}"
+
+    def load(self) -> Any:
+        """The class (imports torch)."""
+        from resireg.specs import load
+
+        return load(self.target)
+
+
+_TAU = interval(0, 1)
+
+VARIANT_SPECS: dict[str, VariantSpec] = {
+    spec.name: spec
+    for spec in (
+        VariantSpec("bb", "resireg.variants:BackboneOnly", "BB", "BB (language tokens)"),
+        VariantSpec(
+            "calib",
+            "resireg.calib:Calib",
+            "Calib",
+            "Calib (SC-CLIP self-calibration)",
+            {"n_neighbors": integer(1), "contamination": interval(0, 0.5), "threshold": _TAU},
+        ),
+        VariantSpec(
+            "lite",
+            "resireg.reconstruct:ReSiRegLite",
+            "Lite",
+            "ReSiReg Lite",
+            {
+                "alpha": number(0, strict=True, finite=True),
+                "tau": _TAU,
+                "upscale": integer(1),
+                "attention": one_of(LITE_ATTENTION),
+            },
+            takes_prior=True,
+        ),
+        VariantSpec(
+            "full",
+            "resireg.reconstruct:ReSiRegFull",
+            "Full",
+            "ReSiReg Full",
+            {
+                "n_prototypes": (
+                    (lambda v: v in ("auto", "elbo") or (is_int(v) and v >= 1)),
+                    "an integer >= 1, 'auto' (the fitted heuristic) or 'elbo' (chosen per batch)",
+                ),
+                "elbo_candidates": (
+                    (lambda v: v is None or (
+                        isinstance(v, Sequence) and not isinstance(v, str) and len(v) > 0
+                        and all(is_int(c) and c >= 1 for c in v))),
+                    "null or a non-empty list of integers >= 1",
+                ),  # fmt: skip
+                "n_components": optional_int(1),
+                "heuristic": (
+                    (lambda v: v is None or isinstance(v, (str, os.PathLike)) or callable(v)),
+                    "null, a prototype_heuristic.json path or a callable",
+                ),
+                "alpha": number(0, strict=True, finite=True),
+                "tau": _TAU,
+                "upscale": integer(1),
+                "seed": (is_int, "an integer"),
+                "max_iter": integer(1),
+            },
+            takes_prior=True,
+        ),
+    )
+}
+
+#: Variant names, in the report order of the paper's Table 1 (BB, Calib, Lite, Full).
+VARIANTS: tuple[str, ...] = tuple(VARIANT_SPECS)
+#: Variants that take a segmentation prior (``full+prior``).
+PRIOR_VARIANTS: tuple[str, ...] = tuple(n for n, s in VARIANT_SPECS.items() if s.takes_prior)
+#: The variant the report's deltas are measured against (the backbone alone).
+BASELINE = "bb"
+
+
+def check_variant_kwargs(name: str, values: dict[str, Any]) -> None:
+    """The rules of variant ``name`` on a class's keywords (``ValueError`` naming the first
+    bad one: ``alpha must be a number > 0 (finite), got -1.0``)."""
+    from resireg.specs.rules import check_kwargs
+
+    check_kwargs(VARIANT_SPECS[name].params, values)

@@ -1,0 +1,265 @@
+"""The spec tables (resireg.specs): one source of each kind's names, classes, rules, defaults.
+
+The tables are compared with what they describe, read independently: the classes' signatures
+(``inspect``), the composed ``conf/`` (Hydra's compose API), the ``conf/`` files on disk, and a
+hand-written list of values each parameter must accept or refuse (the documented ranges of
+docs/design.md section 4), run through both readers of a rule: the class and the config check.
+"""
+
+import inspect
+import math
+import shutil
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from resireg.specs import load
+from resireg.specs.encoders import ENCODER_SPECS, encoder_configs
+from resireg.specs.variants import VARIANT_SPECS, VARIANTS
+from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.validation import ConfigError, sweep_config_errors, validate_eval
+
+
+def _eval_config(*overrides):
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose("eval", overrides=["model_path=x", *overrides])
+
+
+def test_each_variant_entry_names_its_class_its_keywords_and_conf_defaults():
+    """The table's classes load; their keywords are exactly the table's rules and the
+    ``conf/resireg/default.yaml`` block's keys, and every keyword default equals conf/'s
+    (``n_components=None``: tied, issue 23)."""
+    cfg = _eval_config()
+    cfg = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("variants", *VARIANTS)
+           if k in cfg}  # fmt: skip
+    assert VARIANTS == ("bb", "calib", "lite", "full")  # the paper's Table 1 order
+    assert cfg["variants"] and all(v in VARIANTS for v in cfg["variants"])
+    for name, spec in VARIANT_SPECS.items():
+        cls = spec.load()
+        assert cls.__name__ == spec.target.rpartition(":")[2]
+        keywords = {k: p.default for k, p in inspect.signature(cls).parameters.items()
+                    if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)}  # fmt: skip
+        assert set(keywords) == set(spec.params), name
+        if not spec.params:
+            assert name not in cfg
+            continue
+        assert set(cfg[name]) == set(spec.params), name  # conf/ holds every default
+        assert spec.defaults == f"conf/resireg/default.yaml:{name}"
+        for key, default in keywords.items():
+            assert default == cfg[name][key], (name, key, default, cfg[name][key])
+
+
+# (variant, parameter) -> values accepted, values refused (docs/design.md section 4)
+_VALUES = {
+    ("full", "n_prototypes"): ([1, 36, "auto"], [0, -2, 2.5, True, "36"]),
+    ("full", "n_components"): ([None, 1, 24], [0, 2.0, False]),
+    ("full", "alpha"): ([0.1, 5, 5.0], [0, -1.0, math.inf, math.nan, True, "5"]),
+    ("full", "tau"): ([0, 0.5, 1], [-0.1, 1.5, math.nan, True]),
+    ("full", "upscale"): ([1, 2], [0, 1.5]),
+    ("full", "seed"): ([0, 7, -1], [0.5, True, "1"]),
+    ("full", "max_iter"): ([1, 100], [0, 10.0]),
+    ("lite", "alpha"): ([10.0], [0.0, -1, math.inf]),
+    ("lite", "tau"): ([0.0, 1.0], [1.01]),
+    ("lite", "upscale"): ([1, 3], [0, True]),
+    ("lite", "attention"): (["auto", "sdpa", "factorised"], ["flash", None]),
+    ("calib", "n_neighbors"): ([1, 30], [0, 2.5, True]),
+    ("calib", "contamination"): ([0, 0.05, 0.5], [-0.01, 0.6, math.nan]),
+    ("calib", "threshold"): ([0, 0.4, 1], [-0.1, 1.5, "0.4"]),
+}
+
+
+@pytest.mark.parametrize(("variant", "key"), sorted(_VALUES))
+def test_one_rule_per_parameter_read_by_the_class_and_the_config_check(variant, key):
+    """Each value is accepted or refused alike by the class (``ValueError`` naming the
+    keyword) and by resireg-eval's config check (``<variant>.<key>=<value>``)."""
+    good, bad = _VALUES[(variant, key)]
+    cls = VARIANT_SPECS[variant].load()
+    base = {"encoder": {"kind": "clip", "name": "c", "third_party": True}, "variants": ["bb"]}
+    for value in good:
+        if value != "auto":  # "auto" resolves a heuristic file (tests/test_reconstruct.py)
+            cls(**{key: value})
+        validate_eval({**base, variant: {key: value}})
+    for value in bad:
+        with pytest.raises(ValueError, match=rf"^{key} must be "):
+            cls(**{key: value})
+        with pytest.raises(ConfigError, match=rf"{variant}\.{key}="):
+            validate_eval({**base, variant: {key: value}})
+    assert set(_VALUES) == {(n, k) for n, s in VARIANT_SPECS.items() for k in s.params} - {
+        ("full", "heuristic")
+    }
+
+
+def test_each_encoder_entry_names_its_builder_and_its_conf_files():
+    """Every built-in kind's builder loads and takes ``device`` and ``config_key``; the
+    table's configurations are exactly the ``conf/encoder/`` files, each of its kind."""
+    on_disk = {p.stem: OmegaConf.load(p).kind for p in (CONFIG_DIR / "encoder").glob("*.yaml")}
+    assert sorted(encoder_configs()) == sorted(on_disk)
+    for kind, spec in ENCODER_SPECS.items():
+        builder = spec.load()
+        assert {"device", "config_key"} <= set(inspect.signature(builder).parameters), kind
+        assert all(on_disk[name] == kind for name in spec.configs), kind
+    assert [k for k, s in ENCODER_SPECS.items() if s.needs_model_path] == ["resireg_vlm"]
+    with pytest.raises(ValueError, match="'package.module:attribute'"):
+        load("resireg.variants.BackboneOnly")
+
+
+def test_the_config_check_names_a_sweep_that_misses_or_misspells_an_encoder(tmp_path):
+    """``sweep_config_errors``: today's conf/ passes; a copy whose Table 1 sweep lacks an
+    encoder, whose Table 2 sweep misspells one, with a bad variant list, and an encoder file
+    the table does not list is reported, each naming the file and the key."""
+    assert sweep_config_errors(CONFIG_DIR) == []
+    conf = tmp_path / "conf"
+    shutil.copytree(CONFIG_DIR, conf)
+    table1 = OmegaConf.load(conf / "sweep" / "table1.yaml")
+    table1.hydra.sweeper.params.encoder = ",".join(encoder_configs()[:-1])
+    table1.variants = ["bb", "fulll"]
+    OmegaConf.save(table1, conf / "sweep" / "table1.yaml")
+    table2 = OmegaConf.load(conf / "sweep" / "table2.yaml")
+    table2.hydra.sweeper.params.encoder = ",".join([*encoder_configs(), "radio_v5"])
+    OmegaConf.save(table2, conf / "sweep" / "table2.yaml")
+    (conf / "encoder" / "clip_extra.yaml").write_text("name: clip_extra\nkind: clip\n")
+    errors = sweep_config_errors(conf)
+    last = encoder_configs()[-1]
+    assert len(errors) == 4, errors
+    assert any(e.startswith("clip_extra.yaml: kind='clip': not listed") for e in errors)
+    assert any(e.startswith("sweep/table1.yaml: variants=['bb', 'fulll']") for e in errors)
+    assert any(e.startswith("sweep/table1.yaml: hydra.sweeper.params.encoder lacks")
+               and repr([last]) in e for e in errors)  # fmt: skip
+    assert any(e.startswith("sweep/table2.yaml") and "['radio_v5']" in e for e in errors)
+
+
+_TOY_SPEC = '''
+from resireg.specs.encoders import EncoderSpec
+
+SPEC = EncoderSpec("toy", "toy_encoder:ToyEncoder", ("toy",))
+'''
+
+_TOY_ENCODER = '''
+import zlib
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from resireg.models import DenseEncoder, DenseOutput, InputRule
+
+
+class ToyEncoder(DenseEncoder):
+    """A patch-8 conv stem (intermediates) and a 1x1 conv (language tokens); text queries
+    are fixed random directions keyed by the text."""
+
+    def __init__(self, width=16, dim=24, device=None, config_key="encoder"):
+        super().__init__()
+        torch.manual_seed(0)
+        self.stem = nn.Conv2d(3, width, 8, stride=8)
+        self.head = nn.Conv2d(width, dim, 1)
+        self.dim = dim
+        self.to(device or "cpu")
+
+    @property
+    def input_rule(self):
+        return InputRule(8, (0.5, 0.5, 0.5), (0.25, 0.25, 0.25))
+
+    def encode(self, images):
+        x = self.stem(images)
+        return DenseOutput(x, self.head(F.gelu(x)), None)
+
+    def encode_text(self, texts):
+        g = [torch.Generator().manual_seed(zlib.crc32(t.encode())) for t in texts]
+        rows = [torch.randn(self.dim, generator=gen) for gen in g]
+        return F.normalize(torch.stack(rows), dim=-1).to(self.stem.weight.device)
+'''
+
+
+@pytest.mark.slow
+def test_an_encoder_registered_through_the_table_runs_through_resireg_eval(tmp_path):
+    """The recipe of docs/design.md section 13 from outside the project: one module (a tiny
+    real DenseEncoder), one table entry (an EncoderSpec, registered by an entry point of an
+    installed distribution) and one conf/encoder/ file run ``resireg-eval`` on the synthetic
+    set; without the entry (in this process) the config check refuses the kind, naming the key. The parameter
+    count recorded is compared with the module's own, built here."""
+    import json
+    import os
+    import sys
+
+    from _run import run
+
+    site = tmp_path / "site"
+    (site / "resireg_toy-0.1.dist-info").mkdir(parents=True)
+    (site / "toy_spec.py").write_text(_TOY_SPEC)
+    (site / "toy_encoder.py").write_text(_TOY_ENCODER)
+    conf = tmp_path / "conf" / "encoder"
+    conf.mkdir(parents=True)
+    (conf / "toy.yaml").write_text("name: toy\nkind: toy\nthird_party: true\nwidth: 16\n")
+    args = ["resireg-eval", "encoder=toy", "dataset=synthetic", "dataset.size=4",
+            "num_workers=0", "batch_size=2", "variants=[bb,lite,full]", "full.n_prototypes=4",
+            f"hydra.searchpath=[file://{tmp_path / 'conf'}]"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), *sys.path])}
+    with pytest.raises(ConfigError, match=r"encoder\.kind='toy': expected one of"):
+        validate_eval({"encoder": {"kind": "toy", "name": "toy", "third_party": True}})
+    (site / "resireg_toy-0.1.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: resireg-toy\nVersion: 0.1\n"
+    )
+    (site / "resireg_toy-0.1.dist-info" / "entry_points.txt").write_text(
+        "[resireg.encoders]\ntoy = toy_spec:SPEC\n"
+    )
+    run(*args, f"hydra.run.dir={tmp_path / 'out'}", env=env)
+    results = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert results["status"] == "completed"
+    sys.path.insert(0, str(site))
+    try:
+        from toy_encoder import ToyEncoder
+    finally:
+        sys.path.remove(str(site))
+    expected = sum(p.numel() for p in ToyEncoder(width=16).parameters())
+    assert results["encoder"] == {"name": "toy", "kind": "toy", "third_party": True,
+                                  "parameters": expected}  # fmt: skip
+    for variant in ("bb", "lite", "full"):
+        assert 0.0 <= results["final"][f"val/ovss/synthetic/miou_{variant}"] <= 1.0
+
+
+def _compose_train(*overrides):
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+def test_library_defaults_equal_the_conf_files_they_stand_for():
+    """conf/ is the source of defaults; the Python API's own defaults equal it: the caption
+    cache of every text tower (``conf/model/text/*.yaml``) and SAM 2's automatic-mask settings
+    (``conf/prior/sam2.yaml``, composed as resireg-eval does)."""
+    from resireg.models.vlm.text import CAPTION_CACHE_SIZE, FrozenTextTower
+    from resireg.priors.sam import SamPrior
+    from resireg.priors.settings import SAM_DEFAULTS, SAM_MODEL
+
+    for path in sorted((CONFIG_DIR / "model" / "text").glob("*.yaml")):
+        assert OmegaConf.load(path).cache_size == CAPTION_CACHE_SIZE, path.name
+    for factory in (FrozenTextTower, FrozenTextTower.tiny, FrozenTextTower.pretrained):
+        assert inspect.signature(factory).parameters["cache_size"].default == CAPTION_CACHE_SIZE
+    prior = OmegaConf.to_container(_eval_config("prior=sam2").prior, resolve=True)
+    signature = inspect.signature(SamPrior).parameters
+    keys = set(prior) - {"kind", "device"}
+    assert keys == {"model", *SAM_DEFAULTS}
+    assert {k: signature[k].default for k in keys} == {k: prior[k] for k in keys}
+    assert prior["model"] == SAM_MODEL
+
+
+def test_the_training_module_has_no_default_that_shadows_conf():
+    """``ResiregModule``'s keywords are the ``model`` group's keys; those with a Python default
+    (``intermediate_layer``) equal the composed config's, the training settings (loss scales
+    and warm-ups, optimizer, schedule, logit scale, teacher) have none: a Python caller names
+    them, Hydra passes conf/model/vlm25m.yaml's (distill 0.1 after 8 warm-up epochs, ...)."""
+    from resireg_train.training.module import ResiregModule
+
+    model = _compose_train().model
+    params = inspect.signature(ResiregModule).parameters
+    assert set(params) <= set(model)
+    defaults = {k: p.default for k, p in params.items() if p.default is not p.empty}
+    # optimizer=None: not given (a module restored from a checkpoint, which cannot train)
+    assert defaults == {"intermediate_layer": None, "optimizer": None}
+    assert model.intermediate_layer is None and model.optimizer.lr > 0
+    with pytest.raises(ValueError, match=r"model\.loss\.distill\.warmup_epochs"):
+        ResiregModule({}, {}, {}, teacher=None, optimizer=None, scheduler={"min_lr": 0.0},
+                      loss={"contrastive": {"scale": 1.0, "warmup_epochs": 0},
+                            "distill": {"scale": 0.0}},
+                      logit_scale={"init": 1.0, "max": 2.0}, steps_per_epoch=1)  # fmt: skip
