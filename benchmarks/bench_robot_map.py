@@ -86,7 +86,9 @@ def fusion(path: Path, dim: int, cfg: dict) -> dict:
     seconds = n = 0
     for b in batches:
         h, w = b["depth"].shape[-2] // 8, b["depth"].shape[-1] // 8  # patch 16, upscale 2
-        feats = torch.nn.functional.normalize(torch.randn(len(b["name"]), dim, h, w, generator=g), dim=1)
+        feats = torch.nn.functional.normalize(
+            torch.randn(len(b["name"]), dim, h, w, generator=g), dim=1
+        )
         start = time.perf_counter()
         smap.fuse(feats, b["depth"], b["intrinsics"], b["pose"])
         seconds += time.perf_counter() - start
@@ -181,7 +183,9 @@ def main(argv: list[str] | None = None) -> None:
                 for tiny in (True, False) for w in (4, 8)
             }  # fmt: skip
     if 4 in args.sections:
-        out["scene_memory"] = [scene_memory(args.scene_frames, size, d) for d in ("float64", "float32")]
+        out["scene_memory"] = [
+            scene_memory(args.scene_frames, size, d) for d in ("float64", "float32")
+        ]
     print(json.dumps(out, indent=2))
 
 

@@ -140,8 +140,10 @@ def test_loss_scales_follow_warmup_and_distill_only_in_stage1():
 def test_distillation_trains_the_distill_head(tmp_path):
     m = _module(
         teacher={"kind": "conv", "out_dim": 20},
-        loss={"contrastive": {"scale": 1.0, "warmup_epochs": 0},
-              "distill": {"scale": 0.1, "warmup_epochs": 0}},
+        loss={
+            "contrastive": {"scale": 1.0, "warmup_epochs": 0},
+            "distill": {"scale": 0.1, "warmup_epochs": 0},
+        },
     )
     assert m.distill_head is None  # built with the teacher, on the rank's device, in setup
     m.setup("fit")

@@ -12,8 +12,9 @@ import torch.nn.functional as F
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.mapping import SemanticMap, VoxelMap, patch_points
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from resireg.models import ResiregVLM
 from resireg_train.data.rgbd import FrameCounts, RGBDFrame, SkippedFrame, pair_nearest, windows
 from resireg_train.data.scannet_room import SyntheticRoom
 
@@ -45,7 +46,9 @@ def bag_source(path, **kwargs):
 
 def expected_depth(d, encoding):
     if encoding == "16UC1":
-        return np.clip(np.rint(d * 1000), 0, 65535).astype(np.uint16).astype(np.float32) * np.float32(0.001)
+        return np.clip(np.rint(d * 1000), 0, 65535).astype(np.uint16).astype(
+            np.float32
+        ) * np.float32(0.001)
     return d
 
 
@@ -102,7 +105,9 @@ def test_bag_map_equals_patch_points_and_voxel_map(tmp_path, room, encoder):
     chain = source.tf.chain("map", "camera_optical")
     mid = source.tf.lookup(chain, T0 + DT / 4)
     a, b = written[0][2], written[1][2]
-    assert mid is not None and np.linalg.norm(mid[:3, 3] - (0.75 * a[:3, 3] + 0.25 * b[:3, 3])) < 0.05
+    assert (
+        mid is not None and np.linalg.norm(mid[:3, 3] - (0.75 * a[:3, 3] + 0.25 * b[:3, 3])) < 0.05
+    )
 
 
 def test_undecodable_and_unposed_frames_are_named_and_counted(tmp_path, room):

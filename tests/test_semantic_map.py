@@ -10,8 +10,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.mapping import MapFullError, SemanticMap, patch_points
-from resireg.models import TINY_BACKBONE, TINY_HEAD, TINY_TEXT, ResiregVLM
+from resireg.models import ResiregVLM
 from resireg_train.data.scannet_room import NYU40_COLOURS, SyntheticRoom
 
 VOXEL = 0.2
@@ -156,7 +157,9 @@ def test_voxel_budget_raises_before_adding(encoder, room):
     smap.add(images[:2], depth[:2], k, poses[:2])
     n, feats = len(smap), smap.features()[1].clone()
     smap.max_voxels = n + 1
-    with pytest.raises(MapFullError, match=rf"max_voxels={n + 1}: .* adds \d+ voxels to the map's {n}"):
+    with pytest.raises(
+        MapFullError, match=rf"max_voxels={n + 1}: .* adds \d+ voxels to the map's {n}"
+    ):
         smap.add(images[2:6], depth[2:6], k, poses[2:6])
     assert len(smap) == n and smap.frames == 2 and torch.equal(smap.features()[1], feats)
     with pytest.raises(ValueError, match="max_voxels=0"):

@@ -129,11 +129,11 @@ def test_the_config_check_names_a_sweep_that_misses_or_misspells_an_encoder(tmp_
     assert any(e.startswith("sweep/table2.yaml") and "['radio_v5']" in e for e in errors)
 
 
-_TOY_SPEC = '''
+_TOY_SPEC = """
 from resireg.specs.encoders import EncoderSpec
 
 SPEC = EncoderSpec("toy", "toy_encoder:ToyEncoder", ("toy",))
-'''
+"""
 
 _TOY_ENCODER = '''
 import zlib

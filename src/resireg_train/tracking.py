@@ -176,12 +176,12 @@ class ResultsTracker(L.Callback):
 # ------------------------------------------------------------------------- W&B
 def wandb_run_name(name: str) -> tuple[str, str | None]:
     """``(run name, group)`` of this job's W&B run: ``<name>-<run id>`` (the run id of the
-    output folder, :data:`resireg_train.cli.task.RUN_ID`), with ``-<job number>`` and the
+    output folder, :data:`resireg_train.paths.RUN_ID`), with ``-<job number>`` and the
     group ``<name>-<run id>`` (the sweep) for a job of a multirun."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    from resireg_train.cli.task import RUN_ID
+    from resireg_train.paths import RUN_ID
 
     base = f"{name}-{RUN_ID}"
     if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:

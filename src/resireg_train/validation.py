@@ -188,8 +188,11 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
             "on another encoder block: lite@layer:5",
         ),
         # each variant's parameters, by the rules its class checks (resireg.specs.variants)
-        **{f"{prefix}{name}.{key}": rule for name, spec in VARIANT_SPECS.items()
-           for key, rule in spec.params.items()},  # fmt: skip
+        **{
+            f"{prefix}{name}.{key}": rule
+            for name, spec in VARIANT_SPECS.items()
+            for key, rule in spec.params.items()
+        },  # fmt: skip
         f"{prefix}batch_size": _integer(1),
         f"{prefix}num_workers": _integer(0),
         f"{prefix}precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
@@ -443,8 +446,10 @@ def sweep_config_errors(conf_dir: str | os.PathLike) -> list[str]:
                           f"encoders of the table; known: {list(known)}")  # fmt: skip
         missing = [n for n in known if n not in names]
         if path.stem in ENCODER_SWEEPS and missing:
-            errors.append(f"sweep/{path.name}: hydra.sweeper.params.encoder lacks {missing}: "
-                          "a sweep over every encoder lists the table's (encoder_configs())")
+            errors.append(
+                f"sweep/{path.name}: hydra.sweeper.params.encoder lacks {missing}: "
+                "a sweep over every encoder lists the table's (encoder_configs())"
+            )
     return errors
 
 

@@ -221,8 +221,11 @@ class SemanticMap:
             self.configuration = name
             self.variant = build_variants([name], params or {}, key="configuration")[name]
             self.takes_prior = takes_prior(name)
-        if self.takes_prior and prior is None and encoder is not None and not isinstance(
-            configuration, nn.Module
+        if (
+            self.takes_prior
+            and prior is None
+            and encoder is not None
+            and not isinstance(configuration, nn.Module)
         ):
             raise ValueError(f"configuration={self.configuration!r} takes a prior: pass prior=")
         self.prior = prior
@@ -311,9 +314,7 @@ class SemanticMap:
         )
 
     @torch.no_grad()
-    def add(
-        self, images: Tensor, depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor
-    ) -> int:
+    def add(self, images: Tensor, depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor) -> int:
         """Encode a window of consecutive frames and fuse it; returns the voxels it added.
 
         Args:

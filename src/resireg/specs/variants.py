@@ -107,9 +107,17 @@ VARIANT_SPECS: dict[str, VariantSpec] = {
                     "an integer >= 1, 'auto' (the fitted heuristic) or 'elbo' (chosen per batch)",
                 ),
                 "elbo_candidates": (
-                    (lambda v: v is None or (
-                        isinstance(v, Sequence) and not isinstance(v, str) and len(v) > 0
-                        and all(is_int(c) and c >= 1 for c in v))),
+                    (
+                        lambda v: (
+                            v is None
+                            or (
+                                isinstance(v, Sequence)
+                                and not isinstance(v, str)
+                                and len(v) > 0
+                                and all(is_int(c) and c >= 1 for c in v)
+                            )
+                        )
+                    ),
                     "null or a non-empty list of integers >= 1",
                 ),  # fmt: skip
                 "n_components": optional_int(1),

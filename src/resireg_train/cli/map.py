@@ -226,9 +226,15 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         status="completed",
         frames=counts.as_dict(),
         unpaired_colour=getattr(source, "unpaired_colour", 0),
-        map={"folder": str(folder), "voxels": len(smap), "bytes": smap.nbytes,
-             "frames": smap.frames, "windows": smap.windows, "ply": str(ply),
-             "rerun": str(cfg.rerun.save) if cfg.rerun.save else None},  # fmt: skip
+        map={
+            "folder": str(folder),
+            "voxels": len(smap),
+            "bytes": smap.nbytes,
+            "frames": smap.frames,
+            "windows": smap.windows,
+            "ply": str(ply),
+            "rerun": str(cfg.rerun.save) if cfg.rerun.save else None,
+        },  # fmt: skip
         seconds={k: round(v, 4) for k, v in sorted(timer.items())},
     )
 

@@ -16,7 +16,6 @@ import hashlib
 import logging
 import math
 import os
-import secrets
 import sys
 import traceback
 from collections.abc import Callable
@@ -30,6 +29,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.files import WriteError
+from resireg_train.paths import CONFIG_DIR, RUN_ID
 from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
 from resireg_train.validation import ConfigError
 
@@ -47,15 +47,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-
-def _config_dir() -> Path:
-    env = os.environ.get("RESIREG_CONFIG_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "conf"
-
-
-#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it).
-CONFIG_DIR = _config_dir()
 
 
 def safe_dirname(text: str, max_length: int = 200) -> str:
@@ -114,11 +105,6 @@ def added_keys() -> list[str]:
                         overrides=[o for o in given if not o.startswith("+")])  # fmt: skip
         added += [k for k in forced if OmegaConf.select(plain, k, default=None) is None]
     return added
-
-
-#: A short random token drawn once per process: two runs started in the same second (a job
-#: array, a shell loop) still get two run folders.
-RUN_ID = secrets.token_hex(3)
 
 
 def register_resolvers() -> None:

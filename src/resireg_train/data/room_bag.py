@@ -155,8 +155,18 @@ def write_bag(path, room, colour="png", depth="16UC1", ros1=False, storage="sqli
             header=_header(ts, t, "camera_optical", ros1), height=d.shape[0], width=d.shape[1],
             distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **info)))  # fmt: skip
         base = pose @ np.linalg.inv(BASE_TO_LINK @ LINK_TO_OPTICAL)
-        msgs.append((t, "/tf", ty["tf2_msgs/msg/TFMessage"](transforms=[
-            _tf(ts, t, "map", "odom", np.eye(4), ros1), _tf(ts, t, "odom", "base_link", base, ros1)])))
+        msgs.append(
+            (
+                t,
+                "/tf",
+                ty["tf2_msgs/msg/TFMessage"](
+                    transforms=[
+                        _tf(ts, t, "map", "odom", np.eye(4), ros1),
+                        _tf(ts, t, "odom", "base_link", base, ros1),
+                    ]
+                ),
+            )
+        )
         if i + 1 < len(frames):  # a sample halfway: on the straight line between the neighbours
             nxt = frames[i + 1][2] @ np.linalg.inv(BASE_TO_LINK @ LINK_TO_OPTICAL)
             mid = np.eye(4)
@@ -183,8 +193,6 @@ def write_bag(path, room, colour="png", depth="16UC1", ros1=False, storage="sqli
         for t, topic, msg in sorted(msgs, key=lambda m: m[0]):
             writer.write(conns[topic], int(round(t * 1e9)), serialize(msg, types[topic]))
     return path
-
-
 
 
 def main(argv: list[str] | None = None) -> None:

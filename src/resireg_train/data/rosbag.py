@@ -117,7 +117,9 @@ def decode_depth(msg: Any, depth_scale: float = 0.001) -> np.ndarray:
         raw = bytes(msg.data)
         start = raw.find(b"\x89PNG")
         if "compresseddepth" not in str(msg.format).lower() or start < 0:
-            raise ValueError(f"compressed depth format {msg.format!r}: expected compressedDepth png")
+            raise ValueError(
+                f"compressed depth format {msg.format!r}: expected compressedDepth png"
+            )
         try:
             with Image.open(io.BytesIO(raw[start:])) as im:
                 units = np.asarray(im).astype(np.float32)
@@ -253,7 +255,12 @@ class BagSource:
             raise FileNotFoundError(f"{key}.path={str(path)!r}: no such bag")
         if not tolerance > 0:
             raise ValueError(f"{key}.tolerance={tolerance!r}: expected seconds > 0")
-        self.topics, self.tolerance, self.depth_scale, self.key = topics, tolerance, depth_scale, key
+        self.topics, self.tolerance, self.depth_scale, self.key = (
+            topics,
+            tolerance,
+            depth_scale,
+            key,
+        )
         self.max_pose_gap = float(max_pose_gap)
         self._reader_cls = AnyReader
         self.unpaired_colour = 0
@@ -363,7 +370,10 @@ class BagSource:
                           f"{self.key}.world_frame / {self.key}.camera_frame)")  # fmt: skip
         pose = self.tf.lookup(chain, stamp)
         if pose is None:
-            return None, f"no tf {t.world_frame} -> {camera} at {stamp:.6f} (gap or end of a stream)"
+            return (
+                None,
+                f"no tf {t.world_frame} -> {camera} at {stamp:.6f} (gap or end of a stream)",
+            )
         return pose, ""
 
     def __iter__(self) -> Iterator[RGBDFrame | SkippedFrame]:
@@ -412,8 +422,9 @@ class BagSource:
                 elif not is_depth and bag_time in need_colour:
                     waiting = need_colour.pop(bag_time)
                     try:
-                        image: np.ndarray | str = decode_colour(reader.deserialize(raw,
-                                                                                   conn.msgtype))
+                        image: np.ndarray | str = decode_colour(
+                            reader.deserialize(raw, conn.msgtype)
+                        )
                     except Exception as err:
                         stamp = next(s for s, b in self.colour_stamps if b == bag_time)
                         image = f"{t.colour}@{stamp:.6f}: {err}"
@@ -424,8 +435,11 @@ class BagSource:
                     next_pos += 1
         while next_pos < len(plan):  # messages never seen (a truncated bag)
             if not ready(next_pos):
-                out[next_pos] = SkippedFrame(f"{t.depth}@{plan[next_pos][0]:.6f}",
-                                             "message missing on the second read", "undecodable")
+                out[next_pos] = SkippedFrame(
+                    f"{t.depth}@{plan[next_pos][0]:.6f}",
+                    "message missing on the second read",
+                    "undecodable",
+                )
             yield self._record(next_pos, plan, out, colours, depths)
             next_pos += 1
 

@@ -49,7 +49,7 @@ from __future__ import annotations
 import csv
 import logging
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -530,16 +530,17 @@ def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
                       tuple(spec["classes_to_ignore"]), key)  # fmt: skip
 
 
-def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset") -> ScanNetFrames:
+def build_scannet(
+    spec: Mapping[str, Any], patch_size: int, key: str = "dataset", task_keys: Iterable[str] = ()
+) -> ScanNetFrames:
     """:class:`ScanNetFrames` from a ``conf/dataset/scannet.yaml`` entry: the entry's keys
     (``name``, ``kind``, ``path``, ``scenes``, ``protocol``), the reader's (:data:`READER_KEYS`)
-    and the task's (:data:`resireg_train.mapping.engine.TASK_KEYS`, read by
-    :class:`~resireg_train.mapping.engine.MappingTask`); any other key is an error."""
-    from resireg_train.mapping.engine import TASK_KEYS
-
+    and ``task_keys``, those the task reading the entry takes from it (the 3D task passes its
+    :data:`resireg_train.mapping.engine.TASK_KEYS`: the reader never imports the task); any
+    other key is an error."""
     if spec.get("kind") != "scannet":
         raise ValueError(f"{key}.kind={spec.get('kind')!r}: the scannet3d task needs 'scannet'")
-    known = {*_ENTRY_KEYS, *READER_KEYS, *TASK_KEYS}
+    known = {*_ENTRY_KEYS, *READER_KEYS, *task_keys}
     unknown = set(spec) - known
     if unknown:
         raise ValueError(
@@ -591,9 +592,14 @@ def scannet_rgbd(folder: str | Path, key: str = "source"):
             yield SkippedFrame(str(err.path), err.reason, "undecodable")
             continue
         if depth.ndim != 2:
-            yield SkippedFrame(str(folder / "depth" / f"{stem}.png"),
-                               f"depth has shape {depth.shape}: expected one channel", "undecodable")
+            yield SkippedFrame(
+                str(folder / "depth" / f"{stem}.png"),
+                f"depth has shape {depth.shape}: expected one channel",
+                "undecodable",
+            )
             continue
         rgb = _resize_rgb(colour, depth.shape)
         image = (rgb * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-        yield RGBDFrame(image, depth / 1000.0, k, pose, float(i), str(folder / "color" / f"{stem}.jpg"))
+        yield RGBDFrame(
+            image, depth / 1000.0, k, pose, float(i), str(folder / "color" / f"{stem}.jpg")
+        )

@@ -395,8 +395,15 @@ class MappingTask:
             "scene": scene,
             "name": self.dataset.scenes[scene],
             "maps": {  # one map per variant: the fusion a robot's SemanticMap.add runs
-                name: SemanticMap(None, variant, self.voxel_size, points=p.points,
-                                  lattice=p.lattice, colour=False, device=device)
+                name: SemanticMap(
+                    None,
+                    variant,
+                    self.voxel_size,
+                    points=p.points,
+                    lattice=p.lattice,
+                    colour=False,
+                    device=device,
+                )
                 for name, variant in variants.items()
             },  # fmt: skip
             "gt": LabelVoxelMap(
@@ -487,7 +494,7 @@ def run_scannet3d(
 
     log = logging.getLogger("resireg_train.cli.eval")
     spec = params["dataset"]
-    dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset")
+    dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset", task_keys=TASK_KEYS)
     update_results(out, protocol=protocol_record(params))
     task = MappingTask(dataset, int(cfg.batch_size), MappingProtocol.from_spec(spec),
                        num_workers=int(cfg.num_workers))  # fmt: skip

@@ -208,8 +208,10 @@ class ResiregModule(L.LightningModule):
         """
         factory = self.optimizer_factory
         if factory is None:
-            raise ValueError("model.optimizer is required to train (a module restored from a "
-                             "checkpoint's hyperparameters has none; pass optimizer=...)")
+            raise ValueError(
+                "model.optimizer is required to train (a module restored from a "
+                "checkpoint's hyperparameters has none; pass optimizer=...)"
+            )
         weight_decay = getattr(factory, "keywords", {}).get("weight_decay", 0.0)
         optimizer = factory(param_groups_weight_decay(self, weight_decay))
         lr = optimizer.defaults["lr"]
