@@ -132,7 +132,9 @@ def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
     assert elbo.chosen == [5, 8]
     assert elbo.check_grid(2, 12, 16) == 12  # the grid must hold the largest candidate
     with pytest.raises(ValueError, match="elbo_candidates"):
-        ReSiRegFull(n_prototypes="elbo")
+        ReSiRegFull(n_prototypes="elbo", elbo_candidates=None)
+    # the Python default is conf/'s candidate set (conf/resireg/default.yaml)
+    assert ReSiRegFull(n_prototypes="elbo").elbo_candidates == tuple(range(24, 133, 12))
 
 
 def test_ablation_report_places_the_elbo_count_beside_the_heuristic(tmp_path):

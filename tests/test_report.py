@@ -33,6 +33,7 @@ from resireg_train.report import (
     plot_heatmap,
     prototype_grid,
     report,
+    report_sections,
 )
 
 MIOU = "val/ovss/synthetic/miou_full"
@@ -469,3 +470,51 @@ def test_the_job_counts_the_readme_and_the_sweep_files_state_are_the_sweeps_own(
                 assert numbers == axes, line
             else:
                 assert numbers[-1] == math.prod(axes), line
+
+
+def _saved_config(job_folder, report_sections):
+    """What Hydra saves of a job's config (`.hydra/config.yaml`), reduced to the `report` key."""
+    (job_folder / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"report": report_sections}))
+
+
+def test_the_sweep_config_names_its_report_instead_of_the_report_guessing(tmp_path):
+    """Issue 23 item 4: the sections beyond the summary are those the sweep config names
+    (`report: [...]`, saved in every job's config), whatever the overrides look like; only a
+    sweep that names none (an ad hoc `-m`) gets those its jobs show."""
+    encoder = {"name": "clip_vit_b16", "kind": "clip", "third_party": True, "parameters": 150e6}
+    final = {f"val/ovss/ade20k/miou_{v}": 0.2 + 0.1 * i
+             for i, v in enumerate(("bb", "calib", "lite", "full"))}  # fmt: skip
+    results = {"status": "completed", "final": final, "encoder": encoder,
+               "params": {"dataset": {"name": "ade20k"}, "encoder": encoder}}  # fmt: skip
+    # One encoder, no sweep=table1 override, no run name: only the config says Table 1.
+    named = tmp_path / "named"
+    _saved_config(_job(named, 0, {"dataset": "ade20k"}, results), ["table1"])
+    files = report(named)
+    assert report_sections(collect(named)) == ["table1"] and files["table1_md"].is_file()
+    # Two encoders would be read as Table 1; a config that names no section gets none.
+    plain = tmp_path / "plain"
+    for n, name in enumerate(("clip_vit_b16", "radseg")):
+        _saved_config(_job(plain, n, {"encoder": name}, results), [])
+    assert report_sections(collect(plain)) == [] and "table1_md" not in report(plain)
+    # The same jobs without a saved config: the encoder axis shows Table 1.
+    guessed = tmp_path / "guessed"
+    for n, name in enumerate(("clip_vit_b16", "radseg")):
+        _job(guessed, n, {"encoder": name}, results)
+    assert report_sections(collect(guessed)) == ["table1"] and "table1_md" in report(guessed)
+
+
+def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_names():
+    """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
+    it), every name is one the report writes, and a wrong one is refused naming the key."""
+    from resireg_train.validation import REPORT_SECTIONS, ConfigError, validate_eval
+
+    eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
+                   if p.stem != "train_hparams"]  # fmt: skip
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        for name in eval_sweeps:
+            cfg = compose("eval", overrides=[f"sweep={name}"])
+            assert cfg.report is not None, name
+            assert set(cfg.report) <= set(REPORT_SECTIONS), name
+        cfg = compose("eval", overrides=["report=[tabel1]"])
+    with pytest.raises(ConfigError, match=r"report=\['tabel1'\]: expected null or a list of"):
+        validate_eval(cfg)

@@ -47,12 +47,14 @@ def test_each_variant_entry_names_its_class_its_keywords_and_conf_defaults():
         assert set(cfg[name]) == set(spec.params), name  # conf/ holds every default
         assert spec.defaults == f"conf/resireg/default.yaml:{name}"
         for key, default in keywords.items():
+            default = list(default) if isinstance(default, tuple) else default  # YAML: a list
             assert default == cfg[name][key], (name, key, default, cfg[name][key])
 
 
 # (variant, parameter) -> values accepted, values refused (docs/design.md section 4)
 _VALUES = {
-    ("full", "n_prototypes"): ([1, 36, "auto"], [0, -2, 2.5, True, "36"]),
+    ("full", "n_prototypes"): ([1, 36, "auto", "elbo"], [0, -2, 2.5, True, "36"]),
+    ("full", "elbo_candidates"): ([None, [24, 36], [8]], [[], [0], [2.5], "24", 24]),
     ("full", "n_components"): ([None, 1, 24], [0, 2.0, False]),
     ("full", "alpha"): ([0.1, 5, 5.0], [0, -1.0, math.inf, math.nan, True, "5"]),
     ("full", "tau"): ([0, 0.5, 1], [-0.1, 1.5, math.nan, True]),

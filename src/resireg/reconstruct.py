@@ -375,7 +375,7 @@ class ReSiRegFull(nn.Module):
         seed: int = 0,
         max_iter: int = 100,
         heuristic: Callable[[int], int] | str | None = None,
-        elbo_candidates: Sequence[int] | None = None,
+        elbo_candidates: Sequence[int] | None = (24, 36, 48, 60, 72, 84, 96, 108, 120, 132),
     ) -> None:
         super().__init__()
         # the rules of resireg.specs.variants (also those of the full.* config checks)

@@ -65,6 +65,9 @@ _DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
 #: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
 #: of ``resireg.models.build_encoder``.
 ENCODER_REPORT_KEYS = ("name", "third_party")
+#: What ``resireg-report`` can write for a sweep beyond its summary (``report: [...]`` in a
+#: ``conf/sweep/`` file names them; ``null`` leaves the choice to the jobs' overrides).
+REPORT_SECTIONS = ("table1", "table2", "prototype_grid", "layer_sweep")
 #: ``kind -> modules its code imports`` beyond the core install (``Needs``; the encoder table,
 #: :data:`resireg.specs.encoders.ENCODER_SPECS`, holds them): :func:`encoder_import_errors`
 #: (through :func:`check_available`) checks them before a model loads.
@@ -232,6 +235,10 @@ _EVAL_RULES: dict[str, Rule] = {
     ),
     **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.priors.settings
     "task": (lambda v: v in TASKS, f"one of {list(TASKS)}"),
+    "report": (
+        lambda v: v is None or (isinstance(v, list) and all(x in REPORT_SECTIONS for x in v)),
+        f"null or a list of {list(REPORT_SECTIONS)}",
+    ),
     # the 3D task's dataset (conf/dataset/scannet.yaml)
     "dataset.scenes": (
         lambda v: isinstance(v, list) and len(v) > 0 and all(isinstance(s, str) for s in v),

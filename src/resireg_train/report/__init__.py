@@ -3,7 +3,10 @@
 Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
 (``.hydra/overrides.yaml``) and ``results.json``. A job that failed, was interrupted
 (Ctrl-C; resumable), is still running or never wrote ``results.json`` stays in the table
-with its status and error. Writes, into the sweep folder (or ``--out``):
+with its status and error. Which sections beyond the summary it writes, the sweep config names
+(``report: [table1]`` etc. in ``conf/sweep/``, saved in every job's ``.hydra/config.yaml``); an
+ad hoc ``-m`` sweep, which names none, gets those its jobs show (:func:`report_sections`).
+Writes, into the sweep folder (or ``--out``):
 
 - ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
   jobs, status, the scores (final values; for training runs also the best of the chosen
@@ -20,7 +23,7 @@ with its status and error. Writes, into the sweep folder (or ``--out``):
   per epoch for every run.
 - For an Optuna search (``hparams_search=...``: ``optuna.db`` in the sweep folder):
   ``optuna_trials.csv`` (every trial's state, value, parameters, job and error), the best
-  trial in ``summary.md``, and Optuna's ``optuna_history.png`` / ``optuna_importance.png``.
+  trial in ``summary.md``, and ``optuna_history.png`` / ``optuna_importance.png``.
 - For the CLIP layer sweep (configurations ``<variant>@layer:<block>``, ``sweep=clip_layers``):
   ``layer_sweep.csv`` / ``.md`` / ``.png``, mIoU of each variant against the block index.
 
@@ -48,6 +51,7 @@ from resireg_train.report.jobs import (
     count_statuses,
     default_metric,
     known_metrics,
+    named_sections,
     varying_keys,
 )
 from resireg_train.report.optuna import is_optuna_sweep
@@ -81,9 +85,27 @@ __all__ = [
     "default_metric", "encoder_table", "fit_heuristic", "grid_statuses", "heatmap_figure",
     "is_encoder_sweep", "is_layer_sweep", "is_mapping_sweep", "known_metrics",
     "layer_sweep_figure", "layer_sweep_table", "mapping_table", "markdown", "method_means",
-    "plot_curves", "plot_heatmap", "protocol_lines", "prototype_grid", "report", "summary_table",
+    "plot_curves", "plot_heatmap", "protocol_lines", "prototype_grid", "report", "report_sections",
+    "summary_table",
     "write_encoder_table", "write_layer_sweep", "write_mapping_table",
 ]  # fmt: skip
+
+
+def report_sections(jobs: list[Job]) -> list[str]:
+    """What the report writes beyond the summary (``REPORT_SECTIONS``): the sections the sweep
+    config names (``report: [...]``, :func:`named_sections`), else those the jobs show: an
+    encoder axis (Table 1, or Table 2 for 3D jobs), a batch size x prototype grid, blocks."""
+    named = named_sections(jobs)
+    if named is not None:
+        return named
+    found = []
+    if is_encoder_sweep(jobs):
+        found.append("table2" if is_mapping_sweep(jobs) else "table1")
+    if is_prototype_sweep(jobs):
+        found.append("prototype_grid")
+    if is_layer_sweep(jobs):
+        found.append("layer_sweep")
+    return found
 
 
 def report(
@@ -113,13 +135,14 @@ def report(
         "",
         markdown(table, floatfmt=".4f"),
     ]
-    if is_encoder_sweep(jobs) and is_mapping_sweep(jobs):
+    sections = report_sections(jobs)
+    if "table2" in sections:
         files.update(write_mapping_table(jobs, out))
         lines += ["", f"3D mapping table (the paper's Table 2): `{files['table2_md'].name}`."]
-    elif is_encoder_sweep(jobs):
+    elif "table1" in sections:
         files.update(write_encoder_table(jobs, out))
         lines += ["", f"Encoder table (the paper's Table 1): `{files['table1_md'].name}`."]
-    if metric and is_prototype_sweep(jobs):
+    if metric and "prototype_grid" in sections:
         grid = prototype_grid(jobs, metric)
         files["heatmap"] = out / "heatmap.png"
         plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
@@ -151,7 +174,7 @@ def report(
         curves = out / "curves.png"
         if plot_curves(jobs, metric, curves):
             files["curves"] = curves
-    if is_layer_sweep(jobs):  # sweep=clip_layers
+    if "layer_sweep" in sections:  # sweep=clip_layers
         files.update(write_layer_sweep(jobs, out))
         lines += ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]
     if is_optuna_sweep(sweep_dir):  # hparams_search=...: the study's trials, best, plots

@@ -17,7 +17,7 @@ from resireg_train.results import RESULTS_FILE, metric_mode, read_results
 __all__ = [
     "BATCH_KEY", "METHODS", "METHOD_NAMES", "PROTOTYPES_KEY", "STATUSES", "Job", "check_metric",
     "collect", "count_statuses", "dataset_of", "default_metric", "encoder_of", "known_metrics",
-    "per_encoder", "job_scores", "varying_keys",
+    "named_sections", "per_encoder", "job_scores", "varying_keys",
 ]  # fmt: skip
 
 BATCH_KEY, PROTOTYPES_KEY = "batch_size", "full.n_prototypes"
@@ -35,6 +35,16 @@ class Job:
     number: int
     overrides: dict[str, str]
     results: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """The job's resolved config as Hydra saved it (``.hydra/config.yaml``; empty if
+        absent)."""
+        path = self.path / ".hydra" / "config.yaml"
+        if not path.is_file():
+            return {}
+        with open(path) as f:
+            return yaml.safe_load(f) or {}
 
     @property
     def status(self) -> str:
@@ -70,6 +80,17 @@ def collect(sweep_dir: str | Path) -> list[Job]:
             "pass the multirun folder, e.g. outputs/<name>/multirun/<time>"
         )
     return sorted(jobs, key=lambda j: j.number)
+
+
+def named_sections(jobs: list[Job]) -> list[str] | None:
+    """The report sections the jobs' sweep config names (``report: [...]`` of a
+    ``conf/sweep/`` file, in every job's saved config), or ``None`` when none names them (an ad
+    hoc ``-m`` sweep: the report reads them from the overrides and results)."""
+    for job in jobs:
+        named = job.config.get("report")
+        if named is not None:
+            return [str(section) for section in named]
+    return None
 
 
 def varying_keys(jobs: list[Job]) -> list[str]:
