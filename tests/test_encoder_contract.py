@@ -225,3 +225,21 @@ def test_block_index_rule():
     for bad in (True, "3", 2.0, [1.5], None):
         with pytest.raises(TypeError, match=r"layer="):
             block_indices(12, bad)
+
+
+def test_an_encoder_outside_the_registry_has_no_spec_and_says_so():
+    """A DenseEncoder of one's own (no registry kind) answers spec() with a ValueError naming
+    its class, as a ResiregVLM built in Python does, not with a config that rebuilds nothing."""
+    from resireg.models import DenseEncoder, DenseOutput, InputRule
+
+    class Own(DenseEncoder):
+        input_rule = InputRule(patch_size=16, mean=(0.5,) * 3, std=(0.5,) * 3)
+
+        def encode(self, images):
+            return DenseOutput(images, images, None)
+
+        def encode_text(self, texts):
+            return torch.eye(len(texts), 3)
+
+    with pytest.raises(ValueError, match=r"^Own has no construction config \(spec\)"):
+        Own().spec()

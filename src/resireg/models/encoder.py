@@ -151,8 +151,12 @@ class DenseEncoder(nn.Module, ABC):
         """The JSON-able construction config: ``{"kind": <encoder kind>, <parameter>: ...}``
         (``device`` aside), such that ``resireg.models.build_encoder(**spec)`` builds the same
         encoder (same architecture, weights source and settings). Every encoder of the registry
-        implements it; an encoder outside it (a test double, a benchmark oracle) has none."""
-        raise NotImplementedError(f"{type(self).__name__} has no construction config (spec)")
+        implements it; an encoder outside it (a test double, a benchmark oracle, your own
+        backbone) has none: a ValueError, as for a ResiregVLM not loaded from an export."""
+        raise ValueError(
+            f"{type(self).__name__} has no construction config (spec): only the encoder kinds "
+            "of resireg.specs.encoders are rebuilt from one"
+        )
 
     # Text in two steps; the defaults suit an encoder with no trainable text part.
     def text_features(self, texts: Sequence[str]) -> Tensor:

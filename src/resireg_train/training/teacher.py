@@ -40,7 +40,12 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
-from resireg.models.zoo.radio import load_radseg
+from resireg.models.zoo.radio import (
+    RADSEG_LANG_MODEL,
+    RADSEG_MODEL_VERSION,
+    RADSEG_REPO,
+    load_radseg,
+)
 
 __all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
 
@@ -79,10 +84,10 @@ class RadSegTeacher(_FrozenTeacher):
 
     def __init__(
         self,
-        repo: str = "RADSeg-OVSS/RADSeg",
+        repo: str = RADSEG_REPO,
         source: str = "github",
-        model_version: str = "c-radio_v3-b",
-        lang_model: str = "siglip2",
+        model_version: str = RADSEG_MODEL_VERSION,
+        lang_model: str = RADSEG_LANG_MODEL,
         mean: Sequence[float] = IMAGENET_DEFAULT_MEAN,
         std: Sequence[float] = IMAGENET_DEFAULT_STD,
         slide_crop: int = 0,

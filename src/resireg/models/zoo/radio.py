@@ -167,11 +167,19 @@ def require_radio_weights(version: str, hint: str) -> None:
         require_hub_checkpoints([ckpt], "RADIO weights", _WEIGHTS_HOST, hint)
 
 
+#: RADSeg's hub repo, RADIO version and language adaptor by default: those of
+#: conf/encoder/radseg.yaml and conf/model/teacher/radseg.yaml, for the one loader and the two
+#: modules over it (RadSegEncoder here, the distillation teacher in resireg_train.training).
+RADSEG_REPO = "RADSeg-OVSS/RADSeg"
+RADSEG_MODEL_VERSION = "c-radio_v3-b"
+RADSEG_LANG_MODEL = "siglip2"
+
+
 def load_radseg(
-    repo: str = "RADSeg-OVSS/RADSeg",
+    repo: str = RADSEG_REPO,
     source: str = "github",
-    model_version: str = "c-radio_v3-b",
-    lang_model: str = "siglip2",
+    model_version: str = RADSEG_MODEL_VERSION,
+    lang_model: str = RADSEG_LANG_MODEL,
     device: str | torch.device | None = None,
     key: str = "model",
     hint_extra: str = "",
@@ -360,10 +368,10 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
 
     def __init__(
         self,
-        repo: str = "RADSeg-OVSS/RADSeg",
+        repo: str = RADSEG_REPO,
         source: str = "github",
-        model_version: str = "c-radio_v3-b",
-        lang_model: str = "siglip2",
+        model_version: str = RADSEG_MODEL_VERSION,
+        lang_model: str = RADSEG_LANG_MODEL,
         intermediates: str = "backbone",
         device: str | torch.device | None = None,
         config_key: str = "model",
