@@ -25,7 +25,7 @@ import torch
 
 from _common import resireg_defaults
 from bench_reconstruct import interleaved_best, make_features
-from resireg.cluster import kmeans, vb_gmm
+from resireg.cluster import elbo_fits
 from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
 
 
@@ -61,16 +61,19 @@ def main() -> None:
     print("| path | seconds | ratio to Full's clustering |\n|---|---|---|")
     for name, seconds in best.items():
         print(f"| {name} | {seconds:.3f} | {seconds / base:.2f} |")
-    # Per candidate: VB iterations and the bound (on the same subsample the choice used).
-    z = _points(elbo, inter.float(), spectrum)
-    print("\n| k | VB iterations | ELBO per point |\n|---|---|---|")
-    for k in candidates:
-        fit = vb_gmm(z, kmeans(z, k, seed=0).labels, k)
-        print(f"| {k} | {fit.n_iter} | {fit.elbo / z.shape[0]:.3f} |")
+    # Per candidate: VB iterations and the bound (the fits the choice compares).
+    fits = elbo_fits(_points(elbo, inter.float(), spectrum), candidates, seed=elbo.seed)
+    n_points = inter.shape[0] * inter.shape[2] * inter.shape[3] * elbo.upscale**2
+    print("\n| k | VB iterations | ELBO per point | components holding >= 1 point |")
+    print("|---|---|---|---|")
+    for k, fit in fits.items():
+        held = int((fit.weights * n_points >= 1).sum())
+        print(f"| {k} | {fit.n_iter} | {fit.elbo / n_points:.3f} | {held} |")
 
 
 def _points(full: ReSiRegFull, x: torch.Tensor, spectrum) -> torch.Tensor:
-    """The subsample elbo_prototype_count fits (same seed, same draw)."""
+    """Full's normalised PCA points on the largest candidate's axes (what ``_elbo_count``
+    hands to the chooser)."""
     import torch.nn.functional as F
 
     from resireg.reconstruct import _project_grid, _upsample
@@ -78,9 +81,7 @@ def _points(full: ReSiRegFull, x: torch.Tensor, spectrum) -> torch.Tensor:
     b, _, hv, wv = x.shape
     fit = spectrum.top(full.elbo_candidates[-1])
     up = _upsample(_project_grid(x, fit).view(b, hv, wv, -1).permute(0, 3, 1, 2), full.upscale)
-    z = F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
-    perm = torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(full.seed))[:4096]
-    return z[perm.to(z.device)]
+    return F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
 
 
 if __name__ == "__main__":

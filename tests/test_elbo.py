@@ -60,6 +60,44 @@ def test_lower_bound_matches_scikit_learn(k, alpha, beta):
     np.testing.assert_allclose(ours.means.numpy(), ref.means_, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("k,weight", [(4, 3), (6, 2)])
+def test_point_weight_is_repetition(k, weight):
+    """``point_weight=w`` is scikit-learn's fit of the data with every row repeated ``w``
+    times (the same start repeated): bound, iterations, weights and means; and the whole
+    bound equals the unweighted fit's on the repeated rows."""
+    x_np = _blobs(5, 7, seed=k, spread=0.6)
+    labels = kmeans(torch.tensor(x_np).float(), k, seed=0).labels
+    rows, rep_labels = np.repeat(x_np, weight, axis=0), labels.repeat_interleave(weight)
+    ref = _FromLabels(
+        resp=np.eye(k)[rep_labels.numpy()], n_components=k, covariance_type="diag",
+        weight_concentration_prior_type="dirichlet_distribution", tol=1e-3, max_iter=100,
+    ).fit(rows)  # fmt: skip
+    ours = vb_gmm(torch.tensor(x_np), labels, k, point_weight=weight)
+    assert ours.n_iter == ref.n_iter_
+    assert ours.lower_bound == pytest.approx(ref.lower_bound_, rel=1e-9)
+    np.testing.assert_allclose(ours.weights.numpy(), ref.weights_, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(ours.means.numpy(), ref.means_, rtol=1e-5, atol=1e-5)
+    repeated = vb_gmm(torch.tensor(rows), rep_labels, k)
+    assert ours.elbo == pytest.approx(repeated.elbo, rel=1e-9)
+    with pytest.raises(ValueError, match="point_weight=0"):
+        vb_gmm(torch.tensor(x_np), labels, k, point_weight=0)
+
+
+def test_subsample_stands_for_the_whole_set():
+    """24 noisy regions in 64 dimensions, 12,000 points, fitted on 768: weighted by N / M
+    (what elbo_prototype_count does) the subsample's bound chooses the 24; unweighted (each
+    of the 768 counted once, the priors as heavy as for all 12,000) it chooses too few."""
+    gen = torch.Generator().manual_seed(0)
+    codes = torch.randn(24, 64, generator=gen)
+    region = torch.randint(24, (12_000,), generator=gen)
+    x = torch.nn.functional.normalize(codes[region] + 0.5 * torch.randn(12_000, 64, generator=gen))
+    candidates = [12, 24, 48]
+    assert elbo_prototype_count(x, candidates, max_points=768) == 24
+    sub = x[torch.randperm(12_000, generator=torch.Generator().manual_seed(0))[:768]]
+    unweighted = {k: vb_gmm(sub, kmeans(sub, k, seed=0).labels, k).elbo for k in candidates}
+    assert max(unweighted, key=unweighted.get) < 24
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_elbo_is_the_evidence_of_a_single_gaussian(seed):
     """With one component the variational posterior is exact, so the whole bound (the terms

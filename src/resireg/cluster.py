@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -40,6 +41,7 @@ __all__ = [
     "gram",
     "VBGMMResult",
     "vb_gmm",
+    "elbo_fits",
     "elbo_prototype_count",
 ]
 
@@ -560,30 +562,48 @@ class VBGMMResult:
     means: Tensor
 
 
-def _vb_e_step(x: Tensor, x2: Tensor, p: dict[str, Tensor]) -> Tensor:
-    """``[N, k]`` log responsibilities (scikit-learn's ``_estimate_log_prob`` plus
-    ``_estimate_log_weights`` of the diagonal ``BayesianGaussianMixture``, normalised)."""
-    r = x.shape[1]
+def _vb_e_step(xx: Tensor, p: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+    """``([N, k] log responsibilities, [N, k] responsibilities)`` (scikit-learn's
+    ``_estimate_log_prob`` plus ``_estimate_log_weights`` of the diagonal
+    ``BayesianGaussianMixture``, normalised), from ``xx = [x, x^2]`` ``[N, 2r]``: both products
+    of the quadratic form in one, every per-component term folded into one ``[k]`` offset, so
+    that the ``[N, k]`` work is one product and a few in-place passes."""
+    r = xx.shape[1] // 2
     prec = 1.0 / p["cov"]  # [k, r]: precisions_cholesky_ ** 2
     log_det = -0.5 * torch.log(p["cov"]).sum(1)  # sum(log precisions_cholesky_)
-    quad = (p["means"].square() * prec).sum(1) - 2.0 * (x @ (p["means"] * prec).T) + x2 @ prec.T
-    log_gauss = -0.5 * (r * math.log(2 * math.pi) + quad) + log_det - 0.5 * r * torch.log(p["dof"])
-    i = torch.arange(r, dtype=x.dtype, device=x.device).unsqueeze(1)
+    i = torch.arange(r, dtype=xx.dtype, device=xx.device).unsqueeze(1)
     log_lambda = r * math.log(2.0) + torch.digamma(0.5 * (p["dof"] - i)).sum(0)
-    log_prob = log_gauss + 0.5 * (log_lambda - r / p["beta"])
     alpha = p["alpha"]
-    weighted = log_prob + (torch.digamma(alpha) - torch.digamma(alpha.sum()))
-    return weighted - torch.logsumexp(weighted, dim=1, keepdim=True)
+    offset = (  # [k]: log N's constant and mean term, E[ln|Lambda|], E[ln pi]
+        -0.5 * (r * math.log(2 * math.pi) + (p["means"].square() * prec).sum(1))
+        + log_det - 0.5 * r * torch.log(p["dof"])
+        + 0.5 * (log_lambda - r / p["beta"])
+        + (torch.digamma(alpha) - torch.digamma(alpha.sum()))
+    )  # fmt: skip
+    log_prob = xx @ torch.cat([p["means"] * prec, -0.5 * prec], 1).T  # -quad/2 less its constant
+    log_prob += offset
+    # Normalised by hand rather than with logsumexp, to take one exp, not two; and the log
+    # weights far below a point's largest are kept at e times the smallest normal number: their
+    # exp would be subnormal (x86 computes those several times slower) and weighs nothing.
+    log_prob -= log_prob.amax(1, keepdim=True)
+    log_prob.clamp_(min=math.log(torch.finfo(log_prob.dtype).tiny) + 1.0)
+    resp = log_prob.exp()
+    total = resp.sum(1, keepdim=True)
+    resp /= total
+    return log_prob.sub_(total.log_()), resp
 
 
-def _vb_m_step(x: Tensor, x2: Tensor, resp: Tensor, prior: dict[str, Tensor | float],
-               reg_covar: float) -> dict[str, Tensor]:  # fmt: skip
-    """Posterior parameters from responsibilities ``[N, k]`` (scikit-learn's
-    ``_estimate_gaussian_parameters`` then ``_estimate_weights`` / ``_estimate_means`` /
-    ``_estimate_wishart_diag``, Dirichlet-distribution weight prior)."""
-    nk = resp.sum(0) + 10 * torch.finfo(resp.dtype).eps
-    xk = (resp.T @ x) / nk.unsqueeze(1)
-    sk = (resp.T @ x2) / nk.unsqueeze(1) - xk.square() + reg_covar
+def _vb_m_step(xx: Tensor, resp: Tensor, prior: dict[str, Tensor | float],
+               reg_covar: float, weight: float = 1.0) -> dict[str, Tensor]:  # fmt: skip
+    """Posterior parameters from responsibilities ``[N, k]`` and ``xx = [x, x^2]`` (scikit-
+    learn's ``_estimate_gaussian_parameters`` then ``_estimate_weights`` / ``_estimate_means``
+    / ``_estimate_wishart_diag``, Dirichlet-distribution weight prior), every point counted
+    ``weight`` times."""
+    r = xx.shape[1] // 2
+    nk = weight * resp.sum(0) + 10 * torch.finfo(resp.dtype).eps
+    moments = (weight * (resp.T @ xx)) / nk.unsqueeze(1)  # [k, 2r]: E[x], E[x^2] per component
+    xk = moments[:, :r]
+    sk = moments[:, r:] - xk.square() + reg_covar
     beta = prior["beta"] + nk
     dof = prior["dof"] + nk
     diff = xk - prior["mean"]
@@ -609,19 +629,22 @@ def _log_wishart_norm(dof: Tensor, half_log_det_w: Tensor, r: int) -> Tensor:
     )
 
 
-def _vb_lower_bound(log_resp: Tensor, p: dict[str, Tensor]) -> Tensor:
-    """scikit-learn's ``_compute_lower_bound`` (diagonal covariances, Dirichlet distribution)."""
+def _vb_lower_bound(
+    log_resp: Tensor, resp: Tensor, p: dict[str, Tensor], weight: float = 1.0
+) -> Tensor:
+    """scikit-learn's ``_compute_lower_bound`` (diagonal covariances, Dirichlet distribution),
+    every point counted ``weight`` times; ``resp = exp(log_resp)``."""
     r = p["means"].shape[1]
     # ln|W_k| / 2 with W_k = (dof_k cov_k)^-1, as scikit-learn's normalised precision factor.
     half_log_det_w = -0.5 * torch.log(p["cov"]).sum(1) - 0.5 * r * torch.log(p["dof"])
     log_wishart = -_log_wishart_norm(p["dof"], half_log_det_w, r).sum()
     alpha = p["alpha"]
     log_dirichlet_norm = torch.lgamma(alpha.sum()) - torch.lgamma(alpha).sum()
-    entropy = -(log_resp.exp() * log_resp).sum()
+    entropy = -weight * torch.dot(resp.view(-1), log_resp.view(-1))
     return entropy - log_wishart - log_dirichlet_norm - 0.5 * r * torch.log(p["beta"]).sum()
 
 
-def _vb_constant(n: int, k: int, prior: dict[str, Tensor | float]) -> float:
+def _vb_constant(n: float, k: int, prior: dict[str, Tensor | float]) -> float:
     """The terms scikit-learn's bound leaves out because they are constant for a fixed ``k``.
 
     At the M-step's optimum the bound collapses to ``H[q(Z)] + ln Z_post / Z_prior - N r/2
@@ -656,6 +679,8 @@ def vb_gmm(
     reg_covar: float = 1e-6,
     tol: float = 1e-3,
     max_iter: int = 100,
+    point_weight: float = 1.0,
+    dtype: torch.dtype = torch.float64,
 ) -> VBGMMResult:
     """Variational Bayesian Gaussian mixture with diagonal covariances, from hard labels.
 
@@ -666,12 +691,22 @@ def vb_gmm(
     (``ddof=1``) as ``covariance_prior``), initialised, as its ``init_params="kmeans"``, by
     an M-step on the one-hot responsibilities of ``labels``, then EM until the bound changes
     by less than ``tol``. Written in torch (matrix products over points and components) so it
-    runs where ReSiReg Full's points are; computed in float64.
+    runs where ReSiReg Full's points are; computed in float64 unless ``dtype`` says otherwise.
 
     Args:
         x: ``[N, r]`` points.
         labels: ``[N]`` initial component of every point (e.g. :func:`kmeans`' labels).
         n_components: ``k``.
+        point_weight: how many points each row of ``x`` stands for (a frequency weight: the
+            fit equals scikit-learn's on ``x`` with every row repeated that many times, for an
+            integer weight). A uniform subsample of ``M`` of ``N`` points with weight ``N / M``
+            estimates the whole set's bound, whose data terms grow with ``N`` while the
+            prior's do not (the stochastic-variational scaling of Hoffman et al., 2013);
+            unweighted, a subsample's bound weighs the prior ``N / M`` times too much and
+            favours too few components.
+        dtype: of the EM arithmetic; float64 as scikit-learn (the bound is a sum over all
+            points), float32 where only the comparison of bounds matters (their differences
+            between counts are thousands of nats, float32's rounding of the sum a few).
 
     Returns:
         :class:`VBGMMResult`; ``elbo`` is the whole bound (scikit-learn's ``lower_bound_``
@@ -680,34 +715,39 @@ def vb_gmm(
     """
     if x.ndim != 2 or x.shape[0] < 2:
         raise ValueError(f"vb_gmm expects x of shape [N >= 2, r], got shape {tuple(x.shape)}")
-    x = x.double()
+    if not (math.isfinite(point_weight) and point_weight > 0):
+        raise ValueError(f"point_weight={point_weight!r}: expected a finite number > 0")
+    x = x.to(dtype)
     n, r = x.shape
     k = int(n_components)
-    x2 = x.square()
+    w = float(point_weight)
+    xx = torch.cat([x, x.square()], 1)
+    mean = x.mean(0)
     prior: dict[str, Tensor | float] = {
         "alpha": 1.0 / k
         if weight_concentration_prior is None
         else float(weight_concentration_prior),
         "beta": float(mean_precision_prior),
-        "mean": x.mean(0),
+        "mean": mean,
         "dof": float(r if degrees_of_freedom_prior is None else degrees_of_freedom_prior),
-        "cov": x.var(0, correction=1),
+        # the per-feature variance (ddof = 1) of the weighted set: sum w (x - m)^2 / (n w - 1)
+        "cov": (x - mean).square().sum(0) * (w / (n * w - 1.0)),
     }
     resp = F.one_hot(labels.long().to(x.device), k).to(x.dtype)
-    params = _vb_m_step(x, x2, resp, prior, reg_covar)
+    params = _vb_m_step(xx, resp, prior, reg_covar, w)
     bound = -math.inf
     converged, n_iter = False, 0
     for n_iter in range(1, max_iter + 1):  # noqa: B007 - n_iter is reported
         previous = bound
-        log_resp = _vb_e_step(x, x2, params)
-        params = _vb_m_step(x, x2, log_resp.exp(), prior, reg_covar)
-        bound = float(_vb_lower_bound(log_resp, params))
+        log_resp, resp = _vb_e_step(xx, params)
+        params = _vb_m_step(xx, resp, prior, reg_covar, w)
+        bound = float(_vb_lower_bound(log_resp, resp, params, w))
         if abs(bound - previous) < tol:
             converged = True
             break
     alpha = params["alpha"]
     return VBGMMResult(
-        elbo=bound + _vb_constant(n, k, prior),
+        elbo=bound + _vb_constant(n * w, k, prior),
         lower_bound=bound,
         n_iter=n_iter,
         converged=converged,
@@ -716,31 +756,41 @@ def vb_gmm(
     )
 
 
-def elbo_prototype_count(
+def elbo_fits(
     points: Tensor,
     candidates: Sequence[int],
     seed: int = 0,
     *,
     max_points: int = 4096,
     max_iter: int = 100,
-    tol: float = 1e-3,
-) -> int:
-    """The prototype count among ``candidates`` whose mixture has the largest evidence lower
-    bound (docs/design.md section 4.4b).
+    tol: float = 1e-4,
+    kmeans_iter: int = 20,
+    dtype: torch.dtype = torch.float32,
+) -> dict[int, VBGMMResult]:
+    """The variational mixture of every candidate count, fitted for
+    :func:`elbo_prototype_count` (docs/design.md section 4.4b).
 
     For every candidate ``k``: :func:`kmeans` (seed ``seed``) on the points, then
-    :func:`vb_gmm` from its labels; the count of the largest :attr:`VBGMMResult.elbo` wins
-    (the smaller count on a tie). The bound is fitted on at most ``max_points`` points drawn
-    uniformly without replacement (seeded): its per-point value is estimated as well from a
-    few thousand points as from ReSiReg Full's tens of thousands, at a fraction of the cost.
+    :func:`vb_gmm` from its labels. Above ``max_points`` points the mixtures are fitted on a
+    uniform subsample of ``M = max_points`` (seeded, without replacement), each point standing
+    for ``N / M`` (``vb_gmm``'s ``point_weight``), so that every :attr:`VBGMMResult.elbo`
+    estimates the bound of all ``N`` points. Unweighted, the subsample's bound would weigh the
+    priors ``N / M`` times too heavily and favour too few prototypes.
 
     Args:
         points: ``[N, r]`` (ReSiReg Full's normalised PCA points).
-        candidates: prototype counts to choose from (each ``>= 1`` and ``<=`` the points used).
+        candidates: prototype counts (each ``>= 1`` and ``<=`` the points fitted).
         seed: seed of the subsample and of k-means++.
+        max_points: the subsample's size ``M``.
+        max_iter: EM iterations at most per candidate.
+        tol: EM stops once the bound changes by less than ``tol`` nats per point (of ``N``):
+            the bounds of different counts differ by nats per point, far above it.
+        kmeans_iter: Lloyd iterations at most of the k-means that starts each fit (EM
+            refines the start; a fully converged k-means does not change the choice).
+        dtype: of the EM arithmetic (see :func:`vb_gmm`).
 
     Returns:
-        The chosen count (a member of ``candidates``).
+        ``{k: fit}`` in increasing ``k``.
     """
     if points.ndim != 2:
         raise ValueError(f"elbo_prototype_count expects points [N, r], got {tuple(points.shape)}")
@@ -749,6 +799,7 @@ def elbo_prototype_count(
         raise ValueError(f"candidates={list(candidates)}: give at least one count >= 1")
     n = points.shape[0]
     x = points.float()
+    weight = n / min(n, max_points)  # each subsampled point stands for N / M (see vb_gmm)
     if n > max_points:
         perm = torch.randperm(n, generator=_generator(torch.device("cpu"), seed))[:max_points]
         x = x[perm.to(x.device)]
@@ -756,10 +807,30 @@ def elbo_prototype_count(
         raise ValueError(
             f"candidates={counts}: {counts[-1]} prototypes exceed the {x.shape[0]} points fitted"
         )
-    best, best_elbo = counts[0], -math.inf
+    fits = {}
     for k in counts:
-        labels = kmeans(x, k, seed=seed).labels
-        elbo = vb_gmm(x, labels, k, max_iter=max_iter, tol=tol).elbo
-        if elbo > best_elbo:
-            best, best_elbo = k, elbo
-    return best
+        labels = kmeans(x, k, seed=seed, max_iter=kmeans_iter).labels
+        fits[k] = vb_gmm(x, labels, k, max_iter=max_iter, tol=tol * n, point_weight=weight,
+                         dtype=dtype)  # fmt: skip
+    return fits
+
+
+def elbo_prototype_count(
+    points: Tensor, candidates: Sequence[int], seed: int = 0, **options: Any
+) -> int:
+    """The prototype count among ``candidates`` whose mixture has the largest evidence lower
+    bound (the smaller count on a tie; docs/design.md section 4.4b).
+
+    Args:
+        points: ``[N, r]`` (ReSiReg Full's normalised PCA points).
+        candidates: prototype counts to choose from (each ``>= 1`` and ``<=`` the points used).
+        seed: seed of the subsample and of k-means++.
+        options: :func:`elbo_fits`' keywords (subsample size, EM and k-means iterations,
+            tolerance, dtype).
+
+    Returns:
+        The chosen count (a member of ``candidates``).
+    """
+    fits = elbo_fits(points, candidates, seed, **options)
+    best = max(fits.values(), key=lambda fit: fit.elbo)
+    return min(k for k, fit in fits.items() if fit.elbo == best.elbo)
