@@ -46,9 +46,11 @@ def test_every_listed_module_imports_in_the_dev_install(module):
 def test_the_encoders_extra_and_dev_install_every_listed_module():
     """Each listed module's distribution, as the installed packages' own metadata names it
     (importlib.metadata, independent of the list), is a requirement of the encoders extra,
-    which dev includes; distutils (stdlib here) is setuptools' from Python 3.12 on."""
+    which dev includes, or a core dependency (transformers); distutils (stdlib here) is
+    setuptools' from Python 3.12 on."""
     providers = importlib.metadata.packages_distributions()
-    encoders, dev = _names(EXTRAS["encoders"]), _names(EXTRAS["dev"])
+    core = _names(PYPROJECT["project"]["dependencies"])
+    encoders, dev = _names(EXTRAS["encoders"]) | core, _names(EXTRAS["dev"]) | core
     for needs in ENCODER_IMPORTS.values():
         for n in needs:
             if n.module in sys.stdlib_module_names:  # distutils before Python 3.12
@@ -116,6 +118,8 @@ def test_the_core_install_is_what_resireg_imports_and_train_carries_the_rest():
         assert dists & (core | dev), f"resireg imports {module}; in no extra"
     for module, dists in _imported_distributions("resireg_train").items():
         assert dists & (core | train | dev), f"resireg_train imports {module}; in no extra"
+    # the 25M VLM's SigLIP 2 tokenizer is open_clip's HFTokenizer: text queries need it
+    assert "transformers" in core
     assert {"lightning", "hydra-core", "datasets"} <= train
     assert not {"lightning", "hydra-core", "datasets"} & core
     assert train <= dev
