@@ -18,8 +18,8 @@ from resireg_train.cli.eval import evaluate
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.engine import ClassPrototypes, eval_loader
-from resireg_train.evaluation import TaskProtocol
-from resireg_train.tasks import TASK_SPECS, TaskSpec, find_task
+from resireg_train.evaluation import TaskProtocol, require_task
+from resireg_train.tasks import TASK_SPECS, TaskSpec
 from resireg_train.validation import ConfigError, validate_eval
 
 SYNTHETIC = {"kind": "synthetic", "size": 5, "image_size": [32, 48], "seed": 3, "short_side": 32}
@@ -90,7 +90,7 @@ def test_a_task_registered_through_the_table_runs_through_resireg_eval(
     with pytest.raises(
         ConfigError, match=r"task='frequency': expected one of \['ovss', 'scannet3d'\]"
     ):
-        find_task("frequency")
+        require_task("frequency")
     target = f"{__name__}:{_FrequencyProtocol.__name__}"
     monkeypatch.setitem(TASK_SPECS, "frequency", TaskSpec(
         "frequency", target, "image", None, prior=False, layers=False, summary="class frequencies",

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from resireg_train.results import update_results
+from resireg_train.tasks import TaskSpec, find_task, task_names
 from resireg_train.validation import ConfigError
 
 if TYPE_CHECKING:
@@ -25,17 +26,27 @@ if TYPE_CHECKING:
 
     from resireg.models import DenseEncoder
     from resireg_train.engine import EvalEngine, StageTimer
-    from resireg_train.tasks import TaskSpec
 
 __all__ = [
     "NothingScoredError",
     "TaskProtocol",
     "elbo_counts",
     "require_scored",
+    "require_task",
     "write_results",
 ]
 
 log = logging.getLogger(__name__)
+
+
+def require_task(name: Any, key: str = "task") -> TaskSpec:
+    """The table entry of task ``name`` (:data:`resireg_train.tasks.TASK_SPECS`); an unknown
+    one is a :class:`ConfigError` naming ``<key>=<name>`` and the known tasks."""
+    spec = find_task(name)
+    if spec is None:
+        raise ConfigError(f"{key}={name!r}: expected one of {task_names()} (the tasks of "
+                          "resireg_train.tasks.TASK_SPECS)")  # fmt: skip
+    return spec
 
 
 class TaskProtocol:

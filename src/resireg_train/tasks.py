@@ -4,7 +4,8 @@ them (docs/design.md section 10.4).
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
 (:func:`resireg_train.validation.validate_eval`) reads the task names and each task's dataset
 kinds and configuration rules from here before anything heavy loads, and ``resireg-eval``
-(:func:`resireg_train.cli.eval.evaluate`) builds the entry's protocol class
+(:func:`resireg_train.cli.eval.evaluate`, through
+:func:`resireg_train.evaluation.require_task`) builds the entry's protocol class
 (:class:`resireg_train.evaluation.TaskProtocol`: ``check``, ``build``, ``run``, ``results``),
 named lazily as ``"module:Class"``. Adding a task: one protocol class, one entry here
 (docs/design.md section 13).
@@ -78,16 +79,10 @@ def task_names() -> list[str]:
     return list(TASK_SPECS)
 
 
-def find_task(name: Any, key: str = "task") -> TaskSpec:
-    """The entry of ``name``; an unknown one is a ``ConfigError`` naming ``<key>=<name>`` and
-    the known tasks."""
-    spec = TASK_SPECS.get(str(name))
-    if spec is None:
-        from resireg_train.validation import ConfigError
-
-        raise ConfigError(f"{key}={name!r}: expected one of {task_names()} (the tasks of "
-                          "resireg_train.tasks.TASK_SPECS)")  # fmt: skip
-    return spec
+def find_task(name: Any) -> TaskSpec | None:
+    """The entry of ``name``, ``None`` for a name the table lacks (the config check's error,
+    and :func:`resireg_train.evaluation.require_task`'s)."""
+    return TASK_SPECS.get(str(name))
 
 
 def task_config_errors(
@@ -98,7 +93,7 @@ def task_config_errors(
     (``prior_variants`` / ``layer_variants``: the ``+prior`` / ``@layer:`` ones of ``variants``):
     an unknown task, a dataset kind the task does not score (or one another task claims), and
     ``+prior`` / ``@layer:`` configurations a task does not score."""
-    spec = TASK_SPECS.get(str(name))
+    spec = find_task(name)
     if spec is None:
         return [f"{key}={name!r}: expected one of {task_names()} (resireg_train.tasks)"]
     errors = []

@@ -44,10 +44,9 @@ from resireg_train.cli.task import (
     run_task,
     top_level_keys,
 )
-from resireg_train.evaluation import NothingScoredError, write_results
+from resireg_train.evaluation import NothingScoredError, require_task, write_results
 from resireg_train.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
-from resireg_train.tasks import find_task
 from resireg_train.validation import (
     ENCODER_SWEEPS,
     ConfigError,
@@ -157,7 +156,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", *SETTING_KEYS)}
     params["task"] = str(cfg.get("task", "ovss"))
     params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
-    spec = find_task(params["task"])  # the task's protocol (resireg_train.tasks)
+    spec = require_task(params["task"])  # the task's protocol (resireg_train.tasks)
     update_results(out, params=params, settings_from_export=from_export)
     # The models, datasets and torch load only now, after the config check.
     import torch
