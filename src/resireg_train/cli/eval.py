@@ -11,7 +11,12 @@
     resireg-eval task=scannet3d dataset=scannet encoder=radseg paths.data_dir=/datasets  # 3D
     resireg-eval sweep=table2 paths.data_dir=/datasets          # 3D mapping: the paper's Table 2
 
-The scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
+``task`` names an entry of the task table (:data:`resireg_train.tasks.TASK_SPECS`: ``ovss``,
+``scannet3d``) whose protocol (:class:`resireg_train.evaluation.TaskProtocol`) this module
+drives with no task switch of its own: ``check`` the sources, load the encoder, ``build`` the
+dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.
+write_results` with the task's ``results``); docs/design.md section 10.4.
+The 2D scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
 model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
 ReSiReg's parameters (``variants``, ``lite.*``, ``full.*``) come from the ``resireg``
 config group, which the training callback shares. An export written by ``resireg-train``
