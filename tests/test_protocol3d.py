@@ -519,7 +519,7 @@ def test_gt_resolution_and_the_option_checks(rooms):
     with pytest.raises(ValueError, match=r"dataset\.resize='bilinear'"):
         ScanNetFrames(rooms, SCENES[:1], resize="bilinear")
     with pytest.raises(ValueError, match=r"points='voxel'"):
-        MappingProtocol(points="voxel")
+        MappingProtocol.from_conf(points="voxel")
 
     from hydra import compose, initialize_config_dir
 
@@ -546,13 +546,21 @@ def test_gt_resolution_and_the_option_checks(rooms):
 def test_defaults_and_allowed_values_are_the_configs():
     """One source per value: the task's and the reader's defaults equal conf/dataset/
     scannet.yaml, and the values validation accepts are the engine's."""
+    import dataclasses
     import inspect
 
     from resireg_train import validation
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
-    for name, value in MappingProtocol().__dict__.items():
+    # The task's settings have no Python default (conf/ is their one source): the Python API's
+    # are read from the yaml, and an entry missing one is an error naming it.
+    for f in dataclasses.fields(MappingProtocol):
+        assert f.default is dataclasses.MISSING, f.name
+    for name, value in dataclasses.asdict(MappingProtocol.from_conf()).items():
         assert spec[name] == value, name
+    assert MappingProtocol.from_conf(voxel_size=0.2).voxel_size == 0.2
+    with pytest.raises(ValueError, match=r"dataset\.knn"):
+        MappingProtocol.from_spec({k: v for k, v in spec.items() if k != "knn"})
     params = inspect.signature(ScanNetFrames).parameters
     for name in ("frame_skip", "image_size", "gt_resolution", "resize", "intrinsics",
                  "class_names", "classes_to_ignore", "short_side", "limit"):  # fmt: skip

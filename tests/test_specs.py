@@ -228,8 +228,9 @@ def _compose_train(*overrides):
 
 def test_library_defaults_equal_the_conf_files_they_stand_for():
     """conf/ is the source of defaults; the Python API's own defaults equal it: the caption
-    cache of every text tower (``conf/model/text/*.yaml``) and SAM 2's automatic-mask settings
-    (``conf/prior/sam2.yaml``, composed as resireg-eval does)."""
+    cache of every text tower (``conf/model/text/*.yaml``), SAM 2's automatic-mask settings
+    (``conf/prior/sam2.yaml``, composed as resireg-eval does) and the evaluation engines' batch
+    size and temperature (``conf/eval.yaml``)."""
     from resireg.models.vlm.text import CAPTION_CACHE_SIZE, FrozenTextTower
     from resireg.priors.sam import SamPrior
     from resireg.priors.settings import SAM_DEFAULTS, SAM_MODEL
@@ -244,6 +245,15 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
     assert keys == {"model", *SAM_DEFAULTS}
     assert {k: signature[k].default for k in keys} == {k: prior[k] for k in keys}
     assert prior["model"] == SAM_MODEL
+    # the evaluation engines' pass settings (conf/eval.yaml; num_workers is the Python API's
+    # own: no worker processes unless asked)
+    from resireg_train.mapping.engine import MappingTask
+    from resireg_train.ovss.engine import OVSSTask
+
+    evaluation = _eval_config()
+    for engine in (OVSSTask, MappingTask):
+        assert inspect.signature(engine).parameters["batch_size"].default == evaluation.batch_size
+    assert inspect.signature(OVSSTask).parameters["temperature"].default == evaluation.temperature
 
 
 def test_the_training_module_has_no_default_that_shadows_conf():

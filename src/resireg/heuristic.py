@@ -16,6 +16,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from resireg.specs.rules import check_batch_size
+
 __all__ = ["PrototypeHeuristic", "HEURISTIC_ENV"]
 
 HEURISTIC_ENV = "RESIREG_PROTOTYPE_HEURISTIC"
@@ -31,8 +33,7 @@ class PrototypeHeuristic:
     max_prototypes: int = 100_000
 
     def __call__(self, batch_size: int) -> int:
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        check_batch_size(batch_size)
         n = round(self.intercept + self.slope * math.log(batch_size))
         return int(min(self.max_prototypes, max(self.min_prototypes, n)))
 

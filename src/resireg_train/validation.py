@@ -26,9 +26,19 @@ from omegaconf import DictConfig, OmegaConf
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.sources import export_source_problem
 from resireg.specs.encoders import ENCODER_SPECS, Needs, find_encoder
-from resireg.specs.rules import Rule, integer, interval, is_int, is_num, number, optional_int
+from resireg.specs.rules import (
+    BATCH_SIZE,
+    Rule,
+    integer,
+    interval,
+    is_int,
+    is_num,
+    number,
+    optional_int,
+)
 from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
+from resireg_train.tasks import TASK_SPECS, task_config_errors
 
 __all__ = [
     "ADDABLE",
@@ -122,7 +132,7 @@ def _number(minimum: float, strict: bool = False) -> Rule:
 # key -> (check, what is expected). A key absent from the config is not checked.
 _RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
-    "data.batch_size": _integer(1),
+    "data.batch_size": BATCH_SIZE,
     "data.steps_per_epoch": _integer(1),
     "data.crop_size": _integer(16),
     "data.min_image_size": _integer(1),
@@ -176,8 +186,9 @@ def _size(v: Any) -> bool:
     return isinstance(v, list) and len(v) == 2 and all(_int(s) and s >= 1 for s in v)
 
 
-#: resireg-eval's tasks: 2D OVSS and 3D semantic mapping on ScanNet (docs/design.md section 10).
-TASKS = ("ovss", "scannet3d")
+#: resireg-eval's tasks (the table :data:`resireg_train.tasks.TASK_SPECS`; docs/design.md
+#: section 10.4).
+TASKS = tuple(TASK_SPECS)
 
 
 def _ovss_rules(prefix: str) -> dict[str, Rule]:
@@ -196,7 +207,7 @@ def _ovss_rules(prefix: str) -> dict[str, Rule]:
             for name, spec in VARIANT_SPECS.items()
             for key, rule in spec.params.items()
         },  # fmt: skip
-        f"{prefix}batch_size": _integer(1),
+        f"{prefix}batch_size": BATCH_SIZE,
         f"{prefix}num_workers": _integer(0),
         f"{prefix}precision": (lambda v: str(v) in PRECISIONS, f"one of {sorted(PRECISIONS)}"),
         f"{prefix}temperature": _number(0, strict=True),
@@ -234,7 +245,7 @@ _EVAL_RULES: dict[str, Rule] = {
         "null (the evaluation's device), auto, cpu, cuda, cuda:N or mps",
     ),
     **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.priors.settings
-    "task": (lambda v: v in TASKS, f"one of {list(TASKS)}"),
+    "task": (lambda v: v in TASK_SPECS, f"one of {list(TASK_SPECS)} (resireg_train.tasks)"),
     "report": (
         lambda v: v is None or (isinstance(v, list) and all(x in REPORT_SECTIONS for x in v)),
         f"null or a list of {list(REPORT_SECTIONS)}",
@@ -479,11 +490,6 @@ def validate_eval(
             value = _get(cfg, key)
             if value is not _MISSING and not check(value):
                 errors.append(f"{key}={value!r}: expected {expected}")
-    if task == "scannet3d" and kind != "scannet":
-        errors.append(f"dataset.kind={kind!r}: task=scannet3d needs dataset=scannet (or another "
-                      "config of kind scannet)")  # fmt: skip
-    if task in ("ovss", _MISSING) and kind == "scannet":
-        errors.append("task='ovss': dataset.kind='scannet' is a 3D mapping set; add task=scannet3d")
     variants = _get(cfg, "variants")
     with_prior = [v for v in variants if takes_prior(str(v))] if isinstance(variants, list) else []
     if with_prior and _get(cfg, "prior") in (None, _MISSING):
@@ -491,10 +497,11 @@ def validate_eval(
             f"prior=None: variants {with_prior} take a segmentation prior; choose one "
             "(prior=sam2, conf/prior/) or drop +prior"
         )
-    if with_prior and task == "scannet3d":
-        errors.append(f"variants={variants!r}: +prior configurations are scored by task=ovss only")
-    if task == "scannet3d" and isinstance(variants, list) and any(map(_on_layer, variants)):
-        errors.append(f"variants={variants!r}: @layer: configurations are scored by task=ovss only")
+    # the task's dataset kinds and configurations (resireg_train.tasks; an unknown task is the
+    # "task" rule's error)
+    on_layer = [v for v in variants if _on_layer(v)] if isinstance(variants, list) else []
+    if (task := "ovss" if task is _MISSING else task) in TASK_SPECS:
+        errors += task_config_errors(task, kind, with_prior, on_layer, variants)
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))
 

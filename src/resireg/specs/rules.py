@@ -14,7 +14,9 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 __all__ = [
+    "BATCH_SIZE",
     "Rule",
+    "check_batch_size",
     "check_kwargs",
     "checked",
     "integer",
@@ -84,3 +86,15 @@ def check_kwargs(rules: Mapping[str, Rule], values: Mapping[str, Any]) -> None:
     for name, value in values.items():
         if name in rules:
             checked(name, value, rules[name])
+
+
+#: Images (3D: frames) per batch: the rule of every ``batch_size`` (the config checks'
+#: ``batch_size`` keys and :func:`check_batch_size`, which every loader, task and the prototype
+#: heuristic call).
+BATCH_SIZE: Rule = integer(1)
+
+
+def check_batch_size(value: Any, name: str = "batch_size") -> int:
+    """``value`` if it is a batch size (:data:`BATCH_SIZE`), else ``ValueError("<name> must be an
+    integer >= 1, got <value>")``: the one batch-size check of the library and the engines."""
+    return checked(name, value, BATCH_SIZE)

@@ -11,7 +11,12 @@
     resireg-eval task=scannet3d dataset=scannet encoder=radseg paths.data_dir=/datasets  # 3D
     resireg-eval sweep=table2 paths.data_dir=/datasets          # 3D mapping: the paper's Table 2
 
-The scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
+``task`` names an entry of the task table (:data:`resireg_train.tasks.TASK_SPECS`: ``ovss``,
+``scannet3d``) whose protocol (:class:`resireg_train.evaluation.TaskProtocol`) this module
+drives with no task switch of its own: ``check`` the sources, load the encoder, ``build`` the
+dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.
+write_results` with the task's ``results``); docs/design.md section 10.4.
+The 2D scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
 model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
 ReSiReg's parameters (``variants``, ``lite.*``, ``full.*``) come from the ``resireg``
 config group, which the training callback shares. An export written by ``resireg-train``
@@ -44,6 +49,7 @@ from resireg_train.cli.task import (
     run_task,
     top_level_keys,
 )
+from resireg_train.evaluation import NothingScoredError, require_task, write_results
 from resireg_train.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
 from resireg_train.results import update_results
 from resireg_train.validation import (
@@ -59,7 +65,7 @@ from resireg_train.validation import (
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["evaluate", "main"]
+__all__ = ["NothingScoredError", "evaluate", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -144,25 +150,6 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     return run_task(cfg, _evaluate)
 
 
-def _check_sources(params: dict[str, Any], variants: Any) -> None:
-    """Fail on a missing dataset folder or segmentation-prior model before the encoder loads
-    (a large backbone takes minutes): the builders' own checks, run early."""
-    from resireg.variant_names import takes_prior
-
-    if params["task"] == "scannet3d":
-        from resireg_train.data.scannet import check_scannet_spec
-
-        check_scannet_spec(params["dataset"], "dataset")
-    else:
-        from resireg_train.data.segmentation import check_segmentation_source
-
-        check_segmentation_source(params["dataset"], "dataset")
-    if any(takes_prior(v) for v in variants):
-        from resireg.priors import SAM_MODEL, check_sam_source
-
-        check_sam_source(str(params["prior"].get("model") or SAM_MODEL), "prior")
-
-
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
@@ -174,111 +161,28 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", *SETTING_KEYS)}
     params["task"] = str(cfg.get("task", "ovss"))
     params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
+    spec = require_task(params["task"])  # the task's protocol (resireg_train.tasks)
     update_results(out, params=params, settings_from_export=from_export)
     # The models, datasets and torch load only now, after the config check.
     import torch
 
     from resireg.models import build_encoder, count_parameters
-    from resireg.variant_names import takes_prior
     from resireg.variants import build_variants
-    from resireg_train.data.segmentation import build_segmentation_set
-    from resireg_train.ovss.engine import OVSSTask, StageTimer
-    from resireg_train.protocol import protocol_record
+    from resireg_train.engine import StageTimer
 
     torch.manual_seed(cfg.seed)
     variants = build_variants(list(cfg.variants), params)
-    _check_sources(params, variants)
-    spec = encoder_kwargs(params["encoder"])
-    encoder = build_encoder(**spec, device=_device(cfg.device), config_key="encoder")
-    n_parameters = count_parameters(encoder)
+    task = spec.load()(spec, cfg, params, out)
+    task.check(variants)  # the dataset's and the prior's sources, before the encoder loads
+    encoder = build_encoder(**encoder_kwargs(params["encoder"]), device=_device(cfg.device),
+                            config_key="encoder")  # fmt: skip
     update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,
                                  "third_party": bool(cfg.encoder.third_party),
-                                 "parameters": n_parameters})  # fmt: skip
-    if params["task"] == "scannet3d":  # 3D semantic mapping (docs/design.md section 10)
-        from resireg_train.mapping.engine import run_scannet3d
-
-        return _require_scored(run_scannet3d(cfg, out, encoder, variants, params), "frame")
-    patch = encoder.input_rule.patch_size
-    dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
-    update_results(out, protocol=protocol_record(params, dataset))
-    task = OVSSTask(dataset, cfg.batch_size, cfg.num_workers, temperature=cfg.temperature)
-    try:  # a setting the dataset's batches cannot take (more prototypes than points)
-        task.check_variants(variants)
-    except ValueError as err:
-        raise ConfigError(str(err)) from err
-    cache = None
-    if cfg.get("feature_cache"):
-        from resireg_train.cache import FeatureCache
-        from resireg_train.ovss.engine import requested_layers
-
-        key = FeatureCache.key_for(encoder, params["encoder"], params["dataset"], patch,
-                                   str(cfg.precision), requested_layers(encoder, variants))  # fmt: skip
-        cache = FeatureCache(cfg.feature_cache, key, dataset.describe)
-        log.info("feature cache %s: %d images stored", cache.folder, len(cache))
+                                 "parameters": count_parameters(encoder)})  # fmt: skip
+    update_results(out, **task.build(encoder, variants))
     timer = StageTimer()
-    provider = None
-    if any(takes_prior(v) for v in variants):  # SAM loads only for a +prior configuration
-        from resireg.priors import build_prior
-
-        provider = build_prior(params["prior"], device=encoder.device, key="prior")
-    result = task.run(encoder, variants, precision=str(cfg.precision), timer=timer, cache=cache,
-                      prior=provider)  # fmt: skip
-    scores = result.scores()
-    for name, value in scores.items():
-        log.info("%s = %.4f", name, value)
-    if result.skipped:
-        log.warning(result.skip_report())
-    classes = dataset.classes
-    record = update_results(
-        out,
-        final=scores,
-        per_class_iou={
-            v: dict(zip(classes, ious, strict=True)) for v, ious in result.per_class_iou().items()
-        },  # fmt: skip
-        images=result.images,
-        skipped=result.skipped,
-        skipped_samples=[s.as_dict() for s in result.skipped_samples],
-        batch_sizes={str(k): v for k, v in result.batch_sizes.items()},
-        **_elbo_counts(variants),
-        seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
-        **({"feature_cache": cache.summary()} if cache is not None else {}),
-    )
-    _require_scored(record, "image")
-    return update_results(out, status="completed")
-
-
-def _elbo_counts(variants: dict[str, Any]) -> dict[str, Any]:
-    """``{"elbo_prototypes": {configuration: {count: batches}}}`` of the ``full.n_prototypes=
-    elbo`` configurations (the count each batch was given, docs/design.md section 4.4b); ``{}``
-    when none ran."""
-    from collections import Counter
-
-    counts = {name: dict(sorted(Counter(str(n) for n in v.chosen).items(), key=lambda c: int(c[0])))
-              for name, v in variants.items() if getattr(v, "chosen", None)}  # fmt: skip
-    return {"elbo_prototypes": counts} if counts else {}
-
-
-class NothingScoredError(RuntimeError):
-    """Every image (3D: frame) of the dataset was skipped: there is no score to report."""
-
-
-def _require_scored(record: dict[str, Any], unit: str) -> dict[str, Any]:
-    """``record`` (a run's ``results.json``) if it scored at least one ``unit``; else raise
-    :class:`NothingScoredError` with the skip counts: a score over nothing (mIoU NaN) is a
-    failed run, never a completed one."""
-    if record.get("images", 0) > 0:
-        return record
-    skipped, dropped = int(record.get("skipped") or 0), int(record.get("frames_dropped") or 0)
-    samples = record.get("skipped_samples") or []
-    counts = f"{skipped} of {skipped + dropped} {unit}s skipped (unreadable or invalid)"
-    if dropped:
-        counts += f", {dropped} dropped (non-finite pose)"
-    first = f"; the first: {samples[0]['file']}: {samples[0]['reason']}" if samples else ""
-    name = (record.get("params") or {}).get("dataset", {}).get("name")
-    raise NothingScoredError(
-        f"dataset={name}: no {unit} was scored: {counts}{first} (results.json's "
-        "skipped_samples names each with its reason)"
-    )
+    result = task.run(encoder, variants, timer)
+    return write_results(out, task, result, variants, timer)
 
 
 main = hydra_entry_point("eval", evaluate)

@@ -231,7 +231,7 @@ def _reported_types() -> tuple[type[BaseException], ...]:
     types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError]
     for module, name in (
         ("resireg_train.training.checkpoints", "CheckpointError"),
-        ("resireg_train.cli.eval", "NothingScoredError"),
+        ("resireg_train.evaluation", "NothingScoredError"),
         ("resireg.models.hub", "WeightsUnavailableError"),
     ):
         cls = getattr(sys.modules.get(module), name, None)

@@ -61,6 +61,7 @@ from PIL import Image
 from resireg.mapping import nearest_downsample, scale_intrinsics
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import NYU40_CLASSES
+from resireg.specs.rules import check_batch_size
 from resireg_train.data.segmentation import IGNORE_INDEX, SkippedSample
 from resireg_train.files import DECODE_ERRORS
 
@@ -417,8 +418,7 @@ class ScanNetFrames(torch.utils.data.Dataset):
     def batches(self, batch_size: int) -> list[list[int]]:
         """Consecutive frames of one scene per batch (a scene's last batch may be smaller):
         ReSiReg Full's batch = scene is a video window."""
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        check_batch_size(batch_size)
         return [
             items[i : i + batch_size]
             for items in self.frames_per_scene

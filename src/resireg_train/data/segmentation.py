@@ -42,6 +42,7 @@ from PIL import Image, ImageDraw
 from resireg.models.hub import require_online
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
+from resireg.specs.rules import check_batch_size
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 from resireg_train.files import DECODE_ERRORS
 
@@ -209,8 +210,7 @@ class SegmentationSet(torch.utils.data.Dataset):
     def batches(self, batch_size: int, rank: int = 0, world_size: int = 1) -> list[list[int]]:
         """Index batches whose images share a resized size (see the module docstring); rank
         ``r`` of ``world_size`` takes batches ``r, r + world_size, ...``."""
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+        check_batch_size(batch_size)
         groups: dict[tuple[int, int], list[int]] = {}
         batches: list[list[int]] = []
         for index, size in self.grid_sizes().items():

@@ -50,7 +50,6 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from torch.utils.data import DataLoader
 
 from resireg.mapping import (
     LATTICES,
@@ -66,17 +65,10 @@ from resireg.models import DenseEncoder
 from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
+from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference
 from resireg_train.mapping import metric as metrics
-from resireg_train.ovss.engine import (
-    OVSSTask,
-    StageTimer,
-    _no_timer,
-    check_variants_on,
-    inference,
-)
 
-__all__ = ["GT_RULES", "POINTS", "TASK_KEYS", "MappingProtocol", "MappingResult", "MappingTask",
-           "run_scannet3d"]  # fmt: skip
+__all__ = ["GT_RULES", "POINTS", "TASK_KEYS", "MappingProtocol", "MappingResult", "MappingTask"]
 
 #: How ignored ground-truth pixels enter the voxel labels (module docstring).
 GT_RULES = ("rayfronts", "vote", "drop")
@@ -87,8 +79,10 @@ _GT_THRESHOLD, _GT_EPS = 0.1, 1e-10
 
 @dataclass(frozen=True)
 class MappingProtocol:
-    """The task's settings (the ``conf/dataset/scannet.yaml`` keys of the same names, which
-    hold the protocol's values and document each; a test keeps these defaults equal to them).
+    """The task's settings: the ``conf/dataset/scannet.yaml`` keys of the same names, which
+    hold the protocol's values and document each. No field has a Python default: ``conf/`` is
+    their one source (:meth:`from_spec` takes them from a dataset entry, :meth:`from_conf` from
+    a ``conf/dataset/`` file).
 
     Attributes:
         voxel_size: voxel edge in metres (feature maps and ground truth).
@@ -101,14 +95,14 @@ class MappingProtocol:
         metric: :data:`resireg_train.mapping.metric.METRICS`.
     """
 
-    voxel_size: float = 0.05
-    lattice: str = "round"
-    gt_unlabelled: str = "rayfronts"
-    points: str = "patch"
-    knn: int = 1
-    prediction_threshold: float | None = None
-    prompt_denoising: float | None = None
-    metric: str = "rayfronts"
+    voxel_size: float
+    lattice: str
+    gt_unlabelled: str
+    points: str
+    knn: int
+    prediction_threshold: float | None
+    prompt_denoising: float | None
+    metric: str
 
     def __post_init__(self) -> None:
         for name, allowed in (("lattice", LATTICES), ("gt_unlabelled", GT_RULES),
@@ -132,6 +126,25 @@ class MappingProtocol:
                 "conf/dataset/scannet.yaml holds every one)"
             )
         return cls(**{f.name: spec[f.name] for f in fields(cls)})
+
+    @classmethod
+    def from_conf(cls, dataset: str = "scannet", **settings: Any) -> MappingProtocol:
+        """The settings of ``conf/dataset/<dataset>.yaml`` (the project's ``conf/``,
+        :data:`resireg_train.paths.CONFIG_DIR`), ``settings`` in place of its values: the
+        Python API's defaults are the config's, read from it rather than typed again."""
+        from omegaconf import OmegaConf
+
+        from resireg_train.paths import CONFIG_DIR
+
+        path = CONFIG_DIR / "dataset" / f"{dataset}.yaml"
+        if not path.is_file():
+            raise FileNotFoundError(f"dataset={dataset!r}: no {path}")
+        unknown = sorted(set(settings) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"unknown settings {unknown}; the task's are {list(TASK_KEYS)}")
+        spec = {k: v for k, v in OmegaConf.to_container(OmegaConf.load(path)).items()
+                if k in TASK_KEYS}  # fmt: skip
+        return cls.from_spec({**spec, **settings}, key=f"conf/dataset/{dataset}.yaml")
 
 
 #: The dataset-entry keys the task reads (:class:`MappingProtocol`).
@@ -282,16 +295,23 @@ def ground_truth_labels(gt: LabelVoxelMap, rule: str, num_classes: int, ignore: 
     return torch.where(votes[:, :k].sum(1) == 0, ignore, label)
 
 
-class MappingTask:
+class MappingTask(EvalEngine):
     """3D semantic mapping of a :class:`ScanNetFrames` set (module docstring).
+
+    The class prototypes are the 2D task's (the shared text path,
+    :class:`resireg_train.evaluation.ClassPrototypes`, of the dataset's class names).
 
     Args:
         dataset: the frames.
         batch_size: consecutive frames per encoder pass (Full's scene).
         protocol: the task's settings (:class:`MappingProtocol`); keywords of it may be given
-            directly instead (``voxel_size=0.1``).
+            directly instead (``voxel_size=0.1``), the others then come from
+            ``conf/dataset/scannet.yaml`` (:meth:`MappingProtocol.from_conf`).
         num_workers: DataLoader workers reading and resizing frames.
     """
+
+    collate = staticmethod(collate_frames)
+    unit = "frames"
 
     def __init__(
         self,
@@ -301,37 +321,17 @@ class MappingTask:
         num_workers: int = 0,
         **settings: Any,
     ) -> None:
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        self.dataset = dataset
-        self.batch_size = batch_size
-        base = asdict(protocol) if protocol is not None else {}
-        self.protocol = MappingProtocol(**{**base, **settings})
+        super().__init__(dataset, batch_size, num_workers)
+        if protocol is None:
+            self.protocol = MappingProtocol.from_conf(**settings)
+        else:
+            self.protocol = MappingProtocol(**{**asdict(protocol), **settings})
         self.voxel_size = float(self.protocol.voxel_size)
-        self.num_workers = num_workers
-        # The OVSS task's text path (class prompts, text_features once, dense_text, averaging);
-        # it reads only the dataset's class names.
-        self.text = OVSSTask(dataset, batch_size)  # type: ignore[arg-type]
 
-    def prototypes(self, encoder: DenseEncoder) -> Tensor:
-        """Class prototypes ``[K, Dl]``, exactly as the 2D task computes them."""
-        return self.text.prototypes(encoder)
-
-    def check_variants(self, variants: Mapping[str, nn.Module], key: str = "") -> None:
-        """Fail before any encoding if a variant cannot run on some batch (e.g. more prototypes
-        than a batch has points); the error names ``key.<variant>``."""
+    def batch_shapes(self) -> list[tuple[int, int, int]]:
+        """``(frames, height, width)`` of every batch (every frame has the same size)."""
         h, w = self.dataset.grid_size()
-        shapes = [(len(b), h, w) for b in self.dataset.batches(self.batch_size)]
-        check_variants_on(variants, shapes, self.dataset.patch_size, self.dataset.name,
-                          self.batch_size, "frames", key)  # fmt: skip
-
-    def loader(self) -> DataLoader:
-        return DataLoader(
-            self.dataset,
-            batch_sampler=self.dataset.batches(self.batch_size),
-            collate_fn=collate_frames,
-            num_workers=self.num_workers,
-        )
+        return [(len(b), h, w) for b in self.dataset.batches(self.batch_size)]
 
     @torch.no_grad()
     def run(
@@ -473,58 +473,3 @@ class MappingTask:
                         at_gt = (shifted - 1) % (k + 1)  # fmt: skip
                 result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
                 result.feature_voxels[name][state["name"]] = len(vmap)
-
-
-def run_scannet3d(
-    cfg: Any,
-    out: Path,
-    encoder: DenseEncoder,
-    variants: Mapping[str, nn.Module],
-    params: Mapping[str, Any],
-) -> dict[str, Any]:
-    """``resireg-eval task=scannet3d``: map the configured scenes with every variant and
-    write ``results.json`` (same fields as the OVSS task, plus ``per_scene``, ``frames`` and
-    ``protocol``) and the per-scene CSVs (:meth:`MappingResult.write_csv`); returns the
-    record's content."""
-    import logging
-
-    from resireg_train.data.scannet import build_scannet
-    from resireg_train.protocol import protocol_record
-    from resireg_train.results import update_results
-
-    log = logging.getLogger("resireg_train.cli.eval")
-    spec = params["dataset"]
-    dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset", task_keys=TASK_KEYS)
-    update_results(out, protocol=protocol_record(params))
-    task = MappingTask(dataset, int(cfg.batch_size), MappingProtocol.from_spec(spec),
-                       num_workers=int(cfg.num_workers))  # fmt: skip
-    task.check_variants(variants)
-    timer = StageTimer()
-    result = task.run(encoder, variants, precision=str(cfg.precision), timer=timer)
-    scores = result.scores()
-    for name, value in scores.items():
-        log.info("%s = %.4f", name, value)
-    dropped = result.dropped_samples + result.skipped_samples
-    if dropped:
-        log.warning(
-            "%s: %d frames dropped (non-finite pose) and %d skipped (unreadable): %s",
-            dataset.name, len(result.dropped_samples), len(result.skipped_samples),
-            "; ".join(f"{s.file}: {s.reason}" for s in dropped),
-        )  # fmt: skip
-    return update_results(
-        out,
-        status="completed",
-        final=scores,
-        per_class_iou={
-            v: dict(zip(dataset.classes, ious, strict=True))
-            for v, ious in result.per_class_iou().items()
-        },  # fmt: skip
-        per_scene=result.per_scene(),
-        per_scene_csv=result.write_csv(out),
-        images=result.images,
-        frames=dict(result.frames),
-        frames_dropped=len(result.dropped_samples),
-        skipped=len(result.skipped_samples),
-        skipped_samples=[s.as_dict() for s in dropped],
-        seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
-    )

@@ -11,6 +11,7 @@ import lightning as L
 import torch.distributed as dist
 from omegaconf import OmegaConf
 
+from resireg.specs.rules import check_batch_size
 from resireg.variants import VARIANTS, build_variants
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSResult, OVSSTask
@@ -74,8 +75,7 @@ class ReSiRegEval(L.Callback):
             raise ValueError(f"{_KEY}.datasets is empty: configure at least one dataset")
         if int(every_n_epochs) < 1:
             raise ValueError(f"{_KEY}.every_n_epochs={every_n_epochs!r}: expected >= 1")
-        if int(batch_size) < 1:
-            raise ValueError(f"{_KEY}.batch_size={batch_size!r}: expected >= 1")
+        check_batch_size(batch_size, f"{_KEY}.batch_size")
         self.dataset_specs = {name: dict(spec) for name, spec in datasets.items()}
         self.variant_names = list(variants)
         unknown = sorted(set(variant_params) - set(VARIANT_PARAM_KEYS))

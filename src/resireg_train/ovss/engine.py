@@ -23,29 +23,26 @@ between configurations on the same block.
 
 from __future__ import annotations
 
-import time
 from collections import Counter, defaultdict
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
-from torch.utils.data import DataLoader
 
 from resireg.models import DenseEncoder, DenseOutput
-from resireg.ovss import (
-    TEMPLATES,
-    SegmentationMetric,
-    average_prompts,
-    class_prompts,
-    predict_grid,
-)
+from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
-from resireg_train.validation import PRECISIONS
+from resireg_train.engine import (  # shared with the 3D engine; importable from here too
+    EvalEngine,
+    StageTimer,
+    _no_timer,
+    check_variants_on,
+    inference,
+)
 
 if TYPE_CHECKING:
     from resireg_train.cache import FeatureCache
@@ -59,79 +56,6 @@ __all__ = [
     "inference",
     "requested_layers",
 ]
-
-
-class StageTimer:
-    """Wall seconds per stage (``with timer("encoder"): ...``); CUDA is synchronised."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = defaultdict(float)
-
-    @contextmanager
-    def __call__(self, stage: str) -> Iterator[None]:
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            if torch.cuda.is_available():
-                torch.cuda.synchronize()
-            self.seconds[stage] += time.perf_counter() - start
-
-
-@contextmanager
-def _no_timer(stage: str) -> Iterator[None]:
-    yield
-
-
-@contextmanager
-def inference(encoder: DenseEncoder, precision: str) -> Iterator[None]:
-    """An evaluation pass of ``encoder`` (2D and 3D): every module in eval mode (each
-    module's mode restored afterwards), autocast as ``precision`` says: ``"32"`` disables it
-    explicitly (fp32 even inside a ``bf16-mixed`` training run), ``"bf16"`` enables it."""
-    if str(precision) not in PRECISIONS:
-        raise ValueError(f"precision={precision!r}: expected one of {sorted(PRECISIONS)}")
-    name = PRECISIONS[str(precision)]
-    dtype = getattr(torch, name) if name else None
-    modes = {m: m.training for m in encoder.modules()}
-    encoder.eval()
-    try:
-        with torch.autocast(
-            encoder.device.type, dtype=dtype or torch.float32, enabled=dtype is not None
-        ):
-            yield
-    finally:
-        for module, mode in modes.items():
-            module.training = mode
-
-
-def check_variants_on(
-    variants: Mapping[str, nn.Module],
-    shapes: Iterable[tuple[int, int, int]],
-    patch: int,
-    dataset: str,
-    batch_size: int,
-    unit: str = "images",
-    key: str = "",
-) -> None:
-    """Fail before any encoding if a variant cannot run on a batch of ``(images, height,
-    width)`` in ``shapes`` (e.g. more prototypes than the batch has points); the error names
-    ``key.<variant>`` and the batch: ``dataset 'x' with batch_size=B has a batch of b <unit>
-    of h x w px``."""
-    for name, variant in variants.items():
-        check = getattr(variant, "check_grid", None)
-        if check is None:
-            continue
-        for b, h, w in sorted(set(shapes)):
-            try:
-                check(b, h // patch, w // patch)
-            except ValueError as err:
-                label = f"{key}.{name}" if key else name
-                raise ValueError(
-                    f"{label}: {err}; dataset {dataset!r} with batch_size={batch_size} has a "
-                    f"batch of {b} {unit} of {h} x {w} px"
-                ) from err
 
 
 def configuration_layers(
@@ -252,12 +176,13 @@ class OVSSResult:
         return {v: m.compute()["per_class_iou"] for v, m in self.metrics.items()}
 
 
-class OVSSTask:
+class OVSSTask(EvalEngine):
     """OVSS of one dataset: its batches, its class prompts and the scoring.
 
-    The encoder's frozen text part (``text_features``) embeds the ``K x 80`` class prompts
-    once per task; every :meth:`prototypes` call applies the encoder's *current*
-    ``dense_text`` to those outputs, so a training run re-embeds nothing per epoch.
+    The class prototypes are the tasks' shared text path
+    (:class:`resireg_train.evaluation.ClassPrototypes`: the ``K x 80`` class prompts embedded
+    once by ``text_features``; every :meth:`prototypes` call applies the encoder's *current*
+    ``dense_text``), so a training run re-embeds nothing per epoch.
 
     Args:
         dataset: the segmentation dataset.
@@ -269,6 +194,9 @@ class OVSSTask:
         prompt_batch_size: prompts per text-tower call.
     """
 
+    collate = staticmethod(collate_segmentation)
+    unit = "images"
+
     def __init__(
         self,
         dataset: SegmentationSet,
@@ -278,46 +206,13 @@ class OVSSTask:
         temperature: float = 100.0,
         prompt_batch_size: int = 1024,
     ) -> None:
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        self.dataset = dataset
-        self.batch_size = batch_size
-        self.num_workers = num_workers
-        self.prompts = class_prompts(dataset.classes, templates)
+        super().__init__(dataset, batch_size, num_workers, templates, prompt_batch_size)
         self.temperature = temperature
-        self.prompt_batch_size = prompt_batch_size
-        self.tower_calls = 0
-        self._text_features: Tensor | None = None
 
-    @torch.no_grad()
-    def prototypes(self, encoder: DenseEncoder) -> Tensor:
-        """Class prototypes ``[K, Dl]`` from the once-computed text features and the encoder's
-        current ``dense_text``."""
-        if self._text_features is None:
-            step = self.prompt_batch_size
-            chunks = [
-                encoder.text_features(self.prompts[i : i + step])
-                for i in range(0, len(self.prompts), step)
-            ]
-            self.tower_calls += len(chunks)
-            self._text_features = torch.cat(chunks)
-        return average_prompts(encoder.dense_text(self._text_features), len(self.dataset.classes))
-
-    def check_variants(self, variants: Mapping[str, nn.Module], key: str = "") -> None:
-        """Fail before any encoding if a variant cannot run on some batch of this task (e.g.
-        more prototypes than a batch has points); the error names ``key.<variant>``."""
+    def batch_shapes(self) -> list[tuple[int, int, int]]:
+        """``(images, height, width)`` of every batch (images of one batch share a size)."""
         sizes = self.dataset.grid_sizes()
-        shapes = [(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)]
-        check_variants_on(variants, shapes, self.dataset.patch_size, self.dataset.name,
-                          self.batch_size, "images", key)  # fmt: skip
-
-    def loader(self, rank: int = 0, world_size: int = 1) -> DataLoader:
-        return DataLoader(
-            self.dataset,
-            batch_sampler=self.dataset.batches(self.batch_size, rank, world_size),
-            collate_fn=collate_segmentation,
-            num_workers=self.num_workers,
-        )
+        return [(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)]
 
     @torch.no_grad()
     def run(

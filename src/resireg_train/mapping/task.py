@@ -1,0 +1,68 @@
+"""``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet scenes as a task protocol
+(:class:`resireg_train.evaluation.TaskProtocol`; the entry ``scannet3d`` of
+:data:`resireg_train.tasks.TASK_SPECS`) over the engine
+:class:`~resireg_train.mapping.engine.MappingTask` (docs/design.md section 10). Beside the
+fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
+:meth:`~resireg_train.mapping.engine.MappingResult.write_csv`), ``frames`` and
+``frames_dropped``."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+from torch import nn
+
+from resireg.models import DenseEncoder
+from resireg_train.data.scannet import build_scannet, check_scannet_spec
+from resireg_train.engine import StageTimer
+from resireg_train.evaluation import TaskProtocol
+from resireg_train.mapping.engine import TASK_KEYS, MappingProtocol, MappingResult, MappingTask
+from resireg_train.protocol import protocol_record
+
+__all__ = ["ScanNet3DProtocol"]
+
+log = logging.getLogger(__name__)
+
+
+class ScanNet3DProtocol(TaskProtocol):
+    """3D semantic mapping of the configured ScanNet scenes (module docstring)."""
+
+    def check(self, variants: Mapping[str, nn.Module]) -> None:
+        check_scannet_spec(self.params["dataset"], "dataset")
+        super().check(variants)
+
+    def build(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module]) -> dict[str, Any]:
+        spec = self.params["dataset"]
+        self.dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset",
+                                     task_keys=TASK_KEYS)  # fmt: skip
+        self.classes = self.dataset.classes
+        self.engine = MappingTask(self.dataset, int(self.cfg.batch_size),
+                                  MappingProtocol.from_spec(spec),
+                                  num_workers=int(self.cfg.num_workers))  # fmt: skip
+        self.check_batches(self.engine, variants)
+        return {"protocol": protocol_record(self.params)}
+
+    def run(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module],
+            timer: StageTimer) -> MappingResult:  # fmt: skip
+        return self.engine.run(encoder, variants, precision=str(self.cfg.precision), timer=timer)
+
+    def results(self, result: MappingResult) -> dict[str, Any]:
+        """``per_scene``, ``per_scene_csv`` (written into the output folder), ``frames``,
+        ``frames_dropped``, ``skipped`` and ``skipped_samples`` (the dropped frames first)."""
+        dropped = result.dropped_samples + result.skipped_samples
+        if dropped:
+            log.warning(
+                "%s: %d frames dropped (non-finite pose) and %d skipped (unreadable): %s",
+                self.dataset.name, len(result.dropped_samples), len(result.skipped_samples),
+                "; ".join(f"{s.file}: {s.reason}" for s in dropped),
+            )  # fmt: skip
+        return {
+            "per_scene": result.per_scene(),
+            "per_scene_csv": result.write_csv(self.out),
+            "frames": dict(result.frames),
+            "frames_dropped": len(result.dropped_samples),
+            "skipped": len(result.skipped_samples),
+            "skipped_samples": [s.as_dict() for s in dropped],
+        }

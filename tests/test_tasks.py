@@ -1,0 +1,193 @@
+"""resireg-eval's task protocol (resireg_train.tasks, resireg_train.evaluation): a task
+registered through the table runs through the eval entry point; the 2D and 3D tasks share one
+class-prototype text path; the fields every task writes (elbo_prototypes) are written by the
+3D task too."""
+
+import json
+from collections import Counter
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from resireg.ovss import average_prompts, class_prompts
+from resireg.variants import build_variants
+from resireg_train.cli.eval import evaluate
+from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.data.segmentation import build_segmentation_set
+from resireg_train.engine import ClassPrototypes, eval_loader
+from resireg_train.evaluation import TaskProtocol, require_task
+from resireg_train.tasks import TASK_SPECS, TaskSpec
+from resireg_train.validation import ConfigError, validate_eval
+
+SYNTHETIC = {"kind": "synthetic", "size": 5, "image_size": [32, 48], "seed": 3, "short_side": 32}
+
+
+def _compose(*overrides):
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        return compose("eval", overrides=list(overrides))
+
+
+# -------------------------------------------------------------- a throwaway task
+class _LabelFrequencies:
+    """The throwaway task's result: each class's share of the labelled pixels."""
+
+    def __init__(self, counts: np.ndarray, images: int, classes) -> None:
+        self.counts, self.images, self.classes = counts, images, classes
+
+    def scores(self):
+        share = self.counts / self.counts.sum()
+        return {f"val/frequency/{c}": float(s) for c, s in zip(self.classes, share, strict=True)}
+
+    def per_class_iou(self):
+        return {"share": (self.counts / self.counts.sum()).tolist()}
+
+
+class _FrequencyProtocol(TaskProtocol):
+    """A task outside the project's two: the labels' class frequencies of a segmentation set,
+    read through the shared loader (no encoder pass)."""
+
+    def build(self, encoder, variants):
+        self.dataset = build_segmentation_set(self.params["dataset"], 16, key="dataset")
+        self.classes = self.dataset.classes
+        return {"protocol": {"name": "frequency", "settings": {}}}
+
+    def run(self, encoder, variants, timer):
+        from resireg_train.data.segmentation import collate_segmentation
+
+        counts, images = np.zeros(len(self.classes), dtype=np.int64), 0
+        loader = eval_loader(self.dataset, self.dataset.batches(2), collate_segmentation, 0)
+        with timer("count"):
+            for batch in loader:
+                for label in batch["label"]:
+                    valid = label[label != self.dataset.ignore_index]
+                    counts += np.bincount(valid.numpy().ravel(), minlength=len(self.classes))
+                    images += 1
+        return _LabelFrequencies(counts, images, self.classes)
+
+    def results(self, result):
+        return {"skipped": 0, "skipped_samples": [], "labelled_pixels": int(result.counts.sum())}
+
+
+def test_a_task_registered_through_the_table_runs_through_resireg_eval(
+    monkeypatch, tmp_path, tiny_export
+):
+    """One entry in resireg_train.tasks.TASK_SPECS (a protocol class outside the project) is
+    all resireg-eval needs: the config check accepts the task, the entry point runs its
+    check/build/run/results, and results.json holds its scores (compared with the class
+    frequencies counted here from the dataset's own items, numpy), its own field and the shared
+    ones. Without the entry the task is a ConfigError naming task=<value> and the known tasks."""
+    overrides = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=5",
+                 "dataset.image_size=[32,48]", "dataset.seed=3", "dataset.short_side=32",
+                 "num_workers=0", "variants=[bb]", f"paths.output_dir={tmp_path / 'run'}"]  # fmt: skip
+    cfg = _compose("task=frequency", *overrides)
+    with pytest.raises(
+        ConfigError, match=r"task='frequency': expected one of \['ovss', 'scannet3d'\]"
+    ):
+        validate_eval(cfg)
+    with pytest.raises(
+        ConfigError, match=r"task='frequency': expected one of \['ovss', 'scannet3d'\]"
+    ):
+        require_task("frequency")
+    target = f"{__name__}:{_FrequencyProtocol.__name__}"
+    monkeypatch.setitem(TASK_SPECS, "frequency", TaskSpec(
+        "frequency", target, "image", None, prior=False, layers=False, summary="class frequencies",
+    ))  # fmt: skip
+    record = evaluate(cfg)
+    on_disk = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert on_disk["status"] == "completed" and record["status"] == "completed"
+    assert on_disk["params"]["task"] == "frequency"
+    dataset = build_segmentation_set(SYNTHETIC, 16)
+    counts = np.zeros(len(dataset.classes), dtype=np.int64)
+    for i in range(len(dataset)):
+        label = dataset[i]["label"].numpy().ravel()
+        counts += np.bincount(label[label != dataset.ignore_index], minlength=len(counts))
+    expected = counts / counts.sum()
+    final = on_disk["final"]
+    assert final == pytest.approx(
+        {f"val/frequency/{c}": s for c, s in zip(dataset.classes, expected, strict=True)}
+    )
+    assert on_disk["per_class_iou"]["share"] == pytest.approx(
+        dict(zip(dataset.classes, expected, strict=True))
+    )
+    assert on_disk["images"] == len(dataset) == 5 and on_disk["labelled_pixels"] == counts.sum()
+    assert on_disk["protocol"] == {"name": "frequency", "settings": {}}
+    assert "count" in on_disk["seconds"] and "elbo_prototypes" not in on_disk
+
+
+# ---------------------------------------------------- the shared text path
+def test_the_3d_tasks_class_prototypes_are_the_2d_tasks(tmp_path, tiny_export):
+    """MappingTask and OVSSTask take their class prototypes from one text path
+    (ClassPrototypes); for the same class names and encoder both equal the prompts embedded
+    by the encoder's text_features, projected by dense_text and averaged per class (computed
+    here); the 3D task builds no OVSSTask."""
+    from resireg.models import ResiregVLM
+    from resireg_train.data.scannet import ScanNetFrames
+    from resireg_train.data.scannet_room import SyntheticRoom, write_scene
+    from resireg_train.mapping.engine import MappingTask
+    from resireg_train.ovss import engine as ovss_engine
+
+    vlm = ResiregVLM.from_pretrained(tiny_export).eval()
+    room = SyntheticRoom()
+    write_scene(tmp_path, "synthetic0000_00", room)
+    frames = ScanNetFrames(tmp_path, ["synthetic0000_00"], frame_skip=0, image_size=room.image_size,
+                           patch_size=vlm.input_rule.patch_size)  # fmt: skip
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the 3D task built an OVSSTask")
+
+    original = ovss_engine.OVSSTask.__init__
+    ovss_engine.OVSSTask.__init__ = refuse
+    try:
+        three_d = MappingTask(frames, batch_size=3, voxel_size=0.1)
+    finally:
+        ovss_engine.OVSSTask.__init__ = original
+    # the 2D task on the 3D set's class names (its text path reads nothing else of a dataset)
+    two_d = ovss_engine.OVSSTask(SimpleNamespace(classes=tuple(frames.classes)), batch_size=2)
+    assert isinstance(three_d.text, ClassPrototypes) and isinstance(two_d.text, ClassPrototypes)
+    with torch.no_grad():
+        prompts = class_prompts(frames.classes)
+        reference = average_prompts(vlm.dense_text(vlm.text_features(prompts)), len(frames.classes))
+    got_3d, got_2d = three_d.prototypes(vlm), two_d.prototypes(vlm)
+    assert got_3d.shape == (len(frames.classes), reference.shape[1])
+    torch.testing.assert_close(got_3d, reference, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got_3d, got_2d, rtol=0, atol=0)
+    assert three_d.tower_calls == two_d.tower_calls == 1
+
+
+# ------------------------------------------- the shared results: elbo counts in 3D
+def test_scannet3d_results_hold_the_elbo_prototype_counts(tmp_path, tiny_export):
+    """task=scannet3d with a full@n_prototypes:elbo configuration writes elbo_prototypes (the
+    count each batch was given), as task=ovss does: equal to the counts of the engine run here
+    on the same frames and settings, one per batch of the scene (ScanNetFrames.batches)."""
+    from resireg.models import ResiregVLM
+    from resireg_train.data.scannet import ScanNetFrames
+    from resireg_train.data.scannet_room import SyntheticRoom, write_scene
+    from resireg_train.mapping.engine import MappingTask
+
+    room = SyntheticRoom()
+    root = tmp_path / "scannet"
+    write_scene(root, "synthetic0000_00", room)
+    name, candidates = "full@n_prototypes:elbo", [2, 4, 8]
+    out = tmp_path / "run"
+    cfg = _compose(f"model_path={tiny_export}", "task=scannet3d", "dataset=scannet_synthetic",
+                   f"dataset.path={root}", "num_workers=0", "batch_size=3",
+                   f"variants=[bb,{name}]", f"full.elbo_candidates=[{','.join(map(str, candidates))}]",
+                   f"paths.output_dir={out}")  # fmt: skip
+    evaluate(cfg)
+    r = json.loads((out / "results.json").read_text())
+    assert r["status"] == "completed" and r["params"]["task"] == "scannet3d"
+    vlm = ResiregVLM.from_pretrained(tiny_export)
+    frames = ScanNetFrames(root, ["synthetic0000_00"], frame_skip=0, image_size=room.image_size,
+                           patch_size=vlm.input_rule.patch_size, name="scannet_synthetic")  # fmt: skip
+    params = {"full": {"n_prototypes": "elbo", "elbo_candidates": candidates, "n_components": None}}
+    variants = build_variants([name], params)
+    MappingTask(frames, batch_size=3, voxel_size=0.1).run(vlm, variants)
+    expected = dict(sorted(Counter(str(n) for n in variants[name].chosen).items(),
+                           key=lambda c: int(c[0])))  # fmt: skip
+    assert r["elbo_prototypes"] == {name: expected}
+    assert sum(expected.values()) == len(frames.batches(3)) and set(expected) <= set(
+        map(str, candidates)
+    )
