@@ -476,3 +476,29 @@ def test_a_final_status_reaches_the_record_or_stderr_says_it_could_not(tmp_path,
             f"write the run record {tmp_path}/results.json: File too large); it still reads "
             "status 'running' although the run ended 'failed': RuntimeError: xxx"
         ), said[:400]
+
+
+def test_eval_into_a_used_folder_starts_a_fresh_record(tmp_path, tiny_export):
+    """A second resireg-eval into the same hydra.run.dir writes only its own fields: the
+    first run's elbo_prototypes (written only when an elbo configuration runs) does not
+    survive into the second's results.json, and the first record is kept whole beside it."""
+    common = (f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
+              "num_workers=0", f"hydra.run.dir={tmp_path}")  # fmt: skip
+    run("resireg-eval", *common, "variants=[bb,full@n_prototypes:elbo]",
+        "full.elbo_candidates=[2,4]")  # fmt: skip
+    first = json.loads((tmp_path / "results.json").read_text())
+    assert "elbo_prototypes" in first
+    run("resireg-eval", *common, "variants=[bb]")
+    second = json.loads((tmp_path / "results.json").read_text())
+    assert second["status"] == "completed" and "elbo_prototypes" not in second
+    assert set(second["final"]) == {k for k in first["final"] if k.endswith("_bb")}
+    assert json.loads((tmp_path / "results.previous-1.json").read_text()) == first
+
+
+def test_eval_refuses_a_training_logger(tmp_path, tiny_export):
+    """logger=tensorboard on resireg-eval names the key and the logger it takes (wandb)."""
+    proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic", "logger=tensorboard",
+               f"hydra.run.dir={tmp_path}", check=False)  # fmt: skip
+    assert proc.returncode != 0
+    assert "logger=tensorboard: resireg-eval logs to W&B only (logger=wandb)" in proc.stderr
+    assert json.loads((tmp_path / "results.json").read_text())["status"] == "failed"

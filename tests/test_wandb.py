@@ -89,3 +89,27 @@ def test_offline_runs_one_per_job_with_config_and_final_metrics(tmp_path):
         best = results["best"]["train/loss"]
         assert summary["best/train/loss"] == pytest.approx(best["value"])
     assert len(names) == 2
+
+
+@pytest.mark.slow
+def test_eval_multirun_logs_one_finished_run_per_job(tmp_path, tiny_export):
+    """resireg-eval logger=wandb: a two-job grid gets two finished runs, each with its job's
+    config (the swept alpha) and its results.json scores as final/<metric>."""
+    env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true",
+           "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip
+    run("resireg-eval", "-m", f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
+        "num_workers=0", "variants=[bb,full]", "full.n_prototypes=4", "logger=wandb",
+        "full.alpha=5.0,10.0", f"paths.log_dir={tmp_path}", env=env)  # fmt: skip
+    (sweep,) = (tmp_path / "eval" / "multirun").iterdir()
+    jobs = sorted(p for p in sweep.iterdir() if (p / "results.json").is_file())
+    assert len(jobs) == 2
+    run_id = sweep.name.rsplit("_", 1)[1]
+    for number, job in enumerate(jobs):
+        (file,) = job.glob("wandb/offline-run-*/run-*.wandb")
+        name, group, config, summary, exit_code = _read_run(file)
+        assert (name, group, exit_code) == (f"eval-{run_id}-{number}", f"eval-{run_id}", 0)
+        assert config["full"]["alpha"] == pytest.approx(5.0 * (number + 1))
+        results = json.loads((job / "results.json").read_text())
+        assert summary["status"] == "completed"
+        final = results["final"]
+        assert final and {k: summary[f"final/{k}"] for k in final} == pytest.approx(final)

@@ -46,6 +46,7 @@ from resireg_train.cli.task import (
     CONFIG_DIR,
     added_keys,
     hydra_entry_point,
+    instantiate_group,
     run_task,
     top_level_keys,
 )
@@ -147,7 +148,26 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     A failure (bad value, missing model or dataset, too many prototypes for a batch) is
     recorded in ``results.json`` as ``"status": "failed"`` with its error, then re-raised.
     """
-    return run_task(cfg, _evaluate)
+    return run_task(cfg, _evaluate_logged, fresh=True)
+
+
+def _evaluate_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
+    """:func:`_evaluate` inside the job's W&B run with ``logger=wandb`` (one run per job,
+    given the config and, at the end, ``results.json``'s summary, then finished:
+    :func:`resireg_train.tracking.wandb_runs`); Lightning loads only then."""
+    group = cfg.get("logger") or {}
+    if other := sorted(set(group) - {"wandb"}):
+        raise ConfigError(
+            f"logger={','.join(other)}: resireg-eval logs to W&B only (logger=wandb); the CSV, "
+            "TensorBoard and MLflow loggers are resireg-train's (an evaluation has no steps)"
+        )
+    loggers = instantiate_group(group)
+    if not loggers:
+        return _evaluate(cfg, out)
+    from resireg_train.tracking import wandb_runs
+
+    with wandb_runs(loggers, cfg, out):
+        return _evaluate(cfg, out)
 
 
 def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:

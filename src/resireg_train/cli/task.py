@@ -39,6 +39,7 @@ __all__ = [
     "JobFailed",
     "added_keys",
     "hydra_entry_point",
+    "instantiate_group",
     "optimized_value",
     "register_resolvers",
     "run_task",
@@ -107,6 +108,13 @@ def added_keys() -> list[str]:
     return added
 
 
+def instantiate_group(group: DictConfig | None) -> list[Any]:
+    """Instantiate every ``_target_`` entry of a config group (callbacks, loggers)."""
+    if not group:
+        return []
+    return [hydra.utils.instantiate(c) for c in group.values() if c and "_target_" in c]
+
+
 def register_resolvers() -> None:
     """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
     ``optuna_storage`` and ``optuna_trials`` in ``conf/hparams_search``)."""
@@ -124,8 +132,15 @@ def run_task(
     body: Callable[[DictConfig, Path], dict[str, Any]],
     rank_zero: bool = True,
     resume_hint: str | None = None,
+    fresh: bool = False,
 ) -> dict[str, Any]:
     """Run ``body(cfg, output_dir)`` with ``results.json`` kept up to date.
+
+    With ``fresh`` (a job that never resumes: ``resireg-eval``) the record starts empty: a
+    ``results.json`` already in the folder (an earlier run given the same ``hydra.run.dir`` or
+    ``hydra.sweep.dir``) is kept as ``results.previous-<n>.json`` instead of having its fields
+    merged into this run's, where a field this run does not write would survive as if it were
+    this run's.
 
     The run is marked ``running`` first. Ctrl-C (``KeyboardInterrupt``) is recorded as
     ``"status": "interrupted"`` and the process exits with status 130 (what a shell reports
@@ -137,6 +152,8 @@ def run_task(
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     if rank_zero:
+        if fresh:
+            _set_aside(out)
         update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
     try:
         return body(cfg, out)
@@ -154,6 +171,19 @@ def run_task(
             _record(out, status="failed", error=error)
             _to_log_files(f"run failed: {error}", exc)
         raise
+
+
+def _set_aside(out: Path) -> None:
+    """Rename an earlier run's ``results.json`` in ``out`` to the first free
+    ``results.previous-<n>.json`` (nothing is lost, nothing is merged)."""
+    record = out / RESULTS_FILE
+    if not record.is_file():
+        return
+    n = 1
+    while (kept := out / f"{record.stem}.previous-{n}{record.suffix}").exists():
+        n += 1
+    os.replace(record, kept)
+    log.warning("%s held an earlier run's record: kept as %s", out, kept.name)
 
 
 def error_text(exc: BaseException) -> str:

@@ -37,6 +37,7 @@ from resireg_train.cli.task import (
     added_keys,
     error_text,
     hydra_entry_point,
+    instantiate_group,
     run_task,
     top_level_keys,
 )
@@ -61,15 +62,6 @@ def _process_rank() -> int:
         if os.environ.get(name, "").isdigit():
             return int(os.environ[name])
     return 0
-
-
-def _instantiate_all(group: DictConfig | None) -> list[Any]:
-    """Instantiate every ``_target_`` entry of a config group (callbacks, loggers)."""
-    import hydra
-
-    if not group:
-        return []
-    return [hydra.utils.instantiate(c) for c in group.values() if c and "_target_" in c]
 
 
 def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
@@ -280,8 +272,8 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
         resume_step = int(resumed[1]["global_step"])
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
-    loggers = [ResumableCSVLogger(out, resume_step=resume_step), *_instantiate_all(cfg.logger)]
-    configured = _instantiate_all(cfg.callbacks)
+    loggers = [ResumableCSVLogger(out, resume_step=resume_step), *instantiate_group(cfg.logger)]
+    configured = instantiate_group(cfg.callbacks)
     bar = {}
     if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
         configured = [c for c in configured if not isinstance(c, ProgressBar)]
