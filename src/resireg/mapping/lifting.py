@@ -32,12 +32,54 @@ from resireg.mapping.geometry import (
     nearest_indices,
     unproject,
 )
-from resireg.mapping.voxels import _check_voxel_size, check_lattice, lattice_index
+from resireg.mapping.voxels import _MAX_INDEX, _check_voxel_size, _pack, _unpack, check_lattice
 
 __all__ = ["pixel_pairs", "pixel_points"]
 
-# Patches per chunk in pixel_pairs (a chunk's per-pixel temporaries: ~ 8 bytes x pixels x 3).
-_CHUNK_PATCHES = 1 << 13
+# Pixels per chunk in pixel_pairs: its two float64 per-pixel buffers (2 x 8 MB) stay in the
+# L3 cache through the ~12 passes over them.
+_CHUNK_PIXELS = 1 << 20
+# Most bincount bins per chunk (the cells of its patches' voxel boxes; 32 MB of int64); a chunk
+# of larger boxes (far patches or tiny voxels) is counted by sorting instead.
+_MAX_BINS = 1 << 22
+_TWO52 = 1 << 52
+_TWO52_BITS = int(torch.tensor(float(_TWO52), dtype=torch.float64).view(torch.int64))
+
+
+def _lattice_op(scaled: Tensor, lattice: str) -> Tensor:
+    """``round`` (half to even) or ``floor`` of coordinates in voxel units, still float64 (the
+    operations of :func:`resireg.mapping.voxels.lattice_index`)."""
+    return torch.round(scaled) if lattice == "round" else torch.floor(scaled)
+
+
+def _pairs_by_sorting(
+    tables: list[tuple[Tensor, Tensor]], lattice: str, keep: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The (voxel, patch, count) triples of a chunk of patches by sorting the pixels' keys.
+
+    The fallback of :func:`pixel_pairs` for boxes too large to count with ``bincount``: the same
+    per-pixel indices (the same sums of the same ``[n, mh]`` row and ``[n, mw]`` column tables,
+    the same rounding), each pixel's packed key, then a sort by (patch, key), i.e. the same
+    triples in the same order (by patch, then voxel), in memory linear in the pixels.
+
+    Returns:
+        ``index`` ``[M, 3]``, ``owner`` ``[M]`` (patch within the chunk), ``count`` ``[M]``.
+    """
+    axes = [_lattice_op(r[:, :, None] + c[:, None, :], lattice).to(torch.int64) for r, c in tables]
+    owner = torch.arange(axes[0].shape[0], device=axes[0].device)[:, None, None]
+    owner = owner.expand_as(axes[0]).reshape(-1)
+    key = _pack(torch.stack([a.reshape(-1) for a in axes], 1))
+    if keep is not None:
+        kept = keep.expand_as(axes[0]).reshape(-1)
+        key, owner = key[kept], owner[kept]
+    key, order = torch.sort(key, stable=True)
+    owner, order2 = torch.sort(owner[order], stable=True)  # by patch, then key
+    key = key[order2]
+    first = torch.ones_like(key, dtype=torch.bool)
+    first[1:] = (key[1:] != key[:-1]) | (owner[1:] != owner[:-1])
+    start = first.nonzero().squeeze(1)
+    count = torch.diff(start, append=start.new_tensor([key.numel()]))
+    return _unpack(key[start]), owner[start], count
 
 
 def _patch_of_pixels(n_in: int, n_out: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -141,54 +183,99 @@ def pixel_pairs(
     frame, pi, pj = lifted.nonzero(as_tuple=True)  # the lifted patches
     row_px, row_mask = _patch_of_pixels(hh, h, dev)  # [h, mh]
     col_px, col_mask = _patch_of_pixels(ww, w, dev)  # [w, mw]
+    mh, mw = row_px.shape[1], col_px.shape[1]
     padded = not (bool(row_mask.all()) and bool(col_mask.all()))
     x_u = (torch.arange(ww, device=dev, dtype=f64)[None] - k[:, 0, 2:3]) / k[:, 0, 0:1]  # [B, W]
     y_v = (torch.arange(hh, device=dev, dtype=f64)[None] - k[:, 1, 2:3]) / k[:, 1, 1:2]  # [B, H]
+    zp = z[frame, pi, pj][:, None]  # [n, 1]
+    xs = x_u[frame[:, None], col_px[pj]]  # [n, mw]
+    ys = y_v[frame[:, None], row_px[pi]]  # [n, mh]
+    # Per axis the two tables in voxel units, and each patch's lowest and highest voxel (the
+    # rounded sums of the tables' extremes: rounding is monotone), all patches at once.
+    tables, low, span = [], [], []
+    extreme = 0.0
+    for a in range(3):
+        rot = pose[frame, a]  # [n, 4]: R_a0, R_a1, R_a2, t_a
+        col_term = zp * rot[:, 0:1] * xs / voxel  # [n, mw]
+        row_term = (zp * (rot[:, 1:2] * ys + rot[:, 2:3]) + rot[:, 3:4]) / voxel  # [n, mh]
+        lo = _lattice_op(row_term.amin(1) + col_term.amin(1), lattice)  # [n] float64
+        hi = _lattice_op(row_term.amax(1) + col_term.amax(1), lattice)
+        if frame.numel():
+            extreme = max(extreme, float(lo.abs().max()), float(hi.abs().max()))
+        tables.append((row_term.T.contiguous(), col_term.T.contiguous()))  # [mh, n], [mw, n]
+        low.append(lo.to(torch.int64))
+        span.append((hi - lo).to(torch.int64) + 1)
+    # Checked here, before any integer conversion: the codes below are exact only for indices
+    # in the range that VoxelMap packs (its add_pairs would refuse the others anyway).
+    if extreme > _MAX_INDEX:
+        raise ValueError(
+            f"voxel indices up to {extreme:g} at voxel_size={voxel:g}: beyond +-{_MAX_INDEX} "
+            "(keys pack 21 bits per axis; a depth or a pose translation too large)"
+        )
     out_index, out_patch, out_count = [], [], []
-    for start in range(0, frame.numel(), _CHUNK_PATCHES):
-        f = frame[start : start + _CHUNK_PATCHES]
-        i, j = pi[start : start + _CHUNK_PATCHES], pj[start : start + _CHUNK_PATCHES]
-        zp = z[f, i, j][:, None]  # [n, 1]
-        xs = x_u[f[:, None], col_px[j]]  # [n, mw]
-        ys = y_v[f[:, None], row_px[i]]  # [n, mh]
-        n = f.numel()
-        code = torch.zeros(n, row_px.shape[1], col_px.shape[1], dtype=f64, device=dev)
-        low, span = [], []
-        for a in range(3):
-            rot = pose[f, a]  # [n, 4]: R_a0, R_a1, R_a2, t_a
-            col_term = zp * rot[:, 0:1] * xs / voxel  # [n, mw]
-            row_term = (zp * (rot[:, 1:2] * ys + rot[:, 2:3]) + rot[:, 3:4]) / voxel  # [n, mh]
-            lo = lattice_index(row_term.amin(1) + col_term.amin(1), lattice)  # [n]
-            hi = lattice_index(row_term.amax(1) + col_term.amax(1), lattice)
-            cell = torch.add(row_term[:, :, None], col_term[:, None, :])  # [n, mh, mw]
-            cell = cell.round_() if lattice == "round" else cell.floor_()
-            cell.sub_(lo.to(f64)[:, None, None])  # offset in 0 .. hi - lo
-            r = int((hi - lo).max()) + 1
-            code.mul_(r).add_(cell)
-            low.append(lo)
-            span.append(r)
-        cells = span[0] * span[1] * span[2]
-        code = code.to(torch.int64)
-        if padded:
-            keep = row_mask[i][:, :, None] & col_mask[j][:, None, :]
-            code = torch.where(keep, code, cells)  # a code past the last: dropped below
-            stride = cells + 1
+    # Each patch's voxels are coded in its own box: code = base_p + (ix - lo_x) r_y r_z +
+    # (iy - lo_y) r_z + (iz - lo_z), boxes laid end to end (base_p: the boxes before it), so the
+    # bins of a chunk are exactly its boxes' cells, however their sizes vary.
+    cells = span[0] * span[1] * span[2]  # [n]
+    n_px = mh * mw
+    step = max(1, _CHUNK_PIXELS // n_px)
+    for start in range(0, frame.numel(), step):
+        sl = slice(start, start + step)
+        n = frame[sl].numel()
+        cell = cells[sl]
+        base = torch.cumsum(cell, 0) - cell  # [n]
+        bins = int(cell.sum())
+        s0, s1 = span[1][sl] * span[2][sl], span[2][sl]  # [n] strides of ix, iy
+        if bins > _MAX_BINS:  # far patches with huge boxes: count by sorting (bounded memory)
+            index, owner, count = _pairs_by_sorting(
+                [(r[:, sl].T, c[:, sl].T) for r, c in tables], lattice, keep=None if not padded else
+                row_mask[pi[sl]][:, :, None] & col_mask[pj[sl]][:, None, :],
+            )  # fmt: skip
         else:
-            stride = cells
-        code += torch.arange(n, device=dev)[:, None, None] * stride
-        counts = torch.bincount(code.reshape(-1), minlength=n * stride)
-        pair = counts.nonzero().squeeze(1)
-        local, owner = pair % stride, pair // stride
-        if padded:
-            real = local < cells
-            pair, local, owner = pair[real], local[real], owner[real]
-        oz = local % span[2]
-        oy = (local // span[2]) % span[1]
-        ox = local // (span[1] * span[2])
-        index = torch.stack([low[0][owner] + ox, low[1][owner] + oy, low[2][owner] + oz], 1)
+            # Pixel-major layout [mw, mh, n] (patch innermost): every per-pixel operation runs
+            # over contiguous rows of n values (the [n, mh, mw] layout's 8- or 16-wide inner
+            # rows of a broadcast addition cost ~3x more). Per pixel and axis: one addition of
+            # the two tables (the same float64 sum as ever), one rounding, one multiply-add
+            # into the code. The integers are exact in float64 (|code| < 2^44) and the
+            # per-patch offset comes once, at the end.
+            code = torch.empty(mw, mh, n, dtype=f64, device=dev)
+            buf = torch.empty_like(code)
+            for a, stride in enumerate((s0, s1, None)):
+                row_term, col_term = tables[a]
+                target = code if a == 0 else buf
+                torch.add(row_term[None, :, sl], col_term[:, None, sl], out=target)
+                target.round_() if lattice == "round" else target.floor_()
+                if a == 0:
+                    code.mul_(stride.to(f64))
+                elif stride is not None:
+                    code.addcmul_(buf, stride.to(f64))
+                else:
+                    code.add_(buf)
+            offset = base - low[0][sl] * s0 - low[1][sl] * s1 - low[2][sl]  # [n] int64
+            # To int64 without a conversion pass (by hand: .to(int64) costs ~6x an addition):
+            # x + 2^52 for an integer 0 <= x < 2^52 is exact and its bits are those of 2^52
+            # plus x, so the bits viewed as int64, less 2^52's, are x.
+            code = code.add_((offset + _TWO52).to(f64)).view(torch.int64).sub_(_TWO52_BITS)
+            if padded:
+                keep = row_mask[pi[sl]].T[None] & col_mask[pj[sl]].T[:, None]
+                code = torch.where(keep, code, bins)  # a bin past the last: dropped below
+            counts = torch.bincount(code.reshape(-1), minlength=bins + 1)[:bins]
+            code = counts.nonzero().squeeze(1)  # the occupied bins, in order
+            count = counts[code]
+            owner = torch.searchsorted(base, code, right=True) - 1  # [M] patch in the chunk
+            local = code - base[owner]
+            lows = [lo[sl][owner] for lo in low]
+            index = torch.stack(
+                [
+                    lows[0] + local // s0[owner],
+                    lows[1] + (local // s1[owner]) % span[1][sl][owner],
+                    lows[2] + local % span[2][sl][owner],
+                ],
+                1,
+            )
         out_index.append(index)
-        out_patch.append((f * (h * w) + i * w + j)[owner])
-        out_count.append(counts[pair])
+        out_patch.append((frame[sl] * (h * w) + pi[sl] * w + pj[sl])[owner])
+        out_count.append(count)
     if not out_index:
         empty = torch.empty(0, dtype=torch.int64, device=dev)
         return empty.reshape(0, 3), empty, empty
