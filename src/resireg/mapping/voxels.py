@@ -211,12 +211,15 @@ class _SparseVoxels:
     def _rows_of_keys(self, keys: Tensor) -> Tensor:
         """Accumulator rows ``[K]`` of distinct sorted keys ``[K]``; unseen voxels get new rows."""
         pos = torch.searchsorted(self._keys, keys)
-        found = pos < self._size
-        found[found.clone()] = self._keys[pos[found]] == keys[found]
-        rows = torch.empty_like(keys)
-        rows[found] = self._rows[pos[found]]
-        new = ~found
-        n_new = int(new.sum())
+        if self._size:
+            hit = pos.clamp_max(self._size - 1)
+            found = (pos < self._size) & (self._keys[hit] == keys)
+            rows = self._rows[hit]  # the new keys' entries are replaced below
+        else:
+            found = torch.zeros_like(keys, dtype=torch.bool)
+            rows = torch.empty_like(keys)
+        new = (~found).nonzero().squeeze(1)
+        n_new = new.numel()
         if n_new:
             if self._size + n_new > self._capacity():
                 self._grow(max(self._size + n_new, int(self._capacity() * 1.5) + 16))
@@ -225,15 +228,19 @@ class _SparseVoxels:
             )
             rows[new] = new_rows
             # Merge two sorted key lists without sorting: the j-th new key (sorted) goes
-            # before old key pos_j, so it lands at pos_j + j; old keys fill the rest in order.
+            # before old key pos_j, so it lands at pos_j + j; old key i moves up by the number
+            # of new keys before it (a cumulative count: integer positions, not a boolean mask,
+            # whose assignment costs ~10x more here).
             total = self._size + n_new
             at = pos[new] + torch.arange(n_new, device=self.device)
-            old = torch.ones(total, dtype=torch.bool, device=self.device)
-            old[at] = False
+            before = torch.zeros(self._size + 1, dtype=torch.int64, device=self.device)
+            before.index_add_(0, pos[new], torch.ones_like(new))
+            old_at = torch.arange(self._size, device=self.device) + before.cumsum(0)[:-1]
             merged_keys = torch.empty(total, dtype=torch.int64, device=self.device)
             merged_rows = torch.empty(total, dtype=torch.int64, device=self.device)
-            merged_keys[at], merged_rows[at] = keys[new], new_rows
-            merged_keys[old], merged_rows[old] = self._keys, self._rows
+            # (scatter_: ~5x faster than index_copy_ or an indexed assignment on 1-d int64)
+            merged_keys.scatter_(0, at, keys[new]).scatter_(0, old_at, self._keys)
+            merged_rows.scatter_(0, at, new_rows).scatter_(0, old_at, self._rows)
             self._keys, self._rows, self._size = merged_keys, merged_rows, total
         return rows
 
