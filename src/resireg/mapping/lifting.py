@@ -17,7 +17,7 @@ Pixels of one patch share one feature, so the map needs only how many pixels of 
 in each voxel: :func:`pixel_pairs` returns those (patch, voxel, count) triples, and
 :meth:`resireg.mapping.VoxelMap.add_pairs` adds ``count * feature`` per pair. The feature work is
 then proportional to the pairs (a small multiple of the patches), not to the ~550k pixels of a
-640 x 864 frame; the per-pixel work is a few float64 operations per pixel (below).
+640 x 864 frame; the per-pixel work is ten float64 operations per pixel (:func:`pixel_pairs`).
 """
 
 from __future__ import annotations
@@ -36,9 +36,10 @@ from resireg.mapping.voxels import _MAX_INDEX, _check_voxel_size, _pack, _unpack
 
 __all__ = ["pixel_pairs", "pixel_points"]
 
-# Pixels per chunk in pixel_pairs: its two float64 per-pixel buffers (2 x 8 MB) stay in the
-# L3 cache through the ~12 passes over them.
-_CHUNK_PIXELS = 1 << 20
+# Pixels per chunk in pixel_pairs: its two float64 per-pixel buffers (2 x 1 MB) are reused by
+# the allocator from chunk to chunk; whole-frame buffers (2 x 4.4 MB at 640 x 864) were
+# page-faulted afresh on every call, which cost more than the ~12 passes over them.
+_CHUNK_PIXELS = 1 << 17
 # Most bincount bins per chunk (the cells of its patches' voxel boxes; 32 MB of int64); a chunk
 # of larger boxes (far patches or tiny voxels) is counted by sorting instead.
 _MAX_BINS = 1 << 22
@@ -139,10 +140,15 @@ def pixel_pairs(
     How: without skew, ``K^-1 [u, v, 1] = (x_u, y_v, 1)`` with ``x_u = (u - cx) / fx``, ``y_v =
     (v - cy) / fy``, so world axis ``a`` of pixel ``(u, v)`` of patch ``p`` is ``z_p R_a0 x_u +
     (z_p (R_a1 y_v + R_a2) + t_a)``: a per-(patch, column) term plus a per-(patch, row) term. In
-    voxel units the two small tables are summed per pixel and rounded (``round`` / ``floor``),
-    then each pixel's voxel is coded relative to the patch's lowest voxel (whose index is the
-    rounded sum of the two tables' minima: rounding is monotone, so no pixel is below it); one
-    ``bincount`` over (patch, code) counts the pairs. Chunks of 8,192 patches bound the memory.
+    voxel units the two small tables are summed per pixel and rounded (``round`` / ``floor``);
+    each patch's voxels lie in a box from its lowest voxel (the rounded sum of the two tables'
+    minima: rounding is monotone) to its highest, and a pixel's voxel is coded by its place in
+    its patch's box, the boxes laid end to end; one ``bincount`` over the codes counts the pairs
+    (a chunk whose boxes hold more than 2^22 cells, far patches at a small voxel size, is
+    counted by sorting the pixels' keys instead: the same triples). Per pixel that is, per axis,
+    one float64 addition, one rounding and one multiply-add of exact integers, in chunks of
+    2^17 pixels laid out with the patches innermost (contiguous rows). Indices beyond
+    ``VoxelMap``'s packable range (``|index| > 2^20 - 1``) raise a ``ValueError``.
 
     Args:
         depth: ``[B, H, W]`` depth in metres.
