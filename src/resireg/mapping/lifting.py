@@ -197,91 +197,109 @@ def pixel_pairs(
     xs = x_u[frame[:, None], col_px[pj]]  # [n, mw]
     ys = y_v[frame[:, None], row_px[pi]]  # [n, mh]
     # Per axis the two tables in voxel units, and each patch's lowest and highest voxel (the
-    # rounded sums of the tables' extremes: rounding is monotone), all patches at once.
-    tables, low, span = [], [], []
-    extreme = 0.0
-    for a in range(3):
-        rot = pose[frame, a]  # [n, 4]: R_a0, R_a1, R_a2, t_a
-        col_term = zp * rot[:, 0:1] * xs / voxel  # [n, mw]
-        row_term = (zp * (rot[:, 1:2] * ys + rot[:, 2:3]) + rot[:, 3:4]) / voxel  # [n, mh]
-        lo = _lattice_op(row_term.amin(1) + col_term.amin(1), lattice)  # [n] float64
-        hi = _lattice_op(row_term.amax(1) + col_term.amax(1), lattice)
-        if frame.numel():
-            extreme = max(extreme, float(lo.abs().max()), float(hi.abs().max()))
-        tables.append((row_term.T.contiguous(), col_term.T.contiguous()))  # [mh, n], [mw, n]
-        low.append(lo.to(torch.int64))
-        span.append((hi - lo).to(torch.int64) + 1)
+    # rounded sums of the tables' extremes: rounding is monotone), all axes and patches at once.
+    rot = pose[frame, :3, None, :]  # [n, 3, 1, 4]: R_a0, R_a1, R_a2, t_a per axis a
+    zp = zp[:, :, None]  # [n, 1, 1]
+    col_term = zp * rot[..., 0] * xs[:, None] / voxel  # [n, 3, mw]
+    row_term = (zp * (rot[..., 1] * ys[:, None] + rot[..., 2]) + rot[..., 3]) / voxel  # [n, 3, mh]
+    lo = _lattice_op(row_term.amin(2) + col_term.amin(2), lattice)  # [n, 3] float64
+    hi = _lattice_op(row_term.amax(2) + col_term.amax(2), lattice)
     # Checked here, before any integer conversion: the codes below are exact only for indices
     # in the range that VoxelMap packs (its add_pairs would refuse the others anyway).
+    extreme = float(torch.maximum(lo.abs(), hi.abs()).max()) if frame.numel() else 0.0
     if extreme > _MAX_INDEX:
         raise ValueError(
             f"voxel indices up to {extreme:g} at voxel_size={voxel:g}: beyond +-{_MAX_INDEX} "
             "(keys pack 21 bits per axis; a depth or a pose translation too large)"
         )
-    out_index, out_patch, out_count = [], [], []
+    rows_t = row_term.permute(1, 2, 0).contiguous()  # [3, mh, n]
+    cols_t = col_term.permute(1, 2, 0).contiguous()  # [3, mw, n]
+    low = lo.to(torch.int64).T.contiguous()  # [3, n]
+    span = (hi - lo).to(torch.int64).T.contiguous() + 1  # [3, n]
     # Each patch's voxels are coded in its own box: code = base_p + (ix - lo_x) r_y r_z +
     # (iy - lo_y) r_z + (iz - lo_z), boxes laid end to end (base_p: the boxes before it), so the
-    # bins of a chunk are exactly its boxes' cells, however their sizes vary.
+    # bins of a chunk are exactly its boxes' cells, however their sizes vary. Chunks counted by
+    # bincount are decoded together (a run of them, flushed before a sorted chunk and at the
+    # end), so the decoding's ~20 operations run once per frame, not once per chunk.
     cells = span[0] * span[1] * span[2]  # [n]
+    strides = torch.stack([span[1] * span[2], span[2]])  # [2, n] of ix, iy
+    flat_patch = frame * (h * w) + pi * w + pj  # [n]
+    out_index, out_patch, out_count = [], [], []
+    run: list = []  # (codes, counts) of the pending bincount chunks
+    run_start, run_bins = 0, 0
+
+    def flush(end: int) -> None:
+        if not run:
+            return
+        sl = slice(run_start, end)
+        cell = cells[sl]
+        base = torch.cumsum(cell, 0) - cell  # [n]: the run's boxes end to end
+        code, count = torch.cat([c for c, _ in run]), torch.cat([c for _, c in run])
+        owner = torch.searchsorted(base, code, right=True) - 1  # [M] patch in the run
+        local = code - base[owner]
+        s0, s1 = strides[0, sl][owner], strides[1, sl][owner]
+        ix = low[0, sl][owner] + local // s0
+        iy = low[1, sl][owner] + (local // s1) % span[1, sl][owner]
+        iz = low[2, sl][owner] + local % s1
+        out_index.append(torch.stack([ix, iy, iz], 1))
+        out_patch.append(flat_patch[sl][owner])
+        out_count.append(count)
+        run.clear()
+
     n_px = mh * mw
     step = max(1, _CHUNK_PIXELS // n_px)
     for start in range(0, frame.numel(), step):
         sl = slice(start, start + step)
         n = frame[sl].numel()
         cell = cells[sl]
-        base = torch.cumsum(cell, 0) - cell  # [n]
         bins = int(cell.sum())
-        s0, s1 = span[1][sl] * span[2][sl], span[2][sl]  # [n] strides of ix, iy
         if bins > _MAX_BINS:  # far patches with huge boxes: count by sorting (bounded memory)
+            flush(start)
             index, owner, count = _pairs_by_sorting(
-                [(r[:, sl].T, c[:, sl].T) for r, c in tables], lattice, keep=None if not padded else
+                [(rows_t[a, :, sl].T, cols_t[a, :, sl].T) for a in range(3)], lattice,
+                keep=None if not padded else
                 row_mask[pi[sl]][:, :, None] & col_mask[pj[sl]][:, None, :],
             )  # fmt: skip
-        else:
-            # Pixel-major layout [mw, mh, n] (patch innermost): every per-pixel operation runs
-            # over contiguous rows of n values (the [n, mh, mw] layout's 8- or 16-wide inner
-            # rows of a broadcast addition cost ~3x more). Per pixel and axis: one addition of
-            # the two tables (the same float64 sum as ever), one rounding, one multiply-add
-            # into the code. The integers are exact in float64 (|code| < 2^44) and the
-            # per-patch offset comes once, at the end.
-            code = torch.empty(mw, mh, n, dtype=f64, device=dev)
-            buf = torch.empty_like(code)
-            for a, stride in enumerate((s0, s1, None)):
-                row_term, col_term = tables[a]
-                target = code if a == 0 else buf
-                torch.add(row_term[None, :, sl], col_term[:, None, sl], out=target)
-                target.round_() if lattice == "round" else target.floor_()
-                if a == 0:
-                    code.mul_(stride.to(f64))
-                elif stride is not None:
-                    code.addcmul_(buf, stride.to(f64))
-                else:
-                    code.add_(buf)
-            offset = base - low[0][sl] * s0 - low[1][sl] * s1 - low[2][sl]  # [n] int64
-            # To int64 without a conversion pass (by hand: .to(int64) costs ~6x an addition):
-            # x + 2^52 for an integer 0 <= x < 2^52 is exact and its bits are those of 2^52
-            # plus x, so the bits viewed as int64, less 2^52's, are x.
-            code = code.add_((offset + _TWO52).to(f64)).view(torch.int64).sub_(_TWO52_BITS)
-            if padded:
-                keep = row_mask[pi[sl]].T[None] & col_mask[pj[sl]].T[:, None]
-                code = torch.where(keep, code, bins)  # a bin past the last: dropped below
-            counts = torch.bincount(code.reshape(-1), minlength=bins + 1)[:bins]
-            code = counts.nonzero().squeeze(1)  # the occupied bins, in order
-            count = counts[code]
-            owner = torch.searchsorted(base, code, right=True) - 1  # [M] patch in the chunk
-            local = code - base[owner]
-            lows = [lo[sl][owner] for lo in low]
-            index = torch.stack(
-                [
-                    lows[0] + local // s0[owner],
-                    lows[1] + (local // s1[owner]) % span[1][sl][owner],
-                    lows[2] + local % span[2][sl][owner],
-                ],
-                1,
-            )
-        out_index.append(index)
-        out_patch.append((frame[sl] * (h * w) + pi[sl] * w + pj[sl])[owner])
-        out_count.append(count)
+            out_index.append(index)
+            out_patch.append(flat_patch[sl][owner])
+            out_count.append(count)
+            continue
+        if not run:
+            run_start, run_bins = start, 0
+        base = torch.cumsum(cell, 0) - cell  # [n]
+        s0, s1 = strides[0, sl].to(f64), strides[1, sl].to(f64)
+        # Pixel-major layout [mw, mh, n] (patch innermost): every per-pixel operation runs over
+        # contiguous rows of n values (the [n, mh, mw] layout's 8- or 16-wide inner rows of a
+        # broadcast addition cost ~3x more). Per pixel and axis: one addition of the two tables
+        # (the same float64 sum as ever), one rounding, one multiply-add into the code. The
+        # integers are exact in float64 (|code| < 2^44) and the per-patch offset comes once.
+        code = torch.empty(mw, mh, n, dtype=f64, device=dev)
+        buf = torch.empty_like(code)
+        for a, stride in enumerate((s0, s1, None)):
+            target = code if a == 0 else buf
+            torch.add(rows_t[a, None, :, sl], cols_t[a, :, None, sl], out=target)
+            target.round_() if lattice == "round" else target.floor_()
+            if a == 0:
+                code.mul_(stride)
+            elif stride is not None:
+                code.addcmul_(buf, stride)
+            else:
+                code.add_(buf)
+        offset = base - (low[:, sl] * torch.cat([strides[:, sl], torch.ones_like(cell)[None]])).sum(
+            0
+        )
+        # To int64 without a conversion pass (by hand: .to(int64) costs ~6x an addition):
+        # x + 2^52 for an integer 0 <= x < 2^52 is exact and its bits are those of 2^52 plus
+        # x, so the bits viewed as int64, less 2^52's, are x.
+        code = code.add_((offset + _TWO52).to(f64)).view(torch.int64).sub_(_TWO52_BITS)
+        if padded:
+            keep = row_mask[pi[sl]].T[None] & col_mask[pj[sl]].T[:, None]
+            code = torch.where(keep, code, bins)  # a bin past the last: dropped below
+        counts = torch.bincount(code.reshape(-1), minlength=bins + 1)[:bins]
+        occupied = counts.nonzero().squeeze(1)  # in order
+        run.append((occupied + run_bins, counts[occupied]))
+        run_bins += bins
+    flush(frame.numel())
     if not out_index:
         empty = torch.empty(0, dtype=torch.int64, device=dev)
         return empty.reshape(0, 3), empty, empty
