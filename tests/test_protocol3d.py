@@ -426,6 +426,97 @@ def test_pixel_pairs_equal_the_per_pixel_reference_exactly(lattice, grid):
     assert np.array_equal(vmap.means().numpy(), sums / counts[:, None])
 
 
+def _numpy_pixel_fusion(depth, k, poses, grid, voxel, lattice, feats):
+    """Independent per-pixel reference of the literal reading: every pixel its own point at its
+    patch's depth (nearest-exact, ``((2 x + 1) n) // (2 N)``), float64 numpy geometry, numpy
+    voxelisation and sums. Returns sorted voxel indices, counts and mean features."""
+    b, hh, ww = depth.shape
+    h, w = grid
+    rows = ((2 * np.arange(hh) + 1) * h) // (2 * hh)
+    cols = ((2 * np.arange(ww) + 1) * w) // (2 * ww)
+    d = depth.numpy().astype(np.float64)
+    z = d[:, ((2 * np.arange(h) + 1) * hh) // (2 * h)][
+        :, :, ((2 * np.arange(w) + 1) * ww) // (2 * w)
+    ]
+    kk = k.numpy().astype(np.float64)
+    keys, feat_rows, faces = [], [], 0
+    for f in range(b):
+        pose = poses[f].numpy().astype(np.float64)
+        zp = z[f][rows][:, cols]
+        if not np.isfinite(pose).all():
+            continue
+        v, u = np.mgrid[0:hh, 0:ww]
+        with np.errstate(invalid="ignore"):  # holes: inf * 0 (dropped below)
+            cam = np.stack([(u - kk[0, 2]) / kk[0, 0], (v - kk[1, 2]) / kk[1, 1],
+                            np.ones_like(zp)], -1) * zp[..., None]  # fmt: skip
+            world = cam @ pose[:3, :3].T + pose[:3, 3]
+        ok = np.isfinite(zp) & (zp > 0)
+        op = np.rint if lattice == "round" else np.floor
+        scaled = world[ok] / voxel
+        faces += int((np.mod(scaled, 1) == (0.5 if lattice == "round" else 0.0)).sum())
+        keys.append(op(scaled).astype(np.int64))
+        feat_rows.append(f * h * w + (rows[:, None] * w + cols[None, :])[ok])
+    keys, feat_rows = np.concatenate(keys), np.concatenate(feat_rows)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    sums = np.zeros((len(uniq), feats.shape[1]))
+    np.add.at(sums, inv.reshape(-1), feats.numpy().astype(np.float64)[feat_rows])
+    counts = np.bincount(inv.reshape(-1))
+    return uniq, counts, sums / counts[:, None], faces
+
+
+@pytest.mark.parametrize("lattice", ["round", "floor"])
+@pytest.mark.parametrize("grid", [(6, 8), (5, 7)])
+@pytest.mark.parametrize("path", ["bincount", "sorting"])
+def test_pixel_pairs_at_voxel_faces_and_invalid_depth_equal_numpy(lattice, grid, path, monkeypatch):
+    """Issue 26 item 4, the exact corner cases: a 48 x 64 frame pair with axis-aligned poses and
+    dyadic depths, intrinsics, translations and voxel (0.25 m), so every coordinate is exact in
+    float64 and many pixels lie exactly on voxel faces (``round``: ties ``k + 0.5``, half to
+    even; ``floor``: integers); holes (0, NaN, inf, negative depth) and a frame with an infinite
+    pose drop their patches. Voxel indices, counts and means equal the numpy per-pixel fusion
+    exactly, for a grid that divides the image (6 x 8) and one that does not (5 x 7: padded
+    patches), by ``bincount`` over the patches' boxes and by the sorting fallback (forced)."""
+    import resireg.mapping.lifting as lifting
+
+    if path == "sorting":
+        monkeypatch.setattr(lifting, "_MAX_BINS", 0)
+    g = torch.Generator().manual_seed(11)
+    choices = torch.tensor([0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 3.0])
+    depth = choices[torch.randint(0, len(choices), (3, 48, 64), generator=g)]
+    holes = torch.tensor([0.0, math.nan, math.inf, -1.0])
+    mask = torch.rand(3, 48, 64, generator=g) < 0.15
+    depth[mask] = holes[torch.randint(0, 4, (int(mask.sum()),), generator=g)]
+    k = torch.tensor([[8.0, 0.0, 32.0], [0.0, 8.0, 23.5], [0.0, 0.0, 1.0]])
+    poses = torch.eye(4).repeat(3, 1, 1)
+    poses[1, :3, :3] = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    poses[1, :3, 3] = torch.tensor([0.125, -0.375, 2.5])
+    poses[2, 0, 3] = -math.inf  # lost tracking: no patch of frame 2 is lifted
+    h, w = grid
+    feats = _dyadic(3 * h * w, 5, 1)
+    index, patch, count = pixel_pairs(depth, k, poses, grid, 0.25, lattice)
+    vmap = VoxelMap(0.25, 5, lattice=lattice)
+    vmap.add_pairs(index, count, feats, patch)
+    uniq, counts, means, faces = _numpy_pixel_fusion(depth, k, poses, grid, 0.25, lattice, feats)
+    assert faces > 2000  # many coordinates exactly on a face: where a rounding slip would flip
+    assert int(patch.max()) < 2 * h * w  # frame 2 contributes nothing
+    np.testing.assert_array_equal(vmap.indices.numpy(), uniq)
+    np.testing.assert_array_equal(vmap.counts.numpy(), counts)
+    assert np.array_equal(vmap.means().numpy(), means)
+    # pairs: by patch, then voxel (lexicographic), each pair once
+    order = np.lexsort((*index.numpy().T[::-1], patch.numpy()))
+    np.testing.assert_array_equal(order, np.arange(len(patch)))
+    key = np.concatenate([patch.numpy()[:, None], index.numpy()], 1)
+    assert len(np.unique(key, axis=0)) == len(key)
+
+
+def test_pixel_pairs_out_of_range_indices_raise():
+    """A depth whose voxel indices exceed VoxelMap's packable range (|index| > 2^20 - 1) is a
+    ValueError naming the index and the voxel size, raised before any integer conversion."""
+    k = torch.tensor([[4.0, 0.0, 3.5], [0.0, 4.0, 3.5], [0.0, 0.0, 1.0]])
+    depth = torch.full((1, 8, 8), 1e6)
+    with pytest.raises(ValueError, match=r"voxel indices up to .* voxel_size=0.05"):
+        pixel_pairs(depth, k, torch.eye(4)[None], (2, 2), 0.05)
+
+
 def test_transfer_k_and_same_voxel_by_hand():
     """``knn``: targets among labelled lattice points: k = 1 the nearest label, k = 5 the mode of
     the five nearest (ties to the smaller label, torch.mode), k = 0 the same voxel or none."""

@@ -17,7 +17,7 @@ Pixels of one patch share one feature, so the map needs only how many pixels of 
 in each voxel: :func:`pixel_pairs` returns those (patch, voxel, count) triples, and
 :meth:`resireg.mapping.VoxelMap.add_pairs` adds ``count * feature`` per pair. The feature work is
 then proportional to the pairs (a small multiple of the patches), not to the ~550k pixels of a
-640 x 864 frame; the per-pixel work is a few float64 operations per pixel (below).
+640 x 864 frame; the per-pixel work is ten float64 operations per pixel (:func:`pixel_pairs`).
 """
 
 from __future__ import annotations
@@ -32,12 +32,55 @@ from resireg.mapping.geometry import (
     nearest_indices,
     unproject,
 )
-from resireg.mapping.voxels import _check_voxel_size, check_lattice, lattice_index
+from resireg.mapping.voxels import _MAX_INDEX, _check_voxel_size, _pack, _unpack, check_lattice
 
 __all__ = ["pixel_pairs", "pixel_points"]
 
-# Patches per chunk in pixel_pairs (a chunk's per-pixel temporaries: ~ 8 bytes x pixels x 3).
-_CHUNK_PATCHES = 1 << 13
+# Pixels per chunk in pixel_pairs: its two float64 per-pixel buffers (2 x 1 MB) are reused by
+# the allocator from chunk to chunk; whole-frame buffers (2 x 4.4 MB at 640 x 864) were
+# page-faulted afresh on every call, which cost more than the ~12 passes over them.
+_CHUNK_PIXELS = 1 << 17
+# Most bincount bins per chunk (the cells of its patches' voxel boxes; 32 MB of int64); a chunk
+# of larger boxes (far patches or tiny voxels) is counted by sorting instead.
+_MAX_BINS = 1 << 22
+_TWO52 = 1 << 52
+_TWO52_BITS = int(torch.tensor(float(_TWO52), dtype=torch.float64).view(torch.int64))
+
+
+def _lattice_op(scaled: Tensor, lattice: str) -> Tensor:
+    """``round`` (half to even) or ``floor`` of coordinates in voxel units, still float64 (the
+    operations of :func:`resireg.mapping.voxels.lattice_index`)."""
+    return torch.round(scaled) if lattice == "round" else torch.floor(scaled)
+
+
+def _pairs_by_sorting(
+    tables: list[tuple[Tensor, Tensor]], lattice: str, keep: Tensor | None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The (voxel, patch, count) triples of a chunk of patches by sorting the pixels' keys.
+
+    The fallback of :func:`pixel_pairs` for boxes too large to count with ``bincount``: the same
+    per-pixel indices (the same sums of the same ``[n, mh]`` row and ``[n, mw]`` column tables,
+    the same rounding), each pixel's packed key, then a sort by (patch, key), i.e. the same
+    triples in the same order (by patch, then voxel), in memory linear in the pixels.
+
+    Returns:
+        ``index`` ``[M, 3]``, ``owner`` ``[M]`` (patch within the chunk), ``count`` ``[M]``.
+    """
+    axes = [_lattice_op(r[:, :, None] + c[:, None, :], lattice).to(torch.int64) for r, c in tables]
+    owner = torch.arange(axes[0].shape[0], device=axes[0].device)[:, None, None]
+    owner = owner.expand_as(axes[0]).reshape(-1)
+    key = _pack(torch.stack([a.reshape(-1) for a in axes], 1))
+    if keep is not None:
+        kept = keep.expand_as(axes[0]).reshape(-1)
+        key, owner = key[kept], owner[kept]
+    key, order = torch.sort(key, stable=True)
+    owner, order2 = torch.sort(owner[order], stable=True)  # by patch, then key
+    key = key[order2]
+    first = torch.ones_like(key, dtype=torch.bool)
+    first[1:] = (key[1:] != key[:-1]) | (owner[1:] != owner[:-1])
+    start = first.nonzero().squeeze(1)
+    count = torch.diff(start, append=start.new_tensor([key.numel()]))
+    return _unpack(key[start]), owner[start], count
 
 
 def _patch_of_pixels(n_in: int, n_out: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -97,10 +140,15 @@ def pixel_pairs(
     How: without skew, ``K^-1 [u, v, 1] = (x_u, y_v, 1)`` with ``x_u = (u - cx) / fx``, ``y_v =
     (v - cy) / fy``, so world axis ``a`` of pixel ``(u, v)`` of patch ``p`` is ``z_p R_a0 x_u +
     (z_p (R_a1 y_v + R_a2) + t_a)``: a per-(patch, column) term plus a per-(patch, row) term. In
-    voxel units the two small tables are summed per pixel and rounded (``round`` / ``floor``),
-    then each pixel's voxel is coded relative to the patch's lowest voxel (whose index is the
-    rounded sum of the two tables' minima: rounding is monotone, so no pixel is below it); one
-    ``bincount`` over (patch, code) counts the pairs. Chunks of 8,192 patches bound the memory.
+    voxel units the two small tables are summed per pixel and rounded (``round`` / ``floor``);
+    each patch's voxels lie in a box from its lowest voxel (the rounded sum of the two tables'
+    minima: rounding is monotone) to its highest, and a pixel's voxel is coded by its place in
+    its patch's box, the boxes laid end to end; one ``bincount`` over the codes counts the pairs
+    (a chunk whose boxes hold more than 2^22 cells, far patches at a small voxel size, is
+    counted by sorting the pixels' keys instead: the same triples). Per pixel that is, per axis,
+    one float64 addition, one rounding and one multiply-add of exact integers, in chunks of
+    2^17 pixels laid out with the patches innermost (contiguous rows). Indices beyond
+    ``VoxelMap``'s packable range (``|index| > 2^20 - 1``) raise a ``ValueError``.
 
     Args:
         depth: ``[B, H, W]`` depth in metres.
@@ -141,54 +189,117 @@ def pixel_pairs(
     frame, pi, pj = lifted.nonzero(as_tuple=True)  # the lifted patches
     row_px, row_mask = _patch_of_pixels(hh, h, dev)  # [h, mh]
     col_px, col_mask = _patch_of_pixels(ww, w, dev)  # [w, mw]
+    mh, mw = row_px.shape[1], col_px.shape[1]
     padded = not (bool(row_mask.all()) and bool(col_mask.all()))
     x_u = (torch.arange(ww, device=dev, dtype=f64)[None] - k[:, 0, 2:3]) / k[:, 0, 0:1]  # [B, W]
     y_v = (torch.arange(hh, device=dev, dtype=f64)[None] - k[:, 1, 2:3]) / k[:, 1, 1:2]  # [B, H]
+    zp = z[frame, pi, pj][:, None]  # [n, 1]
+    xs = x_u[frame[:, None], col_px[pj]]  # [n, mw]
+    ys = y_v[frame[:, None], row_px[pi]]  # [n, mh]
+    # Per axis the two tables in voxel units, and each patch's lowest and highest voxel (the
+    # rounded sums of the tables' extremes: rounding is monotone), all axes and patches at once.
+    rot = pose[frame, :3, None, :]  # [n, 3, 1, 4]: R_a0, R_a1, R_a2, t_a per axis a
+    zp = zp[:, :, None]  # [n, 1, 1]
+    col_term = zp * rot[..., 0] * xs[:, None] / voxel  # [n, 3, mw]
+    row_term = (zp * (rot[..., 1] * ys[:, None] + rot[..., 2]) + rot[..., 3]) / voxel  # [n, 3, mh]
+    lo = _lattice_op(row_term.amin(2) + col_term.amin(2), lattice)  # [n, 3] float64
+    hi = _lattice_op(row_term.amax(2) + col_term.amax(2), lattice)
+    # Checked here, before any integer conversion: the codes below are exact only for indices
+    # in the range that VoxelMap packs (its add_pairs would refuse the others anyway).
+    extreme = float(torch.maximum(lo.abs(), hi.abs()).max()) if frame.numel() else 0.0
+    if extreme > _MAX_INDEX:
+        raise ValueError(
+            f"voxel indices up to {extreme:g} at voxel_size={voxel:g}: beyond +-{_MAX_INDEX} "
+            "(keys pack 21 bits per axis; a depth or a pose translation too large)"
+        )
+    rows_t = row_term.permute(1, 2, 0).contiguous()  # [3, mh, n]
+    cols_t = col_term.permute(1, 2, 0).contiguous()  # [3, mw, n]
+    low = lo.to(torch.int64).T.contiguous()  # [3, n]
+    span = (hi - lo).to(torch.int64).T.contiguous() + 1  # [3, n]
+    # Each patch's voxels are coded in its own box: code = base_p + (ix - lo_x) r_y r_z +
+    # (iy - lo_y) r_z + (iz - lo_z), boxes laid end to end (base_p: the boxes before it), so the
+    # bins of a chunk are exactly its boxes' cells, however their sizes vary. Chunks counted by
+    # bincount are decoded together (a run of them, flushed before a sorted chunk and at the
+    # end), so the decoding's ~20 operations run once per frame, not once per chunk.
+    cells = span[0] * span[1] * span[2]  # [n]
+    strides = torch.stack([span[1] * span[2], span[2]])  # [2, n] of ix, iy
+    flat_patch = frame * (h * w) + pi * w + pj  # [n]
     out_index, out_patch, out_count = [], [], []
-    for start in range(0, frame.numel(), _CHUNK_PATCHES):
-        f = frame[start : start + _CHUNK_PATCHES]
-        i, j = pi[start : start + _CHUNK_PATCHES], pj[start : start + _CHUNK_PATCHES]
-        zp = z[f, i, j][:, None]  # [n, 1]
-        xs = x_u[f[:, None], col_px[j]]  # [n, mw]
-        ys = y_v[f[:, None], row_px[i]]  # [n, mh]
-        n = f.numel()
-        code = torch.zeros(n, row_px.shape[1], col_px.shape[1], dtype=f64, device=dev)
-        low, span = [], []
-        for a in range(3):
-            rot = pose[f, a]  # [n, 4]: R_a0, R_a1, R_a2, t_a
-            col_term = zp * rot[:, 0:1] * xs / voxel  # [n, mw]
-            row_term = (zp * (rot[:, 1:2] * ys + rot[:, 2:3]) + rot[:, 3:4]) / voxel  # [n, mh]
-            lo = lattice_index(row_term.amin(1) + col_term.amin(1), lattice)  # [n]
-            hi = lattice_index(row_term.amax(1) + col_term.amax(1), lattice)
-            cell = torch.add(row_term[:, :, None], col_term[:, None, :])  # [n, mh, mw]
-            cell = cell.round_() if lattice == "round" else cell.floor_()
-            cell.sub_(lo.to(f64)[:, None, None])  # offset in 0 .. hi - lo
-            r = int((hi - lo).max()) + 1
-            code.mul_(r).add_(cell)
-            low.append(lo)
-            span.append(r)
-        cells = span[0] * span[1] * span[2]
-        code = code.to(torch.int64)
+    run: list = []  # (codes, counts) of the pending bincount chunks
+    run_start, run_bins = 0, 0
+
+    def flush(end: int) -> None:
+        if not run:
+            return
+        sl = slice(run_start, end)
+        cell = cells[sl]
+        base = torch.cumsum(cell, 0) - cell  # [n]: the run's boxes end to end
+        code, count = torch.cat([c for c, _ in run]), torch.cat([c for _, c in run])
+        owner = torch.searchsorted(base, code, right=True) - 1  # [M] patch in the run
+        local = code - base[owner]
+        s0, s1 = strides[0, sl][owner], strides[1, sl][owner]
+        ix = low[0, sl][owner] + local // s0
+        iy = low[1, sl][owner] + (local // s1) % span[1, sl][owner]
+        iz = low[2, sl][owner] + local % s1
+        out_index.append(torch.stack([ix, iy, iz], 1))
+        out_patch.append(flat_patch[sl][owner])
+        out_count.append(count)
+        run.clear()
+
+    n_px = mh * mw
+    step = max(1, _CHUNK_PIXELS // n_px)
+    for start in range(0, frame.numel(), step):
+        sl = slice(start, start + step)
+        n = frame[sl].numel()
+        cell = cells[sl]
+        bins = int(cell.sum())
+        if bins > _MAX_BINS:  # far patches with huge boxes: count by sorting (bounded memory)
+            flush(start)
+            index, owner, count = _pairs_by_sorting(
+                [(rows_t[a, :, sl].T, cols_t[a, :, sl].T) for a in range(3)], lattice,
+                keep=None if not padded else
+                row_mask[pi[sl]][:, :, None] & col_mask[pj[sl]][:, None, :],
+            )  # fmt: skip
+            out_index.append(index)
+            out_patch.append(flat_patch[sl][owner])
+            out_count.append(count)
+            continue
+        if not run:
+            run_start, run_bins = start, 0
+        base = torch.cumsum(cell, 0) - cell  # [n]
+        s0, s1 = strides[0, sl].to(f64), strides[1, sl].to(f64)
+        # Pixel-major layout [mw, mh, n] (patch innermost): every per-pixel operation runs over
+        # contiguous rows of n values (the [n, mh, mw] layout's 8- or 16-wide inner rows of a
+        # broadcast addition cost ~3x more). Per pixel and axis: one addition of the two tables
+        # (the same float64 sum as ever), one rounding, one multiply-add into the code. The
+        # integers are exact in float64 (|code| < 2^44) and the per-patch offset comes once.
+        code = torch.empty(mw, mh, n, dtype=f64, device=dev)
+        buf = torch.empty_like(code)
+        for a, stride in enumerate((s0, s1, None)):
+            target = code if a == 0 else buf
+            torch.add(rows_t[a, None, :, sl], cols_t[a, :, None, sl], out=target)
+            target.round_() if lattice == "round" else target.floor_()
+            if a == 0:
+                code.mul_(stride)
+            elif stride is not None:
+                code.addcmul_(buf, stride)
+            else:
+                code.add_(buf)
+        offset = base - (low[:, sl] * torch.cat([strides[:, sl], torch.ones_like(cell)[None]])).sum(
+            0
+        )
+        # To int64 without a conversion pass (by hand: .to(int64) costs ~6x an addition):
+        # x + 2^52 for an integer 0 <= x < 2^52 is exact and its bits are those of 2^52 plus
+        # x, so the bits viewed as int64, less 2^52's, are x.
+        code = code.add_((offset + _TWO52).to(f64)).view(torch.int64).sub_(_TWO52_BITS)
         if padded:
-            keep = row_mask[i][:, :, None] & col_mask[j][:, None, :]
-            code = torch.where(keep, code, cells)  # a code past the last: dropped below
-            stride = cells + 1
-        else:
-            stride = cells
-        code += torch.arange(n, device=dev)[:, None, None] * stride
-        counts = torch.bincount(code.reshape(-1), minlength=n * stride)
-        pair = counts.nonzero().squeeze(1)
-        local, owner = pair % stride, pair // stride
-        if padded:
-            real = local < cells
-            pair, local, owner = pair[real], local[real], owner[real]
-        oz = local % span[2]
-        oy = (local // span[2]) % span[1]
-        ox = local // (span[1] * span[2])
-        index = torch.stack([low[0][owner] + ox, low[1][owner] + oy, low[2][owner] + oz], 1)
-        out_index.append(index)
-        out_patch.append((f * (h * w) + i * w + j)[owner])
-        out_count.append(counts[pair])
+            keep = row_mask[pi[sl]].T[None] & col_mask[pj[sl]].T[:, None]
+            code = torch.where(keep, code, bins)  # a bin past the last: dropped below
+        counts = torch.bincount(code.reshape(-1), minlength=bins + 1)[:bins]
+        occupied = counts.nonzero().squeeze(1)  # in order
+        run.append((occupied + run_bins, counts[occupied]))
+        run_bins += bins
+    flush(frame.numel())
     if not out_index:
         empty = torch.empty(0, dtype=torch.int64, device=dev)
         return empty.reshape(0, 3), empty, empty
