@@ -10,6 +10,7 @@ pass the encoder through :func:`inference` and time stages with :class:`StageTim
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -155,7 +156,7 @@ def eval_loader(
     return DataLoader(dataset, batch_sampler=batches, collate_fn=collate, num_workers=num_workers)
 
 
-class EvalEngine:
+class EvalEngine(ABC):
     """The skeleton of the 2D and 3D engines: the dataset, its batches of ``batch_size``
     (checked once, :func:`resireg.specs.rules.check_batch_size`), the loader
     (:func:`eval_loader` with the subclass's ``collate``), the class prototypes
@@ -207,9 +208,9 @@ class EvalEngine:
         batches = self.dataset.batches(self.batch_size, *shard)
         return eval_loader(self.dataset, batches, self.collate, self.num_workers)
 
+    @abstractmethod
     def batch_shapes(self) -> list[tuple[int, int, int]]:
         """``(items, height, width)`` of every batch (of the encoder input)."""
-        raise NotImplementedError
 
     def check_variants(self, variants: Mapping[str, nn.Module], key: str = "") -> None:
         """Fail before any encoding if a variant cannot run on some batch of this task (e.g.

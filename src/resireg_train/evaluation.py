@@ -12,6 +12,7 @@ fails a run that scored nothing (:func:`require_scored`).
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -49,7 +50,7 @@ def require_task(name: Any, key: str = "task") -> TaskSpec:
     return spec
 
 
-class TaskProtocol:
+class TaskProtocol(ABC):
     """One ``resireg-eval`` task (an entry of :data:`resireg_train.tasks.TASK_SPECS` names
     its subclass). :func:`resireg_train.cli.eval.evaluate` calls, in this order:
 
@@ -84,21 +85,21 @@ class TaskProtocol:
         if any(takes_prior(v) for v in variants):
             check_sam_source(str(self.params["prior"].get("model") or SAM_MODEL), "prior")
 
+    @abstractmethod
     def build(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module]) -> dict[str, Any]:
         """Build the dataset and the engine for ``encoder``; check the variants on its
         batches (a :class:`ConfigError` naming the configuration); returns the fields to
         record now (``protocol``)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def run(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module],
             timer: StageTimer) -> Any:  # fmt: skip
         """Score every variant; ``timer`` collects seconds per stage."""
-        raise NotImplementedError
 
+    @abstractmethod
     def results(self, result: Any) -> dict[str, Any]:
         """The task's own ``results.json`` fields of ``result`` (at least ``skipped`` and
         ``skipped_samples``); warns of skipped samples."""
-        raise NotImplementedError
 
     @staticmethod
     def check_batches(engine: EvalEngine, variants: Mapping[str, nn.Module]) -> None:
