@@ -62,26 +62,14 @@ def main() -> None:
     for name, seconds in best.items():
         print(f"| {name} | {seconds:.3f} | {seconds / base:.2f} |")
     # Per candidate: VB iterations and the bound (the fits the choice compares).
-    fits = elbo_fits(_points(elbo, inter.float(), spectrum), candidates, seed=elbo.seed)
-    n_points = inter.shape[0] * inter.shape[2] * inter.shape[3] * elbo.upscale**2
+    points = elbo._elbo_points(inter.float(), spectrum)
+    fits = elbo_fits(points, candidates, seed=elbo.seed)
+    n_points = points.shape[0]
     print("\n| k | VB iterations | ELBO per point | components holding >= 1 point |")
     print("|---|---|---|---|")
     for k, fit in fits.items():
         held = int((fit.weights * n_points >= 1).sum())
         print(f"| {k} | {fit.n_iter} | {fit.elbo / n_points:.3f} | {held} |")
-
-
-def _points(full: ReSiRegFull, x: torch.Tensor, spectrum) -> torch.Tensor:
-    """Full's normalised PCA points on the largest candidate's axes (what ``_elbo_count``
-    hands to the chooser)."""
-    import torch.nn.functional as F
-
-    from resireg.reconstruct import _project_grid, _upsample
-
-    b, _, hv, wv = x.shape
-    fit = spectrum.top(full.elbo_candidates[-1])
-    up = _upsample(_project_grid(x, fit).view(b, hv, wv, -1).permute(0, 3, 1, 2), full.upscale)
-    return F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
 
 
 if __name__ == "__main__":

@@ -484,14 +484,20 @@ class ReSiRegFull(nn.Module):
         """The count :func:`elbo_prototype_count` chooses for the batch ``x`` ``[B, Dv, Hv,
         Wv]``, on its normalised PCA points (``n_components`` axes, or the largest
         candidate's when tied), recorded in :attr:`chosen`."""
+        assert self.elbo_candidates is not None
+        n = elbo_prototype_count(self._elbo_points(x, spectrum), self.elbo_candidates,
+                                 seed=self.seed)  # fmt: skip
+        self.chosen.append(n)
+        return n
+
+    def _elbo_points(self, x: Tensor, spectrum: PCASpectrum) -> Tensor:
+        """``[N, r]`` the normalised PCA points of ``x`` the count is chosen on (``n_components``
+        axes, or the largest candidate's when tied)."""
         b, _, hv, wv = x.shape
         assert self.elbo_candidates is not None
         fit = spectrum.top(self.n_components or self.elbo_candidates[-1])
         up = _upsample(_project_grid(x, fit).view(b, hv, wv, -1).permute(0, 3, 1, 2), self.upscale)
-        z = F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
-        n = elbo_prototype_count(z, self.elbo_candidates, seed=self.seed)
-        self.chosen.append(n)
-        return n
+        return F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
 
     def forward(
         self,
