@@ -795,7 +795,7 @@ def elbo_fits(
     max_points: int = ELBO_MAX_POINTS,
     max_iter: int = 100,
     tol: float = 1e-3,
-    kmeans_iter: int = 5,
+    kmeans_iter: int = 0,
     dtype: torch.dtype = torch.float32,
     stop_after: int | None = None,
     n_points: int | None = None,
@@ -803,8 +803,9 @@ def elbo_fits(
     """The variational mixtures of the candidate counts, fitted for
     :func:`elbo_prototype_count` (docs/design.md section 4.4b).
 
-    For every candidate ``k``, in increasing order: :func:`kmeans` (Lloyd from a greedy
-    k-means++ seeding, seed ``seed``) on the points, then :func:`vb_gmm` from its labels. The
+    For every candidate ``k``, in increasing order: a greedy k-means++ seeding (seed
+    ``seed``), ``kmeans_iter`` Lloyd iterations from it (none by default: every point is
+    labelled by its nearest seed), then :func:`vb_gmm` from those labels. The
     seedings are the first ``k`` centres of one greedy k-means++ run (``2 + ln(max
     candidate)`` trials per centre for every ``k``): each centre depends only on those before
     it, so one run seeds every candidate. Above ``max_points`` points the mixtures are fitted
@@ -825,9 +826,9 @@ def elbo_fits(
             0.6 (soft mixtures) nats per point of those at ``1e-4``, lower for the larger,
             slower-converging counts, while the chosen count beats its neighbours by 0.9 and
             more (docs/benchmarks.md).
-        kmeans_iter: Lloyd iterations at most of the k-means that starts each fit (EM
-            refines the start, as a soft k-means; a converged k-means does not change the
-            choice, only the cost).
+        kmeans_iter: Lloyd iterations at most of the k-means that starts each fit; ``0``
+            starts EM from every point's nearest seed (EM, a soft k-means, refines the start:
+            Lloyd first did not change the choice or the EM iterations, only the cost).
         dtype: of the EM arithmetic (see :func:`vb_gmm`).
         stop_after: ``None`` fits every candidate; a number ``p`` stops the scan once ``p``
             consecutive candidates have a bound below the largest so far (the bound rises
@@ -874,7 +875,11 @@ def elbo_fits(
     best, below = -math.inf, 0
     for k in counts:
         centres.extend(next(steps) for _ in range(k - len(centres)))
-        labels = _lloyd(x, torch.stack(centres), kmeans_iter, tol_abs, x_sq=x_sq).labels
+        seeds = torch.stack(centres)
+        if kmeans_iter > 0:
+            labels = _lloyd(x, seeds, kmeans_iter, tol_abs, x_sq=x_sq).labels
+        else:  # each point's nearest seed
+            labels = sq_distances(x, seeds, x_sq.unsqueeze(1)).argmin(1)
         fit = vb_gmm(x, labels, k, max_iter=max_iter, tol=tol * n, point_weight=weight,
                      dtype=dtype)  # fmt: skip
         fits[k] = fit
