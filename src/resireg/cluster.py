@@ -803,16 +803,16 @@ def elbo_fits(
     """The variational mixtures of the candidate counts, fitted for
     :func:`elbo_prototype_count` (docs/design.md section 4.4b).
 
-    For every candidate ``k``, in increasing order: a greedy k-means++ seeding (seed
-    ``seed``), ``kmeans_iter`` Lloyd iterations from it (none by default: every point is
-    labelled by its nearest seed), then :func:`vb_gmm` from those labels. The
-    seedings are the first ``k`` centres of one greedy k-means++ run (``2 + ln(max
+    For the candidates ``k`` in increasing order (all, or until ``stop_after`` ends the scan): a
+    greedy k-means++ seeding (seed ``seed``), ``kmeans_iter`` Lloyd iterations from it (none by
+    default: every point is labelled by its nearest seed), then :func:`vb_gmm` from those
+    labels. The seedings are the first ``k`` centres of one greedy k-means++ run (``2 + ln(max
     candidate)`` trials per centre for every ``k``): each centre depends only on those before
-    it, so one run seeds every candidate. Above ``max_points`` points the mixtures are fitted
-    on a uniform subsample of ``M = max_points`` (:func:`elbo_subsample`), each point standing
-    for ``N / M`` (``vb_gmm``'s ``point_weight``), so that every :attr:`VBGMMResult.elbo`
-    estimates the bound of all ``N`` points. Unweighted, the subsample's bound would weigh the
-    priors ``N / M`` times too heavily and favour too few prototypes.
+    it, so one run seeds every candidate. Above ``max_points`` points the mixtures are fitted on
+    a uniform subsample of ``M = max_points`` (:func:`elbo_subsample`), each point standing for
+    ``N / M`` (``vb_gmm``'s ``point_weight``), so that every :attr:`VBGMMResult.elbo` estimates
+    the bound of all ``N`` points. Unweighted, the subsample's bound would weigh the priors
+    ``N / M`` times too heavily and favour too few prototypes.
 
     Args:
         points: ``[N, r]`` (ReSiReg Full's normalised PCA points), or, with ``n_points``,
