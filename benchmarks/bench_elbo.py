@@ -7,14 +7,19 @@ region structure, upscale 2 -> 55,296 points), the candidates of ``conf/resireg/
 One run prints, as ratios to ``ReSiRegFull.assign`` at the chosen count (Full's clustering:
 PCA, projection, upsampling, k-means), the fastest of ``--repeats`` interleaved calls of:
 
-1. the choice alone (:meth:`ReSiRegFull._elbo_count`: projection to the largest candidate's
-   axes, then :func:`resireg.cluster.elbo_prototype_count`: a k-means and a variational
-   mixture per candidate on ``max_points`` points),
+1. the choice alone (:meth:`ReSiRegFull._elbo_count`: the subsample's points on the largest
+   candidate's axes, then :func:`resireg.cluster.elbo_prototype_count`: k-means and a
+   variational mixture per candidate, in increasing order, on ``max_points`` points, until
+   two candidates in a row fall below the best bound),
 2. ``ReSiRegFull(n_prototypes="elbo").assign``: the choice and the clustering,
 
-and the count chosen, with each candidate's VB iterations and bound.
+with ``--impl DIR`` the same two of the ``ReSiRegFull`` in ``DIR/reconstruct.py`` (bound to
+``DIR/cluster.py``; e.g. an earlier version, for before/after in one run), and the count
+chosen. Then, per candidate, the full scan's VB iterations and bound (``elbo_fits``,
+``stop_after=None``), and which candidates the chooser's scan fitted.
 
-    python benchmarks/bench_elbo.py [--threads 2] [--repeats 3] [--max-points 4096]
+    python benchmarks/bench_elbo.py [--threads 2] [--repeats 3] [--impl DIR]
+    git show c69510a:src/resireg/cluster.py > /tmp/before/cluster.py   # and reconstruct.py
 """
 
 from __future__ import annotations
@@ -24,8 +29,8 @@ import argparse
 import torch
 
 from _common import resireg_defaults
-from bench_reconstruct import interleaved_best, make_features
-from resireg.cluster import elbo_fits
+from bench_reconstruct import interleaved_best, load_impl, make_features
+from resireg.cluster import ELBO_MAX_POINTS, elbo_fits, elbo_subsample
 from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
 
 
@@ -35,6 +40,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--impl", default=None, help="folder of another reconstruct.py + cluster.py"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     candidates = resireg_defaults()["full"]["elbo_candidates"]
@@ -56,20 +64,31 @@ def main() -> None:
         "elbo choice": lambda: (elbo._elbo_count(inter.float(), spectrum), sync()),
         "elbo assign (choice + clustering)": lambda: (elbo.assign(inter), sync()),
     }
+    if args.impl is not None:
+        other_cls = load_impl(args.impl)[1].ReSiRegFull
+        other = other_cls(n_prototypes="elbo", elbo_candidates=candidates, n_components=None)
+        print(f"--impl {args.impl}: chosen {other._elbo_count(inter.float(), spectrum)}")
+        fns["--impl: elbo choice"] = lambda: (other._elbo_count(inter.float(), spectrum), sync())
+        fns["--impl: elbo assign"] = lambda: (other.assign(inter), sync())
     best = interleaved_best(fns, args.repeats)
     base = best["full clustering (assign, chosen n)"]
     print("| path | seconds | ratio to Full's clustering |\n|---|---|---|")
     for name, seconds in best.items():
         print(f"| {name} | {seconds:.3f} | {seconds / base:.2f} |")
-    # Per candidate: VB iterations and the bound (the fits the choice compares).
-    points = elbo._elbo_points(inter.float(), spectrum)
-    fits = elbo_fits(points, candidates, seed=elbo.seed)
-    n_points = points.shape[0]
-    print("\n| k | VB iterations | ELBO per point | components holding >= 1 point |")
-    print("|---|---|---|---|")
+    # Per candidate: the full scan's VB iterations and bounds, on the chooser's subsample.
+    n_points = inter.shape[0] * inter.shape[2] * inter.shape[3] * elbo.upscale**2
+    rows = elbo_subsample(n_points, ELBO_MAX_POINTS, elbo.seed)
+    points = elbo._elbo_points(inter.float(), spectrum, rows)
+    fits = elbo_fits(points, candidates, seed=elbo.seed, n_points=n_points)
+    scanned = elbo_fits(points, candidates, seed=elbo.seed, n_points=n_points, stop_after=2)
+    print(
+        "\n| k | fitted by the scan | VB iterations | ELBO per point | components holding >= 1 point |"
+    )
+    print("|---|---|---|---|---|")
     for k, fit in fits.items():
         held = int((fit.weights * n_points >= 1).sum())
-        print(f"| {k} | {fit.n_iter} | {fit.elbo / n_points:.3f} | {held} |")
+        mark = "yes" if k in scanned else "no"
+        print(f"| {k} | {mark} | {fit.n_iter} | {fit.elbo / n_points:.3f} | {held} |")
 
 
 if __name__ == "__main__":

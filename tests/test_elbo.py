@@ -9,7 +9,7 @@ import torch
 from scipy import stats
 from sklearn.mixture import BayesianGaussianMixture
 
-from resireg.cluster import elbo_prototype_count, kmeans, vb_gmm
+from resireg.cluster import elbo_fits, elbo_prototype_count, elbo_subsample, kmeans, vb_gmm
 
 
 def _blobs(n_clusters: int, dim: int, seed: int, per: int = 150, spread: float = 0.15):
@@ -138,6 +138,34 @@ def test_subsample_and_bad_candidates():
         elbo_prototype_count(x, [0, 4])
     with pytest.raises(ValueError, match="exceed"):
         elbo_prototype_count(x[:10], [4, 20])
+    with pytest.raises(ValueError, match="stop_after=0"):
+        elbo_prototype_count(x, [2, 4], stop_after=0)
+    with pytest.raises(ValueError, match="n_points=5000"):  # not the subsample's size
+        elbo_prototype_count(x[:100], [2, 4], n_points=5000, max_points=500)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("true,seed", [(3, 0), (5, 1), (8, 0), (12, 1)])
+def test_scan_stops_on_the_full_scans_fits(true, seed):
+    """The scan that stops after ``stop_after`` candidates below the best fits the first
+    candidates of the full scan (``stop_after=None``), with the same bounds (one k-means++ run
+    seeds every count, so a fit does not depend on where the scan stops), stops only after that
+    many, and chooses the full scan's count: the known one here."""
+    x = torch.tensor(_blobs(true, 8, seed=100 * true + seed), dtype=torch.float32)
+    candidates = [2, 3, 5, 8, 12, 16, 20]
+    full = elbo_fits(x, candidates, seed=seed)
+    assert list(full) == candidates
+    best_full = max(full.values(), key=lambda fit: fit.elbo).elbo
+    assert min(k for k, fit in full.items() if fit.elbo == best_full) == true
+    for stop in (1, 2):
+        part = elbo_fits(x, candidates, seed=seed, stop_after=stop)
+        fitted = list(part)
+        assert fitted == candidates[: len(fitted)]
+        assert all(part[k].elbo == full[k].elbo for k in fitted)
+        best = max(fit.elbo for fit in part.values())
+        if len(fitted) < len(candidates):
+            assert all(part[k].elbo < best for k in fitted[-stop:])
+    assert elbo_prototype_count(x, candidates, seed=seed) == true
 
 
 def _scene(n_regions: int, seed: int) -> torch.Tensor:
@@ -173,6 +201,28 @@ def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
         ReSiRegFull(n_prototypes="elbo", elbo_candidates=None)
     # the Python default is conf/'s candidate set (conf/resireg/default.yaml)
     assert ReSiRegFull(n_prototypes="elbo").elbo_candidates == tuple(range(24, 133, 12))
+
+
+@pytest.mark.parametrize("upscale,n_components", [(1, None), (2, None), (3, 6)])
+def test_full_computes_only_the_subsample(upscale, n_components, monkeypatch):
+    """ReSiRegFull's chooser computes only the subsampled points, each from its four grid
+    neighbours: they equal those rows of all upsampled points (F.interpolate's) to float
+    rounding, and the count equals the chooser's given all the points."""
+    import resireg.reconstruct as reconstruct
+    from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
+
+    x = _scene(5, seed=3)
+    full = ReSiRegFull(n_prototypes="elbo", elbo_candidates=[3, 5, 8], upscale=upscale,
+                       n_components=n_components)  # fmt: skip
+    spectrum = upsampled_spectrum(x, upscale)
+    every = full._elbo_points(x, spectrum)
+    rows = elbo_subsample(every.shape[0], 300, seed=0)
+    assert rows is not None and every.shape[0] == 384 * upscale**2
+    torch.testing.assert_close(full._elbo_points(x, spectrum, rows), every[rows], rtol=0, atol=3e-6)
+    monkeypatch.setattr(reconstruct, "ELBO_MAX_POINTS", 300)
+    chosen = full._elbo_count(x, spectrum)
+    assert chosen == elbo_prototype_count(every, [3, 5, 8], max_points=300)
+    assert full.chosen == [chosen]
 
 
 def test_ablation_report_places_the_elbo_count_beside_the_heuristic(tmp_path):

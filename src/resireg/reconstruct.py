@@ -20,7 +20,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.cluster import PCAResult, PCASpectrum, elbo_prototype_count, gram, kmeans
+from resireg.cluster import (
+    ELBO_MAX_POINTS,
+    PCAResult,
+    PCASpectrum,
+    elbo_prototype_count,
+    elbo_subsample,
+    gram,
+    kmeans,
+)
 from resireg.specs.variants import check_variant_kwargs
 
 __all__ = [
@@ -483,21 +491,55 @@ class ReSiRegFull(nn.Module):
     def _elbo_count(self, x: Tensor, spectrum: PCASpectrum) -> int:
         """The count :func:`elbo_prototype_count` chooses for the batch ``x`` ``[B, Dv, Hv,
         Wv]``, on its normalised PCA points (``n_components`` axes, or the largest
-        candidate's when tied), recorded in :attr:`chosen`."""
+        candidate's when tied), recorded in :attr:`chosen`. Only the subsample the chooser
+        fits (:func:`elbo_subsample`) is computed, not all ``B Hv s Wv s`` points."""
         assert self.elbo_candidates is not None
-        n = elbo_prototype_count(self._elbo_points(x, spectrum), self.elbo_candidates,
-                                 seed=self.seed)  # fmt: skip
+        b, _, hv, wv = x.shape
+        n_all = b * hv * wv * self.upscale**2
+        rows = elbo_subsample(n_all, ELBO_MAX_POINTS, self.seed)
+        n = elbo_prototype_count(self._elbo_points(x, spectrum, rows), self.elbo_candidates,
+                                 seed=self.seed, max_points=ELBO_MAX_POINTS, n_points=n_all)  # fmt: skip
         self.chosen.append(n)
         return n
 
-    def _elbo_points(self, x: Tensor, spectrum: PCASpectrum) -> Tensor:
+    def _elbo_points(self, x: Tensor, spectrum: PCASpectrum, rows: Tensor | None = None) -> Tensor:
         """``[N, r]`` the normalised PCA points of ``x`` the count is chosen on (``n_components``
-        axes, or the largest candidate's when tied)."""
+        axes, or the largest candidate's when tied), or only their ``rows`` (indices into the
+        ``B Hv s Wv s`` upsampled points, row-major), each the bilinear blend of its four grid
+        neighbours' projections (what the upsampling computes, up to rounding)."""
         b, _, hv, wv = x.shape
         assert self.elbo_candidates is not None
         fit = spectrum.top(self.n_components or self.elbo_candidates[-1])
-        up = _upsample(_project_grid(x, fit).view(b, hv, wv, -1).permute(0, 3, 1, 2), self.upscale)
-        return F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
+        s = self.upscale
+        if rows is None:
+            low = _project_grid(x, fit)  # [B*Hv*Wv, r]
+            up = _upsample(low.view(b, hv, wv, -1).permute(0, 3, 1, 2), s)
+            return F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
+        # The rows' upsampled intermediates (blends of four grid points each), then their
+        # projection: fewer rows to project than the grid's (projection commutes with the
+        # blend, whose weights sum to 1).
+        rows = rows.to(x.device)
+        h, w = hv * s, wv * s
+        image, i, j = rows // (h * w), rows // w % h, rows % w
+        grid = x.reshape(b, x.shape[1], hv * wv)
+
+        def taps(o: Tensor, size: int) -> tuple[Tensor, Tensor, Tensor]:
+            """Source indices ``(i0, i1)`` and the weight ``[M, 1]`` of ``i1`` for output index
+            ``o`` (as ``F.interpolate(mode="bilinear", align_corners=False)``)."""
+            src = ((o.to(x.dtype) + 0.5) * (1.0 / s) - 0.5).clamp_min_(0.0)
+            i0 = src.long().clamp_max_(size - 1)
+            return i0, (i0 + 1).clamp_max_(size - 1), (src - i0).unsqueeze(1)
+
+        i0, i1, li = taps(i, hv)
+        j0, j1, lj = taps(j, wv)
+
+        def at(ii: Tensor, jj: Tensor) -> Tensor:  # [M, Dv]
+            return grid[image, :, ii * wv + jj]
+
+        top = at(i0, j0) * (1 - lj) + at(i0, j1) * lj
+        bottom = at(i1, j0) * (1 - lj) + at(i1, j1) * lj
+        up = (top * (1 - li) + bottom * li).sub_(fit.mean) @ fit.components.T
+        return F.normalize(up, dim=1)
 
     def forward(
         self,
