@@ -25,7 +25,7 @@ from typing import Any
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import CompactHydraException
-from hydra.types import RunMode
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.files import WriteError
@@ -37,6 +37,7 @@ __all__ = [
     "CONFIG_DIR",
     "RUN_ID",
     "JobFailed",
+    "SweepRecords",
     "added_keys",
     "hydra_entry_point",
     "instantiate_group",
@@ -270,13 +271,64 @@ def _reported_types() -> tuple[type[BaseException], ...]:
     return tuple(types)
 
 
-def _sweep_summary(prog: str, jobs: int, failures: list[tuple[int, Path, str]]) -> str:
-    """One line per failed job of a multirun (Hydra itself reports only the first): its
-    number, folder and its error (on one line); ``failures``: ``(number, folder, error)``."""
-    sweep = failures[0][1].parent
-    lines = [f"{prog}: {len(failures)} of {jobs} jobs failed (sweep {sweep}; "
+class SweepRecords(Callback):
+    """Hydra callback (``conf/hydra/default.yaml``) that notes, in the process that launches a
+    multirun, where its jobs write and which job records were already there, so that process
+    can list every failed job once the sweep ends (:func:`hydra_entry_point`).
+
+    The list comes from the jobs' ``results.json`` files, not from this process's memory: with
+    a launcher that runs jobs elsewhere (``hydra/launcher=submitit_slurm``, ``submitit_local``)
+    no job runs in this process, and Hydra itself reports only the first failure. A record is
+    this sweep's when it is new or changed since the sweep started (a resumed Optuna search
+    keeps its earlier trials' folders); changes are found by file size and modification time
+    as the file system gives them, never compared with this machine's clock (a cluster's
+    shared file system may run on another)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep = Path(str(config.hydra.sweep.dir))
+        _SWEEP.clear()
+        _SWEEP.update(dir=sweep, before=_job_records(sweep))
+
+
+#: The multirun this process launched: its folder and its job records before it started.
+_SWEEP: dict[str, Any] = {}
+
+
+def _job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
+    """Every job record of ``sweep`` (``<sweep>/<job>/results.json``): (mtime ns, size)."""
+    records = {}
+    for path in sweep.glob(f"*/{RESULTS_FILE}"):
+        try:
+            stat = path.stat()
+        except OSError:  # removed meanwhile
+            continue
+        records[path] = (stat.st_mtime_ns, stat.st_size)
+    return records
+
+
+def _job_number(folder: Path) -> int:
+    """A job folder's number: the ``<n>_`` its name starts with (conf/hydra/default.yaml)."""
+    head = folder.name.split("_", 1)[0]
+    return int(head) if head.isdigit() else -1
+
+
+def _sweep_summary(prog: str, sweep: Path, before: dict[Path, tuple[int, int]]) -> str:
+    """One line per failed job of the multirun in ``sweep`` (Hydra itself reports only the
+    first): its number, folder and its error (on one line), from the job records written
+    since ``before`` (:class:`SweepRecords`); empty when no job failed."""
+    now = _job_records(sweep)
+    jobs = sorted((p for p, stat in now.items() if before.get(p) != stat),
+                  key=lambda p: (_job_number(p.parent), p.parent.name))  # fmt: skip
+    failures = []
+    for path in jobs:
+        record = read_results(path.parent)
+        if record.get("status") == "failed":
+            failures.append((path.parent, str(record.get("error") or "no error recorded")))
+    if not failures:
+        return ""
+    lines = [f"{prog}: {len(failures)} of {len(jobs)} jobs failed (sweep {sweep}; "
              f"resireg-report {sweep} lists every job):"]  # fmt: skip
-    lines += [f"  job {n} ({out.name}): {flat(error)}" for n, out, error in failures]
+    lines += [f"  job {_job_number(out)} ({out.name}): {flat(error)}" for out, error in failures]
     return "\n".join(lines) + "\n"
 
 
@@ -287,32 +339,26 @@ def hydra_entry_point(
     line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper.
 
     A failing job is listed; a multirun ends with one line per failed job (on stderr),
-    after Hydra's report of the first one."""
+    after Hydra's report of the first one, wherever its jobs ran (:class:`SweepRecords`)."""
     register_resolvers()
     prog = f"resireg-{config_name}"
-    jobs = {"multirun": False, "count": 0}
-    failures: list[tuple[int, Path, str]] = []  # the jobs of this process that failed
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def main(cfg: DictConfig) -> float | None:
-        runtime = HydraConfig.get()
-        jobs["multirun"] = runtime.mode == RunMode.MULTIRUN
-        jobs["count"] += 1
-        log.info("output dir: %s", runtime.runtime.output_dir)
+        log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
         try:
             return optimized_value(cfg, task(cfg))
         except Exception as exc:
-            number = int(runtime.job.get("num") or 0)
-            failures.append((number, Path(runtime.runtime.output_dir), error_text(exc)))
             if isinstance(exc, _reported_types()):
                 raise JobFailed(error_text(exc)) from exc
             raise
 
     def entry() -> float | None:
+        _SWEEP.clear()
         try:
             return main()
         finally:
-            if jobs["multirun"] and failures:
-                sys.stderr.write(_sweep_summary(prog, jobs["count"], failures))
+            if _SWEEP:
+                sys.stderr.write(_sweep_summary(prog, _SWEEP["dir"], _SWEEP["before"]))
 
     return entry
