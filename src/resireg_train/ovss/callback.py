@@ -66,7 +66,7 @@ class ReSiRegEval(L.Callback):
         variants: Sequence[str] = VARIANTS,
         every_n_epochs: int = 1,
         batch_size: int = 8,
-        num_workers: int = 0,
+        num_workers: int = 2,
         precision: str = "32",
         temperature: float = 100.0,
         **variant_params: Mapping[str, Any] | None,
