@@ -41,7 +41,7 @@ def _cauldron_parquet(path, n, files=1):
 
 def _loader(sources, **kw):
     args = {"batch_size": 4, "steps_per_epoch": 3, "crop_size": 32, "min_image_size": 16,
-            "num_workers": 0, "shuffle_buffer": 0}  # fmt: skip
+            "num_workers": 0, "shuffle_buffer": 0, "pin_memory": False}  # fmt: skip
     args.update(kw)
     dm = CaptionDataModule(sources, **args)
     return dm, dm.train_dataloader()
@@ -133,7 +133,8 @@ def test_ranks_read_disjoint_shards(tmp_path):
     seen = []
     for rank in (0, 1):
         dm = CaptionDataModule(spec, batch_size=8, steps_per_epoch=2, crop_size=32,
-                               min_image_size=16, num_workers=0, shuffle_buffer=0)  # fmt: skip
+                               min_image_size=16, num_workers=0, shuffle_buffer=0,
+                               pin_memory=False)  # fmt: skip
         dm.trainer = _Trainer(rank)
         batches = list(dm.train_dataloader())
         assert batches[0]["image"].shape[0] == 4  # the global batch is split over ranks

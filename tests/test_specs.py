@@ -289,6 +289,11 @@ def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source()
         assert path.stem in spec.configs and set(entry) == set(spec.keys), path.name
         assert entry == dataset_conf(path.stem), path.name  # read outside Hydra alike
         assert all(t in TASK_SPECS for t in spec.tasks), path.name
+    # a ScanNet entry's keys include every one its reader and the 3D task read
+    from resireg_train.data.scannet import READER_KEYS
+    from resireg_train.mapping.engine import TASK_KEYS
+
+    assert {*READER_KEYS, *TASK_KEYS} <= set(DATASET_SPECS["scannet"].keys)
     synthetic = dataset_conf("synthetic")
     assert (synthetic["size"], synthetic["image_size"], synthetic["short_side"]) == (
         32, [72, 88], 64,
