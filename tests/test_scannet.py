@@ -499,8 +499,9 @@ def test_3d_sweeps_are_the_papers_settings_and_bad_values_name_the_key():
                  "dataset.gt_unlabelled='keep'"):  # fmt: skip
         assert text in str(info.value)
     with pytest.raises(
-        ConfigError, match=r"task='scannet3d': dataset\.kind='ade20k' is scored by task=ovss.*"
-        r"choose a dataset of task=scannet3d \(dataset=scannet or"
+        ConfigError,
+        match=r"task='scannet3d': dataset\.kind='ade20k' is scored by task=ovss.*"
+        r"choose a dataset of task=scannet3d \(dataset=scannet or",
     ):
         validate_eval(mismatch)
     with pytest.raises(ConfigError, match=r"task='ovss': dataset\.kind='scannet'"):
