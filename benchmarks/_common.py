@@ -53,7 +53,9 @@ def generated_spec(
     """The dataset entry of ``images`` generated scenes (3:4, ``short_side`` x 4/3 unless
     ``image_size``) at the protocol's ``short_side``: the benchmarks' stand-in for ADE20K."""
     size = image_size or [short_side, short_side * 4 // 3]
-    return {"kind": "synthetic", "size": images, "short_side": short_side, "image_size": size}
+    from resireg_train.data.specs import dataset_conf
+
+    return dataset_conf("synthetic", size=images, short_side=short_side, image_size=size)
 
 
 def encode_generated(model: Any, images: int, short_side: int) -> Any:

@@ -31,6 +31,7 @@ from resireg.variants import build_variants
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.cli.train import build
 from resireg_train.data.segmentation import build_segmentation_set
+from resireg_train.data.specs import dataset_conf
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
 STAGES = ("data", "encoder", "reconstruction/bb", "reconstruction/lite",
@@ -94,7 +95,7 @@ def vits(repeats: int, images: int) -> None:
     backbone = {"model_name": "eupe_vit_s16", "weights": None}  # ViT-S/16, random init
     head = {"out_dim": 512, "depth": 2, "num_heads": 8}
     vlm = ResiregVLM.build(backbone, head, TINY_TEXT).eval()
-    spec = {"kind": "synthetic", "size": images, "image_size": [432, 576], "short_side": 576}
+    spec = dataset_conf("synthetic", size=images, image_size=[432, 576], short_side=576)
     task = OVSSTask(build_segmentation_set(spec, vlm.input_rule.patch_size), batch_size=8)
     variants = build_variants(
         ["bb", "lite", "full"], {"lite": {"alpha": 10.0}, "full": {"n_prototypes": 36}}

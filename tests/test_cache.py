@@ -12,10 +12,10 @@ from resireg.models import ResiregVLM
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache, weights_fingerprint
 from resireg_train.data.segmentation import build_segmentation_set
+from resireg_train.data.specs import dataset_conf
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
-SPEC = {"name": "synthetic", "kind": "synthetic", "size": 6, "image_size": [40, 56],
-        "seed": 3, "noise": 12.0, "short_side": 32}  # fmt: skip
+SPEC = dataset_conf("synthetic", size=6, image_size=[40, 56], seed=3, noise=12.0, short_side=32)
 
 
 @pytest.fixture(scope="module")

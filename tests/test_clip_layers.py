@@ -26,14 +26,14 @@ from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
+from resireg_train.data.specs import dataset_conf
 from resireg_train.ovss.engine import OVSSTask, requested_layers
 from resireg_train.report import collect, layer_sweep_table, report
 from resireg_train.validation import ConfigError, validate_eval
 
 B16 = "ViT-B-16"
 SIDE = 64  # CLIP's native side here: a 4 x 4 token grid keeps the test fast
-SPEC = {"name": "synthetic", "kind": "synthetic", "size": 6, "image_size": [48, 64], "seed": 5,
-        "short_side": 48}  # fmt: skip
+SPEC = dataset_conf("synthetic", size=6, image_size=[48, 64], seed=5, short_side=48)
 FULL = {"n_prototypes": 6, "n_components": 6}
 PARAMS = {"full": FULL, "calib": {"n_neighbors": 5}}  # LOF: 12 tokens per image here
 

@@ -41,7 +41,7 @@ def _cauldron_parquet(path, n, files=1):
 
 def _loader(sources, **kw):
     args = {"batch_size": 4, "steps_per_epoch": 3, "crop_size": 32, "min_image_size": 16,
-            "num_workers": 0, "shuffle_buffer": 0}  # fmt: skip
+            "num_workers": 0, "shuffle_buffer": 0, "pin_memory": False}  # fmt: skip
     args.update(kw)
     dm = CaptionDataModule(sources, **args)
     return dm, dm.train_dataloader()
@@ -54,7 +54,7 @@ def _epoch(loader, epoch=0):
 
 def test_nested_columns_of_a_local_parquet_source(tmp_path):
     folder = _cauldron_parquet(tmp_path / "cauldron", 12, files=3)
-    spec = {"path": folder, "image": "images.0", "caption": "texts.0.assistant"}
+    spec = {"path": folder, "split": "train", "image": "images.0", "caption": "texts.0.assistant"}
     examples = list(open_caption_source("cauldron", spec))
     assert sorted(e["caption"][0] for e in examples) == sorted(f"cap {i}" for i in range(12))
     image = Image.open(io.BytesIO(examples[0]["image"]))
@@ -63,11 +63,16 @@ def test_nested_columns_of_a_local_parquet_source(tmp_path):
         open_caption_source("cauldron", {**spec, "caption": "captions"})
     with pytest.raises(ValueError, match=r"data\.sources\.cauldron: unknown keys \['colour'\]"):
         open_caption_source("cauldron", {**spec, "colour": 1})
+    # conf/data/ holds every source's split and columns: a missing one is named, not assumed
+    with pytest.raises(
+        ValueError, match=r"data\.sources\.cauldron: no data\.sources\.cauldron\.split"
+    ):
+        open_caption_source("cauldron", {k: v for k, v in spec.items() if k != "split"})
 
 
 def test_batches_are_cropped_normalised_and_exactly_steps_per_epoch(tmp_path):
     folder = _cauldron_parquet(tmp_path / "c", 20, files=4)
-    spec = {"path": folder, "image": "images.0", "caption": "texts.0.assistant"}
+    spec = {"path": folder, "split": "train", "image": "images.0", "caption": "texts.0.assistant"}
     _, loader = _loader({"c": spec}, num_workers=2, steps_per_epoch=5, mean=(0.5,) * 3,
                         std=(0.25,) * 3)  # fmt: skip
     batches = _epoch(loader)
@@ -89,7 +94,7 @@ def test_caption_lists_give_one_random_caption_and_epochs_reshuffle(tmp_path):
         (folder / f"{i}.png").write_bytes(_png(value=i))
         rows.append(f'{{"file_name": "{i}.png", "answer": ["a{i}", "b{i}", "c{i}"]}}')
     (folder / "metadata.jsonl").write_text("\n".join(rows) + "\n")
-    spec = {"path": str(folder), "caption": "answer"}
+    spec = {"path": str(folder), "split": "train", "image": "image", "caption": "answer"}
     _, loader = _loader({"coco": spec}, steps_per_epoch=16, shuffle_buffer=8)
     first = [c for b in _epoch(loader, 0) for c in b["caption"]]
     assert {c[0] for c in first} == {"a", "b", "c"}  # every caption of the list gets drawn
@@ -99,8 +104,10 @@ def test_caption_lists_give_one_random_caption_and_epochs_reshuffle(tmp_path):
 
 def test_interleave_follows_probabilities(tmp_path):
     sources = {
-        "a": {"path": "synthetic", "size": 400, "seed": 1, "probability": 3.0, "image_size": [32, 32]},
-        "b": {"path": "synthetic", "size": 400, "seed": 2, "probability": 1.0, "image_size": [40, 40]},
+        "a": {"path": "synthetic", "size": 400, "seed": 1, "probability": 3.0, "image_size": [32, 32],
+              "noise": 12.0, "shards": 8},
+        "b": {"path": "synthetic", "size": 400, "seed": 2, "probability": 1.0, "image_size": [40, 40],
+              "noise": 12.0, "shards": 8},
     }  # fmt: skip
     stream = mix_caption_sources(sources, seed=0, shuffle_buffer=0)
     sizes = Counter(
@@ -113,7 +120,9 @@ def test_interleave_follows_probabilities(tmp_path):
 
 def test_ranks_read_disjoint_shards(tmp_path):
     folder = _cauldron_parquet(tmp_path / "c", 16, files=4)
-    spec = {"c": {"path": folder, "image": "images.0", "caption": "texts.0.assistant"}}
+    spec = {
+        "c": {"path": folder, "split": "train", "image": "images.0", "caption": "texts.0.assistant"}
+    }
 
     class _Trainer:
         world_size, current_epoch = 2, 0
@@ -124,7 +133,8 @@ def test_ranks_read_disjoint_shards(tmp_path):
     seen = []
     for rank in (0, 1):
         dm = CaptionDataModule(spec, batch_size=8, steps_per_epoch=2, crop_size=32,
-                               min_image_size=16, num_workers=0, shuffle_buffer=0)  # fmt: skip
+                               min_image_size=16, num_workers=0, shuffle_buffer=0,
+                               pin_memory=False)  # fmt: skip
         dm.trainer = _Trainer(rank)
         batches = list(dm.train_dataloader())
         assert batches[0]["image"].shape[0] == 4  # the global batch is split over ranks
@@ -151,7 +161,7 @@ def test_corrupt_and_tiny_images_are_skipped_and_counted(tmp_path, caplog):
             (folder / name).write_bytes(_png(size, size, value=i))
         lines.append(f'{{"file_name": "{name}", "text": "image {i}"}}')
     (folder / "metadata.jsonl").write_text("\n".join(lines) + "\n")
-    spec = {"path": str(folder), "caption": "text"}
+    spec = {"path": str(folder), "split": "train", "image": "image", "caption": "text"}
     _, loader = _loader({"folder": spec}, steps_per_epoch=5, batch_size=2)
     with caplog.at_level("INFO"):
         batches = _epoch(loader)
@@ -173,6 +183,7 @@ def test_webdataset_shards(tmp_path):
     spec = {
         "path": "webdataset",
         "data_files": str(tmp_path / "*.tar"),
+        "split": "train",
         "image": "jpg",
         "caption": "txt",
     }

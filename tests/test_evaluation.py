@@ -10,10 +10,11 @@ from resireg.models import ResiregVLM
 from resireg.ovss import predict, text_prototypes
 from resireg.variants import build_variant, build_variants
 from resireg_train.data.segmentation import build_segmentation_set
+from resireg_train.data.specs import dataset_conf
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES
 from resireg_train.ovss.engine import OVSSTask, StageTimer
 
-SPEC = {"kind": "synthetic", "size": 10, "image_size": [40, 56], "seed": 5, "short_side": 48}
+SPEC = dataset_conf("synthetic", size=10, image_size=[40, 56], seed=5, short_side=48)
 FULL = {"n_prototypes": 6, "n_components": 6}
 
 
@@ -183,7 +184,7 @@ def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tm
     from test_segmentation import _ade_folder
 
     _ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
-    spec = {"kind": "ade20k", "path": str(tmp_path / "ade"), "short_side": 32}
+    spec = dataset_conf("ade20k", path=str(tmp_path / "ade"), short_side=32)
     task = OVSSTask(build_segmentation_set(spec, patch_size=16), batch_size=2)
     single = task.run(vlm, build_variants(["bb"]))
     assert (single.images, single.skipped) == (3, 1)

@@ -673,13 +673,19 @@ def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
     the protocol the jobs share; jobs with two protocols get one line each."""
     from types import SimpleNamespace
 
-    from resireg_train.protocol import MAPPING_KEYS, protocol_record, protocol_text
+    from resireg_train.protocol import protocol_record, protocol_text
     from resireg_train.report import collect, write_encoder_table
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
     record = protocol_record({"task": "scannet3d", "dataset": spec, "encoder": {"kind": "radseg"}})
     assert record["name"] == "rayfronts_semseg_eval"
-    assert set(record["settings"]) == set(MAPPING_KEYS) and record["settings"]["knn"] == 1
+    # docs/protocol.md section 4's settings (the task table's protocol_keys of scannet3d)
+    mapping_keys = {
+        "frame_skip", "image_size", "short_side", "resize", "intrinsics", "gt_resolution",
+        "gt_unlabelled", "points", "lattice", "voxel_size", "knn", "prediction_threshold",
+        "prompt_denoising", "metric", "class_names", "classes_to_ignore",
+    }  # fmt: skip
+    assert set(record["settings"]) == mapping_keys and record["settings"]["knn"] == 1
     ade = {"name": "ade20k", "kind": "ade20k", "short_side": 576, "path": "x"}
     dataset = SimpleNamespace(reduce_zero_label=True, classes=("wall",) * 150)
     clip = {"kind": "clip", "dense_path": "maskclip"}

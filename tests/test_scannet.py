@@ -498,7 +498,11 @@ def test_3d_sweeps_are_the_papers_settings_and_bad_values_name_the_key():
     for text in ("dataset.frame_skip=-1", "dataset.voxel_size=0", "dataset.image_size=[640]",
                  "dataset.gt_unlabelled='keep'"):  # fmt: skip
         assert text in str(info.value)
-    with pytest.raises(ConfigError, match=r"dataset\.kind='ade20k': task=scannet3d needs"):
+    with pytest.raises(
+        ConfigError,
+        match=r"task='scannet3d': dataset\.kind='ade20k' is scored by task=ovss.*"
+        r"choose a dataset of task=scannet3d \(dataset=scannet or",
+    ):
         validate_eval(mismatch)
     with pytest.raises(ConfigError, match=r"task='ovss': dataset\.kind='scannet'"):
         validate_eval(ovss)

@@ -16,6 +16,7 @@ from resireg_train.data.segmentation import (
     collate_segmentation,
     orad3d_label,
 )
+from resireg_train.data.specs import dataset_conf
 from resireg_train.data.synthetic import SyntheticScenes
 
 
@@ -26,7 +27,7 @@ def _save(array, path):
 
 def test_synthetic_set_resizes_images_and_keeps_full_resolution_masks():
     ds = build_segmentation_set(
-        {"kind": "synthetic", "size": 5, "image_size": [40, 56], "seed": 3, "short_side": 32},
+        dataset_conf("synthetic", size=5, image_size=[40, 56], seed=3, short_side=32),
         patch_size=16,
     )
     assert ds.name == "synthetic" and len(ds) == 5 and not ds.reduce_zero_label
@@ -81,7 +82,7 @@ def _ade_folder(root, n=3, corrupt=True):
 def test_ade20k_local_folder_reduces_zero_label_and_skips_corrupt_images(tmp_path):
     labels = _ade_folder(tmp_path / "ADEChallengeData2016")
     ds = build_segmentation_set(
-        {"kind": "ade20k", "path": str(tmp_path / "ADEChallengeData2016"), "short_side": 32},
+        dataset_conf("ade20k", path=str(tmp_path / "ADEChallengeData2016"), short_side=32),
         patch_size=16,
     )
     assert ds.classes == ADE20K_CLASSES and ds.reduce_zero_label and len(ds) == 4
@@ -115,19 +116,19 @@ def test_ade20k_hub_layout_from_a_local_parquet_folder(tmp_path):
     (tmp_path / "hub/data").mkdir(parents=True)
     table.to_parquet(tmp_path / "hub/data/validation-00000-of-00001.parquet")
     ds = build_segmentation_set(
-        {"kind": "ade20k", "path": str(tmp_path / "hub"), "short_side": 32}, patch_size=16
+        dataset_conf("ade20k", path=str(tmp_path / "hub"), short_side=32), patch_size=16
     )
     assert len(ds) == 2 and ds.reduce_zero_label
     for i in range(2):
         assert torch.equal(ds[i]["label"], torch.from_numpy(labels[i].astype(np.int64)))
     with pytest.raises(ValueError, match=r"dataset\.label='gt'"):
-        build_segmentation_set({"kind": "ade20k", "path": str(tmp_path / "hub"), "label": "gt"}, 16)
+        build_segmentation_set(dataset_conf("ade20k", path=str(tmp_path / "hub"), label="gt"), 16)
 
 
 def test_ade20k_from_the_hub_offline_fails_at_once_naming_the_key():
     start = time.perf_counter()
     with pytest.raises(WeightsUnavailableError, match=r"dataset\.path.*ADEChallengeData2016"):
-        build_segmentation_set({"kind": "ade20k"}, patch_size=16)
+        build_segmentation_set(dataset_conf("ade20k"), patch_size=16)
     assert time.perf_counter() - start < 10
 
 
@@ -152,7 +153,7 @@ def test_orad3d_labels_polygons_over_the_gt_image(tmp_path):
     # Image "1" must not take the labels of image "10" (same prefix, sorted first).
     _orad_sequence(tmp_path, "seq_c", "1", np.zeros_like(base), [])
     _orad_sequence(tmp_path, "seq_c", "10", base, [])
-    ds = build_segmentation_set({"kind": "orad3d", "path": str(tmp_path), "short_side": None}, 16)
+    ds = build_segmentation_set(dataset_conf("orad3d", path=str(tmp_path), short_side=None), 16)
     assert ds.classes == ORAD3D_CLASSES and len(ds) == 4
     assert (ds[2]["label"] == ORAD3D_CLASSES.index("background")).all()  # seq_c/1
     label = ds[0]["label"].numpy()
@@ -176,8 +177,8 @@ def test_orad3d_unknown_polygon_tag_is_an_error_naming_the_mapping(tmp_path):
         tmp_path, "s", "1", base, [{"label": "tractor", "points": [[0, 0], [3, 0], [3, 3]]}]
     )
     with pytest.raises(ValueError, match=r"'tractor'.*dataset\.polygon_tags"):
-        build_segmentation_set({"kind": "orad3d", "path": str(tmp_path)}, 16)
-    spec = {"kind": "orad3d", "path": str(tmp_path), "polygon_tags": {"tractor": "car"}}
+        build_segmentation_set(dataset_conf("orad3d", path=str(tmp_path)), 16)
+    spec = dataset_conf("orad3d", path=str(tmp_path), polygon_tags={"tractor": "car"})
     assert len(build_segmentation_set(spec, 16)) == 1
 
 
@@ -185,10 +186,10 @@ def test_orad3d_unknown_polygon_tag_is_an_error_naming_the_mapping(tmp_path):
     ("spec", "message"),
     [
         ({"kind": "lidar"}, r"dataset\.kind='lidar'"),
-        ({"kind": "synthetic", "colour": 1}, r"unknown keys \['colour'\]"),
-        ({"kind": "synthetic", "short_side": 8}, r"dataset\.short_side=8"),
-        ({"kind": "orad3d", "path": "/nonexistent/orad"}, r"dataset\.path='/nonexistent/orad'"),
-        ({"kind": "ade20k", "path": "/nonexistent/ade"}, r"dataset\.path='/nonexistent/ade'"),
+        (dataset_conf("synthetic", colour=1), r"unknown keys \['colour'\]"),
+        (dataset_conf("synthetic", short_side=8), r"dataset\.short_side=8"),
+        (dataset_conf("orad3d", path="/nonexistent/orad"), r"dataset\.path='/nonexistent/orad'"),
+        (dataset_conf("ade20k", path="/nonexistent/ade"), r"dataset\.path='/nonexistent/ade'"),
     ],
 )
 def test_bad_dataset_specs_name_the_key(spec, message):
@@ -235,7 +236,7 @@ def test_bad_ade20k_samples_are_skipped_naming_file_and_reason(tmp_path):
     from resireg_train.data.segmentation import SkippedSample
 
     bad = poisoned_ade_folder(tmp_path)
-    ds = build_segmentation_set({"kind": "ade20k", "path": str(tmp_path), "short_side": 32}, 16)
+    ds = build_segmentation_set(dataset_conf("ade20k", path=str(tmp_path), short_side=32), 16)
     assert len(ds) == 9  # the upper-case .JPG image is listed too
     items = [ds[i] for i in range(len(ds))]
     skipped = {Path(s.file).name: s.reason for s in items if isinstance(s, SkippedSample)}

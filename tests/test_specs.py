@@ -245,15 +245,78 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
     assert keys == {"model", *SAM_DEFAULTS}
     assert {k: signature[k].default for k in keys} == {k: prior[k] for k in keys}
     assert prior["model"] == SAM_MODEL
-    # the evaluation engines' pass settings (conf/eval.yaml; num_workers is the Python API's
-    # own: no worker processes unless asked)
+    # the evaluation engines' pass settings (conf/eval.yaml)
     from resireg_train.mapping.engine import MappingTask
     from resireg_train.ovss.engine import OVSSTask
 
     evaluation = _eval_config()
     for engine in (OVSSTask, MappingTask):
-        assert inspect.signature(engine).parameters["batch_size"].default == evaluation.batch_size
+        signature = inspect.signature(engine).parameters
+        assert signature["batch_size"].default == evaluation.batch_size, engine
+        assert signature["num_workers"].default == evaluation.num_workers == 2, engine
     assert inspect.signature(OVSSTask).parameters["temperature"].default == evaluation.temperature
+    # the training callback's (conf/callbacks/default.yaml) and the caption data module's
+    # (conf/data/stage1.yaml, the default data=): every keyword default equals the composed key
+    from resireg_train.data.captions import CaptionDataModule
+    from resireg_train.ovss.callback import ReSiRegEval
+
+    train = _compose_train()
+    for cls, node in ((ReSiRegEval, train.callbacks.resireg_eval), (CaptionDataModule, train.data)):
+        node = OmegaConf.to_container(node, resolve=True)
+        defaults = {k: p.default for k, p in inspect.signature(cls).parameters.items()
+                    if p.default is not p.empty and k in node and k != "seed"}  # fmt: skip
+        assert defaults and defaults == {k: node[k] for k in defaults}, cls.__name__
+    assert train.data.num_workers == 8 and train.callbacks.resireg_eval.num_workers == 2
+
+
+def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source():
+    """The dataset table (resireg_train.data.specs): every conf/dataset/ file, composed as
+    resireg-eval composes it, holds exactly the keys of its kind's entry and is among the
+    entry's configs (each named config a file); the task of its kind is its task table's. No
+    builder has a default of its own: a synthetic entry without one of its keys is an error
+    naming ``dataset.<key>`` (the builder, then the config check), not a silent value (the
+    Python builder's were 64 images of 128 x 128 at short side 576; conf's are 32 of 72 x 88 at
+    64). The caption sources of conf/data/ hold every key their kind requires."""
+    from resireg_train.data.segmentation import build_segmentation_set
+    from resireg_train.data.specs import CAPTION_SOURCE_KEYS, DATASET_SPECS, dataset_conf
+    from resireg_train.tasks import TASK_SPECS
+
+    files = sorted((CONFIG_DIR / "dataset").glob("*.yaml"))
+    assert {p.stem for p in files} == {c for d in DATASET_SPECS.values() for c in d.configs}
+    for path in files:
+        entry = OmegaConf.to_container(_eval_config(f"dataset={path.stem}").dataset, resolve=False)
+        spec = DATASET_SPECS[entry["kind"]]
+        assert path.stem in spec.configs and set(entry) == set(spec.keys), path.name
+        assert entry == dataset_conf(path.stem), path.name  # read outside Hydra alike
+        assert all(t in TASK_SPECS for t in spec.tasks), path.name
+    # a ScanNet entry's keys include every one its reader and the 3D task read
+    from resireg_train.data.scannet import READER_KEYS
+    from resireg_train.mapping.engine import TASK_KEYS
+
+    assert {*READER_KEYS, *TASK_KEYS} <= set(DATASET_SPECS["scannet"].keys)
+    synthetic = dataset_conf("synthetic")
+    assert (synthetic["size"], synthetic["image_size"], synthetic["short_side"]) == (
+        32, [72, 88], 64,
+    )  # fmt: skip
+    assert len(build_segmentation_set(synthetic, 16)) == 32
+    for key in DATASET_SPECS["synthetic"].keys:
+        if key == "name":
+            continue
+        partial = {k: v for k, v in synthetic.items() if k != key}
+        with pytest.raises((ValueError, KeyError), match=rf"dataset\.{key}"):
+            build_segmentation_set(partial, 16)
+        if key != "kind":
+            with pytest.raises(ConfigError, match=rf"dataset: no dataset\.{key}\b"):
+                validate_eval({"dataset": partial})
+    train = OmegaConf.load(CONFIG_DIR / "data" / "synthetic.yaml")
+    sources = {f"synthetic/{n}": s for n, s in train.sources.items()}
+    for stage in ("stage1", "stage2"):
+        cfg = _compose_train(f"data={stage}")
+        sources.update({f"{stage}/{n}": s for n, s in cfg.data.sources.items()})
+    for name, source in sources.items():
+        kind = CAPTION_SOURCE_KEYS["synthetic" if source.path == "synthetic" else "hub"]
+        assert set(kind["required"]) <= set(source), name
+        assert set(source) <= {*kind["required"], *kind["optional"]}, name
 
 
 def test_the_training_module_has_no_default_that_shadows_conf():

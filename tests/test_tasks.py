@@ -5,6 +5,7 @@ class-prototype text path; the fields every task writes (elbo_prototypes) are wr
 
 import json
 from collections import Counter
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -17,12 +18,13 @@ from resireg.variants import build_variants
 from resireg_train.cli.eval import evaluate
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
+from resireg_train.data.specs import DATASET_SPECS, dataset_conf
 from resireg_train.engine import ClassPrototypes, eval_loader
 from resireg_train.evaluation import TaskProtocol, require_task
 from resireg_train.tasks import TASK_SPECS, TaskSpec
 from resireg_train.validation import ConfigError, validate_eval
 
-SYNTHETIC = {"kind": "synthetic", "size": 5, "image_size": [32, 48], "seed": 3, "short_side": 32}
+SYNTHETIC = dataset_conf("synthetic", size=5, image_size=[32, 48], seed=3, short_side=32)
 
 
 def _compose(*overrides):
@@ -74,11 +76,13 @@ class _FrequencyProtocol(TaskProtocol):
 def test_a_task_registered_through_the_table_runs_through_resireg_eval(
     monkeypatch, tmp_path, tiny_export
 ):
-    """One entry in resireg_train.tasks.TASK_SPECS (a protocol class outside the project) is
-    all resireg-eval needs: the config check accepts the task, the entry point runs its
+    """One entry in resireg_train.tasks.TASK_SPECS (a protocol class outside the project), and
+    its name among the tasks of the dataset table's entry it scores (resireg_train.data.specs),
+    are all resireg-eval needs: the config check accepts the task, the entry point runs its
     check/build/run/results, and results.json holds its scores (compared with the class
     frequencies counted here from the dataset's own items, numpy), its own field and the shared
-    ones. Without the entry the task is a ConfigError naming task=<value> and the known tasks."""
+    ones. Without the entry the task is a ConfigError naming task=<value> and the known tasks;
+    without the dataset's naming it, one naming the task that scores that kind."""
     overrides = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=5",
                  "dataset.image_size=[32,48]", "dataset.seed=3", "dataset.short_side=32",
                  "num_workers=0", "variants=[bb]", f"paths.output_dir={tmp_path / 'run'}"]  # fmt: skip
@@ -93,8 +97,15 @@ def test_a_task_registered_through_the_table_runs_through_resireg_eval(
         require_task("frequency")
     target = f"{__name__}:{_FrequencyProtocol.__name__}"
     monkeypatch.setitem(TASK_SPECS, "frequency", TaskSpec(
-        "frequency", target, "image", None, prior=False, layers=False, summary="class frequencies",
+        "frequency", target, "image", prior=False, layers=False, summary="class frequencies",
     ))  # fmt: skip
+    with pytest.raises(ConfigError, match=r"task='frequency': dataset\.kind='synthetic' is "
+                       r"scored by task=ovss"):  # fmt: skip
+        validate_eval(cfg)
+    # the datasets it scores name it (the dataset table)
+    synthetic = DATASET_SPECS["synthetic"]
+    monkeypatch.setitem(DATASET_SPECS, "synthetic",
+                        replace(synthetic, tasks=(*synthetic.tasks, "frequency")))  # fmt: skip
     record = evaluate(cfg)
     on_disk = json.loads((tmp_path / "run" / "results.json").read_text())
     assert on_disk["status"] == "completed" and record["status"] == "completed"
@@ -115,6 +126,77 @@ def test_a_task_registered_through_the_table_runs_through_resireg_eval(
     assert on_disk["images"] == len(dataset) == 5 and on_disk["labelled_pixels"] == counts.sum()
     assert on_disk["protocol"] == {"name": "frequency", "settings": {}}
     assert "count" in on_disk["seconds"] and "elbo_prototypes" not in on_disk
+
+
+# ---------------------------------------------------------- a throwaway dataset kind
+def _stripes_source(name, spec, key, common):
+    """The throwaway kind's builder: ``count`` images of ``height`` x 2 ``height`` px, the left
+    half one class, the right half the other (each image's colours its own)."""
+    from PIL import Image
+
+    from resireg_train.data.segmentation import SegmentationSet
+
+    h = int(spec["height"])
+
+    def load(i):
+        image = np.zeros((h, 2 * h, 3), np.uint8)
+        image[:, :h] = (200, 20 * i, 0)
+        image[:, h:] = (0, 20 * i, 200)
+        label = np.zeros((h, 2 * h), np.uint8)
+        label[:, h:] = 1
+        return Image.fromarray(image), label
+
+    return SegmentationSet(name, ("red", "blue"), load, lambda i: (h, 2 * h),
+                           int(spec["count"]), **common)  # fmt: skip
+
+
+def test_a_dataset_kind_registered_through_the_table_runs_through_resireg_eval(
+    monkeypatch, tmp_path, tiny_export
+):
+    """One builder (here, outside the project), one entry in the dataset table
+    (resireg_train.data.specs.DATASET_SPECS) and one conf/dataset/ file (here on Hydra's search
+    path) are all resireg-eval needs for a new dataset: the config check accepts the kind and
+    its keys, task=ovss builds and scores it, and results.json holds its scores under its name
+    with its classes and image count (the builder's, written here). Without the entry the kind
+    is a ConfigError naming dataset.kind and the known kinds; with it, a key the kind does not
+    read is one naming the key and the allowed keys, and a missing one names dataset.<key>."""
+    from resireg_train.data.specs import DatasetSpec
+
+    conf = tmp_path / "conf" / "dataset"
+    conf.mkdir(parents=True)
+    (conf / "stripes.yaml").write_text(
+        "name: stripes\nkind: stripes\ncount: 3\nheight: 32\nshort_side: 32\nlimit: null\n"
+    )
+    overrides = [f"model_path={tiny_export}", "dataset=stripes", "num_workers=0",
+                 "batch_size=2", "variants=[bb,lite]", f"paths.output_dir={tmp_path / 'run'}",
+                 f"hydra.searchpath=[file://{tmp_path / 'conf'}]"]  # fmt: skip
+    cfg = _compose(*overrides)
+    with pytest.raises(ConfigError, match=r"dataset\.kind='stripes': expected one of "
+                       r"\['synthetic', 'ade20k', 'orad3d', 'scannet'\]"):  # fmt: skip
+        validate_eval(cfg)
+    keys = ("name", "kind", "short_side", "limit", "count", "height")
+    monkeypatch.setitem(DATASET_SPECS, "stripes", DatasetSpec(
+        "stripes", f"{__name__}:{_stripes_source.__name__}", keys, ("ovss",), ("stripes",),
+        "two-class stripes",
+    ))  # fmt: skip
+    validate_eval(cfg)
+    with pytest.raises(ConfigError, match=r"dataset: unknown keys \['width'\] for kind "
+                       r"'stripes' \(\['count', 'height', 'kind', 'limit', 'name', "
+                       r"'short_side'\]\)"):  # fmt: skip
+        validate_eval(_compose(*overrides, "+dataset.width=4"))
+    with pytest.raises(ConfigError, match=r"dataset: no dataset\.height"):
+        validate_eval(_compose(*overrides, "~dataset.height"))
+    with pytest.raises(ConfigError, match=r"task='scannet3d': dataset\.kind='stripes' is "
+                       r"scored by task=ovss"):  # fmt: skip
+        validate_eval(_compose(*overrides, "task=scannet3d"))
+    record = evaluate(cfg)
+    on_disk = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert on_disk["status"] == "completed" and record["status"] == "completed"
+    assert on_disk["images"] == 3 and on_disk["params"]["dataset"]["kind"] == "stripes"
+    for variant in ("bb", "lite"):
+        assert 0.0 <= on_disk["final"][f"val/ovss/stripes/miou_{variant}"] <= 1.0
+        assert set(on_disk["per_class_iou"][variant]) == {"red", "blue"}
+    assert on_disk["protocol"]["name"] == "ovss/stripes"
 
 
 # ---------------------------------------------------- the shared text path

@@ -2,8 +2,12 @@
 them (docs/design.md section 10.4).
 
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
-(:func:`resireg_train.validation.validate_eval`) reads the task names and each task's dataset
-kinds and configuration rules from here before anything heavy loads, and ``resireg-eval``
+(:func:`resireg_train.validation.validate_eval`) reads the task names and each task's
+configuration rules from here before anything heavy loads (the dataset kinds a task scores are
+the dataset table's, :data:`resireg_train.data.specs.DATASET_SPECS`, each entry naming its
+tasks); the protocol record (:func:`resireg_train.protocol.protocol_record`) and the report
+(:mod:`resireg_train.report.tables`) read a task's recorded keys, metric prefix and report
+table from its entry. ``resireg-eval``
 (:func:`resireg_train.cli.eval.evaluate`, through
 :func:`resireg_train.evaluation.require_task`) builds the entry's protocol class
 (:class:`resireg_train.evaluation.TaskProtocol`: ``check``, ``build``, ``run``, ``results``),
@@ -17,6 +21,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from resireg_train.data.specs import DATASET_SPECS, find_dataset
+
 __all__ = ["TASK_SPECS", "TaskSpec", "find_task", "task_config_errors", "task_names"]
 
 
@@ -29,20 +35,40 @@ class TaskSpec:
         target: its protocol, ``"module:Class"``: a subclass of
             :class:`resireg_train.evaluation.TaskProtocol` (loaded after the config check).
         unit: what it scores and ``results.json``'s ``images`` counts (``image``, ``frame``).
-        dataset_kinds: the ``dataset.kind`` values it scores; ``None``: every kind that no
-            other task's entry names.
         prior: whether it scores ``+prior`` configurations (a segmentation prior).
         layers: whether it scores ``@layer:`` configurations (an encoder block's intermediates).
         summary: one line for errors and docs.
+        protocol_keys: the dataset entry's keys its ``results.json`` ``protocol`` records
+            (:func:`resireg_train.protocol.protocol_record`; docs/protocol.md).
+        protocol_params: the run's parameters (``params``) that record records too.
+        report: the ``resireg-report`` table its sweeps feed (``table1``, ``table2``;
+            :data:`resireg_train.report.tables.REPORT_TABLES`), ``None``: none.
     """
 
     name: str
     target: str
     unit: str
-    dataset_kinds: tuple[str, ...] | None
     prior: bool
     layers: bool
     summary: str
+    protocol_keys: tuple[str, ...] = ()
+    protocol_params: tuple[str, ...] = ()
+    report: str | None = None
+
+    @property
+    def dataset_kinds(self) -> tuple[str, ...]:
+        """The ``dataset.kind`` values it scores: the dataset table's kinds naming it."""
+        return tuple(k for k, d in DATASET_SPECS.items() if self.name in d.tasks)
+
+    @property
+    def dataset_configs(self) -> tuple[str, ...]:
+        """The ``conf/dataset/`` files of its kinds (``dataset=<config>``)."""
+        return tuple(c for d in DATASET_SPECS.values() if self.name in d.tasks for c in d.configs)
+
+    @property
+    def metric_prefix(self) -> str:
+        """What its scores' names start with: ``val/<task>/`` (then ``<dataset>/<metric>``)."""
+        return f"val/{self.name}/"
 
     def load(self) -> type:
         """The protocol class (imports torch and the task's engine)."""
@@ -57,19 +83,48 @@ TASK_SPECS: dict[str, TaskSpec] = {
         "ovss",
         "resireg_train.ovss.task:OVSSProtocol",
         "image",
-        None,
         prior=True,
         layers=True,
         summary="2D open-vocabulary segmentation (ade20k, orad3d, synthetic; Table 1)",
+        # docs/protocol.md section 1; the entry's where it has them, the others the built set's
+        protocol_keys=(
+            "short_side",
+            "resize",
+            "templates",
+            "reduce_zero_label",
+            "classes",
+            "sliding_window",
+        ),  # fmt: skip
+        protocol_params=("temperature",),
+        report="table1",
     ),
     "scannet3d": TaskSpec(
         "scannet3d",
         "resireg_train.mapping.task:ScanNet3DProtocol",
         "frame",
-        ("scannet",),
         prior=False,
         layers=False,
         summary="3D semantic mapping of ScanNet scenes (dataset=scannet; Table 2)",
+        # docs/protocol.md section 4 (conf/dataset/scannet.yaml)
+        protocol_keys=(
+            "frame_skip",
+            "image_size",
+            "short_side",
+            "resize",
+            "intrinsics",
+            "gt_resolution",
+            "gt_unlabelled",
+            "points",
+            "lattice",
+            "voxel_size",
+            "knn",
+            "prediction_threshold",
+            "prompt_denoising",
+            "metric",
+            "class_names",
+            "classes_to_ignore",
+        ),  # fmt: skip
+        report="table2",
     ),
 }
 
@@ -91,21 +146,24 @@ def task_config_errors(
 ) -> list[str]:  # fmt: skip
     """The errors of a ``task`` / ``dataset.kind`` / ``variants`` combination, from the table
     (``prior_variants`` / ``layer_variants``: the ``+prior`` / ``@layer:`` ones of ``variants``):
-    an unknown task, a dataset kind the task does not score (or one another task claims), and
+    an unknown task, a dataset kind the task does not score (the dataset table's entry of the
+    kind names its tasks; an unknown kind is the dataset check's error), and
     ``+prior`` / ``@layer:`` configurations a task does not score."""
     spec = find_task(name)
     if spec is None:
         return [f"{key}={name!r}: expected one of {task_names()} (resireg_train.tasks)"]
     errors = []
-    if spec.dataset_kinds is not None and kind not in spec.dataset_kinds:
-        needs = " or ".join(f"dataset={k}" for k in spec.dataset_kinds)
-        errors.append(f"dataset.kind={kind!r}: {key}={spec.name} needs {needs} (or another config "
-                      f"of kind {' or '.join(spec.dataset_kinds)})")  # fmt: skip
-    if spec.dataset_kinds is None:
-        for other in TASK_SPECS.values():
-            if other.dataset_kinds and kind in other.dataset_kinds:
-                errors.append(f"{key}={spec.name!r}: dataset.kind={kind!r} is scored by "
-                              f"{key}={other.name} ({other.summary}); add {key}={other.name}")  # fmt: skip
+    dataset = find_dataset(kind)
+    if dataset is not None and spec.name not in dataset.tasks:
+        by = " or ".join(
+            f"{key}={t}" + (f" ({TASK_SPECS[t].summary})" if t in TASK_SPECS else "")
+            for t in dataset.tasks
+        )  # fmt: skip
+        fix = " or ".join(f"{key}={t}" for t in dataset.tasks)
+        configs = " or ".join(f"dataset={c}" for c in spec.dataset_configs)
+        errors.append(f"{key}={spec.name!r}: dataset.kind={kind!r} is scored by {by or 'no task'}; "
+                      f"set {fix or 'another task'}, or choose a dataset of {key}={spec.name}"
+                      f"{f' ({configs})' if configs else ''}")  # fmt: skip
     scored_by = [t.name for t in TASK_SPECS.values() if t.prior]
     if list(prior_variants) and not spec.prior:
         errors.append(f"variants={variants!r}: +prior configurations are scored by "

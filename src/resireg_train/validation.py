@@ -9,7 +9,8 @@ in both, under their prefix.
 
 This module is imported before anything heavy: it needs only OmegaConf and the spec tables
 (``resireg.specs``: the variants' names and parameter rules, which the classes check too; the
-encoder kinds and what they import), no torch: a bad value is reported before torch loads
+encoder kinds and what they import; ``resireg_train.tasks`` and ``resireg_train.data.specs``:
+the tasks and the dataset kinds with their keys), no torch: a bad value is reported before torch loads
 (``check_devices`` imports torch when it runs).
 """
 
@@ -38,6 +39,7 @@ from resireg.specs.rules import (
 )
 from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
+from resireg_train.data.specs import dataset_key_errors
 from resireg_train.tasks import TASK_SPECS, task_config_errors
 
 __all__ = [
@@ -485,6 +487,9 @@ def validate_eval(
             "<run>/export) or a Hugging Face repo id; or choose another encoder= (conf/encoder/)"
         )
     task, kind = _get(cfg, "task"), _get(cfg, "dataset.kind")
+    dataset = _get(cfg, "dataset")
+    if isinstance(dataset, dict):  # its kind and keys (the dataset table)
+        errors += dataset_key_errors(dataset, "dataset")
     if kind == "scannet":
         for key, (check, expected) in _SCANNET_RULES.items():
             value = _get(cfg, key)
@@ -549,6 +554,11 @@ def validate(
             f"callbacks.resireg_eval.variants={callback!r}: the training callback has no "
             "segmentation prior; score +prior configurations with resireg-eval prior=sam2"
         )
+    datasets = _get(cfg, "callbacks.resireg_eval.datasets")
+    if isinstance(datasets, dict):  # the callback's datasets: kinds and keys (the dataset table)
+        for name, entry in datasets.items():
+            if isinstance(entry, dict):
+                errors += dataset_key_errors(entry, f"callbacks.resireg_eval.datasets.{name}")
     sources = values["data.sources"]
     if isinstance(sources, dict):
         for name, spec in sources.items():

@@ -10,6 +10,11 @@ Each kind has one table, the only place its names, classes and parameter rules a
 - :data:`PRIOR_SPECS` (:mod:`resireg.specs.priors`): the segmentation priors, their rules;
   defaults in ``conf/prior/``.
 
+The training package keeps two more tables of the same pattern, beside what they describe:
+``resireg_train.tasks.TASK_SPECS`` (``resireg-eval``'s tasks) and
+``resireg_train.data.specs.DATASET_SPECS`` (the evaluation datasets by ``kind``: builder, keys,
+tasks; defaults in ``conf/dataset/``).
+
 An entry names its class lazily (``"resireg.reconstruct:ReSiRegFull"``, loaded by
 :func:`load` when something is built), so the config checks (``resireg_train.validation``),
 the report and the CLIs read the tables before torch loads. The classes check their keywords

@@ -46,6 +46,7 @@ from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
 from resireg.models.images import pil_to_tensor
+from resireg_train.data.specs import CAPTION_SOURCE_KEYS, require_keys
 from resireg_train.data.synthetic import SyntheticScenes
 from resireg_train.files import DECODE_ERRORS
 
@@ -61,10 +62,6 @@ log = logging.getLogger(__name__)
 
 #: The one schema every source is mapped to before mixing.
 CAPTION_FEATURES = Features({"image": Value("binary"), "caption": List(Value("string"))})
-_SOURCE_KEYS = {
-    "path", "name", "split", "data_files", "data_dir", "revision",
-    "image", "caption", "probability", "size", "image_size", "noise", "seed", "shards",
-}  # fmt: skip
 _LOCAL_BUILDERS = {"parquet", "imagefolder", "webdataset", "json", "csv", "arrow"}
 _EPOCH_PASSES = 10_000  # reshuffle seed of pass p in epoch e: e * _EPOCH_PASSES + p
 
@@ -133,41 +130,48 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
 
     Args:
         name: the source's name (``data.sources.<name>``; used in error messages).
-        spec: ``path`` (hub id, local folder, builder name such as ``parquet`` /
-            ``webdataset`` / ``imagefolder``, or ``synthetic``), optional ``name``,
-            ``split`` (default ``train``), ``data_files``, ``data_dir``, ``revision``;
-            column paths ``image`` (default ``image``) and ``caption`` (default
-            ``caption``). Synthetic: ``size``, ``image_size``, ``noise``, ``seed``, ``shards``.
+        spec: the keys of :data:`resireg_train.data.specs.CAPTION_SOURCE_KEYS`, each required
+            one present (``conf/data/`` holds them): ``path`` (hub id, local folder, builder
+            name such as ``parquet`` / ``webdataset`` / ``imagefolder``, or ``synthetic``),
+            ``split``, column paths ``image`` and ``caption``, optional ``name``,
+            ``data_files``, ``data_dir``, ``revision``. Synthetic: ``size``, ``image_size``,
+            ``noise``, ``seed``, ``shards`` (its columns are ``image`` and ``caption``).
     """
     key = f"data.sources.{name}"
-    unknown = set(spec) - _SOURCE_KEYS
+    kind = "synthetic" if spec.get("path") == "synthetic" else "hub"
+    allowed = {*CAPTION_SOURCE_KEYS[kind]["required"], *CAPTION_SOURCE_KEYS[kind]["optional"]}
+    unknown = set(spec) - allowed
     if unknown:
-        raise ValueError(f"{key}: unknown keys {sorted(unknown)} (allowed: {sorted(_SOURCE_KEYS)})")
+        raise ValueError(f"{key}: unknown keys {sorted(unknown)} (allowed: {sorted(allowed)})")
     if "path" not in spec:
         raise ValueError(f"{key}.path is required (hub id, local folder or 'synthetic')")
     path = str(spec["path"])
     if path == "synthetic":
-        size, n_shards = int(spec.get("size", 256)), int(spec.get("shards", 8))
+        require_keys(spec, CAPTION_SOURCE_KEYS[kind]["required"], key, "conf/data/synthetic.yaml")
+        size, n_shards = int(spec["size"]), int(spec["shards"])
         ds = IterableDataset.from_generator(
             _synthetic_examples,
             features=Features({"image": HFImage(), "caption": Value("string")}),
             gen_kwargs={
                 "shards": [(s, n_shards) for s in range(min(n_shards, size))],
                 "size": size,
-                "image_size": tuple(spec.get("image_size", (128, 128))),
-                "seed": int(spec.get("seed", 0)),
-                "noise": float(spec.get("noise", 12.0)),
+                "image_size": tuple(spec["image_size"]),
+                "seed": int(spec["seed"]),
+                "noise": float(spec["noise"]),
             },
         )
+        image_col, caption_col = "image", "caption"
     else:
         if not _is_local(path):
             if path.startswith(("/", ".", "~")):
                 raise FileNotFoundError(f"{key}.path={path!r} does not exist")
             _require_hub_dataset(key, path)
-        kwargs = {k: spec[k] for k in ("name", "data_files", "data_dir", "revision") if spec.get(k)}
-        ds = load_dataset(path, split=spec.get("split", "train"), streaming=True, **kwargs)
+        require_keys(spec, CAPTION_SOURCE_KEYS[kind]["required"], key, "conf/data/")
+        passed = [k for k in CAPTION_SOURCE_KEYS[kind]["optional"] if k != "probability"]
+        kwargs = {k: spec[k] for k in passed if spec.get(k)}
+        ds = load_dataset(path, split=spec["split"], streaming=True, **kwargs)
+        image_col, caption_col = spec["image"], spec["caption"]
     ds = ds.decode(False)
-    image_col, caption_col = spec.get("image", "image"), spec.get("caption", "caption")
     columns = ds.column_names
     if columns is not None:
         for role, col in (("image", image_col), ("caption", caption_col)):
@@ -367,12 +371,12 @@ class CaptionDataModule(L.LightningDataModule):
         steps_per_epoch: int = 1000,
         crop_size: int = 512,
         min_image_size: int = 64,
-        num_workers: int = 4,
+        num_workers: int = 8,
         shuffle_buffer: int = 1000,
         seed: int = 0,
         mean: tuple[float, ...] = IMAGENET_DEFAULT_MEAN,
         std: tuple[float, ...] = IMAGENET_DEFAULT_STD,
-        pin_memory: bool = False,
+        pin_memory: bool = True,
     ) -> None:
         super().__init__()
         self.sources = {k: dict(v) for k, v in sources.items()}

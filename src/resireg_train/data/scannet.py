@@ -49,7 +49,7 @@ from __future__ import annotations
 import csv
 import logging
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,12 +63,12 @@ from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patc
 from resireg.ovss import NYU40_CLASSES
 from resireg.specs.rules import check_batch_size
 from resireg_train.data.segmentation import IGNORE_INDEX, SkippedSample
+from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "CLASS_NAMES",
     "DEFAULT_IGNORED",
-    "DEFAULT_SCENES",
     "GT_RESOLUTIONS",
     "INTRINSICS",
     "LABEL_MAP_FILE",
@@ -88,12 +88,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 LABEL_MAP_FILE = "scannetv2-labels.combined.tsv"
-#: The 12 validation scenes of RayFronts / RADSeg (``conf/dataset/scannet.yaml``).
-DEFAULT_SCENES: tuple[str, ...] = (
-    "scene0050_00", "scene0050_01", "scene0050_02", "scene0231_00", "scene0231_01",
-    "scene0231_02", "scene0378_00", "scene0378_01", "scene0378_02", "scene0518_00",
-    "scene0011_00", "scene0011_01",
-)  # fmt: skip
 _LABEL_DIRS = ("label-filt", "{scene}_2d-label-filt/label-filt")
 #: Nearest resize rules of depth and labels (module docstring).
 RESIZES = ("torch", "exact")
@@ -490,29 +484,26 @@ def collate_frames(items: list[dict[str, Any] | SkippedSample]) -> dict[str, Any
     return out
 
 
-#: Keys of a ``conf/dataset/scannet.yaml`` entry read by :class:`ScanNetFrames`, by the task
-#: (:data:`resireg_train.mapping.engine.TASK_KEYS`) and the entry's own (name, kind, path, protocol).
+#: Keys of a ``conf/dataset/scannet.yaml`` entry read by :class:`ScanNetFrames`; the entry's
+#: every key (these, the task's and its own: name, kind, path, scenes, protocol) is listed by
+#: the dataset table (:data:`resireg_train.data.specs.DATASET_SPECS`).
 READER_KEYS = ("label_map", "frame_skip", "image_size", "gt_resolution", "short_side", "limit",
                "resize", "intrinsics", "class_names", "classes_to_ignore")  # fmt: skip
-_ENTRY_KEYS = ("name", "kind", "path", "scenes", "protocol")
 
 
 def scannet_source(spec: Mapping[str, Any], key: str = "dataset") -> tuple[str, list[str]]:
-    """The root folder and the scenes of a ``conf/dataset/scannet.yaml`` entry (the 12
-    validation scenes when ``scenes`` is unset); check them with
-    :func:`check_scannet_source`."""
+    """The root folder and the scenes of a ``conf/dataset/scannet.yaml`` entry (which holds
+    both: a missing one is an error naming it); check them with :func:`check_scannet_source`."""
     if not spec.get("path"):
         raise ValueError(f"{key}.path={spec.get('path')!r}: set the ScanNet root folder")
-    return str(spec["path"]), list(spec.get("scenes") or DEFAULT_SCENES)
+    _require(spec, ("scenes",), key)
+    return str(spec["path"]), list(spec["scenes"])
 
 
 def _require(spec: Mapping[str, Any], names: Sequence[str], key: str) -> None:
     """A ValueError naming ``<key>.<name>`` for each of ``names`` the entry lacks (``conf/`` is
     the one source of the defaults)."""
-    missing = [n for n in names if n not in spec]
-    if missing:
-        raise ValueError(f"{key}: no {', '.join(f'{key}.{n}' for n in missing)} (see "
-                         "conf/dataset/scannet.yaml)")  # fmt: skip
+    require_keys(spec, names, key, "conf/dataset/scannet.yaml")
 
 
 def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
@@ -522,32 +513,23 @@ def check_scannet_spec(spec: Mapping[str, Any], key: str = "dataset") -> None:
     its key."""
     root, scenes = scannet_source(spec, key)
     check_scannet_source(root, scenes, key)
-    label_map = spec.get("label_map")
+    _require(spec, ("label_map", "class_names", "classes_to_ignore"), key)
+    label_map = spec["label_map"]
     path = Path(label_map).expanduser() if label_map else Path(root).expanduser() / LABEL_MAP_FILE
     raw_to_nyu, names = read_label_map(path, f"{key}.label_map")
-    _require(spec, ("class_names", "classes_to_ignore"), key)
     evaluated_classes(raw_to_nyu, names, str(spec["class_names"]),
                       tuple(spec["classes_to_ignore"]), key)  # fmt: skip
 
 
-def build_scannet(
-    spec: Mapping[str, Any], patch_size: int, key: str = "dataset", task_keys: Iterable[str] = ()
-) -> ScanNetFrames:
-    """:class:`ScanNetFrames` from a ``conf/dataset/scannet.yaml`` entry: the entry's keys
-    (``name``, ``kind``, ``path``, ``scenes``, ``protocol``), the reader's (:data:`READER_KEYS`)
-    and ``task_keys``, those the task reading the entry takes from it (the 3D task passes its
-    :data:`resireg_train.mapping.engine.TASK_KEYS`: the reader never imports the task); any
-    other key is an error."""
+def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset") -> ScanNetFrames:
+    """:class:`ScanNetFrames` from a ``conf/dataset/scannet.yaml`` entry, which holds every key
+    of the kind ``scannet`` of the dataset table (:data:`resireg_train.data.specs.
+    DATASET_SPECS`: the entry's own, the reader's :data:`READER_KEYS` and the 3D task's); any
+    other key, or a missing one, is an error naming it."""
     if spec.get("kind") != "scannet":
         raise ValueError(f"{key}.kind={spec.get('kind')!r}: the scannet3d task needs 'scannet'")
-    known = {*_ENTRY_KEYS, *READER_KEYS, *task_keys}
-    unknown = set(spec) - known
-    if unknown:
-        raise ValueError(
-            f"{key}: unknown keys {sorted(unknown)} for kind 'scannet' ({sorted(known)})"
-        )
+    check_dataset_keys(spec, key)
     root, scenes = scannet_source(spec, key)
-    _require(spec, READER_KEYS, key)  # conf/dataset/scannet.yaml holds every one: no fallback
     options = {k: spec[k] for k in READER_KEYS}
     for size in ("image_size", "gt_resolution"):
         if isinstance(options.get(size), (list, tuple)):

@@ -12,9 +12,11 @@ images of one size, and a size's leftover images form one smaller batch at the e
 images of one size (ORAD-3D, synthetic) that is plain consecutive batching; for ADE20K
 the batch-size histogram is reported with the results.
 
-Sources (``kind``):
+Sources (``kind``; each an entry of the dataset table :data:`resireg_train.data.specs.
+DATASET_SPECS`, which names its builder below and its keys; its ``conf/dataset/<kind>.yaml``
+holds every key's value):
 
-- ``ade20k``: ``path`` is a hub id (default ``zhoubolei/scene_parse_150``, config
+- ``ade20k``: ``path`` is a hub id (conf: ``zhoubolei/scene_parse_150``, config
   ``scene_parsing``, revision ``refs/convert/parquet``: the hub's script loader does not
   run with datasets >= 4), a local folder holding that parquet layout, or a local
   ``ADEChallengeData2016`` folder (``images/<split>/*.jpg``, ``annotations/<split>/*.png``).
@@ -43,14 +45,21 @@ from resireg.models.hub import require_online
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
 from resireg.specs.rules import check_batch_size
+from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "SegmentationSet",
     "SkippedSample",
+    "ade20k_source",
     "build_segmentation_set",
+    "check_ade20k_source",
+    "check_orad3d_source",
+    "check_segmentation_source",
     "collate_segmentation",
+    "orad3d_source",
+    "synthetic_source",
     "orad3d_label",
     "ORAD3D_POLYGON_TAGS",
     "ORAD3D_GT_IMAGE_CLASSES",
@@ -60,8 +69,6 @@ log = logging.getLogger(__name__)
 
 IGNORE_INDEX = 255
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-#: The hub dataset of ADE20K when `path` is unset (conf/dataset/ade20k.yaml).
-ADE20K_HUB_ID = "zhoubolei/scene_parse_150"
 
 #: ORAD-3D's polygon tags (``gt_image_multi_seg``) -> vocabulary class.
 ORAD3D_POLYGON_TAGS: dict[str, str] = {
@@ -118,7 +125,8 @@ class SegmentationSet(torch.utils.data.Dataset):
         load: ``index -> (PIL image, label array [H, W])``.
         header_size: ``index -> (H, W)`` of the image without decoding it.
         length: number of images.
-        short_side: shorter side after resizing (``None``: keep the size).
+        short_side: shorter side after resizing (``None``: keep the size; the entry's
+            ``short_side``, conf/dataset/: 576 in the paper's protocol).
         patch_size: sides are rounded to a multiple of it.
         reduce_zero_label: labels are 0 = unlabelled, ``c`` = class ``c - 1`` (ADE20K).
         describe: ``index -> str`` naming the sample's file (or row) in skip reports.
@@ -135,8 +143,8 @@ class SegmentationSet(torch.utils.data.Dataset):
         load: Callable[[int], tuple[Image.Image, np.ndarray]],
         header_size: Callable[[int], tuple[int, int]],
         length: int,
-        short_side: int | None = 576,
-        patch_size: int = 16,
+        short_side: int | None,
+        patch_size: int,
         reduce_zero_label: bool = False,
         describe: Callable[[int], str] | None = None,
     ) -> None:
@@ -235,42 +243,30 @@ def collate_segmentation(items: list[dict[str, Any] | SkippedSample]) -> dict[st
 
 
 # ----------------------------------------------------------------------------- sources
-_COMMON_KEYS = {"name", "kind", "short_side", "limit"}
-_KIND_KEYS = {
-    "synthetic": {"size", "image_size", "seed", "noise"},
-    "ade20k": {"path", "config", "revision", "split", "image", "label"},
-    "orad3d": {"path", "split", "polygon_tags", "gt_image_classes"},
-}
-
-
 def build_segmentation_set(
     spec: Mapping[str, Any], patch_size: int, key: str = "dataset", name: str | None = None
 ) -> SegmentationSet:
     """A :class:`SegmentationSet` from a config entry.
 
     Args:
-        spec: ``name``, ``kind`` (``synthetic`` | ``ade20k`` | ``orad3d``), ``short_side``
-            (default 576), ``limit`` (first N images only) and the kind's keys (module
-            docstring; ADE20K's hub config name is ``config``).
+        spec: an entry of a kind of the dataset table (:data:`resireg_train.data.specs.
+            DATASET_SPECS`: ``synthetic``, ``ade20k``, ``orad3d`` or one registered there),
+            holding every key of its kind (``name`` aside): ``short_side``, ``limit`` (first N
+            images only) and the kind's own (module docstring; ADE20K's hub config name is
+            ``config``). ``conf/dataset/<kind>.yaml`` holds them
+            (:func:`resireg_train.data.specs.dataset_conf` reads it outside Hydra).
         patch_size: the backbone's patch size.
         key: the config key of ``spec``, for error messages.
         name: dataset name in metric names when ``spec`` has none.
     """
-    name = str(spec.get("name") or name or spec.get("kind"))
-    kind = spec.get("kind")
-    if kind not in _KIND_KEYS:
-        raise ValueError(f"{key}.kind={kind!r}: expected one of {sorted(_KIND_KEYS)}")
-    unknown = set(spec) - _COMMON_KEYS - _KIND_KEYS[kind]
-    if unknown:
-        allowed = sorted(_COMMON_KEYS | _KIND_KEYS[kind])
-        raise ValueError(f"{key}: unknown keys {sorted(unknown)} for kind {kind!r} ({allowed})")
-    short_side = spec.get("short_side", 576)
+    entry = check_dataset_keys(spec, key)
+    name = str(spec.get("name") or name or spec["kind"])
+    short_side = spec["short_side"]
     if short_side is not None and int(short_side) < patch_size:
         raise ValueError(f"{key}.short_side={short_side!r}: expected null or >= {patch_size}")
     common = {"short_side": short_side, "patch_size": patch_size}
-    builder = {"synthetic": _synthetic, "ade20k": _ade20k, "orad3d": _orad3d}[kind]
-    dataset = builder(name, spec, key, common)
-    limit = spec.get("limit")
+    dataset = entry.load()(name, spec, key, common)
+    limit = spec["limit"]
     if limit is not None:
         if int(limit) < 1:
             raise ValueError(f"{key}.limit={limit!r}: expected null or >= 1")
@@ -280,12 +276,14 @@ def build_segmentation_set(
     return dataset
 
 
-def _synthetic(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+def synthetic_source(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+    """The ``synthetic`` kind: :class:`SyntheticScenes` of the entry's ``size``, ``image_size``,
+    ``seed`` and ``noise`` with their masks."""
     scenes = SyntheticScenes(
-        size=int(spec.get("size", 64)),
-        image_size=tuple(spec.get("image_size", (128, 128))),
-        seed=int(spec.get("seed", 1)),
-        noise=float(spec.get("noise", 12.0)),
+        size=int(spec["size"]),
+        image_size=tuple(spec["image_size"]),
+        seed=int(spec["seed"]),
+        noise=float(spec["noise"]),
     )
 
     def load(i: int) -> tuple[Image.Image, np.ndarray]:
@@ -298,15 +296,15 @@ def _synthetic(name: str, spec: Mapping[str, Any], key: str, common: dict) -> Se
 
 
 # ------------------------------------------------------------------------------ ADE20K
-def _ade20k(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
-    path = str(spec.get("path", ADE20K_HUB_ID))
-    split = str(spec.get("split", "validation"))
+def ade20k_source(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+    """The ``ade20k`` kind (module docstring)."""
+    path, split = str(spec["path"]), str(spec["split"])
     common = {**common, "reduce_zero_label": True}
     local = Path(path).expanduser()
     if (local / "images" / split).is_dir():  # ADEChallengeData2016
         return _ade20k_folder(name, local, split, key, path, common)
     table = _load_hub_table(path, spec, split, key, local.is_dir())
-    image_col, label_col = spec.get("image", "image"), spec.get("label", "annotation")
+    image_col, label_col = spec["image"], spec["label"]
     for role, col in (("image", image_col), ("label", label_col)):
         if col not in table.column_names:
             raise ValueError(
@@ -378,9 +376,8 @@ def _check_hub_id(path: str, key: str) -> None:
 def _orad3d_root(spec: Mapping[str, Any], key: str) -> Path:
     """``<path>/<split>``, the folder of the ORAD-3D sequences; an error naming ``<key>.path``
     unless it exists."""
-    if "path" not in spec:
-        raise ValueError(f"{key}.path is required: the ORAD-3D folder holding <split>/<sequence>/")
-    root = Path(str(spec["path"])).expanduser() / str(spec.get("split", "validation"))
+    require_keys(spec, ("path", "split"), key, "conf/dataset/orad3d.yaml")
+    root = Path(str(spec["path"])).expanduser() / str(spec["split"])
     if not root.is_dir():
         raise FileNotFoundError(
             f"{key}.path={spec['path']!r}: no {root} folder (expected <path>/<split>/<sequence>/"
@@ -389,19 +386,29 @@ def _orad3d_root(spec: Mapping[str, Any], key: str) -> Path:
     return root
 
 
+def check_orad3d_source(spec: Mapping[str, Any], key: str = "dataset") -> None:
+    """The ``orad3d`` build's check that needs no model: a missing ``<path>/<split>`` folder."""
+    _orad3d_root(spec, key)
+
+
+def check_ade20k_source(spec: Mapping[str, Any], key: str = "dataset") -> None:
+    """The ``ade20k`` build's check that needs no model: a ``path`` that is neither a folder
+    nor a hub id. A hub dataset's availability is checked when it loads."""
+    require_keys(spec, ("path",), key, "conf/dataset/ade20k.yaml")
+    path = str(spec["path"])
+    if not Path(path).expanduser().is_dir():
+        _check_hub_id(path, key)
+
+
 def check_segmentation_source(spec: Mapping[str, Any], key: str = "dataset") -> None:
-    """The checks of :func:`build_segmentation_set` that need no model: a missing ORAD-3D
-    folder, or an ADE20K ``path`` that is neither a folder nor a hub id, raise the error the
-    build would. ``resireg-eval`` calls it before loading the encoder (whose patch size the
-    build needs), so a wrong path costs no model load. A hub dataset's availability is
-    checked when it loads."""
-    kind = spec.get("kind")
-    if kind == "orad3d":
-        _orad3d_root(spec, key)
-    elif kind == "ade20k":
-        path = str(spec.get("path", ADE20K_HUB_ID))
-        if not Path(path).expanduser().is_dir():
-            _check_hub_id(path, key)
+    """The checks of :func:`build_segmentation_set` that need no model: the entry's keys
+    against the dataset table, then its kind's source check (the table's ``check``: a missing
+    ORAD-3D folder, an ADE20K ``path`` that is neither a folder nor a hub id), raising the
+    error the build would. ``resireg-eval`` calls it before loading the encoder (whose patch
+    size the build needs), so a wrong path costs no model load."""
+    check = check_dataset_keys(spec, key).load_check()
+    if check is not None:
+        check(spec, key)
 
 
 def _load_hub_table(path: str, spec: Mapping[str, Any], split: str, key: str, local: bool):
@@ -411,8 +418,7 @@ def _load_hub_table(path: str, spec: Mapping[str, Any], split: str, key: str, lo
     if local:
         return load_dataset(path, split=split)
     _check_hub_id(path, key)
-    name = spec.get("config", "scene_parsing")
-    revision = spec.get("revision", "refs/convert/parquet")
+    name, revision = spec["config"], spec["revision"]
     hint = (
         f"Download it where there is a network (e.g. `datasets.load_dataset({path!r}, {name!r}, "
         f"revision={revision!r}, split={split!r})` fills the cache; then set HF_HUB_OFFLINE=1), "
@@ -498,10 +504,10 @@ def _match(folder: Path, stem: str, suffixes: Sequence[str]) -> Path | None:
     return hits[0] if hits else None
 
 
-def _orad3d(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+def orad3d_source(name: str, spec: Mapping[str, Any], key: str, common: dict) -> SegmentationSet:
+    """The ``orad3d`` kind (module docstring; labels: :func:`orad3d_label`)."""
     root = _orad3d_root(spec, key)
-    tags = dict(spec.get("polygon_tags") or ORAD3D_POLYGON_TAGS)
-    colours = dict(spec.get("gt_image_classes") or ORAD3D_GT_IMAGE_CLASSES)
+    tags, colours = dict(spec["polygon_tags"]), dict(spec["gt_image_classes"])
     items: list[tuple[Path, Path, Path | None]] = []
     for sequence in sorted(p for p in root.iterdir() if p.is_dir()):
         images = sorted(

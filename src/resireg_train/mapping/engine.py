@@ -318,7 +318,7 @@ class MappingTask(EvalEngine):
         dataset: ScanNetFrames,
         batch_size: int = 8,
         protocol: MappingProtocol | None = None,
-        num_workers: int = 0,
+        num_workers: int = 2,
         **settings: Any,
     ) -> None:
         super().__init__(dataset, batch_size, num_workers)

@@ -18,7 +18,7 @@ from resireg.models import DenseEncoder
 from resireg_train.data.scannet import build_scannet, check_scannet_spec
 from resireg_train.engine import StageTimer
 from resireg_train.evaluation import TaskProtocol
-from resireg_train.mapping.engine import TASK_KEYS, MappingProtocol, MappingResult, MappingTask
+from resireg_train.mapping.engine import MappingProtocol, MappingResult, MappingTask
 from resireg_train.protocol import protocol_record
 
 __all__ = ["ScanNet3DProtocol"]
@@ -35,8 +35,7 @@ class ScanNet3DProtocol(TaskProtocol):
 
     def build(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module]) -> dict[str, Any]:
         spec = self.params["dataset"]
-        self.dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset",
-                                     task_keys=TASK_KEYS)  # fmt: skip
+        self.dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset")
         self.classes = self.dataset.classes
         self.engine = MappingTask(self.dataset, int(self.cfg.batch_size),
                                   MappingProtocol.from_spec(spec),

@@ -12,7 +12,7 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 
 from resireg.specs.rules import check_batch_size
-from resireg.variants import VARIANTS, build_variants
+from resireg.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import OVSSResult, OVSSTask
 from resireg_train.ovss.settings import VARIANT_PARAM_KEYS, save_settings
@@ -49,7 +49,7 @@ class ReSiRegEval(L.Callback):
         datasets: ``{name: spec}`` segmentation datasets (see
             :func:`~resireg_train.data.segmentation.build_segmentation_set`).
         variants: names of :func:`resireg.variants.build_variant` (``bb``, ``calib``, ``lite``,
-            ``full``).
+            ``full``); no default: ``conf/resireg/default.yaml``'s ``variants`` is the one.
         every_n_epochs: evaluation interval in epochs.
         batch_size: images per batch (ReSiReg Full's scene; see ``OVSSTask``).
         num_workers: DataLoader workers per dataset.
@@ -63,10 +63,10 @@ class ReSiRegEval(L.Callback):
     def __init__(
         self,
         datasets: Mapping[str, Mapping[str, Any]],
-        variants: Sequence[str] = VARIANTS,
+        variants: Sequence[str],
         every_n_epochs: int = 1,
         batch_size: int = 8,
-        num_workers: int = 0,
+        num_workers: int = 2,
         precision: str = "32",
         temperature: float = 100.0,
         **variant_params: Mapping[str, Any] | None,

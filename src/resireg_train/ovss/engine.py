@@ -201,7 +201,7 @@ class OVSSTask(EvalEngine):
         self,
         dataset: SegmentationSet,
         batch_size: int = 8,
-        num_workers: int = 0,
+        num_workers: int = 2,
         templates: Sequence[Callable[[str], str]] = TEMPLATES,
         temperature: float = 100.0,
         prompt_batch_size: int = 1024,

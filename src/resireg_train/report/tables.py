@@ -16,10 +16,12 @@ from resireg.variants import parse_variant
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
 from resireg_train.results import flat
+from resireg_train.tasks import TASK_SPECS
 from resireg_train.validation import ENCODER_SWEEPS as _ENCODER_SWEEPS
 
 __all__ = [
-    "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "encoder_table",
+    "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "OVSS_PREFIX",
+    "encoder_table", "metric_prefix", "table_tasks",
     "is_encoder_sweep", "is_layer_sweep", "is_mapping_sweep", "layer_configs", "layer_sweep_table",
     "mapping_table", "markdown", "method_means", "protocol_lines", "variant_order",
     "write_encoder_table", "write_layer_sweep", "write_mapping_table",
@@ -55,6 +57,20 @@ def protocol_lines(jobs: list[Job]) -> list[str]:
     return [f"Protocol (jobs {', '.join(map(str, n))}): {text}" for text, n in seen.items()]
 
 
+def table_tasks(table: str) -> list[str]:
+    """The tasks whose sweeps feed report table ``table`` (``table1``, ``table2``: the task
+    table's :attr:`~resireg_train.tasks.TaskSpec.report`)."""
+    return [t.name for t in TASK_SPECS.values() if t.report == table]
+
+
+def metric_prefix(table: str) -> str:
+    """What the scores of report table ``table`` start with: the metric prefix of the task that
+    feeds it (``val/ovss/`` for Table 1, ``val/scannet3d/`` for Table 2)."""
+    return TASK_SPECS[table_tasks(table)[0]].metric_prefix
+
+
+#: The prefix of Table 1's scores and the layer sweep's (:func:`metric_prefix`).
+OVSS_PREFIX = metric_prefix("table1")
 #: The sweeps (``conf/sweep/``, also their run ``name``) whose report is an encoder table (one
 #: source with the config check that they list every encoder of resireg.specs.encoders).
 ENCODER_SWEEPS = _ENCODER_SWEEPS
@@ -89,11 +105,11 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
         if job.status != "completed":
             continue
         final = job.results.get("final", {})
-        bb = final.get(f"val/ovss/{dataset}/miou_{BASELINE}")
+        bb = final.get(f"{OVSS_PREFIX}{dataset}/miou_{BASELINE}")
         if bb is not None:
             row[f"{dataset} {METHOD_NAMES[BASELINE]}"] = 100 * bb
         for method in METHODS:
-            value = final.get(f"val/ovss/{dataset}/miou_{method}")
+            value = final.get(f"{OVSS_PREFIX}{dataset}/miou_{method}")
             if value is None:
                 continue
             row[f"{dataset} {METHOD_NAMES[method]}"] = 100 * value
@@ -175,7 +191,8 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     return files
 
 
-MAPPING_PREFIX = "val/scannet3d/"
+#: The prefix of Table 2's scores (the task table's, :func:`metric_prefix`).
+MAPPING_PREFIX = metric_prefix("table2")
 
 
 #: Table 2's score columns: (key of ``final`` before ``_<variant>``, column name).
@@ -184,10 +201,11 @@ MAPPING_COLUMNS = (("miou", "mIoU"), ("fmiou", "f-mIoU"), ("pooled_miou", "mIoU 
 
 
 def is_mapping_sweep(jobs: list[Job]) -> bool:
-    """Jobs of ``resireg-eval task=scannet3d`` (3D semantic mapping)."""
+    """Jobs of ``resireg-eval task=scannet3d`` (3D semantic mapping: the tasks of Table 2)."""
+    tasks = table_tasks("table2")
     for job in jobs:
         params = job.results.get("params") or {}
-        if params.get("task") == "scannet3d" or job.overrides.get("task") == "scannet3d":
+        if params.get("task") in tasks or job.overrides.get("task") in tasks:
             return True
         if any(k.startswith(MAPPING_PREFIX) for k in job.results.get("final") or {}):
             return True
@@ -295,7 +313,7 @@ def layer_sweep_table(jobs: list[Job]) -> pd.DataFrame:
         for config, variant, block in entries:
             row = {"encoder": name, "dataset": dataset, "variant": variant, "block": block}
             for key in ("miou", "fmiou"):
-                value = final.get(f"val/ovss/{dataset}/{key}_{config}")
+                value = final.get(f"{OVSS_PREFIX}{dataset}/{key}_{config}")
                 row[key] = 100 * value if value is not None else math.nan
             row["status"] = job.status
             rows.append(row)

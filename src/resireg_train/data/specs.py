@@ -1,0 +1,243 @@
+"""The evaluation datasets by ``kind`` (``dataset.kind``, ``conf/dataset/<config>.yaml``): one
+entry each, the only place a kind's builder, keys and task are written (docs/design.md
+sections 2 and 13).
+
+Torch-free, like the spec tables of :mod:`resireg.specs` and the task table
+(:mod:`resireg_train.tasks`): the config check (:func:`resireg_train.validation.validate_eval`)
+reads the kinds, their keys and the task that scores each before anything heavy loads; the
+task table derives each task's kinds from here (:attr:`resireg_train.tasks.TaskSpec.
+dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segmentation_set`,
+:func:`resireg_train.data.scannet.build_scannet`) check an entry's keys with
+:func:`dataset_key_errors` and load the entry's builder, named lazily as ``"module:function"``.
+
+``conf/dataset/`` is the one source of a dataset's defaults: an entry holds every key of its
+kind (:attr:`DatasetSpec.keys`; a missing one is an error naming ``dataset.<key>``), and
+:func:`dataset_conf` reads a ``conf/dataset/`` file for callers outside Hydra (tests,
+benchmarks, notebooks), as :meth:`resireg_train.mapping.engine.MappingProtocol.from_conf` does.
+
+Adding a dataset: one builder, one entry here, one ``conf/dataset/`` file (docs/design.md
+section 13). The training captions (``conf/data/``) are not evaluation datasets: their source
+keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.captions.
+open_caption_source`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = [
+    "CAPTION_SOURCE_KEYS",
+    "DATASET_SPECS",
+    "DatasetSpec",
+    "check_dataset_keys",
+    "dataset_conf",
+    "dataset_key_errors",
+    "dataset_kinds",
+    "find_dataset",
+    "require_keys",
+]
+
+#: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task).
+_SEGMENTATION = ("name", "kind", "short_side", "limit")
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """One dataset kind.
+
+    Attributes:
+        kind: the ``dataset.kind`` value.
+        builder: ``"module:function"`` building it (loaded when a task builds the dataset).
+            The ``ovss`` task's kinds: ``(name, spec, key, common) -> SegmentationSet``, called
+            by :func:`~resireg_train.data.segmentation.build_segmentation_set` (``common``: the
+            ``SegmentationSet`` keywords shared by every kind, ``short_side`` and
+            ``patch_size``); the ``scannet3d`` task's: :func:`~resireg_train.data.scannet.
+            build_scannet`.
+        keys: every key of an entry of this kind; the entry holds each (``conf/dataset/``
+            files are the defaults), except those of ``optional``.
+        optional: the keys an entry may leave out (``name``: the kind, or the name the entry is
+            listed under).
+        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.tasks.TASK_SPECS`).
+        configs: its ``conf/dataset/`` files (``dataset=<config>``).
+        check: ``"module:function"`` ``(spec, key) -> None`` raising the errors its build
+            would on a missing source, run before the encoder loads; ``None``: none.
+        summary: one line for errors and docs.
+    """
+
+    kind: str
+    builder: str
+    keys: tuple[str, ...]
+    tasks: tuple[str, ...]
+    configs: tuple[str, ...]
+    summary: str
+    optional: tuple[str, ...] = ("name",)
+    check: str | None = None
+
+    def load(self) -> Any:
+        """The builder (imports torch and the dataset's readers)."""
+        from resireg.specs import load
+
+        return load(self.builder)
+
+    def load_check(self) -> Any:
+        """The source check, or ``None``."""
+        from resireg.specs import load
+
+        return load(self.check) if self.check else None
+
+
+#: Every evaluation dataset kind (the ``dataset.kind`` config key).
+DATASET_SPECS: dict[str, DatasetSpec] = {
+    "synthetic": DatasetSpec(
+        "synthetic",
+        "resireg_train.data.segmentation:synthetic_source",
+        (*_SEGMENTATION, "size", "image_size", "seed", "noise"),
+        ("ovss",),
+        ("synthetic",),
+        "generated scenes with exact masks, 8 classes (tests, smoke runs)",
+    ),
+    "ade20k": DatasetSpec(
+        "ade20k",
+        "resireg_train.data.segmentation:ade20k_source",
+        (*_SEGMENTATION, "path", "config", "revision", "split", "image", "label"),
+        ("ovss",),
+        ("ade20k",),
+        "ADE20K-150 validation (hub parquet or ADEChallengeData2016 folder; Table 1)",
+        check="resireg_train.data.segmentation:check_ade20k_source",
+    ),
+    "orad3d": DatasetSpec(
+        "orad3d",
+        "resireg_train.data.segmentation:orad3d_source",
+        (*_SEGMENTATION, "path", "split", "polygon_tags", "gt_image_classes"),
+        ("ovss",),
+        ("orad3d",),
+        "ORAD-3D validation from its local layout (Table 1)",
+        check="resireg_train.data.segmentation:check_orad3d_source",
+    ),
+    "scannet": DatasetSpec(
+        "scannet",
+        "resireg_train.data.scannet:build_scannet",
+        (
+            # the entry's own
+            "name",
+            "kind",
+            "path",
+            "scenes",
+            "protocol",
+            # the frame reader's (resireg_train.data.scannet.READER_KEYS)
+            "label_map",
+            "frame_skip",
+            "image_size",
+            "gt_resolution",
+            "short_side",
+            "limit",
+            "resize",
+            "intrinsics",
+            "class_names",
+            "classes_to_ignore",
+            # the 3D task's (resireg_train.mapping.engine.TASK_KEYS)
+            "voxel_size",
+            "lattice",
+            "gt_unlabelled",
+            "points",
+            "knn",
+            "prediction_threshold",
+            "prompt_denoising",
+            "metric",
+        ),  # fmt: skip
+        ("scannet3d",),
+        ("scannet", "scannet_legacy", "scannet_synthetic"),
+        "ScanNet v2 scenes exported by SensReader (posed RGB-D frames; Table 2)",
+        check="resireg_train.data.scannet:check_scannet_spec",
+    ),
+}
+
+#: The keys of a training caption source (``data.sources.<name>``, ``conf/data/``), by what its
+#: ``path`` names: ``synthetic`` (the generated scenes) or any other (a hub id, a local folder,
+#: a ``datasets`` builder name). ``required``: those every source holds (``conf/data/`` files
+#: are the defaults); ``optional``: those a source may leave out (nothing is passed then).
+CAPTION_SOURCE_KEYS: dict[str, dict[str, tuple[str, ...]]] = {
+    "synthetic": {
+        "required": ("path", "size", "image_size", "seed", "noise", "shards"),
+        "optional": ("probability",),
+    },
+    "hub": {
+        "required": ("path", "split", "image", "caption"),
+        "optional": ("name", "data_files", "data_dir", "revision", "probability"),
+    },
+}
+
+
+def dataset_kinds() -> list[str]:
+    """The ``dataset.kind`` values of the table, in its order."""
+    return list(DATASET_SPECS)
+
+
+def find_dataset(kind: Any) -> DatasetSpec | None:
+    """The entry of ``kind``; ``None`` for a kind the table lacks."""
+    return DATASET_SPECS.get(str(kind))
+
+
+def require_keys(spec: Mapping[str, Any], names: Any, key: str, source: str) -> None:
+    """A ValueError naming ``<key>.<name>`` for each of ``names`` that ``spec`` lacks (``source``:
+    the config files holding them): the one error of a missing key, no silent default."""
+    missing = [n for n in names if n not in spec]
+    if missing:
+        raise ValueError(f"{key}: no {', '.join(f'{key}.{n}' for n in missing)} (a value is "
+                         f"required; {source} holds every one)")  # fmt: skip
+
+
+def dataset_key_errors(spec: Mapping[str, Any], key: str = "dataset") -> list[str]:
+    """The errors of an entry's keys against the table: an unknown kind (naming
+    ``<key>.kind`` and the known ones), keys the kind does not read (naming them and the
+    allowed keys) and keys it needs that the entry lacks (naming ``<key>.<name>``)."""
+    kind = spec.get("kind")
+    entry = find_dataset(kind)
+    if entry is None:
+        return [f"{key}.kind={kind!r}: expected one of {dataset_kinds()} "
+                "(resireg_train.data.specs)"]  # fmt: skip
+    errors = []
+    unknown = set(spec) - set(entry.keys)
+    if unknown:
+        errors.append(f"{key}: unknown keys {sorted(unknown)} for kind {kind!r} "
+                      f"({sorted(entry.keys)})")  # fmt: skip
+    missing = [k for k in entry.keys if k not in spec and k not in entry.optional]
+    if missing:
+        files = ", ".join(f"conf/dataset/{c}.yaml" for c in entry.configs)
+        errors.append(f"{key}: no {', '.join(f'{key}.{m}' for m in missing)} (a value is "
+                      f"required; {files or 'its conf/dataset/ file'} holds every one)")  # fmt: skip
+    return errors
+
+
+def check_dataset_keys(spec: Mapping[str, Any], key: str = "dataset") -> DatasetSpec:
+    """The table entry of ``spec``'s kind; a ValueError listing :func:`dataset_key_errors`."""
+    errors = dataset_key_errors(spec, key)
+    if errors:
+        raise ValueError("; ".join(errors))
+    entry = find_dataset(spec.get("kind"))
+    assert entry is not None
+    return entry
+
+
+def dataset_conf(config: str, **overrides: Any) -> dict[str, Any]:
+    """The entry of ``conf/dataset/<config>.yaml`` (the project's ``conf/``,
+    :data:`resireg_train.paths.CONFIG_DIR`; its ``defaults`` composed, interpolations such as
+    ``${paths.data_dir}`` left as written), ``overrides`` in place of its values: a Python
+    caller's entry, with conf/'s defaults read rather than typed again."""
+    from omegaconf import OmegaConf
+
+    from resireg_train.paths import CONFIG_DIR
+
+    def read(name: str) -> dict[str, Any]:
+        path = CONFIG_DIR / "dataset" / f"{name}.yaml"
+        if not path.is_file():
+            raise FileNotFoundError(f"dataset={name!r}: no {path}")
+        entry = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+        composed: dict[str, Any] = {}
+        for parent in entry.pop("defaults", []):
+            composed.update(read(parent) if parent != "_self_" else {})
+        return {**composed, **entry}
+
+    return {**read(config), **overrides}
