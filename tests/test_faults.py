@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from _run import run
+from _run import run, run_side_by_side
 from resireg_train.training.checkpoints import CheckpointError, resolve_checkpoint
 from test_segmentation import poisoned_ade_folder
 
@@ -120,16 +120,16 @@ def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tm
     assert [h["epoch"] for h in results["history"]] == [0]
     before = _snapshot(out)
 
-    refused = {
-        "bare": run(
-            "resireg-train", "ckpt_path=last", f"hydra.run.dir={out}", check=False, env=env
-        ),
+    commands = {
+        "bare": ("ckpt_path=last", f"hydra.run.dir={out}"),
         # a longer schedule would jump the learning rate
-        "longer": _train(
-            out, "trainer.max_epochs=5", *stop, "ckpt_path=last", check=False, env=env
-        ),
-        "fresh": _train(out, "trainer.max_epochs=3", check=False, env=env),
+        "longer": (*SMOKE, f"hydra.run.dir={out}", "trainer.max_epochs=5", *stop, "ckpt_path=last"),
+        "fresh": (*SMOKE, f"hydra.run.dir={out}", "trainer.max_epochs=3"),
     }
+    # Independent refusals (none may write): started side by side; each is checked below.
+    procs = run_side_by_side(*(("resireg-train", *args) for args in commands.values()),
+                             check=False, env=env, threads=None)  # fmt: skip
+    refused = dict(zip(commands, procs, strict=True))
     for name, proc in refused.items():
         assert proc.returncode == 1, name
         assert _snapshot(out) == before, name  # nothing under the run was rewritten
