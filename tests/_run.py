@@ -102,10 +102,30 @@ def report(sweep, *args):
     return out.getvalue()
 
 
+def evaluate(*overrides):
+    """``resireg-eval overrides...`` in this process: ``eval.yaml`` composed with the overrides
+    and :func:`resireg_train.cli.eval.evaluate` (the Hydra main's task), for a test that
+    checks scores, not the process (torch is loaded here already); ``paths.output_dir=`` in
+    place of ``hydra.run.dir=``. Returns results.json's content. Settings the export
+    recorded fill the values left at their default, as on the command line (an override
+    equal to its default is taken for one left at it: give other values)."""
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.eval import evaluate
+    from resireg_train.cli.task import CONFIG_DIR
+
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", overrides=[str(o) for o in overrides])
+    return evaluate(cfg)
+
+
 def evaluate_export(export, out, *overrides):
-    """``resireg-eval`` of an export on the smoke experiment's eval set; returns its scores."""
-    run("resireg-eval", f"model_path={export}", "dataset=synthetic", "num_workers=0",
-        "full.n_prototypes=12", f"hydra.run.dir={out}", *overrides)  # fmt: skip
+    """resireg-eval's task on an export and the smoke experiment's eval set, in this process
+    (:func:`evaluate`; it was a ``resireg-eval`` process, whose start-up cost more than the
+    evaluation); returns the scores its results.json holds."""
+    results = evaluate(f"model_path={export}", "dataset=synthetic", "num_workers=0",
+                       "full.n_prototypes=12", f"paths.output_dir={out}", *overrides)  # fmt: skip
+    assert results["status"] == "completed"
     results = json.loads((out / "results.json").read_text())
     assert results["status"] == "completed"
     return results["final"]
