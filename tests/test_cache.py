@@ -6,7 +6,7 @@ import os
 import pytest
 import torch
 
-from _run import run
+from _run import evaluate, run
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import ResiregVLM
 from resireg.variants import build_variants
@@ -124,23 +124,21 @@ def test_an_entry_whose_file_changed_is_a_miss(tmp_path, model):
 
 
 def test_resireg_eval_fills_then_reads_the_cache(tmp_path, tiny_export):
+    """Three resireg-eval jobs, each its task run in this process (a fresh FeatureCache each,
+    reading what the earlier job wrote to disk): the second reads the first's features, a
+    third without the cache scores what the cached one scored."""
     args = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=6", "num_workers=0",
             "full.n_prototypes=6", f"feature_cache={tmp_path / 'cache'}"]  # fmt: skip
     results = []
     for job, variants in (("a", "[bb,full]"), ("b", "[full@n_prototypes:8]")):
-        run("resireg-eval", *args, f"variants={variants}", f"hydra.run.dir={tmp_path / job}")
+        evaluate(*args, f"variants={variants}", f"paths.output_dir={tmp_path / job}")
         results.append(json.loads((tmp_path / job / "results.json").read_text()))
     first, second = results
     assert first["feature_cache"]["hits"] == 0 and first["feature_cache"]["images"] == 6
     assert second["feature_cache"]["misses"] == 0 and second["feature_cache"]["hits"] > 0
     assert "encoder" not in second["seconds"]
     # a job without the cache gives the cached job's score
-    run(
-        "resireg-eval",
-        *args[:-1],
-        "variants=[full@n_prototypes:8]",
-        f"hydra.run.dir={tmp_path / 'c'}",
-    )
+    evaluate(*args[:-1], "variants=[full@n_prototypes:8]", f"paths.output_dir={tmp_path / 'c'}")
     plain = json.loads((tmp_path / "c" / "results.json").read_text())
     assert plain["final"] == second["final"]
 

@@ -13,7 +13,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from _run import evaluate_export as _evaluate_export
+from _run import evaluate_export
 from resireg_train.training.losses import ContrastiveLoss
 
 WORLD = 2
@@ -86,7 +86,7 @@ def test_ddp_cpu_trains_logs_and_evaluates_sharded(tmp_path):
         assert [line.split(" | ")[0].split()[-2:] for line in text.splitlines()
                 if " | " in line and "epoch " in line] == [["epoch", "0/1"], ["epoch", "1/1"]]  # fmt: skip
     # Sharded evaluation (each rank half the batches, confusion matrices summed) logs what a
-    # single process computes on the exported model.
+    # single process computes on the exported model (resireg-eval's task, in this process).
     logged = results["history"][-1]
-    recomputed = _evaluate_export(out / "export", tmp_path / "eval", "batch_size=3")
+    recomputed = evaluate_export(out / "export", tmp_path / "eval", "batch_size=3")
     assert recomputed and all(np.float32(v) == np.float32(logged[k]) for k, v in recomputed.items())

@@ -10,7 +10,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import run
+from _run import report, run
 from resireg.models import ENCODERS, build_encoder
 from resireg.specs.encoders import ENCODER_SPECS, encoder_configs
 from resireg_train.cli.task import CONFIG_DIR
@@ -61,8 +61,8 @@ def test_table1_sweep_of_two_tiny_encoders_reports_deltas_and_means(tmp_path, ti
         f"model_path={tiny_export}", f"paths.log_dir={logs}",
         f"hydra.searchpath=[file://{TEST_CONF}]")  # fmt: skip
     (sweep,) = (logs / "table1" / "multirun").iterdir()
-    proc = run("resireg-report", sweep)
-    assert "2 jobs, 2 completed" in proc.stdout and "table1_md" in proc.stdout
+    said = report(sweep)  # resireg-report's main, in this process
+    assert "2 jobs, 2 completed" in said and "table1_md" in said
 
     results = {}
     for job in sorted(p for p in sweep.iterdir() if (p / "results.json").is_file()):

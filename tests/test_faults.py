@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from _run import run
+from _run import evaluate, run, run_side_by_side
 from resireg_train.training.checkpoints import CheckpointError, resolve_checkpoint
 from test_segmentation import poisoned_ade_folder
 
@@ -50,7 +50,8 @@ def test_poisoned_ade20k_folder_trains_and_evaluates_naming_the_bad_samples(tmp_
     every epoch counts 4 skips and results.json names each file with its reason; resireg-eval
     on the export (with no ReSiReg arguments: the export records them) reproduces the
     training score, skips the same 4, and scores exactly what a folder holding only the good
-    images scores. Its batch-size histogram counts the batches scored."""
+    images scores (both evaluations run resireg-eval's task in this process). Its batch-size
+    histogram counts the batches scored."""
     bad = poisoned_ade_folder(tmp_path / "ade")
     clean = tmp_path / "clean"
     for sub in ("images", "annotations"):
@@ -77,8 +78,9 @@ def test_poisoned_ade20k_folder_trains_and_evaluates_naming_the_bad_samples(tmp_
 
     scores = {}
     for name, path in (("poisoned", tmp_path / "ade"), ("clean", clean)):
-        run("resireg-eval", f"model_path={out / 'export'}", "dataset=ade20k", f"dataset.path={path}",
-            "dataset.short_side=32", "num_workers=0", f"hydra.run.dir={tmp_path / name}")  # fmt: skip
+        # resireg-eval's task in this process (its command line: these overrides alone)
+        evaluate(f"model_path={out / 'export'}", "dataset=ade20k", f"dataset.path={path}",
+                 "dataset.short_side=32", "num_workers=0", f"paths.output_dir={tmp_path / name}")  # fmt: skip
         scores[name] = _results(tmp_path / name)
     poisoned = scores["poisoned"]
     assert poisoned["params"]["batch_size"] == 2 and poisoned["params"]["full"]["n_prototypes"] == 4
@@ -120,16 +122,16 @@ def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tm
     assert [h["epoch"] for h in results["history"]] == [0]
     before = _snapshot(out)
 
-    refused = {
-        "bare": run(
-            "resireg-train", "ckpt_path=last", f"hydra.run.dir={out}", check=False, env=env
-        ),
+    commands = {
+        "bare": ("ckpt_path=last", f"hydra.run.dir={out}"),
         # a longer schedule would jump the learning rate
-        "longer": _train(
-            out, "trainer.max_epochs=5", *stop, "ckpt_path=last", check=False, env=env
-        ),
-        "fresh": _train(out, "trainer.max_epochs=3", check=False, env=env),
+        "longer": (*SMOKE, f"hydra.run.dir={out}", "trainer.max_epochs=5", *stop, "ckpt_path=last"),
+        "fresh": (*SMOKE, f"hydra.run.dir={out}", "trainer.max_epochs=3"),
     }
+    # Independent refusals (none may write): started side by side; each is checked below.
+    procs = run_side_by_side(*(("resireg-train", *args) for args in commands.values()),
+                             check=False, env=env, threads=None)  # fmt: skip
+    refused = dict(zip(commands, procs, strict=True))
     for name, proc in refused.items():
         assert proc.returncode == 1, name
         assert _snapshot(out) == before, name  # nothing under the run was rewritten
@@ -481,14 +483,14 @@ def test_a_final_status_reaches_the_record_or_stderr_says_it_could_not(tmp_path,
 def test_eval_into_a_used_folder_starts_a_fresh_record(tmp_path, tiny_export):
     """A second resireg-eval into the same hydra.run.dir writes only its own fields: the
     first run's elbo_prototypes (written only when an elbo configuration runs) does not
-    survive into the second's results.json, and the first record is kept whole beside it."""
+    survive into the second's results.json, and the first record is kept whole beside it.
+    Both run resireg-eval's task in this process (the record is the task's, not Hydra's)."""
     common = (f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
-              "num_workers=0", f"hydra.run.dir={tmp_path}")  # fmt: skip
-    run("resireg-eval", *common, "variants=[bb,full@n_prototypes:elbo]",
-        "full.elbo_candidates=[2,4]")  # fmt: skip
+              "num_workers=0", f"paths.output_dir={tmp_path}")  # fmt: skip
+    evaluate(*common, "variants=[bb,full@n_prototypes:elbo]", "full.elbo_candidates=[2,4]")
     first = json.loads((tmp_path / "results.json").read_text())
     assert "elbo_prototypes" in first
-    run("resireg-eval", *common, "variants=[bb]")
+    evaluate(*common, "variants=[bb]")
     second = json.loads((tmp_path / "results.json").read_text())
     assert second["status"] == "completed" and "elbo_prototypes" not in second
     assert set(second["final"]) == {k for k in first["final"] if k.endswith("_bb")}

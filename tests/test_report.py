@@ -19,7 +19,8 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from PIL import Image
 
-from _run import run
+from _run import report as report_stdout
+from _run import run, run_side_by_side
 from resireg.heuristic import PrototypeHeuristic
 from resireg.reconstruct import ReSiRegFull
 from resireg_train.cli import report as report_cli
@@ -101,7 +102,7 @@ def test_prototype_batch_multirun_report_lists_failures_and_fits_the_heuristic(
     assert len(jobs) == 6 and jobs[0].startswith("0_batch_size=2,")
     assert all("/" not in j for j in jobs)  # the model path's slashes did not nest folders
 
-    out = run("resireg-report", sweep).stdout
+    out = report_stdout(sweep)  # resireg-report's main, in this process
     assert "6 jobs, 4 completed, 2 failed" in out
     rows = _rows(sweep / "summary.csv")
     assert [(r["batch_size"], r["full.n_prototypes"], r["status"]) for r in rows] == [
@@ -136,7 +137,9 @@ def test_prototype_batch_multirun_report_lists_failures_and_fits_the_heuristic(
     assert out.shape == (2, 8, 8, 10)
 
 
-def test_report_keeps_jobs_without_results_and_rejects_non_sweeps(prototype_sweep, tmp_path):
+def test_report_keeps_jobs_without_results_and_rejects_non_sweeps(
+    prototype_sweep, tmp_path, capsys
+):
     import shutil
 
     sweep = tmp_path / "sweep"
@@ -149,8 +152,10 @@ def test_report_keeps_jobs_without_results_and_rejects_non_sweeps(prototype_swee
     assert len(collect(sweep)) == 6
     with pytest.raises(FileNotFoundError, match="holds no job folders"):
         report(tmp_path / "report")
-    proc = run("resireg-report", tmp_path / "nowhere", check=False)
-    assert proc.returncode == 2 and "does not exist" in proc.stderr
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit:  # resireg-report's main: the console script's exit
+        report_stdout(tmp_path / "nowhere")
+    assert exit.value.code == 2 and "does not exist" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -346,13 +351,16 @@ def test_one_job_per_batch_size_reports_what_one_job_per_setting_reports(tmp_pat
         "jobs": ["sweep=prototype_batch_jobs", "full.n_prototypes=4,8"],
         "passes": ["sweep=prototype_batch", "variants=[full@n_prototypes:4,full@n_prototypes:8]"],
     }
+    # The two multiruns are independent: side by side, one torch thread each (same numerics).
+    run_side_by_side(
+        *(("resireg-eval", *common, *args, f"paths.log_dir={tmp_path / form}")
+          for form, args in forms.items())
+    )  # fmt: skip
     reports = {}
-    for form, args in forms.items():
-        logs = tmp_path / form
-        run("resireg-eval", *common, *args, f"paths.log_dir={logs}")
-        (sweep,) = (logs / "prototype_batch" / "multirun").iterdir()
+    for form in forms:
+        (sweep,) = (tmp_path / form / "prototype_batch" / "multirun").iterdir()
         assert len([p for p in sweep.iterdir() if p.is_dir()]) == {"jobs": 4, "passes": 2}[form]
-        run("resireg-report", sweep)
+        report_stdout(sweep)  # resireg-report's main, in this process
         jobs = collect(sweep)
         reports[form] = (
             prototype_grid(jobs, "val/ovss/synthetic/miou_full"),

@@ -213,7 +213,7 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     """resireg-map on a bag: results.json counts, the saved map and PLY, the Rerun recording read
     back with rerun.chunk.RrdReader (entities, the map's point count); a run cut by
     source.limit and resumed equals one uninterrupted run."""
-    from _run import run
+    from _run import run, run_side_by_side
 
     pytest.importorskip("rerun")
     from rerun.chunk import RrdReader
@@ -223,9 +223,16 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
               f"source.colour_topic={TOPICS['colour']}", f"source.depth_topic={TOPICS['depth']}",
               f"source.camera_info_topic={TOPICS['info']}", "configuration=full@n_prototypes:4",
               "window=2", f"voxel_size={VOXEL}", "save_every=1"]  # fmt: skip
-    whole = tmp_path / "whole"
-    proc = run("resireg-map", *common, f"hydra.run.dir={whole}", f"rerun.save={whole}/map.rrd",
-               "rerun.query=a chair", "ply.colour_by=rgb")  # fmt: skip
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    # The whole run, the cut one and the refused one are independent: started side by side,
+    # one torch thread each (the resume below too, so whole and cut + resume compute alike).
+    proc, _, refused = run_side_by_side(
+        ("resireg-map", *common, f"hydra.run.dir={whole}", f"rerun.save={whole}/map.rrd",
+         "rerun.query=a chair", "ply.colour_by=rgb"),
+        ("resireg-map", *common, f"hydra.run.dir={cut}", "source.limit=4"),
+        ("resireg-map", *common, "source.colour_topic=/nope", f"hydra.run.dir={tmp_path}/x"),
+        check=(True, True, False),
+    )  # fmt: skip
     assert f"frames: {FRAMES + 1} read, {FRAMES} used, skipped: 1 unpaired" in proc.stdout
     results = json.loads((whole / "results.json").read_text())
     assert results["status"] == "completed" and results["frames"]["used"] == FRAMES
@@ -241,16 +248,12 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     assert len(positions[len(positions) - 1]) == voxels
     images = sum(c.num_rows for c in chunks if str(c.entity_path) == "/world/camera/depth")
     assert images == FRAMES
-    cut = tmp_path / "cut"
-    run("resireg-map", *common, f"hydra.run.dir={cut}", "source.limit=4")
     assert json.loads((cut / "results.json").read_text())["map"]["frames"] == 4
-    run("resireg-map", *common, f"hydra.run.dir={cut}", "resume=true")
+    run("resireg-map", *common, f"hydra.run.dir={cut}", "resume=true", threads=1)
     a, b = SemanticMap.load(whole / "map"), SemanticMap.load(cut / "map")
     assert a.frames == b.frames == FRAMES
     assert torch.equal(a.indices, b.indices) and torch.equal(a.features()[1], b.features()[1])
-    proc = run("resireg-map", *common, "source.colour_topic=/nope", f"hydra.run.dir={tmp_path}/x",
-               check=False)  # fmt: skip
-    assert proc.returncode != 0 and "/cam/depth (sensor_msgs/msg/Image)" in proc.stderr
+    assert refused.returncode != 0 and "/cam/depth (sensor_msgs/msg/Image)" in refused.stderr
 
 
 def test_scannet_export_source(tmp_path):
