@@ -43,11 +43,13 @@ from resireg_train.engine import (  # shared with the 3D engine; importable from
     check_variants_on,
     inference,
 )
+from resireg_train.tasks import TASK_SPECS
 
 if TYPE_CHECKING:
     from resireg_train.cache import FeatureCache
 
 __all__ = [
+    "METRIC_PREFIX",
     "OVSSTask",
     "OVSSResult",
     "StageTimer",
@@ -56,6 +58,10 @@ __all__ = [
     "inference",
     "requested_layers",
 ]
+
+#: What the scores' names start with, ``val/ovss/``: the task table's
+#: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`), also the training callback's.
+METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
 
 
 def configuration_layers(
@@ -163,13 +169,14 @@ class OVSSResult:
         named = "; ".join(f"{s.file}: {s.reason}" for s in self.skipped_samples)
         return f"{self.dataset}: skipped {self.skipped} of {scored} images ({named})"
 
-    def scores(self, prefix: str = "val/ovss") -> dict[str, float]:
-        """``{"<prefix>/<dataset>/miou_<variant>": ..., ".../fmiou_<variant>": ...}``."""
+    def scores(self, prefix: str = METRIC_PREFIX) -> dict[str, float]:
+        """``{"<prefix><dataset>/miou_<variant>": ..., ".../fmiou_<variant>": ...}`` (``prefix``
+        ends with ``/``; :data:`METRIC_PREFIX`, the task table's, by default)."""
         out = {}
         for variant, metric in self.metrics.items():
             computed = metric.compute()
-            out[f"{prefix}/{self.dataset}/miou_{variant}"] = float(computed["miou"])
-            out[f"{prefix}/{self.dataset}/fmiou_{variant}"] = float(computed["fmiou"])
+            out[f"{prefix}{self.dataset}/miou_{variant}"] = float(computed["miou"])
+            out[f"{prefix}{self.dataset}/fmiou_{variant}"] = float(computed["fmiou"])
         return out
 
     def per_class_iou(self) -> dict[str, list[float]]:
