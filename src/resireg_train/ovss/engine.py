@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
+from resireg.specs.variants import VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
@@ -81,7 +82,7 @@ def configuration_layers(
         if parse_variant(name)[0] == "bb":
             raise ValueError(
                 f"{key}: {name!r}: bb scores the language tokens alone; @layer: applies to the "
-                "variants that use the intermediates (calib, lite, full)"
+                f"variants that use the intermediates ({', '.join(v for v in VARIANTS if v != 'bb')})"
             )
         check = getattr(encoder, "check_layers", None)
         if check is None or not callable(getattr(encoder, "encode_layers", None)):
