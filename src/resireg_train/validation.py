@@ -527,8 +527,11 @@ def validate(
     sources = values["data.sources"]
     if isinstance(sources, dict):
         for name, spec in sources.items():
-            p = spec.get("probability", 1.0) if isinstance(spec, dict) else None
-            if not (_num(p) and p > 0):
+            p = spec.get("probability", _MISSING) if isinstance(spec, dict) else None
+            if p is _MISSING:  # no default weight: conf/data/ sets every source's
+                errors.append(f"data.sources.{name}: no data.sources.{name}.probability (a "
+                              "value is required; conf/data/ holds every one)")  # fmt: skip
+            elif not (_num(p) and p > 0):
                 errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))

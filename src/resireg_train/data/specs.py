@@ -198,15 +198,17 @@ DATASET_SPECS: dict[str, DatasetSpec] = {
 #: The keys of a training caption source (``data.sources.<name>``, ``conf/data/``), by what its
 #: ``path`` names: ``synthetic`` (the generated scenes) or any other (a hub id, a local folder,
 #: a ``datasets`` builder name). ``required``: those every source holds (``conf/data/`` files
-#: are the defaults); ``optional``: those a source may leave out (nothing is passed then).
+#: are the defaults; ``probability``, its relative weight in the mix, included: no source
+#: weighs 1 unless its file says so); ``optional``: those a source may leave out (nothing is
+#: passed then).
 CAPTION_SOURCE_KEYS: dict[str, dict[str, tuple[str, ...]]] = {
     "synthetic": {
-        "required": ("path", "size", "image_size", "seed", "noise", "shards"),
-        "optional": ("probability",),
+        "required": ("path", "size", "image_size", "seed", "noise", "shards", "probability"),
+        "optional": (),
     },
     "hub": {
-        "required": ("path", "split", "image", "caption"),
-        "optional": ("name", "data_files", "data_dir", "revision", "probability"),
+        "required": ("path", "split", "image", "caption", "probability"),
+        "optional": ("name", "data_files", "data_dir", "revision"),
     },
 }
 
