@@ -27,7 +27,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from resireg.specs.rules import Rule, integer, is_int, is_num
+from resireg.specs.rules import Rule, integer, is_int, is_num, one_of
 
 __all__ = [
     "CAPTION_SOURCE_KEYS",
@@ -57,16 +57,16 @@ def _open_unit(v: Any) -> bool:
 #: only (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
     "gt_resolution": (lambda v: v in ("image", "label") or _size(v), "image, label or [height, width]"),
-    "gt_unlabelled": (lambda v: v in ("rayfronts", "vote", "drop"), "one of ['rayfronts', 'vote', 'drop']"),
-    "resize": (lambda v: v in ("torch", "exact"), "one of ['torch', 'exact']"),
-    "intrinsics": (lambda v: v in ("multiply", "half_pixel"), "one of ['multiply', 'half_pixel']"),
-    "lattice": (lambda v: v in ("round", "floor"), "one of ['round', 'floor']"),
-    "points": (lambda v: v in ("patch", "pixel"), "one of ['patch', 'pixel']"),
+    "gt_unlabelled": one_of(("rayfronts", "vote", "drop")),
+    "resize": one_of(("torch", "exact")),
+    "intrinsics": one_of(("multiply", "half_pixel")),
+    "lattice": one_of(("round", "floor")),
+    "points": one_of(("patch", "pixel")),
     "knn": integer(0),
     "prediction_threshold": (_open_unit, "null or a number in (0, 1)"),
     "prompt_denoising": (_open_unit, "null or a number in (0, 1)"),
-    "metric": (lambda v: v in ("rayfronts", "union"), "one of ['rayfronts', 'union']"),
-    "class_names": (lambda v: v in ("label_map", "nyu40"), "one of ['label_map', 'nyu40']"),
+    "metric": one_of(("rayfronts", "union")),
+    "class_names": one_of(("label_map", "nyu40")),
     "classes_to_ignore": (
         lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v),
         "a list of class names (NYU40 names, e.g. otherprop)",
