@@ -54,7 +54,13 @@ def _epoch(loader, epoch=0):
 
 def test_nested_columns_of_a_local_parquet_source(tmp_path):
     folder = _cauldron_parquet(tmp_path / "cauldron", 12, files=3)
-    spec = {"path": folder, "split": "train", "image": "images.0", "caption": "texts.0.assistant"}
+    spec = {
+        "path": folder,
+        "split": "train",
+        "image": "images.0",
+        "caption": "texts.0.assistant",
+        "probability": 1.0,
+    }
     examples = list(open_caption_source("cauldron", spec))
     assert sorted(e["caption"][0] for e in examples) == sorted(f"cap {i}" for i in range(12))
     image = Image.open(io.BytesIO(examples[0]["image"]))
@@ -72,7 +78,13 @@ def test_nested_columns_of_a_local_parquet_source(tmp_path):
 
 def test_batches_are_cropped_normalised_and_exactly_steps_per_epoch(tmp_path):
     folder = _cauldron_parquet(tmp_path / "c", 20, files=4)
-    spec = {"path": folder, "split": "train", "image": "images.0", "caption": "texts.0.assistant"}
+    spec = {
+        "path": folder,
+        "split": "train",
+        "image": "images.0",
+        "caption": "texts.0.assistant",
+        "probability": 1.0,
+    }
     _, loader = _loader({"c": spec}, num_workers=2, steps_per_epoch=5, mean=(0.5,) * 3,
                         std=(0.25,) * 3)  # fmt: skip
     batches = _epoch(loader)
@@ -94,7 +106,13 @@ def test_caption_lists_give_one_random_caption_and_epochs_reshuffle(tmp_path):
         (folder / f"{i}.png").write_bytes(_png(value=i))
         rows.append(f'{{"file_name": "{i}.png", "answer": ["a{i}", "b{i}", "c{i}"]}}')
     (folder / "metadata.jsonl").write_text("\n".join(rows) + "\n")
-    spec = {"path": str(folder), "split": "train", "image": "image", "caption": "answer"}
+    spec = {
+        "path": str(folder),
+        "split": "train",
+        "image": "image",
+        "caption": "answer",
+        "probability": 1.0,
+    }
     _, loader = _loader({"coco": spec}, steps_per_epoch=16, shuffle_buffer=8)
     first = [c for b in _epoch(loader, 0) for c in b["caption"]]
     assert {c[0] for c in first} == {"a", "b", "c"}  # every caption of the list gets drawn
@@ -116,12 +134,22 @@ def test_interleave_follows_probabilities(tmp_path):
     assert sizes[32] / 400 == pytest.approx(0.75, abs=0.07)
     with pytest.raises(ValueError, match=r"data\.sources\.b\.probability=0\.0"):
         mix_caption_sources({**sources, "b": {**sources["b"], "probability": 0.0}})
+    # no default weight: conf/data/ sets every source's probability
+    without = {k: v for k, v in sources["b"].items() if k != "probability"}
+    with pytest.raises(ValueError, match=r"data\.sources\.b: no data\.sources\.b\.probability"):
+        mix_caption_sources({**sources, "b": without})
 
 
 def test_ranks_read_disjoint_shards(tmp_path):
     folder = _cauldron_parquet(tmp_path / "c", 16, files=4)
     spec = {
-        "c": {"path": folder, "split": "train", "image": "images.0", "caption": "texts.0.assistant"}
+        "c": {
+            "path": folder,
+            "split": "train",
+            "image": "images.0",
+            "caption": "texts.0.assistant",
+            "probability": 1.0,
+        }
     }
 
     class _Trainer:
@@ -161,7 +189,13 @@ def test_corrupt_and_tiny_images_are_skipped_and_counted(tmp_path, caplog):
             (folder / name).write_bytes(_png(size, size, value=i))
         lines.append(f'{{"file_name": "{name}", "text": "image {i}"}}')
     (folder / "metadata.jsonl").write_text("\n".join(lines) + "\n")
-    spec = {"path": str(folder), "split": "train", "image": "image", "caption": "text"}
+    spec = {
+        "path": str(folder),
+        "split": "train",
+        "image": "image",
+        "caption": "text",
+        "probability": 1.0,
+    }
     _, loader = _loader({"folder": spec}, steps_per_epoch=5, batch_size=2)
     with caplog.at_level("INFO"):
         batches = _epoch(loader)
@@ -186,6 +220,7 @@ def test_webdataset_shards(tmp_path):
         "split": "train",
         "image": "jpg",
         "caption": "txt",
+        "probability": 1.0,
     }
     _, loader = _loader({"wds": spec}, steps_per_epoch=2)
     captions = {c for b in _epoch(loader) for c in b["caption"]}

@@ -640,7 +640,7 @@ def test_defaults_and_allowed_values_are_the_configs():
     import dataclasses
     import inspect
 
-    from resireg_train import validation
+    from resireg_train.data.specs import DATASET_SPECS
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
     # The task's settings have no Python default (conf/ is their one source): the Python API's
@@ -657,11 +657,11 @@ def test_defaults_and_allowed_values_are_the_configs():
                  "class_names", "classes_to_ignore", "short_side", "limit"):  # fmt: skip
         default = params[name].default
         assert spec[name] == (list(default) if isinstance(default, tuple) else default), name
-    rules = validation._SCANNET_RULES
+    rules = DATASET_SPECS["scannet"].rules  # the dataset table's, checked by validate_eval
     for key, allowed in (("resize", RESIZES), ("intrinsics", INTRINSICS), ("points", POINTS),
                          ("gt_unlabelled", GT_RULES), ("class_names", CLASS_NAMES),
                          ("metric", metric_module.METRICS), ("lattice", ("round", "floor"))):  # fmt: skip
-        check = rules[f"dataset.{key}"][0]
+        check = rules[key][0]
         assert all(check(v) for v in allowed) and not check("other"), key
 
 

@@ -164,9 +164,12 @@ def test_orad3d_labels_polygons_over_the_gt_image(tmp_path):
     assert label[5, 10] == idx["background"]
     assert label[0, 0] == 255  # unmapped colour
     assert ds[0]["image"].shape == (3, 16, 32)  # sides rounded to the patch size
+    entry = dataset_conf("orad3d")  # the mappings' one source, conf/dataset/orad3d.yaml
     direct = orad3d_label(
         tmp_path / "validation/seq_a/gt_image/0001_fillcolor.png",
         tmp_path / "validation/seq_a/gt_image_multi_seg/0001.json",
+        entry["polygon_tags"],
+        entry["gt_image_classes"],
     )
     assert np.array_equal(direct, label)
 

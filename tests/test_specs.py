@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS, encoder_configs
-from resireg.specs.variants import VARIANT_SPECS, VARIANTS
+from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.validation import ConfigError, sweep_config_errors, validate_eval
 
@@ -35,6 +35,8 @@ def test_each_variant_entry_names_its_class_its_keywords_and_conf_defaults():
            if k in cfg}  # fmt: skip
     assert VARIANTS == ("bb", "calib", "lite", "full")  # the paper's Table 1 order
     assert cfg["variants"] and all(v in VARIANTS for v in cfg["variants"])
+    # the variants with a block of parameters (resireg-map's params, the callback's settings)
+    assert PARAM_VARIANTS == tuple(n for n in VARIANTS if n in cfg) == ("calib", "lite", "full")
     for name, spec in VARIANT_SPECS.items():
         cls = spec.load()
         assert cls.__name__ == spec.target.rpartition(":")[2]

@@ -66,6 +66,10 @@ def test_experiment_configs_carry_the_recipe_table(stage):
         assert cfg.model.teacher.lang_model == "siglip2"
         assert "init_from" not in cfg.model
         validate(cfg)
+        # a source's weight in the mix has no default: conf/data/ sets it
+        del cfg.data.sources.pexels.probability
+        with pytest.raises(ConfigError, match=r"no data\.sources\.pexels\.probability"):
+            validate(cfg)
     else:
         assert cfg.model.teacher is None
         assert OmegaConf.is_missing(cfg.model, "init_from")  # stage 2 must name stage 1

@@ -10,7 +10,7 @@ in both, under their prefix.
 This module is imported before anything heavy: it needs only OmegaConf and the spec tables
 (``resireg.specs``: the variants' names and parameter rules, which the classes check too; the
 encoder kinds and what they import; ``resireg_train.tasks`` and ``resireg_train.data.specs``:
-the tasks and the dataset kinds with their keys), no torch: a bad value is reported before torch loads
+the tasks and the dataset kinds with their keys and value rules), no torch: a bad value is reported before torch loads
 (``check_devices`` imports torch when it runs).
 """
 
@@ -39,7 +39,7 @@ from resireg.specs.rules import (
 )
 from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
-from resireg_train.data.specs import dataset_key_errors
+from resireg_train.data.specs import dataset_key_errors, find_dataset
 from resireg_train.tasks import TASK_SPECS, task_config_errors
 
 __all__ = [
@@ -262,42 +262,6 @@ _EVAL_RULES: dict[str, Rule] = {
     "dataset.voxel_size": _number(0, strict=True),
 }
 
-# The 3D protocol's keys of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
-# section 4), checked when dataset.kind is scannet (2D entries may use some of the names).
-_SCANNET_RULES: dict[str, Rule] = {
-    "dataset.gt_resolution": (
-        lambda v: v in ("image", "label") or _size(v),
-        "image, label or [height, width]",
-    ),
-    "dataset.gt_unlabelled": (
-        lambda v: v in ("rayfronts", "vote", "drop"),
-        "one of ['rayfronts', 'vote', 'drop']",
-    ),  # fmt: skip
-    "dataset.resize": (lambda v: v in ("torch", "exact"), "one of ['torch', 'exact']"),
-    "dataset.intrinsics": (
-        lambda v: v in ("multiply", "half_pixel"),
-        "one of ['multiply', 'half_pixel']",
-    ),  # fmt: skip
-    "dataset.lattice": (lambda v: v in ("round", "floor"), "one of ['round', 'floor']"),
-    "dataset.points": (lambda v: v in ("patch", "pixel"), "one of ['patch', 'pixel']"),
-    "dataset.knn": _integer(0),
-    "dataset.prediction_threshold": (
-        lambda v: v is None or (_num(v) and 0 < v < 1),
-        "null or a number in (0, 1)",
-    ),  # fmt: skip
-    "dataset.prompt_denoising": (
-        lambda v: v is None or (_num(v) and 0 < v < 1),
-        "null or a number in (0, 1)",
-    ),  # fmt: skip
-    "dataset.metric": (lambda v: v in ("rayfronts", "union"), "one of ['rayfronts', 'union']"),
-    "dataset.class_names": (lambda v: v in ("label_map", "nyu40"), "one of ['label_map', 'nyu40']"),
-    "dataset.classes_to_ignore": (
-        lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v),
-        "a list of class names (NYU40 names, e.g. otherprop)",
-    ),
-    "dataset.protocol": (lambda v: isinstance(v, str) and bool(v), "a name for the protocol"),
-}
-
 
 def _get(cfg: DictConfig, key: str) -> Any:
     """The resolved plain value at ``key`` (``_MISSING`` when absent; ``None`` when ``???``)."""
@@ -490,11 +454,12 @@ def validate_eval(
     dataset = _get(cfg, "dataset")
     if isinstance(dataset, dict):  # its kind and keys (the dataset table)
         errors += dataset_key_errors(dataset, "dataset")
-    if kind == "scannet":
-        for key, (check, expected) in _SCANNET_RULES.items():
-            value = _get(cfg, key)
-            if value is not _MISSING and not check(value):
-                errors.append(f"{key}={value!r}: expected {expected}")
+    entry = find_dataset(kind)
+    for name, (check, expected) in (entry.rules if entry is not None else {}).items():
+        # the kind's own rules (the dataset table's entry), checked here with the others
+        value = _get(cfg, f"dataset.{name}")
+        if value is not _MISSING and not check(value):
+            errors.append(f"dataset.{name}={value!r}: expected {expected}")
     variants = _get(cfg, "variants")
     with_prior = [v for v in variants if takes_prior(str(v))] if isinstance(variants, list) else []
     if with_prior and _get(cfg, "prior") in (None, _MISSING):
@@ -562,8 +527,11 @@ def validate(
     sources = values["data.sources"]
     if isinstance(sources, dict):
         for name, spec in sources.items():
-            p = spec.get("probability", 1.0) if isinstance(spec, dict) else None
-            if not (_num(p) and p > 0):
+            p = spec.get("probability", _MISSING) if isinstance(spec, dict) else None
+            if p is _MISSING:  # no default weight: conf/data/ sets every source's
+                errors.append(f"data.sources.{name}: no data.sources.{name}.probability (a "
+                              "value is required; conf/data/ holds every one)")  # fmt: skip
+            elif not (_num(p) and p > 0):
                 errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
     if errors:
         raise ConfigError("invalid config:\n  " + "\n  ".join(errors))

@@ -22,6 +22,7 @@ __all__ = [
     "BASELINE",
     "DEFAULTS_FILE",
     "LITE_ATTENTION",
+    "PARAM_VARIANTS",
     "PRIOR_VARIANTS",
     "VARIANTS",
     "VARIANT_SPECS",
@@ -138,6 +139,9 @@ VARIANT_SPECS: dict[str, VariantSpec] = {
 
 #: Variant names, in the report order of the paper's Table 1 (BB, Calib, Lite, Full).
 VARIANTS: tuple[str, ...] = tuple(VARIANT_SPECS)
+#: Variants that take parameters (``calib``, ``lite``, ``full``): each has a block of them in
+#: :data:`DEFAULTS_FILE` under its name (``resireg-map``'s ``params``, the callback's settings).
+PARAM_VARIANTS: tuple[str, ...] = tuple(n for n, s in VARIANT_SPECS.items() if s.params)
 #: Variants that take a segmentation prior (``full+prior``).
 PRIOR_VARIANTS: tuple[str, ...] = tuple(n for n, s in VARIANT_SPECS.items() if s.takes_prior)
 #: The variant the report's deltas are measured against (the backbone alone).

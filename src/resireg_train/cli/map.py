@@ -84,8 +84,9 @@ def _chain(first, rest):
 def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
     """The :class:`~resireg.mapping.SemanticMap` of the config's map keys (conf/map.yaml)."""
     from resireg.mapping import SemanticMap
+    from resireg.specs.variants import PARAM_VARIANTS  # the variant table's, with parameters
 
-    params = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("calib", "lite", "full")}
+    params = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in PARAM_VARIANTS}
     try:
         return SemanticMap(encoder, str(cfg.configuration), float(cfg.voxel_size), params=params,
                            prior=prior, points=str(cfg.points), lattice=str(cfg.lattice),

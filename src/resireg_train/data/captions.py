@@ -133,9 +133,10 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
         spec: the keys of :data:`resireg_train.data.specs.CAPTION_SOURCE_KEYS`, each required
             one present (``conf/data/`` holds them): ``path`` (hub id, local folder, builder
             name such as ``parquet`` / ``webdataset`` / ``imagefolder``, or ``synthetic``),
-            ``split``, column paths ``image`` and ``caption``, optional ``name``,
-            ``data_files``, ``data_dir``, ``revision``. Synthetic: ``size``, ``image_size``,
-            ``noise``, ``seed``, ``shards`` (its columns are ``image`` and ``caption``).
+            ``split``, column paths ``image`` and ``caption``, ``probability`` (its weight in
+            the mix, :func:`mix_caption_sources`), optional ``name``, ``data_files``,
+            ``data_dir``, ``revision``. Synthetic: ``size``, ``image_size``, ``noise``,
+            ``seed``, ``shards``, ``probability`` (its columns are ``image`` and ``caption``).
     """
     key = f"data.sources.{name}"
     kind = "synthetic" if spec.get("path") == "synthetic" else "hub"
@@ -167,8 +168,7 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
                 raise FileNotFoundError(f"{key}.path={path!r} does not exist")
             _require_hub_dataset(key, path)
         require_keys(spec, CAPTION_SOURCE_KEYS[kind]["required"], key, "conf/data/")
-        passed = [k for k in CAPTION_SOURCE_KEYS[kind]["optional"] if k != "probability"]
-        kwargs = {k: spec[k] for k in passed if spec.get(k)}
+        kwargs = {k: spec[k] for k in CAPTION_SOURCE_KEYS[kind]["optional"] if spec.get(k)}
         ds = load_dataset(path, split=spec["split"], streaming=True, **kwargs)
         image_col, caption_col = spec["image"], spec["caption"]
     ds = ds.decode(False)
@@ -195,11 +195,14 @@ def _require_hub_dataset(key: str, repo_id: str) -> None:
 def mix_caption_sources(
     sources: Mapping[str, Mapping[str, Any]], seed: int = 0, shuffle_buffer: int = 1000
 ) -> IterableDataset:
-    """Open every source, interleave them with their ``probability`` (normalised), shuffle."""
+    """Open every source, interleave them with their ``probability`` (normalised; each source
+    holds one, ``conf/data/`` files are the defaults), shuffle."""
     if not sources:
         raise ValueError("data.sources is empty: configure at least one caption source")
     names = list(sources)
-    weights = np.array([float(sources[n].get("probability", 1.0)) for n in names])
+    for n in names:
+        require_keys(sources[n], ("probability",), f"data.sources.{n}", "conf/data/")
+    weights = np.array([float(sources[n]["probability"]) for n in names])
     bad = [
         f"data.sources.{n}.probability={w}" for n, w in zip(names, weights, strict=True) if w <= 0
     ]
@@ -351,8 +354,8 @@ class CaptionDataModule(L.LightningDataModule):
     """Image-caption training data (docs/design.md section 8).
 
     Args:
-        sources: ``{name: spec}``; see :func:`open_caption_source`. Each spec may carry a
-            ``probability`` (relative weight in the mix, default 1).
+        sources: ``{name: spec}``; see :func:`open_caption_source`. Each spec holds a
+            ``probability`` (relative weight in the mix; no default, ``conf/data/`` sets it).
         batch_size: the *global* batch size (split evenly over DDP processes).
         steps_per_epoch: batches per epoch (each rank).
         crop_size: square crop side.

@@ -61,35 +61,12 @@ __all__ = [
     "orad3d_source",
     "synthetic_source",
     "orad3d_label",
-    "ORAD3D_POLYGON_TAGS",
-    "ORAD3D_GT_IMAGE_CLASSES",
 ]
 
 log = logging.getLogger(__name__)
 
 IGNORE_INDEX = 255
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-
-#: ORAD-3D's polygon tags (``gt_image_multi_seg``) -> vocabulary class.
-ORAD3D_POLYGON_TAGS: dict[str, str] = {
-    "road": "road",
-    "safe-road": "traversable ground",
-    "car": "car",
-    "people": "person",
-    "person": "person",
-    "water": "water",
-    "snow": "snow",
-    "grass-on-road": "grass on road",
-    "rock": "rock",
-    "sky": "sky",
-    "background": "background",
-}
-#: ORAD-3D ``gt_image`` colours (``"r,g,b"``) -> vocabulary class: the base layer under the
-#: polygons (road / non-road, as in ORFD; add your copy's sky colour if it has one).
-ORAD3D_GT_IMAGE_CLASSES: dict[str, str] = {
-    "255,255,255": "road",
-    "0,0,0": "background",
-}
 
 
 # ------------------------------------------------------------------------------ images
@@ -440,8 +417,8 @@ def _load_hub_table(path: str, spec: Mapping[str, Any], split: str, key: str, lo
 def orad3d_label(
     gt_image: str | os.PathLike,
     polygons: str | os.PathLike | None,
-    polygon_tags: Mapping[str, str] = ORAD3D_POLYGON_TAGS,
-    gt_image_classes: Mapping[str, str] = ORAD3D_GT_IMAGE_CLASSES,
+    polygon_tags: Mapping[str, str],
+    gt_image_classes: Mapping[str, str],
     key: str = "orad3d",
 ) -> np.ndarray:
     """ORAD-3D label map ``[H, W]`` (uint8 class ids of ``ORAD3D_CLASSES``, 255 = ignore).
@@ -449,7 +426,9 @@ def orad3d_label(
     The base layer is ``gt_image`` (road / non-road / sky colours, ``gt_image_classes``;
     other colours are ignored). The ``gt_image_multi_seg`` polygons (a LabelMe-style JSON:
     ``{"shapes": [{"label": tag, "points": [[x, y], ...]}, ...]}``) are drawn over it in
-    file order, each tag mapped to a class by ``polygon_tags``.
+    file order, each tag mapped to a class by ``polygon_tags``. Both mappings are the dataset
+    entry's (``conf/dataset/orad3d.yaml`` holds ORAD-3D's; ``dataset_conf("orad3d")`` reads them
+    outside Hydra).
     """
     index = {c: i for i, c in enumerate(ORAD3D_CLASSES)}
     for table, table_key in (

@@ -24,8 +24,10 @@ open_caption_source`.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
+
+from resireg.specs.rules import Rule, integer, is_int, is_num, one_of
 
 __all__ = [
     "CAPTION_SOURCE_KEYS",
@@ -38,6 +40,39 @@ __all__ = [
     "find_dataset",
     "require_keys",
 ]
+
+
+def _size(v: Any) -> bool:
+    """``[height, width]``, two integers >= 1."""
+    return isinstance(v, list) and len(v) == 2 and all(is_int(s) and s >= 1 for s in v)
+
+
+def _open_unit(v: Any) -> bool:
+    """``null`` or a number in (0, 1)."""
+    return v is None or (is_num(v) and 0 < v < 1)
+
+
+#: The 3D protocol's value rules of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
+#: section 4), by key; checked by :func:`resireg_train.validation.validate_eval` for that kind
+#: only (2D entries may use some of the names).
+_SCANNET_RULES: dict[str, Rule] = {
+    "gt_resolution": (lambda v: v in ("image", "label") or _size(v), "image, label or [height, width]"),
+    "gt_unlabelled": one_of(("rayfronts", "vote", "drop")),
+    "resize": one_of(("torch", "exact")),
+    "intrinsics": one_of(("multiply", "half_pixel")),
+    "lattice": one_of(("round", "floor")),
+    "points": one_of(("patch", "pixel")),
+    "knn": integer(0),
+    "prediction_threshold": (_open_unit, "null or a number in (0, 1)"),
+    "prompt_denoising": (_open_unit, "null or a number in (0, 1)"),
+    "metric": one_of(("rayfronts", "union")),
+    "class_names": one_of(("label_map", "nyu40")),
+    "classes_to_ignore": (
+        lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v),
+        "a list of class names (NYU40 names, e.g. otherprop)",
+    ),
+    "protocol": (lambda v: isinstance(v, str) and bool(v), "a name for the protocol"),
+}  # fmt: skip
 
 #: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task).
 _SEGMENTATION = ("name", "kind", "short_side", "limit")
@@ -64,6 +99,10 @@ class DatasetSpec:
         check: ``"module:function"`` ``(spec, key) -> None`` raising the errors its build
             would on a missing source, run before the encoder loads; ``None``: none.
         summary: one line for errors and docs.
+        rules: the value rules of its keys, ``key -> (check, expectation)``
+            (:mod:`resireg.specs.rules`), checked by the config check
+            (:func:`resireg_train.validation.validate_eval`, as ``dataset.<key>=<value>:
+            expected <expectation>``); keys without one are checked for presence only.
     """
 
     kind: str
@@ -74,6 +113,7 @@ class DatasetSpec:
     summary: str
     optional: tuple[str, ...] = ("name",)
     check: str | None = None
+    rules: Mapping[str, Rule] = field(default_factory=dict, hash=False)
 
     def load(self) -> Any:
         """The builder (imports torch and the dataset's readers)."""
@@ -151,21 +191,24 @@ DATASET_SPECS: dict[str, DatasetSpec] = {
         ("scannet", "scannet_legacy", "scannet_synthetic"),
         "ScanNet v2 scenes exported by SensReader (posed RGB-D frames; Table 2)",
         check="resireg_train.data.scannet:check_scannet_spec",
+        rules=_SCANNET_RULES,
     ),
 }
 
 #: The keys of a training caption source (``data.sources.<name>``, ``conf/data/``), by what its
 #: ``path`` names: ``synthetic`` (the generated scenes) or any other (a hub id, a local folder,
 #: a ``datasets`` builder name). ``required``: those every source holds (``conf/data/`` files
-#: are the defaults); ``optional``: those a source may leave out (nothing is passed then).
+#: are the defaults; ``probability``, its relative weight in the mix, included: no source
+#: weighs 1 unless its file says so); ``optional``: those a source may leave out (nothing is
+#: passed then).
 CAPTION_SOURCE_KEYS: dict[str, dict[str, tuple[str, ...]]] = {
     "synthetic": {
-        "required": ("path", "size", "image_size", "seed", "noise", "shards"),
-        "optional": ("probability",),
+        "required": ("path", "size", "image_size", "seed", "noise", "shards", "probability"),
+        "optional": (),
     },
     "hub": {
-        "required": ("path", "split", "image", "caption"),
-        "optional": ("name", "data_files", "data_dir", "revision", "probability"),
+        "required": ("path", "split", "image", "caption", "probability"),
+        "optional": ("name", "data_files", "data_dir", "revision"),
     },
 }
 

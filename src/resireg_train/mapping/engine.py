@@ -67,9 +67,21 @@ from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
 from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference
 from resireg_train.mapping import metric as metrics
+from resireg_train.tasks import TASK_SPECS
 
-__all__ = ["GT_RULES", "POINTS", "TASK_KEYS", "MappingProtocol", "MappingResult", "MappingTask"]
+__all__ = [
+    "GT_RULES",
+    "METRIC_PREFIX",
+    "POINTS",
+    "TASK_KEYS",
+    "MappingProtocol",
+    "MappingResult",
+    "MappingTask",
+]
 
+#: What the scores' names start with, ``val/scannet3d/``: the task table's
+#: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`).
+METRIC_PREFIX = TASK_SPECS["scannet3d"].metric_prefix
 #: How ignored ground-truth pixels enter the voxel labels (module docstring).
 GT_RULES = ("rayfronts", "vote", "drop")
 #: RayFronts' ground-truth rule: ``compute_semseg_preds(votes, prompts, 0, 0.1)``, and the
@@ -181,19 +193,20 @@ class MappingResult:
     def scene_scores(self, variant: str) -> dict[str, dict[str, Any]]:
         return {s: metrics.scores(m, self.metric) for s, m in self.confusions[variant].items()}
 
-    def scores(self, prefix: str = "val/scannet3d") -> dict[str, float]:
+    def scores(self, prefix: str = METRIC_PREFIX) -> dict[str, float]:
         """Per variant: ``miou_<v>``, ``fmiou_<v>``, ``acc_<v>``, each the mean over the scenes
         (the table's figure), and ``pooled_miou_<v>``, ... of the confusion summed over the
-        scenes, under ``<prefix>/<dataset>/``."""
+        scenes, under ``<prefix><dataset>/`` (``prefix`` ends with ``/``; :data:`METRIC_PREFIX`,
+        the task table's, by default)."""
         out = {}
         for variant in self.confusions:
             per_scene = self.scene_scores(variant).values()
             pooled = metrics.scores(self.pooled(variant), self.metric)
             for name in ("miou", "fmiou", "acc"):
                 mean = metrics.mean_over_scenes([s[name] for s in per_scene])
-                out[f"{prefix}/{self.dataset}/{name}_{variant}"] = mean
+                out[f"{prefix}{self.dataset}/{name}_{variant}"] = mean
             for name in ("miou", "fmiou", "acc"):
-                out[f"{prefix}/{self.dataset}/pooled_{name}_{variant}"] = pooled[name]
+                out[f"{prefix}{self.dataset}/pooled_{name}_{variant}"] = pooled[name]
         return out
 
     def per_scene(self) -> dict[str, dict[str, Any]]:

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from resireg.specs.rules import check_batch_size
 from resireg.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import OVSSResult, OVSSTask
+from resireg_train.ovss.engine import METRIC_PREFIX, OVSSResult, OVSSTask
 from resireg_train.ovss.settings import VARIANT_PARAM_KEYS, save_settings
 
 __all__ = ["ReSiRegEval"]
@@ -136,7 +136,7 @@ class ReSiRegEval(L.Callback):
                     pl_module.device,
                 )
             scores.update(result.scores())
-            scores[f"val/ovss/{result.dataset}/skipped"] = float(result.skipped)
+            scores[f"{METRIC_PREFIX}{result.dataset}/skipped"] = float(result.skipped)
             self._report_skipped(trainer, result)
         return scores
 
@@ -150,7 +150,7 @@ class ReSiRegEval(L.Callback):
 
     def idle_metric_prefixes(self, trainer: L.Trainer) -> tuple[str, ...]:
         """Metric prefixes not logged in this epoch (for ``ResultsTracker``)."""
-        return () if self.due(trainer) else ("val/ovss/",)
+        return () if self.due(trainer) else (METRIC_PREFIX,)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if not self.due(trainer):

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
+from resireg.specs.variants import VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
@@ -43,11 +44,13 @@ from resireg_train.engine import (  # shared with the 3D engine; importable from
     check_variants_on,
     inference,
 )
+from resireg_train.tasks import TASK_SPECS
 
 if TYPE_CHECKING:
     from resireg_train.cache import FeatureCache
 
 __all__ = [
+    "METRIC_PREFIX",
     "OVSSTask",
     "OVSSResult",
     "StageTimer",
@@ -56,6 +59,10 @@ __all__ = [
     "inference",
     "requested_layers",
 ]
+
+#: What the scores' names start with, ``val/ovss/``: the task table's
+#: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`), also the training callback's.
+METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
 
 
 def configuration_layers(
@@ -75,7 +82,7 @@ def configuration_layers(
         if parse_variant(name)[0] == "bb":
             raise ValueError(
                 f"{key}: {name!r}: bb scores the language tokens alone; @layer: applies to the "
-                "variants that use the intermediates (calib, lite, full)"
+                f"variants that use the intermediates ({', '.join(v for v in VARIANTS if v != 'bb')})"
             )
         check = getattr(encoder, "check_layers", None)
         if check is None or not callable(getattr(encoder, "encode_layers", None)):
@@ -163,13 +170,14 @@ class OVSSResult:
         named = "; ".join(f"{s.file}: {s.reason}" for s in self.skipped_samples)
         return f"{self.dataset}: skipped {self.skipped} of {scored} images ({named})"
 
-    def scores(self, prefix: str = "val/ovss") -> dict[str, float]:
-        """``{"<prefix>/<dataset>/miou_<variant>": ..., ".../fmiou_<variant>": ...}``."""
+    def scores(self, prefix: str = METRIC_PREFIX) -> dict[str, float]:
+        """``{"<prefix><dataset>/miou_<variant>": ..., ".../fmiou_<variant>": ...}`` (``prefix``
+        ends with ``/``; :data:`METRIC_PREFIX`, the task table's, by default)."""
         out = {}
         for variant, metric in self.metrics.items():
             computed = metric.compute()
-            out[f"{prefix}/{self.dataset}/miou_{variant}"] = float(computed["miou"])
-            out[f"{prefix}/{self.dataset}/fmiou_{variant}"] = float(computed["fmiou"])
+            out[f"{prefix}{self.dataset}/miou_{variant}"] = float(computed["miou"])
+            out[f"{prefix}{self.dataset}/fmiou_{variant}"] = float(computed["fmiou"])
         return out
 
     def per_class_iou(self) -> dict[str, list[float]]:

@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg.specs.variants import VARIANT_SPECS
+from resireg.specs.variants import PARAM_VARIANTS
 from resireg_train.files import write_atomic
 
 __all__ = [
@@ -20,7 +20,7 @@ __all__ = [
 SETTINGS_FILE = "resireg_eval.json"
 #: The ``resireg`` config group's blocks of variant parameters (``calib``, ``lite``, ``full``:
 #: the variants of the table, resireg.specs.variants, that take parameters).
-VARIANT_PARAM_KEYS = tuple(name for name, spec in VARIANT_SPECS.items() if spec.params)
+VARIANT_PARAM_KEYS = PARAM_VARIANTS
 #: Which settings it records (the ``resireg`` group and the pass settings of resireg-eval).
 SETTING_KEYS = ("variants", *VARIANT_PARAM_KEYS, "batch_size", "precision", "temperature")
 
