@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial.transform import Rotation
 
+from _optional import open3d
 from resireg.mapping import (
     LabelVoxelMap,
     VoxelMap,
@@ -250,7 +251,7 @@ def test_voxel_means_equal_open3d_voxel_down_sample():
     (v/2, v/2, v/2) that is the minimum on every axis puts its grid edges at 0, ours. Its
     output (mean position and mean colour per voxel, hash-map order) is sorted by voxel.
     """
-    o3d = pytest.importorskip("open3d")
+    o3d = open3d()
     v = 0.25
     rng = np.random.default_rng(9)
     xyz = np.concatenate([[[v / 2] * 3], rng.uniform(v / 2 + 1e-6, 3.0, (3000, 3))])

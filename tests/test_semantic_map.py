@@ -10,6 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from _optional import open3d
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.mapping import MapFullError, SemanticMap, patch_points
 from resireg.models import ResiregVLM
@@ -190,7 +191,7 @@ def test_classify_equals_the_averaged_prompts_by_hand(encoder, room):
 
 
 def test_ply_read_back_by_open3d(encoder, room, tmp_path):
-    o3d = pytest.importorskip("open3d")
+    o3d = open3d()
     images, depth, k, poses = room
     smap = SemanticMap(encoder, "bb", VOXEL)
     smap.add(images[:3], depth[:3], k, poses[:3])
