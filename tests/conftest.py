@@ -8,6 +8,13 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+# pyproject's addopts run the suite in pytest-xdist workers, one per core (at most two). Each
+# worker, and every process its tests start, computes on one thread unless told otherwise:
+# two workers of two threads on two cores would oversubscribe them, and a parallel region of
+# torch waits for its slowest thread. Set before torch loads.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 # Tests that load a benchmark script by path: its `from _common import ...` (the scripts' shared
 # helpers, found next to the script when run as `python benchmarks/x.py`).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
