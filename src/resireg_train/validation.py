@@ -39,7 +39,7 @@ from resireg.specs.rules import (
 )
 from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
-from resireg_train.data.specs import dataset_key_errors, find_dataset
+from resireg_train.data.specs import dataset_key_errors, find_dataset, missing_keys_error
 from resireg_train.tasks import TASK_SPECS, task_config_errors
 
 __all__ = [
@@ -529,8 +529,8 @@ def validate(
         for name, spec in sources.items():
             p = spec.get("probability", _MISSING) if isinstance(spec, dict) else None
             if p is _MISSING:  # no default weight: conf/data/ sets every source's
-                errors.append(f"data.sources.{name}: no data.sources.{name}.probability (a "
-                              "value is required; conf/data/ holds every one)")  # fmt: skip
+                errors.append(missing_keys_error(f"data.sources.{name}", ["probability"],
+                                                 "conf/data/"))  # fmt: skip
             elif not (_num(p) and p > 0):
                 errors.append(f"data.sources.{name}.probability={p!r}: expected a number > 0")
     if errors:

@@ -38,6 +38,7 @@ __all__ = [
     "dataset_key_errors",
     "dataset_kinds",
     "find_dataset",
+    "missing_keys_error",
     "require_keys",
 ]
 
@@ -223,13 +224,19 @@ def find_dataset(kind: Any) -> DatasetSpec | None:
     return DATASET_SPECS.get(str(kind))
 
 
+def missing_keys_error(key: str, missing: Any, source: str) -> str:
+    """The one message of keys an entry lacks: ``<key>: no <key>.<name>, ... (a value is
+    required; <source> holds every one)`` (``source``: the config files holding them)."""
+    return (f"{key}: no {', '.join(f'{key}.{n}' for n in missing)} (a value is required; "
+            f"{source} holds every one)")  # fmt: skip
+
+
 def require_keys(spec: Mapping[str, Any], names: Any, key: str, source: str) -> None:
-    """A ValueError naming ``<key>.<name>`` for each of ``names`` that ``spec`` lacks (``source``:
-    the config files holding them): the one error of a missing key, no silent default."""
+    """A ValueError (:func:`missing_keys_error`) naming ``<key>.<name>`` for each of ``names``
+    that ``spec`` lacks: the one error of a missing key, no silent default."""
     missing = [n for n in names if n not in spec]
     if missing:
-        raise ValueError(f"{key}: no {', '.join(f'{key}.{n}' for n in missing)} (a value is "
-                         f"required; {source} holds every one)")  # fmt: skip
+        raise ValueError(missing_keys_error(key, missing, source))
 
 
 def dataset_key_errors(spec: Mapping[str, Any], key: str = "dataset") -> list[str]:
@@ -249,8 +256,7 @@ def dataset_key_errors(spec: Mapping[str, Any], key: str = "dataset") -> list[st
     missing = [k for k in entry.keys if k not in spec and k not in entry.optional]
     if missing:
         files = ", ".join(f"conf/dataset/{c}.yaml" for c in entry.configs)
-        errors.append(f"{key}: no {', '.join(f'{key}.{m}' for m in missing)} (a value is "
-                      f"required; {files or 'its conf/dataset/ file'} holds every one)")  # fmt: skip
+        errors.append(missing_keys_error(key, missing, files or "its conf/dataset/ file"))
     return errors
 
 
