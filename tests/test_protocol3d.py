@@ -640,7 +640,10 @@ def test_defaults_and_allowed_values_are_the_configs():
     import dataclasses
     import inspect
 
+    from hydra import compose, initialize_config_dir
+
     from resireg_train.data.specs import DATASET_SPECS
+    from resireg_train.paths import CONFIG_DIR
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
     # The task's settings have no Python default (conf/ is their one source): the Python API's
@@ -650,6 +653,12 @@ def test_defaults_and_allowed_values_are_the_configs():
     for name, value in dataclasses.asdict(MappingProtocol.from_conf()).items():
         assert spec[name] == value, name
     assert MappingProtocol.from_conf(voxel_size=0.2).voxel_size == 0.2
+    # A config that composes another (scannet_legacy: defaults [scannet, _self_]) holds its
+    # parent's settings too, as Hydra composes it for dataset=scannet_legacy.
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        legacy = compose("eval", overrides=["dataset=scannet_legacy"]).dataset
+    for name, value in dataclasses.asdict(MappingProtocol.from_conf("scannet_legacy")).items():
+        assert legacy[name] == value, name
     with pytest.raises(ValueError, match=r"dataset\.knn"):
         MappingProtocol.from_spec({k: v for k, v in spec.items() if k != "knn"})
     params = inspect.signature(ScanNetFrames).parameters

@@ -65,6 +65,7 @@ from resireg.models import DenseEncoder
 from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
+from resireg_train.data.specs import dataset_conf
 from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference
 from resireg_train.mapping import metric as metrics
 from resireg_train.tasks import TASK_SPECS
@@ -141,21 +142,14 @@ class MappingProtocol:
 
     @classmethod
     def from_conf(cls, dataset: str = "scannet", **settings: Any) -> MappingProtocol:
-        """The settings of ``conf/dataset/<dataset>.yaml`` (the project's ``conf/``,
-        :data:`resireg_train.paths.CONFIG_DIR`), ``settings`` in place of its values: the
+        """The settings of ``conf/dataset/<dataset>.yaml`` (read by
+        :func:`resireg_train.data.specs.dataset_conf`, its ``defaults`` composed, so
+        ``scannet_legacy`` holds ``scannet``'s), ``settings`` in place of its values: the
         Python API's defaults are the config's, read from it rather than typed again."""
-        from omegaconf import OmegaConf
-
-        from resireg_train.paths import CONFIG_DIR
-
-        path = CONFIG_DIR / "dataset" / f"{dataset}.yaml"
-        if not path.is_file():
-            raise FileNotFoundError(f"dataset={dataset!r}: no {path}")
         unknown = sorted(set(settings) - {f.name for f in fields(cls)})
         if unknown:
             raise TypeError(f"unknown settings {unknown}; the task's are {list(TASK_KEYS)}")
-        spec = {k: v for k, v in OmegaConf.to_container(OmegaConf.load(path)).items()
-                if k in TASK_KEYS}  # fmt: skip
+        spec = {k: v for k, v in dataset_conf(dataset).items() if k in TASK_KEYS}
         return cls.from_spec({**spec, **settings}, key=f"conf/dataset/{dataset}.yaml")
 
 
