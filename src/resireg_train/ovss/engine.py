@@ -33,7 +33,7 @@ from torch import Tensor, nn
 
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
-from resireg.specs.variants import VARIANTS
+from resireg.specs.variants import BASELINE, VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
@@ -63,6 +63,8 @@ __all__ = [
 #: What the scores' names start with, ``val/ovss/``: the task table's
 #: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`), also the training callback's.
 METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
+#: The variants that read the intermediates: all but the backbone alone (the @layer: error).
+_INTERMEDIATE_VARIANTS = tuple(v for v in VARIANTS if v != BASELINE)
 
 
 def configuration_layers(
@@ -79,10 +81,10 @@ def configuration_layers(
         out[name] = layer
         if layer is None:
             continue
-        if parse_variant(name)[0] == "bb":
+        if parse_variant(name)[0] == BASELINE:
             raise ValueError(
-                f"{key}: {name!r}: bb scores the language tokens alone; @layer: applies to the "
-                f"variants that use the intermediates ({', '.join(v for v in VARIANTS if v != 'bb')})"
+                f"{key}: {name!r}: {BASELINE} scores the language tokens alone; @layer: applies to "
+                f"the variants that use the intermediates ({', '.join(_INTERMEDIATE_VARIANTS)})"
             )
         check = getattr(encoder, "check_layers", None)
         if check is None or not callable(getattr(encoder, "encode_layers", None)):
