@@ -39,6 +39,11 @@ def _cauldron_parquet(path, n, files=1):
     return str(path)
 
 
+def _source(path, image, caption):
+    """A caption source entry holding every key conf/data/ gives one (split, columns, weight)."""
+    return {"path": path, "split": "train", "image": image, "caption": caption, "probability": 1.0}
+
+
 def _loader(sources, **kw):
     args = {"batch_size": 4, "steps_per_epoch": 3, "crop_size": 32, "min_image_size": 16,
             "num_workers": 0, "shuffle_buffer": 0, "pin_memory": False}  # fmt: skip
@@ -54,13 +59,7 @@ def _epoch(loader, epoch=0):
 
 def test_nested_columns_of_a_local_parquet_source(tmp_path):
     folder = _cauldron_parquet(tmp_path / "cauldron", 12, files=3)
-    spec = {
-        "path": folder,
-        "split": "train",
-        "image": "images.0",
-        "caption": "texts.0.assistant",
-        "probability": 1.0,
-    }
+    spec = _source(folder, image="images.0", caption="texts.0.assistant")
     examples = list(open_caption_source("cauldron", spec))
     assert sorted(e["caption"][0] for e in examples) == sorted(f"cap {i}" for i in range(12))
     image = Image.open(io.BytesIO(examples[0]["image"]))
@@ -78,13 +77,7 @@ def test_nested_columns_of_a_local_parquet_source(tmp_path):
 
 def test_batches_are_cropped_normalised_and_exactly_steps_per_epoch(tmp_path):
     folder = _cauldron_parquet(tmp_path / "c", 20, files=4)
-    spec = {
-        "path": folder,
-        "split": "train",
-        "image": "images.0",
-        "caption": "texts.0.assistant",
-        "probability": 1.0,
-    }
+    spec = _source(folder, image="images.0", caption="texts.0.assistant")
     _, loader = _loader({"c": spec}, num_workers=2, steps_per_epoch=5, mean=(0.5,) * 3,
                         std=(0.25,) * 3)  # fmt: skip
     batches = _epoch(loader)
@@ -106,13 +99,7 @@ def test_caption_lists_give_one_random_caption_and_epochs_reshuffle(tmp_path):
         (folder / f"{i}.png").write_bytes(_png(value=i))
         rows.append(f'{{"file_name": "{i}.png", "answer": ["a{i}", "b{i}", "c{i}"]}}')
     (folder / "metadata.jsonl").write_text("\n".join(rows) + "\n")
-    spec = {
-        "path": str(folder),
-        "split": "train",
-        "image": "image",
-        "caption": "answer",
-        "probability": 1.0,
-    }
+    spec = _source(str(folder), image="image", caption="answer")
     _, loader = _loader({"coco": spec}, steps_per_epoch=16, shuffle_buffer=8)
     first = [c for b in _epoch(loader, 0) for c in b["caption"]]
     assert {c[0] for c in first} == {"a", "b", "c"}  # every caption of the list gets drawn
