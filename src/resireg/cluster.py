@@ -423,7 +423,7 @@ def _assign_rows(
     # |c|^2 - 2 c.x, centroid-major; |x|^2 is added per point below. The rows past k
     # (padding of the last group) stay inf.
     part = torch.empty(groups * _GROUP, m, dtype=x.dtype, device=x.device)
-    part[c.shape[0]:] = float("inf")
+    part[c.shape[0] :] = float("inf")
     torch.addmm(c_sq.unsqueeze(1), c, x.T, alpha=-2.0, out=part[: c.shape[0]])
     cube = part.view(groups, _GROUP, m)
     lower = cube.amin(dim=1)  # [G, M] group minima
@@ -432,8 +432,9 @@ def _assign_rows(
     cols = torch.arange(m, device=x.device)
     # The nearest group's _GROUP distances [_GROUP, M], the nearest among them, and the
     # group's bound recomputed without it.
-    own = part.view(-1).take(group.mul(_GROUP * m).add_(cols) + (
-        torch.arange(_GROUP, device=x.device) * m).unsqueeze(1))
+    own = part.view(-1).take(
+        group.mul(_GROUP * m).add_(cols) + (torch.arange(_GROUP, device=x.device) * m).unsqueeze(1)
+    )
     within = _first_min(own, nearest)
     labels = group * _GROUP + within
     own.view(-1).index_fill_(0, within * m + cols, float("inf"))
@@ -515,7 +516,11 @@ def _lloyd(
     excludes only centroids about as far as each other, and fewer points need rows (on Full's
     points at k = 132, 9.0 rows per point against 13.1 for groups of consecutive indices).
     The centroids are reordered for the iterations and put back before the final assignment,
-    whose ties go to the lowest index of the caller's order.
+    whose ties go to the lowest index of the caller's order. The reordering moves each
+    centroid's products to another position of the BLAS kernel, which can round them
+    differently: a point whose two nearest centroids are within that rounding may get the
+    other one than with groups of consecutive indices (and Lloyd's path then drifts), as any
+    change of the products' evaluation order would.
     """
     n, d = x.shape
     order = _proximity_order(centroids)
@@ -600,8 +605,12 @@ def _lloyd_state(
                 # index_select / index_copy_ rather than [] indexing: the same gathers and
                 # scatters, 3x faster on the CPU (no advanced-indexing machinery).
                 new_labels, up_rows, low_rows = _assign_rows(
-                    x.index_select(0, stale), x_sq.index_select(0, stale), centroids, c_sq,
-                    err.index_select(0, stale), groups,
+                    x.index_select(0, stale),
+                    x_sq.index_select(0, stale),
+                    centroids,
+                    c_sq,
+                    err.index_select(0, stale),
+                    groups,
                 )
                 upper.index_copy_(0, stale, up_rows)
                 lower.index_copy_(1, stale, low_rows)
