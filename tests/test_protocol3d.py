@@ -674,6 +674,25 @@ def test_defaults_and_allowed_values_are_the_configs():
         assert all(check(v) for v in allowed) and not check("other"), key
 
 
+def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
+    """One rule per ScanNet option: MappingProtocol and ScanNetFrames check their values with
+    the dataset table's rules (the config check's), so a rule changed there changes what they
+    accept, and they report a bad value in the config check's words."""
+    from resireg.specs.rules import one_of
+    from resireg_train.data.specs import DATASET_SPECS
+
+    rules = DATASET_SPECS["scannet"].rules
+    with pytest.raises(
+        ValueError, match=r"dataset\.lattice='ceil': expected one of \['round', 'floor'\]"
+    ):
+        MappingProtocol.from_conf(lattice="ceil")
+    monkeypatch.setitem(rules, "lattice", one_of(("round", "floor", "ceil")))
+    monkeypatch.setitem(rules, "resize", one_of(("exact",)))
+    assert MappingProtocol.from_conf(lattice="ceil").lattice == "ceil"  # accepted: the table's rule
+    with pytest.raises(ValueError, match=r"dataset\.resize='torch': expected one of \['exact'\]"):
+        ScanNetFrames(rooms, SCENES[:1], resize="torch")
+
+
 # ------------------------------------------------------------------ the protocol record
 def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
     """resireg_train.protocol: the 3D record is the dataset entry's protocol keys (only those);

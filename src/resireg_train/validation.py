@@ -39,7 +39,12 @@ from resireg.specs.rules import (
 )
 from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg.variant_names import parse_variant, takes_prior, variant_layer
-from resireg_train.data.specs import dataset_key_errors, find_dataset, missing_keys_error
+from resireg_train.data.specs import (
+    dataset_key_errors,
+    dataset_value_errors,
+    find_dataset,
+    missing_keys_error,
+)
 from resireg_train.tasks import TASK_SPECS, task_config_errors
 
 __all__ = [
@@ -455,11 +460,9 @@ def validate_eval(
     if isinstance(dataset, dict):  # its kind and keys (the dataset table)
         errors += dataset_key_errors(dataset, "dataset")
     entry = find_dataset(kind)
-    for name, (check, expected) in (entry.rules if entry is not None else {}).items():
-        # the kind's own rules (the dataset table's entry), checked here with the others
-        value = _get(cfg, f"dataset.{name}")
-        if value is not _MISSING and not check(value):
-            errors.append(f"dataset.{name}={value!r}: expected {expected}")
+    # the kind's own rules (the dataset table's entry), checked here with the others
+    values = {n: _get(cfg, f"dataset.{n}") for n in (entry.rules if entry is not None else {})}
+    errors += dataset_value_errors(kind, {n: v for n, v in values.items() if v is not _MISSING})
     variants = _get(cfg, "variants")
     with_prior = [v for v in variants if takes_prior(str(v))] if isinstance(variants, list) else []
     if with_prior and _get(cfg, "prior") in (None, _MISSING):

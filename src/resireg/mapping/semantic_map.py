@@ -43,13 +43,12 @@ from resireg.mapping.geometry import patch_points
 from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
 from resireg.mapping.voxels import SUM_DTYPES, VoxelMap, check_lattice, voxel_indices
+from resireg.specs.mapping import POINTS
 from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import apply_variant, build_variants
 
 __all__ = ["COLOUR_BY", "POINTS", "MapFullError", "SemanticMap", "pca_colours", "write_ply"]
 
-#: How features are lifted to 3D: one point per patch centre, or every pixel at its patch's depth.
-POINTS = ("patch", "pixel")
 #: What :meth:`SemanticMap.to_ply` colours the voxels by.
 COLOUR_BY = ("rgb", "pca", "query", "class")
 #: The files of a saved map: the JSON (written last: the commit point) names its tensor file.

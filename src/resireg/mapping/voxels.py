@@ -31,6 +31,8 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
+from resireg.specs.mapping import LATTICES
+
 __all__ = [
     "LATTICES",
     "SUM_DTYPES",
@@ -53,8 +55,6 @@ _CHUNK_ELEMENTS = 1 << 20
 _PAIR_CHUNK_ELEMENTS = 1 << 17
 
 
-#: Voxel lattices (module docstring).
-LATTICES = ("round", "floor")
 #: The dtypes of :class:`VoxelMap`'s feature sums, by name.
 SUM_DTYPES = {"float64": torch.float64, "float32": torch.float32}
 

@@ -63,7 +63,15 @@ from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patc
 from resireg.ovss import NYU40_CLASSES
 from resireg.specs.rules import check_batch_size
 from resireg_train.data.segmentation import IGNORE_INDEX, SkippedSample
-from resireg_train.data.specs import check_dataset_keys, require_keys
+from resireg_train.data.specs import (
+    CLASS_NAMES,
+    GT_RESOLUTIONS,
+    INTRINSICS,
+    RESIZES,
+    check_dataset_keys,
+    check_dataset_values,
+    require_keys,
+)
 from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
@@ -89,14 +97,6 @@ log = logging.getLogger(__name__)
 
 LABEL_MAP_FILE = "scannetv2-labels.combined.tsv"
 _LABEL_DIRS = ("label-filt", "{scene}_2d-label-filt/label-filt")
-#: Nearest resize rules of depth and labels (module docstring).
-RESIZES = ("torch", "exact")
-#: Intrinsics scaling rules (module docstring).
-INTRINSICS = ("multiply", "half_pixel")
-#: Where the names of the classes come from (module docstring).
-CLASS_NAMES = ("label_map", "nyu40")
-#: ``gt_resolution`` values besides ``[H, W]`` (module docstring).
-GT_RESOLUTIONS = ("image", "label")
 #: The classes RADSeg's ScanNet config leaves out (``classes_to_ignore``).
 DEFAULT_IGNORED = ("otherstructure", "otherfurniture", "otherprop")
 
@@ -195,8 +195,7 @@ def evaluated_classes(
     (``label_map``; an id without a name there takes NYU40's) or by NYU40's names (``nyu40``),
     without the names in ``ignore``. A name in ``ignore`` that is neither an NYU40 class nor a
     class of the label map is an error naming ``<key>.classes_to_ignore``."""
-    if class_names not in CLASS_NAMES:
-        raise ValueError(f"{key}.class_names={class_names!r}: expected one of {CLASS_NAMES}")
+    check_dataset_values("scannet", {"class_names": class_names}, key)
     ids = sorted({n for n in raw_to_nyu40.values() if 1 <= n <= len(NYU40_CLASSES)})
     name = {
         n: (nyu40_names.get(n) if class_names == "label_map" else None) or NYU40_CLASSES[n - 1]
@@ -320,10 +319,7 @@ class ScanNetFrames(torch.utils.data.Dataset):
             self.gt_resolution: str | tuple[int, int] = gt_resolution
         else:
             self.gt_resolution = (int(gt_resolution[0]), int(gt_resolution[1]))
-        for option, value, allowed in (("resize", resize, RESIZES),
-                                       ("intrinsics", intrinsics, INTRINSICS)):  # fmt: skip
-            if value not in allowed:
-                raise ValueError(f"{key}.{option}={value!r}: expected one of {allowed}")
+        check_dataset_values("scannet", {"resize": resize, "intrinsics": intrinsics}, key)
         self.resize, self.intrinsics_rule = resize, intrinsics
         self.short_side = short_side
         self.patch_size = patch_size

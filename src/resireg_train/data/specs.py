@@ -27,16 +27,25 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from resireg.specs.mapping import LATTICES, POINTS
 from resireg.specs.rules import Rule, integer, is_int, is_num, one_of
 
 __all__ = [
     "CAPTION_SOURCE_KEYS",
+    "CLASS_NAMES",
     "DATASET_SPECS",
     "DatasetSpec",
+    "GT_RESOLUTIONS",
+    "GT_RULES",
+    "INTRINSICS",
+    "METRICS",
+    "RESIZES",
     "check_dataset_keys",
+    "check_dataset_values",
     "dataset_conf",
     "dataset_key_errors",
     "dataset_kinds",
+    "dataset_value_errors",
     "find_dataset",
     "missing_keys_error",
     "require_keys",
@@ -53,21 +62,38 @@ def _open_unit(v: Any) -> bool:
     return v is None or (is_num(v) and 0 < v < 1)
 
 
+# The ScanNet protocol's named options (docs/protocol.md section 4), written once: the rules
+# below and the code that reads each option (resireg_train.data.scannet,
+# resireg_train.mapping) take them from here; the mapping library's own (LATTICES, POINTS)
+# from resireg.specs.mapping.
+#: ``gt_resolution`` values besides ``[H, W]``.
+GT_RESOLUTIONS = ("image", "label")
+#: How ignored ground-truth pixels enter the voxel labels (``resireg_train.mapping.engine``).
+GT_RULES = ("rayfronts", "vote", "drop")
+#: Nearest resize rules of depth and labels (``resireg_train.data.scannet``).
+RESIZES = ("torch", "exact")
+#: Intrinsics scaling rules (``resireg_train.data.scannet``).
+INTRINSICS = ("multiply", "half_pixel")
+#: Where the names of the classes come from (``resireg_train.data.scannet``).
+CLASS_NAMES = ("label_map", "nyu40")
+#: 3D metric definitions (``resireg_train.mapping.metric``).
+METRICS = ("rayfronts", "union")
+
 #: The 3D protocol's value rules of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
 #: section 4), by key; checked by :func:`resireg_train.validation.validate_eval` for that kind
 #: only (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
-    "gt_resolution": (lambda v: v in ("image", "label") or _size(v), "image, label or [height, width]"),
-    "gt_unlabelled": one_of(("rayfronts", "vote", "drop")),
-    "resize": one_of(("torch", "exact")),
-    "intrinsics": one_of(("multiply", "half_pixel")),
-    "lattice": one_of(("round", "floor")),
-    "points": one_of(("patch", "pixel")),
+    "gt_resolution": (lambda v: v in GT_RESOLUTIONS or _size(v), "image, label or [height, width]"),
+    "gt_unlabelled": one_of(GT_RULES),
+    "resize": one_of(RESIZES),
+    "intrinsics": one_of(INTRINSICS),
+    "lattice": one_of(LATTICES),
+    "points": one_of(POINTS),
     "knn": integer(0),
     "prediction_threshold": (_open_unit, "null or a number in (0, 1)"),
     "prompt_denoising": (_open_unit, "null or a number in (0, 1)"),
-    "metric": one_of(("rayfronts", "union")),
-    "class_names": one_of(("label_map", "nyu40")),
+    "metric": one_of(METRICS),
+    "class_names": one_of(CLASS_NAMES),
     "classes_to_ignore": (
         lambda v: isinstance(v, list) and all(isinstance(c, str) for c in v),
         "a list of class names (NYU40 names, e.g. otherprop)",
@@ -258,6 +284,27 @@ def dataset_key_errors(spec: Mapping[str, Any], key: str = "dataset") -> list[st
         files = ", ".join(f"conf/dataset/{c}.yaml" for c in entry.configs)
         errors.append(missing_keys_error(key, missing, files or "its conf/dataset/ file"))
     return errors
+
+
+def dataset_value_errors(kind: Any, values: Mapping[str, Any], key: str = "dataset") -> list[str]:
+    """``<key>.<name>=<value>: expected <...>`` for each of ``values`` that breaks its rule in
+    the table entry of ``kind`` (:attr:`DatasetSpec.rules`; names without a rule, and every
+    name of an unknown kind, pass): the config check and the classes that take these values
+    from Python report them alike."""
+    entry = find_dataset(kind)
+    rules = entry.rules if entry is not None else {}
+    return [
+        f"{key}.{name}={value!r}: expected {rules[name][1]}"
+        for name, value in values.items()
+        if name in rules and not rules[name][0](value)
+    ]
+
+
+def check_dataset_values(kind: Any, values: Mapping[str, Any], key: str = "dataset") -> None:
+    """A ValueError listing :func:`dataset_value_errors`, if any."""
+    errors = dataset_value_errors(kind, values, key)
+    if errors:
+        raise ValueError("; ".join(errors))
 
 
 def check_dataset_keys(spec: Mapping[str, Any], key: str = "dataset") -> DatasetSpec:

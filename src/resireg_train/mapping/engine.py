@@ -52,7 +52,6 @@ import torch
 from torch import Tensor, nn
 
 from resireg.mapping import (
-    LATTICES,
     LabelVoxelMap,
     SemanticMap,
     classify,
@@ -60,12 +59,12 @@ from resireg.mapping import (
     transfer_labels_by_voxel,
     unproject,
 )
-from resireg.mapping.semantic_map import POINTS
 from resireg.models import DenseEncoder
+from resireg.specs.mapping import POINTS
 from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
-from resireg_train.data.specs import dataset_conf
+from resireg_train.data.specs import GT_RULES, check_dataset_values, dataset_conf
 from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference
 from resireg_train.mapping import metric as metrics
 from resireg_train.tasks import TASK_SPECS
@@ -83,8 +82,6 @@ __all__ = [
 #: What the scores' names start with, ``val/scannet3d/``: the task table's
 #: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`).
 METRIC_PREFIX = TASK_SPECS["scannet3d"].metric_prefix
-#: How ignored ground-truth pixels enter the voxel labels (module docstring).
-GT_RULES = ("rayfronts", "vote", "drop")
 #: RayFronts' ground-truth rule: ``compute_semseg_preds(votes, prompts, 0, 0.1)``, and the
 #: ``eps`` of its ``ImageSemSegEncoder.encode_labels`` one-hot prompts.
 _GT_THRESHOLD, _GT_EPS = 0.1, 1e-10
@@ -118,12 +115,9 @@ class MappingProtocol:
     metric: str
 
     def __post_init__(self) -> None:
-        for name, allowed in (("lattice", LATTICES), ("gt_unlabelled", GT_RULES),
-                              ("points", POINTS), ("metric", metrics.METRICS)):  # fmt: skip
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"{name}={getattr(self, name)!r}: expected one of {allowed}")
-        if isinstance(self.knn, bool) or not isinstance(self.knn, int) or self.knn < 0:
-            raise ValueError(f"knn={self.knn!r}: expected an integer >= 0")
+        # the dataset table's rules of these keys (the config check's), one message format
+        names = ("lattice", "gt_unlabelled", "points", "metric", "knn")
+        check_dataset_values("scannet", {n: getattr(self, n) for n in names})
         if not self.voxel_size > 0:
             raise ValueError(f"voxel_size={self.voxel_size!r}: expected a number > 0")
 

@@ -29,10 +29,9 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["METRICS", "confusion", "mean_over_scenes", "scores"]
+from resireg_train.data.specs import METRICS
 
-#: Metric definitions (module docstring).
-METRICS = ("rayfronts", "union")
+__all__ = ["METRICS", "confusion", "mean_over_scenes", "scores"]
 
 
 def confusion(pred: Tensor, gt: Tensor, num_classes: int, ignore_index: int) -> Tensor:
