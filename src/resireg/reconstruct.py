@@ -515,31 +515,23 @@ class ReSiRegFull(nn.Module):
             low = _project_grid(x, fit)  # [B*Hv*Wv, r]
             up = _upsample(low.view(b, hv, wv, -1).permute(0, 3, 1, 2), s)
             return F.normalize(up.permute(0, 2, 3, 1).reshape(-1, up.shape[1]), dim=1)
-        # The rows' upsampled intermediates (blends of four grid points each), then their
-        # projection: fewer rows to project than the grid's (projection commutes with the
-        # blend, whose weights sum to 1).
+        # The rows' upsampled intermediates, then their projection (fewer rows to project than
+        # the grid's; projection commutes with the blend, whose weights sum to 1). The blend is
+        # F.grid_sample at the rows' pixel centres: with align_corners=False and border padding,
+        # normalised coordinate (2 i + 1) / h - 1 is source coordinate (i + 1/2) / s - 1/2,
+        # clamped at the borders, i.e. F.interpolate's bilinear taps.
         rows = rows.to(x.device)
         h, w = hv * s, wv * s
         image, i, j = rows // (h * w), rows // w % h, rows % w
-        grid = x.reshape(b, x.shape[1], hv * wv)
-
-        def taps(o: Tensor, size: int) -> tuple[Tensor, Tensor, Tensor]:
-            """Source indices ``(i0, i1)`` and the weight ``[M, 1]`` of ``i1`` for output index
-            ``o`` (as ``F.interpolate(mode="bilinear", align_corners=False)``)."""
-            src = ((o.to(x.dtype) + 0.5) * (1.0 / s) - 0.5).clamp_min_(0.0)
-            i0 = src.long().clamp_max_(size - 1)
-            return i0, (i0 + 1).clamp_max_(size - 1), (src - i0).unsqueeze(1)
-
-        i0, i1, li = taps(i, hv)
-        j0, j1, lj = taps(j, wv)
-
-        def at(ii: Tensor, jj: Tensor) -> Tensor:  # [M, Dv]
-            return grid[image, :, ii * wv + jj]
-
-        top = at(i0, j0) * (1 - lj) + at(i0, j1) * lj
-        bottom = at(i1, j0) * (1 - lj) + at(i1, j1) * lj
-        up = (top * (1 - li) + bottom * li).sub_(fit.mean) @ fit.components.T
-        return F.normalize(up, dim=1)
+        where = torch.stack([(2 * j + 1).double() / w - 1, (2 * i + 1).double() / h - 1], 1)
+        where = where.to(x.dtype)
+        up = x.new_empty(rows.numel(), x.shape[1])
+        for one in image.unique().tolist():  # grid_sample takes as many rows from every image
+            at = (image == one).nonzero().squeeze(1)
+            grid = where[at].view(1, 1, -1, 2)
+            taps = F.grid_sample(x[one : one + 1], grid, padding_mode="border", align_corners=False)
+            up[at] = taps[0, :, 0].T
+        return F.normalize((up - fit.mean) @ fit.components.T, dim=1)
 
     def forward(
         self,
