@@ -266,3 +266,28 @@ def test_near_centroid_groups_skip_rows_and_change_nothing(monkeypatch):
     assert torch.equal(near.sq_dists, consecutive.sq_dists)
     both = 2 * x.shape[0]  # 0.84 measured
     assert near.dist_rows - both < 0.9 * (consecutive.dist_rows - both)
+
+
+def test_assign_rows_ties_go_to_the_lowest_index():
+    """Exact ties (duplicated centroids, also across groups) give the lowest index, as
+    numpy's argmin of the same computed row; the group bound of the nearest's group then
+    holds its duplicate (distance equal to the nearest), not inf."""
+    from resireg.cluster import _GROUP, _assign_rows, _sq_error
+
+    g = torch.Generator().manual_seed(6)
+    c = torch.randn(10, 8, generator=g)
+    c[7] = c[2]  # same group as nothing: groups {0-3}, {4-7}, {8, 9}: a tie across groups
+    c[3] = c[1]  # a tie within group 0
+    x = torch.cat(
+        [c[[2, 1, 7, 3]] + 1e-3 * torch.randn(4, 8, generator=g), torch.randn(50, 8, generator=g)]
+    )
+    x_sq, c_sq = (x * x).sum(1), (c * c).sum(1)
+    groups = -(-10 // _GROUP)
+    labels, upper, lower = _assign_rows(
+        x, x_sq, c, c_sq, _sq_error(x_sq, float(c_sq.max()), 8), groups
+    )
+    part = (c_sq[:, None] - 2.0 * (c @ x.T)).numpy()  # the same expansion, centroid-major
+    assert np.array_equal(labels.numpy(), part.argmin(0))
+    assert labels[:4].tolist() == [2, 1, 2, 1]
+    # point 1's nearest is centroid 1; centroid 3 (same group, same distance) bounds group 0
+    assert lower[0, 1] <= upper[1] * (1 + 1e-5)
