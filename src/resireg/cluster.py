@@ -523,11 +523,11 @@ def _lloyd(
     change of the products' evaluation order would.
     """
     n, d = x.shape
+    x_sq = (x * x).sum(1) if x_sq is None else x_sq  # [N]
     order = _proximity_order(centroids)
     centroids, labels, upper, lower, n_iter, rows = _lloyd_state(
         x, centroids.index_select(0, order), max_iter, tol_abs, x_sq
     )
-    x_sq = (x * x).sum(1) if x_sq is None else x_sq
     # Final assignment to the last centroids: the full distance matrix (returned), labels of
     # the points whose bounds cannot vouch for them taken from its rows.
     err = _sq_error(x_sq, float((centroids * centroids).sum(1).max()), d)
@@ -575,14 +575,14 @@ def _lloyd_state(
     centroids: Tensor,
     max_iter: int,
     tol_abs: Tensor | float,
-    x_sq: Tensor | None = None,
+    x_sq: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, int, int]:
     """The iterations of :func:`_lloyd` on centroids whose groups are runs of ``_GROUP``
-    consecutive rows. Returns ``(centroids, labels, upper, lower, n_iter, rows)``: the last
-    centroids and the state of the bounds, for the final assignment."""
+    consecutive rows, ``x_sq`` ``[N]`` the points' squared norms. Returns ``(centroids,
+    labels, upper, lower, n_iter, rows)``: the last centroids and the state of the bounds, for
+    the final assignment."""
     n, d = x.shape
     k = centroids.shape[0]
-    x_sq = (x * x).sum(1) if x_sq is None else x_sq  # [N]
     tol = float(tol_abs)
     eps = torch.finfo(x.dtype).eps
     # A drift computed as sqrt(sum((new - c)^2)) errs by less than (d + 4) eps relative.

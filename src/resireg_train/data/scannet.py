@@ -311,15 +311,13 @@ class ScanNetFrames(torch.utils.data.Dataset):
         self.root = Path(root).expanduser()
         self.frame_skip = int(frame_skip)
         self.image_size = (int(image_size[0]), int(image_size[1]))
+        # the table's rules (gt_resolution's only for a name: Python may pass (H, W) tuples)
+        named = {"gt_resolution": gt_resolution} if isinstance(gt_resolution, str) else {}
+        check_dataset_values("scannet", {**named, "resize": resize, "intrinsics": intrinsics}, key)
         if isinstance(gt_resolution, str):
-            if gt_resolution not in GT_RESOLUTIONS:
-                raise ValueError(
-                    f"{key}.gt_resolution={gt_resolution!r}: expected {GT_RESOLUTIONS} or [H, W]"
-                )
             self.gt_resolution: str | tuple[int, int] = gt_resolution
         else:
             self.gt_resolution = (int(gt_resolution[0]), int(gt_resolution[1]))
-        check_dataset_values("scannet", {"resize": resize, "intrinsics": intrinsics}, key)
         self.resize, self.intrinsics_rule = resize, intrinsics
         self.short_side = short_side
         self.patch_size = patch_size
