@@ -193,17 +193,21 @@ def pixel_pairs(
     padded = not (bool(row_mask.all()) and bool(col_mask.all()))
     x_u = (torch.arange(ww, device=dev, dtype=f64)[None] - k[:, 0, 2:3]) / k[:, 0, 0:1]  # [B, W]
     y_v = (torch.arange(hh, device=dev, dtype=f64)[None] - k[:, 1, 2:3]) / k[:, 1, 1:2]  # [B, H]
-    zp = z[frame, pi, pj][:, None]  # [n, 1]
-    xs = x_u[frame[:, None], col_px[pj]]  # [n, mw]
-    ys = y_v[frame[:, None], row_px[pi]]  # [n, mh]
-    # Per axis the two tables in voxel units, and each patch's lowest and highest voxel (the
-    # rounded sums of the tables' extremes: rounding is monotone), all axes and patches at once.
-    rot = pose[frame, :3, None, :]  # [n, 3, 1, 4]: R_a0, R_a1, R_a2, t_a per axis a
-    zp = zp[:, :, None]  # [n, 1, 1]
-    col_term = zp * rot[..., 0] * xs[:, None] / voxel  # [n, 3, mw]
-    row_term = (zp * (rot[..., 1] * ys[:, None] + rot[..., 2]) + rot[..., 3]) / voxel  # [n, 3, mh]
-    lo = _lattice_op(row_term.amin(2) + col_term.amin(2), lattice)  # [n, 3] float64
-    hi = _lattice_op(row_term.amax(2) + col_term.amax(2), lattice)
+    zp = z[frame, pi, pj]  # [n]
+    # The pixels' x_u (y_v) of every (frame, patch column (row)), [mw, B * w] ([mh, B * h]), then
+    # the lifted patches' columns of it: one index_select each (2-D advanced indexing of the
+    # [B, W] table costs ~5x more).
+    xs = x_u[:, col_px.T].permute(1, 0, 2).reshape(mw, b * w).index_select(1, frame * w + pj)
+    ys = y_v[:, row_px.T].permute(1, 0, 2).reshape(mh, b * h).index_select(1, frame * h + pi)
+    # Per axis the two tables in voxel units, laid out [3, m, n] (the patches innermost, so that
+    # every per-patch and per-pixel operation below runs over contiguous rows of n values), and
+    # each patch's lowest and highest voxel (the rounded sums of the tables' extremes: rounding
+    # is monotone), all axes and patches at once.
+    rot = pose[:, :3].reshape(b, 12).T.index_select(1, frame).view(3, 4, -1)  # [3, 4, n]: R_a0, R_a1, R_a2, t_a per axis a
+    cols_t = (zp * rot[:, 0])[:, None] * xs[None] / voxel  # [3, mw, n]
+    rows_t = (zp * (rot[:, 1, None] * ys[None] + rot[:, 2, None]) + rot[:, 3, None]) / voxel
+    lo = _lattice_op(rows_t.amin(1) + cols_t.amin(1), lattice)  # [3, n] float64
+    hi = _lattice_op(rows_t.amax(1) + cols_t.amax(1), lattice)
     # Checked here, before any integer conversion: the codes below are exact only for indices
     # in the range that VoxelMap packs (its add_pairs would refuse the others anyway).
     extreme = float(torch.maximum(lo.abs(), hi.abs()).max()) if frame.numel() else 0.0
@@ -212,10 +216,8 @@ def pixel_pairs(
             f"voxel indices up to {extreme:g} at voxel_size={voxel:g}: beyond +-{_MAX_INDEX} "
             "(keys pack 21 bits per axis; a depth or a pose translation too large)"
         )
-    rows_t = row_term.permute(1, 2, 0).contiguous()  # [3, mh, n]
-    cols_t = col_term.permute(1, 2, 0).contiguous()  # [3, mw, n]
-    low = lo.to(torch.int64).T.contiguous()  # [3, n]
-    span = (hi - lo).to(torch.int64).T.contiguous() + 1  # [3, n]
+    low = lo.to(torch.int64)  # [3, n]
+    span = (hi - lo).to(torch.int64) + 1  # [3, n]
     # Each patch's voxels are coded in its own box: code = base_p + (ix - lo_x) r_y r_z +
     # (iy - lo_y) r_z + (iz - lo_z), boxes laid end to end (base_p: the boxes before it), so the
     # bins of a chunk are exactly its boxes' cells, however their sizes vary. Chunks counted by
@@ -268,30 +270,31 @@ def pixel_pairs(
             run_start, run_bins = start, 0
         base = torch.cumsum(cell, 0) - cell  # [n]
         s0, s1 = strides[0, sl].to(f64), strides[1, sl].to(f64)
+        # The per-patch offset of the code (the box's place, less its lowest voxel's code), plus
+        # 2^52 for the conversion below.
+        ones = torch.ones_like(cell)[None]
+        offset = base - (low[:, sl] * torch.cat([strides[:, sl], ones])).sum(0) + _TWO52
         # Pixel-major layout [mw, mh, n] (patch innermost): every per-pixel operation runs over
         # contiguous rows of n values (the [n, mh, mw] layout's 8- or 16-wide inner rows of a
         # broadcast addition cost ~3x more). Per pixel and axis: one addition of the two tables
-        # (the same float64 sum as ever), one rounding, one multiply-add into the code. The
-        # integers are exact in float64 (|code| < 2^44) and the per-patch offset comes once.
+        # (the same float64 sum as ever), one rounding, one multiply-add into the code (the
+        # first onto the offset). Every intermediate is an integer below 2^53 in magnitude
+        # (|index * stride| < 2^42), so exact in float64.
         code = torch.empty(mw, mh, n, dtype=f64, device=dev)
         buf = torch.empty_like(code)
         for a, stride in enumerate((s0, s1, None)):
-            target = code if a == 0 else buf
-            torch.add(rows_t[a, None, :, sl], cols_t[a, :, None, sl], out=target)
-            target.round_() if lattice == "round" else target.floor_()
+            torch.add(rows_t[a, None, :, sl], cols_t[a, :, None, sl], out=buf)
+            buf.round_() if lattice == "round" else buf.floor_()
             if a == 0:
-                code.mul_(stride)
+                torch.addcmul(offset.to(f64), buf, stride, out=code)
             elif stride is not None:
                 code.addcmul_(buf, stride)
             else:
                 code.add_(buf)
-        offset = base - (low[:, sl] * torch.cat([strides[:, sl], torch.ones_like(cell)[None]])).sum(
-            0
-        )
         # To int64 without a conversion pass (by hand: .to(int64) costs ~6x an addition):
         # x + 2^52 for an integer 0 <= x < 2^52 is exact and its bits are those of 2^52 plus
         # x, so the bits viewed as int64, less 2^52's, are x.
-        code = code.add_((offset + _TWO52).to(f64)).view(torch.int64).sub_(_TWO52_BITS)
+        code = code.view(torch.int64).sub_(_TWO52_BITS)
         if padded:
             keep = row_mask[pi[sl]].T[None] & col_mask[pj[sl]].T[:, None]
             code = torch.where(keep, code, bins)  # a bin past the last: dropped below

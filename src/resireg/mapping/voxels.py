@@ -51,8 +51,9 @@ _MAX_INDEX = _OFFSET - 1
 # from its heap once freed, while one over its 32 MB mmap threshold is page-faulted afresh on
 # every call, which on a 512-d frame costs more than the additions (docs/benchmarks.md).
 _CHUNK_ELEMENTS = 1 << 20
-# Elements per float64 chunk of add_pairs' gathered features (1 MB, a core's L2 cache here).
-_PAIR_CHUNK_ELEMENTS = 1 << 17
+# Elements per float64 chunk of add_pairs' gathered features (2 MB: 512 rows of 512; 1 MB chunks
+# were 10-15% slower here, 4 MB ones 5-40% slower: docs/benchmarks.md).
+_PAIR_CHUNK_ELEMENTS = 1 << 18
 
 
 #: The dtypes of :class:`VoxelMap`'s feature sums, by name.
