@@ -691,6 +691,33 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
     assert MappingProtocol.from_conf(lattice="ceil").lattice == "ceil"  # accepted: the table's rule
     with pytest.raises(ValueError, match=r"dataset\.resize='torch': expected one of \['exact'\]"):
         ScanNetFrames(rooms, SCENES[:1], resize="torch")
+    # every field of MappingProtocol, the two RayFronts probabilities and the voxel size included
+    # (before, a threshold of 2 passed the class silently and classified nothing as "none")
+    for name, value, words in (
+        ("prediction_threshold", 2.0, r"null or a number in \(0, 1\)"),
+        ("prompt_denoising", 0.0, r"null or a number in \(0, 1\)"),
+        ("voxel_size", 0.0, r"a number > 0 \(finite\)"),
+        ("voxel_size", float("inf"), r"a number > 0 \(finite\)"),
+    ):
+        with pytest.raises(ValueError, match=rf"dataset\.{name}={value!r}: expected {words}"):
+            MappingProtocol.from_conf(**{name: value})
+    # the config check reads the same rules (no copy of its own), for each kind that has the key
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.validation import ConfigError, validate_eval
+
+    for task, config, key, value, words in (
+        ("ovss", "synthetic", "image_size", "[0,8]", r"\[height, width\]"),
+        ("scannet3d", "scannet", "frame_skip", "-1", "an integer >= 0"),
+        ("scannet3d", "scannet", "voxel_size", "inf", r"a number > 0 \(finite\)"),
+        ("scannet3d", "scannet", "scenes", "[]", "a non-empty list of scene names"),
+    ):
+        with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+            cfg = compose("eval", [f"task={task}", f"dataset={config}", "encoder=radseg",
+                                   f"dataset.{key}={value}"])  # fmt: skip
+        with pytest.raises(ConfigError, match=rf"dataset\.{key}=.+: expected {words}"):
+            validate_eval(cfg)
 
 
 # ------------------------------------------------------------------ the protocol record

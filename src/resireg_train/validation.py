@@ -189,10 +189,6 @@ def _on_layer(name: Any) -> bool:
 _unit = interval(0, 1)[0]
 
 
-def _size(v: Any) -> bool:
-    return isinstance(v, list) and len(v) == 2 and all(_int(s) and s >= 1 for s in v)
-
-
 #: resireg-eval's tasks (the table :data:`resireg_train.tasks.TASK_SPECS`; docs/design.md
 #: section 10.4).
 TASKS = tuple(TASK_SPECS)
@@ -257,14 +253,6 @@ _EVAL_RULES: dict[str, Rule] = {
         lambda v: v is None or (isinstance(v, list) and all(x in REPORT_SECTIONS for x in v)),
         f"null or a list of {list(REPORT_SECTIONS)}",
     ),
-    # the 3D task's dataset (conf/dataset/scannet.yaml)
-    "dataset.scenes": (
-        lambda v: isinstance(v, list) and len(v) > 0 and all(isinstance(s, str) for s in v),
-        "a non-empty list of scene names (scene0050_00, ...)",
-    ),
-    "dataset.frame_skip": _integer(0),
-    "dataset.image_size": (lambda v: _size(v), "[height, width], two integers >= 1"),
-    "dataset.voxel_size": _number(0, strict=True),
 }
 
 

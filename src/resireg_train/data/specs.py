@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from resireg.specs.mapping import LATTICES, POINTS
-from resireg.specs.rules import Rule, integer, is_int, is_num, one_of
+from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of
 
 __all__ = [
     "CAPTION_SOURCE_KEYS",
@@ -57,6 +57,10 @@ def _size(v: Any) -> bool:
     return isinstance(v, list) and len(v) == 2 and all(is_int(s) and s >= 1 for s in v)
 
 
+#: ``image_size`` of the kinds that have one (synthetic scenes, ScanNet frames).
+_IMAGE_SIZE: Rule = (_size, "[height, width], two integers >= 1")
+
+
 def _open_unit(v: Any) -> bool:
     """``null`` or a number in (0, 1)."""
     return v is None or (is_num(v) and 0 < v < 1)
@@ -83,6 +87,13 @@ METRICS = ("rayfronts", "union")
 #: section 4), by key; checked by :func:`resireg_train.validation.validate_eval` for that kind
 #: only (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
+    "scenes": (
+        lambda v: isinstance(v, list) and len(v) > 0 and all(isinstance(x, str) for x in v),
+        "a non-empty list of scene names (scene0050_00, ...)",
+    ),
+    "frame_skip": integer(0),
+    "image_size": _IMAGE_SIZE,
+    "voxel_size": number(0, strict=True, finite=True),
     "gt_resolution": (lambda v: v in GT_RESOLUTIONS or _size(v), "image, label or [height, width]"),
     "gt_unlabelled": one_of(GT_RULES),
     "resize": one_of(RESIZES),
@@ -164,6 +175,7 @@ DATASET_SPECS: dict[str, DatasetSpec] = {
         ("ovss",),
         ("synthetic",),
         "generated scenes with exact masks, 8 classes (tests, smoke runs)",
+        rules={"image_size": _IMAGE_SIZE},
     ),
     "ade20k": DatasetSpec(
         "ade20k",

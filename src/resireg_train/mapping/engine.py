@@ -115,11 +115,8 @@ class MappingProtocol:
     metric: str
 
     def __post_init__(self) -> None:
-        # the dataset table's rules of these keys (the config check's), one message format
-        names = ("lattice", "gt_unlabelled", "points", "metric", "knn")
-        check_dataset_values("scannet", {n: getattr(self, n) for n in names})
-        if not self.voxel_size > 0:
-            raise ValueError(f"voxel_size={self.voxel_size!r}: expected a number > 0")
+        # every field by the dataset table's rule of its key (the config check's), one format
+        check_dataset_values("scannet", {f.name: getattr(self, f.name) for f in fields(self)})
 
     @classmethod
     def from_spec(cls, spec: Mapping[str, Any], key: str = "dataset") -> MappingProtocol:
