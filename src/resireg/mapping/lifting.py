@@ -203,7 +203,8 @@ def pixel_pairs(
     # every per-patch and per-pixel operation below runs over contiguous rows of n values), and
     # each patch's lowest and highest voxel (the rounded sums of the tables' extremes: rounding
     # is monotone), all axes and patches at once.
-    rot = pose[:, :3].reshape(b, 12).T.index_select(1, frame).view(3, 4, -1)  # [3, 4, n]: R_a0, R_a1, R_a2, t_a per axis a
+    # [3, 4, n]: R_a0, R_a1, R_a2, t_a per axis a
+    rot = pose[:, :3].reshape(b, 12).T.index_select(1, frame).view(3, 4, -1)
     cols_t = (zp * rot[:, 0])[:, None] * xs[None] / voxel  # [3, mw, n]
     rows_t = (zp * (rot[:, 1, None] * ys[None] + rot[:, 2, None]) + rot[:, 3, None]) / voxel
     lo = _lattice_op(rows_t.amin(1) + cols_t.amin(1), lattice)  # [3, n] float64
