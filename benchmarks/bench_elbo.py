@@ -30,7 +30,7 @@ import torch
 
 from _common import resireg_defaults
 from bench_reconstruct import interleaved_best, load_impl, make_features
-from resireg.cluster import ELBO_MAX_POINTS, elbo_fits, elbo_subsample
+from resireg.cluster import elbo_fits, elbo_subsample
 from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
 
 
@@ -77,10 +77,12 @@ def main() -> None:
         print(f"| {name} | {seconds:.3f} | {seconds / base:.2f} |")
     # Per candidate: the full scan's VB iterations and bounds, on the chooser's subsample.
     n_points = inter.shape[0] * inter.shape[2] * inter.shape[3] * elbo.upscale**2
-    rows = elbo_subsample(n_points, ELBO_MAX_POINTS, elbo.seed)
+    rows = elbo_subsample(n_points, elbo.elbo_max_points, elbo.seed)
     points = elbo._elbo_points(inter.float(), spectrum, rows)
-    fits = elbo_fits(points, candidates, seed=elbo.seed, n_points=n_points)
-    scanned = elbo_fits(points, candidates, seed=elbo.seed, n_points=n_points, stop_after=2)
+    options = {"seed": elbo.seed, "n_points": n_points, "max_points": elbo.elbo_max_points,
+               "tol": elbo.elbo_tol}  # fmt: skip
+    fits = elbo_fits(points, candidates, **options)
+    scanned = elbo_fits(points, candidates, stop_after=elbo.elbo_stop_after, **options)
     print(
         "\n| k | fitted by the scan | VB iterations | ELBO per point | components holding >= 1 point |"
     )

@@ -204,11 +204,10 @@ def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
 
 
 @pytest.mark.parametrize("upscale,n_components", [(1, None), (2, None), (3, 6)])
-def test_full_computes_only_the_subsample(upscale, n_components, monkeypatch):
+def test_full_computes_only_the_subsample(upscale, n_components):
     """ReSiRegFull's chooser computes only the subsampled points, each from its four grid
     neighbours: they equal those rows of all upsampled points (F.interpolate's) to float
     rounding, and the count equals the chooser's given all the points."""
-    import resireg.reconstruct as reconstruct
     from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
 
     x = _scene(5, seed=3)
@@ -221,10 +220,11 @@ def test_full_computes_only_the_subsample(upscale, n_components, monkeypatch):
     # grid_sample takes each tap's coordinate back from a normalised one in float32 (~1e-6 px off
     # F.interpolate's), hence a few 1e-6 here; a wrong tap or weight is off by ~0.1.
     torch.testing.assert_close(full._elbo_points(x, spectrum, rows), every[rows], rtol=0, atol=6e-6)
-    monkeypatch.setattr(reconstruct, "ELBO_MAX_POINTS", 300)
-    chosen = full._elbo_count(x, spectrum)
+    small = ReSiRegFull(n_prototypes="elbo", elbo_candidates=[3, 5, 8], upscale=upscale,
+                        n_components=n_components, elbo_max_points=300)  # fmt: skip
+    chosen = small._elbo_count(x, spectrum)
     assert chosen == elbo_prototype_count(every, [3, 5, 8], max_points=300)
-    assert full.chosen == [chosen]
+    assert small.chosen == [chosen]
 
 
 def test_ablation_report_places_the_elbo_count_beside_the_heuristic(tmp_path):
@@ -260,3 +260,30 @@ def test_ablation_report_places_the_elbo_count_beside_the_heuristic(tmp_path):
         expected = grid.loc[batch].get(n, math.nan)
         assert table.loc[batch, "heuristic n(B)"] == n
         assert table.loc[batch, "heuristic mIoU (grid)"] == pytest.approx(expected, nan_ok=True)
+
+
+def test_full_passes_its_clustering_and_elbo_settings_on(monkeypatch):
+    """``full.tol`` reaches k-means and ``full.elbo_max_points`` / ``elbo_stop_after`` /
+    ``elbo_tol`` reach the chooser (conf/resireg/default.yaml's keys, not constants): each
+    call is recorded and compared with the values given, and the subsample's size follows
+    ``elbo_max_points``."""
+    import resireg.reconstruct as reconstruct
+    from resireg.reconstruct import ReSiRegFull
+
+    seen: dict[str, dict] = {}
+    for name in ("kmeans", "elbo_prototype_count"):
+        original = getattr(reconstruct, name)
+
+        def record(*args, _name=name, _original=original, **kwargs):
+            seen[_name] = {"points": args[0].shape[0], **kwargs}
+            return _original(*args, **kwargs)
+
+        monkeypatch.setattr(reconstruct, name, record)
+    x = _scene(5, seed=3)
+    full = ReSiRegFull(n_prototypes="elbo", elbo_candidates=[3, 5, 8], tol=0.0,
+                       elbo_max_points=200, elbo_stop_after=None, elbo_tol=0.5)  # fmt: skip
+    full.assign(x)
+    assert seen["kmeans"]["tol"] == 0.0
+    choice = seen["elbo_prototype_count"]
+    assert (choice["max_points"], choice["stop_after"], choice["tol"]) == (200, None, 0.5)
+    assert choice["points"] == 200 < choice["n_points"]

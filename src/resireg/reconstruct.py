@@ -21,7 +21,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.cluster import (
-    ELBO_MAX_POINTS,
     PCAResult,
     PCASpectrum,
     elbo_prototype_count,
@@ -364,6 +363,9 @@ class ReSiRegFull(nn.Module):
         upscale: integer bilinear upsampling factor ``s`` of the intermediates.
         seed: seed of k-means++ (the same input always gives the same output).
         max_iter: Lloyd iterations at most.
+        tol: Lloyd stops once no centroid moves by more than ``tol`` times the points' mean
+            per-feature variance (scikit-learn's relative ``tol`` of ``KMeans``, whose default
+            it is).
         heuristic: with ``n_prototypes="auto"``, a callable ``batch_size -> n`` (e.g.
             :class:`resireg.heuristic.PrototypeHeuristic`) or a path to its JSON file;
             ``None`` reads the file named by ``$RESIREG_PROTOTYPE_HEURISTIC``.
@@ -371,6 +373,14 @@ class ReSiRegFull(nn.Module):
             is fitted on the normalised PCA points of ``n_components`` axes (tied: of as many
             axes as the largest candidate); Full then runs with the chosen count (tied: on
             that many axes). :attr:`chosen` lists the count of every batch.
+        elbo_max_points: with ``"elbo"``, the bound is fitted on a uniform subsample of at
+            most this many points (:func:`resireg.cluster.elbo_subsample`), each standing for
+            ``N / M`` of the batch's ``N``.
+        elbo_stop_after: with ``"elbo"``, the scan of the candidates (in increasing order)
+            stops once this many consecutive ones fall below the largest bound so far;
+            ``None`` fits them all (:func:`resireg.cluster.elbo_prototype_count`).
+        elbo_tol: with ``"elbo"``, EM stops once the bound changes by less than this many
+            nats per point (:func:`resireg.cluster.elbo_fits`).
     """
 
     def __init__(
@@ -382,15 +392,21 @@ class ReSiRegFull(nn.Module):
         upscale: int = 2,
         seed: int = 0,
         max_iter: int = 100,
+        tol: float = 1e-4,
         heuristic: Callable[[int], int] | str | None = None,
         elbo_candidates: Sequence[int] | None = (24, 36, 48, 60, 72, 84, 96, 108, 120, 132),
+        elbo_max_points: int = 4096,
+        elbo_stop_after: int | None = 2,
+        elbo_tol: float = 1e-3,
     ) -> None:
         super().__init__()
         # the rules of resireg.specs.variants (also those of the full.* config checks)
         check_variant_kwargs("full", {
             "n_prototypes": n_prototypes, "n_components": n_components, "alpha": alpha,
-            "tau": tau, "upscale": upscale, "seed": seed, "max_iter": max_iter,
+            "tau": tau, "upscale": upscale, "seed": seed, "max_iter": max_iter, "tol": tol,
             "heuristic": heuristic, "elbo_candidates": elbo_candidates,
+            "elbo_max_points": elbo_max_points, "elbo_stop_after": elbo_stop_after,
+            "elbo_tol": elbo_tol,
         })  # fmt: skip
         self.heuristic: Callable[[int], int] | None = None
         self.elbo_candidates: tuple[int, ...] | None = None
@@ -415,6 +431,10 @@ class ReSiRegFull(nn.Module):
         self.upscale = upscale
         self.seed = seed
         self.max_iter = max_iter
+        self.tol = float(tol)
+        self.elbo_max_points = elbo_max_points
+        self.elbo_stop_after = elbo_stop_after
+        self.elbo_tol = float(elbo_tol)
 
     def extra_repr(self) -> str:
         return (
@@ -484,7 +504,7 @@ class ReSiRegFull(nn.Module):
             grid_dots = (c @ low_t).view(-1, 1, hv, wv)  # [t*B, 1, Hv, Wv]
             return _upsample(grid_dots, s).view(c.shape[0], -1).div_(norms)
 
-        result = kmeans(z, n, seed=self.seed, max_iter=self.max_iter, dots=dots)
+        result = kmeans(z, n, seed=self.seed, max_iter=self.max_iter, tol=self.tol, dots=dots)
         # The final assignment's distance matrix is the one returned (no second product).
         return result.sq_dists.sqrt_(), (b, hv * s, wv * s)
 
@@ -496,9 +516,12 @@ class ReSiRegFull(nn.Module):
         assert self.elbo_candidates is not None
         b, _, hv, wv = x.shape
         n_all = b * hv * wv * self.upscale**2
-        rows = elbo_subsample(n_all, ELBO_MAX_POINTS, self.seed)
-        n = elbo_prototype_count(self._elbo_points(x, spectrum, rows), self.elbo_candidates,
-                                 seed=self.seed, max_points=ELBO_MAX_POINTS, n_points=n_all)  # fmt: skip
+        rows = elbo_subsample(n_all, self.elbo_max_points, self.seed)
+        n = elbo_prototype_count(
+            self._elbo_points(x, spectrum, rows), self.elbo_candidates, seed=self.seed,
+            stop_after=self.elbo_stop_after, max_points=self.elbo_max_points,
+            tol=self.elbo_tol, n_points=n_all,
+        )  # fmt: skip
         self.chosen.append(n)
         return n
 
