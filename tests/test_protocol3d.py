@@ -692,7 +692,7 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
     with pytest.raises(ValueError, match=r"dataset\.resize='torch': expected one of \['exact'\]"):
         ScanNetFrames(rooms, SCENES[:1], resize="torch")
     # every field of MappingProtocol, the two RayFronts probabilities and the voxel size included
-    # (before, a threshold of 2 passed the class silently and classified nothing as "none")
+    # (before, a threshold of 2 passed the class silently: every voxel became "no prediction")
     for name, value, words in (
         ("prediction_threshold", 2.0, r"null or a number in \(0, 1\)"),
         ("prompt_denoising", 0.0, r"null or a number in \(0, 1\)"),

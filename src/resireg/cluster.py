@@ -865,7 +865,8 @@ def vb_gmm(
     )
 
 
-#: the subsample size of :func:`elbo_fits` (its ``max_points``), ReSiReg Full's too
+#: the default subsample size of :func:`elbo_fits` (its ``max_points``) and of ReSiReg Full's
+#: chooser (``full.elbo_max_points`` of conf/resireg/default.yaml, which sets it for runs)
 ELBO_MAX_POINTS = 4096
 
 

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.cluster import (
+    ELBO_MAX_POINTS,
     PCAResult,
     PCASpectrum,
     elbo_prototype_count,
@@ -395,7 +396,7 @@ class ReSiRegFull(nn.Module):
         tol: float = 1e-4,
         heuristic: Callable[[int], int] | str | None = None,
         elbo_candidates: Sequence[int] | None = (24, 36, 48, 60, 72, 84, 96, 108, 120, 132),
-        elbo_max_points: int = 4096,
+        elbo_max_points: int = ELBO_MAX_POINTS,
         elbo_stop_after: int | None = 2,
         elbo_tol: float = 1e-3,
     ) -> None:
