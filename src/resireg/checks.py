@@ -1,0 +1,44 @@
+"""Checks on tensors that enter the method, the maps and the evaluation engines.
+
+One place for the rule "a feature tensor is floating-point and finite", so every entry point
+(:class:`resireg.ReSiRegFull`, :class:`resireg.ReSiRegLite`, :class:`resireg.calib.ReSiRegCalib`,
+:meth:`resireg.mapping.SemanticMap.fuse`, the engines' encoder outputs) refuses the same inputs
+with the same words. A NaN that enters ReSiReg Full spreads to every patch of the batch (PCA
+and k-means mix all points), and one NaN patch in Lite spreads to its whole image, so the check
+runs before any of them. Its cost is one ``isfinite`` reduction over the tensor
+(``benchmarks/bench_checks.py``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["NonFiniteError", "check_features", "count_nonfinite"]
+
+
+class NonFiniteError(ValueError):
+    """A feature tensor holds NaN or infinite values (the message names the argument)."""
+
+
+def count_nonfinite(x: Tensor) -> int:
+    """How many entries of the floating-point tensor ``x`` are NaN or infinite."""
+    return int((~torch.isfinite(x)).sum())
+
+
+def check_features(name: str, x: object) -> Tensor:
+    """``x`` itself when it is a floating-point :class:`torch.Tensor` whose entries are all
+    finite; otherwise a :class:`TypeError` (not a tensor, or an integer / bool / complex dtype)
+    or a :class:`NonFiniteError` naming ``name``, the shape and how many entries are bad."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got dtype {x.dtype}")
+    # One fused reduction on the happy path; the count only when something is wrong.
+    if x.numel() and not bool(torch.isfinite(x).all()):
+        bad = count_nonfinite(x)
+        raise NonFiniteError(
+            f"{name} holds {bad} non-finite value(s) (NaN or inf) of {x.numel()} "
+            f"(shape {tuple(x.shape)})"
+        )
+    return x
