@@ -118,7 +118,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path
         os.replace(tmp, path)
     except OSError as err:
         if err.filename is None:
-            raise OSError(err.errno, f"could not write {path}: {err.strerror or err}", str(path)) from err
+            raise OSError(
+                err.errno, f"could not write {path}: {err.strerror or err}", str(path)
+            ) from err
         raise
     finally:
         tmp.unlink(missing_ok=True)
