@@ -18,14 +18,23 @@ def main(argv: list[str] | None = None) -> None:
                         "the jobs' results hold (default: the first ReSiReg Full mIoU, else "
                         "train/loss); an unknown one is an error listing those")  # fmt: skip
     parser.add_argument("--out", help="where to write (default: the sweep folder)")
+    parser.add_argument("--paper-tolerance", type=float, metavar="POINTS",
+                        help="flag Table 1 / Table 2 cells further than this many points from "
+                        "the paper's published value (default: one point, "
+                        "resireg_train.report.paper.DEFAULT_TOLERANCE)")  # fmt: skip
     args = parser.parse_args(argv)
+    if args.paper_tolerance is not None and not args.paper_tolerance >= 0:
+        parser.error(f"--paper-tolerance={args.paper_tolerance}: expected a number >= 0")
     # pandas, matplotlib and the heuristic load after the arguments parse (--help stays fast).
     import pandas as pd
 
     from resireg_train import report as _report
 
     try:
-        files = _report.report(args.sweep_dir, args.out, args.metric)
+        tolerance = (
+            {"paper_tolerance": args.paper_tolerance} if args.paper_tolerance is not None else {}
+        )
+        files = _report.report(args.sweep_dir, args.out, args.metric, **tolerance)
     except (FileNotFoundError, ValueError) as err:
         parser.exit(2, f"resireg-report: error: {err}\n")
     for kind, path in files.items():

@@ -55,6 +55,7 @@ from resireg_train.report.jobs import (
     varying_keys,
 )
 from resireg_train.report.optuna import is_optuna_sweep
+from resireg_train.report.paper import DEFAULT_TOLERANCE
 from resireg_train.report.prototypes import (
     elbo_table,
     fit_heuristic,
@@ -109,9 +110,14 @@ def report_sections(jobs: list[Job]) -> list[str]:
 
 
 def report(
-    sweep_dir: str | Path, out: str | Path | None = None, metric: str | None = None
+    sweep_dir: str | Path,
+    out: str | Path | None = None,
+    metric: str | None = None,
+    paper_tolerance: float = DEFAULT_TOLERANCE,
 ) -> dict[str, Path]:
     """Write the sweep's summary (and plots / heuristic where they apply); returns the files.
+    Table 1 / Table 2 cells further than ``paper_tolerance`` points from the paper's are
+    flagged (:mod:`resireg_train.report.paper`).
 
     Raises :class:`ValueError` (before writing anything) when ``metric`` is given and no
     job's results hold it."""
@@ -137,10 +143,10 @@ def report(
     ]
     sections = report_sections(jobs)
     if "table2" in sections:
-        files.update(write_mapping_table(jobs, out))
+        files.update(write_mapping_table(jobs, out, paper_tolerance))
         lines += ["", f"3D mapping table (the paper's Table 2): `{files['table2_md'].name}`."]
     elif "table1" in sections:
-        files.update(write_encoder_table(jobs, out))
+        files.update(write_encoder_table(jobs, out, paper_tolerance))
         lines += ["", f"Encoder table (the paper's Table 1): `{files['table1_md'].name}`."]
     if metric and "prototype_grid" in sections:
         grid = prototype_grid(jobs, metric)

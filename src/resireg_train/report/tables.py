@@ -15,6 +15,12 @@ from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import parse_variant
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
+from resireg_train.report.paper import (
+    DEFAULT_TOLERANCE,
+    add_paper_columns,
+    paper_lines,
+    protocol_differences,
+)
 from resireg_train.results import flat
 from resireg_train.tasks import TASK_SPECS
 from resireg_train.validation import ENCODER_SWEEPS as _ENCODER_SWEEPS
@@ -161,10 +167,27 @@ def method_means(table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
-def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
-    """``table1.csv`` and ``table1.md`` (the table, then the mean delta per method)."""
+def encoder_paper_cells(table: pd.DataFrame) -> dict[str, tuple[str, str, str]]:
+    """``{column: (dataset, variant, "miou")}`` of Table 1's score columns (not its Δ)."""
+    labels = {f" {METHOD_NAMES[v]}": v for v in (BASELINE, *METHODS)}
+    cells = {}
+    for column in table.columns:
+        for suffix, variant in labels.items():
+            if column.endswith(suffix):
+                cells[column] = (column[: -len(suffix)], variant, "miou")
+    return cells
+
+
+def write_encoder_table(
+    jobs: list[Job], out: Path, paper_tolerance: float = DEFAULT_TOLERANCE
+) -> dict[str, Path]:
+    """``table1.csv`` and ``table1.md`` (the table with the paper's value and the difference
+    to it beside each cell the paper reports, then the mean delta per method, the cells
+    further than ``paper_tolerance`` points from the paper and the protocol settings that
+    differ from the paper's)."""
     table = encoder_table(jobs)
     files = {"table1_csv": out / "table1.csv", "table1_md": out / "table1.md"}
+    table, flags = add_paper_columns(table, "table1", encoder_paper_cells(table), paper_tolerance)
     table.to_csv(files["table1_csv"], index=False)
     shown = table.copy()
     shown["third_party"] = shown["third_party"].map({True: "yes", False: "no (ours)"})
@@ -184,6 +207,7 @@ def write_encoder_table(jobs: list[Job], out: Path) -> dict[str, Path]:
         "jobs that completed.",
         "",
         markdown(method_means(table), floatfmt="+.2f", index=True),
+        *paper_lines(flags, protocol_differences(jobs, "table1"), paper_tolerance),
         "",
         *protocol_lines(jobs),
     ]
@@ -245,10 +269,21 @@ def mapping_table(jobs: list[Job]) -> pd.DataFrame:
     return pd.DataFrame(list(rows.values())).reindex(columns=columns)
 
 
-def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
-    """``table2.csv`` and ``table2.md`` (the table, then the protocol)."""
+def write_mapping_table(
+    jobs: list[Job], out: Path, paper_tolerance: float = DEFAULT_TOLERANCE
+) -> dict[str, Path]:
+    """``table2.csv`` and ``table2.md`` (the table with the paper's value and the difference to
+    it beside each mean-over-scenes cell the paper reports, the cells further than
+    ``paper_tolerance`` points, the protocol settings that differ from the paper's, then the
+    protocol)."""
     table = mapping_table(jobs)
     files = {"table2_csv": out / "table2.csv", "table2_md": out / "table2.md"}
+    cells = {}  # the per-scene means (the paper's figures), not the pooled columns
+    for key, name in MAPPING_COLUMNS[:2]:
+        for column in table.columns:
+            if column.endswith(f" {name}"):
+                cells[column] = (column.removesuffix(f" {name}"), None, key)
+    table, flags = add_paper_columns(table, "table2", cells, paper_tolerance, label_column="model")
     table.to_csv(files["table2_csv"], index=False)
     shown = table.drop(columns=["encoder", "variant", "third_party"])
     lines = [
@@ -256,6 +291,7 @@ def write_mapping_table(jobs: list[Job], out: Path) -> dict[str, Path]:
         "confusion over the voxels of all scenes)",
         "",
         markdown(shown, floatfmt=".1f"),
+        *paper_lines(flags, protocol_differences(jobs, "table2"), paper_tolerance),
         "",
         *protocol_lines(jobs),
     ]
