@@ -150,28 +150,45 @@ def run_task(
     before it is re-raised, so a sweep report lists the job with its reason. Only rank 0
     (``rank_zero``) writes.
     """
+    from resireg_train.provenance import start_provenance
+
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     if rank_zero:
         if fresh:
             _set_aside(out)
-        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out))
+        previous = read_results(out).get("provenance")  # a resumed run keeps its run id
+        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out),
+                       provenance=start_provenance(cfg, out, previous))  # fmt: skip
     try:
-        return body(cfg, out)
+        result = body(cfg, out)
+        if rank_zero:
+            _record(out, provenance=_finished(out))
+        return result
     except KeyboardInterrupt:
         error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"
         if resume_hint:
             error += f"; {resume_hint}"
         if rank_zero:
-            _record(out, status="interrupted", error=error)
+            _record(out, status="interrupted", error=error, provenance=_finished(out))
             log.warning("%s", error)
         raise SystemExit(130) from None
     except BaseException as exc:
         if rank_zero:
             error = error_text(exc)
-            _record(out, status="failed", error=error)
+            _record(out, status="failed", error=error, provenance=_finished(out))
             _to_log_files(f"run failed: {error}", exc)
         raise
+
+
+def _finished(out: Path) -> dict[str, Any]:
+    """The run's provenance block completed with its end (the run failed or was stopped)."""
+    from resireg_train.provenance import finish_provenance
+
+    try:
+        return finish_provenance(read_results(out).get("provenance") or {}, out)
+    except (OSError, ValueError):
+        return {}
 
 
 def _set_aside(out: Path) -> None:

@@ -253,6 +253,7 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     from lightning.pytorch.callbacks import ProgressBar
 
     from resireg_train.ovss.callback import ReSiRegEval
+    from resireg_train.provenance import write_export_provenance
     from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
     from resireg_train.training.console import EpochLog, on_terminal, quiet_library_noise
@@ -300,6 +301,8 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
         extra: dict[str, Any] = {}
         if cfg.export:
             export = module.vlm.save_pretrained(out / "export")
+            # the run that made it (its provenance, the last checkpoint's SHA-256)
+            write_export_provenance(export, out, read_results(out).get("provenance") or {})
             for callback in trainer.callbacks:
                 if isinstance(callback, ReSiRegEval):
                     callback.save_settings(export)

@@ -1,0 +1,132 @@
+"""``resireg-runs``: list, filter, show, compare and trace the runs under some folders.
+
+    resireg-runs ls [ROOT ...] [--where KEY=VALUE ...] [--sort=[-]KEY] [--columns a,b]
+                    [--format table|csv|json]
+    resireg-runs show RUN [--root ROOT ...]
+    resireg-runs diff RUN_A RUN_B [--root ROOT ...]
+    resireg-runs lineage RUN_OR_EXPORT [--root ROOT ...]
+
+RUN is a run folder or a run id (a unique prefix of ``results.json``'s
+``provenance.run_id``). ROOT defaults to ``outputs`` (``paths.log_dir``'s default).
+Filters: ``--where status=completed``, ``--where "val/ovss/ade20k/miou_full>0.25"``,
+``--where model.optimizer.lr<=1e-3`` (metrics, config keys, ``provenance.*`` paths).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from typing import Any
+
+__all__ = ["main"]
+
+DEFAULT_ROOT = "outputs"
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def _print_rows(rows: list[dict[str, Any]], columns: list[str], fmt: str) -> None:
+    if fmt == "json":
+        json.dump(rows, sys.stdout, indent=2, default=str)
+        sys.stdout.write("\n")
+    elif fmt == "csv":
+        writer = csv.DictWriter(sys.stdout, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows({k: _cell(v) for k, v in row.items()} for row in rows)
+    else:
+        from tabulate import tabulate
+
+        print(tabulate([[_cell(r[c]) for c in columns] for r in rows], headers=columns,
+                       disable_numparse=True))  # fmt: skip
+
+
+def _pairs(rows: list[tuple[str, Any, Any]], a: str, b: str) -> str:
+    from tabulate import tabulate
+
+    if not rows:
+        return "  (no difference)"
+    return tabulate([[k, _cell(x), _cell(y)] for k, x, y in rows], headers=["key", a, b],
+                    disable_numparse=True)  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="resireg-runs", description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    sub = parser.add_subparsers(dest="command", required=True)
+    ls = sub.add_parser("ls", help="one row per run under the roots")
+    ls.add_argument("roots", nargs="*", default=[DEFAULT_ROOT], metavar="ROOT")
+    ls.add_argument("--where", action="append", default=[], metavar="KEY[OP]VALUE",
+                    help="keep runs whose KEY (metric, config key, provenance.*, status, cli, "
+                    "name) compares so: =, !=, >, <, >=, <= (repeatable)")  # fmt: skip
+    ls.add_argument("--sort", metavar="[-]KEY", help="sort by KEY (--sort=-KEY: descending); "
+                    "default: start time")  # fmt: skip
+    ls.add_argument("--columns", metavar="A,B,...", help="the columns (default: "
+                    "run_id,cli,name,status,start,duration,overrides,metric,value)")  # fmt: skip
+    ls.add_argument("--format", choices=("table", "csv", "json"), default="table")
+    for name, helptext in (("show", "one run: provenance, overrides, metrics"),
+                           ("lineage", "data -> training runs -> export -> evaluations")):  # fmt: skip
+        one = sub.add_parser(name, help=helptext)
+        one.add_argument("run", metavar="RUN" if name == "show" else "RUN_OR_EXPORT")
+        one.add_argument("--root", action="append", metavar="ROOT")
+    two = sub.add_parser("diff", help="config, provenance and metric differences of two runs")
+    two.add_argument("a", metavar="RUN_A")
+    two.add_argument("b", metavar="RUN_B")
+    two.add_argument("--root", action="append", metavar="ROOT")
+    args = parser.parse_args(argv)
+
+    from resireg_train import runs as index
+
+    try:
+        if args.command == "ls":
+            from resireg_train.runs import COLUMNS
+
+            columns = args.columns.split(",") if args.columns else list(COLUMNS)
+            found = index.sort_runs(index.filter_runs(index.scan(args.roots), args.where),
+                                    args.sort)  # fmt: skip
+            _print_rows([{c: r.value(c) for c in columns} for r in found], columns, args.format)
+            if args.format == "table":
+                print(f"{len(found)} run(s)")
+            return
+        roots = args.root or [DEFAULT_ROOT]
+        if args.command == "show":
+            run = index.find_run(args.run, roots)
+            prov = run.provenance
+            metric, value = run.headline
+            print(f"run {run.run_id} ({run.cli or '?'}) at {run.path}: {run.status}")
+            if run.results.get("error"):
+                print(f"error: {run.results['error']}")
+            print("overrides: " + (" ".join(run.overrides) or "none"))
+            flat = index._flatten(prov, "provenance.")
+            for key in sorted(flat):
+                if not key.startswith("provenance.environment.packages."):
+                    print(f"  {key} = {_cell(flat[key])}")
+            packages = (prov.get("environment") or {}).get("packages") or {}
+            print("  packages: " + ", ".join(f"{k}=={v}" for k, v in packages.items()))
+            for key, val in sorted(run.metrics.items()):
+                print(f"  {key} = {_cell(val)}")
+            if metric:
+                print(f"headline: {metric} = {_cell(value)}")
+        elif args.command == "diff":
+            a, b = index.find_run(args.a, roots), index.find_run(args.b, roots)
+            differences = index.diff_runs(a, b)
+            print(f"A: {a.run_id} {a.path}\nB: {b.run_id} {b.path}")
+            for part in ("config", "provenance", "metrics"):
+                print(f"\n{part}:")
+                print(_pairs(differences[part], "A", "B"))
+        else:
+            for line in index.lineage(args.run, roots):
+                print(line)
+    except ValueError as err:
+        parser.exit(2, f"resireg-runs: error: {err}\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,439 @@
+"""What produced a run: the ``provenance`` block of every ``results.json`` (``resireg-train``,
+``resireg-eval``, ``resireg-map``, each job of a multirun or search).
+
+:func:`start_provenance` writes it when the run starts, before anything heavy is imported:
+
+- ``run_id``: twelve hex digits drawn once per run folder (a resumed run keeps its own), and
+  ``cli``: the command (``resireg-train``, ``resireg-eval``, ``resireg-map``);
+- ``code``: the package version and, when the code runs from a git checkout of the project,
+  its commit, branch and a dirty flag; when dirty, the uncommitted change (tracked files'
+  ``git diff HEAD`` and untracked files' contents) is saved as ``code.diff`` in the run folder,
+  so ``git apply code.diff`` on that commit gives the code that ran. Outside a checkout (an
+  installed wheel) only the version is recorded; nothing fails;
+- ``environment``: Python, the command line, the digest of the resolved config, and the
+  versions of the packages that change numbers (read with :mod:`importlib.metadata`, no
+  import);
+- ``machine``: host, CPU model, cores, memory, PID and world size;
+- ``seeds``: every config key named ``seed`` or ``*_seed``;
+- ``data``: the identity of every dataset the config names (:func:`data_identity`);
+- ``models``: the export a run reads (``model_path``: its files' SHA-256), the checkpoint a
+  run starts from (``model.init_from``: its SHA-256) and the encoder's config entry (hub repo,
+  ref, weights path).
+
+:func:`finish_provenance` completes it at the end (success or failure): end time, wall seconds,
+CPU-hours (this process and its children, from ``getrusage``), GPU-hours where CUDA ran (wall
+time x the GPUs the run's processes used), torch's CUDA / cuDNN versions and each GPU's name
+and memory. Nothing here is typed twice: exports copy their run's block (``provenance.json``
+in the export folder, :func:`write_export_provenance`), evaluations and maps read it from there.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import importlib.metadata as md
+import json
+import os
+import platform
+import shlex
+import socket
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "CODE_DIFF",
+    "EXPORT_PROVENANCE",
+    "PACKAGES",
+    "code_provenance",
+    "config_digest",
+    "data_identity",
+    "export_identity",
+    "file_list_fingerprint",
+    "finish_provenance",
+    "machine_provenance",
+    "package_versions",
+    "start_provenance",
+    "write_export_provenance",
+]
+
+#: The uncommitted change of a dirty checkout, saved in the run folder.
+CODE_DIFF = "code.diff"
+#: The training run's provenance, copied into every export it writes.
+EXPORT_PROVENANCE = "provenance.json"
+#: Distributions whose versions can change a number (those installed are recorded).
+PACKAGES = (
+    "resireg", "torch", "torchvision", "lightning", "hydra-core", "omegaconf", "timm",
+    "open_clip_torch", "transformers", "tokenizers", "numpy", "scipy", "scikit-learn",
+    "safetensors", "datasets", "huggingface_hub", "pillow", "torchmetrics", "einops",
+    "segment-anything", "optuna", "mlflow", "wandb", "rosbags", "rerun-sdk", "onnx",
+    "onnxruntime",
+)  # fmt: skip
+#: CPU seconds this process (and its children) had used when each run folder's run started.
+_CPU_AT_START: dict[str, float] = {}
+#: Untracked files larger than this are named in the record but left out of ``code.diff``.
+_UNTRACKED_MAX_BYTES = 1 << 20
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+# --------------------------------------------------------------------------------- code
+def _git(root: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True,
+                          timeout=60, check=False)  # fmt: skip
+
+
+def _checkout_root(package_dir: Path) -> Path | None:
+    """The git checkout whose ``src/`` holds ``package_dir``, else ``None`` (an installed
+    package, or a virtual environment that merely lives inside some other repository)."""
+    try:
+        top = _git(package_dir, "rev-parse", "--show-toplevel")
+    except (OSError, subprocess.SubprocessError):
+        return None  # no git on this machine
+    if top.returncode != 0:
+        return None
+    root = Path(top.stdout.strip()).resolve()
+    return root if (root / "src" / package_dir.name).resolve() == package_dir.resolve() else None
+
+
+def code_provenance(out: Path | None, package_dir: Path | None = None) -> dict[str, Any]:
+    """``{"version", "git": {"commit", "branch", "dirty", "diff", "untracked_left_out"} | None}``
+    of the code that runs (``package_dir``: this package's folder). With ``out`` and a dirty
+    checkout, the change is written to ``out/code.diff``."""
+    try:
+        version = md.version("resireg")
+    except md.PackageNotFoundError:
+        import resireg
+
+        version = resireg.__version__
+    package_dir = package_dir or Path(__file__).resolve().parent
+    root = _checkout_root(package_dir)
+    if root is None:
+        return {"version": version, "git": None}
+    commit = _git(root, "rev-parse", "HEAD").stdout.strip() or None
+    branch = _git(root, "rev-parse", "--abbrev-ref", "HEAD").stdout.strip() or None
+    tracked = _git(root, "diff", "HEAD", "--binary").stdout
+    untracked = [n for n in _git(root, "ls-files", "--others", "--exclude-standard", "-z")
+                 .stdout.split("\0") if n]  # fmt: skip
+    left_out = [n for n in untracked if (root / n).stat().st_size > _UNTRACKED_MAX_BYTES]
+    # An untracked file's diff against /dev/null: `git apply` creates it (exit code 1: differs).
+    added = "".join(_git(root, "diff", "--no-index", "--binary", "--", os.devnull, n).stdout
+                    for n in untracked if n not in left_out)  # fmt: skip
+    dirty = bool(tracked or untracked)
+    record: dict[str, Any] = {"commit": commit, "branch": branch, "dirty": dirty, "diff": None,
+                              "root": str(root)}  # fmt: skip
+    if left_out:
+        record["untracked_left_out"] = left_out
+    if dirty and out is not None:
+        from resireg_train.files import write_atomic
+
+        write_atomic(Path(out) / CODE_DIFF, tracked + added, what="uncommitted change")
+        record["diff"] = CODE_DIFF
+    return {"version": version, "git": record}
+
+
+# -------------------------------------------------------------------------- environment
+def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str]:
+    """``{distribution: version}`` of the installed ones among ``names``."""
+    versions = {}
+    for name in names:
+        try:
+            versions[name] = md.version(name)
+        except md.PackageNotFoundError:
+            continue
+    return versions
+
+
+def config_digest(cfg: Any) -> str:
+    """SHA-256 of the resolved config as YAML (unresolvable values kept as written)."""
+    from omegaconf import OmegaConf
+
+    try:
+        text = OmegaConf.to_yaml(cfg, resolve=True, sort_keys=True)
+    except Exception:  # a value that resolves only inside Hydra's runtime, or a missing ???
+        text = OmegaConf.to_yaml(cfg, resolve=False, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_provenance() -> dict[str, Any]:
+    """Host, CPU model and cores, memory (GiB), PID, OS and the world size (``WORLD_SIZE``,
+    set by Lightning's and torchrun's launchers; 1 otherwise)."""
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    except (ValueError, OSError, AttributeError):
+        memory = None
+    return {
+        "host": socket.gethostname(),
+        "cpu": _cpu_model(),
+        "cores": os.cpu_count(),
+        "memory_gib": round(memory, 1) if memory else None,
+        "pid": os.getpid(),
+        "os": platform.platform(),
+        "world_size": int(os.environ.get("WORLD_SIZE", "1")),
+    }
+
+
+def _seeds(container: Any, prefix: str = "") -> dict[str, Any]:
+    found = {}
+    if isinstance(container, Mapping):
+        for key, value in container.items():
+            path = f"{prefix}{key}"
+            if str(key) == "seed" or str(key).endswith("_seed"):
+                if isinstance(value, (int, float, str)) or value is None:
+                    found[path] = value
+            found.update(_seeds(value, f"{path}."))
+    return found
+
+
+# ---------------------------------------------------------------------------------- data
+def file_list_fingerprint(paths: list[Path], base: Path) -> dict[str, Any]:
+    """SHA-256 over every file's relative name, size and modification time (no contents: a
+    dataset of terabytes costs one ``stat`` per file), with the file and byte counts."""
+    h = hashlib.sha256()
+    files = size = 0
+    for path in sorted(paths):
+        st = path.stat()
+        rel = path.relative_to(base) if path != base else Path(path.name)
+        h.update(f"{rel.as_posix()}\t{st.st_size}\t{st.st_mtime_ns}\n".encode())
+        files += 1
+        size += st.st_size
+    return {"fingerprint": h.hexdigest(), "files": files, "bytes": size}
+
+
+def _walk(root: Path) -> Iterator[Path]:
+    if root.is_file():
+        yield root
+        return
+    for folder, dirs, names in os.walk(root):
+        dirs.sort()
+        for name in names:
+            path = Path(folder) / name
+            if path.is_file():
+                yield path
+
+
+def data_identity(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """What identifies one dataset entry (a ``conf/dataset/`` entry, a caption source, a
+    ``resireg-map`` source):
+
+    - generated data (``kind``/``path`` ``synthetic...``): the generator's settings;
+    - a local file or folder (``path``, or the files of ``data_files``): the
+      :func:`file_list_fingerprint` of its files;
+    - otherwise a Hugging Face hub dataset: repo, config, split and revision.
+    """
+    spec = {k: v for k, v in entry.items() if not isinstance(v, (Mapping, list)) or k in (
+        "image_size", "scenes", "data_files")}  # fmt: skip
+    kind = str(entry.get("kind") or "")
+    path = entry.get("path")
+    if kind.startswith("synthetic") or kind.endswith("_synthetic") or path == "synthetic":
+        return {"kind": "generated", "settings": dict(spec)}
+    patterns = entry.get("data_files")
+    if patterns:
+        import glob
+
+        listed = [patterns] if isinstance(patterns, str) else list(patterns)
+        files = [Path(p) for pattern in listed for p in glob.glob(str(pattern), recursive=True)]
+        files = [p for p in files if p.is_file()]
+        if files:
+            base = Path(os.path.commonpath([str(p.parent) for p in files]))
+            return {"kind": "local", "path": str(base.resolve()), "data_files": listed,
+                    **file_list_fingerprint(files, base)}  # fmt: skip
+    if path not in (None, "", "???"):
+        local = Path(str(path)).expanduser()
+        if local.exists():
+            base = local.resolve()
+            return {"kind": "local", "path": str(base),
+                    **file_list_fingerprint(list(_walk(base)), base)}  # fmt: skip
+        return {
+            "kind": "hub",
+            "repo": str(path),
+            "config": entry.get("config") or entry.get("name"),
+            "split": entry.get("split"),
+            "revision": entry.get("revision") or "main",
+        }
+    return {"kind": "unknown", "settings": dict(spec)}
+
+
+def _datasets(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """Every dataset entry a run reads: ``dataset`` (resireg-eval), ``source``
+    (resireg-map), ``data.sources.*`` (training captions) and the validation sets of the
+    ReSiReg callback (``callbacks.resireg_eval.datasets.*``)."""
+    found: dict[str, Any] = {}
+    for key in ("dataset", "source"):
+        if isinstance(cfg.get(key), Mapping):
+            found[key] = cfg[key]
+    sources = (
+        (cfg.get("data") or {}).get("sources") if isinstance(cfg.get("data"), Mapping) else None
+    )
+    for name, entry in (sources or {}).items():
+        if isinstance(entry, Mapping):
+            found[f"data.sources.{name}"] = entry
+    callbacks = cfg.get("callbacks") or {}
+    evaluation = callbacks.get("resireg_eval") if isinstance(callbacks, Mapping) else None
+    for name, entry in ((evaluation or {}).get("datasets") or {}).items():
+        if isinstance(entry, Mapping):
+            found[f"callbacks.resireg_eval.datasets.{name}"] = entry
+    return found
+
+
+# -------------------------------------------------------------------------------- models
+def export_identity(path: str | os.PathLike) -> dict[str, Any]:
+    """An export folder's path, each file's SHA-256 and (when the export carries one) the
+    provenance of the training run that wrote it: ``{"path", "files", "training_run"}``."""
+    from resireg.integrity import sha256_file
+
+    folder = Path(path).expanduser().resolve()
+    if not folder.is_dir():
+        return {"path": str(path), "files": None}  # a hub id: resolved by the loader
+    files = {p.name: sha256_file(p) for p in sorted(folder.iterdir())
+             if p.is_file() and p.suffix in (".safetensors", ".json")
+             and p.name != EXPORT_PROVENANCE}  # fmt: skip
+    record: dict[str, Any] = {"path": str(folder), "files": files}
+    made_by = folder / EXPORT_PROVENANCE
+    if made_by.is_file():
+        try:
+            record["training_run"] = json.loads(made_by.read_text())
+        except (OSError, json.JSONDecodeError):
+            record["training_run"] = None
+    return record
+
+
+def _models(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    from resireg.integrity import sha256_file
+
+    models: dict[str, Any] = {}
+    if cfg.get("model_path"):
+        models["export"] = export_identity(str(cfg["model_path"]))
+    model = cfg.get("model")
+    init_from = model.get("init_from") if isinstance(model, Mapping) else None
+    if init_from:
+        path = Path(str(init_from)).expanduser()
+        models["init_from"] = {"path": str(path.resolve()),
+                               "sha256": sha256_file(path) if path.is_file() else None}  # fmt: skip
+    encoder = cfg.get("encoder")
+    if isinstance(encoder, Mapping):
+        models["encoder"] = {k: v for k, v in encoder.items()
+                             if isinstance(v, (str, int, float, bool)) or v is None}  # fmt: skip
+    return models
+
+
+# ------------------------------------------------------------------------------- records
+def _cli() -> str | None:
+    """``resireg-train`` / ``resireg-eval`` / ``resireg-map``: the Hydra main running."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    return f"resireg-{HydraConfig.get().job.config_name}"
+
+
+def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = None) -> dict:
+    """The provenance block written when a run starts (module docstring). ``previous``: the
+    block of the run this one resumes (its ``run_id`` is kept)."""
+    from omegaconf import OmegaConf
+
+    try:
+        plain = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:
+        plain = OmegaConf.to_container(cfg, resolve=False)
+    run_id = (previous or {}).get("run_id") or uuid.uuid4().hex[:12]
+    _CPU_AT_START[str(Path(out).resolve())] = _cpu_seconds()
+    return {
+        "run_id": run_id,
+        "cli": _cli(),
+        "code": code_provenance(out),
+        "environment": {
+            "python": platform.python_version(),
+            "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+            "config_sha256": config_digest(cfg),
+            "packages": package_versions(),
+        },
+        "machine": machine_provenance(),
+        "time": {"start": _now(), "end": None, "wall_seconds": None},
+        "seeds": _seeds(plain),
+        "data": {key: data_identity(entry) for key, entry in _datasets(plain).items()},
+        "models": _models(plain),
+    }
+
+
+def _gpus() -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    torch = sys.modules.get("torch")  # only if the run imported it: no import here
+    if torch is None:
+        return [], {}
+    versions = {"cuda": torch.version.cuda}
+    if torch.backends.cudnn.is_available():
+        versions["cudnn"] = torch.backends.cudnn.version()
+    if not torch.cuda.is_initialized():
+        return [], versions
+    gpus = []
+    for i in range(torch.cuda.device_count()):
+        props = torch.cuda.get_device_properties(i)
+        gpus.append({"name": props.name, "memory_gib": round(props.total_memory / 2**30, 1)})
+    return gpus, versions
+
+
+def _cpu_seconds() -> float:
+    import resource
+
+    usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+    return sum(u.ru_utime + u.ru_stime for u in usage)
+
+
+def finish_provenance(block: Mapping[str, Any], out: Path | None = None) -> dict[str, Any]:
+    """``block`` completed at the run's end: end time, wall seconds, CPU-hours (``getrusage``
+    of this process and its children since the run in ``out`` started), GPU-hours (wall x the
+    world size, where CUDA ran), torch's CUDA / cuDNN versions and the GPUs."""
+    done = json.loads(json.dumps(block))  # a copy
+    clock = done.setdefault("time", {})
+    end = _dt.datetime.now(_dt.timezone.utc)
+    wall = (end - _dt.datetime.fromisoformat(clock["start"])).total_seconds() if clock.get(
+        "start") else None  # fmt: skip
+    start_cpu = _CPU_AT_START.get(str(Path(out).resolve()), 0.0) if out is not None else 0.0
+    cpu_seconds = _cpu_seconds() - start_cpu
+    gpus, versions = _gpus()
+    world = int((done.get("machine") or {}).get("world_size") or 1)
+    clock.update(
+        end=end.isoformat(timespec="milliseconds"),
+        wall_seconds=round(wall, 3) if wall is not None else None,
+        cpu_hours=round(cpu_seconds / 3600, 6),
+        gpu_hours=round(wall * world / 3600, 6) if gpus and wall is not None else None,
+    )
+    done.setdefault("machine", {})["gpus"] = gpus
+    done.setdefault("environment", {}).update({f"torch_{k}": v for k, v in versions.items()})
+    return done
+
+
+def write_export_provenance(export: Path, out: Path, block: Mapping[str, Any]) -> Path:
+    """``<export>/provenance.json``: the training run that wrote the export (its folder, its
+    provenance block) and the SHA-256 of its last checkpoint, so an evaluation of the export
+    can name the run, the code and the data that made it."""
+    from resireg.integrity import sha256_file
+    from resireg_train.files import write_atomic
+
+    last = Path(out) / "checkpoints" / "last.ckpt"
+    record = {
+        "run_dir": str(Path(out).resolve()),
+        "run_id": block.get("run_id"),
+        "checkpoint": {
+            "path": str(last.resolve()),
+            "sha256": sha256_file(last) if last.is_file() else None,
+        },  # fmt: skip
+        "provenance": {k: v for k, v in block.items() if k != "time"},
+    }
+    return write_atomic(export / EXPORT_PROVENANCE, json.dumps(record, indent=2),
+                        what="export provenance")  # fmt: skip

@@ -1,0 +1,368 @@
+"""The run index behind ``resireg-runs``: every run folder under some roots (single runs,
+multirun jobs, search trials: any folder with a ``results.json``), one row each, filtered,
+sorted, shown, compared and followed through its lineage.
+
+A row reads only the run's ``results.json`` and ``.hydra/overrides.yaml`` (the resolved
+``.hydra/config.yaml`` only when a filter or a column names a config key), so a thousand runs
+list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
+whose process is gone (same host, PID not alive) is shown as ``died``.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+import os
+import re
+import socket
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from resireg_train.provenance import EXPORT_PROVENANCE
+from resireg_train.results import RESULTS_FILE, read_results
+
+__all__ = [
+    "COLUMNS",
+    "Run",
+    "diff_runs",
+    "filter_runs",
+    "find_run",
+    "lineage",
+    "parse_where",
+    "scan",
+    "sort_runs",
+]
+
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+#: Folders a run folder holds that are never runs themselves (not walked inside a run).
+_SKIP = {"checkpoints", ".hydra", "export", "map", "csv", "wandb", "mlruns", "__pycache__"}
+#: ``resireg-runs ls``'s default columns.
+COLUMNS = ("run_id", "cli", "name", "status", "start", "duration", "overrides", "metric", "value")
+_HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
+
+
+def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(node, Mapping):
+        out: dict[str, Any] = {}
+        for key, value in node.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: node}
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
+
+
+@dataclass
+class Run:
+    """One run folder and what its record says."""
+
+    path: Path
+    results: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def provenance(self) -> dict[str, Any]:
+        return self.results.get("provenance") or {}
+
+    @property
+    def run_id(self) -> str:
+        return str(self.provenance.get("run_id") or self.path.name)
+
+    @property
+    def cli(self) -> str | None:
+        return self.provenance.get("cli")
+
+    @property
+    def status(self) -> str:
+        """The recorded status, ``died`` for a ``running`` run whose process is gone (same
+        host; a run on another host keeps ``running``)."""
+        status = self.results.get("status", "missing")
+        machine = self.provenance.get("machine") or {}
+        if status == "running" and machine.get("host") == socket.gethostname():
+            pid = machine.get("pid")
+            if isinstance(pid, int) and not _pid_alive(pid):
+                return "died"
+        return status
+
+    @cached_property
+    def overrides(self) -> list[str]:
+        path = self.path / ".hydra" / "overrides.yaml"
+        if not path.is_file():
+            return []
+        with open(path) as f:
+            return [str(o) for o in (yaml.load(f, Loader=_LOADER) or [])]
+
+    @cached_property
+    def config(self) -> dict[str, Any]:
+        """The resolved config, flattened (``model.optimizer.lr``)."""
+        path = self.path / ".hydra" / "config.yaml"
+        if not path.is_file():
+            return {}
+        with open(path) as f:
+            return _flatten(yaml.load(f, Loader=_LOADER) or {})
+
+    @property
+    def metrics(self) -> dict[str, float]:
+        return {k: v for k, v in (self.results.get("final") or {}).items()
+                if isinstance(v, (int, float)) and not isinstance(v, bool)}  # fmt: skip
+
+    @property
+    def headline(self) -> tuple[str | None, float | None]:
+        """ReSiReg Full's mIoU (else Lite's, BB's, the training loss), as the report picks."""
+        metrics = self.metrics
+        for suffix in _HEADLINE:
+            hits = sorted(k for k in metrics if k.split("@")[0].endswith(suffix) and "@" not in k)
+            if hits:
+                return hits[0], metrics[hits[0]]
+        return None, None
+
+    @property
+    def start(self) -> str | None:
+        return (self.provenance.get("time") or {}).get("start")
+
+    @property
+    def duration(self) -> float | None:
+        return (self.provenance.get("time") or {}).get("wall_seconds")
+
+    def value(self, key: str) -> Any:
+        """A column or filter key: a row field (``status``, ``cli``, ``run_id``...), a metric
+        (``final``), a ``results.json`` field, a provenance path (``provenance.code.commit``)
+        or a config key (``model.optimizer.lr``)."""
+        fields: dict[str, Callable[[], Any]] = {
+            "run_id": lambda: self.run_id, "cli": lambda: self.cli, "status": lambda: self.status,
+            "name": lambda: self.results.get("name"), "start": lambda: self.start,
+            "duration": lambda: self.duration, "path": lambda: str(self.path),
+            "overrides": lambda: " ".join(_short(o) for o in self.overrides
+                                          if not o.lstrip("+~").startswith(_QUIET)),
+            "metric": lambda: self.headline[0], "value": lambda: self.headline[1],
+        }  # fmt: skip
+        if key in fields:
+            return fields[key]()
+        if key in self.metrics:
+            return self.metrics[key]
+        if key.startswith("provenance."):
+            return _flatten(self.provenance, "provenance.").get(key)
+        if key in self.results and not isinstance(self.results[key], (dict, list)):
+            return self.results[key]
+        return self.config.get(key)
+
+
+#: Overrides ``ls`` leaves out of its ``overrides`` column (where, not what, a run ran).
+_QUIET = ("paths.", "hydra.", "device=", "num_workers=")
+
+
+def _short(override: str, width: int = 48) -> str:
+    """An override cut to ``width`` characters (a path keeps its end)."""
+    if len(override) <= width:
+        return override
+    key, _, value = override.partition("=")
+    keep = max(8, width - len(key) - 2)
+    return f"{key}=…{value[-keep:]}"
+
+
+def _run_folders(root: Path) -> Iterator[Path]:
+    if (root / RESULTS_FILE).is_file():
+        yield root
+    for folder, dirs, names in os.walk(root):
+        is_run = RESULTS_FILE in names
+        # inside a run folder, its own outputs (checkpoints, export, map, ...) hold no runs
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and not (is_run and d in _SKIP))
+        if folder != str(root) and is_run:
+            yield Path(folder)
+
+
+def scan(roots: Iterable[str | os.PathLike]) -> list[Run]:
+    """Every run folder under ``roots`` (a root may itself be a run folder)."""
+    runs, seen = [], set()
+    for root in roots:
+        for folder in _run_folders(Path(root).expanduser()):
+            key = folder.resolve()
+            if key in seen:
+                continue
+            seen.add(key)
+            try:
+                runs.append(Run(folder, read_results(folder)))
+            except (OSError, ValueError):
+                runs.append(Run(folder, {"status": "unreadable"}))
+    return runs
+
+
+_OPS: dict[str, Callable[[Any, Any], bool]] = {
+    ">=": operator.ge, "<=": operator.le, "!=": operator.ne, "=": operator.eq,
+    ">": operator.gt, "<": operator.lt,
+}  # fmt: skip
+_WHERE = re.compile(r"^(?P<key>[^<>=!]+?)\s*(?P<op>>=|<=|!=|=|>|<)\s*(?P<value>.*)$")
+
+
+def parse_where(text: str) -> tuple[str, str, Any]:
+    """``key=value`` / ``key>0.25`` / ... -> ``(key, op, value)`` (the value parsed as YAML:
+    numbers, booleans, null, strings). A malformed filter is a :class:`ValueError`."""
+    match = _WHERE.match(text.strip())
+    if not match:
+        raise ValueError(f"--where {text!r}: expected KEY=VALUE or KEY OP VALUE (>, <, >=, <=, !=)")
+    value = yaml.load(match["value"], Loader=_LOADER) if match["value"] else None
+    return match["key"].strip(), match["op"], value
+
+
+def _matches(actual: Any, op: str, wanted: Any) -> bool:
+    if actual is None:
+        return op == "!=" if wanted is not None else op == "="
+    if isinstance(wanted, (int, float)) and not isinstance(wanted, bool):
+        try:
+            actual = float(actual)
+        except (TypeError, ValueError):
+            return False
+        if math.isnan(actual):
+            return False
+    elif op in ("=", "!="):
+        actual, wanted = str(actual), str(wanted)
+    try:
+        return bool(_OPS[op](actual, wanted))
+    except TypeError:
+        return False
+
+
+def filter_runs(runs: list[Run], where: Iterable[str]) -> list[Run]:
+    """The runs matching every ``--where`` filter."""
+    filters = [parse_where(w) for w in where]
+    return [r for r in runs if all(_matches(r.value(k), op, v) for k, op, v in filters)]
+
+
+def sort_runs(runs: list[Run], key: str | None) -> list[Run]:
+    """Sorted by ``key`` (``-key``: descending); runs without a value last. Default: start."""
+    key = key or "start"
+    descending = key.startswith("-")
+    key = key.lstrip("-")
+
+    def order(run: Run) -> tuple[int, Any]:
+        value = run.value(key)
+        if value is None or (isinstance(value, float) and math.isnan(value)):
+            return (1, 0)
+        return (0, value if isinstance(value, (int, float)) else str(value))
+
+    present = [r for r in runs if order(r)[0] == 0]
+    missing = [r for r in runs if order(r)[0] == 1]
+    return sorted(present, key=order, reverse=descending) + missing
+
+
+def find_run(spec: str, roots: Iterable[str | os.PathLike]) -> Run:
+    """A run by folder path or by run id (a unique prefix) under ``roots``."""
+    path = Path(spec).expanduser()
+    if (path / RESULTS_FILE).is_file():
+        return Run(path, read_results(path))
+    hits = [r for r in scan(roots) if r.run_id.startswith(spec)]
+    if len(hits) == 1:
+        return hits[0]
+    if not hits:
+        raise ValueError(f"no run {spec!r}: not a run folder, nor a run id under {list(roots)}")
+    raise ValueError(f"run id {spec!r} is ambiguous: {', '.join(r.run_id for r in hits)}")
+
+
+def _compare(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
+    keys = sorted(set(a) | set(b))
+    return [(k, a.get(k), b.get(k)) for k in keys if a.get(k) != b.get(k)]
+
+
+#: Provenance fields that differ between any two runs and say nothing about the result.
+_VOLATILE = ("provenance.run_id", "provenance.time.", "provenance.machine.pid",
+             "provenance.environment.command", "provenance.environment.config_sha256")  # fmt: skip
+
+
+def diff_runs(a: Run, b: Run) -> dict[str, list[tuple[str, Any, Any]]]:
+    """``{"config", "provenance", "metrics"}``: each differing key with A's and B's value
+    (provenance without what differs for every pair of runs: ids, times, PIDs)."""
+    prov = [row for row in _compare(_flatten(a.provenance, "provenance."),
+                                    _flatten(b.provenance, "provenance."))
+            if not row[0].startswith(_VOLATILE)]  # fmt: skip
+    return {
+        "config": _compare(a.config, b.config),
+        "provenance": prov,
+        "metrics": _compare(a.metrics, b.metrics),
+    }
+
+
+def _same_path(a: Any, b: str) -> bool:
+    try:
+        return a is not None and Path(str(a)).expanduser().resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
+def lineage(spec: str, roots: Iterable[str | os.PathLike]) -> list[str]:
+    """The chain of a run or an export, oldest first: its data, the training runs it descends
+    from (``model.init_from``'s run, an export's training run), itself, its export and the
+    evaluations and maps under ``roots`` that used that export. One line each."""
+    roots = list(roots)
+    path = Path(spec).expanduser()
+    if (path / EXPORT_PROVENANCE).is_file() or (path / "config.json").is_file() and not (
+            path / RESULTS_FILE).is_file():  # fmt: skip
+        made = read_results(path.parent) if (path.parent / RESULTS_FILE).is_file() else None
+        run = Run(path.parent, made) if made is not None else None
+        export = path.resolve()
+    else:
+        run = find_run(spec, roots)
+        export = Path(run.results["export"]).resolve() if run.results.get("export") else None
+    chain: list[str] = []
+    seen: set[Path] = set()
+
+    def ancestors(r: Run) -> None:
+        if r.path.resolve() in seen:
+            return
+        seen.add(r.path.resolve())
+        models = r.provenance.get("models") or {}
+        parent_ckpt = (models.get("init_from") or {}).get("path")
+        parent_export = (models.get("export") or {}).get("path")
+        if parent_ckpt:
+            folder = Path(parent_ckpt).parent.parent  # <run>/checkpoints/<file>.ckpt
+            if (folder / RESULTS_FILE).is_file():
+                ancestors(Run(folder, read_results(folder)))
+            sha = (models.get("init_from") or {}).get("sha256")
+            chain.append(f"checkpoint {parent_ckpt} (sha256 {str(sha)[:12]})")
+        elif parent_export and (Path(parent_export).parent / RESULTS_FILE).is_file():
+            folder = Path(parent_export).parent
+            ancestors(Run(folder, read_results(folder)))
+            chain.append(f"export {parent_export}")
+        else:
+            for key, data in (r.provenance.get("data") or {}).items():
+                chain.append(f"data {key}: {_data_text(data)}")
+        chain.append(_run_text(r))
+
+    if run is not None:
+        ancestors(run)
+    if export is not None:
+        chain.append(f"export {export}")
+        for other in sorted(scan(roots), key=lambda r: r.start or ""):
+            used = ((other.provenance.get("models") or {}).get("export") or {}).get("path")
+            if _same_path(used, str(export)) and other.path.resolve() not in seen:
+                chain.append(f"  used by {_run_text(other)}")
+    return chain
+
+
+def _run_text(run: Run) -> str:
+    metric, value = run.headline
+    score = f", {metric}={value:.4f}" if metric is not None and value is not None else ""
+    commit = ((run.provenance.get("code") or {}).get("git") or {}).get("commit")
+    code = f", commit {commit[:10]}" if commit else ""
+    return f"{run.cli or 'run'} {run.run_id} [{run.status}] {run.path}{code}{score}"
+
+
+def _data_text(data: Mapping[str, Any]) -> str:
+    kind = data.get("kind")
+    if kind == "hub":
+        return f"hub {data.get('repo')} {data.get('config')}/{data.get('split')}@{data.get('revision')}"
+    if kind == "local":
+        return (f"local {data.get('path')} ({data.get('files')} files, fingerprint "
+                f"{str(data.get('fingerprint'))[:12]})")  # fmt: skip
+    return f"{kind} {data.get('settings')}"
