@@ -293,7 +293,8 @@ def test_curves_of_many_runs_keep_legend_and_labels_inside_the_figure(tmp_path):
     renderer = fig.canvas.get_renderer()
     (ax,) = fig.axes
     (legend,) = fig.legends
-    assert [t.get_text() for t in legend.get_texts()] == [f"model.optimizer.lr={lr}" for lr in lrs]
+    # the varying key by its short name, the value in 3 significant digits (issue 36 item 7)
+    assert [t.get_text() for t in legend.get_texts()] == [f"lr={float(lr):.3g}" for lr in lrs]
     assert [t.get_text() for t in _tick_labels(ax.xaxis)] == ["0", "1", "2"]  # whole epochs
     artists = [ax.xaxis.label, ax.yaxis.label, legend, *_tick_labels(ax.xaxis),
                *_tick_labels(ax.yaxis)]  # fmt: skip

@@ -139,7 +139,9 @@ def report(
         "",
         "Common overrides: " + (", ".join(f"`{k}={v}`" for k, v in constant.items()) or "none"),
         "",
-        markdown(table, floatfmt=".4f"),
+        # scores to 4 decimals; the overrides that vary in significant digits (a learning
+        # rate of 0.0006466 would read 0.0006)
+        markdown(table, floatfmt=[".4g" if c in varying_keys(jobs) else ".4f" for c in table]),
     ]
     sections = report_sections(jobs)
     if "table2" in sections:

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DPI", "agg_figure", "curves_figure", "heatmap_figure", "layer_sweep_figure", "plot_curves",
-    "plot_heatmap", "widen_to_fit",
+    "plot_heatmap", "short_keys", "short_value", "widen_to_fit",
 ]  # fmt: skip
 
 DPI = 120
@@ -84,18 +84,46 @@ def plot_heatmap(
     heatmap_figure(grid, metric, statuses).savefig(path, dpi=DPI)
 
 
+def short_keys(keys: list[str]) -> dict[str, str]:
+    """Each dotted key by its shortest unambiguous ending (``model.optimizer.lr`` -> ``lr``;
+    ``model.loss.distill.scale`` and ``model.loss.contrastive.scale`` keep one more part)."""
+    out = {}
+    for key in keys:
+        parts = key.lstrip("+~").split(".")
+        for n in range(1, len(parts) + 1):
+            tail = ".".join(parts[-n:])
+            others = [k for k in keys if k != key and k.lstrip("+~").split(".")[-n:] == parts[-n:]]
+            if not others:
+                out[key] = tail
+                break
+        else:
+            out[key] = key
+    return out
+
+
+def short_value(value: object) -> str:
+    """A number in three significant digits (``0.000646628`` -> ``0.000647``), else as is."""
+    try:
+        number = float(str(value))
+    except ValueError:
+        return str(value)
+    return f"{number:.3g}"
+
+
 def curves_figure(jobs: list[Job], metric: str) -> Figure | None:
     """``metric`` per epoch of every run with a history (``None`` when none has it). Up to
     6 runs the legend sits in the axes; with more it goes outside, to the right."""
     from matplotlib.ticker import MaxNLocator
 
     varying = varying_keys(jobs)
+    names = short_keys(varying)
     curves = []
     for job in jobs:
         points = [(r["epoch"], r[metric]) for r in job.results.get("history") or [] if metric in r]
         if not points:
             continue
-        label = ", ".join(f"{k}={job.overrides.get(k)}" for k in varying) or f"job {job.number}"
+        label = ", ".join(f"{names[k]}={short_value(job.overrides.get(k))}"
+                          for k in varying) or f"job {job.number}"  # fmt: skip
         if job.status != "completed":
             label += f" ({job.status})"
         curves.append((points, label))

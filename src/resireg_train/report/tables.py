@@ -34,10 +34,11 @@ __all__ = [
 ]  # fmt: skip
 
 
-def markdown(frame: pd.DataFrame, floatfmt: str, index: bool = False) -> str:
+def markdown(frame: pd.DataFrame, floatfmt: str | list[str], index: bool = False) -> str:
     """``frame`` as a Markdown table, rendered one way in every table of the report: text on
     one line (a multi-line error would split its row) with ``|`` escaped, and a missing value
-    (NaN, ``None``: a job that did not complete, a mean over nothing) as an empty cell."""
+    (NaN, ``None``: a job that did not complete, a mean over nothing) as an empty cell.
+    ``floatfmt``: one format for every column, or one per column (tabulate's)."""
 
     def cell(value: Any) -> Any:
         return flat(value).replace("|", "\\|") if isinstance(value, str) else value
