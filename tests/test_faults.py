@@ -495,12 +495,3 @@ def test_eval_into_a_used_folder_starts_a_fresh_record(tmp_path, tiny_export):
     assert second["status"] == "completed" and "elbo_prototypes" not in second
     assert set(second["final"]) == {k for k in first["final"] if k.endswith("_bb")}
     assert json.loads((tmp_path / "results.previous-1.json").read_text()) == first
-
-
-def test_eval_refuses_a_training_logger(tmp_path, tiny_export):
-    """logger=tensorboard on resireg-eval names the key and the logger it takes (wandb)."""
-    proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic", "logger=tensorboard",
-               f"hydra.run.dir={tmp_path}", check=False)  # fmt: skip
-    assert proc.returncode != 0
-    assert "logger=tensorboard: resireg-eval logs to W&B only (logger=wandb)" in proc.stderr
-    assert json.loads((tmp_path / "results.json").read_text())["status"] == "failed"

@@ -113,3 +113,28 @@ def test_eval_multirun_logs_one_finished_run_per_job(tmp_path, tiny_export):
         assert summary["status"] == "completed"
         final = results["final"]
         assert final and {k: summary[f"final/{k}"] for k in final} == pytest.approx(final)
+
+
+@pytest.mark.slow
+def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
+    """resireg-map logger=wandb: one finished run with the config and the map's counts
+    (map/voxels, frames/used...) equal to results.json's."""
+    from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
+    from resireg_train.trackers import map_counts
+
+    env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true",
+           "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip
+    bag = write_bag(tmp_path / "room", room_frames(4))
+    out = tmp_path / "map"
+    run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag",
+        f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
+        f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
+        "configuration=bb", "window=2", "logger=wandb", f"hydra.run.dir={out}", env=env)  # fmt: skip
+    (file,) = out.glob("wandb/offline-run-*/run-*.wandb")
+    name, group, config, summary, exit_code = _read_run(file)
+    assert exit_code == 0 and not group and name.startswith("map-")
+    assert config["configuration"] == "bb" and config["window"] == 2
+    counts = map_counts(json.loads((out / "results.json").read_text()))
+    assert counts["map/voxels"] > 0
+    assert {k: summary[k] for k in counts} == pytest.approx(counts)
+    assert summary["status"] == "completed"

@@ -38,6 +38,7 @@ __all__ = [
     "ResultsTracker",
     "epoch_metrics",
     "wandb_logger",
+    "wandb_loggers",
     "wandb_run_name",
     "wandb_runs",
     "wandb_summary",
@@ -198,13 +199,28 @@ def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
     return WandbLogger(name=run_name, project=project, group=group, **kwargs)
 
 
+def wandb_loggers(cfg: Any) -> list[Any]:
+    """The W&B logger of ``cfg.logger`` (``logger=wandb``) for a job without Lightning's
+    trainer (``resireg-eval``, ``resireg-map``); ``[]`` without one. The other trackers record
+    such a job when it ends (:mod:`resireg_train.trackers`)."""
+    settings = (cfg.get("logger") or {}).get("wandb")
+    if not settings:
+        return []
+    import hydra
+
+    return [hydra.utils.instantiate(settings)]
+
+
 def wandb_summary(record: dict[str, Any]) -> dict[str, Any]:
     """``results.json``'s summary as W&B summary values: status, epoch, step, the final values
     (``final/<metric>``) and the best ones (``best/<metric>``, ``best/<metric>/epoch``);
     non-finite values (``null`` in the file) are left out."""
+    from resireg_train.trackers import map_counts
+
     out: dict[str, Any] = {k: record[k] for k in ("status", "epoch", "global_step", "error")
                            if record.get(k) is not None}  # fmt: skip
     out.update({f"final/{k}": v for k, v in (record.get("final") or {}).items() if v is not None})
+    out.update(map_counts(record))  # a resireg-map run's voxels and frames
     for key, best in (record.get("best") or {}).items():
         if best.get("value") is not None:
             out[f"best/{key}"] = best["value"]

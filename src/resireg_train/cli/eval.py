@@ -46,7 +46,6 @@ from resireg_train.cli.task import (
     CONFIG_DIR,
     added_keys,
     hydra_entry_point,
-    instantiate_group,
     run_task,
     top_level_keys,
 )
@@ -154,19 +153,11 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 def _evaluate_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
     """:func:`_evaluate` inside the job's W&B run with ``logger=wandb`` (one run per job,
     given the config and, at the end, ``results.json``'s summary, then finished:
-    :func:`resireg_train.tracking.wandb_runs`); Lightning loads only then."""
-    group = cfg.get("logger") or {}
-    if other := sorted(set(group) - {"wandb"}):
-        raise ConfigError(
-            f"logger={','.join(other)}: resireg-eval logs to W&B only (logger=wandb); the CSV, "
-            "TensorBoard and MLflow loggers are resireg-train's (an evaluation has no steps)"
-        )
-    loggers = instantiate_group(group)
-    if not loggers:
-        return _evaluate(cfg, out)
-    from resireg_train.tracking import wandb_runs
+    :func:`resireg_train.tracking.wandb_runs`); Lightning loads only then. MLflow,
+    TensorBoard and CSV record the run when it ends (:mod:`resireg_train.trackers`)."""
+    from resireg_train.tracking import wandb_loggers, wandb_runs
 
-    with wandb_runs(loggers, cfg, out):
+    with wandb_runs(wandb_loggers(cfg), cfg, out):
         return _evaluate(cfg, out)
 
 

@@ -240,10 +240,19 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     )
 
 
+def _map_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
+    """:func:`_map` inside the job's W&B run with ``logger=wandb`` (as ``resireg-eval``);
+    MLflow, TensorBoard and CSV record the run when it ends (:mod:`resireg_train.trackers`)."""
+    from resireg_train.tracking import wandb_loggers, wandb_runs
+
+    with wandb_runs(wandb_loggers(cfg), cfg, out):
+        return _map(cfg, out)
+
+
 def run_map(cfg: DictConfig) -> dict[str, Any]:
     """Map from a composed ``map.yaml`` config; returns the ``results.json`` content."""
-    return run_task(cfg, _map, resume_hint="resume=true with the same run folder continues "
-                    "from the last save")  # fmt: skip
+    return run_task(cfg, _map_logged, resume_hint="resume=true with the same run folder "
+                    "continues from the last save")  # fmt: skip
 
 
 main = hydra_entry_point("map", run_map)

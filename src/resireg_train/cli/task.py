@@ -164,6 +164,7 @@ def run_task(
         result = body(cfg, out)
         if rank_zero:
             _record(out, provenance=_finished(out))
+            _track(cfg, out)
         return result
     except KeyboardInterrupt:
         error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"
@@ -171,14 +172,24 @@ def run_task(
             error += f"; {resume_hint}"
         if rank_zero:
             _record(out, status="interrupted", error=error, provenance=_finished(out))
+            _track(cfg, out)
             log.warning("%s", error)
         raise SystemExit(130) from None
     except BaseException as exc:
         if rank_zero:
             error = error_text(exc)
             _record(out, status="failed", error=error, provenance=_finished(out))
+            _track(cfg, out)
             _to_log_files(f"run failed: {error}", exc)
         raise
+
+
+def _track(cfg: DictConfig, out: Path) -> None:
+    """The finished run to the trackers of ``logger`` (:mod:`resireg_train.trackers`)."""
+    if cfg.get("logger"):
+        from resireg_train.trackers import record_run
+
+        record_run(cfg, out, training="trainer" in cfg)
 
 
 def _finished(out: Path) -> dict[str, Any]:

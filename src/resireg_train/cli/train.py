@@ -299,6 +299,9 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
         if not trainer.is_global_zero:
             return {}
         extra: dict[str, Any] = {}
+        mlflow_runs = [lg.run_id for lg in loggers if type(lg).__name__ == "MLFlowLogger"]
+        if mlflow_runs:  # the run its curves went to: the trackers add the record to it
+            extra["tracking"] = {"mlflow_run_id": mlflow_runs[0]}
         if cfg.export:
             export = module.vlm.save_pretrained(out / "export")
             # the run that made it (its provenance, the last checkpoint's SHA-256)
