@@ -116,6 +116,14 @@ def test_data_fingerprint_changes_with_one_file_and_only_then(tmp_path):
     target.write_bytes(b"\x07" * (100 + 3))  # same size, new content and time
     os.utime(target, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
     assert data_identity(entry)["fingerprint"] != first["fingerprint"]
+    # ScanNet: only the listed scenes count (another scene changing changes nothing)
+    for scene in ("scene0011_00", "scene0050_00"):
+        (tmp_path / "scannet" / scene).mkdir(parents=True)
+        (tmp_path / "scannet" / scene / "0.jpg").write_bytes(b"x")
+    scannet = {"kind": "scannet", "path": str(tmp_path / "scannet"), "scenes": ["scene0011_00"]}
+    before = data_identity(scannet)
+    (tmp_path / "scannet" / "scene0050_00" / "0.jpg").write_bytes(b"changed")
+    assert data_identity(scannet) == before and before["files"] == 1
     hub = data_identity({"path": "zhoubolei/scene_parse_150", "config": "scene_parsing",
                          "split": "validation", "revision": "refs/convert/parquet"})  # fmt: skip
     assert hub == {"kind": "hub", "repo": "zhoubolei/scene_parse_150", "config": "scene_parsing",

@@ -233,7 +233,8 @@ def data_identity(entry: Mapping[str, Any]) -> dict[str, Any]:
 
     - generated data (``kind``/``path`` ``synthetic...``): the generator's settings;
     - a local file or folder (``path``, or the files of ``data_files``): the
-      :func:`file_list_fingerprint` of its files;
+      :func:`file_list_fingerprint` of the files the run reads (the ``scenes`` listed, else
+      the ``split``'s subfolder where there is one, else every file);
     - otherwise a Hugging Face hub dataset: repo, config, split and revision.
     """
     spec = {k: v for k, v in entry.items() if not isinstance(v, (Mapping, list)) or k in (
@@ -257,8 +258,14 @@ def data_identity(entry: Mapping[str, Any]) -> dict[str, Any]:
         local = Path(str(path)).expanduser()
         if local.exists():
             base = local.resolve()
+            # only what the run reads: the listed scenes (ScanNet), else the split's folder
+            # (ORAD-3D's validation/), else the whole folder
+            parts = [base / str(s) for s in entry.get("scenes") or []]
+            if not parts and entry.get("split") and (base / str(entry["split"])).is_dir():
+                parts = [base / str(entry["split"])]
+            files = [f for part in (parts or [base]) if part.exists() for f in _walk(part)]
             return {"kind": "local", "path": str(base),
-                    **file_list_fingerprint(list(_walk(base)), base)}  # fmt: skip
+                    **file_list_fingerprint(files, base)}  # fmt: skip
         return {
             "kind": "hub",
             "repo": str(path),
