@@ -155,6 +155,8 @@ def _evaluate_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
     given the config and, at the end, ``results.json``'s summary, then finished:
     :func:`resireg_train.tracking.wandb_runs`); Lightning loads only then. MLflow,
     TensorBoard and CSV record the run when it ends (:mod:`resireg_train.trackers`)."""
+    if not (cfg.get("logger") or {}).get("wandb"):
+        return _evaluate(cfg, out)  # (tracking imports Lightning: only for a W&B run)
     from resireg_train.tracking import wandb_loggers, wandb_runs
 
     with wandb_runs(wandb_loggers(cfg), cfg, out):

@@ -243,6 +243,8 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
 def _map_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
     """:func:`_map` inside the job's W&B run with ``logger=wandb`` (as ``resireg-eval``);
     MLflow, TensorBoard and CSV record the run when it ends (:mod:`resireg_train.trackers`)."""
+    if not (cfg.get("logger") or {}).get("wandb"):
+        return _map(cfg, out)  # (tracking imports Lightning: only for a W&B run)
     from resireg_train.tracking import wandb_loggers, wandb_runs
 
     with wandb_runs(wandb_loggers(cfg), cfg, out):
