@@ -44,6 +44,31 @@ def _unit_diff(a: np.ndarray, b: torch.Tensor) -> float:
     return float((F.normalize(torch.from_numpy(a), dim=1) - F.normalize(b, dim=1)).abs().max())
 
 
+def _calls(model, sessions, images, lite_f, lite_s) -> dict:
+    """``{(graph, runtime): call}`` on one batch of ``images``."""
+    feed = {"images": images.numpy()}
+
+    def vlm():
+        with torch.no_grad():
+            return model.encode(images)
+
+    def with_lite(lite):
+        def run():
+            with torch.no_grad():
+                out = model.encode(images)
+                return lite(out.intermediates, out.language)
+
+        return run
+
+    return {
+        ("vlm", "torch"): vlm,
+        ("vlm", "onnxruntime"): lambda: sessions["vlm"].run(None, feed),
+        ("vlm+lite", "torch (factorised)"): with_lite(lite_f),
+        ("vlm+lite", "torch (sdpa)"): with_lite(lite_s),
+        ("vlm+lite", "onnxruntime"): lambda: sessions["vlm+lite"].run(None, feed),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--short-side", type=int, default=576)
@@ -73,27 +98,9 @@ def main() -> None:
             images = torch.randn(batch, 3, h, w)
             feed = {"images": images.numpy()}
 
-            def t_vlm():
-                with torch.no_grad():
-                    return model.encode(images)
-
-            def t_lite(lite):
-                def run():
-                    with torch.no_grad():
-                        out = model.encode(images)
-                        return lite(out.intermediates, out.language)
-
-                return run
-
-            calls = {
-                ("vlm", "torch"): t_vlm,
-                ("vlm", "onnxruntime"): lambda: sessions["vlm"].run(None, feed),
-                ("vlm+lite", "torch (factorised)"): t_lite(lite_f),
-                ("vlm+lite", "torch (sdpa)"): t_lite(lite_s),
-                ("vlm+lite", "onnxruntime"): lambda: sessions["vlm+lite"].run(None, feed),
-            }
+            calls = _calls(model, sessions, images, lite_f, lite_s)
             # agreement first (also the warm-up call of each)
-            ref = t_lite(lite_f)()
+            ref = calls[("vlm+lite", "torch (factorised)")]()
             got = sessions["vlm+lite"].run(None, feed)
             diff = _unit_diff(got[3], ref)
             for fn in calls.values():

@@ -88,9 +88,13 @@ def _overwrite_4k(path):
 @pytest.mark.parametrize("damage", [_flip_bit, _overwrite_4k], ids=["one-bit", "4KB-of-0xFF"])
 @pytest.mark.parametrize("name", ["model.safetensors", "frozen.safetensors"])
 def test_a_damaged_tensor_file_is_an_error_naming_it(export_copy, damage, name):
+    model = ResiregVLM.from_pretrained(export_copy)
     damage(export_copy / name)
     with pytest.raises(IntegrityError, match=rf"{export_copy / name}: SHA-256 .* does not match"):
         ResiregVLM.from_pretrained(export_copy)
+    # stage 2's model.init_from=<export> loads the trained parts through load_trained
+    with pytest.raises(IntegrityError, match=rf"{export_copy / name}: SHA-256"):
+        model.load_trained(export_copy)
 
 
 def test_a_truncated_file_is_an_error_naming_it_never_a_raw_safetensor_error(export_copy):
