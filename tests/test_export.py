@@ -336,6 +336,8 @@ def test_push_to_hub_creates_the_repo_and_uploads_that_folder(tiny_export, tmp_p
     monkeypatch.setattr(HfApi, "create_repo", create_repo)
     monkeypatch.setattr(HfApi, "upload_folder", upload_folder)
     model = ResiregVLM.from_pretrained(tiny_export)
+    with torch.no_grad():  # weights changed since loading: the upload is the model as it is
+        model.head.proj.bias.add_(0.5)
     assert model.push_to_hub("someone/resireg-tiny", private=True) == "commit-info"
     (c_name, c_repo, c_kw), (u_name, u_repo, u_kw) = calls
     assert (c_name, c_repo, u_name, u_repo) == ("create_repo", "someone/resireg-tiny",
@@ -358,7 +360,7 @@ def test_push_to_hub_refuses_a_damaged_export(export_copy, monkeypatch):
     monkeypatch.setattr(HfApi, "create_repo", lambda self, *a, **k: called.append(a))
     monkeypatch.setattr(HfApi, "upload_folder", lambda self, *a, **k: called.append(a))
     with pytest.raises(IntegrityError, match="model.safetensors: SHA-256"):
-        model.push_to_hub("someone/x")
+        model.push_to_hub("someone/x", export=export_copy)
     assert called == []
 
 

@@ -251,9 +251,10 @@ class ResiregVLM(DenseEncoder):
     ) -> Any:
         """Publish this model to the Hugging Face Hub repository ``repo_id`` (``owner/name``).
 
-        The folder uploaded is :func:`resireg.deploy.card.hub_folder`'s: the export
-        (``export``, default the folder this model was loaded from, else a fresh
-        :meth:`save_pretrained`) with its digests, plus a model card ``README.md``
+        The folder uploaded is :func:`resireg.deploy.card.hub_folder`'s: an export with its
+        digests (by default a fresh :meth:`save_pretrained` of this model as it is now, so
+        weights changed since loading are what is published; ``export``: an existing export
+        folder or repo id as it is, verified first), plus a model card ``README.md``
         (``card``: extra card fields, e.g. ``{"license": "apache-2.0", "metrics": ...}``).
         The repository is created if missing (``HfApi.create_repo(exist_ok=True)``), then
         the folder is sent in one commit (``HfApi.upload_folder``). Returns its
@@ -265,9 +266,7 @@ class ResiregVLM(DenseEncoder):
         from resireg.deploy.card import hub_folder
 
         with tempfile.TemporaryDirectory(prefix="resireg-push-") as tmp:
-            source = export if export is not None else self.export_source
-            if source is None:
-                source = self.save_pretrained(Path(tmp) / "export")
+            source = export if export is not None else self.save_pretrained(Path(tmp) / "export")
             folder = hub_folder(_export_dir(source), Path(tmp) / "upload", repo_id, card)
             api = HfApi(token=token)
             api.create_repo(repo_id, private=private, repo_type="model", exist_ok=True)
