@@ -10,7 +10,15 @@ import importlib
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["ReSiRegFull", "ReSiRegLite", "PrototypeHeuristic", "VARIANTS", "build_variant"]
+__all__ = [
+    "ReSiRegFull",
+    "ReSiRegLite",
+    "PrototypeHeuristic",
+    "SegmentationResult",
+    "VARIANTS",
+    "build_variant",
+    "segment",
+]
 __version__ = "0.1.0"
 
 _SOURCES = {
@@ -19,6 +27,8 @@ _SOURCES = {
     "PrototypeHeuristic": "resireg.heuristic",
     "VARIANTS": "resireg.variant_names",
     "build_variant": "resireg.variants",
+    "segment": "resireg.deploy.segment",  # one image, a few labels (resireg-segment)
+    "SegmentationResult": "resireg.deploy.segment",
 }
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "class_prompts",
     "average_prompts",
     "text_prototypes",
+    "class_similarity",
     "predict",
     "predict_grid",
     "label_problem",
@@ -154,10 +155,16 @@ def predict_grid(dense: Tensor, prototypes: Tensor, temperature: float = 100.0) 
     The softmax does not change the argmax; it is kept so the computation is the protocol's
     as written (docs/design.md section 5).
     """
+    logits = class_similarity(dense, prototypes)
+    return torch.softmax(temperature * logits, dim=1).argmax(dim=1)
+
+
+def class_similarity(dense: Tensor, prototypes: Tensor) -> Tensor:
+    """Cosine similarity ``[B, K, h, w]`` (float32) of dense features ``[B, D, h, w]`` with
+    class prototypes ``[K, D]``: the logits :func:`predict_grid` takes the softmax of."""
     dense = F.normalize(dense.float(), dim=1)
     protos = F.normalize(prototypes.float().to(dense.device), dim=1)
-    logits = torch.einsum("bdhw,kd->bkhw", dense, protos)
-    return torch.softmax(temperature * logits, dim=1).argmax(dim=1)
+    return torch.einsum("bdhw,kd->bkhw", dense, protos)
 
 
 def predict(

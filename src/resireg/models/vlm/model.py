@@ -11,20 +11,33 @@ frozen parts' weights come from; ``model.safetensors`` holds the trained parts (
 text projection). Frozen parts without an external weights source (random init, as in
 tests and the smoke experiment) are saved in ``frozen.safetensors`` so a reload is
 exact; ``include_frozen=True`` embeds them always (a self-contained bundle).
+``config.json`` records the SHA-256 of every tensor file (``digests``), verified by
+:meth:`from_pretrained` before a tensor is read (:mod:`resireg.integrity`); files are written
+atomically with the umask's mode. :meth:`push_to_hub` publishes an export folder with a model
+card (:mod:`resireg.deploy.card`) to the Hugging Face Hub.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import Tensor, nn
 
+from resireg.integrity import (
+    IntegrityError,
+    atomic_write,
+    digests,
+    load_safetensors,
+    read_json,
+    verify_digests,
+)
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.hub import require_online
 from resireg.models.vlm.eupe import EUPEBackbone
@@ -35,6 +48,8 @@ from resireg.sources import is_repo_id
 __all__ = ["ResiregVLM"]
 
 _FORMAT = "resireg-vlm"
+#: Whose files an :class:`~resireg.integrity.IntegrityError` names.
+_WHAT = "ResiregVLM export"
 
 
 def _prefixed(parts: dict[str, nn.Module]) -> dict[str, Tensor]:
@@ -158,13 +173,18 @@ class ResiregVLM(DenseEncoder):
         }
 
     def save_pretrained(self, directory: str | os.PathLike, include_frozen: bool = False) -> Path:
-        """Write ``config.json`` + ``model.safetensors`` (+ ``frozen.safetensors`` when needed)."""
+        """Write ``config.json`` + ``model.safetensors`` (+ ``frozen.safetensors`` when needed).
+
+        Each file is written atomically (:func:`~resireg.integrity.atomic_write`: a reader sees
+        the old file or the new one; mode from the umask, not safetensors' 0600), tensor files
+        first, and ``config.json`` records their SHA-256 (``digests``) for
+        :meth:`from_pretrained` to verify."""
         out = Path(directory)
         out.mkdir(parents=True, exist_ok=True)
         cfg = self.config()
-        save_file(
-            _prefixed({"head": self.head, "text_proj": self.text_proj}), out / "model.safetensors"
-        )
+        trained = _prefixed({"head": self.head, "text_proj": self.text_proj})
+        atomic_write(out / "model.safetensors", lambda tmp: save_file(trained, tmp))
+        files = ["model.safetensors"]
         frozen: dict[str, nn.Module] = {}
         if include_frozen or self.backbone.weights is None:
             frozen["backbone"] = self.backbone
@@ -172,9 +192,13 @@ class ResiregVLM(DenseEncoder):
         if include_frozen or cfg["text"]["kind"] == "tiny":
             frozen["text"] = self.text
         if frozen:
-            save_file(_prefixed(frozen), out / "frozen.safetensors")
+            tensors = _prefixed(frozen)
+            atomic_write(out / "frozen.safetensors", lambda tmp: save_file(tensors, tmp))
             cfg["frozen_weights"] = "frozen.safetensors"
-        (out / "config.json").write_text(json.dumps(cfg, indent=2))
+            files.append("frozen.safetensors")
+        cfg["digests"] = digests(out, files)
+        text = json.dumps(cfg, indent=2)
+        atomic_write(out / "config.json", lambda tmp: tmp.write_text(text))
         return out
 
     @classmethod
@@ -184,37 +208,100 @@ class ResiregVLM(DenseEncoder):
         """Load a bundle from a directory written by :meth:`save_pretrained`, or from a Hugging
         Face repo id ``owner/name`` (the local cache first; the hub only when online)."""
         path = _export_dir(source)
-        cfg_file = path / "config.json"
-        if not cfg_file.is_file():
-            raise FileNotFoundError(f"{str(path)!r} holds no config.json (not a ResiregVLM export)")
-        cfg = json.loads(cfg_file.read_text())
-        if cfg.get("format") != _FORMAT:
-            raise ValueError(
-                f"{str(cfg_file)!r} is not a {_FORMAT} config (format={cfg.get('format')!r})"
-            )
+        cfg = read_config(path)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
         if "frozen_weights" in cfg:
             _load_prefixed(
-                load_file(path / cfg["frozen_weights"]),
+                load_safetensors(path / cfg["frozen_weights"], _WHAT),
                 {"backbone": model.backbone, "text": model.text},
             )
-        model.load_trained(path)
+        model.load_trained(path, verified=True)
         model.export_source = os.fspath(source)
         return model.to(map_location).eval()
 
-    def load_trained(self, directory: str | os.PathLike) -> list[str]:
+    def load_trained(self, directory: str | os.PathLike, verified: bool = False) -> list[str]:
         """Load an export's trained parts (head, text projection) into this model.
 
-        Returns the names of the loaded tensors (``"head.…"``, ``"text_proj.…"``).
+        The digests of the export's ``config.json`` are checked first, where it has one
+        (``verified``: the caller, :meth:`from_pretrained`, has done so). Returns the names of the loaded tensors
+        (``"head.…"``, ``"text_proj.…"``).
         """
+        if not verified and (Path(directory) / "config.json").is_file():
+            read_config(directory)
         file = Path(directory) / "model.safetensors"
-        trained = load_file(file)
+        trained = load_safetensors(file, _WHAT)
         parts = {"head": self.head, "text_proj": self.text_proj}
         missing = [n for n in parts if not any(k.startswith(f"{n}.") for k in trained)]
         if missing:
             raise ValueError(f"{str(file)!r} holds no weights for {missing}")
         _load_prefixed(trained, parts)
         return sorted(trained)
+
+    # ------------------------------------------------------------------ the Hub
+    def push_to_hub(
+        self,
+        repo_id: str,
+        *,
+        export: str | os.PathLike | None = None,
+        private: bool | None = None,
+        token: str | None = None,
+        revision: str | None = None,
+        commit_message: str = "Upload ResiregVLM export",
+        card: dict[str, Any] | None = None,
+    ) -> Any:
+        """Publish this model to the Hugging Face Hub repository ``repo_id`` (``owner/name``).
+
+        The folder uploaded is :func:`resireg.deploy.card.hub_folder`'s: an export with its
+        digests (by default a fresh :meth:`save_pretrained` of this model as it is now, so
+        weights changed since loading are what is published; ``export``: an existing export
+        folder or repo id as it is, verified first), plus a model card ``README.md``
+        (``card``: extra card fields, e.g. ``{"license": "apache-2.0", "metrics": ...}``).
+        The repository is created if missing (``HfApi.create_repo(exist_ok=True)``), then
+        the folder is sent in one commit (``HfApi.upload_folder``). Returns its
+        ``CommitInfo``. ``from_pretrained(repo_id)`` loads it back."""
+        import tempfile
+
+        from huggingface_hub import HfApi
+
+        from resireg.deploy.card import hub_folder
+
+        with tempfile.TemporaryDirectory(prefix="resireg-push-") as tmp:
+            source = export if export is not None else self.save_pretrained(Path(tmp) / "export")
+            folder = hub_folder(_export_dir(source), Path(tmp) / "upload", repo_id, card)
+            api = HfApi(token=token)
+            api.create_repo(repo_id, private=private, repo_type="model", exist_ok=True)
+            return api.upload_folder(
+                repo_id=repo_id,
+                folder_path=str(folder),
+                repo_type="model",
+                revision=revision,
+                commit_message=commit_message,
+            )
+
+
+def read_config(directory: str | os.PathLike) -> dict[str, Any]:
+    """An export's ``config.json``, with the SHA-256 of every tensor file it records verified
+    (:func:`~resireg.integrity.verify_digests`); an export written before digests were
+    recorded loads with a warning. A missing, truncated or altered file is an
+    :class:`~resireg.integrity.IntegrityError` naming it."""
+    path = Path(directory)
+    cfg_file = path / "config.json"
+    if not cfg_file.is_file():
+        raise FileNotFoundError(f"{str(path)!r} holds no config.json (not a ResiregVLM export)")
+    cfg = read_json(cfg_file, f"{_WHAT} config")
+    if not isinstance(cfg, dict) or cfg.get("format") != _FORMAT:
+        found = cfg.get("format") if isinstance(cfg, dict) else type(cfg).__name__
+        raise IntegrityError(f"{str(cfg_file)!r} is not a {_FORMAT} config (format={found!r})")
+    recorded = cfg.get("digests")
+    if recorded is None:
+        warnings.warn(
+            f"{cfg_file}: this export records no file digests (written before they were "
+            "recorded): its tensor files are loaded unverified; save_pretrained again to add them",
+            stacklevel=3,
+        )
+    else:
+        verify_digests(path, recorded, _WHAT)
+    return cfg
 
 
 def _check_sizes(

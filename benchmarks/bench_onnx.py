@@ -1,0 +1,129 @@
+"""onnxruntime (CPU execution provider) against eager torch for the 25M VLM's ONNX graphs.
+
+The 25M architecture with random weights (EUPE ViT-S/16 and the 25M head:
+``_common.build_model``) is exported twice by ``resireg.deploy.onnx_export.export_onnx``
+with dynamic shapes: the VLM's image graph (backbone + head) and the same with ReSiReg Lite
+in the graph (its SDPA form). Each graph runs on ``--short-side`` x 4/3 inputs (576 x 768, the
+protocol's) at each ``--batch`` (1 and 4) against eager torch in float32 on the same inputs:
+``model.encode`` for the VLM, and for VLM + Lite ``encode`` then ``ReSiRegLite`` in both exact
+forms (``factorised``, torch's default on the CPU, and ``sdpa``, the graph's). Timed in
+alternating rounds (one call of each per round, after one warm-up call each); medians and
+the ratios torch / onnxruntime. Both use ``torch.get_num_threads()`` threads. Also printed:
+the export time of each graph, its operator sets and size, and the largest difference of the
+unit features between the two runtimes.
+
+    python benchmarks/bench_onnx.py                                   # 576 x 768, batch 1 and 4
+    python benchmarks/bench_onnx.py --short-side 96 --batch 1 --rounds 1   # quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import torch
+import torch.nn.functional as F
+
+from _common import build_model
+from resireg.deploy.onnx_export import export_onnx
+from resireg.reconstruct import ReSiRegLite
+
+
+def _session(path: Path, threads: int) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def _unit_diff(a: np.ndarray, b: torch.Tensor) -> float:
+    return float((F.normalize(torch.from_numpy(a), dim=1) - F.normalize(b, dim=1)).abs().max())
+
+
+def _calls(model, sessions, images, lite_f, lite_s) -> dict:
+    """``{(graph, runtime): call}`` on one batch of ``images``."""
+    feed = {"images": images.numpy()}
+
+    def vlm():
+        with torch.no_grad():
+            return model.encode(images)
+
+    def with_lite(lite):
+        def run():
+            with torch.no_grad():
+                out = model.encode(images)
+                return lite(out.intermediates, out.language)
+
+        return run
+
+    return {
+        ("vlm", "torch"): vlm,
+        ("vlm", "onnxruntime"): lambda: sessions["vlm"].run(None, feed),
+        ("vlm+lite", "torch (factorised)"): with_lite(lite_f),
+        ("vlm+lite", "torch (sdpa)"): with_lite(lite_s),
+        ("vlm+lite", "onnxruntime"): lambda: sessions["vlm+lite"].run(None, feed),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--short-side", type=int, default=576)
+    parser.add_argument("--batch", type=int, nargs="+", default=[1, 4])
+    parser.add_argument("--rounds", type=int, default=3)
+    args = parser.parse_args()
+    threads = torch.get_num_threads()
+    torch.manual_seed(0)
+    model = build_model()
+    h, w = args.short_side, args.short_side * 4 // 3
+    print(f"25M VLM (random weights), {h} x {w}, torch {torch.__version__}, onnxruntime "
+          f"{ort.__version__}, {threads} threads, medians of {args.rounds} alternating rounds")  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        graphs = {}
+        for name, lite in (("vlm", False), ("vlm+lite", True)):
+            result = export_onnx(model, Path(tmp) / f"{name}.onnx", lite=lite, dynamic=True,
+                                 text=False)  # fmt: skip
+            graphs[name] = result.image
+            size = result.image.stat().st_size / 2**20
+            print(f"export {name}: {result.seconds['image']:.1f} s, opsets {result.opsets}, "
+                  f"{size:.0f} MiB")  # fmt: skip
+        sessions = {name: _session(path, threads) for name, path in graphs.items()}
+        lite_f, lite_s = ReSiRegLite(attention="factorised"), ReSiRegLite(attention="sdpa")
+
+        rows = []
+        for batch in args.batch:
+            images = torch.randn(batch, 3, h, w)
+            feed = {"images": images.numpy()}
+
+            calls = _calls(model, sessions, images, lite_f, lite_s)
+            # agreement first (also the warm-up call of each)
+            ref = calls[("vlm+lite", "torch (factorised)")]()
+            got = sessions["vlm+lite"].run(None, feed)
+            diff = _unit_diff(got[3], ref)
+            for fn in calls.values():
+                fn()
+            times: dict[tuple[str, str], list[float]] = {k: [] for k in calls}
+            for _ in range(args.rounds):
+                for key, fn in calls.items():
+                    start = time.perf_counter()
+                    fn()
+                    times[key].append(time.perf_counter() - start)
+            med = {k: statistics.median(v) for k, v in times.items()}
+            for key in calls:
+                graph, runtime = key
+                ort_s = med[(graph, "onnxruntime")]
+                rows.append((graph, batch, runtime, med[key], med[key] / ort_s))
+            print(
+                f"batch {batch}: Lite's unit features, onnxruntime vs torch: max |diff| {diff:.1e}"
+            )
+        print("\n| graph | batch | runtime | median s | / onnxruntime |")
+        print("| --- | --- | --- | --- | --- |")
+        for graph, batch, runtime, s, ratio in rows:
+            print(f"| {graph} | {batch} | {runtime} | {s:.3f} | {ratio:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
