@@ -258,5 +258,29 @@ def test_lineage_stage1_stage2_export_eval_and_map(tmp_path, room_bag_path):
              str(evaluation)]  # fmt: skip
     positions = [next(i for i, line in enumerate(lines) if part in line) for part in order]
     assert positions == sorted(positions), lines
+    # The export's model card: parsed by huggingface_hub, its results equal results.json
+    from huggingface_hub import ModelCard
+
+    card = ModelCard.load(export / "README.md")
+    s2_final = json.loads((stage2 / "results.json").read_text())["final"]
+    trained = {r.metric_name: r.metric_value for r in card.data.eval_results}
+    assert trained == pytest.approx({f"{k.split('/')[-1].split('_')[0]} "
+                                     f"({k.split('/')[-1].split('_', 1)[1]})": v
+                                     for k, v in s2_final.items() if k.startswith("val/")
+                                     and "miou_" in k})  # fmt: skip
+    assert card.data.library_name == "resireg" and s2["run_id"] in card.text
+    _runs_cli("card", export, "--add", evaluation)
+    card = ModelCard.load(export / "README.md")
+    evaluated = json.loads((evaluation / "results.json").read_text())
+    added = {(r.source_name.split()[0], r.metric_name): r.metric_value
+             for r in card.data.eval_results if r.source_name.startswith("resireg-eval")}  # fmt: skip
+    expected = {("resireg-eval", f"{k.split('/')[-1].split('_')[0]} "
+                 f"({k.split('/')[-1].split('_', 1)[1]})"): v
+                for k, v in evaluated["final"].items() if "iou_" in k}  # fmt: skip
+    assert expected and added == pytest.approx(expected)
+    kept = {r.metric_name: r.metric_value for r in card.data.eval_results
+            if r.source_name == "resireg-train validation"}  # fmt: skip
+    assert kept == pytest.approx(trained)  # the training's validation scores stay
+    assert str(evaluation) in card.text.split("## Evaluations")[1]
     down = _runs_cli("lineage", export, "--root", logs)
     assert "used by resireg-map" in down and str(mapped) in down and str(evaluation) in down

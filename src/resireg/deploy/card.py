@@ -98,6 +98,24 @@ or through `torch.hub` (the ResiReg repository's `hubconf.py`):
     return ModelCard(f"---\n{data.to_yaml()}\n---\n{body}")
 
 
+#: What a published card keeps of the export's own card (its front matter).
+_CARRIED = ("model_name", "datasets", "eval_results", "base_model")
+
+
+def _card_of(export: Path) -> tuple[dict[str, Any], str] | None:
+    """``(front-matter fields, provenance and evaluation sections)`` of the export's own
+    ``README.md`` (written by ``resireg-train``, extended by ``resireg-runs card``), if any."""
+    from huggingface_hub import ModelCard
+
+    path = export / "README.md"
+    if not path.is_file():
+        return None
+    card = ModelCard.load(path)
+    fields = {k: getattr(card.data, k) for k in _CARRIED if getattr(card.data, k, None)}
+    at = card.text.find("\n## Provenance")
+    return fields, (card.text[at:] if at >= 0 else "")
+
+
 def hub_folder(
     export: str | os.PathLike,
     dest: str | os.PathLike,
@@ -119,7 +137,13 @@ def hub_folder(
     for name in dict.fromkeys(names):
         shutil.copyfile(export / name, dest / name)
     sums = digests(dest, dict.fromkeys(names))
-    model_card(cfg, repo_id, sums, card).save(dest / "README.md")
+    made = _card_of(export)  # the card resireg-train wrote (results, data, provenance)
+    fields = {**({k: v for k, v in made[0].items() if k in _CARRIED} if made else {}),
+              **(card or {})}  # fmt: skip
+    text = str(model_card(cfg, repo_id, sums, fields))
+    if made and made[1]:
+        text += made[1]
+    atomic_write(dest / "README.md", lambda tmp: tmp.write_text(text))
     lines = "".join(f"{digest}  {name}\n" for name, digest in sums.items())
     atomic_write(dest / "SHA256SUMS", lambda tmp: tmp.write_text(lines))
     return dest

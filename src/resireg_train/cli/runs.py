@@ -5,6 +5,7 @@
     resireg-runs show RUN [--root ROOT ...]
     resireg-runs diff RUN_A RUN_B [--root ROOT ...]
     resireg-runs lineage RUN_OR_EXPORT [--root ROOT ...]
+    resireg-runs card EXPORT [--add EVAL_RUN ...]
 
 RUN is a run folder or a run id (a unique prefix of ``results.json``'s
 ``provenance.run_id``). ROOT defaults to ``outputs`` (``paths.log_dir``'s default).
@@ -76,6 +77,16 @@ def main(argv: list[str] | None = None) -> None:
         one = sub.add_parser(name, help=helptext)
         one.add_argument("run", metavar="RUN" if name == "show" else "RUN_OR_EXPORT")
         one.add_argument("--root", action="append", metavar="ROOT")
+    card = sub.add_parser("card", help="an export's model card (README.md); --add: an "
+                          "evaluation's results into it")  # fmt: skip
+    card.add_argument("export", metavar="EXPORT")
+    card.add_argument(
+        "--add",
+        action="append",
+        default=[],
+        metavar="EVAL_RUN",
+        help="a resireg-eval run folder of this export (repeatable)",
+    )
     two = sub.add_parser("diff", help="config, provenance and metric differences of two runs")
     two.add_argument("a", metavar="RUN_A")
     two.add_argument("b", metavar="RUN_B")
@@ -94,6 +105,18 @@ def main(argv: list[str] | None = None) -> None:
             _print_rows([{c: r.value(c) for c in columns} for r in found], columns, args.format)
             if args.format == "table":
                 print(f"{len(found)} run(s)")
+            return
+        if args.command == "card":
+            from pathlib import Path
+
+            from resireg_train.cards import CARD_FILE, add_evaluation
+
+            for run in args.add:
+                add_evaluation(args.export, run)
+            path = Path(args.export) / CARD_FILE
+            if not path.is_file():
+                raise ValueError(f"{args.export}: no {CARD_FILE}")
+            print(path.read_text())
             return
         roots = args.root or [DEFAULT_ROOT]
         if args.command == "show":

@@ -252,6 +252,7 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     import lightning as L
     from lightning.pytorch.callbacks import ProgressBar
 
+    from resireg_train.cards import write_export_card
     from resireg_train.ovss.callback import ReSiRegEval
     from resireg_train.provenance import write_export_provenance
     from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
@@ -306,6 +307,7 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
             export = module.vlm.save_pretrained(out / "export")
             # the run that made it (its provenance, the last checkpoint's SHA-256)
             write_export_provenance(export, out, read_results(out).get("provenance") or {})
+            write_export_card(export, out)  # README.md: a Hugging Face model card
             for callback in trainer.callbacks:
                 if isinstance(callback, ReSiRegEval):
                     callback.save_settings(export)

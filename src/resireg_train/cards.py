@@ -1,0 +1,135 @@
+"""Model cards for exports: every export ``resireg-train`` writes gets a ``README.md`` in
+Hugging Face's model-card format (:func:`resireg.deploy.card.model_card`'s front matter and
+body), with the training data as ``datasets``, the run's validation scores as ``model-index``
+results, and a provenance section (run id, commit, checkpoint digest, data identity);
+``resireg-runs card <export> --add <eval run>`` adds an evaluation's results
+(:func:`add_evaluation`). ``huggingface_hub.ModelCard.load`` reads both, and
+``ResiregVLM.push_to_hub`` publishes the card's results with the model.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from resireg_train.results import read_results
+
+__all__ = ["CARD_FILE", "add_evaluation", "eval_results", "write_export_card"]
+
+CARD_FILE = "README.md"
+_TASK = "image-segmentation"
+
+
+def eval_results(record: Mapping[str, Any], source: str, folder: Path) -> list[Any]:
+    """One ``huggingface_hub.EvalResult`` per mIoU / f-mIoU a run record's ``final`` holds
+    (``val/<task>/<dataset>/<metric>_<variant>``), named ``<metric> (<variant>)``, its source
+    ``source`` at the run ``folder`` (a ``file://`` URL)."""
+    from huggingface_hub import EvalResult
+
+    dataset_spec = ((record.get("params") or {}).get("dataset")) or {}
+    out = []
+    for key, value in sorted((record.get("final") or {}).items()):
+        parts = key.split("/")
+        if len(parts) != 4 or parts[0] != "val" or value is None:
+            continue
+        _, task, dataset, score = parts
+        metric, _, variant = score.partition("_")
+        if metric not in ("miou", "fmiou") or "@" in variant:
+            continue
+        out.append(EvalResult(
+            task_type=_TASK, task_name=f"open-vocabulary {task}", dataset_type=dataset,
+            dataset_name=dataset, dataset_split=dataset_spec.get("split"),
+            dataset_revision=dataset_spec.get("revision"),
+            metric_type="mean_iou" if metric == "miou" else "frequency_weighted_iou",
+            metric_name=f"{metric} ({variant})", metric_value=float(value), source_name=source,
+            source_url=Path(folder).resolve().as_uri(),
+        ))  # fmt: skip
+    return out
+
+
+def _provenance_section(record: Mapping[str, Any], export: Path) -> str:
+    prov = record.get("provenance") or {}
+    git = (prov.get("code") or {}).get("git") or {}
+    made = {}
+    made_file = export / "provenance.json"
+    if made_file.is_file():
+        made = json.loads(made_file.read_text())
+    lines = ["", "## Provenance", "",
+             f"- training run: `{prov.get('run_id')}` ({prov.get('cli') or 'resireg-train'}), "
+             f"folder `{record.get('output_dir')}`",
+             f"- code: resireg {(prov.get('code') or {}).get('version')}"
+             + (f", commit `{git.get('commit')}`{' (uncommitted changes: code.diff)' if git.get('dirty') else ''}"
+                if git else ""),
+             f"- last checkpoint SHA-256: `{((made.get('checkpoint') or {}).get('sha256'))}`"]  # fmt: skip
+    for key, data in (prov.get("data") or {}).items():
+        lines.append(f"- data `{key}`: " + ", ".join(f"{k}={v}" for k, v in data.items()
+                                                      if k != "settings"))  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def write_export_card(export: Path, out: Path) -> Path:
+    """``<export>/README.md`` for the export the training run in ``out`` wrote: the card of
+    :func:`resireg.deploy.card.model_card` named after the run, its training data as
+    ``datasets``, its final validation scores as ``model-index`` results, and a provenance
+    section."""
+    from huggingface_hub import ModelCard
+
+    from resireg.deploy.card import model_card
+    from resireg.models.vlm.model import read_config
+
+    record = read_results(out)
+    cfg = read_config(export)
+    name = f"{record.get('name', 'resireg')}-{(record.get('provenance') or {}).get('run_id')}"
+    data = (record.get("provenance") or {}).get("data") or {}
+    datasets = sorted({str(d.get("repo") or d.get("path") or key) for key, d in data.items()
+                       if d.get("kind") in ("hub", "local")})  # fmt: skip
+    results = eval_results(record, "resireg-train validation", out)
+    fields: dict[str, Any] = {"model_name": name}
+    if datasets:
+        fields["datasets"] = datasets
+    if results:
+        fields["eval_results"] = results
+    card = model_card(cfg, name, dict(cfg.get("digests") or {}), fields)
+    ModelCard(str(card) + _provenance_section(record, export)).save(export / CARD_FILE)
+    return export / CARD_FILE
+
+
+def add_evaluation(export: str | Path, run: str | Path) -> list[Any]:
+    """Add the evaluation in run folder ``run`` (``resireg-eval`` of this export) to the
+    export's card: its mIoU / f-mIoU per variant as ``model-index`` results beside the
+    training's validation scores (an earlier evaluation of the same dataset, split and metric
+    is replaced) and a line in the card's evaluations section. Returns the card's results."""
+    from huggingface_hub import ModelCard
+
+    export, run = Path(export), Path(run)
+    path = export / CARD_FILE
+    if not path.is_file():
+        raise ValueError(f"{export}: no {CARD_FILE} (not an export resireg-train wrote a card for)")
+    record = read_results(run)
+    if record.get("status") != "completed":
+        raise ValueError(f"{run}: status {record.get('status')!r}, not a completed evaluation")
+    new = eval_results(
+        record, f"resireg-eval {(record.get('provenance') or {}).get('run_id')}", run
+    )
+    if not new:
+        raise ValueError(f"{run}: its results.json holds no mIoU / f-mIoU to add")
+    card = ModelCard.load(path)
+
+    def key(result: Any) -> tuple:  # an evaluation replaces an earlier one of the same cell
+        return (str(result.source_name).split()[0], result.dataset_name, result.dataset_split,
+                result.metric_name)  # fmt: skip
+
+    replaced = {key(r) for r in new}
+    kept = [r for r in card.data.eval_results or [] if key(r) not in replaced]
+    card.data.eval_results = kept + new
+    if not card.data.model_name:
+        card.data.model_name = export.parent.name
+    line = (f"- `{run}`: " + ", ".join(f"{r.dataset_name} {r.metric_name} = {r.metric_value:.4f}"
+                                       for r in new))  # fmt: skip
+    header = "\n## Evaluations\n"
+    text = card.text.rstrip("\n")
+    card.text = text + ("\n" if header in card.text else "\n" + header + "\n") + line + "\n"
+    card.save(path)
+    return card.data.eval_results
