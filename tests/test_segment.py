@@ -62,6 +62,23 @@ def test_segment_is_the_protocols_prediction_at_the_images_size(tiny_export, pho
     np.testing.assert_array_equal(again.label_map, result.label_map)
 
 
+@pytest.mark.slow
+def test_segment_takes_any_encoder_of_the_zoo_by_its_build_keywords(photo):
+    """A zoo encoder by its build_encoder keywords (CLIP ViT-B/16, random init: no download),
+    against the reference on the same encoder built directly with the same seed."""
+    from resireg.models import build_encoder
+
+    spec = {"kind": "clip", "model_name": "ViT-B-16", "weights": None}
+    image = np.ascontiguousarray(photo[::4, ::4])  # 128 x 128
+    torch.manual_seed(0)
+    result = resireg.segment(image, ["person", "sky"], spec, "lite")
+    torch.manual_seed(0)
+    model = build_encoder(**spec).eval()
+    labels, sim = _reference(model, image, ("person", "sky"), "lite")
+    np.testing.assert_array_equal(result.label_map, labels)
+    np.testing.assert_allclose(result.similarity, sim, atol=1e-5)
+
+
 def test_bad_labels_and_encoders_are_named():
     with pytest.raises(ValueError, match="labels='floor,,chair'"):
         resireg.segment(np.zeros((32, 32, 3), np.uint8), "floor,,chair", "x")
