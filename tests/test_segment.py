@@ -153,3 +153,16 @@ def test_resireg_segment_names_a_bad_argument(tmp_path, capsys):
     Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(tmp_path / "y.png")
     code, err = run(tmp_path / "y.png", "--labels", "a,b", "--model-path", tmp_path / "nope", *out)
     assert code == 2 and "--model-path=" in err and "not an export folder" in err
+
+
+def test_resireg_segment_reports_bad_arguments_before_torch_loads(tmp_path):
+    code = (
+        "import sys\n"
+        "from resireg.deploy.cli import segment_main\n"
+        f"code = segment_main(['{tmp_path / 'x.png'}', '--labels', 'a,,b', '--model-path', 'e',\n"
+        f"                     '--out', '{tmp_path / 's.png'}'])\n"
+        "print(code, 'torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "2 False", out.stdout + out.stderr
+    assert "--labels='a,,b'" in out.stderr
