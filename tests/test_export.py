@@ -372,3 +372,9 @@ def test_torch_hub_load_of_the_checkout_equals_from_pretrained(tiny_export):
     with torch.no_grad():
         assert torch.equal(hub.encode(images).language, ref.encode(images).language)
     assert torch.equal(hub.encode_text(["floor"]), ref.encode_text(["floor"]))
+    image = np.random.default_rng(0).integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    result = torch.hub.load(str(ROOT), "resireg_segment", image, "floor,chair",
+                            path_or_repo=str(tiny_export), source="local")  # fmt: skip
+    from resireg.deploy.segment import segment
+
+    np.testing.assert_array_equal(result.label_map, segment(image, "floor,chair", ref).label_map)

@@ -62,6 +62,23 @@ def test_segment_is_the_protocols_prediction_at_the_images_size(tiny_export, pho
     np.testing.assert_array_equal(again.label_map, result.label_map)
 
 
+@pytest.mark.slow
+def test_segment_takes_any_encoder_of_the_zoo_by_its_build_keywords(photo):
+    """A zoo encoder by its build_encoder keywords (CLIP ViT-B/16, random init: no download),
+    against the reference on the same encoder built directly with the same seed."""
+    from resireg.models import build_encoder
+
+    spec = {"kind": "clip", "model_name": "ViT-B-16", "weights": None}
+    image = np.ascontiguousarray(photo[::4, ::4])  # 128 x 128
+    torch.manual_seed(0)
+    result = resireg.segment(image, ["person", "sky"], spec, "lite")
+    torch.manual_seed(0)
+    model = build_encoder(**spec).eval()
+    labels, sim = _reference(model, image, ("person", "sky"), "lite")
+    np.testing.assert_array_equal(result.label_map, labels)
+    np.testing.assert_allclose(result.similarity, sim, atol=1e-5)
+
+
 def test_bad_labels_and_encoders_are_named():
     with pytest.raises(ValueError, match="labels='floor,,chair'"):
         resireg.segment(np.zeros((32, 32, 3), np.uint8), "floor,,chair", "x")
@@ -136,3 +153,16 @@ def test_resireg_segment_names_a_bad_argument(tmp_path, capsys):
     Image.fromarray(np.zeros((32, 32, 3), np.uint8)).save(tmp_path / "y.png")
     code, err = run(tmp_path / "y.png", "--labels", "a,b", "--model-path", tmp_path / "nope", *out)
     assert code == 2 and "--model-path=" in err and "not an export folder" in err
+
+
+def test_resireg_segment_reports_bad_arguments_before_torch_loads(tmp_path):
+    code = (
+        "import sys\n"
+        "from resireg.deploy.cli import segment_main\n"
+        f"code = segment_main(['{tmp_path / 'x.png'}', '--labels', 'a,,b', '--model-path', 'e',\n"
+        f"                     '--out', '{tmp_path / 's.png'}'])\n"
+        "print(code, 'torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "2 False", out.stdout + out.stderr
+    assert "--labels='a,,b'" in out.stderr

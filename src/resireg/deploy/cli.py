@@ -110,7 +110,7 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="the label map PNG, e.g. seg.png")
     args = parser.parse_args(argv)
 
-    from resireg.deploy.segment import parse_labels
+    from resireg.deploy.labels import parse_labels
 
     try:
         labels = parse_labels(args.labels, "--labels")
@@ -137,14 +137,15 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
 
     from PIL import Image, UnidentifiedImageError
 
-    from resireg.deploy.segment import save_outputs, segment
-    from resireg.integrity import IntegrityError
-
-    try:
+    try:  # before torch loads: a bad file is reported at once
         with Image.open(args.image) as im:
             photo = im.convert("RGB") if im.mode not in ("RGB", "I;16", "I") else im.copy()
     except (OSError, UnidentifiedImageError) as err:
         return _fail(f"{args.image}: not a readable image ({err})")
+
+    from resireg.deploy.segment import save_outputs, segment
+    from resireg.integrity import IntegrityError
+
     try:
         result = segment(photo, labels, encoder, args.variant, short_side=args.short_side,
                          device=args.device)  # fmt: skip

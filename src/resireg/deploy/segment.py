@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
+from resireg.deploy.labels import parse_labels
 from resireg.models.encoder import DenseEncoder
 from resireg.models.images import pil_to_tensor
 from resireg.ovss import TEMPLATES, class_similarity, predict, text_prototypes
@@ -71,20 +72,6 @@ class SegmentationResult:
             name: float(c) / self.label_map.size
             for name, c in zip(self.labels, counts, strict=True)
         }
-
-
-def parse_labels(labels: str | Sequence[str], name: str = "labels") -> tuple[str, ...]:
-    """``"floor,chair, table"`` or a list -> ``("floor", "chair", "table")``; empty or
-    repeated labels are an error naming ``name``."""
-    items = labels.split(",") if isinstance(labels, str) else list(labels)
-    out = tuple(str(x).strip() for x in items)
-    if not out or any(not x for x in out):
-        raise ValueError(f"{name}={labels!r}: expected non-empty labels separated by commas")
-    if len(set(out)) != len(out):
-        raise ValueError(f"{name}={labels!r}: a label is repeated")
-    if len(out) > 255:
-        raise ValueError(f"{name}: {len(out)} labels; the label map PNG holds at most 255")
-    return out
 
 
 def load_encoder(encoder: Any, device: str | torch.device = "cpu") -> DenseEncoder:
