@@ -150,6 +150,7 @@ def test_an_interrupted_save_leaves_the_previous_one(encoder, room, tmp_path, mo
     loaded = SemanticMap.load(tmp_path, encoder)
     assert loaded.frames == 2 and torch.equal(loaded.features()[1], before)
     assert not list(tmp_path.glob(".*.tmp"))
+    assert len(list(tmp_path.glob("map-*.safetensors"))) == 1  # no orphan of the failed save
 
 
 def test_voxel_budget_raises_before_adding(encoder, room):
