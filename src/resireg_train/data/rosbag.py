@@ -462,7 +462,7 @@ class BagSource:
                 kind = "bad_stamp" if why.startswith("header stamp") else "undecodable"
                 out[pos] = SkippedFrame(name, why, kind)
             elif m < 0:
-                out[pos] = SkippedFrame(name, f"no {t.colour} image within {self.tolerance} s",
+                out[pos] = SkippedFrame(name, self._unpaired_reason(stamp, colour_times),
                                         "unpaired")  # fmt: skip
             colour_key = None if m < 0 else self.colour_stamps[m][::-1]
             plan.append((stamp, (bag_time, stamp), colour_key, frame_id))
@@ -530,6 +530,17 @@ class BagSource:
             next_pos += 1
         for i in range(self.unread_depth):  # in the bag's index, after the damage
             yield SkippedFrame(f"{t.depth}#unread-{i + 1}", self.damage or "", "damaged")
+
+    def _unpaired_reason(self, stamp: float, colour_times: np.ndarray) -> str:
+        t = self.topics
+        why = f"no {t.colour} image within {self.tolerance} s"
+        if colour_times.size:
+            nearest = colour_times[np.abs(colour_times - stamp).argmin()]
+            return f"{why} (the nearest is {nearest - stamp:+.3f} s away)"
+        faults = len(self.colour_stamp_faults)
+        return f"{why} ({t.colour} has no usable message" + (
+            f": {faults} left out for their stamps)" if faults else ")"
+        )
 
     def _record(self, pos, plan, out, colours, depths) -> RGBDFrame | SkippedFrame:
         if pos in out:
