@@ -14,7 +14,9 @@ Queries: :meth:`~SemanticMap.query` (cosine similarity of every voxel to text qu
 :meth:`~SemanticMap.classify` (the protocol's class prototypes: 80 templates averaged, cosine
 argmax or RayFronts' thresholded rule). Persistence: :meth:`~SemanticMap.save` /
 :meth:`SemanticMap.load` (safetensors + JSON, atomic: a crash mid-save leaves the previous save
-loadable), :meth:`~SemanticMap.to_ply`.
+loadable; the JSON records the tensor file's SHA-256 and its own digest, verified on load),
+:meth:`~SemanticMap.to_ply`. :meth:`~SemanticMap.fuse` refuses non-finite or non-floating
+features, intrinsics and poses (:func:`resireg.checks.check_features`).
 
 Memory bound: the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators (``s`` = 8
 for float64 sums, 4 for ``sum_dtype="float32"``), 16 bytes of key and row, and, with
