@@ -360,9 +360,8 @@ class SemanticMap:
             )
         raw = self.resized(images)
         dense = self._encode_resized(raw)
-        check_features(ENCODER_OUTPUT, dense)  # named apart from a caller's bad input
-        return self.fuse(dense, depth, intrinsics, cam_to_world,
-                         colour=raw if self.colours is not None else None)  # fmt: skip
+        return self._fuse(dense, depth, intrinsics, cam_to_world,
+                          raw if self.colours is not None else None, None, ENCODER_OUTPUT)  # fmt: skip
 
     @torch.no_grad()
     def fuse(
@@ -382,12 +381,17 @@ class SemanticMap:
         each feature grid once (the 3D task's engine). Runs with autocast off (fp32 / fp64).
         Raises :class:`MapFullError` (adding nothing) when the window would take the map past
         ``max_voxels``."""
+        return self._fuse(features, depth, intrinsics, cam_to_world, colour, lifted, "features")
+
+    def _fuse(self, features, depth, intrinsics, cam_to_world, colour, lifted, name) -> int:
+        """:meth:`fuse`, its features checked under ``name`` (:meth:`add`: the encoder output,
+        checked once)."""
         if not isinstance(features, Tensor) or features.ndim != 4:
             shape = tuple(features.shape) if isinstance(features, Tensor) else type(features)
             raise ValueError(f"features of shape {shape}: expected [B, D, h, w]")
         # A NaN feature would stay in its voxel's sum for good, and integer features would be
         # fused as they are: refused here (resireg.checks, one isfinite reduction per tensor).
-        check_features("features", features)
+        check_features(name, features)
         check_features("intrinsics", intrinsics)
         check_features("cam_to_world", cam_to_world)
         if not isinstance(depth, Tensor) or not depth.is_floating_point():
