@@ -618,3 +618,19 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
     left = sorted(p.name for p in (out / "map").iterdir())
     assert len(left) == 2 and "map.json" in left and not any(n.endswith(".tmp") for n in left)
     assert SemanticMap.load(out / "map").frames == 4
+
+
+def test_a_corrupt_depth_message_does_not_make_later_stamps_bad(tmp_path, room):
+    """A bag recorded on another clock than its header stamps (bag times 1000 s later, as a
+    robot on simulated time gives) with one depth message of garbage: that frame is
+    undecodable, and every other frame is read (the garbage message has no stamp to compare)."""
+    clean = write_bag(tmp_path / "clean", room, decoys=False)
+
+    def later(topic, t, msg):
+        if topic == TOPICS["depth"] and frame_of(msg) == 2:
+            return [(t + 10**12, b"\x00\x01\x00\x00garbage")]
+        return [(t + 10**12, msg)]
+
+    records = list(bag_source(rewrite_bag(clean, tmp_path / "later", later)))
+    kinds = [getattr(r, "kind", "frame") for r in records]
+    assert sorted(kinds) == ["frame"] * (FRAMES - 1) + ["undecodable"], records

@@ -403,7 +403,10 @@ class BagSource:
                                         self.tolerance, self.max_pose_gap)  # fmt: skip
         # Header stamps that go back or repeat (a restamped or replayed stream): such messages
         # are left out (the frames skipped as bad_stamp, the colour images never paired).
-        depth_faults = _stamp_faults([(s, b) for s, b, _, _ in depth], t.depth)
+        # (a message that could not be deserialised has no stamp: it takes no part)
+        readable = [i for i, d in enumerate(depth) if d[3] is None]
+        depth_faults = {readable[j]: why for j, why in _stamp_faults(
+            [depth[i][:2] for i in readable], t.depth).items()}  # fmt: skip
         self.depth_stamps = sorted(
             ((s, b, f, why if why is not None else depth_faults.get(i))
              for i, (s, b, f, why) in enumerate(depth)), key=lambda x: x[:2])  # fmt: skip
