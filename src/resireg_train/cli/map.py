@@ -256,8 +256,10 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
                 smap.meta["kept_frames"] = batch["first"] + len(batch["name"])
                 continue
             except ValueError as err:  # e.g. points beyond the voxel lattice: name the frames
+                bound = "null" if max_depth is None else max_depth
                 raise ValueError(
-                    f"window {batch['name'][0]} .. {batch['name'][-1]}: {err}"
+                    f"window {batch['name'][0]} .. {batch['name'][-1]}: {err} (depth beyond "
+                    f"source.max_depth={bound} is dropped; a pose may be wrong)"
                 ) from err
             timer["map"] += time.perf_counter() - t0
             counts.used += len(batch["name"])
