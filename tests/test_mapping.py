@@ -487,3 +487,17 @@ def test_bench_mapping_smoke_and_its_room_is_the_box():
     # the ray, so at most ~5 sigma off the face).
     face_dist = np.minimum(np.abs(p), np.abs(p - room)).min(axis=1)
     assert face_dist.max() < 0.06 and np.median(face_dist) < 0.01
+
+
+def test_coordinates_beyond_int64_are_refused_before_packing():
+    """A coordinate whose voxel index does not fit int64 (1e20 m at 5 cm: 2e21) is refused
+    before the cast, which would turn it into -2**63 and pack it into a wrong voxel; the map
+    keeps what it had."""
+    vmap = VoxelMap(0.05, 2)
+    vmap.add(torch.tensor([[1.0, 2.0, 3.0]]), torch.ones(1, 2))
+    for far in (1e20, 1e30, 3.4e38):
+        with pytest.raises(ValueError, match="voxel indices beyond"):
+            vmap.add(torch.tensor([[far, 0.0, 0.0]]), torch.ones(1, 2))
+        with pytest.raises(ValueError, match="voxel indices beyond"):
+            voxels_module.voxel_indices(torch.tensor([[0.0, -far, 0.0]], dtype=torch.float64), 0.05)
+    assert vmap.indices.tolist() == [[20, 40, 60]]

@@ -150,6 +150,7 @@ def test_an_interrupted_save_leaves_the_previous_one(encoder, room, tmp_path, mo
     loaded = SemanticMap.load(tmp_path, encoder)
     assert loaded.frames == 2 and torch.equal(loaded.features()[1], before)
     assert not list(tmp_path.glob(".*.tmp"))
+    assert len(list(tmp_path.glob("map-*.safetensors"))) == 1  # no orphan of the failed save
 
 
 def test_voxel_budget_raises_before_adding(encoder, room):
@@ -240,3 +241,94 @@ def test_python_defaults_are_the_configs():
     for name in ("points", "lattice", "sum_dtype", "max_voxels", "short_side"):
         assert params[name].default == conf[name], name
     assert POINTS == TASK_POINTS and conf["points"] in POINTS
+
+
+def test_saved_map_files_prove_their_content(encoder, room, tmp_path):
+    """map.json records its tensor file's SHA-256 (hashlib here) and its own digest: 4 KiB of
+    0xFF or one flipped bit in the tensor file, a truncated tensor file or map.json, an edited
+    voxel_size: each an IntegrityError naming the file, never a map with wrong numbers or a
+    raw SafetensorError / JSONDecodeError. An encoder of another dimension is refused at
+    load."""
+    import hashlib
+    import shutil
+
+    from resireg.integrity import IntegrityError
+
+    images, depth, k, poses = room
+    smap = SemanticMap(encoder, "bb", VOXEL)
+    smap.add(images[:2], depth[:2], k, poses[:2])
+    good = smap.save(tmp_path / "good")
+    record = json.loads((good / "map.json").read_text())
+    name = record["tensors"]
+    assert record["sha256"] == {name: hashlib.sha256((good / name).read_bytes()).hexdigest()}
+
+    def damaged(label, edit):
+        folder = tmp_path / label
+        shutil.copytree(good, folder)
+        edit(folder)
+        return folder
+
+    def overwrite(folder):
+        with open(folder / name, "r+b") as f:
+            f.seek((folder / name).stat().st_size // 2)
+            f.write(b"\xff" * 4096)
+
+    def flip(folder):
+        data = bytearray((folder / name).read_bytes())
+        data[len(data) - 100] ^= 0x01
+        (folder / name).write_bytes(bytes(data))
+
+    def truncate(folder, file):
+        data = (folder / file).read_bytes()
+        (folder / file).write_bytes(data[: len(data) // 2])
+
+    def voxel_size(folder):
+        text = (folder / "map.json").read_text()
+        (folder / "map.json").write_text(text.replace('"voxel_size": 0.2', '"voxel_size": 0.25'))
+
+    cases = {
+        "overwritten": (overwrite, name),
+        "flipped": (flip, name),
+        "truncated": (lambda f: truncate(f, name), name),
+        "truncated_json": (lambda f: truncate(f, "map.json"), "map.json"),
+        "voxel_size": (voxel_size, "map.json"),
+    }
+    for label, (edit, file) in cases.items():
+        folder = damaged(label, edit)
+        with pytest.raises(IntegrityError) as info:
+            SemanticMap.load(folder, encoder)
+        assert str(folder / file) in str(info.value), (label, str(info.value))
+    # another encoder dimension: a map of 7-d features
+    other = SemanticMap(None, "bb", VOXEL)
+    other.fuse(torch.randn(2, 7, 4, 6), depth[:2], k, poses[:2])
+    other.save(tmp_path / "seven")
+    with pytest.raises(ValueError, match="the map holds 7-d features, the encoder"):
+        SemanticMap.load(tmp_path / "seven", encoder)
+    assert SemanticMap.load(tmp_path / "seven").dim == 7
+
+
+def test_fuse_refuses_non_finite_and_integer_inputs(room):
+    """SemanticMap.fuse refuses NaN / inf features, intrinsics and poses, and integer
+    features, naming the argument (resireg.checks.check_features), and adds nothing."""
+    from resireg.checks import NonFiniteError
+
+    _, depth, k, poses = room
+    smap = SemanticMap(None, "bb", VOXEL)
+    feats = torch.randn(2, 8, 4, 6)
+    smap.fuse(feats, depth[:2], k, poses[:2])
+    before = smap.features()[1].clone()
+    bad = feats.clone()
+    bad[0, 3, 1, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match=r"features holds 1 non-finite"):
+        smap.fuse(bad, depth[:2], k, poses[:2])
+    with pytest.raises(TypeError, match="features must be a floating-point tensor"):
+        smap.fuse((feats * 10).to(torch.int64), depth[:2], k, poses[:2])
+    k_bad = k.clone()
+    k_bad[0, 0] = float("inf")
+    with pytest.raises(NonFiniteError, match="intrinsics holds 1 non-finite"):
+        smap.fuse(feats, depth[:2], k_bad, poses[:2])
+    pose_bad = poses[:2].clone()
+    pose_bad[1, 0, 3] = float("nan")
+    with pytest.raises(NonFiniteError, match="cam_to_world holds 1 non-finite"):
+        smap.fuse(feats, depth[:2], k, pose_bad)
+    assert smap.frames == 2 and torch.equal(smap.features()[1], before)

@@ -14,7 +14,9 @@ Queries: :meth:`~SemanticMap.query` (cosine similarity of every voxel to text qu
 :meth:`~SemanticMap.classify` (the protocol's class prototypes: 80 templates averaged, cosine
 argmax or RayFronts' thresholded rule). Persistence: :meth:`~SemanticMap.save` /
 :meth:`SemanticMap.load` (safetensors + JSON, atomic: a crash mid-save leaves the previous save
-loadable), :meth:`~SemanticMap.to_ply`.
+loadable; the JSON records the tensor file's SHA-256 and its own digest, verified on load),
+:meth:`~SemanticMap.to_ply`. :meth:`~SemanticMap.fuse` refuses non-finite or non-floating
+features, intrinsics and poses (:func:`resireg.checks.check_features`).
 
 Memory bound: the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators (``s`` = 8
 for float64 sums, 4 for ``sum_dtype="float32"``), 16 bytes of key and row, and, with
@@ -27,8 +29,8 @@ added, so the map stays as it was and can be saved. At 5 cm and D = 512 one mill
 
 from __future__ import annotations
 
+import hashlib
 import json
-import os
 import uuid
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -39,6 +41,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.checks import check_features
+from resireg.integrity import (
+    IntegrityError,
+    atomic_write,
+    digests,
+    load_safetensors,
+    read_json,
+    verify_digests,
+)
 from resireg.mapping.geometry import patch_points
 from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
@@ -47,29 +58,35 @@ from resireg.specs.mapping import POINTS
 from resireg.variant_names import takes_prior, variant_layer
 from resireg.variants import apply_variant, build_variants
 
-__all__ = ["COLOUR_BY", "POINTS", "MapFullError", "SemanticMap", "pca_colours", "write_ply"]
+__all__ = [
+    "COLOUR_BY",
+    "ENCODER_OUTPUT",
+    "POINTS",
+    "MapFullError",
+    "SemanticMap",
+    "pca_colours",
+    "write_ply",
+]
 
 #: What :meth:`SemanticMap.to_ply` colours the voxels by.
 COLOUR_BY = ("rgb", "pca", "query", "class")
 #: The files of a saved map: the JSON (written last: the commit point) names its tensor file.
 MAP_JSON = "map.json"
 _FORMAT = "resireg.semantic_map/1"
+#: The name :meth:`SemanticMap.add` gives its encoder's output in a
+#: :class:`resireg.checks.NonFiniteError` (``resireg-map`` skips such a window and counts it).
+ENCODER_OUTPUT = "encoder output"
 
 
 class MapFullError(RuntimeError):
     """A window would take the map past its ``max_voxels`` budget (nothing of it was added)."""
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """``write(tmp)`` then ``os.replace(tmp, path)``: readers see the old file or the new one."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+def _record_digest(record: Mapping[str, Any]) -> str:
+    """SHA-256 of a map record's canonical JSON without its ``record_sha256`` field: an edit of
+    ``map.json`` (a ``voxel_size``, a count) no longer matches the digest written with it."""
+    body = {k: v for k, v in record.items() if k != "record_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
 
 def pca_colours(features: Tensor, sample: int = 100_000, seed: int = 0) -> Tensor:
@@ -153,8 +170,18 @@ def write_ply(path: str | Path, points: Tensor, colours: Tensor) -> Path:
             f.write(rec.tobytes())
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(path, write)
+    atomic_write(path, write)
     return path
+
+
+@torch.no_grad()
+def _encoder_dim(encoder: Any) -> int | None:
+    """The dimension of ``encoder``'s dense text queries (that of the features it fuses), or
+    ``None`` for an encoder without a text path."""
+    try:
+        return int(encoder.dense_text(encoder.text_features(["a"])).shape[-1])
+    except NotImplementedError:
+        return None
 
 
 class SemanticMap:
@@ -322,6 +349,9 @@ class SemanticMap:
             depth: ``[B, Hd, Wd]`` depth in metres (0 or non-finite: no depth).
             intrinsics: ``[3, 3]`` or ``[B, 3, 3]`` pinhole intrinsics of the depth image.
             cam_to_world: ``[B, 4, 4]`` camera (OpenCV axes) to world poses.
+
+        Raises :class:`resireg.checks.NonFiniteError` naming :data:`ENCODER_OUTPUT` when the
+        encoder's features of the window are not finite (nothing is added).
         """
         if depth.ndim != 3 or depth.shape[0] != images.shape[0]:
             raise ValueError(
@@ -330,8 +360,8 @@ class SemanticMap:
             )
         raw = self.resized(images)
         dense = self._encode_resized(raw)
-        return self.fuse(dense, depth, intrinsics, cam_to_world,
-                         colour=raw if self.colours is not None else None)  # fmt: skip
+        return self._fuse(dense, depth, intrinsics, cam_to_world,
+                          raw if self.colours is not None else None, None, ENCODER_OUTPUT)  # fmt: skip
 
     @torch.no_grad()
     def fuse(
@@ -351,9 +381,24 @@ class SemanticMap:
         each feature grid once (the 3D task's engine). Runs with autocast off (fp32 / fp64).
         Raises :class:`MapFullError` (adding nothing) when the window would take the map past
         ``max_voxels``."""
+        return self._fuse(features, depth, intrinsics, cam_to_world, colour, lifted, "features")
+
+    def _fuse(self, features, depth, intrinsics, cam_to_world, colour, lifted, name) -> int:
+        """:meth:`fuse`, its features checked under ``name`` (:meth:`add`: the encoder output,
+        checked once)."""
         if not isinstance(features, Tensor) or features.ndim != 4:
             shape = tuple(features.shape) if isinstance(features, Tensor) else type(features)
             raise ValueError(f"features of shape {shape}: expected [B, D, h, w]")
+        # A NaN feature would stay in its voxel's sum for good, and integer features would be
+        # fused as they are: refused here (resireg.checks, one isfinite reduction per tensor).
+        check_features(name, features)
+        check_features("intrinsics", intrinsics)
+        check_features("cam_to_world", cam_to_world)
+        if not isinstance(depth, Tensor) or not depth.is_floating_point():
+            raise TypeError(f"depth must be a floating-point tensor of metres, got "
+                            f"{depth.dtype if isinstance(depth, Tensor) else type(depth).__name__}")  # fmt: skip
+        if colour is not None:
+            check_features("colour", colour)
         with torch.autocast(self.device.type, enabled=False):
             grid = tuple(features.shape[-2:])
             depth = depth.to(self.device)
@@ -507,10 +552,13 @@ class SemanticMap:
 
     def save(self, folder: str | Path) -> Path:
         """Write the map to ``folder`` (created): ``map-<id>.safetensors`` (every accumulator in
-        :attr:`indices` order) and then ``map.json`` (settings, counts, ``meta``, and the name
-        of that tensor file), each through a temporary file and ``os.replace``. ``map.json`` is
-        the commit point: a crash before it leaves the previous save in force; older tensor
-        files are removed after it. Returns ``folder``."""
+        :attr:`indices` order) and then ``map.json`` (settings, counts, ``meta``, the name and
+        SHA-256 of that tensor file, and ``record_sha256``, the digest of the record itself),
+        each through :func:`resireg.integrity.atomic_write` (a temporary file, fsync, the
+        umask's mode, ``os.replace``). ``map.json`` is the commit point: a crash before it
+        leaves the previous save in force; older tensor files are removed after it, and a save
+        that fails (a full disk) removes its own new tensor file and raises an ``OSError``
+        naming the file it could not write. Returns ``folder``."""
         from safetensors.torch import save_file
 
         folder = Path(folder)
@@ -521,19 +569,25 @@ class SemanticMap:
                 for name, value in vmap.state().items():
                     tensors[f"{prefix}.{name}"] = value.contiguous()
         name = f"map-{uuid.uuid4().hex[:12]}.safetensors"
-        _atomic_write(folder / name, lambda tmp: save_file(tensors, str(tmp)))
-        record = {
-            "format": _FORMAT,
-            "tensors": name,
-            "settings": self.settings(),
-            "dim": self.dim,
-            "voxels": len(self),
-            "frames": self.frames,
-            "windows": self.windows,
-            "meta": self.meta,
-        }
-        text = json.dumps(record, indent=2, sort_keys=True)
-        _atomic_write(folder / MAP_JSON, lambda tmp: tmp.write_text(text))
+        try:
+            atomic_write(folder / name, lambda tmp: save_file(tensors, str(tmp)))
+            record = {
+                "format": _FORMAT,
+                "tensors": name,
+                "sha256": digests(folder, [name]),
+                "settings": self.settings(),
+                "dim": self.dim,
+                "voxels": len(self),
+                "frames": self.frames,
+                "windows": self.windows,
+                "meta": self.meta,
+            }
+            record["record_sha256"] = _record_digest(record)
+            text = json.dumps(record, indent=2, sort_keys=True)
+            atomic_write(folder / MAP_JSON, lambda tmp: tmp.write_text(text))
+        except BaseException:
+            (folder / name).unlink(missing_ok=True)  # not committed: map.json names the old one
+            raise
         for old in folder.glob("map-*.safetensors"):
             if old.name != name:
                 old.unlink(missing_ok=True)
@@ -548,18 +602,34 @@ class SemanticMap:
         device: torch.device | str | None = None,
         **overrides: Any,
     ) -> SemanticMap:
-        """A map saved by :meth:`save`, with ``encoder`` for queries and further windows (the
-        same encoder it was built with: nothing checks its weights). ``overrides`` replace saved
-        settings that do not change the content (``max_voxels``)."""
-        from safetensors.torch import load_file
+        """A map saved by :meth:`save`, with ``encoder`` for queries and further windows.
 
+        Before any tensor is read, ``map.json``'s own digest and its tensor file's SHA-256 are
+        verified: a truncated, edited or damaged file is an
+        :class:`~resireg.integrity.IntegrityError` naming it. An ``encoder`` whose text
+        features have another dimension than the map's is refused here, not at the first
+        query (the weights themselves are the caller's to check: ``resireg-map`` records a
+        digest of them in ``meta``). ``overrides`` replace saved settings that do not change
+        the content (``max_voxels``)."""
         folder = Path(folder)
         path = folder / MAP_JSON
         if not path.is_file():
             raise FileNotFoundError(f"{folder}: no {MAP_JSON} (not a saved SemanticMap)")
-        record = json.loads(path.read_text())
-        if record.get("format") != _FORMAT:
-            raise ValueError(f"{path}: format {record.get('format')!r}, expected {_FORMAT!r}")
+        record = read_json(path, "saved map record")
+        if not isinstance(record, dict) or record.get("format") != _FORMAT:
+            found = record.get("format") if isinstance(record, dict) else type(record).__name__
+            raise IntegrityError(f"{path}: format {found!r}, expected {_FORMAT!r}")
+        if "record_sha256" not in record or "sha256" not in record:
+            raise IntegrityError(
+                f"{path}: no record_sha256 / sha256 (a map saved before maps recorded their "
+                "digests, or an edited record): make the map again"
+            )
+        if record["record_sha256"] != _record_digest(record):
+            raise IntegrityError(
+                f"{path}: its content does not match the record_sha256 written with it (the "
+                "file was edited or damaged; a map's settings cannot change after it is made)"
+            )
+        verify_digests(folder, record["sha256"], "saved map")
         settings = dict(record["settings"])
         bad = set(overrides) - {"max_voxels"}
         if bad:
@@ -568,10 +638,18 @@ class SemanticMap:
         config = settings.pop("configuration")
         params = settings.pop("params")
         voxel_size = settings.pop("voxel_size")
+        if encoder is not None and record["dim"] is not None:
+            enc_dim = _encoder_dim(encoder)
+            if enc_dim is not None and enc_dim != int(record["dim"]):
+                raise ValueError(
+                    f"{path}: the map holds {record['dim']}-d features, the encoder given to "
+                    f"load() makes {enc_dim}-d ones (another model: load the map with the "
+                    "encoder it was built with)"
+                )
         smap = cls(encoder if encoder is not None else None, config, voxel_size, params=params,
                    prior=prior, device=device or (encoder.device if encoder is not None else "cpu"),
                    **settings)  # fmt: skip
-        tensors = load_file(str(folder / record["tensors"]))
+        tensors = load_safetensors(folder / record["tensors"], "saved map")
         if record["dim"] is not None:
             smap.voxels = VoxelMap(smap.voxel_size, int(record["dim"]), smap.device,
                                    smap.lattice, SUM_DTYPES[smap.sum_dtype])  # fmt: skip

@@ -70,7 +70,17 @@ def lattice_index(scaled: Tensor, lattice: str = "round") -> Tensor:
     """Integer voxel indices of coordinates already divided by the voxel size (float64):
     ``round`` (half to even) or ``floor``, as int64."""
     op = torch.round if check_lattice(lattice) == "round" else torch.floor
-    return op(scaled).to(torch.int64)
+    index = op(scaled)
+    # Refused before the int64 cast: a float beyond int64's range casts to -2**63 (or
+    # wraps), which would pass a range check on the integers and pack into a wrong voxel.
+    if index.numel() and not bool((index.abs() <= _MAX_INDEX).all()):
+        bad = index[~(index.abs() <= _MAX_INDEX)]
+        raise ValueError(
+            f"voxel indices beyond +-{_MAX_INDEX} (up to {float(bad.abs().max()):g}, or "
+            f"non-finite; keys pack {_BITS} bits per axis): points that far (e.g. from "
+            "out-of-range depth) cannot be mapped; drop them first"
+        )
+    return index.to(torch.int64)
 
 
 def voxel_indices(points: Tensor, voxel_size: float, lattice: str = "round") -> Tensor:

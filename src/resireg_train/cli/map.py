@@ -7,12 +7,15 @@
 
 The source (:mod:`resireg_train.data.rosbag`, :mod:`resireg_train.data.tum`,
 :func:`resireg_train.data.scannet.scannet_rgbd`) is opened and checked before the encoder loads
-(a missing topic is reported in a second, with the bag's topics). Windows of ``window``
-consecutive frames go through :meth:`resireg.mapping.SemanticMap.add`; the map is saved every
-``save_every`` windows and at the end to ``<output dir>/map`` (``resume=true`` continues it:
-the frames it holds are skipped, so a resumed run equals an uninterrupted one), then written as
-``map.ply``; ``results.json`` records frames read / used / skipped (by kind, with examples), the
-map's voxels and bytes, and seconds per stage.
+(every missing topic is reported in a second, with the bag's topics). Windows of ``window``
+consecutive frames go through :meth:`resireg.mapping.SemanticMap.add` (a window whose encoder
+output is not finite is skipped and counted); the map is saved every ``save_every`` windows and
+at the end to ``<output dir>/map`` with its identity (source, settings, ReSiReg parameters,
+encoder entry, a digest of the encoder's weights): ``resume=true`` continues it from the last
+frame it holds, or is refused naming the keys that differ. Then ``map.ply``; ``results.json``
+records frames read / used / skipped (by kind, the first reason of each, examples), corrupt
+messages, out-of-range depth, the map's voxels and bytes, and seconds per stage; a run that
+maps nothing fails with the reason per kind.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ log = logging.getLogger(__name__)
 
 #: ``source.kind`` values.
 SOURCES = ("rosbag", "tum", "scannet")
-_COMMON = ("kind", "path", "tolerance", "max_pose_gap", "frame_skip", "limit")
+_COMMON = ("kind", "path", "tolerance", "max_pose_gap", "frame_skip", "limit", "max_depth")
 _KEYS = {
     "rosbag": (*_COMMON, "colour_topic", "depth_topic", "camera_info_topic", "pose_topic",
                "tf_topic", "tf_static_topic", "world_frame", "camera_frame", "depth_scale"),
@@ -104,22 +107,61 @@ def _device(name: str):
     return torch.device(name)
 
 
-def _identity(cfg: DictConfig) -> dict[str, Any]:
-    """What a resumed run must share with the saved map: the source (but ``limit``: a run cut
-    short by it resumes without it) and the map's settings."""
-    source = OmegaConf.to_container(cfg.source, resolve=True)
+def _resolved(value: Any) -> Any:
+    """A local path as its absolute, resolved form (a Hugging Face repo id or a name stays)."""
+    if isinstance(value, str) and value and Path(value).expanduser().exists():
+        return str(Path(value).expanduser().resolve())
+    return value
+
+
+def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
+    """What a resumed run must share with the saved map: the source (its path resolved; but
+    ``limit``: a run cut short by it resumes without it), the map's settings, the ReSiReg
+    configuration's parameters (``lite`` / ``full`` / ``calib``...), the encoder's entry (its
+    path resolved) and a digest of its weights (:func:`resireg_train.cache.weights_fingerprint`:
+    another model at the same path differs)."""
+    from resireg.specs.variants import PARAM_VARIANTS
+
+    every = OmegaConf.to_container(cfg, resolve=True)
+    source = dict(every["source"])
     source.pop("limit", None)
+    source["path"] = _resolved(source.get("path"))
+    encoder = {k: _resolved(v) if k == "path" else v for k, v in every["encoder"].items()}
     keep = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
             "short_side")  # fmt: skip
-    return {"source": source, **{k: OmegaConf.to_container(cfg, resolve=True)[k] for k in keep}}
+    out = {"source": source, **{k: every[k] for k in keep}, "encoder": encoder,
+           "resireg": {k: every[k] for k in PARAM_VARIANTS if k in every},
+           "prior": every.get("prior")}  # fmt: skip
+    if weights is not None:
+        out["weights"] = weights
+    return out
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def _differences(saved: Any, now: dict[str, Any]) -> list[str]:
+    """``key: saved -> now`` for each leaf key that differs (a key one side lacks included)."""
+    a, b = _flat(saved if isinstance(saved, dict) else {}), _flat(now)
+    missing = "(not recorded)"
+    return [f"{k}: {a.get(k, missing)!r} in the map, {b.get(k, missing)!r} now"
+            for k in sorted(set(a) | set(b)) if a.get(k, missing) != b.get(k, missing)]  # fmt: skip
 
 
 def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     import torch
 
+    from resireg.checks import NonFiniteError
     from resireg.mapping import MapFullError, SemanticMap
+    from resireg.mapping.semantic_map import ENCODER_OUTPUT
     from resireg.models import build_encoder
-    from resireg_train.data.rgbd import FrameCounts, windows
+    from resireg_train.data.rgbd import FrameCounts, SkippedFrame, windows
 
     window = cfg.window
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
@@ -131,6 +173,14 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     unknown = set(spec) - {k for keys in _KEYS.values() for k in keys}
     if unknown:
         raise ConfigError(f"source: unknown keys {sorted(unknown)}")
+    max_depth = spec.get("max_depth")
+    if max_depth is not None and (isinstance(max_depth, bool) or not isinstance(
+            max_depth, int | float) or not 0 < max_depth < float("inf")):  # fmt: skip
+        raise ConfigError(f"source.max_depth={max_depth!r}: expected metres > 0, or null")
+    rrd = None
+    if cfg.rerun.save:  # under the run folder unless absolute; recorded absolute
+        rrd = Path(str(cfg.rerun.save)).expanduser()
+        rrd = (rrd if rrd.is_absolute() else out / rrd).resolve()
     params = {"source": spec, "identity": _identity(cfg)}
     update_results(out, params=params)
     timer: dict[str, float] = defaultdict(float)
@@ -151,13 +201,21 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
 
         prior = build_prior(OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior")
                             else {}, device=encoder.device, key="prior")  # fmt: skip
+    from resireg_train.cache import weights_fingerprint
+
+    t0 = time.perf_counter()
+    identity = _identity(cfg, weights_fingerprint(encoder))
+    timer["weights_digest"] += time.perf_counter() - t0
+    update_results(out, params={**params, "identity": identity})
     folder = out / "map"
     if cfg.resume and (folder / "map.json").is_file():
         smap = SemanticMap.load(folder, encoder, prior, max_voxels=cfg.max_voxels)
-        if smap.meta.get("identity") != params["identity"]:
+        differ = _differences(smap.meta.get("identity"), identity)
+        if differ:
             raise ConfigError(
-                f"resume=true: {folder} was made with {smap.meta.get('identity')}, this run "
-                f"has {params['identity']}; start a new run folder instead"
+                f"resume=true: {folder} was made with other settings ({len(differ)} differ): "
+                + "; ".join(differ)
+                + ". Start a new run folder, or resume with the map's values"
             )
         log.info("resuming %s: %d frames, %d voxels", folder, smap.frames, len(smap))
     else:
@@ -165,16 +223,18 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
             raise ConfigError(f"{folder} holds a map: resume=true continues it, or use a new "
                               "run folder")  # fmt: skip
         smap = make_map(cfg, encoder, prior)
-        smap.meta = {"identity": params["identity"], "kept_frames": 0}
+        smap.meta = {"identity": identity, "kept_frames": 0}
     done = int(smap.meta.get("kept_frames", 0))
     view = None
-    if cfg.rerun.save or cfg.rerun.spawn:
+    if rrd is not None or cfg.rerun.spawn:
         from resireg_train.mapping.viewer import RerunView
 
-        view = RerunView(cfg.rerun.save, bool(cfg.rerun.spawn), cfg.rerun.query)
+        view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
     counts = FrameCounts()
     added = 0
-    frames = iter(windows(source, window, counts, int(spec["frame_skip"]), spec["limit"]))
+    # start=done: the frames the resumed map holds are skipped, whatever window they fell in
+    frames = iter(windows(source, window, counts, int(spec["frame_skip"]), spec["limit"],
+                          start=done, max_depth=max_depth))  # fmt: skip
     try:
         while True:
             t0 = time.perf_counter()
@@ -182,10 +242,25 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
             timer["read"] += time.perf_counter() - t0
             if batch is None:
                 break
-            if batch["first"] < done:  # held by the resumed map
-                continue
             t0 = time.perf_counter()
-            smap.add(batch["image"], batch["depth"], batch["intrinsics"], batch["pose"])
+            try:
+                smap.add(batch["image"], batch["depth"], batch["intrinsics"], batch["pose"])
+            except NonFiniteError as err:
+                if not str(err).startswith(ENCODER_OUTPUT):
+                    raise
+                for name in batch["name"]:  # the window is left out, the map unchanged
+                    counts.skip(SkippedFrame(name, f"window of {len(batch['name'])} frames: "
+                                             f"{err}", "non_finite"))  # fmt: skip
+                log.warning("window %s .. %s skipped: %s", batch["name"][0],
+                            batch["name"][-1], err)  # fmt: skip
+                smap.meta["kept_frames"] = batch["first"] + len(batch["name"])
+                continue
+            except ValueError as err:  # e.g. points beyond the voxel lattice: name the frames
+                bound = "null" if max_depth is None else max_depth
+                raise ValueError(
+                    f"window {batch['name'][0]} .. {batch['name'][-1]}: {err} (depth beyond "
+                    f"source.max_depth={bound} is dropped; a pose may be wrong)"
+                ) from err
             timer["map"] += time.perf_counter() - t0
             counts.used += len(batch["name"])
             added += 1
@@ -206,8 +281,14 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     smap.save(folder)
     timer["save"] += time.perf_counter() - t0
+    source_record = _source_record(source, counts)
     if not len(smap):
-        raise RuntimeError(f"no frame was mapped ({counts.line()}); results.json lists why")
+        why = "; ".join(f"{kind}: {reason}" for kind, reason in sorted(counts.reasons.items()))
+        why = why or "the source has no candidate frame"
+        for line in _source_warnings(source_record):
+            log.warning("%s", line)
+        update_results(out, frames=counts.as_dict(), **source_record)
+        raise RuntimeError(f"no frame was mapped ({counts.line()}); why, per kind: {why}")
     t0 = time.perf_counter()
     ply = smap.to_ply(out / "map.ply", str(cfg.ply.colour_by), cfg.ply.text,
                       list(cfg.ply.classes) if cfg.ply.classes else None)  # fmt: skip
@@ -220,13 +301,15 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
                f"{smap.nbytes / 2**20:.1f} MiB, {smap.frames} frames in all")  # fmt: skip
     print(summary)
     log.info(summary)
-    for s in counts.examples[:5]:
-        log.warning("skipped %s (%s): %s", s.name, s.kind, s.reason)
+    for kind, reason in sorted(counts.reasons.items()):
+        log.warning("skipped %d %s, e.g. %s", counts.skipped[kind], kind, reason)
+    for line in _source_warnings(source_record):
+        log.warning("%s", line)
     return update_results(
         out,
         status="completed",
         frames=counts.as_dict(),
-        unpaired_colour=getattr(source, "unpaired_colour", 0),
+        **source_record,
         map={
             "folder": str(folder),
             "voxels": len(smap),
@@ -234,10 +317,45 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
             "frames": smap.frames,
             "windows": smap.windows,
             "ply": str(ply),
-            "rerun": str(cfg.rerun.save) if cfg.rerun.save else None,
+            "rerun": str(rrd) if rrd else None,
         },  # fmt: skip
         seconds={k: round(v, 4) for k, v in sorted(timer.items())},
     )
+
+
+def _source_record(source: Any, counts: Any) -> dict[str, Any]:
+    """What ``results.json`` records of the source beyond the frames: unpaired colour
+    messages, messages that could not be deserialised (by topic, with examples), colour images
+    left out for their stamps, and the damage that stopped a bag's read."""
+    out: dict[str, Any] = {"unpaired_colour": getattr(source, "unpaired_colour", 0)}
+    if getattr(source, "corrupt", None) is not None:
+        out["corrupt_messages"] = {"by_topic": dict(source.corrupt),
+                                   "examples": list(source.corrupt_examples)}  # fmt: skip
+        out["colour_stamp_faults"] = {"count": len(source.colour_stamp_faults),
+                                      "examples": source.colour_stamp_faults[:20]}  # fmt: skip
+        out["damage"] = source.damage
+    if counts.depth_out_of_range:
+        out["depth_out_of_range"] = {"pixels": counts.depth_out_of_range,
+                                     "frames": counts.depth_out_of_range_frames}  # fmt: skip
+    return out
+
+
+def _source_warnings(record: dict[str, Any]) -> list[str]:
+    lines = []
+    for topic, n in sorted(record.get("corrupt_messages", {}).get("by_topic", {}).items()):
+        example = next(e for e in record["corrupt_messages"]["examples"] if e.startswith(topic))
+        lines.append(f"{n} corrupt message(s) on {topic}, e.g. {example}")
+    faults = record.get("colour_stamp_faults") or {}
+    if faults.get("count"):
+        lines.append(f"{faults['count']} colour image(s) left out for their header stamps, "
+                     f"e.g. {faults['examples'][0]}")  # fmt: skip
+    if record.get("damage"):
+        lines.append(str(record["damage"]))
+    if record.get("depth_out_of_range"):
+        d = record["depth_out_of_range"]
+        lines.append(f"{d['pixels']} depth pixels in {d['frames']} frames beyond "
+                     "source.max_depth (or negative) taken as no depth")  # fmt: skip
+    return lines
 
 
 def _map_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:

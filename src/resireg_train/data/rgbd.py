@@ -21,6 +21,7 @@ pose. These modules import numpy, torch, scipy and PIL only (no Lightning, no Hy
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -68,21 +69,30 @@ class SkippedFrame:
 
     name: str
     reason: str
-    kind: str = "undecodable"  # undecodable | unpaired | no_pose | invalid
+    # undecodable | unpaired | no_pose | bad_stamp | size_mismatch | non_finite | frame_skip
+    # | in_map (held by the map a resumed run continues)
+    kind: str = "undecodable"
 
 
 @dataclass
 class FrameCounts:
-    """``read`` candidate frames (depth images), ``used`` (fused), ``skipped`` by kind, and the
-    first skipped records (``examples``, at most 20) with their reasons."""
+    """``read`` candidate frames (depth images), ``used`` (fused), ``skipped`` by kind, the
+    first skipped records (``examples``, at most 20) with their reasons, the first reason of
+    each kind (``reasons``: a run that maps nothing says why per kind), and the depth pixels
+    made invalid by ``max_depth`` (``depth_out_of_range`` pixels in ``depth_out_of_range_frames``
+    frames)."""
 
     read: int = 0
     used: int = 0
     skipped: Counter = field(default_factory=Counter)
     examples: list[SkippedFrame] = field(default_factory=list)
+    reasons: dict[str, str] = field(default_factory=dict)
+    depth_out_of_range: int = 0
+    depth_out_of_range_frames: int = 0
 
     def skip(self, record: SkippedFrame) -> None:
         self.skipped[record.kind] += 1
+        self.reasons.setdefault(record.kind, f"{record.name}: {record.reason}")
         if len(self.examples) < 20:
             self.examples.append(record)
 
@@ -91,6 +101,11 @@ class FrameCounts:
             "read": self.read,
             "used": self.used,
             "skipped": dict(self.skipped),
+            "reasons": dict(self.reasons),
+            "depth_out_of_range": {
+                "pixels": self.depth_out_of_range,
+                "frames": self.depth_out_of_range_frames,
+            },  # fmt: skip
             "skipped_examples": [
                 {"name": s.name, "kind": s.kind, "reason": s.reason} for s in self.examples
             ],
@@ -188,6 +203,8 @@ def windows(
     counts: FrameCounts,
     frame_skip: int = 0,
     limit: int | None = None,
+    start: int = 0,
+    max_depth: float | None = None,
 ) -> Iterator[dict]:
     """Windows of up to ``size`` consecutive kept frames of one image and depth size, as tensors:
     ``image`` uint8 ``[B, 3, H, W]``, ``depth`` float32 ``[B, Hd, Wd]``, ``intrinsics``
@@ -195,10 +212,16 @@ def windows(
     (the position of the window's first frame among the kept frames).
 
     ``frame_skip = s`` keeps every ``(s + 1)``-th frame (ScanNet's rule); ``limit`` stops after
-    that many kept frames. Skipped records and frames with a non-finite pose are counted in
-    ``counts``; a window ends early where the image size changes."""
+    that many kept frames; ``start`` skips the first kept frames (those a resumed map holds,
+    counted as ``in_map``): the first window starts at kept frame ``start`` whatever window
+    boundaries an earlier run had. ``max_depth`` (metres): depth pixels beyond it (and
+    negative ones) become 0, "no depth", and are counted in ``counts.depth_out_of_range``.
+    Skipped records and frames with a non-finite pose are counted in ``counts``; a window ends
+    early where the image size changes."""
     if size < 1:
         raise ValueError(f"window={size!r}: expected an integer >= 1")
+    if max_depth is not None and not (0 < float(max_depth) < math.inf):
+        raise ValueError(f"max_depth={max_depth!r}: expected a finite number of metres > 0")
     batch: list[RGBDFrame] = []
     position, first, seen = 0, 0, 0
 
@@ -230,6 +253,18 @@ def windows(
         if limit is not None and position >= limit:
             counts.read -= 1
             break
+        if position < start:
+            counts.skip(SkippedFrame(frame.name, "held by the resumed map", "in_map"))
+            position += 1
+            continue
+        if max_depth is not None:
+            out = ~(frame.depth <= max_depth) & (frame.depth != 0)  # NaN, > max, negative
+            out |= frame.depth < 0
+            n_out = int(out.sum())
+            if n_out:
+                frame.depth = np.where(out, np.float32(0), frame.depth).astype(np.float32)
+                counts.depth_out_of_range += n_out
+                counts.depth_out_of_range_frames += 1
         same = not batch or (
             frame.image.shape == batch[0].image.shape and frame.depth.shape == batch[0].depth.shape
         )

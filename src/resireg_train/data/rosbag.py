@@ -22,20 +22,26 @@ Every depth message is a candidate frame (stamp = its ``header.stamp``): the col
 the nearest stamp within ``tolerance`` seconds (:func:`resireg_train.data.rgbd.pair_nearest`),
 the latest ``CameraInfo`` received up to then (else the first), the pose interpolated at its
 stamp (:class:`~resireg_train.data.rgbd.PoseTrack`, each tf edge its own track, interpolated
-across gaps of up to ``max_pose_gap`` seconds; static edges hold at every time). A candidate without a colour image within the tolerance is ``unpaired``,
-one without a pose ``no_pose``, one whose depth or colour message cannot be decoded
-``undecodable`` (named ``topic@stamp``, with the reason); each is counted and skipped.
-Colour messages no depth message took are counted in :attr:`BagSource.unpaired_colour`.
+across gaps of up to ``max_pose_gap`` seconds; static edges hold at every time). A candidate
+without a colour image within the tolerance is ``unpaired``, one without a pose ``no_pose``,
+one whose depth or colour message cannot be decoded ``undecodable`` (named ``topic@stamp``,
+with the reason), one whose header stamp goes back or repeats on its topic ``bad_stamp`` (a
+colour image with such a stamp is never paired), one whose depth image is not of its
+``CameraInfo``'s size ``size_mismatch`` (K is not rescaled), one after the point where a
+damaged bag's read failed ``damaged``; each is counted and skipped. Colour messages no depth
+message took are counted in :attr:`BagSource.unpaired_colour`, messages that cannot be
+deserialised by topic in :attr:`BagSource.corrupt`.
 
-The bag is read twice: once for the stamps, the camera info and the poses (small messages;
-image messages are not deserialised, only their headers), then for the images of the paired
-frames in time order, holding only the images still awaited.
+The bag is read twice: once for the stamps, the camera info and the poses, then for the
+images of the paired frames in time order, holding only the images still awaited; a message is
+found again by its (bag time, header stamp), as bag times alone may collide.
 """
 
 from __future__ import annotations
 
 import io
-from collections import defaultdict, deque
+import math
+from collections import Counter, defaultdict, deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,7 +58,8 @@ from resireg_train.data.rgbd import (
     pose_matrix,
 )
 
-__all__ = ["BagSource", "BagTopics", "MissingTopicError", "decode_colour", "decode_depth"]
+__all__ = ["BagSource", "BagTopics", "DamagedBagError", "MissingTopicError", "decode_colour",
+           "decode_depth"]  # fmt: skip
 
 _IMAGE = ("sensor_msgs/msg/Image",)
 _COMPRESSED = ("sensor_msgs/msg/CompressedImage",)
@@ -62,8 +69,12 @@ _POSES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
 
 
 class MissingTopicError(ValueError):
-    """A configured topic is not in the bag (or has another type); the message lists the bag's
-    topics and types."""
+    """Configured topics that are not in the bag (or have another type), all of them in one
+    message that lists the bag's topics and types once."""
+
+
+class DamagedBagError(ValueError):
+    """The bag cannot be opened (truncated, overwritten, not a bag): names ``source.path``."""
 
 
 @dataclass(frozen=True)
@@ -267,63 +278,99 @@ class BagSource:
         self._scan()
 
     def _open(self):
-        return self._reader_cls([self.path])
+        """The opened reader; a bag that cannot be opened (truncated, overwritten, not a bag) is
+        a :class:`DamagedBagError` naming ``source.path`` and what the reader found."""
+        reader = self._reader_cls([self.path])
+        try:
+            reader.open()
+        except Exception as err:  # rosbags' ReaderError, apsw's CorruptError, OSError...
+            raise DamagedBagError(
+                f"{self.key}.path={str(self.path)!r}: the bag cannot be opened: {err} (a "
+                "truncated or damaged file, or not a ROS 1 / ROS 2 bag)"
+            ) from None
+        return reader
 
     def _connections(self, reader, topic: str | None, types: Sequence[str], name: str,
-                     required: bool = True) -> list:  # fmt: skip
-        present = {c.topic: c.msgtype for c in reader.connections}
+                     problems: list[str], required: bool = True) -> list:  # fmt: skip
+        """The connections of ``topic``; a missing or mistyped one is added to ``problems``
+        (all of them are reported together, :meth:`_scan`)."""
         if topic is None:
             return []
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns or conns[0].msgtype not in types:
             if not required and not conns:
                 return []
-            listing = ", ".join(f"{t} ({m})" for t, m in sorted(present.items())) or "none"
             what = f"has type {conns[0].msgtype}" if conns else "is not in the bag"
-            raise MissingTopicError(
-                f"{self.key}.{name}={topic!r} {what} (expected {' or '.join(types)}); "
-                f"the bag {self.path} has: {listing}"
-            )
+            problems.append(f"{self.key}.{name}={topic!r} {what} (expected {' or '.join(types)})")
+            return []
         return conns
 
     def _scan(self) -> None:
+        reader = self._open()
+        try:
+            self._scan_reader(reader)
+        finally:
+            reader.close()
+
+    def _scan_reader(self, reader) -> None:
         t = self.topics
-        with self._open() as reader:
-            self.colour_conns = self._connections(reader, t.colour, _IMAGE + _COMPRESSED,
-                                                  "colour_topic")  # fmt: skip
-            self.depth_conns = self._connections(reader, t.depth, _IMAGE + _COMPRESSED,
-                                                 "depth_topic")  # fmt: skip
-            info_conns = self._connections(reader, t.camera_info, _INFO, "camera_info_topic")
-            pose_conns = self._connections(reader, t.pose, _POSES, "pose_topic")
-            tf_conns = self._connections(reader, t.tf, _TF, "tf_topic", required=False)
-            static_conns = self._connections(reader, t.tf_static, _TF, "tf_static_topic",
-                                             required=False)  # fmt: skip
-            if t.pose is None and not (tf_conns or static_conns):
-                self._connections(reader, t.tf, _TF, "tf_topic")  # the error, listing topics
-            self.tf = _TfTree(self.tolerance, self.max_pose_gap)
-            infos: list[tuple[float, np.ndarray]] = []
-            poses: list[tuple[float, np.ndarray]] = []
-            self.pose_frame: str | None = None
-            self.depth_stamps: list[tuple[float, int, str]] = []  # (stamp, bag time, frame_id)
-            self.colour_stamps: list[tuple[float, int]] = []
-            self.bad: dict[tuple[str, int], str] = {}  # (topic, bag time) -> reason
-            watched = [*self.colour_conns, *self.depth_conns, *info_conns, *pose_conns,
-                       *tf_conns, *static_conns]  # fmt: skip
-            static_topic = t.tf_static
+        problems: list[str] = []
+        self.colour_conns = self._connections(reader, t.colour, _IMAGE + _COMPRESSED,
+                                              "colour_topic", problems)  # fmt: skip
+        self.depth_conns = self._connections(reader, t.depth, _IMAGE + _COMPRESSED,
+                                             "depth_topic", problems)  # fmt: skip
+        info_conns = self._connections(reader, t.camera_info, _INFO, "camera_info_topic", problems)
+        pose_conns = self._connections(reader, t.pose, _POSES, "pose_topic", problems)
+        tf_conns = self._connections(reader, t.tf, _TF, "tf_topic", problems, required=False)
+        static_conns = self._connections(reader, t.tf_static, _TF, "tf_static_topic", problems,
+                                         required=False)  # fmt: skip
+        if (
+            t.pose is None
+            and not (tf_conns or static_conns)
+            and not any("tf_topic" in p for p in problems)
+        ):
+            self._connections(reader, t.tf, _TF, "tf_topic", problems)
+        if problems:  # every wrong topic at once, the bag's topics listed once
+            present = {c.topic: c.msgtype for c in reader.connections}
+            listing = ", ".join(f"{n} ({m})" for n, m in sorted(present.items())) or "none"
+            raise MissingTopicError("; ".join(problems) + f". The bag {self.path} has: {listing}")
+        self.tf = _TfTree(self.tolerance, self.max_pose_gap)
+        infos: list[tuple[float, np.ndarray, tuple[int, int]]] = []
+        poses: list[tuple[float, np.ndarray]] = []
+        self.pose_frame: str | None = None
+        # in bag order: (stamp, bag time, frame_id, reason it cannot be used or None)
+        depth: list[tuple[float, int, str, str | None]] = []
+        colour: list[tuple[float, int]] = []
+        self.message_counts: Counter = Counter()  # per topic, messages read
+        self.corrupt: Counter = Counter()  # per topic, messages that could not be deserialised
+        self.corrupt_examples: list[str] = []
+        self.damage: str | None = None  # what stopped the read, for a bag damaged midway
+        watched = [*self.colour_conns, *self.depth_conns, *info_conns, *pose_conns,
+                   *tf_conns, *static_conns]  # fmt: skip
+        static_topic = t.tf_static
+        try:
             for conn, bag_time, raw in reader.messages(connections=watched):
+                self.message_counts[conn.topic] += 1
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
+                    if conn.topic == t.camera_info:
+                        k = _intrinsics(msg)
+                        if not np.isfinite(k).all():
+                            raise ValueError(f"non-finite K {k.reshape(-1).tolist()}")
                 except Exception as err:  # any deserialisation failure: a corrupt message
-                    self.bad[(conn.topic, bag_time)] = f"not deserialisable: {err}"
+                    why = f"not deserialisable: {err}"
+                    self.corrupt[conn.topic] += 1
+                    if len(self.corrupt_examples) < 20:
+                        self.corrupt_examples.append(f"{conn.topic}@bag time {bag_time}: {why}")
                     if conn.topic == t.depth:
-                        self.depth_stamps.append((bag_time * 1e-9, bag_time, ""))
+                        depth.append((bag_time * 1e-9, bag_time, "", why))
                     continue
                 if conn.topic == t.depth:
-                    self.depth_stamps.append((_stamp(msg.header), bag_time, msg.header.frame_id))
+                    depth.append((_stamp(msg.header), bag_time, msg.header.frame_id, None))
                 elif conn.topic == t.colour:
-                    self.colour_stamps.append((_stamp(msg.header), bag_time))
+                    colour.append((_stamp(msg.header), bag_time))
                 elif conn.topic == t.camera_info:
-                    infos.append((_stamp(msg.header), _intrinsics(msg)))
+                    infos.append((_stamp(msg.header), k, (int(msg.height), int(msg.width))))
                 elif conn.topic == t.pose:
                     p = msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose
                     poses.append((_stamp(msg.header), _pose(p)))
@@ -333,20 +380,40 @@ class BagSource:
                     for tr in msg.transforms:
                         self.tf.add(tr.header.frame_id, tr.child_frame_id, _stamp(tr.header),
                                     _transform(tr.transform), conn.topic == static_topic)  # fmt: skip
+        except Exception as err:  # the reader failed midway: keep what came before
+            self.damage = (f"{self.key}.path={str(self.path)!r} is damaged after "
+                           f"{sum(self.message_counts.values())} messages: {err}")  # fmt: skip
+        indexed = sum(int(getattr(c, "msgcount", 0) or 0) for c in self.depth_conns)
+        self.unread_depth = max(0, indexed - self.message_counts[t.depth]) if self.damage else 0
         self.tf.build()
         if not infos:
-            raise MissingTopicError(f"{self.key}.camera_info_topic={t.camera_info!r}: no message")
+            why = f" ({self.corrupt[t.camera_info]} corrupt)" if self.corrupt[t.camera_info] else ""
+            raise MissingTopicError(
+                f"{self.key}.camera_info_topic={t.camera_info!r}: no usable message{why}"
+            )
         infos.sort(key=lambda x: x[0])
-        self.info_stamps = np.array([s for s, _ in infos])
-        self.infos = [k for _, k in infos]
+        self.info_stamps = np.array([s for s, _, _ in infos])
+        self.infos = [k for _, k, _ in infos]
+        self.info_sizes = [hw for _, _, hw in infos]
         self.pose_track = None
         if t.pose is not None:
             if not poses:
                 raise MissingTopicError(f"{self.key}.pose_topic={t.pose!r}: no message")
             self.pose_track = PoseTrack([s for s, _ in poses], np.stack([m for _, m in poses]),
                                         self.tolerance, self.max_pose_gap)  # fmt: skip
-        self.colour_stamps.sort()
-        self.depth_stamps.sort()
+        # Header stamps that go back or repeat (a restamped or replayed stream): such messages
+        # are left out (the frames skipped as bad_stamp, the colour images never paired).
+        # (a message that could not be deserialised has no stamp: it takes no part)
+        readable = [i for i, d in enumerate(depth) if d[3] is None]
+        depth_faults = {readable[j]: why for j, why in _stamp_faults(
+            [depth[i][:2] for i in readable], t.depth).items()}  # fmt: skip
+        self.depth_stamps = sorted(
+            ((s, b, f, why if why is not None else depth_faults.get(i))
+             for i, (s, b, f, why) in enumerate(depth)), key=lambda x: x[:2])  # fmt: skip
+        colour_faults = _stamp_faults(colour, t.colour)
+        self.colour_stamp_faults = [f"{t.colour}@{colour[i][0]:.6f}: {why}"
+                                    for i, why in sorted(colour_faults.items())]  # fmt: skip
+        self.colour_stamps = sorted(c for i, c in enumerate(colour) if i not in colour_faults)
 
     def _camera_pose(self, stamp: float, frame_id: str) -> tuple[np.ndarray | None, str]:
         t = self.topics
@@ -366,8 +433,13 @@ class BagSource:
         chain = self.tf.chain(t.world_frame, camera)
         if chain is None:
             frames = sorted(self.tf.frames)
-            return None, (f"no tf chain {t.world_frame} -> {camera!r} (frames: {frames}; set "
-                          f"{self.key}.world_frame / {self.key}.camera_frame)")  # fmt: skip
+            empty = [f"{n} has no message" + (f" ({self.corrupt[n]} corrupt)" if self.corrupt[n]
+                                               else "")
+                     for n in (t.tf, t.tf_static) if not self.message_counts[n] - self.corrupt[n]]  # fmt: skip
+            return None, (f"no tf chain {t.world_frame} -> {camera}"
+                          + (f": {', '.join(empty)}" if empty else "")
+                          + f" (frames: {frames}; set {self.key}.world_frame / "
+                          f"{self.key}.camera_frame)")  # fmt: skip
         pose = self.tf.lookup(chain, stamp)
         if pose is None:
             return (
@@ -379,69 +451,99 @@ class BagSource:
     def __iter__(self) -> Iterator[RGBDFrame | SkippedFrame]:
         t = self.topics
         colour_times = np.array([s for s, _ in self.colour_stamps])
-        match = pair_nearest(np.array([s for s, _, _ in self.depth_stamps]), colour_times,
+        match = pair_nearest(np.array([s for s, _, _, _ in self.depth_stamps]), colour_times,
                              self.tolerance)  # fmt: skip
         self.unpaired_colour = int(len(self.colour_stamps) - np.unique(match[match >= 0]).size)
-        plan: list[tuple[float, int, int | None, str]] = []  # stamp, depth time, colour time
+        # stamp, depth (bag time, stamp), colour (bag time, stamp) or None, frame_id
+        plan: list[tuple[float, tuple[int, float], tuple[int, float] | None, str]] = []
         out: dict[int, RGBDFrame | SkippedFrame] = {}  # position -> record, emitted in order
-        for pos, ((stamp, bag_time, frame_id), m) in enumerate(
+        for pos, ((stamp, bag_time, frame_id, why), m) in enumerate(
             zip(self.depth_stamps, match, strict=True)
         ):
             name = f"{t.depth}@{stamp:.6f}"
-            if (t.depth, bag_time) in self.bad:
-                out[pos] = SkippedFrame(name, self.bad[(t.depth, bag_time)], "undecodable")
+            if why is not None:
+                kind = "bad_stamp" if why.startswith("header stamp") else "undecodable"
+                out[pos] = SkippedFrame(name, why, kind)
             elif m < 0:
-                out[pos] = SkippedFrame(name, f"no {t.colour} image within {self.tolerance} s",
+                out[pos] = SkippedFrame(name, self._unpaired_reason(stamp, colour_times),
                                         "unpaired")  # fmt: skip
-            plan.append((stamp, bag_time, None if m < 0 else self.colour_stamps[m][1], frame_id))
-        need_colour: dict[int, list[int]] = defaultdict(list)  # colour bag time -> positions
-        need_depth: dict[int, int] = {}
-        for pos, (_, depth_time, colour_time, _) in enumerate(plan):
+            colour_key = None if m < 0 else self.colour_stamps[m][::-1]
+            plan.append((stamp, (bag_time, stamp), colour_key, frame_id))
+        # Messages are found again by (bag time, header stamp): bag times alone may collide
+        # (two messages received in the same nanosecond), and a (bag time, stamp) pair shared
+        # by two messages is a duplicate stamp, left out above.
+        need_colour: dict[tuple[int, float], list[int]] = defaultdict(list)
+        need_depth: dict[tuple[int, float], int] = {}
+        for pos, (_, depth_key, colour_key, _) in enumerate(plan):
             if pos not in out:
-                need_depth[depth_time] = pos
-                need_colour[colour_time].append(pos)
+                need_depth[depth_key] = pos
+                need_colour[colour_key].append(pos)
+        depth_times = {b for b, _ in need_depth}
+        colour_times_needed = {b for b, _ in need_colour}
         colours: dict[int, np.ndarray | str] = {}  # position -> decoded colour or the reason
         depths: dict[int, tuple[np.ndarray, Any]] = {}
         next_pos = 0
+        missing = "message missing on the second read"
 
         def ready(pos: int) -> bool:
             return pos in out or (pos in colours and pos in depths)
 
-        with self._open() as reader:  # a new reader: its own connection objects, by topic
+        reader = self._open()  # a new reader: its own connection objects, by topic
+        try:
             conns = [c for c in reader.connections if c.topic in (t.colour, t.depth)]
             for conn, bag_time, raw in reader.messages(connections=conns):
                 is_depth = conn.topic == t.depth
-                if is_depth and bag_time in need_depth:
-                    pos = need_depth.pop(bag_time)
+                if not (bag_time in depth_times if is_depth else bag_time in colour_times_needed):
+                    continue
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                except Exception as err:  # read fine the first time: reported as undecodable
+                    msg, error = None, err
+                key = (bag_time, _stamp(msg.header)) if msg is not None else None
+                if is_depth and key in need_depth:
+                    pos = need_depth.pop(key)
                     try:
-                        msg = reader.deserialize(raw, conn.msgtype)
+                        if msg is None:
+                            raise ValueError(str(error))
                         depths[pos] = (decode_depth(msg, self.depth_scale), msg)
                     except Exception as err:
                         out[pos] = SkippedFrame(f"{t.depth}@{plan[pos][0]:.6f}", str(err),
                                                 "undecodable")  # fmt: skip
-                elif not is_depth and bag_time in need_colour:
-                    waiting = need_colour.pop(bag_time)
+                elif not is_depth and key in need_colour:
+                    waiting = need_colour.pop(key)
                     try:
-                        image: np.ndarray | str = decode_colour(
-                            reader.deserialize(raw, conn.msgtype)
-                        )
+                        image: np.ndarray | str = decode_colour(msg)
                     except Exception as err:
-                        stamp = next(s for s, b in self.colour_stamps if b == bag_time)
-                        image = f"{t.colour}@{stamp:.6f}: {err}"
+                        image = f"{t.colour}@{key[1]:.6f}: {err}"
                     for pos in waiting:
                         colours[pos] = image
                 while next_pos < len(plan) and ready(next_pos):
                     yield self._record(next_pos, plan, out, colours, depths)
                     next_pos += 1
-        while next_pos < len(plan):  # messages never seen (a truncated bag)
+        except Exception as err:  # damaged midway: the frames after it are counted as damaged
+            missing = f"not read: {self.key}.path={str(self.path)!r} is damaged there ({err})"
+            self.damage = self.damage or missing
+        finally:
+            reader.close()
+        while next_pos < len(plan):  # messages never seen (a damaged bag)
             if not ready(next_pos):
-                out[next_pos] = SkippedFrame(
-                    f"{t.depth}@{plan[next_pos][0]:.6f}",
-                    "message missing on the second read",
-                    "undecodable",
-                )
+                kind = "undecodable" if missing.startswith("message") else "damaged"
+                out[next_pos] = SkippedFrame(f"{t.depth}@{plan[next_pos][0]:.6f}", missing, kind)
             yield self._record(next_pos, plan, out, colours, depths)
             next_pos += 1
+        for i in range(self.unread_depth):  # in the bag's index, after the damage
+            yield SkippedFrame(f"{t.depth}#unread-{i + 1}", self.damage or "", "damaged")
+
+    def _unpaired_reason(self, stamp: float, colour_times: np.ndarray) -> str:
+        t = self.topics
+        why = f"no {t.colour} image within {self.tolerance} s"
+        if colour_times.size:
+            nearest = colour_times[np.abs(colour_times - stamp).argmin()]
+            return f"{why} (the nearest is {nearest - stamp:+.3f} s away)"
+        faults = len(self.colour_stamp_faults)
+        return f"{why} ({t.colour} has no usable message" + (
+            f": {faults} left out for their stamps)" if faults else ")"
+        )
 
     def _record(self, pos, plan, out, colours, depths) -> RGBDFrame | SkippedFrame:
         if pos in out:
@@ -456,6 +558,45 @@ class BagSource:
         pose, why = self._camera_pose(stamp, frame_id)
         if pose is None:
             return SkippedFrame(name, why, "no_pose")
-        i = int(np.searchsorted(self.info_stamps, stamp, side="right")) - 1
-        k = self.infos[max(i, 0)]
+        i = max(int(np.searchsorted(self.info_stamps, stamp, side="right")) - 1, 0)
+        k, (h, w) = self.infos[i], self.info_sizes[i]
+        if h and w and depth.shape != (h, w):  # (0 x 0: a CameraInfo that does not say)
+            return SkippedFrame(
+                name,
+                f"depth image {depth.shape[1]}x{depth.shape[0]} but {self.topics.camera_info}"
+                f"@{self.info_stamps[i]:.6f} is for {w}x{h}: its K is of another resolution "
+                "(give the depth image's own camera info)",
+                "size_mismatch",
+            )
         return RGBDFrame(image, depth, k, pose, stamp, name)
+
+
+def _stamp_faults(items: Sequence[tuple[float, int]], topic: str) -> dict[int, str]:
+    """Positions (in bag order) of ``(header stamp, bag time)`` items whose stamp does not
+    come after every stamp of an earlier-received message of the topic (a stream restamped
+    back in time, or a duplicate), and of messages received at one bag time with one stamp
+    (which of the two is which cannot be told); each with the reason."""
+    faults: dict[int, str] = {}
+    latest, latest_time = -math.inf, None
+    i = 0
+    while i < len(items):
+        j = i
+        while j < len(items) and items[j][1] == items[i][1]:
+            j += 1
+        group = range(i, j)
+        stamps = Counter(items[k][0] for k in group)
+        for k in group:
+            stamp, bag_time = items[k]
+            if stamp <= latest:
+                faults[k] = (f"header stamp {stamp:.6f} on {topic} is not after {latest:.6f}, "
+                             f"the stamp of a message received before it (bag time {latest_time}"
+                             f" < {bag_time}): stamps go back or repeat")  # fmt: skip
+            elif stamps[stamp] > 1:
+                faults[k] = (f"header stamp {stamp:.6f} on {topic} is shared by "
+                             f"{stamps[stamp]} messages received at bag time {bag_time}: a "
+                             "duplicate stamp")  # fmt: skip
+        top = max(items[k][0] for k in group)
+        if top > latest:
+            latest, latest_time = top, items[i][1]
+        i = j
+    return faults
