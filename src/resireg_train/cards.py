@@ -16,16 +16,31 @@ from typing import Any
 
 from resireg_train.results import read_results
 
-__all__ = ["CARD_FILE", "add_evaluation", "eval_results", "write_export_card"]
+__all__ = [
+    "CARD_FILE",
+    "TRAINING_VALIDATION",
+    "add_evaluation",
+    "eval_results",
+    "write_export_card",
+]
 
 CARD_FILE = "README.md"
 _TASK = "image-segmentation"
 
 
-def eval_results(record: Mapping[str, Any], source: str, folder: Path) -> list[Any]:
+#: The ``dataset_config`` of the scores the training run's ReSiReg callback logged at its last
+#: validation: model-index groups results by task and dataset (config, split, revision), so
+#: they stay apart from (and keep their own source beside) a later ``resireg-eval``'s.
+TRAINING_VALIDATION = "validation during training"
+
+
+def eval_results(
+    record: Mapping[str, Any], source: str, folder: Path, training: bool = False
+) -> list[Any]:
     """One ``huggingface_hub.EvalResult`` per mIoU / f-mIoU a run record's ``final`` holds
     (``val/<task>/<dataset>/<metric>_<variant>``), named ``<metric> (<variant>)``, its source
-    ``source`` at the run ``folder`` (a ``file://`` URL)."""
+    ``source`` at the run ``folder`` (a ``file://`` URL); ``training``: a training run's
+    validation scores (:data:`TRAINING_VALIDATION`)."""
     from huggingface_hub import EvalResult
 
     dataset_spec = ((record.get("params") or {}).get("dataset")) or {}
@@ -41,6 +56,7 @@ def eval_results(record: Mapping[str, Any], source: str, folder: Path) -> list[A
         out.append(EvalResult(
             task_type=_TASK, task_name=f"open-vocabulary {task}", dataset_type=dataset,
             dataset_name=dataset, dataset_split=dataset_spec.get("split"),
+            dataset_config=TRAINING_VALIDATION if training else dataset_spec.get("config"),
             dataset_revision=dataset_spec.get("revision"),
             metric_type="mean_iou" if metric == "miou" else "frequency_weighted_iou",
             metric_name=f"{metric} ({variant})", metric_value=float(value), source_name=source,
@@ -85,7 +101,7 @@ def write_export_card(export: Path, out: Path) -> Path:
     data = (record.get("provenance") or {}).get("data") or {}
     datasets = sorted({str(d.get("repo") or d.get("path") or key) for key, d in data.items()
                        if d.get("kind") in ("hub", "local")})  # fmt: skip
-    results = eval_results(record, "resireg-train validation", out)
+    results = eval_results(record, "resireg-train validation", out, training=True)
     fields: dict[str, Any] = {"model_name": name}
     if datasets:
         fields["datasets"] = datasets
