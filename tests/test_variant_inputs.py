@@ -107,3 +107,17 @@ def test_check_features_counts_like_numpy_and_returns_the_tensor():
     assert check_features("feats", clean) is clean
     with pytest.raises(TypeError, match="feats must be a torch.Tensor, got ndarray"):
         check_features("feats", values)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+def test_check_features_accepts_finite_values_whose_sum_overflows(dtype):
+    """The check's fast path is a sum; finite values whose sum overflows must still pass and
+    one inf among them must still be caught (numpy's isfinite is the reference)."""
+    top = torch.finfo(dtype).max
+    x = torch.full((4, 3), top, dtype=dtype)
+    x[0, 0] = -top  # +max + -max ...: the sum is inf or nan in this dtype
+    assert np.isfinite(x.double().numpy()).all()
+    assert check_features("x", x) is x
+    x[2, 1] = float("inf")
+    with pytest.raises(NonFiniteError, match="x holds 1 non-finite"):
+        check_features("x", x)
