@@ -72,7 +72,9 @@ def main(argv: list[str] | None = None) -> None:
         per_round = ", ".join(
             f"{c / t:.2e}" for c, t in zip(times["check"], times[name], strict=True)
         )
-        print(f"| {name} forward | {med[name]:.3f} | {med['check'] / med[name]:.2e} | {per_round} |")
+        print(
+            f"| {name} forward | {med[name]:.3f} | {med['check'] / med[name]:.2e} | {per_round} |"
+        )
 
 
 if __name__ == "__main__":
