@@ -924,13 +924,14 @@ def offline_hub(
 ) -> Path:
     """torch's hub cache at ``hub_dir`` holding (empty files named like) ``checkpoints`` in
     ``checkpoints/`` and, with ``radio_code``, the fake NVlabs/RADIO as ``NVlabs_RADIO_main``
-    (what RADSeg loads from GitHub); GitHub unreachable for torch.hub; any network probe of
+    and at the pinned commit (what RADSeg loads from GitHub); GitHub unreachable for torch.hub; any network probe of
     :mod:`resireg.models.hub` fails the test."""
     (hub_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     for name in checkpoints:
         (hub_dir / "checkpoints" / name).write_bytes(b"")  # cached (the fakes never read it)
-    if radio_code:
+    if radio_code:  # RADSeg's own load of RADIO, pinned (PINNED_REFS) or not (main)
         radio_repo(hub_dir / "NVlabs_RADIO_main")
+        radio_repo(hub_dir / f"NVlabs_RADIO_{hub_module.PINNED_REFS['NVlabs/RADIO']}")
     monkeypatch.setattr(torch.hub, "_hub_dir", str(hub_dir))
     monkeypatch.setattr(torch.hub, "urlopen", _offline_urlopen)
     monkeypatch.setattr(hub_module, "_resolves", _no_network)

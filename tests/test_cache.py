@@ -185,3 +185,32 @@ def test_resireg_eval_names_sets_aside_and_re_encodes_a_damaged_shard(tmp_path, 
         assert results["status"] == "completed" and results["final"] == clean["final"], how
         assert shard.with_name(f"{shard.name}.damaged").is_file()  # set aside, never read again
         assert not shard.with_suffix(".json").exists()
+
+
+def test_a_non_finite_batch_is_skipped_and_never_cached(tmp_path, model, monkeypatch):
+    """The second batch's encoder output holds a NaN: its images are skipped samples, the
+    cache stores the other batches only, and a later job reading the cache re-encodes just
+    that batch (a clean encoder then scores it)."""
+    dataset, cache = _cache(tmp_path, model)
+    task = OVSSTask(dataset, batch_size=2)
+    poisoned = dataset.batches(2)[1]
+    real, calls = model.encode, []
+
+    def encode(x):
+        out = real(x)
+        calls.append(1)
+        if len(calls) == 2:
+            out = out._replace(language=out.language.clone().fill_(float("nan")))
+        return out
+
+    monkeypatch.setattr(model, "encode", encode)
+    result = task.run(model, build_variants(["bb"]), cache=cache)
+    monkeypatch.undo()
+    assert [s.file for s in result.skipped_samples] == [dataset.describe(i) for i in poisoned]
+    assert result.images == len(dataset) - len(poisoned)
+    reread = FeatureCache(tmp_path, cache.key, dataset.describe)
+    assert len(reread) == len(dataset) - len(poisoned) and reread.get(poisoned) is None
+    counting = _Counting(model)
+    monkeypatch.setattr(model, "encode", counting)
+    again = task.run(model, build_variants(["bb"]), cache=reread)
+    assert counting.calls == 1 and again.skipped == 0 and again.images == len(dataset)

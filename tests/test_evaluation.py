@@ -283,3 +283,65 @@ def test_too_many_prototypes_for_a_batch_name_the_variant_and_the_batch_of_image
         "(B*Hv*s*Wv*s for B=2 intermediates of 3 x 4, upscale=2); dataset 'synthetic' with "
         "batch_size=4 has a batch of 2 images of 48 x 64 px"
     )
+
+
+def _poison_call(monkeypatch, encoder, call: int, field: str):
+    """Make the ``call``-th ``encode`` (0-based) of ``encoder`` return one NaN in ``field``."""
+    real = encoder.encode
+    calls = []
+
+    def encode(x):
+        out = real(x)
+        calls.append(len(calls))
+        if calls[-1] == call:
+            bad = getattr(out, field).clone()
+            bad[0, 0, 0, 0] = float("nan")
+            out = out._replace(**{field: bad})
+        return out
+
+    monkeypatch.setattr(encoder, "encode", encode)
+
+
+@pytest.mark.parametrize("field", ["language", "intermediates"])
+def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_scored(
+    vlm, monkeypatch, caplog, field
+):
+    """One NaN in the encoder's output of the second batch: that batch's 3 images are
+    skipped (named, with the reason, in the record results.json gets and in the log) and
+    the scores are those of the other batches alone (sklearn's confusion over
+    encode_image + predict, image by image). Before the check, Full's whole batch scored
+    NaN features as class 0 and a NaN in the intermediates failed the run."""
+    from resireg_train.ovss.task import OVSSProtocol
+
+    task = _task(batch_size=3)
+    batches = task.dataset.batches(3)
+    _poison_call(monkeypatch, vlm, 1, field)
+    variants = build_variants(["bb", "full"], {"full": FULL})
+    result = task.run(vlm, variants)
+    monkeypatch.undo()
+    poisoned = batches[1]
+    assert result.images == 10 - len(poisoned) and result.batch_sizes == {1: 1, 3: 2}
+    ds = task.dataset
+    assert [s.file for s in result.skipped_samples] == [ds.describe(i) for i in poisoned]
+    for s in result.skipped_samples:
+        assert s.reason.startswith(f"encoder output {field} holds 1 non-finite value")
+    protos = task.prototypes(vlm)
+    for name, kwargs in (("bb", {}), ("full", FULL)):
+        expected = np.zeros((8, 8), dtype=np.int64)
+        for batch in batches:
+            if batch == poisoned:
+                continue
+            images = torch.stack([ds[i]["image"] for i in batch])
+            dense = vlm.encode_image(images, name, **kwargs)
+            for j, i in enumerate(batch):
+                label = ds[i]["label"]
+                pred = predict(dense[j : j + 1], protos, tuple(label.shape))
+                expected += confusion_matrix(label.flatten(), pred.flatten(), labels=range(8))
+        assert np.array_equal(result.metrics[name].confusion.numpy(), expected), name
+    protocol = OVSSProtocol.__new__(OVSSProtocol)  # results() reads only its cache
+    protocol.cache = None
+    with caplog.at_level("WARNING"):
+        record = protocol.results(result)
+    assert record["skipped"] == 3 and record["batch_sizes"] == {"1": 1, "3": 2}
+    assert [s["file"] for s in record["skipped_samples"]] == [ds.describe(i) for i in poisoned]
+    assert f"skipped 3 of 10 images ({ds.describe(poisoned[0])}: encoder output" in caplog.text

@@ -308,9 +308,10 @@ def test_radseg_teacher_gets_radsegs_offline_checks(tmp_path, monkeypatch):
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
     monkeypatch.setattr(torch.hub, "load", _hub_load_forbidden)
     start = time.monotonic()
-    with pytest.raises(WeightsUnavailableError, match="NVlabs_RADIO_main"):
+    pinned = f"NVlabs_RADIO_{hub_module.PINNED_REFS['NVlabs/RADIO']}"  # RADSeg's RADIO: pinned
+    with pytest.raises(WeightsUnavailableError, match=pinned):
         RadSegTeacher(repo=repo, source="local")
-    radio_repo(hub / "NVlabs_RADIO_main")  # RADIO's code cached, its checkpoint not
+    radio_repo(hub / pinned)  # RADIO's code cached, its checkpoint not
     with pytest.raises(WeightsUnavailableError, match=r"huggingface\.co.*model\.teacher\.repo="):
         RadSegTeacher(repo=repo, source="local")
     assert time.monotonic() - start < 2.0

@@ -25,7 +25,7 @@ from _fake_hubs import radio_repo as _radio_repo
 from _fake_hubs import radseg_repo as _radseg_repo
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
-from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadioEncoder, RadSegEncoder
+from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RADIO_REF, RadioEncoder, RadSegEncoder
 
 NORM_MEAN, NORM_STD = (0.45, 0.40, 0.35), (0.27, 0.26, 0.28)  # the fake checkpoint's conditioner
 TEXTS = ["a photo of a cat", "the sky", "Grass_field"]
@@ -176,12 +176,16 @@ def _hub_load_forbidden(*args, **kwargs):
 
 
 def test_radseg_without_radio_in_the_hub_cache_fails_at_once(radseg_repo, hub, monkeypatch):
-    (hub / "NVlabs_RADIO_main" / "hubconf.py").unlink()
-    (hub / "NVlabs_RADIO_main").rmdir()
+    pinned = f"NVlabs_RADIO_{RADIO_REF}"  # RADSeg's own RADIO load is pinned to RADIO_REF
+    for folder in (pinned, "NVlabs_RADIO_main"):
+        (hub / folder / "hubconf.py").unlink()
+        (hub / folder).rmdir()
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
     monkeypatch.setattr(torch.hub, "load", _hub_load_forbidden)
-    with pytest.raises(WeightsUnavailableError, match="NVlabs_RADIO_main"):
+    with pytest.raises(WeightsUnavailableError, match=pinned):
         RadSegEncoder(repo=radseg_repo, source="local")
+    with pytest.raises(WeightsUnavailableError, match="NVlabs_RADIO_main"):  # unpinned
+        RadSegEncoder(repo=radseg_repo, source="local", radio_ref=None)
 
 
 def test_uncached_radio_weights_fail_at_once(radio_repo, hub, monkeypatch):

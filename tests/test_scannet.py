@@ -100,10 +100,11 @@ class _ClassFromColour(DenseEncoder):
 
 
 # ------------------------------------------------- independent reference (numpy)
-def _reference_gt(root, room, voxel, lattice="floor"):
+def _reference_gt(root, room, voxel, lattice="floor", exclude=()):
     """Ground-truth voxels recomputed with numpy from the written files: every pixel of the
     kept frames unprojected with K and the pose, votes per voxel with ignored pixels as a class
-    (``gt_unlabelled=vote``), argmax; returns {voxel index tuple: class or 255}."""
+    (``gt_unlabelled=vote``), argmax; returns {voxel index tuple: class or 255}. Frames
+    numbered in ``exclude`` are left out."""
     folder = Path(root) / SCENE
     lookup = np.full(1 << 16, 255)
     for raw in RAW_LABELS:
@@ -113,7 +114,7 @@ def _reference_gt(root, room, voxel, lattice="floor"):
     votes: dict[tuple, np.ndarray] = {}
     for i in range(room.frames):
         pose = np.loadtxt(folder / "pose" / f"{i}.txt")
-        if not np.isfinite(pose).all():
+        if not np.isfinite(pose).all() or i in exclude:
             continue
         depth = np.asarray(Image.open(folder / "depth" / f"{i}.png")).astype(np.float64) / 1000
         label = lookup[np.asarray(Image.open(folder / "label-filt" / f"{i}.png")).astype(int)]
@@ -318,6 +319,56 @@ def test_oracle_features_give_miou_one_and_constant_features_the_hand_value(root
     assert constant[f"{prefix}/miou_bb"] == pytest.approx(iou / (hist > 0).sum())
     assert constant[f"{prefix}/fmiou_bb"] == pytest.approx(iou * iou)
     assert constant[f"{prefix}/acc_bb"] == pytest.approx(iou)
+
+
+class _NaNOnCall(_ClassFromColour):
+    """The oracle, whose ``call``-th ``encode`` (0-based) holds one NaN in its language."""
+
+    def __init__(self, call: int) -> None:
+        super().__init__()
+        self.call, self.calls = call, 0
+
+    def encode(self, images):
+        out = super().encode(images)
+        self.calls += 1
+        if self.calls - 1 == self.call:
+            language = out.language.clone()
+            language[0, 0, 0, 0] = float("nan")
+            out = out._replace(language=language)
+        return out
+
+
+def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room, caplog, tmp_path):
+    """The second batch's output holds a NaN: its 3 frames are neither fused nor counted in
+    the ground truth, each is a skipped sample naming the reason (in the record and the log),
+    and the map is that of the other 6 frames: the scored ground-truth voxels are the numpy
+    reference's without those frames, and the oracle still scores 1. Before the check the
+    batch was fused (a NaN voxel feature) and counted as mapped."""
+    from resireg_train.mapping.task import ScanNet3DProtocol
+
+    frames = _frames(root, room)
+    variants = build_variants(["bb", "full"], {"full": {"n_prototypes": 4}})
+    task = MappingTask(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
+                       lattice="floor")  # fmt: skip
+    poisoned = frames.batches(3)[1]
+    result = task.run(_NaNOnCall(1), variants)
+    assert result.frames == {SCENE: 6}
+    names = [frames.describe(i) for i in poisoned]
+    assert [s.file for s in result.skipped_samples] == names
+    assert all("encoder output language holds 1 non-finite" in s.reason
+               for s in result.skipped_samples)  # fmt: skip
+    numbers = {int(Path(n).stem) for n in names}
+    reference = _reference_gt(root, room, VOXEL, exclude=numbers)
+    assert result.voxels[SCENE] == sum(c != 255 for c in reference.values())
+    assert result.voxels[SCENE] < sum(c != 255 for c in _reference_gt(root, room, VOXEL).values())
+    assert result.scores()["val/scannet3d/scannet/miou_bb"] == 1.0
+    protocol = ScanNet3DProtocol.__new__(ScanNet3DProtocol)  # results() needs out and data
+    protocol.dataset, protocol.out = frames, tmp_path
+    with caplog.at_level("WARNING"):
+        record = protocol.results(result)
+    assert record["skipped"] == 3 and record["frames"] == {SCENE: 6}
+    assert [s["file"] for s in record["skipped_samples"]][-3:] == names
+    assert f"{names[0]}: encoder output language holds" in caplog.text
 
 
 # ------------------------------------------------------------ Hydra entry point

@@ -271,10 +271,16 @@ class Calib(nn.Module):
         mixed = torch.where(row_sum > 0, (affinity @ tokens) / row_sum.clamp(min=1e-30), tokens)
         return F.normalize(mixed, dim=2).transpose(1, 2).reshape(b, -1, h, w)
 
+    @torch.no_grad()
     def forward(
         self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None
     ) -> Tensor:
         """Calibrate the language tokens.
+
+        The inputs follow ReSiReg's rules (the shared ``_check_inputs`` of
+        :mod:`resireg.reconstruct`: floating-point, finite, no empty dimension; each error
+        names the argument) and, like ReSiReg, Calib has no parameters and runs under
+        :func:`torch.no_grad`.
 
         Args:
             intermediates: ``[B, Dv, Hv, Wv]`` backbone features (LOF and affinities).

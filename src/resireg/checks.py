@@ -5,8 +5,8 @@ One place for the rule "a feature tensor is floating-point and finite", so every
 :meth:`resireg.mapping.SemanticMap.fuse`, the engines' encoder outputs) refuses the same inputs
 with the same words. A NaN that enters ReSiReg Full spreads to every patch of the batch (PCA
 and k-means mix all points), and one NaN patch in Lite spreads to its whole image, so the check
-runs before any of them. Its cost is one ``isfinite`` reduction over the tensor
-(``benchmarks/bench_checks.py``).
+runs before any of them. Its cost is one sum over the tensor when it is finite
+(``benchmarks/bench_checks.py``: well under 1% of Full's or Lite's forward).
 """
 
 from __future__ import annotations
@@ -34,10 +34,11 @@ def check_features(name: str, x: object) -> Tensor:
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if not x.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got dtype {x.dtype}")
-    # One reduction on the happy path: a sum is finite only if every entry is (NaN and inf
-    # propagate, inf - inf is NaN); a non-finite sum (a bad entry, or finite values whose sum
-    # overflows) is decided entry by entry. On CPU ~15x faster than isfinite().all(), which
-    # writes a bool tensor first; the count only when something is wrong.
+    # Happy path: one sum. A NaN or an inf anywhere makes the sum NaN or inf (IEEE arithmetic
+    # propagates both), so a finite sum proves every entry finite; a non-finite sum may also
+    # be an overflow of finite values, so only then the exact test. Measured on 2 CPU cores
+    # (4 x 384 x 36 x 48 floats): the sum 1-2 ms, isfinite(x).all() 45-80 ms (an elementwise
+    # pass writing a bool tensor, then a reduction of it); benchmarks/bench_checks.py.
     if x.numel() and not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         bad = count_nonfinite(x)
         raise NonFiniteError(

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.checks import check_features
 from resireg.cluster import (
     ELBO_MAX_POINTS,
     PCAResult,
@@ -61,29 +62,47 @@ def _check_positive_int(name: str, value: object) -> int:
 
 
 def _check_inputs(intermediates: Tensor, language: Tensor, prior: Tensor | None) -> None:
-    if intermediates.ndim != 4:
-        raise ValueError(
-            f"intermediates must have shape [B, Dv, Hv, Wv], got shape {tuple(intermediates.shape)}"
-        )
-    if language.ndim != 4:
-        raise ValueError(
-            f"language must have shape [B, Dl, Hl, Wl], got shape {tuple(language.shape)}"
-        )
+    """The rules every variant's inputs follow (Full, Lite and :class:`resireg.calib.Calib`):
+    floating-point and finite features (:func:`resireg.checks.check_features`; a NaN would
+    spread to the whole batch in Full and to the whole image in Lite), four dimensions, none
+    of them empty (a batch of 0 images, 0 channels or a 0-cell grid has nothing to
+    reconstruct), one batch size, and an integer prior of the same batch. Each error is a
+    :class:`ValueError` (:class:`TypeError` for a non-tensor or a non-floating dtype) naming
+    the argument and its shape."""
+    for name, x, dims in (
+        ("intermediates", intermediates, "[B, Dv, Hv, Wv]"),
+        ("language", language, "[B, Dl, Hl, Wl]"),
+    ):
+        if not isinstance(x, Tensor):  # the shape test below needs a tensor
+            check_features(name, x)
+        if x.ndim != 4:
+            raise ValueError(f"{name} must have shape {dims}, got shape {tuple(x.shape)}")
+        if 0 in x.shape:
+            raise ValueError(
+                f"{name} must have no empty dimension ({dims}: at least one image, channel and "
+                f"grid cell), got shape {tuple(x.shape)}"
+            )
     if language.shape[0] != intermediates.shape[0]:
         raise ValueError(
             f"language batch size {language.shape[0]} does not match intermediates batch size "
             f"{intermediates.shape[0]}"
         )
     if prior is not None:
-        if prior.ndim != 3:
-            raise ValueError(f"prior must have shape [B, H, W], got shape {tuple(prior.shape)}")
+        if not isinstance(prior, Tensor) or prior.ndim != 3:
+            shape = tuple(prior.shape) if isinstance(prior, Tensor) else type(prior).__name__
+            raise ValueError(f"prior must have shape [B, H, W], got {shape}")
         if prior.shape[0] != intermediates.shape[0]:
             raise ValueError(
                 f"prior batch size {prior.shape[0]} does not match intermediates batch size "
                 f"{intermediates.shape[0]}"
             )
+        if 0 in prior.shape:
+            raise ValueError(f"prior must have a non-empty grid, got shape {tuple(prior.shape)}")
         if prior.is_floating_point() or prior.is_complex():
             raise ValueError(f"prior must hold integer instance ids, got dtype {prior.dtype}")
+    # Last: the finiteness test reads every value, the shape tests above are free.
+    check_features("intermediates", intermediates)
+    check_features("language", language)
 
 
 def _upsample(x: Tensor, scale: int) -> Tensor:
@@ -466,6 +485,7 @@ class ReSiRegFull(nn.Module):
             )
         return n
 
+    @torch.no_grad()
     def assign(
         self, intermediates: Tensor, spectrum: PCASpectrum | None = None
     ) -> tuple[Tensor, Tensor]:
@@ -557,6 +577,7 @@ class ReSiRegFull(nn.Module):
             up[at] = taps[0, :, 0].T
         return F.normalize((up - fit.mean) @ fit.components.T, dim=1)
 
+    @torch.no_grad()
     def forward(
         self,
         intermediates: Tensor,
@@ -565,6 +586,10 @@ class ReSiRegFull(nn.Module):
         shared: FullShared | None = None,
     ) -> Tensor:
         """Reconstruct language features.
+
+        ReSiReg has no parameters and its clustering (k-means' assignments) has no useful
+        gradient, so it runs under :func:`torch.no_grad`: inputs that require grad are
+        accepted and the result does not require grad (Lite and Calib alike).
 
         Args:
             intermediates: ``[B, Dv, Hv, Wv]`` backbone features used for clustering.
@@ -575,6 +600,12 @@ class ReSiRegFull(nn.Module):
 
         Returns:
             ``[B, Dl, Hv*s, Wv*s]``, unit L2 norm over ``Dl``, in ``language.dtype``.
+
+        Raises:
+            TypeError: ``intermediates`` or ``language`` is not a floating-point tensor.
+            ValueError: a shape is wrong or has an empty dimension, or the features hold NaN
+                or inf (:class:`resireg.checks.NonFiniteError`); the message names the
+                argument.
         """
         _check_inputs(intermediates, language, prior)
         if shared is None:
@@ -659,10 +690,12 @@ class ReSiRegLite(nn.Module):
             return self.attention
         return "sdpa" if torch.device(device).type == "cuda" else "factorised"
 
+    @torch.no_grad()
     def forward(
         self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None
     ) -> Tensor:
-        """Reconstruct language features; arguments and result as :meth:`ReSiRegFull.forward`."""
+        """Reconstruct language features; arguments, result, errors and ``no_grad`` as
+        :meth:`ReSiRegFull.forward`."""
         _check_inputs(intermediates, language, prior)
         dtype = torch.promote_types(intermediates.dtype, language.dtype)
         with torch.autocast(device_type=intermediates.device.type, enabled=False):

@@ -20,7 +20,8 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
-from resireg.models import DenseEncoder
+from resireg.checks import NonFiniteError, check_features
+from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, average_prompts, class_prompts
 from resireg.specs.rules import check_batch_size
 from resireg_train.validation import PRECISIONS
@@ -32,6 +33,7 @@ __all__ = [
     "check_variants_on",
     "eval_loader",
     "inference",
+    "nonfinite_output",
 ]
 
 
@@ -78,6 +80,23 @@ def inference(encoder: DenseEncoder, precision: str) -> Iterator[None]:
     finally:
         for module, mode in modes.items():
             module.training = mode
+
+
+def nonfinite_output(out: DenseOutput) -> str | None:
+    """Why the encoder's output for a batch cannot be scored, or ``None``: the engines check
+    it once as it enters them (fresh or from the feature cache), with the variants' own rule
+    (:func:`resireg.checks.check_features`), so a batch whose ``intermediates``, ``language``
+    tokens or per-block intermediates hold NaN or inf is skipped and counted (each of its
+    images a skipped sample with this reason) instead of scored: in Full one NaN spreads to
+    every image of the batch. A non-floating output is an encoder bug and raises."""
+    named = [("intermediates", out.intermediates), ("language", out.language)]
+    named += [(f"layers[{k}]", v) for k, v in sorted((out.layers or {}).items())]
+    for name, tensor in named:
+        try:
+            check_features(f"encoder output {name}", tensor)
+        except NonFiniteError as err:
+            return f"{err}; its batch of {tensor.shape[0]} was not scored"
+    return None
 
 
 def check_variants_on(

@@ -15,6 +15,15 @@ to set). The checks, one helper per kind of source (docs/design.md section 6):
 - :func:`require_open_clip_tag`: an open_clip pretrained tag's weights cached or reachable.
 
 All of them end in :func:`require_online`.
+
+**Pinned refs.** ``torch.hub.load("owner/name", ...)`` from GitHub follows the repository's
+default branch, so its code could change under a run. Every hub encoder therefore takes a
+``ref`` (a tag or a commit SHA; each conf/encoder/*.yaml and conf/model/teacher/radseg.yaml
+names the commit its adapter was checked against) and loads ``"owner/name:<ref>"``
+(:func:`hub_target`); torch.hub keeps that code in ``<hub>/owner_name_<ref>``
+(:func:`hub_repo_cached`), which a later load reuses without the network. A local clone
+(``source="local"``) ignores the ref. ``ref=None`` is torch.hub's own behaviour (the default
+branch).
 """
 
 from __future__ import annotations
@@ -25,9 +34,13 @@ import threading
 from collections.abc import Sequence
 
 __all__ = [
+    "PINNED_REFS",
     "WeightsUnavailableError",
+    "check_hub_ref",
     "check_hub_source",
     "hf_cached",
+    "hub_target",
+    "hub_cache_dir",
     "hub_checkpoint_path",
     "hub_repo_cached",
     "require_hf_files",
@@ -38,6 +51,17 @@ __all__ = [
 ]
 
 _TRUE = {"1", "true", "yes", "on"}
+
+#: The commit of each hub repository the adapters were checked against (each repository's
+#: default branch as read for the pin, with its date): the constructors' default ``ref``, and
+#: the ``ref`` of conf/encoder/*.yaml and conf/model/teacher/radseg.yaml (a test holds them
+#: equal). To move to a newer commit, read the adapter's module docstring against that
+#: commit's code, change it here and in those files, and run the encoder tests.
+PINNED_REFS = {
+    "NVlabs/RADIO": "c0f37017930e9dda53f93424cf4bf39fc51f287e",  # main, 2026-05-29
+    "RADSeg-OVSS/RADSeg": "05ec86fcc164ade687f8dce36f69e22278679803",  # main, 2026-01-27
+    "facebookresearch/dinov2": "b8931f7bf91576930313be2c6d6af376033b35f0",  # main, 2025-08-14
+}
 
 
 class WeightsUnavailableError(RuntimeError):
@@ -89,19 +113,52 @@ def require_online(
         )
 
 
-def check_hub_source(repo: str, source: str, what: str, hint: str, key: str = "model") -> None:
-    """Validate a torch.hub ``repo`` / ``source`` pair before anything is loaded.
+def check_hub_ref(ref: object, key: str = "model.ref") -> str | None:
+    """``ref`` itself when it is ``None`` or a git ref torch.hub can take after ``owner/name:``
+    (a tag, a branch or a commit SHA: non-empty, no whitespace, no ``:``); else a
+    :class:`ValueError` naming ``key``."""
+    if ref is None:
+        return None
+    if not isinstance(ref, str) or not ref or any(c.isspace() or c == ":" for c in ref):
+        raise ValueError(
+            f"{key}={ref!r}: expected a git tag or commit SHA of the hub repository (or null "
+            "for its default branch)"
+        )
+    return ref
 
-    ``source="local"`` needs ``repo`` to be a directory; ``source="github"`` needs
-    github.com, else :class:`~resireg.models.hub.WeightsUnavailableError` at once with
-    ``hint`` (which should name ``{key}.repo`` and ``{key}.source=local``).
+
+def hub_target(repo: str, source: str, ref: str | None, key: str = "model") -> str:
+    """The first argument of ``torch.hub.load``: ``"owner/name:<ref>"`` from GitHub with a
+    ``ref``, else ``repo`` (a local clone ignores the ref). A ``repo`` that names a ref of its
+    own as well as ``ref`` is an error naming both keys."""
+    check_hub_ref(ref, f"{key}.ref")
+    if source != "github" or ref is None:
+        return repo
+    if ":" in repo:
+        raise ValueError(f"{key}.repo={repo!r} names a ref and {key}.ref={ref!r} another: keep one")
+    return f"{repo}:{ref}"
+
+
+def check_hub_source(
+    repo: str, source: str, what: str, hint: str, key: str = "model", ref: str | None = None
+) -> None:
+    """Validate a torch.hub ``repo`` / ``source`` pair (and ``ref``) before anything is loaded.
+
+    ``source="local"`` needs ``repo`` to be a directory; ``source="github"`` needs the repo's
+    code at ``ref`` in torch's hub cache (:func:`hub_repo_cached`) or github.com, else
+    :class:`~resireg.models.hub.WeightsUnavailableError` at once with ``hint`` (which should
+    name ``{key}.repo`` and ``{key}.source=local``).
     """
     if source not in ("github", "local"):
         raise ValueError(f"{key}.source={source!r}: expected 'github' or 'local'")
+    check_hub_ref(ref, f"{key}.ref")
     if source == "local" and not os.path.isdir(repo):
         raise FileNotFoundError(f"{key}.repo={repo!r}: no such directory ({what} clone)")
     if source == "github":
-        require_online(f"{what} ({repo})", "github.com", hint, hf=False)
+        if ref is not None and hub_repo_cached(repo, ref) is not None:
+            return  # torch.hub loads the pinned code from its cache, no network needed
+        target = hub_target(repo, source, ref, key)
+        require_online(f"{what} ({target})", "github.com", hint, hf=False)
 
 
 def _hub_dir() -> str:
@@ -126,22 +183,29 @@ def require_hub_checkpoints(files: Sequence[str], what: str, host: str, hint: st
         require_online(f"{what} {names}", host, hint, hf=False)
 
 
-def hub_repo_cached(repo: str) -> str | None:
-    """torch's hub cache directory of GitHub repo ``owner/name`` (branch ``main`` or
-    ``master``: ``<hub>/owner_name_main``), or ``None``; ``torch.hub.load(repo, ...)`` uses
-    it when GitHub is unreachable."""
+def hub_cache_dir(repo: str, ref: str) -> str:
+    """Where ``torch.hub.load("owner/name:<ref>", ...)`` keeps the code: ``<hub>/owner_name_<ref>``
+    (a ``/`` of the ref as ``_``, as torch.hub names it)."""
     owner, name = repo.split("/", 1)
-    for ref in ("main", "master"):
-        path = os.path.join(_hub_dir(), f"{owner}_{name}_{ref}")
+    return os.path.join(_hub_dir(), f"{owner}_{name}_{ref.replace('/', '_')}")
+
+
+def hub_repo_cached(repo: str, ref: str | None = None) -> str | None:
+    """torch's hub cache directory of GitHub repo ``owner/name`` at ``ref``
+    (:func:`hub_cache_dir`; with ``ref=None`` branch ``main`` or ``master``:
+    ``<hub>/owner_name_main``), or ``None``; ``torch.hub.load`` uses it without the network."""
+    for candidate in (ref,) if ref is not None else ("main", "master"):
+        path = hub_cache_dir(repo, candidate)
         if os.path.isdir(path):
             return path
     return None
 
 
-def require_hub_repo(repo: str, what: str, hint: str) -> None:
-    """Raise :class:`WeightsUnavailableError` at once when ``torch.hub.load(repo, ...)`` could
-    get ``repo``'s code neither from torch's hub cache (:func:`hub_repo_cached`) nor GitHub."""
-    if hub_repo_cached(repo) is None:
+def require_hub_repo(repo: str, what: str, hint: str, ref: str | None = None) -> None:
+    """Raise :class:`WeightsUnavailableError` at once when ``torch.hub.load(repo, ...)`` (at
+    ``ref``) could get ``repo``'s code neither from torch's hub cache (:func:`hub_repo_cached`)
+    nor GitHub."""
+    if hub_repo_cached(repo, ref) is None:
         require_online(what, "github.com", hint, hf=False)
 
 

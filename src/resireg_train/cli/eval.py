@@ -189,9 +189,11 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     task.check(variants)  # the dataset's and the prior's sources, before the encoder loads
     encoder = build_encoder(**encoder_kwargs(params["encoder"]), device=_device(cfg.device),
                             config_key="encoder")  # fmt: skip
+    # a hub encoder's hub_ref: the code loaded ("owner/name:<ref>"; None for a local clone)
+    hub = {"hub_ref": encoder.hub_ref} if hasattr(encoder, "hub_ref") else {}
     update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,
                                  "third_party": bool(cfg.encoder.third_party),
-                                 "parameters": count_parameters(encoder)})  # fmt: skip
+                                 "parameters": count_parameters(encoder), **hub})  # fmt: skip
     update_results(out, **task.build(encoder, variants))
     timer = StageTimer()
     result = task.run(encoder, variants, timer)

@@ -65,7 +65,7 @@ from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
 from resireg_train.data.specs import GT_RULES, check_dataset_values, dataset_conf
-from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference
+from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference, nonfinite_output
 from resireg_train.mapping import metric as metrics
 from resireg_train.tasks import TASK_SPECS
 
@@ -377,7 +377,12 @@ class MappingTask(EvalEngine):
                     break
                 if state["scene"] != scene:
                     state = self._start_scene(scene, variants, device)
-                self._map_batch(encoder, batch, variants, state, timed)
+                bad = self._map_batch(encoder, batch, variants, state, timed)
+                if bad is not None:  # non-finite encoder output: not fused, skipped, counted
+                    result.skipped_samples.extend(
+                        SkippedSample(i, self.dataset.describe(i), bad) for i in batch["index"]
+                    )
+                    continue
                 result.frames[state["name"]] = result.frames.get(state["name"], 0) + len(
                     batch["index"]
                 )
@@ -413,14 +418,20 @@ class MappingTask(EvalEngine):
             ),  # fmt: skip
         }
 
-    def _map_batch(self, encoder, batch, variants, state, timed) -> None:
+    def _map_batch(self, encoder, batch, variants, state, timed) -> str | None:
+        """Fuse one batch into every variant's map and its labels into the ground truth;
+        returns why it was not (a non-finite encoder output, :func:`nonfinite_output`: neither
+        its features nor its labels enter the scene) or ``None``."""
         device = encoder.device
         x = encoder.input_rule.normalize(batch["image"].to(device))
+        with timed("encoder"):
+            out = encoder.encode(x)
+        bad = nonfinite_output(out)
+        if bad is not None:
+            return bad
         depth = batch["depth"].to(device)
         k_img = batch["intrinsics"].to(device)
         pose = batch["pose"].to(device)
-        with timed("encoder"):
-            out = encoder.encode(x)
         shared: dict = {}  # work common to the configurations of this batch (apply_variant)
         lifted: dict[tuple[int, int], tuple] = {}  # lifted points per grid, shared by the maps
         for name, variant in variants.items():
@@ -437,6 +448,7 @@ class MappingTask(EvalEngine):
                 label = torch.where(label == self.dataset.ignore_index, len(self.dataset.classes),
                                     label)  # fmt: skip
             state["gt"].add(points[valid], label[valid])
+        return None
 
     def _finish_scene(self, state, protos, result: MappingResult, timed) -> None:
         k = len(self.dataset.classes)

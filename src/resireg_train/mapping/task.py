@@ -53,7 +53,8 @@ class ScanNet3DProtocol(TaskProtocol):
         dropped = result.dropped_samples + result.skipped_samples
         if dropped:
             log.warning(
-                "%s: %d frames dropped (non-finite pose) and %d skipped (unreadable): %s",
+                "%s: %d frames dropped (non-finite pose) and %d skipped (unreadable, or a "
+                "non-finite encoder output): %s",
                 self.dataset.name, len(result.dropped_samples), len(result.skipped_samples),
                 "; ".join(f"{s.file}: {s.reason}" for s in dropped),
             )  # fmt: skip

@@ -43,6 +43,7 @@ from resireg_train.engine import (  # shared with the 3D engine; importable from
     _no_timer,
     check_variants_on,
     inference,
+    nonfinite_output,
 )
 from resireg_train.tasks import TASK_SPECS
 
@@ -289,8 +290,13 @@ class OVSSTask(EvalEngine):
                     result.skipped_samples.extend(batch["skipped"])
                     if batch["image"] is None:
                         continue
-                    self._score(encoder, batch, variants, protos, metrics, timed, cache, prior,
-                                layer_of)  # fmt: skip
+                    bad = self._score(encoder, batch, variants, protos, metrics, timed, cache,
+                                      prior, layer_of)  # fmt: skip
+                    if bad is not None:  # non-finite encoder output: skipped and counted
+                        result.skipped_samples.extend(
+                            SkippedSample(i, self.dataset.describe(i), bad) for i in batch["index"]
+                        )
+                        continue
                     result.images += len(batch["label"])
                     result.batch_sizes[len(batch["label"])] += 1
         finally:
@@ -299,28 +305,34 @@ class OVSSTask(EvalEngine):
         return result
 
     @staticmethod
-    def _encode(encoder, batch, timed, cache, layers=()) -> DenseOutput:
+    def _encode(encoder, batch, timed, cache, layers=()) -> tuple[DenseOutput, str | None]:
         """The encoder's outputs for the batch: from ``cache`` when it holds every image,
         else one ``encode`` (``encode_layers`` when configurations run on ``layers``; stored
-        in ``cache`` if given)."""
+        in ``cache`` if given), and why they cannot be scored (:func:`nonfinite_output`) or
+        ``None``. A non-finite output is not stored in the cache."""
         if cache is not None:
             with timed("cache"):
                 out = cache.get(batch["index"], encoder.device)
             if out is not None:
-                return out
+                return out, nonfinite_output(out)
         x = encoder.input_rule.normalize(batch["image"].to(encoder.device))
         with timed("encoder"):
             out = encoder.encode_layers(x, layers) if layers else encoder.encode(x)
-        if cache is not None:
+        bad = nonfinite_output(out)
+        if cache is not None and bad is None:
             cache.put(batch["index"], out)
-        return out
+        return out, bad
 
     def _score(
         self, encoder, batch, variants, protos, metrics, timed, cache=None, prior=None,
         layer_of=None,
-    ) -> None:  # fmt: skip
+    ) -> str | None:  # fmt: skip
+        """Score one batch with every configuration; returns why it was not scored (a
+        non-finite encoder output, :func:`nonfinite_output`) or ``None``."""
         layer_of = layer_of or dict.fromkeys(variants)
-        out = self._encode(encoder, batch, timed, cache, _blocks(layer_of))
+        out, bad = self._encode(encoder, batch, timed, cache, _blocks(layer_of))
+        if bad is not None:
+            return bad
         seg = None  # the prior's instance map, once per batch, shared by the +prior configs
         if prior is not None and any(takes_prior(v) for v in variants):
             with timed("prior"):
@@ -343,3 +355,4 @@ class OVSSTask(EvalEngine):
                 for i, label_blocks in enumerate(blocks[grid]):  # per image: K x h x w logits
                     pred = predict_grid(dense[i : i + 1], protos, self.temperature)
                     metrics[name].update_grid(pred[0], label_blocks)
+        return None

@@ -19,6 +19,7 @@ from timm.optim import param_groups_weight_decay
 from torch import Tensor, nn
 
 from resireg.models import ResiregVLM
+from resireg_train.training.checkpoints import load_weights_only
 from resireg_train.training.losses import ContrastiveLoss, distill_loss, warmup_factor
 from resireg_train.training.teacher import build_teacher
 from resireg_train.validation import init_from_problem
@@ -302,7 +303,14 @@ class ResiregModule(L.LightningModule):
         path = Path(source).expanduser()
         if path.is_dir():
             return [f"vlm.{k}" for k in self.vlm.load_trained(path)]
-        state = torch.load(path, map_location="cpu", weights_only=False)["state_dict"]
+        # weights-only: a pickle naming any other global is refused before it runs
+        content = load_weights_only(path, f"model.init_from={str(source)!r}", map_location="cpu")
+        if not isinstance(content, dict) or "state_dict" not in content:
+            raise ValueError(
+                f"model.init_from={str(source)!r} is not a Lightning training checkpoint "
+                "(no state_dict) nor an export folder"
+            )
+        state = content["state_dict"]
         wanted = ("vlm.head.", "vlm.text_proj.", "logit_scale")
         trained = {k: v for k, v in state.items() if k.startswith(wanted)}
         if not any(k.startswith("vlm.head.") for k in trained):

@@ -79,7 +79,10 @@ class RadSegTeacher(_FrozenTeacher):
         device: where RADSeg builds and runs RADIO (default: CPU); inputs are moved there
             and outputs moved back to the input's device.
         config_key: the config prefix named in errors.
-        **kwargs: passed to ``radseg_encoder`` (through :func:`load_radseg`).
+        **kwargs: passed to ``radseg_encoder`` (through :func:`load_radseg`), and
+            :func:`load_radseg`'s ``ref`` / ``radio_ref``: the pinned commits of RADSeg and of
+            the RADIO it loads itself (conf/model/teacher/radseg.yaml names both; by default
+            :data:`resireg.models.hub.PINNED_REFS`).
     """
 
     def __init__(

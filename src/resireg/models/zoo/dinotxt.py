@@ -67,7 +67,13 @@ from torch import Tensor
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source, require_hub_checkpoints, require_online
+from resireg.models.hub import (
+    PINNED_REFS,
+    check_hub_source,
+    hub_target,
+    require_hub_checkpoints,
+    require_online,
+)
 from resireg.models.images import resize_square, tokens_to_grid
 
 __all__ = ["DINOTXT_ENTRY_POINT", "DINOTXT_CHECKPOINTS", "DinoTxtEncoder"]
@@ -111,6 +117,10 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         device: where the model is placed (default CPU).
         text_batch_size: texts per text-tower call.
         config_key: the config prefix named in errors (``model`` -> ``model.repo``).
+        ref: the git tag or commit SHA loaded from GitHub (``"repo:ref"``;
+            :func:`resireg.models.hub.hub_target`); conf/encoder/dinotxt.yaml pins the one the
+            adapter was checked against (:data:`resireg.models.hub.PINNED_REFS`, the default).
+            ``None``: the default branch. Ignored for a local clone.
         **kwargs: passed to ``torch.hub.load`` (``trust_repo``, ``force_reload``, or the
             entry point's own arguments; the real one takes none).
     """
@@ -125,6 +135,7 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         device: str | torch.device | None = None,
         text_batch_size: int = 256,
         config_key: str = "model",
+        ref: str | None = PINNED_REFS["facebookresearch/dinov2"],
         **kwargs: Any,
     ) -> None:
         super().__init__()
@@ -132,7 +143,8 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         if vocab is not None and not os.path.isfile(vocab):
             raise FileNotFoundError(f"{key}.vocab={os.fspath(vocab)!r}: no such file")
         # Fail at once, before torch.hub asks for anything it cannot reach.
-        check_hub_source(repo, source, "dino.txt", _hint(key), key)
+        check_hub_source(repo, source, "dino.txt", _hint(key), key, ref)
+        target = hub_target(repo, source, ref, key)
         if entry_point == DINOTXT_ENTRY_POINT:
             require_hub_checkpoints(
                 DINOTXT_CHECKPOINTS, "dino.txt weights", _WEIGHTS_HOST, _hint(key)
@@ -142,8 +154,12 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
                 f"the dino.txt vocabulary ({_VOCAB})", _WEIGHTS_HOST, _hint(key), hf=False
             )
 
-        model = torch.hub.load(repo, entry_point, source=source, **kwargs)
-        self.repo, self.source, self.entry_point = repo, source, entry_point
+        # A pinned commit is no branch or tag, which torch.hub's fork check looks for.
+        pinned = {"skip_validation": True} if target != repo else {}
+        model = torch.hub.load(target, entry_point, source=source, **{**pinned, **kwargs})
+        self.repo, self.source, self.entry_point, self.ref = repo, source, entry_point, ref
+        #: what torch.hub loaded, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
+        self.hub_ref = target if target != repo else None
         self.vocab = None if vocab is None else os.fspath(vocab)
         self.hub_kwargs = dict(kwargs)  # torch.hub.load's (spec)
         visual = model.visual_model
@@ -182,6 +198,7 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
             "kind": "dinotxt",
             "repo": self.repo,
             "source": self.source,
+            "ref": self.ref,
             "entry_point": self.entry_point,
             "image_size": self.image_size,
             "vocab": self.vocab,

@@ -88,7 +88,7 @@ from torch import Tensor
 
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
-from resireg.models.hub import check_hub_source, require_hub_checkpoints
+from resireg.models.hub import PINNED_REFS, check_hub_source, hub_target, require_hub_checkpoints
 from resireg.models.images import tokens_to_grid
 from resireg.models.zoo.clip import CLIP_MODELS, ClipEncoder, check_dense_path, require_clip_weights
 
@@ -151,6 +151,10 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             ``"shared"`` (the ``S x S`` map as OTAS computes it).
         device: where the models live (default CPU).
         config_key: the config prefix named in errors (``model`` -> ``model.repo``).
+        ref: the git tag or commit SHA of DINOv2 loaded from GitHub (``"repo:ref"``;
+            :func:`resireg.models.hub.hub_target`); conf/encoder/otas.yaml pins the one the
+            adapter was checked against (:data:`resireg.models.hub.PINNED_REFS`, the default).
+            ``None``: the default branch. Ignored for a local clone.
         **kwargs: passed to ``torch.hub.load`` (``trust_repo``, ``force_reload``, or the entry
             point's own arguments such as ``pretrained``).
     """
@@ -171,6 +175,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         dense_path: str = "value",
         device: str | torch.device | None = None,
         config_key: str = "model",
+        ref: str | None = PINNED_REFS["facebookresearch/dinov2"],
         **kwargs: Any,
     ) -> None:
         super().__init__()
@@ -186,11 +191,14 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         self.n_components = _positive_int(n_components, f"{key}.n_components")
         self.clip_input_size = _positive_int(clip_input_size, f"{key}.clip_input_size")
         self.output_grid = output_grid
-        self.repo, self.source, self.entry_point = repo, source, entry_point
+        self.repo, self.source, self.entry_point, self.ref = repo, source, entry_point, ref
         self.hub_kwargs = dict(kwargs)  # torch.hub.load's / the entry point's (spec)
 
         # Fail at once, before torch.hub asks for anything it cannot reach.
-        check_hub_source(repo, source, "DINOv2 for OTAS", _hint(key), key)
+        check_hub_source(repo, source, "DINOv2 for OTAS", _hint(key), key, ref)
+        target = hub_target(repo, source, ref, key)
+        #: what torch.hub loads, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
+        self.hub_ref = target if target != repo else None
         ckpt = OTAS_CHECKPOINTS.get(entry_point)
         if ckpt is not None and kwargs.get("pretrained", True):
             require_hub_checkpoints([ckpt], "DINOv2 weights", _WEIGHTS_HOST, _hint(key))
@@ -206,7 +214,9 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             if not os.path.isfile(clip_weights):  # the open_clip tag must be cached or reachable
                 require_clip_weights(clip_model, clip_weights, f"{key}.clip")
 
-        dino = torch.hub.load(repo, entry_point, source=source, **kwargs)
+        # A pinned commit is no branch or tag, which torch.hub's fork check looks for.
+        pinned = {"skip_validation": True} if target != repo else {}
+        dino = torch.hub.load(target, entry_point, source=source, **{**pinned, **kwargs})
         for attr in ("patch_size", "embed_dim", "forward_features"):
             if not hasattr(dino, attr):
                 raise ValueError(
@@ -245,6 +255,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             "kind": "otas",
             "repo": self.repo,
             "source": self.source,
+            "ref": self.ref,
             "entry_point": self.entry_point,
             "clip": {
                 k: self.clip.spec()[k] for k in ("model_name", "weights", "seed", "image_size")

@@ -49,7 +49,8 @@ tracker) load C-RADIOv3 with ``siglip2``. The name is the checkpoint's teacher n
 ``radseg/radseg.py`` ``RADSegEncoder``): builds RADIO itself with
 ``torch.hub.load("NVlabs/RADIO", "radio_model", adaptor_names=[lang_model, "sam"])``
 (always from GitHub, or torch's hub cache ``<hub>/NVlabs_RADIO_main`` when GitHub is
-unreachable), detaches the adaptors (``model.adaptors = None``, so ``model(x)`` returns
+unreachable; the repository is hard-coded, so RADSeg's own ``ref`` does not reach it:
+:func:`load_radseg` pins that nested call to ``radio_ref`` itself, see there), detaches the adaptors (``model.adaptors = None``, so ``model(x)`` returns
 one ``RadioOutput``) and replaces the last block's attention by self-correlating
 recursive attention (SCRA). ``encode_image_to_feat_map(rgb)``: ``slide_crop > 0``
 (default 336) runs sliding windows, ``slide_crop=0`` one pass ``_single_inference``
@@ -86,7 +87,8 @@ for, so :class:`RadSegEncoder` reports and feeds that device; ``.to()`` does not
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import torch
@@ -96,8 +98,12 @@ from torch import Tensor, nn
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import (
+    PINNED_REFS,
+    check_hub_ref,
     check_hub_source,
+    hub_cache_dir,
     hub_repo_cached,
+    hub_target,
     require_hub_checkpoints,
     require_hub_repo,
 )
@@ -105,6 +111,8 @@ from resireg.models.images import tokens_to_grid
 
 __all__ = [
     "RADIO_CHECKPOINTS",
+    "RADIO_REF",
+    "RADSEG_REF",
     "DEFAULT_ADAPTORS",
     "RadioEncoder",
     "RadSegEncoder",
@@ -135,25 +143,51 @@ _RADIO_REPO = "NVlabs/RADIO"
 
 
 # ------------------------------------------------------------------ shared helpers
-def radio_hub_cached() -> str | None:
-    """torch's hub cache directory of ``NVlabs/RADIO`` (``main`` or ``master``), or ``None``.
+def radio_hub_cached(ref: str | None = None) -> str | None:
+    """torch's hub cache directory of ``NVlabs/RADIO`` at ``ref`` (``None``: ``main`` or
+    ``master``), or ``None``.
 
-    ``torch.hub.load("NVlabs/RADIO", ...)`` (what RADSeg calls) uses it when GitHub is
-    unreachable.
+    ``torch.hub.load("NVlabs/RADIO[:ref]", ...)`` (what RADSeg calls) uses it without GitHub.
     """
-    return hub_repo_cached(_RADIO_REPO)
+    return hub_repo_cached(_RADIO_REPO, ref)
 
 
-def require_radio_for_radseg() -> None:
-    """Fail at once when RADSeg could get RADIO's code neither from the hub cache nor GitHub."""
-    target = os.path.join(torch.hub.get_dir(), "NVlabs_RADIO_main")
+def require_radio_for_radseg(ref: str | None = None) -> None:
+    """Fail at once when RADSeg could get RADIO's code (at ``ref``) neither from the hub cache
+    nor GitHub."""
+    target = hub_cache_dir(_RADIO_REPO, ref or "main")
     require_hub_repo(
         _RADIO_REPO,
         "RADSeg loads NVlabs/RADIO through torch.hub and it",
         f"Put a clone of NVlabs/RADIO at {target} (RADIO's checkpoint in "
         f"{os.path.join(torch.hub.get_dir(), 'checkpoints')} and its text model in the "
         "Hugging Face cache).",
+        ref,
     )
+
+
+@contextmanager
+def _nested_hub_ref(repo: str, ref: str | None) -> Iterator[None]:
+    """While RADSeg builds: its hard-coded ``torch.hub.load(repo, ...)`` (``repo`` without a
+    ref: the default branch) loads ``"repo:ref"`` instead. RADSeg's hubconf gives no argument
+    for it, so the call is rewritten here, for this thread's load only, and restored after.
+    ``ref=None`` leaves it alone."""
+    if ref is None:
+        yield
+        return
+    real = torch.hub.load
+
+    def load(repo_or_dir: str, *args: Any, **kwargs: Any) -> Any:
+        if repo_or_dir == repo and kwargs.get("source", "github") == "github":
+            repo_or_dir = f"{repo}:{ref}"
+            kwargs["skip_validation"] = True  # a commit is no branch or tag of the fork check
+        return real(repo_or_dir, *args, **kwargs)
+
+    torch.hub.load = load
+    try:
+        yield
+    finally:
+        torch.hub.load = real
 
 
 def require_radio_weights(version: str, hint: str) -> None:
@@ -173,6 +207,9 @@ def require_radio_weights(version: str, hint: str) -> None:
 RADSEG_REPO = "RADSeg-OVSS/RADSeg"
 RADSEG_MODEL_VERSION = "c-radio_v3-b"
 RADSEG_LANG_MODEL = "siglip2"
+#: The pinned commits (:data:`resireg.models.hub.PINNED_REFS`): RADIO's, RADSeg's.
+RADIO_REF = PINNED_REFS[_RADIO_REPO]
+RADSEG_REF = PINNED_REFS[RADSEG_REPO]
 
 
 def load_radseg(
@@ -183,10 +220,19 @@ def load_radseg(
     device: str | torch.device | None = None,
     key: str = "model",
     hint_extra: str = "",
+    ref: str | None = RADSEG_REF,
+    radio_ref: str | None = RADIO_REF,
     **kwargs: Any,
 ) -> Any:
     """RADSeg's ``RADSegEncoder`` through ``torch.hub``: the one RADSeg loader (the dense
     encoder :class:`RadSegEncoder` and the distillation teacher both use it).
+
+    ``ref`` pins RADSeg's code (``"repo:ref"`` from GitHub; ignored for a local clone).
+    RADSeg builds RADIO with a hard-coded ``torch.hub.load("NVlabs/RADIO", ...)``, which
+    ``ref`` does not reach; ``radio_ref`` pins that nested load (:func:`_nested_hub_ref`,
+    whatever ``source`` RADSeg itself comes from). conf/encoder/radseg.yaml and
+    conf/model/teacher/radseg.yaml name both (:data:`RADSEG_REF`, :data:`RADIO_REF` by
+    default); ``None`` follows the default branches.
 
     Checks first, failing at once with a message that names ``<key>.repo`` /
     ``<key>.source`` (and ``hint_extra``, e.g. how to do without RADSeg): the repo / source
@@ -203,15 +249,18 @@ def load_radseg(
         f"{os.path.join(torch.hub.get_dir(), 'NVlabs_RADIO_main')}, with its checkpoint "
         f"in checkpoints/){hint_extra}."
     )
-    check_hub_source(repo, source, "RADSeg", hint, key)
-    require_radio_for_radseg()
+    check_hub_source(repo, source, "RADSeg", hint, key, ref)
+    check_hub_ref(radio_ref, f"{key}.radio_ref")
+    require_radio_for_radseg(radio_ref)
     require_radio_weights(model_version, hint)
     if source == "github":
         kwargs.setdefault("skip_validation", True)
-    return torch.hub.load(
-        repo, "radseg_encoder", source=source, model_version=model_version,
-        lang_model=lang_model, device=str(torch.device(device or "cpu")), **kwargs,
-    )  # fmt: skip
+    with _nested_hub_ref(_RADIO_REPO, radio_ref):
+        return torch.hub.load(
+            hub_target(repo, source, ref, key), "radseg_encoder", source=source,
+            model_version=model_version, lang_model=lang_model,
+            device=str(torch.device(device or "cpu")), **kwargs,
+        )  # fmt: skip
 
 
 def external_input_rule(radio: nn.Module) -> tuple[InputRule, torch.dtype | None]:
@@ -252,6 +301,10 @@ class RadioEncoder(DenseEncoder, FrozenModule):
             :data:`DEFAULT_ADAPTORS` for the version (``clip`` is the other C-RADIOv3 one).
         device: where the model is placed (default CPU).
         config_key: the config prefix named in errors (``model`` -> ``model.repo``).
+        ref: the git tag or commit SHA loaded from GitHub (``"repo:ref"``;
+            :func:`resireg.models.hub.hub_target`); conf/encoder/radio_*.yaml pin the one the
+            adapter was checked against (:data:`RADIO_REF`, the default). ``None``: the
+            default branch. Ignored for a local clone.
         **kwargs: passed to ``radio_model`` (e.g. ``vitdet_window_size``) or to
             ``torch.hub.load`` (``force_reload``, ``trust_repo``).
     """
@@ -264,6 +317,7 @@ class RadioEncoder(DenseEncoder, FrozenModule):
         adaptor: str | None = None,
         device: str | torch.device | None = None,
         config_key: str = "model",
+        ref: str | None = RADIO_REF,
         **kwargs: Any,
     ) -> None:
         super().__init__()
@@ -282,15 +336,18 @@ class RadioEncoder(DenseEncoder, FrozenModule):
             f"or pass {key}.version=/path/to/checkpoint.pth.tar; the adaptor's text model must "
             "be in the Hugging Face cache)."
         )
-        check_hub_source(repo, source, "RADIO", hint, key)
+        check_hub_source(repo, source, "RADIO", hint, key, ref)
         require_radio_weights(version, hint)
         self.repo, self.source, self.hub_kwargs = repo, source, dict(kwargs)  # (spec)
+        target = hub_target(repo, source, ref, key)
+        #: what torch.hub loaded, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
+        self.ref, self.hub_ref = ref, (target if target != repo else None)
         kwargs.setdefault("progress", False)
         if source == "github":
             kwargs.setdefault("skip_validation", True)
         try:
             model = torch.hub.load(
-                repo, "radio_model", source=source, version=version,
+                target, "radio_model", source=source, version=version,
                 adaptor_names=[adaptor], **kwargs,
             )  # fmt: skip
         except ValueError as err:
@@ -310,6 +367,7 @@ class RadioEncoder(DenseEncoder, FrozenModule):
             "kind": "radio",
             "repo": self.repo,
             "source": self.source,
+            "ref": self.ref,
             "version": self.version,
             "adaptor": self.adaptor_name,
             **self.hub_kwargs,
@@ -359,6 +417,9 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
             ``"aggregated"`` (after SCGA, what the language head reads).
         device: where RADSeg builds and runs RADIO (default CPU).
         config_key: the config prefix named in errors.
+        ref, radio_ref: the git refs of RADSeg's code and of the RADIO it loads itself
+            (:func:`load_radseg`; :data:`RADSEG_REF`, :data:`RADIO_REF` by default); ``None``:
+            the default branches.
         **kwargs: passed to ``radseg_encoder`` (``scra_scaling``, ``scga_scaling``,
             ``amp``, ...) or to ``torch.hub.load``. ``slide_crop``, ``predict`` and
             ``sam_refinement`` are fixed (0, False, False).
@@ -375,6 +436,8 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
         intermediates: str = "backbone",
         device: str | torch.device | None = None,
         config_key: str = "model",
+        ref: str | None = RADSEG_REF,
+        radio_ref: str | None = RADIO_REF,
         **kwargs: Any,
     ) -> None:
         super().__init__()
@@ -394,8 +457,12 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
         self.encoder_device = torch.device(device if device is not None else "cpu")
         self.encoder = load_radseg(
             repo, source, model_version, lang_model, self.encoder_device, key,
-            **self._FIXED, **kwargs,
+            ref=ref, radio_ref=radio_ref, **self._FIXED, **kwargs,
         )  # fmt: skip
+        target = hub_target(repo, source, ref, key)
+        self.ref, self.radio_ref = ref, radio_ref
+        #: what torch.hub loaded, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
+        self.hub_ref = target if target != repo else None
         self.model_version = model_version
         self.lang_model = lang_model
         self.intermediates = intermediates
@@ -408,6 +475,8 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
             "kind": "radseg",
             "repo": self.repo,
             "source": self.source,
+            "ref": self.ref,
+            "radio_ref": self.radio_ref,
             "model_version": self.model_version,
             "lang_model": self.lang_model,
             "intermediates": self.intermediates,
