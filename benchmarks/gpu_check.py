@@ -237,9 +237,13 @@ def _teacher_repo(root: Path, tiny: bool) -> Path:
     reads from torch's hub cache (NVlabs/RADIO's code, RADIO's checkpoint); the stand-in reads
     neither, so ``root / "hub"`` holds an empty copy of each, to be passed to ``torch.hub.set_dir``.
     """
+    from resireg.models.hub import PINNED_REFS
     from resireg.models.zoo.radio import RADIO_CHECKPOINTS
 
-    (root / "hub" / "NVlabs_RADIO_main").mkdir(parents=True, exist_ok=True)
+    # the folder torch.hub keeps NVlabs/RADIO in at the pinned commit
+    (root / "hub" / f"NVlabs_RADIO_{PINNED_REFS['NVlabs/RADIO']}").mkdir(
+        parents=True, exist_ok=True
+    )
     (root / "hub" / "checkpoints").mkdir(exist_ok=True)
     (root / "hub" / "checkpoints" / RADIO_CHECKPOINTS["c-radio_v3-b"]).touch()
     repo = root / "RADSeg"

@@ -5,7 +5,8 @@ One place for the rule "a feature tensor is floating-point and finite", so every
 :meth:`resireg.mapping.SemanticMap.fuse`, the engines' encoder outputs) refuses the same inputs
 with the same words. A NaN that enters ReSiReg Full spreads to every patch of the batch (PCA
 and k-means mix all points), and one NaN patch in Lite spreads to its whole image, so the check
-runs before any of them. Its cost is one sum over the tensor when it is finite
+runs before any of them. Inside a traced graph (``torch.export``, the ONNX export,
+``torch.compile``) it is skipped: a graph cannot branch on tensor values. Its cost is one sum over the tensor when it is finite
 (``benchmarks/bench_checks.py``: well under 1% of Full's or Lite's forward).
 """
 
@@ -39,6 +40,8 @@ def check_features(name: str, x: object) -> Tensor:
     # be an overflow of finite values, so only then the exact test. Measured on 2 CPU cores
     # (4 x 384 x 36 x 48 floats): the sum 1-2 ms, isfinite(x).all() 45-80 ms (an elementwise
     # pass writing a bool tensor, then a reduction of it); benchmarks/bench_checks.py.
+    if torch.compiler.is_compiling():
+        return x  # a traced graph (torch.export, ONNX, torch.compile) cannot branch on values
     if x.numel() and not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         bad = count_nonfinite(x)
         raise NonFiniteError(
