@@ -9,7 +9,7 @@ invocations: a resumed or extended search runs only what is missing and never re
 finished trial); the trial runs as a normal Hydra job (its own run folder and
 ``results.json``; job number = trial number) and is told COMPLETE, PRUNED or FAIL.
 
-Storage: Optuna's journal (``<sweep>/optuna.journal``, JournalFileBackend with its file lock)
+Storage: Optuna's journal (``<sweep>/optuna.journal``, JournalFileBackend with its link lock)
 unless ``hparams_search.storage`` names a database URL. A worker that dies mid-trial: its trial
 holds the worker's host and PID and a heartbeat (a system attribute, written every
 ``heartbeat_interval`` seconds); any worker or a resumed search marks it FAIL when its
@@ -43,6 +43,7 @@ __all__ = [
     "SEARCH_FILE",
     "STUDY_FILE",
     "OptunaSearch",
+    "SearchError",
     "check_metric",
     "counted_trials",
     "distributions",
@@ -85,16 +86,15 @@ def open_storage(storage: str | None, sweep_dir: str | Path) -> Any:
     ``journal``), or Optuna's RDBStorage for a database URL (``postgresql+psycopg://...``,
     ``sqlite:///...``). A database that cannot be reached is a ConfigError naming the key."""
     optuna = _optuna()
-    from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock
+    from optuna.storages.journal import JournalFileBackend
 
     if storage in (None, "", "journal"):
         folder = Path(str(sweep_dir))
         folder.mkdir(parents=True, exist_ok=True)
         path = str(folder / STUDY_FILE)
-        # The open(O_CREAT | O_EXCL) lock: what Optuna documents for shared file systems (NFS)
-        return optuna.storages.JournalStorage(
-            JournalFileBackend(path, lock_obj=JournalFileOpenLock(path))
-        )
+        # Its default lock (JournalFileSymlinkLock: link(2), atomic on NFSv2 and later), the
+        # one optuna-dashboard takes on the same file
+        return optuna.storages.JournalStorage(JournalFileBackend(path))
     from resireg_train.validation import ConfigError
 
     try:
@@ -345,9 +345,12 @@ class OptunaSearch:
             counted = counted_trials(trials)
             running = [t for t in trials if t.state == TrialState.RUNNING]
             self._check_failures(counted)
+            if len(counted) >= int(self.s.n_trials):
+                return None  # the study is complete
             if len(counted) + len(running) >= int(self.s.n_trials):
-                return None
-            study.sampler = self._sampler(len(trials))
+                return _WAIT  # the last trials run elsewhere: wait, take over if one dies
+            # (enqueued, WAITING trials are not drawn by the sampler: not counted)
+            study.sampler = self._sampler(sum(t.state != TrialState.WAITING for t in trials))
             trial = study.ask(space)
             trial.set_user_attr(ATTR_HOST, socket.gethostname())
             trial.set_user_attr(ATTR_PID, os.getpid())
@@ -359,20 +362,33 @@ class OptunaSearch:
         failed = sum(t.state == TrialState.FAIL for t in counted)
         rate = float(self.s.max_failure_rate)
         if counted and failed > 1 and failed / len(counted) > rate:
-            raise RuntimeError(
+            raise SearchError(
                 f"{failed} of {len(counted)} trials failed, more than "
                 f"hydra.sweeper.max_failure_rate={rate}: the search stops (resireg-report "
                 f"{self.sweep_dir} lists why each failed)"
             )
 
     def run(self, fixed: list[str], space: dict[str, Any], run_job: Any) -> int:
-        """Run trials until the study holds ``n_trials``; returns how many this worker ran."""
+        """Run trials until the study holds ``n_trials`` finished ones (waiting while other
+        workers run the last ones, taking over a dead one's); returns how many this ran."""
         optuna = _optuna()
         from optuna.trial import TrialState
 
         study = self.study()
+        enqueue = self.s.get("enqueue") or []
+        if enqueue:
+            from filelock import FileLock
+
+            with FileLock(str(self.sweep_dir / LOCK_FILE)):
+                if not study.get_trials(deepcopy=False):  # a new study: these first
+                    for params in enqueue:
+                        study.enqueue_trial(OmegaConf.to_container(params), skip_if_exists=True)
         ran = 0
+        poll = min(5.0, float(self.s.heartbeat_interval))
         while (trial := self._reserve(study, space)) is not None:
+            if trial is _WAIT:
+                time.sleep(poll)
+                continue
             overrides = [*fixed, *(f"{k}={_format(v)}" for k, v in trial.params.items()),
                          f"hparams_search.trial={trial.number}"]  # fmt: skip
             log.info("trial %d: %s", trial.number, " ".join(overrides[len(fixed) :]))
@@ -393,6 +409,14 @@ class OptunaSearch:
                 log.warning("trial %d was marked finished by another worker", trial.number)
             log.info("trial %d: %s %s", trial.number, state.name, "" if value is None else value)
         return ran
+
+
+#: :meth:`OptunaSearch._reserve`'s answer while other workers run the study's last trials.
+_WAIT: Any = object()
+
+
+class SearchError(RuntimeError):
+    """A search that cannot go on (too many failed trials); the message says why."""
 
 
 def _output_dir(ret: Any) -> str | None:

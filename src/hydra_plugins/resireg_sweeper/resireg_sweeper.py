@@ -10,11 +10,17 @@ from pathlib import Path
 from typing import Any
 
 from hydra.core.plugins import Plugins
+from hydra.errors import CompactHydraException
 from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
+
+
+class SearchRefused(CompactHydraException):
+    """A search refused or stopped with a message that says everything (Hydra prints it
+    without a traceback)."""
 
 
 class ResiregOptunaSweeper(Sweeper):
@@ -39,6 +45,7 @@ class ResiregOptunaSweeper(Sweeper):
         from hydra.core.override_parser.overrides_parser import OverridesParser
 
         from resireg_train import search
+        from resireg_train.validation import ConfigError
 
         assert self.config is not None
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).resolve()
@@ -50,8 +57,11 @@ class ResiregOptunaSweeper(Sweeper):
             else:  # a fixed value; one for a search axis takes it out of the search
                 fixed.append(override.input_line)
                 params.pop(override.key_or_group, None)
-        space = search.distributions(params)
-        search.check_metric(self.config)  # before the first trial
+        try:
+            space = search.distributions(params)
+            search.check_metric(self.config)  # before the first trial
+        except ConfigError as err:
+            raise SearchRefused(f"refused before the first trial: {err}") from None
         worker = os.environ.get(search.WORKER_ENV) == "1"
         procs = []
         if not worker:
@@ -66,9 +76,11 @@ class ResiregOptunaSweeper(Sweeper):
             ran = search.OptunaSearch(self.config, sweep_dir, self.settings).run(
                 fixed, space, run_job
             )
-        except BaseException:
+        except BaseException as err:
             for proc in procs:
                 proc.terminate()
+            if isinstance(err, (ConfigError, search.SearchError)):
+                raise SearchRefused(str(err)) from None
             raise
         codes = [proc.wait() for proc in procs]
         log.info("this worker ran %d trials; %d other workers ended with %s", ran, len(procs),

@@ -151,6 +151,7 @@ def write_optuna_report(
                 path = out / OPTUNA_FILES["optuna_importance"]
                 files["optuna_importance"] = _save(_readable(ax, integer_x=False), path)
     plt.close("all")
+    shown = table.rename(columns={k: _short(k) for k in trials[0].params} if trials else {})
     lines += ["", f"Trials (`{files['optuna_csv'].name}`):", "",
-              table.to_markdown(index=False, floatfmt=".4f")]  # fmt: skip
+              shown.to_markdown(index=False, floatfmt=".4g")]  # fmt: skip
     return files, lines

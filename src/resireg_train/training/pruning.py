@@ -1,6 +1,6 @@
 """Pruning of an Optuna search's training trials (``hparams_search=stage1_optuna``;
-resireg_train.search): the trial's optimised metric is reported to the study at every
-validation, and when the study's pruner says so the run stops at the end of that epoch (its
+resireg_train.search): the trial's optimised metric is reported to the study after every
+validation (the ReSiRegEval callback's, at the end of a training epoch), and when the study's pruner says so the run stops at the end of that epoch (its
 metrics and checkpoint written as for any epoch) and ends with :class:`TrialPrunedStop`:
 the search records the trial PRUNED (its last epoch and value are the trial's last
 intermediate value) and ``results.json`` the status ``pruned``."""
@@ -14,6 +14,7 @@ import lightning as L
 import optuna
 
 from resireg_train.search import _optuna, open_storage
+from resireg_train.tracking import epoch_metrics
 
 __all__ = ["OptunaPruning", "TrialPrunedStop"]
 
@@ -47,13 +48,14 @@ class OptunaPruning(L.Callback):
         trial_id = storage.get_trial_id_from_study_id_trial_number(study._study_id, self.number)
         self.trial = optuna.trial.Trial(study, trial_id)
 
-    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.trial is None or trainer.sanity_checking:
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # After ReSiRegEval's (which scores at the end of the training epoch; this callback
+        # comes later in conf's callbacks) and before ResultsTracker records the epoch.
+        if self.trial is None:
             return
-        value = trainer.callback_metrics.get(self.monitor)
+        value = epoch_metrics(trainer).get(self.monitor)
         if value is None:
             return  # an epoch without validation (every_n_epochs)
-        value = float(value)
         if not math.isfinite(value):
             raise FloatingPointError(
                 f"optimized_metric={self.monitor!r} is {value} at epoch {trainer.current_epoch}"
