@@ -190,7 +190,9 @@ def check_metric(cfg: DictConfig) -> None:
 
     metric = cfg.get("optimized_metric")
     if not metric:
-        raise ConfigError("optimized_metric is not set: an Optuna search needs the metric to optimise")
+        raise ConfigError(
+            "optimized_metric is not set: an Optuna search needs the metric to optimise"
+        )
     parts = str(metric).split("/")
     if len(parts) != 4 or parts[:2] != ["val", "ovss"]:
         return  # another metric (train/loss...): the job checks it when it ends

@@ -36,7 +36,9 @@ def optuna_study(sweep_dir: str | Path, jobs: list[Job] | None = None) -> Any:
     record = search_record(sweep_dir)
     study = load_study(sweep_dir, record.get("storage"), record.get("study_name"))
     if study is None:
-        raise ValueError(f"{sweep_dir} holds no Optuna study (or more than one and no {SEARCH_FILE})")
+        raise ValueError(
+            f"{sweep_dir} holds no Optuna study (or more than one and no {SEARCH_FILE})"
+        )
     return study
 
 
