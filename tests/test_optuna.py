@@ -286,7 +286,12 @@ def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_
         "worker", str(sweep)], stdout=log_b, stderr=subprocess.STDOUT, env=_env(None, 1),
         start_new_session=True)  # fmt: skip
     try:
-        victim = _wait_for(lambda: _running_trial_of(sweep, worker.pid), what="worker's trial")
+
+        def victim_trial():
+            assert worker.poll() is None, (tmp_path / "b.log").read_text()[-3000:]
+            return _running_trial_of(sweep, worker.pid)
+
+        victim = _wait_for(victim_trial, what="a trial of the worker")
         os.killpg(worker.pid, signal.SIGKILL)
         worker.wait()
         assert search.wait(timeout=600) == 0, (tmp_path / "a.log").read_text()[-3000:]
@@ -458,3 +463,44 @@ def test_a_job_scoring_nan_fails_its_trial(stored):
     assert _outcome(JobReturn(status=JobStatus.COMPLETED, _return_value=0.5), optuna) == (
         TrialState.COMPLETE, 0.5)  # fmt: skip
     assert math.isfinite(0.5)
+
+
+def test_a_successful_multirun_names_its_sweep_and_the_report_command(tmp_path, tiny_export):
+    """A grid multirun whose jobs all complete ends, as a failed one does, with a line naming
+    its sweep folder and the resireg-report command (it said nothing before)."""
+    sweep = tmp_path / "grid"
+    proc = run("resireg-eval", "-m", f"model_path={tiny_export}", "dataset=synthetic",
+               "dataset.size=2", "num_workers=0", "batch_size=2", "variants=[full]",
+               "full.n_prototypes=3", "full.alpha=2.0,4.0", f"hydra.sweep.dir={sweep}")  # fmt: skip
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"resireg-eval: 2 jobs ran, none failed (sweep {sweep}; resireg-report {sweep} lists "
+        "every job)"
+    )
+
+
+@pytest.mark.slow
+def test_failed_trials_are_recorded_and_the_search_goes_on_up_to_max_failure_rate(
+    tmp_path, tiny_export
+):
+    """A trial whose job fails (5000 prototypes exceed a batch's points) is FAIL with its
+    folder's error and the search goes on; when more than max_failure_rate of the finished
+    trials failed the search stops with one line saying so (no traceback)."""
+    sweep = tmp_path / "mixed"
+    run(*_eval_search(tiny_export, sweep, 3, "full.n_prototypes=choice(3,5000)",
+                      "hydra.sweeper.enqueue=[{full.n_prototypes:5000},{full.n_prototypes:3},"
+                      "{full.n_prototypes:3}]", "hydra.sweeper.max_failure_rate=0.75"))  # fmt: skip
+    trials = _study(sweep).get_trials()
+    assert [t.state.name for t in trials] == ["FAIL", "COMPLETE", "COMPLETE"]
+    failed = json.loads(Path(trials[0].user_attrs["run_dir"], "results.json").read_text())
+    assert failed["status"] == "failed" and "n_prototypes=5000" in failed["error"]
+    report(sweep)
+    table = pd.read_csv(sweep / "optuna_trials.csv")
+    assert table.loc[0, "job status"] == "failed" and "5000" in table.loc[0, "error"]
+
+    sweep = tmp_path / "bad"
+    proc = run(*_eval_search(tiny_export, sweep, 4, "full.n_prototypes=choice(5000)"),
+               check=False)  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert ("2 of 2 trials failed, more than hydra.sweeper.max_failure_rate=0.5: the search "
+            "stops") in proc.stderr  # fmt: skip
+    assert [t.state.name for t in _study(sweep).get_trials()] == ["FAIL", "FAIL"]

@@ -533,3 +533,7 @@ def register_search_resolvers() -> None:
     """``first_key`` for ``conf/hparams_search/``."""
     if not OmegaConf.has_resolver("first_key"):
         OmegaConf.register_new_resolver("first_key", _first_key)
+
+
+if __name__ == "__main__":  # python -m resireg_train.search worker <sweep>
+    main()
