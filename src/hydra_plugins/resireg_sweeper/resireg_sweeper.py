@@ -58,6 +58,11 @@ class ResiregOptunaSweeper(Sweeper):
                 fixed.append(override.input_line)
                 params.pop(override.key_or_group, None)
         try:
+            for key in ("workers", "n_trials"):
+                value = self.settings.get(key)
+                if not isinstance(value, int) or value < (1 if key == "workers" else 0):
+                    raise ConfigError(f"hparams_search.{key}={value!r}: expected an integer >= "
+                                      f"{1 if key == 'workers' else 0}")  # fmt: skip
             space = search.distributions(params)
             search.check_metric(self.config)  # before the first trial
         except ConfigError as err:
