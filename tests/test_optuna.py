@@ -504,3 +504,42 @@ def test_failed_trials_are_recorded_and_the_search_goes_on_up_to_max_failure_rat
     assert ("2 of 2 trials failed, more than hydra.sweeper.max_failure_rate=0.5: the search "
             "stops") in proc.stderr  # fmt: skip
     assert [t.state.name for t in _study(sweep).get_trials()] == ["FAIL", "FAIL"]
+
+
+def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path):
+    """fail_stale_trials on a journal study: a RUNNING trial of another host whose heartbeat is
+    older than the grace period is FAIL, one with a recent heartbeat is not; one of this host
+    whose process has exited is FAIL at once; with retries, Optuna's RetryHeartbeatStaleTrialCallback
+    enqueues the failed trial's parameters again."""
+    from resireg_train.search import (
+        ATTR_HEARTBEAT,
+        ATTR_HOST,
+        ATTR_PID,
+        counted_trials,
+        fail_stale_trials,
+        open_storage,
+    )  # fmt: skip
+
+    study = optuna.create_study(storage=open_storage(None, tmp_path), study_name="s")
+    storage = study._storage
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    now = time.time()
+    cases = {"silent": ("other-host", 1, now - 500), "beating": ("other-host", 1, now - 5),
+             "exited": (socket.gethostname(), gone.pid, now)}  # fmt: skip
+    numbers = {}
+    for name, (host, pid, beat) in cases.items():
+        trial = study.ask({"x": optuna.distributions.FloatDistribution(0, 1)})
+        trial.set_user_attr(ATTR_HOST, host)
+        trial.set_user_attr(ATTR_PID, pid)
+        storage.set_trial_system_attr(trial._trial_id, ATTR_HEARTBEAT, beat)
+        numbers[name] = trial.number
+    failed = fail_stale_trials(study, grace_period=60, retries=1)
+    assert sorted(failed) == sorted([numbers["silent"], numbers["exited"]])
+    trials = study.get_trials()
+    assert trials[numbers["beating"]].state == TrialState.RUNNING
+    assert not counted_trials(trials)  # a dead worker's FAIL does not count towards the total
+    waiting = study.get_trials(states=(TrialState.WAITING,))
+    assert sorted(t.params["x"] for t in waiting) == sorted(
+        trials[numbers[n]].params["x"] for n in ("silent", "exited")
+    )

@@ -14,7 +14,7 @@ unless ``hparams_search.storage`` names a database URL. A worker that dies mid-t
 holds the worker's host and PID and a heartbeat (a system attribute, written every
 ``heartbeat_interval`` seconds); any worker or a resumed search marks it FAIL when its
 process is gone (same host) or its heartbeat is older than ``grace_period`` (another host),
-and optionally enqueues it again (``RetryFailedTrialCallback``, ``retries``). Written here
+and optionally enqueues it again (``RetryHeartbeatStaleTrialCallback``, ``retries``). Written here
 rather than taken from Optuna: in Optuna 5.1 only RDBStorage implements BaseHeartbeat (the
 journal storage has none), and an ask-and-tell loop would still have to run Optuna's
 heartbeat thread itself; one mechanism serves both storages. Optuna loads only when a search
@@ -33,6 +33,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -235,10 +236,11 @@ def _is_stale(trial: Any, grace_period: float, now: float) -> bool:
 
 def fail_stale_trials(study: Any, grace_period: float, retries: int = 0) -> list[int]:
     """Mark FAIL the RUNNING trials of dead workers (:func:`_is_stale`), noting it in their
-    system attributes; with ``retries`` > 0 Optuna's RetryFailedTrialCallback enqueues each
+    system attributes; with ``retries`` > 0 Optuna's RetryHeartbeatStaleTrialCallback (formerly
+    RetryFailedTrialCallback) enqueues each
     again (same parameters, at most ``retries`` times). Returns the trial numbers failed."""
     optuna = _optuna()
-    from optuna.storages import RetryFailedTrialCallback
+    from optuna.storages import RetryHeartbeatStaleTrialCallback
     from optuna.trial import TrialState
 
     storage, failed = study._storage, []
@@ -258,7 +260,10 @@ def fail_stale_trials(study: Any, grace_period: float, retries: int = 0) -> list
             "; enqueued again" if retries else "",
         )  # fmt: skip
         if retries:
-            RetryFailedTrialCallback(max_retry=retries)(study, storage.get_trial(trial._trial_id))
+            with warnings.catch_warnings():  # experimental in Optuna 5.1
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                retry = RetryHeartbeatStaleTrialCallback(max_retry=retries)
+            retry(study, storage.get_trial(trial._trial_id))
     return failed
 
 
