@@ -1,119 +1,545 @@
-"""Optuna search through Hydra (conf/hparams_search/resireg_optuna.yaml) on the synthetic set:
-a failing trial is recorded and the search goes on, the best trial is the best completed job's
-score (read back from the jobs' results.json), a second invocation on the same sweep folder
-resumes the study without repeating its trials, and resireg-report writes the search's table
-and Optuna's plots."""
+"""Optuna searches (hparams_search=..., resireg_train.search and the project's Hydra sweeper) on
+the synthetic set: pruning of a bad training trial, workers sharing one study (journal file and
+PostgreSQL), a worker killed mid-trial, a whole search killed and run again, two searches started
+at once on one folder, a metric the validation data never logs, the report and optuna-dashboard.
+Every count is read back from Optuna's own storage and the jobs' results.json files."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+import warnings
+from pathlib import Path
 
 import pandas as pd
 import pytest
 
-from _run import report, run
+from _run import _command, _env, report, run, run_side_by_side
 
 optuna = pytest.importorskip("optuna")
-pytest.importorskip("hydra_plugins.hydra_optuna_sweeper")
+
+from optuna.trial import TrialState  # noqa: E402
 
 METRIC = "val/ovss/synthetic/miou_full"
+CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
-def _search(export, sweep, n_trials):
-    """An eval-time search of ``n_trials`` in total: alpha and the prototype count, where 5000
-    prototypes exceed a batch's points (the job fails with a config error). Up to 3 of a
-    batch of 4 trials may fail."""
-    return run("resireg-eval", f"model_path={export}", "dataset=synthetic", "dataset.size=4",
-               "num_workers=0", "batch_size=2", "full.upscale=1", "full.tau=0.0",
-               "hparams_search=resireg_optuna", f"hparams_search.n_trials={n_trials}",
-               "full.n_prototypes=choice(3,6,5000)", "full.alpha=interval(1.0,20.0)",
-               "hydra.sweeper.max_failure_rate=0.75",
+def _eval_search(export, sweep, n_trials, *extra):
+    """An eval-time search (resireg_optuna) of ``n_trials`` in total over alpha and the
+    prototype count on 8 synthetic images."""
+    return ("resireg-eval", f"model_path={export}", "dataset=synthetic", "dataset.size=8",
+            "num_workers=0", "batch_size=2", "full.upscale=1", "full.tau=0.0",
+            "hparams_search=resireg_optuna", f"hparams_search.n_trials={n_trials}",
+            "full.n_prototypes=choice(3,4,5,6)", "full.alpha=interval(1.0,20.0)",
+            f"hydra.sweep.dir={sweep}", *extra)  # fmt: skip
+
+
+def _study(sweep, name="resireg_optuna", storage=None):
+    from resireg_train.search import load_study
+
+    return load_study(sweep, storage, name)
+
+
+def _counted(study):
+    from resireg_train.search import counted_trials
+
+    return counted_trials(study.get_trials())
+
+
+def _records(sweep):
+    return {p.parent.name: json.loads(p.read_text()) for p in Path(sweep).glob("*/results.json")}
+
+
+def _check_total(sweep, n_trials, storage=None):
+    """Exactly ``n_trials`` finished trials, distinct numbers, each with its own run folder
+    that holds its results.json, and no finished parameter set run twice."""
+    study = _study(sweep, storage=storage)
+    done = _counted(study)
+    assert len(done) == n_trials, [(t.number, t.state.name) for t in study.get_trials()]
+    numbers = [t.number for t in done]
+    assert len(set(numbers)) == n_trials
+    folders = [Path(t.user_attrs["run_dir"]) for t in done]
+    assert len(set(folders)) == n_trials and all(f.parent == Path(sweep) for f in folders)
+    records = _records(sweep)
+    for trial, folder in zip(done, folders, strict=True):
+        record = records[folder.name]
+        assert record["status"] == "completed", record
+        assert record["final"][METRIC] == pytest.approx(trial.value, rel=1e-12)
+        assert record["params"]["full"]["alpha"] == pytest.approx(trial.params["full.alpha"])
+    params = [tuple(sorted(t.params.items())) for t in done]
+    assert len(set(params)) == n_trials, params
+    return study
+
+
+def _popen(command, log):
+    """``command`` in its own process group (session), output to ``log``."""
+    script, *args = command
+    return subprocess.Popen(_command(script, args), stdout=log, stderr=subprocess.STDOUT,
+                            env=_env(None, threads=1), start_new_session=True)  # fmt: skip
+
+
+def _wait_for(predicate, timeout=300, what="condition"):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _running_trial_of(sweep, group):
+    """A RUNNING trial whose worker process belongs to process group ``group``."""
+    study = _study(sweep)
+    if study is None:
+        return None
+    for trial in study.get_trials(states=(TrialState.RUNNING,)):
+        try:
+            if os.getpgid(int(trial.user_attrs["worker_pid"])) == group:
+                return trial
+        except (KeyError, ProcessLookupError):
+            continue
+    return None
+
+
+# ----------------------------------------------------------------------------- search space
+@pytest.mark.parametrize("name", ["stage1_optuna", "resireg_optuna"])
+def test_shipped_search_spaces_are_exact_and_warn_nothing(name, caplog):
+    """Each range(...) axis becomes Optuna's distribution over exactly Python's range of the
+    same arguments (the old sweeper turned range(0, 9, 2) into [0, 9] step 2: "not
+    divisible" warnings); building the spaces warns nothing."""
+    from omegaconf import OmegaConf
+
+    from resireg_train.search import distributions
+
+    params = OmegaConf.load(CONF / "hparams_search" / f"{name}.yaml").hydra.sweeper.params
+    params = OmegaConf.to_container(params)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        space = distributions(params)
+    assert not caught, [str(w.message) for w in caught]
+    assert "divisible" not in caplog.text
+    ranges = {k: v for k, v in params.items() if v.startswith("range(")}
+    assert ranges
+    for key, expr in ranges.items():
+        values = list(eval(expr))  # Python's own range of the same arguments
+        dist = space[key]
+        grid = list(range(dist.low, dist.high + 1, dist.step))
+        assert grid == values, (key, grid, values)
+
+
+def test_a_metric_the_validation_data_never_logs_is_refused_before_the_first_trial(tmp_path):
+    """stage1_optuna on the smoke experiment optimises the first validation dataset's metric
+    (synthetic); an optimized_metric of a dataset that is not validated is refused before any
+    trial, in one message naming the key and what is logged."""
+    sweep = tmp_path / "sweep"
+    proc = run("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+               "optimized_metric=val/ovss/ade20k/miou_full", f"hydra.sweep.dir={sweep}",
+               check=False)  # fmt: skip
+    assert proc.returncode != 0
+    assert "optimized_metric='val/ovss/ade20k/miou_full' is never logged" in proc.stderr
+    assert "val/ovss/synthetic/miou_full" in proc.stderr and "Traceback" not in proc.stderr
+    assert not list(sweep.glob("*/results.json"))  # no trial ran
+    # The default metric follows val_data=: accepted (a search of 0 trials ends at once).
+    ok = run("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+             "hparams_search.n_trials=0", f"hydra.sweep.dir={tmp_path / 'ok'}")  # fmt: skip
+    assert "never logged" not in ok.stderr
+
+
+# ----------------------------------------------------------------------------- pruning
+@pytest.mark.slow
+def test_a_bad_training_trial_is_pruned_and_reported(tmp_path):
+    """Two stage-1 trials of 3 epochs on the smoke experiment, the first with a learning rate
+    that learns, the second with one that cannot (1e-9): the median pruner stops the second
+    after its first epoch; the trial is PRUNED with that epoch's value, its folder says
+    pruned, and the report lists it PRUNED. The output holds no colour codes and no
+    "not divisible" warning; the end names the sweep and the report command."""
+    sweep = tmp_path / "sweep"
+    proc = run("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+               "hparams_search.n_trials=2", "trainer.max_epochs=3",
+               "model.optimizer.lr=choice(0.003,1.0e-9)", "model.scheduler.min_lr=1.0e-10",
+               "hydra.sweeper.enqueue=[{model.optimizer.lr:0.003},{model.optimizer.lr:1.0e-9}]",
+               "hydra.sweeper.pruner.n_startup_trials=1", "hydra.sweeper.pruner.n_warmup_steps=0",
                f"hydra.sweep.dir={sweep}")  # fmt: skip
+    said = proc.stdout + proc.stderr
+    assert "\x1b[" not in said and "divisible" not in said
+    assert f"(sweep {sweep}; resireg-report {sweep} lists every job)" in proc.stderr
+    study = _study(sweep, "stage1_optuna")
+    first, second = study.get_trials()
+    assert first.state == TrialState.COMPLETE and second.state == TrialState.PRUNED
+    assert second.params["model.optimizer.lr"] == 1.0e-9
+    assert list(first.intermediate_values) == [0, 1, 2]
+    assert list(second.intermediate_values) == [0]  # stopped before its last epoch
+    # Its last reported value is the one its run recorded for that epoch, below the first's.
+    record = json.loads((Path(second.user_attrs["run_dir"]) / "results.json").read_text())
+    assert record["status"] == "pruned" and "pruned by MedianPruner" in record["error"]
+    assert [row["epoch"] for row in record["history"]] == [0]
+    assert record["history"][0][METRIC] == pytest.approx(second.intermediate_values[0])
+    assert second.intermediate_values[0] < first.intermediate_values[0]
+    report(sweep)
+    table = pd.read_csv(sweep / "optuna_trials.csv")
+    assert list(table["state"]) == ["COMPLETE", "PRUNED"]
+    assert list(table["job status"]) == ["completed", "pruned"]
+    assert table["last epoch"].tolist() == [2, 0]
+    assert (sweep / "optuna_intermediate.png").stat().st_size > 10_000
 
 
-def _study(sweep):
-    return optuna.load_study(study_name="resireg_optuna", storage=f"sqlite:///{sweep}/optuna.db")
+# ----------------------------------------------------------------------------- workers
+@pytest.mark.slow
+def test_two_workers_share_one_journal_study(tmp_path, tiny_export):
+    """hparams_search.workers=2: two processes on one journal-file study end with exactly
+    n_trials finished trials, distinct numbers, each run folder once; the report's table
+    lists each trial with its folder; the end names the sweep and the report command."""
+    sweep = tmp_path / "sweep"
+    proc = run(*_eval_search(tiny_export, sweep, 5, "hparams_search.workers=2"), threads=1)
+    study = _check_total(sweep, 5)
+    pids = {t.user_attrs["worker_pid"] for t in study.get_trials()}
+    assert len(pids) == 2  # both workers ran trials
+    said = proc.stdout + proc.stderr
+    assert "\x1b[" not in said and "divisible" not in said
+    assert f"resireg-eval: 5 jobs ran, none failed (sweep {sweep}; resireg-report" in proc.stderr
+    report(sweep)
+    table = pd.read_csv(sweep / "optuna_trials.csv")
+    assert sorted(table["trial"]) == list(range(5))
+    assert table["run folder"].nunique() == 5 and (table["job status"] == "completed").all()
+    assert (sweep / "optuna_importance.png").stat().st_size > 10_000
 
 
-def _job_results(sweep):
-    return {p.parent.name: json.loads(p.read_text()) for p in sweep.glob("*/results.json")}
+def _postgres_bin():
+    found = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
+    return found[-1].parent if found else None
+
+
+@pytest.fixture
+def postgres():
+    """A PostgreSQL server of its own (Debian's postgresql package), as the package's
+    postgres user (initdb refuses root), on a Unix socket in a temporary folder; yields the
+    environment (PGHOST / PGPORT) that reaches it."""
+    bindir = _postgres_bin()
+    if bindir is None:
+        pytest.skip("PostgreSQL's initdb is not installed (Debian: apt-get install postgresql)")
+    as_postgres: list[str] = []
+    if os.geteuid() == 0:
+        if shutil.which("runuser") is None:
+            pytest.skip("running as root without runuser: cannot start PostgreSQL as postgres")
+        as_postgres = ["runuser", "-u", "postgres", "--"]
+    folder = Path(tempfile.mkdtemp(prefix="resireg-pg-"))
+    if as_postgres:
+        shutil.chown(folder, "postgres", "postgres")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    data = folder / "data"
+    pg = [*as_postgres]
+    subprocess.run([*pg, bindir / "initdb", "-D", data, "-U", "postgres", "--auth=trust"],
+                   check=True, capture_output=True)  # fmt: skip
+    subprocess.run([*pg, bindir / "pg_ctl", "-D", data, "-w", "-l", folder / "log", "-o",
+                    f"-k {folder} -p {port} -c listen_addresses=''", "start"],
+                   check=True, capture_output=True)  # fmt: skip
+    try:
+        subprocess.run([*pg, bindir / "createdb", "-h", folder, "-p", str(port), "optuna"],
+                       check=True, capture_output=True)  # fmt: skip
+        yield {"PGHOST": str(folder), "PGPORT": str(port), "PGUSER": "postgres"}
+    finally:
+        subprocess.run([*pg, bindir / "pg_ctl", "-D", data, "-m", "immediate", "stop"],
+                       capture_output=True)  # fmt: skip
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.mark.slow
-def test_search_survives_a_failed_trial_resumes_and_is_reported(tmp_path, tiny_export):
+def test_two_workers_share_one_postgresql_study(tmp_path, tiny_export, postgres, monkeypatch):
+    """The same with the study in a PostgreSQL database (hparams_search.storage=<URL>)."""
+    for key, value in postgres.items():
+        monkeypatch.setenv(key, value)
+    url = "postgresql+psycopg://postgres@/optuna"
     sweep = tmp_path / "sweep"
-    _search(tiny_export, sweep, 4)  # exits 0 although a trial failed
-    study = _study(sweep)
-    trials = study.get_trials()
-    states = [t.state.name for t in trials]
-    assert len(trials) == 4 and "FAIL" in states and "COMPLETE" in states, states
-    # The failed trials are exactly those with more prototypes than points, and their jobs
-    # recorded why.
-    assert [t.params["full.n_prototypes"] == 5000 for t in trials] == [s == "FAIL" for s in states]
-    results = _job_results(sweep)
-    assert len(results) == 4
-    failed = [r for r in results.values() if r["status"] == "failed"]
-    assert len(failed) == states.count("FAIL")
-    assert all("n_prototypes=5000" in r["error"] for r in failed)
-    # Best trial = the best completed job's score, recomputed from the results.json files.
-    done = [r for r in results.values() if r["status"] == "completed"]
-    best = max(done, key=lambda r: r["final"][METRIC])
-    assert study.best_value == pytest.approx(best["final"][METRIC], rel=1e-12)
-    assert study.best_trial.params["full.alpha"] == pytest.approx(best["params"]["full"]["alpha"])
-
-    # A second invocation on the same sweep folder continues the study to 6 trials in total:
-    # 2 new jobs; the first 4 trials and their jobs' records are untouched.
-    before = {t.number: (t.state, t.value, t.params) for t in trials}
-    records = {name: (sweep / name / "results.json").read_text() for name in results}
-    _search(tiny_export, sweep, 6)
-    trials = _study(sweep).get_trials()
-    assert len(trials) == 6
-    assert {t.number: (t.state, t.value, t.params) for t in trials if t.number < 4} == before
-    seen = [t.params for t in trials[:4]]  # the resumed sampler does not replay the draws
-    assert all(t.params not in seen for t in trials[4:]), [t.params for t in trials]
-    assert len(_job_results(sweep)) == 6
-    assert all(
-        (sweep / name / "results.json").read_text() == text for name, text in records.items()
-    )
-
-    said = report(sweep)  # resireg-report's main, in this process
-    table = pd.read_csv(sweep / "optuna_trials.csv")
-    assert list(table["trial"]) == list(range(6))
-    assert list(table["state"]) == [t.state.name for t in trials]
-    # Every run trial is matched to its own job, a failed one with its error.
-    assert table["job"].nunique() == 6
-    fails = table[table["state"] == "FAIL"]
-    assert (fails["job status"] == "failed").all() and fails["error"].str.contains("5000").all()
-    ok = table[table["state"] == "COMPLETE"]
-    for _, row in ok.iterrows():
-        assert row["value"] == pytest.approx(_job_results(sweep)[row["job"]]["final"][METRIC])
-    best = _study(sweep).best_trial
-    assert (
-        f"Best trial: {best.number}, value {best.value:.4f}" in (sweep / "summary.md").read_text()
-    )
-    for name in ("optuna_history.png", "optuna_importance.png"):
-        assert (sweep / name).stat().st_size > 10_000, name
-    assert "optuna_history" in said
-    assert not any(math.isnan(v) for v in ok["value"])
+    run(*_eval_search(tiny_export, sweep, 4, "hparams_search.workers=2",
+                      f"hparams_search.storage={url}"), threads=1)  # fmt: skip
+    assert not (sweep / "optuna.journal").exists()
+    study = _check_total(sweep, 4, storage=url)
+    assert len({t.user_attrs["worker_pid"] for t in study.get_trials()}) == 2
+    report(sweep)  # the report finds the database through the search's record
+    assert sorted(pd.read_csv(sweep / "optuna_trials.csv")["trial"]) == [0, 1, 2, 3]
 
 
+@pytest.mark.slow
+def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_path, tiny_export):
+    """A search and one more worker (resireg-search worker <sweep>, as a SLURM array task runs
+    it), each its own process group; kill -9 of the worker's group while it runs a trial: its
+    trial becomes FAIL (its process is gone), and the search still ends with n_trials
+    finished trials."""
+    sweep = tmp_path / "sweep"
+    log_a, log_b = open(tmp_path / "a.log", "w"), open(tmp_path / "b.log", "w")
+    search = _popen(_eval_search(tiny_export, sweep, 5), log_a)
+    _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json")
+    worker = subprocess.Popen([shutil.which("resireg-search") or sys.executable, *(
+        [] if shutil.which("resireg-search") else ["-m", "resireg_train.search"]),
+        "worker", str(sweep)], stdout=log_b, stderr=subprocess.STDOUT, env=_env(None, 1),
+        start_new_session=True)  # fmt: skip
+    try:
+
+        def victim_trial():
+            assert worker.poll() is None, (tmp_path / "b.log").read_text()[-3000:]
+            return _running_trial_of(sweep, worker.pid)
+
+        victim = _wait_for(victim_trial, what="a trial of the worker")
+        os.killpg(worker.pid, signal.SIGKILL)
+        worker.wait()
+        assert search.wait(timeout=600) == 0, (tmp_path / "a.log").read_text()[-3000:]
+    finally:
+        for proc in (search, worker):
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+    dead = _study(sweep).trials[victim.number]
+    assert dead.state == TrialState.FAIL and dead.system_attrs.get("resireg:stale") is True
+    _check_total(sweep, 5)
+    report(sweep)
+    table = pd.read_csv(sweep / "optuna_trials.csv").set_index("trial")
+    assert "died mid-trial" in table.loc[victim.number, "error"]
+
+
+@pytest.mark.slow
+def test_a_killed_search_run_again_reruns_no_finished_trial(tmp_path, tiny_export):
+    """kill -9 of a whole 2-worker search (its process group) once a trial has finished, then
+    the same command: the finished trials and their run folders are untouched, the trials
+    the kill interrupted are FAIL, and the study reaches its total of finished trials."""
+    sweep = tmp_path / "sweep"
+    command = _eval_search(tiny_export, sweep, 5, "hparams_search.workers=2")
+    with open(tmp_path / "first.log", "w") as log:
+        first = _popen(command, log)
+        try:
+            _wait_for(lambda: (s := _study(sweep)) is not None and any(
+                t.state == TrialState.COMPLETE for t in s.get_trials())
+                and s.get_trials(states=(TrialState.RUNNING,)), what="a finished and a running trial")  # fmt: skip
+        finally:
+            os.killpg(first.pid, signal.SIGKILL)
+            first.wait()
+    before = {t.number: t for t in _study(sweep).get_trials() if t.state == TrialState.COMPLETE}
+    interrupted = [t.number for t in _study(sweep).get_trials(states=(TrialState.RUNNING,))]
+    assert before and interrupted
+    kept = {
+        n: Path(t.user_attrs["run_dir"], "results.json").read_bytes() for n, t in before.items()
+    }
+    run(*command, threads=1)
+    study = _check_total(sweep, 5)
+    after = {t.number: t for t in study.get_trials()}
+    for number, trial in before.items():
+        assert after[number].state == TrialState.COMPLETE
+        assert (after[number].value, after[number].params) == (trial.value, trial.params)
+        assert Path(trial.user_attrs["run_dir"], "results.json").read_bytes() == kept[number]
+    assert all(after[n].state == TrialState.FAIL for n in interrupted)
+
+
+@pytest.mark.slow
+def test_two_searches_started_at_once_on_one_folder_cooperate(tmp_path, tiny_export):
+    """The same search command twice at once on one sweep folder: both end without error and
+    share the study: exactly n_trials finished trials, no parameter set finished twice, each
+    run folder once (no raw database error)."""
+    sweep = tmp_path / "sweep"
+    command = _eval_search(tiny_export, sweep, 4)
+    procs = run_side_by_side(command, command, threads=1)
+    for proc in procs:
+        assert "Error" not in proc.stderr.replace("optimized_metric", ""), proc.stderr[-2000:]
+    study = _check_total(sweep, 4)
+    assert len({t.user_attrs["worker_pid"] for t in study.get_trials()}) == 2
+
+
+# ----------------------------------------------------------------------------- report, dashboard
+def _made_study(sweep, n):
+    """A journal study of ``n`` trials (values from a quadratic) made through Optuna's API in
+    the sweep folder, with the search record the report reads."""
+    from resireg_train.search import open_storage
+
+    study = optuna.create_study(storage=open_storage(None, sweep), study_name="made",
+                                direction="maximize", sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
+    for _ in range(n):
+        trial = study.ask()
+        x = trial.suggest_float("model.optimizer.lr", 0.0, 1.0)
+        y = trial.suggest_int("full.n_prototypes", 1, 10)
+        for step in range(3):
+            trial.report(-((x - 0.3) ** 2) + step * 0.01, step)
+        study.tell(trial, -((x - 0.3) ** 2) - 0.001 * y)
+    (Path(sweep) / "search.json").write_text(json.dumps({"study_name": "made", "storage": None}))
+    return study
+
+
+def test_the_report_of_a_large_search_is_readable(tmp_path):
+    """120 trials: the history's trial axis has integer ticks, at most a dozen; the
+    intermediate-values plot has no 120-entry legend; importance labels are short."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from optuna.visualization import matplotlib as ov
+
+    from resireg_train.report.optuna import _readable, write_optuna_report
+
+    warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+    study = _made_study(tmp_path, 120)
+    ax = ov.plot_optimization_history(study)
+    _readable(ax)
+    ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
+    assert 2 <= len(ticks) <= 13 and all(float(t).is_integer() for t in ticks)
+    ax = ov.plot_intermediate_values(study)
+    _readable(ax)
+    assert ax.get_legend() is None
+    files, lines = write_optuna_report(tmp_path, [], tmp_path)
+    best = max(study.get_trials(), key=lambda t: t.value)
+    assert any(f"Best trial: {best.number}, value {best.value:.4f}" in line for line in lines)
+    for key in ("optuna_history", "optuna_intermediate", "optuna_importance"):
+        assert files[key].stat().st_size > 10_000
+    assert len(pd.read_csv(files["optuna_csv"])) == 120
+
+
+def test_optuna_dashboard_lists_the_trials_of_a_search(tmp_path):
+    """optuna-dashboard <sweep>/optuna.journal on 127.0.0.1: its API (/api/studies,
+    /api/studies/<id>) lists the study and every trial with its value."""
+    exe = shutil.which("optuna-dashboard")
+    if exe is None:
+        pytest.skip("optuna-dashboard is not installed (the optuna extra)")
+    study = _made_study(tmp_path, 4)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([exe, "--host", "127.0.0.1", "--port", str(port), "--storage-class",
+                             "JournalFileStorage", str(tmp_path / "optuna.journal")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)  # fmt: skip
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # no proxy
+    base = f"http://127.0.0.1:{port}"
+
+    def get(path):
+        with opener.open(base + path, timeout=5) as response:
+            return json.loads(response.read())
+
+    def studies():
+        try:
+            return get("/api/studies")
+        except OSError:
+            return None
+
+    try:
+        listed = _wait_for(studies, timeout=60, what="optuna-dashboard")["study_summaries"]
+        assert [s["study_name"] for s in listed] == ["made"]
+        detail = get(f"/api/studies/{listed[0]['study_id']}")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    trials = {t["number"]: t for t in detail["trials"]}
+    assert sorted(trials) == [0, 1, 2, 3]
+    for trial in study.get_trials():
+        assert trials[trial.number]["values"][0] == pytest.approx(trial.value)
+
+
+# ----------------------------------------------------------------------------- scores
 @pytest.mark.parametrize("stored", [float("nan"), None, float("inf")])
-def test_a_job_scoring_nan_fails_its_trial_instead_of_ending_the_search(stored):
-    """optuna 2.10 (the sweeper's pin) raises in `tell` for a NaN value, outside the sweeper's
-    per-trial handling: a NaN (or `null` in results.json) score must raise in the job, which the
-    sweeper records as a failed trial; a finite score goes back as a float."""
-    import optuna
+def test_a_job_scoring_nan_fails_its_trial(stored):
+    """A NaN (or ``null`` in results.json) score raises in the job, and a job whose value is
+    not finite is told FAIL: the search goes on (up to max_failure_rate)."""
+    from hydra.core.utils import JobReturn, JobStatus
     from omegaconf import OmegaConf
 
     from resireg_train.cli.task import optimized_value
+    from resireg_train.search import _outcome
 
     cfg = OmegaConf.create({"optimized_metric": "miou_full"})
     with pytest.raises(ValueError, match=r"optimized_metric='miou_full' is .*not finite"):
         optimized_value(cfg, {"final": {"miou_full": stored}})
     assert optimized_value(cfg, {"final": {"miou_full": 0.25}}) == 0.25
     assert optimized_value(cfg, {"best": {"miou_full": {"value": 0.5, "epoch": 2}}}) == 0.5
-    study = optuna.create_study()  # why the job must not return NaN (optuna 2.x only)
-    if optuna.__version__.startswith("2."):
-        with pytest.raises(ValueError, match="returned nan"):
-            study.tell(study.ask(), float("nan"))
+    nan = JobReturn(status=JobStatus.COMPLETED, _return_value=float("nan"))
+    assert _outcome(nan, optuna) == (TrialState.FAIL, None)
+    raised = JobReturn(status=JobStatus.FAILED, _return_value=ValueError("x"))
+    assert _outcome(raised, optuna) == (TrialState.FAIL, None)
+    pruned = JobReturn(status=JobStatus.FAILED, _return_value=optuna.TrialPruned("p"))
+    assert _outcome(pruned, optuna) == (TrialState.PRUNED, None)
+    assert _outcome(JobReturn(status=JobStatus.COMPLETED, _return_value=0.5), optuna) == (
+        TrialState.COMPLETE, 0.5)  # fmt: skip
+    assert math.isfinite(0.5)
+
+
+def test_a_successful_multirun_names_its_sweep_and_the_report_command(tmp_path, tiny_export):
+    """A grid multirun whose jobs all complete ends, as a failed one does, with a line naming
+    its sweep folder and the resireg-report command (it said nothing before)."""
+    sweep = tmp_path / "grid"
+    proc = run("resireg-eval", "-m", f"model_path={tiny_export}", "dataset=synthetic",
+               "dataset.size=2", "num_workers=0", "batch_size=2", "variants=[full]",
+               "full.n_prototypes=3", "full.alpha=2.0,4.0", f"hydra.sweep.dir={sweep}")  # fmt: skip
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"resireg-eval: 2 jobs ran, none failed (sweep {sweep}; resireg-report {sweep} lists "
+        "every job)"
+    )
+
+
+@pytest.mark.slow
+def test_failed_trials_are_recorded_and_the_search_goes_on_up_to_max_failure_rate(
+    tmp_path, tiny_export
+):
+    """A trial whose job fails (5000 prototypes exceed a batch's points) is FAIL with its
+    folder's error and the search goes on; when more than max_failure_rate of the finished
+    trials failed the search stops with one line saying so (no traceback)."""
+    sweep = tmp_path / "mixed"
+    run(*_eval_search(tiny_export, sweep, 2, "full.n_prototypes=choice(3,5000)",
+                      "hydra.sweeper.enqueue=[{full.n_prototypes:5000},{full.n_prototypes:3}]",
+                      "hydra.sweeper.max_failure_rate=0.75"))  # fmt: skip
+    trials = _study(sweep).get_trials()
+    assert [t.state.name for t in trials] == ["FAIL", "COMPLETE"]
+    failed = json.loads(Path(trials[0].user_attrs["run_dir"], "results.json").read_text())
+    assert failed["status"] == "failed" and "n_prototypes=5000" in failed["error"]
+    report(sweep)
+    table = pd.read_csv(sweep / "optuna_trials.csv")
+    assert table.loc[0, "job status"] == "failed" and "5000" in table.loc[0, "error"]
+
+    sweep = tmp_path / "bad"
+    proc = run(*_eval_search(tiny_export, sweep, 4, "full.n_prototypes=choice(5000)"),
+               check=False)  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert ("2 of 2 trials failed, more than hydra.sweeper.max_failure_rate=0.5: the search "
+            "stops") in proc.stderr  # fmt: skip
+    assert [t.state.name for t in _study(sweep).get_trials()] == ["FAIL", "FAIL"]
+
+
+def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path):
+    """fail_stale_trials on a journal study: a RUNNING trial of another host whose heartbeat is
+    older than the grace period is FAIL, one with a recent heartbeat is not; one of this host
+    whose process has exited is FAIL at once; with retries, Optuna's RetryHeartbeatStaleTrialCallback
+    enqueues the failed trial's parameters again."""
+    from resireg_train.search import (
+        ATTR_HEARTBEAT,
+        ATTR_HOST,
+        ATTR_PID,
+        counted_trials,
+        fail_stale_trials,
+        open_storage,
+    )  # fmt: skip
+
+    study = optuna.create_study(storage=open_storage(None, tmp_path), study_name="s")
+    storage = study._storage
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    now = time.time()
+    cases = {"silent": ("other-host", 1, now - 500), "beating": ("other-host", 1, now - 5),
+             "exited": (socket.gethostname(), gone.pid, now)}  # fmt: skip
+    numbers = {}
+    for name, (host, pid, beat) in cases.items():
+        trial = study.ask({"x": optuna.distributions.FloatDistribution(0, 1)})
+        trial.set_user_attr(ATTR_HOST, host)
+        trial.set_user_attr(ATTR_PID, pid)
+        storage.set_trial_system_attr(trial._trial_id, ATTR_HEARTBEAT, beat)
+        numbers[name] = trial.number
+    failed = fail_stale_trials(study, grace_period=60, retries=1)
+    assert sorted(failed) == sorted([numbers["silent"], numbers["exited"]])
+    trials = study.get_trials()
+    assert trials[numbers["beating"]].state == TrialState.RUNNING
+    assert not counted_trials(trials)  # a dead worker's FAIL does not count towards the total
+    waiting = study.get_trials(states=(TrialState.WAITING,))
+    assert sorted(t.params["x"] for t in waiting) == sorted(
+        trials[numbers[n]].params["x"] for n in ("silent", "exited")
+    )

@@ -7,7 +7,8 @@ the one-line error, the run's log file (``train.log`` / ``eval.log``) the error 
 traceback, and the console either Hydra's traceback (an unexpected crash) or, for an error
 whose message says everything (a bad config value, a refused resume, a file that cannot be
 written, an unavailable download, a dataset of which nothing could be scored), that message
-alone. A multirun ends with one line per failed job.
+alone. A multirun ends with one line per failed job, or, when none failed, one line naming
+its sweep folder and the ``resireg-report`` command.
 """
 
 from __future__ import annotations
@@ -118,14 +119,14 @@ def instantiate_group(group: DictConfig | None) -> list[Any]:
 
 def register_resolvers() -> None:
     """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
-    ``optuna_storage`` and ``optuna_trials`` in ``conf/hparams_search``)."""
+    ``first_key`` in ``conf/hparams_search``)."""
     if not OmegaConf.has_resolver("safe_dirname"):
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
     from resireg_train.search import register_search_resolvers
 
-    register_search_resolvers()  # conf/hparams_search/: the Optuna study in the sweep folder
+    register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
 
 
 def run_task(
@@ -178,9 +179,10 @@ def run_task(
     except BaseException as exc:
         if rank_zero:
             error = error_text(exc)
-            _record(out, status="failed", error=error, provenance=_finished(out))
+            status = getattr(exc, "run_status", "failed")  # "pruned": an Optuna search's pruner
+            _record(out, status=status, error=error, provenance=_finished(out))
             _track(cfg, out)
-            _to_log_files(f"run failed: {error}", exc)
+            _to_log_files(f"run {status}: {error}", exc)
         raise
 
 
@@ -260,8 +262,7 @@ def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     run tracked one, else its final value; ``None`` when unset or on ranks other than 0.
 
     A metric that was logged but is not finite (NaN, stored as ``null`` in ``results.json``)
-    raises: the sweeper then records the trial as failed and goes on (optuna 2.10, which the
-    Optuna sweeper pins, refuses a NaN value in ``tell`` and would end the search)."""
+    raises: the job is failed, and an Optuna search records its trial FAIL and goes on."""
     name = cfg.get("optimized_metric")
     if not name or not results:
         return None
@@ -343,17 +344,23 @@ def _job_number(folder: Path) -> int:
 def _sweep_summary(prog: str, sweep: Path, before: dict[Path, tuple[int, int]]) -> str:
     """One line per failed job of the multirun in ``sweep`` (Hydra itself reports only the
     first): its number, folder and its error (on one line), from the job records written
-    since ``before`` (:class:`SweepRecords`); empty when no job failed."""
+    since ``before`` (:class:`SweepRecords`); when none failed, one line with the number of
+    jobs (and pruned trials), the folder and the report command."""
     now = _job_records(sweep)
     jobs = sorted((p for p, stat in now.items() if before.get(p) != stat),
                   key=lambda p: (_job_number(p.parent), p.parent.name))  # fmt: skip
-    failures = []
+    failures, pruned = [], 0
     for path in jobs:
         record = read_results(path.parent)
         if record.get("status") == "failed":
             failures.append((path.parent, str(record.get("error") or "no error recorded")))
-    if not failures:
+        pruned += record.get("status") == "pruned"
+    if not jobs:
         return ""
+    if not failures:
+        stopped = f", {pruned} pruned" if pruned else ""
+        return (f"{prog}: {len(jobs)} jobs ran{stopped}, none failed (sweep {sweep}; "
+                f"resireg-report {sweep} lists every job)\n")  # fmt: skip
     lines = [f"{prog}: {len(failures)} of {len(jobs)} jobs failed (sweep {sweep}; "
              f"resireg-report {sweep} lists every job):"]  # fmt: skip
     lines += [f"  job {_job_number(out)} ({out.name}): {flat(error)}" for out, error in failures]
@@ -386,7 +393,8 @@ def hydra_entry_point(
         try:
             return main()
         finally:
-            if _SWEEP:
+            # (a worker an Optuna search started itself leaves the summary to the search)
+            if _SWEEP and os.environ.get("RESIREG_SEARCH_WORKER") != "1":
                 sys.stderr.write(_sweep_summary(prog, _SWEEP["dir"], _SWEEP["before"]))
 
     return entry

@@ -21,9 +21,9 @@ Writes, into the sweep folder (or ``--out``):
   ``task=scannet3d`` jobs, ``table2.md`` / ``.csv`` (3D mapping, the paper's Table 2).
 - For training sweeps (jobs with a per-epoch history): ``curves.png``, the chosen metric
   per epoch for every run.
-- For an Optuna search (``hparams_search=...``: ``optuna.db`` in the sweep folder):
+- For an Optuna search (``hparams_search=...``: ``optuna.journal`` or ``search.json``):
   ``optuna_trials.csv`` (every trial's state, value, parameters, job and error), the best
-  trial in ``summary.md``, and ``optuna_history.png`` / ``optuna_importance.png``.
+  trial in ``summary.md``, and ``optuna_history.png`` / ``optuna_intermediate.png`` / ``optuna_importance.png``.
 - For the CLIP layer sweep (configurations ``<variant>@layer:<block>``, ``sweep=clip_layers``):
   ``layer_sweep.csv`` / ``.md`` / ``.png``, mIoU of each variant against the block index.
 

@@ -1,7 +1,8 @@
-"""The report of an Optuna search (``hparams_search=...``; docs/design.md section 9, Optuna searches): the
-trials table (each trial's state and value as Optuna recorded them, beside its job's folder,
-status and error), the best trial, and the optimisation-history and parameter-importance
-plots, drawn from Optuna's trials and its importance evaluator."""
+"""The report of an Optuna search (``hparams_search=...``; docs/design.md section 9, Optuna
+searches): the trials table (each trial's state, value, last reported epoch and value as
+Optuna recorded them, beside its run folder, status and error), the best trial, and Optuna's
+own matplotlib plots (optimisation history, intermediate values, parameter importances),
+made readable at 100+ trials (integer trial ticks, no per-trial legend, short labels)."""
 
 from __future__ import annotations
 
@@ -10,82 +11,67 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
-import yaml
 
 from resireg_train.report.jobs import Job
 from resireg_train.results import flat
-from resireg_train.search import STUDY_FILE, load_study, storage_url
+from resireg_train.search import SEARCH_FILE, STUDY_FILE, load_study, search_record
 
 __all__ = ["is_optuna_sweep", "optuna_study", "trials_table", "write_optuna_report"]
 
 OPTUNA_FILES = {
     "optuna_csv": "optuna_trials.csv",
     "optuna_history": "optuna_history.png",
+    "optuna_intermediate": "optuna_intermediate.png",
     "optuna_importance": "optuna_importance.png",
 }
 
 
 def is_optuna_sweep(sweep_dir: str | Path) -> bool:
-    """Whether the sweep folder holds an Optuna study (``optuna.db``, conf/hparams_search/)."""
-    return (Path(sweep_dir) / STUDY_FILE).is_file()
+    """Whether the sweep folder is an Optuna search's (its journal or ``search.json``)."""
+    return (Path(sweep_dir) / STUDY_FILE).is_file() or (Path(sweep_dir) / SEARCH_FILE).is_file()
 
 
-def _study_name(sweep_dir: Path, jobs: list[Job], names: list[str]) -> str:
-    """The study of the sweep: the database's only one, else the one its jobs' sweeper names."""
-    if len(names) == 1:
-        return names[0]
+def optuna_study(sweep_dir: str | Path, jobs: list[Job] | None = None) -> Any:
+    """The sweep's ``optuna.Study`` (in its journal, or the database its command named)."""
+    record = search_record(sweep_dir)
+    study = load_study(sweep_dir, record.get("storage"), record.get("study_name"))
+    if study is None:
+        raise ValueError(
+            f"{sweep_dir} holds no Optuna study (or more than one and no {SEARCH_FILE})"
+        )
+    return study
+
+
+def _job_of(trial: Any, jobs: list[Job]) -> Job | None:
+    """A trial's run folder: the one the search recorded (``run_dir``), else the job folder
+    named after its number (job number = trial number)."""
+    recorded = trial.user_attrs.get("run_dir")
     for job in jobs:
-        hydra_file = job.path / ".hydra" / "hydra.yaml"
-        if hydra_file.is_file():
-            sweeper = (yaml.safe_load(hydra_file.read_text()) or {}).get("hydra", {})
-            name = (sweeper.get("sweeper") or {}).get("study_name")
-            if name in names:
-                return name
-    raise ValueError(f"{sweep_dir / STUDY_FILE} holds studies {names}; none is named by its jobs")
-
-
-def optuna_study(sweep_dir: str | Path, jobs: list[Job]) -> Any:
-    """The sweep's ``optuna.Study``."""
-    import optuna
-
-    storage = storage_url(sweep_dir)
-    # get_all_study_summaries: in optuna 2.10 (hydra-optuna-sweeper's pin) and 3.x alike
-    names = [s.study_name for s in optuna.get_all_study_summaries(storage)]
-    return load_study(storage, _study_name(Path(sweep_dir), jobs, names))
-
-
-def _match_jobs(trials: list[Any], jobs: list[Job]) -> dict[int, Job]:
-    """``{trial number: job}``: a trial's job is the one whose overrides hold every parameter
-    the sweeper passed it (``name=value`` as it formats them, ``str(value)``), in the order
-    the jobs started (a resumed search's job numbers start again from 0). A trial without a
-    job was asked but not run (its search was stopped)."""
-    order = sorted(jobs, key=lambda j: (j.path / ".hydra").stat().st_mtime)
-    taken: set[Path] = set()
-    matched = {}
-    for trial in sorted(trials, key=lambda t: t.number):
-        wanted = {k: str(v) for k, v in trial.params.items()}
-        for job in order:
-            if job.path not in taken and all(job.overrides.get(k) == v for k, v in wanted.items()):
-                matched[trial.number] = job
-                taken.add(job.path)
-                break
-    return matched
+        if recorded and Path(recorded).resolve() == job.path.resolve():
+            return job
+    named = [j for j in jobs if j.path.name.startswith(f"{trial.number}_")]
+    return named[0] if len(named) == 1 else None
 
 
 def trials_table(study: Any, jobs: list[Job]) -> pd.DataFrame:
-    """One row per trial: number, Optuna's state and value, the parameters, its job's folder,
-    status and error (why it failed; Optuna marks a NaN-scored trial failed too)."""
-    trials = study.get_trials(deepcopy=False)
-    matched = _match_jobs(trials, jobs)
+    """One row per trial: number, Optuna's state and value, its last reported epoch and value
+    (a pruned trial's), the parameters, its run folder, the folder's status and error."""
     rows = []
-    for trial in trials:
-        job = matched.get(trial.number)
+    for trial in study.get_trials(deepcopy=False):
+        job = _job_of(trial, jobs)
+        steps = trial.intermediate_values
+        last = max(steps) if steps else None
         row: dict[str, Any] = {"trial": trial.number, "state": trial.state.name,
-                               "value": trial.value, **trial.params}  # fmt: skip
-        row["job"] = job.path.name if job else None
-        row["job status"] = job.status if job else "not run"
-        error = job.error if job and job.status != "completed" else None
-        if error is None and trial.state.name == "FAIL" and job is not None:
+                               "value": trial.value, "last epoch": last,
+                               "last value": steps[last] if steps else None,
+                               **trial.params}  # fmt: skip
+        row["run folder"] = job.path.name if job else trial.user_attrs.get("run_dir")
+        row["job status"] = job.status if job else "no run folder"
+        error = job.error if job and job.status not in ("completed", "pruned") else None
+        if trial.system_attrs.get("resireg:stale"):
+            error = (f"its worker (host {trial.user_attrs.get('worker_host')}, PID "
+                     f"{trial.user_attrs.get('worker_pid')}) died mid-trial")  # fmt: skip
+        elif error is None and trial.state.name == "FAIL" and job is not None:
             error = "the job completed but its optimized_metric is not finite (NaN)"
         row["error"] = flat(error) if error else None
         rows.append(row)
@@ -100,86 +86,74 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
-# The two figures are drawn here from Optuna's own data (its trials, its importance evaluator)
-# rather than by optuna.visualization.matplotlib: the sweeper pins optuna < 3, and optuna 2.10's
-# plotting calls matplotlib.cm.get_cmap, removed in matplotlib 3.9.
-def _history_figure(study: Any, complete: list[Any]) -> Any:
-    """Objective value per trial number and the best so far (Optuna's optimisation history)."""
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    numbers = np.array([t.number for t in complete])
-    values = np.array([t.value for t in complete], dtype=float)
-    order = np.argsort(numbers)
-    best = (np.maximum if study.direction.name == "MAXIMIZE" else np.minimum).accumulate(
-        values[order]
-    )
-    fig, ax = plt.subplots(figsize=(8, 5))
-    ax.scatter(numbers, values, label="objective value", zorder=3)
-    ax.step(numbers[order], best, where="post", color="tab:red", label="best value")
-    ax.set(
-        xlabel="trial", ylabel="objective value", title=f"Optimisation history: {study.study_name}"
-    )
-    ax.legend()
-    return fig
+def _short(name: str) -> str:
+    """A parameter's label: its last two dotted parts (``distill.scale``)."""
+    return ".".join(str(name).split(".")[-2:])
 
 
-def _importance_figure(importances: dict[str, float]) -> Any:
-    """Horizontal bars of the parameters' importances (Optuna's importance plot)."""
-    import matplotlib.pyplot as plt
+def _readable(ax: Any, integer_x: bool = True) -> Any:
+    """Integer ticks on the trial / epoch axis (at most ~12 of them), no per-trial legend."""
+    from matplotlib.ticker import MaxNLocator
 
-    names = sorted(importances, key=importances.get)
-    fig, ax = plt.subplots(figsize=(8, 5))
-    ax.barh(names, [importances[n] for n in names])
-    ax.set(xlabel="importance (mean decrease in impurity)", title="Parameter importances")
-    return fig
+    if integer_x:
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True, nbins=12))
+    legend = ax.get_legend()
+    if legend is not None and len(legend.get_texts()) > 8:
+        legend.remove()
+    return ax.figure
 
 
 def write_optuna_report(
     sweep_dir: str | Path, jobs: list[Job], out: Path
 ) -> tuple[dict[str, Path], list[str]]:
-    """Write ``optuna_trials.csv``, ``optuna_history.png`` and (with two or more completed
-    trials) ``optuna_importance.png`` into ``out``; returns the files and the lines of
-    ``summary.md``'s Optuna section."""
+    """Write ``optuna_trials.csv`` and Optuna's plots (history, intermediate values when
+    trials reported any, importances with two or more completed trials) into ``out``;
+    returns the files and the lines of ``summary.md``'s Optuna section."""
     import matplotlib
 
     matplotlib.use("Agg")  # no display
+    import matplotlib.pyplot as plt
     import optuna
-
-    # Mean decrease in impurity (scikit-learn's forest): optuna 2.10's own fANOVA tree (the
-    # sweeper's pin) cannot read scikit-learn >= 1.4's tree values; this one reads both.
-    from optuna.importance import MeanDecreaseImpurityImportanceEvaluator, get_param_importances
+    from optuna.visualization import matplotlib as ov
 
     study = optuna_study(sweep_dir, jobs)
     table = trials_table(study, jobs)
     files = {"optuna_csv": out / OPTUNA_FILES["optuna_csv"]}
     table.to_csv(files["optuna_csv"], index=False)
-    states = table["state"].value_counts().to_dict()
+    states = table["state"].value_counts().to_dict() if len(table) else {}
     direction = study.direction.name.lower()
     lines = ["", f"## Optuna search: study `{study.study_name}` ({direction})", "",
              f"{len(table)} trials: " + ", ".join(f"{n} {s.lower()}" for s, n in states.items())]  # fmt: skip
-    complete = [t for t in study.get_trials(deepcopy=False)
-                if t.state == optuna.trial.TrialState.COMPLETE]  # fmt: skip
+    trials = study.get_trials(deepcopy=False)
+    complete = [t for t in trials if t.state == optuna.trial.TrialState.COMPLETE]
     if complete:
         best = study.best_trial
         params = ", ".join(f"`{k}={v}`" for k, v in best.params.items())
-        lines += ["", f"Best trial: {best.number}, value {best.value:.4f}: {params}"]
+        folder = table.loc[table["trial"] == best.number, "run folder"].iloc[0]
+        lines += ["", f"Best trial: {best.number}, value {best.value:.4f}: {params} "
+                  f"(run folder `{folder}`)"]  # fmt: skip
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         if complete:
-            files["optuna_history"] = _save(
-                _history_figure(study, complete), out / OPTUNA_FILES["optuna_history"]
-            )
-        if len(complete) >= 2 and len(complete[0].params) >= 1:
-            evaluator = MeanDecreaseImpurityImportanceEvaluator(seed=0)
+            ax = ov.plot_optimization_history(study)
+            ax.set_title(f"Optimisation history: {study.study_name}")
+            files["optuna_history"] = _save(_readable(ax), out / OPTUNA_FILES["optuna_history"])
+        if any(t.intermediate_values for t in trials):
+            ax = ov.plot_intermediate_values(study)
+            ax.set_xlabel("epoch")
+            path = out / OPTUNA_FILES["optuna_intermediate"]
+            files["optuna_intermediate"] = _save(_readable(ax), path)
+        if len(complete) >= 2 and complete[0].params:
             try:
-                importances = get_param_importances(study, evaluator=evaluator)
-            except RuntimeError as err:  # every completed trial scored the same
+                ax = ov.plot_param_importances(study)
+            except (RuntimeError, ValueError) as err:  # every completed trial scored the same
                 lines += ["", f"No parameter importance: {err}"]
             else:
-                files["optuna_importance"] = _save(
-                    _importance_figure(importances), out / OPTUNA_FILES["optuna_importance"]
-                )
+                ax.set_yticklabels([_short(t.get_text()) for t in ax.get_yticklabels()])
+                path = out / OPTUNA_FILES["optuna_importance"]
+                files["optuna_importance"] = _save(_readable(ax, integer_x=False), path)
+    plt.close("all")
+    shown = table.rename(columns={k: _short(k) for k in trials[0].params} if trials else {})
     lines += ["", f"Trials (`{files['optuna_csv'].name}`):", "",
-              table.to_markdown(index=False, floatfmt=".4f")]  # fmt: skip
+              shown.to_markdown(index=False, floatfmt=".4g")]  # fmt: skip
     return files, lines
