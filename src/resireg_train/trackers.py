@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 #: Files larger than this are recorded by path (a tag), not uploaded.
 MLFLOW_ARTIFACT_MAX_BYTES = 64 << 20
-_STATUS = {"completed": "FINISHED", "failed": "FAILED", "interrupted": "KILLED"}
+_STATUS = {"completed": "FINISHED", "failed": "FAILED", "interrupted": "KILLED", "pruned": "KILLED"}
 _KEY = re.compile(r"[^A-Za-z0-9_\-. /]")  # what MLflow accepts in a metric or param name
 
 
