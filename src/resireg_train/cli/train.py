@@ -38,6 +38,7 @@ from resireg_train.cli.task import (
     error_text,
     hydra_entry_point,
     instantiate_group,
+    process_rank,
     run_task,
     top_level_keys,
 )
@@ -56,12 +57,8 @@ log = logging.getLogger(__name__)
 
 
 def _process_rank() -> int:
-    """This process's global rank from the launcher's environment (the variables Lightning's
-    ``rank_zero_only`` reads), without importing Lightning; 0 for a single process."""
-    for name in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
-        if os.environ.get(name, "").isdigit():
-            return int(os.environ[name])
-    return 0
+    """This process's global rank (:func:`~resireg_train.cli.task.process_rank`)."""
+    return process_rank()
 
 
 def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:

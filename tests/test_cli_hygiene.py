@@ -1,0 +1,130 @@
+"""What the commands do around the work itself: a run folder locked while a job writes it,
+what they print (each line once, no colour codes in a redirected log), how they fail fast
+with the option's own name, and the files they leave (git-ignored folders, the umask)."""
+
+import fcntl
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from _run import run, run_side_by_side
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _hold(folder):
+    """A separate process that locks ``folder`` as a job does and waits; returns it once the
+    lock is held."""
+    code = textwrap.dedent(f"""
+        import sys
+        from pathlib import Path
+        from resireg_train.cli.task import hold_run_folder
+        hold_run_folder(Path({str(folder)!r}))
+        print("held", flush=True)
+        sys.stdin.read()
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    assert proc.stdout.readline().strip() == "held"
+    return proc
+
+
+def _files(folder):
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_second_job_on_a_locked_folder_is_refused_and_a_killed_holder_frees_it(
+    tmp_path, tiny_export
+):
+    """A folder a job holds: resireg-eval and resireg-map given it are refused with one line
+    naming the holder's PID, before writing anything (the holder's files stay byte for byte);
+    once the holder is killed with SIGKILL the lock is free again (the OS released it)."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "results.json").write_text('{"name": "map", "status": "running"}\n')
+    (out / "map.log").write_text("the first job's log\n")
+    (out / ".hydra").mkdir()
+    (out / ".hydra" / "overrides.yaml").write_text("- window=4\n")
+    holder = _hold(out)
+    try:
+        before = _files(out)
+        for script, *args in (
+            ("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic"),
+            ("resireg-map", f"model_path={tiny_export}", "source.kind=tum", "resume=true",
+             f"source.path={tmp_path}"),
+        ):  # fmt: skip
+            proc = run(script, *args, f"hydra.run.dir={out}", check=False, timeout=300)
+            assert proc.returncode != 0, proc.stdout + proc.stderr
+            lines = [x for x in proc.stderr.splitlines() if x.strip()]
+            assert lines == [lines[0]] and f"(PID {holder.pid}," in lines[0], proc.stderr
+            assert str(out) in lines[0] and "Traceback" not in proc.stderr
+            assert _files(out) == before  # nothing written: no log, no .hydra, no record
+    finally:
+        holder.kill()  # SIGKILL: no clean-up code runs in the holder
+        holder.wait()
+    assert holder.returncode == -signal.SIGKILL
+    with open(out / ".run.lock") as f:  # free again: this process takes it at once
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+@pytest.mark.slow
+def test_two_resireg_map_runs_into_one_folder_one_is_refused(tmp_path, tiny_export):
+    """Two real resireg-map jobs started together on one hydra.run.dir: one maps, the other
+    is refused naming the first one's PID; the folder's log and overrides are the first's."""
+    pytest.importorskip("rosbags")
+    from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
+
+    bag = write_bag(tmp_path / "room", room_frames(6))
+    out = tmp_path / "run"
+    common = [f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag",
+              f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
+              f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
+              "configuration=full@n_prototypes:4", "window=2", "voxel_size=0.2",
+              f"hydra.run.dir={out}"]  # fmt: skip
+    procs = run_side_by_side(("resireg-map", *common, "seed=1"), ("resireg-map", *common, "seed=2"),
+                             check=False)  # fmt: skip
+    codes = sorted(p.returncode for p in procs)
+    assert codes[0] == 0 and codes[1] != 0, [p.stderr[-2000:] for p in procs]
+    winner, loser = sorted(procs, key=lambda p: p.returncode)
+    pid = int((out / ".run.lock").read_text())
+    assert f"(PID {pid}," in loser.stderr, loser.stderr
+    assert json.loads((out / "results.json").read_text())["status"] == "completed"
+    seed = "seed=1" if "seed=1" in winner.args else "seed=2"
+    assert seed in (out / ".hydra" / "overrides.yaml").read_text()
+    assert (out / "map.log").read_text().count("output dir:") == 1
+
+
+def test_results_and_log_files_follow_the_umask(tmp_path):
+    """write_atomic (results.json, metrics, reports) creates files as open() does: mode
+    0666 minus the umask, so a group that may read the folder reads the record."""
+    from resireg_train.files import write_atomic
+
+    old = os.umask(0o027)
+    try:
+        path = write_atomic(tmp_path / "a.json", "{}")
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o640
+    old = os.umask(0o002)
+    try:
+        path = write_atomic(tmp_path / "a.json", "{}")  # replaced: the new file's mode
+    finally:
+        os.umask(old)
+    assert path.stat().st_mode & 0o777 == 0o664
+
+
+def test_gitignore_covers_the_folders_runs_write():
+    """The folders the guide's commands write by default are ignored by git."""
+    ignored = subprocess.run(
+        ["git", "check-ignore", "--no-index", "data/x.bag", "outputs/train/run/results.json",
+         "multirun/x", "outputs/map/run/.run.lock"],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert ignored.stdout.split() == ["data/x.bag", "outputs/train/run/results.json",
+                                      "multirun/x", "outputs/map/run/.run.lock"]  # fmt: skip
