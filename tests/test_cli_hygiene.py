@@ -128,3 +128,47 @@ def test_gitignore_covers_the_folders_runs_write():
     )  # fmt: skip
     assert ignored.stdout.split() == ["data/x.bag", "outputs/train/run/results.json",
                                       "multirun/x", "outputs/map/run/.run.lock"]  # fmt: skip
+
+
+@pytest.mark.parametrize("script", ["resireg-train", "resireg-eval", "resireg-map",
+                                    "resireg-report", "resireg-playground"])  # fmt: skip
+def test_console_scripts_without_the_train_extra_say_so_in_one_line(script):
+    """A core-only install (lightning and hydra cannot be imported): the installed console
+    script itself, run as the shell runs it, prints one line naming the extra, no traceback."""
+    import shutil
+
+    path = shutil.which(script)
+    if path is None or not Path(path).read_text(errors="replace").startswith("#!"):
+        pytest.skip(f"{script} is not installed as a console script here")
+    code = ("import runpy, sys\n"
+            "for name in ('lightning', 'hydra'):\n"
+            "    sys.modules[name] = None  # 'import lightning' raises ImportError, as uninstalled\n"
+            f"runpy.run_path({path!r}, run_name='__main__')\n")  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [
+        f"{script}: error: needs the 'train' extra (hydra-core, lightning not installed): "
+        'pip install "resireg[train]" (in a clone: pip install -e ".[train]" -c constraints.txt)'
+    ], proc.stderr
+
+
+def test_playground_names_model_path_before_loading_torch(tmp_path):
+    """A --model-path that is neither a folder nor a cached repo id (offline) is refused naming
+    --model-path, before torch, the models or Gradio are imported."""
+    code = textwrap.dedent(f"""
+        import sys
+        from resireg_train.cli import playground
+        try:
+            playground.main(["--model-path", {str(tmp_path / "nope")!r}])
+        except SystemExit as exit:
+            print("exit", exit.code)
+        print("loaded:", sorted(m for m in ("torch", "gradio", "lightning") if m in sys.modules))
+    """)
+    for path in (str(tmp_path / "nope"), "outputs/nope"):
+        proc = subprocess.run([sys.executable, "-c", code.replace(str(tmp_path / "nope"), path)],
+                              capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                              env={**os.environ, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+        assert proc.stdout.splitlines() == ["exit 2", "loaded: []"], proc.stdout + proc.stderr
+        assert proc.stderr.startswith(f"resireg-playground: error: --model-path: {path!r}")
+        assert "encoder.path" not in proc.stderr and "model_path=" not in proc.stderr
