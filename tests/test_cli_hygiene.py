@@ -172,3 +172,145 @@ def test_playground_names_model_path_before_loading_torch(tmp_path):
         assert proc.stdout.splitlines() == ["exit 2", "loaded: []"], proc.stdout + proc.stderr
         assert proc.stderr.startswith(f"resireg-playground: error: --model-path: {path!r}")
         assert "encoder.path" not in proc.stderr and "model_path=" not in proc.stderr
+
+
+def _on_a_terminal(cmd, env):
+    """Start ``cmd`` with a pseudo-terminal as its stdin, stdout and stderr (as a user's shell
+    runs it); returns the process and a function that waits and returns what it printed."""
+    import pty
+    import threading
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(cmd, stdin=slave, stdout=slave, stderr=slave, env=env)
+    os.close(slave)
+    chunks = []
+
+    def read():  # drained all along: a full pty would stall the child
+        while True:
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # the child closed its end
+                return
+            if not data:
+                return
+            chunks.append(data)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+
+    def finish(timeout=600):
+        proc.wait(timeout=timeout)
+        reader.join(timeout=30)
+        os.close(master)
+        return b"".join(chunks).decode(errors="replace")
+
+    return proc, finish
+
+
+@pytest.mark.slow
+def test_training_prints_each_line_once_and_the_bar_shows_the_epoch_values(tmp_path):
+    """resireg-train experiment=smoke, redirected: each Lightning line once (Hydra's format),
+    no colour codes, a model summary without an unmeasured FLOPs count. The same run on a
+    terminal: the progress bar shows every value of the logged epoch line (losses, learning
+    rate, evaluation mIoU, skip counts) and the running step loss."""
+    import re
+    import shutil
+
+    exe = shutil.which("resireg-train")
+    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
+    args = ["experiment=smoke", "trainer.max_epochs=2", "data.steps_per_epoch=2", "export=false"]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "COLUMNS": "2000", "TERM": "xterm"}
+    tty, finish = _on_a_terminal([*cmd, *args, f"hydra.run.dir={tmp_path / 'tty'}"], env)
+    piped = run("resireg-train", *args, f"hydra.run.dir={tmp_path / 'piped'}", timeout=600)
+    printed = piped.stdout + piped.stderr
+    assert "\x1b[" not in printed
+    for message in ("Seed set to 0", "GPU available: False", "`Trainer.fit` stopped"):
+        assert printed.count(message) == 1, (message, printed[-3000:])
+    assert not [x for x in printed.splitlines() if x.startswith("INFO: ")]
+    assert printed.count("Trainable params") == 1 and "Flops" not in printed
+    assert "FLOPs" not in printed and "model summary" not in printed
+    log = (tmp_path / "piped" / "train.log").read_text()
+    assert log.count("Trainable params") == 1 and log.count("Seed set to 0") == 1
+
+    screen = finish()
+    assert tty.returncode == 0, screen[-3000:]
+    screen = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", screen)  # the terminal's control codes
+    (last,) = [x for x in (tmp_path / "tty" / "train.log").read_text().splitlines()
+               if "epoch 1/1 |" in x]  # fmt: skip
+    values = last.split(" | ")[1].split()
+    assert {v.split("=")[0] for v in values} >= {
+        "train/loss",
+        "train/lr",
+        "val/ovss/synthetic/miou_full",
+        "data/skipped_invalid",
+    }
+    bar = [x for x in screen.splitlines() if x.startswith("Epoch 1/1") and "2/2" in x][-1]
+    for value in values:  # the epoch line's key=value as the bar's "key: value"
+        assert value.replace("=", ": ", 1) in bar, (value, bar)
+    assert "train/loss_step: " in bar
+
+
+@pytest.mark.slow
+def test_resireg_map_prints_its_summary_once(tmp_path, tiny_export):
+    """resireg-map on the demo bag: the summary line once on the console, once in map.log."""
+    pytest.importorskip("rosbags")
+    bag = tmp_path / "room"
+    subprocess.run([sys.executable, "-m", "resireg_train.data.room_bag", str(bag)], check=True,
+                   capture_output=True, timeout=300)  # fmt: skip
+    from resireg_train.data.room_bag import TOPICS
+
+    out = tmp_path / "run"
+    proc = run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag",
+               f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
+               f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
+               "configuration=full@n_prototypes:4", "window=4", f"hydra.run.dir={out}")  # fmt: skip
+    printed = proc.stdout + proc.stderr
+    assert printed.count("unpaired colour messages:") == 1, printed
+    assert (out / "map.log").read_text().count("unpaired colour messages:") == 1
+    assert "\x1b[" not in printed
+
+
+def test_wandb_logger_does_not_warn_about_the_anonymous_setting(tmp_path):
+    """An offline W&B run made by conf/logger/wandb.yaml's factory: no warning about a setting
+    the user never gave."""
+    pytest.importorskip("wandb")
+    code = textwrap.dedent(f"""
+        from resireg_train.tracking import wandb_logger
+        logger = wandb_logger("t", save_dir={str(tmp_path)!r})
+        logger.experiment.finish()
+    """)
+    env = {**os.environ, "WANDB_MODE": "offline", "WANDB_CONFIG_DIR": str(tmp_path / "config"),
+           "WANDB_CACHE_DIR": str(tmp_path / "cache")}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, env=env, cwd=tmp_path)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert list(tmp_path.glob("wandb/offline-run-*"))  # the run was made
+    assert "anonymous" not in proc.stdout + proc.stderr, proc.stderr
+
+
+@pytest.mark.slow
+def test_playground_launch_prints_its_address_and_no_share_hint(tmp_path):
+    """The playground's launch(): the local address once, not Gradio's share=True advice."""
+    pytest.importorskip("gradio")
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = textwrap.dedent(f"""
+        import gradio as gr
+        from resireg_train.playground.app import launch
+        with gr.Blocks() as demo:
+            gr.Markdown("hello")
+        launch(demo, "127.0.0.1", {port})
+    """)
+    env = {**os.environ, "GRADIO_ANALYTICS_ENABLED": "False"}
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env)  # fmt: skip
+    try:
+        first = proc.stdout.readline()
+        assert first == f"* Running on local URL:  http://127.0.0.1:{port}/\n", first
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert "share=True" not in first + rest, rest

@@ -218,8 +218,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     summary = (f"{counts.line()}; unpaired colour messages: "
                f"{getattr(source, 'unpaired_colour', 0)}; map: {len(smap)} voxels, "
                f"{smap.nbytes / 2**20:.1f} MiB, {smap.frames} frames in all")  # fmt: skip
-    print(summary)
-    log.info(summary)
+    log.info(summary)  # to the console (stdout) and map.log, once: Hydra's handlers
     for s in counts.examples[:5]:
         log.warning("skipped %s (%s): %s", s.name, s.kind, s.reason)
     return update_results(

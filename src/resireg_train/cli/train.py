@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
 import re
 import shlex
 import sys
@@ -252,7 +251,12 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     from resireg_train.ovss.callback import ReSiRegEval
     from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
-    from resireg_train.training.console import EpochLog, on_terminal, quiet_library_noise
+    from resireg_train.training.console import (
+        EpochLog,
+        ModelSummary,
+        on_terminal,
+        quiet_library_noise,
+    )
 
     quiet_library_noise()
     L.seed_everything(cfg.seed, workers=True)
@@ -271,16 +275,23 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
 
     loggers = [ResumableCSVLogger(out, resume_step=resume_step), *instantiate_group(cfg.logger)]
     configured = instantiate_group(cfg.callbacks)
-    bar = {}
+    # The model summary without an unmeasured "Total Flops: 0" (a configured one is kept); the
+    # Trainer's own is off, else it would say that it skips its default for this one.
+    summary = []
+    if cfg.trainer.get("enable_model_summary", True) and not any(
+        isinstance(c, L.pytorch.callbacks.ModelSummary) for c in configured
+    ):
+        summary = [ModelSummary()]
+    bar: dict[str, Any] = {"enable_model_summary": False}
     if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
         configured = [c for c in configured if not isinstance(c, ProgressBar)]
-        bar = {"enable_progress_bar": False}
+        bar["enable_progress_bar"] = False
     # logger=wandb: one W&B run per job, given the config and results.json, finished here
     with wandb_runs(loggers, cfg, out):
         trainer: L.Trainer = hydra.utils.instantiate(
             cfg.trainer,
             logger=loggers,
-            callbacks=[*configured, ResultsTracker(out), EpochLog(), *callbacks],
+            callbacks=[*configured, ResultsTracker(out), EpochLog(), *summary, *callbacks],
             plugins=[AtomicCheckpointIO()],
             default_root_dir=str(out),
             **bar,
