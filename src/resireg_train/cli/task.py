@@ -203,9 +203,10 @@ def release_run_folder(out: Path) -> None:
 
 
 class RunFolderLock(Callback):
-    """Hydra callback (``conf/hydra/default.yaml``): locks a single run's folder
-    (:func:`hold_run_folder`) before Hydra writes anything into it (``.hydra/``, the log
-    file), so a second job given the same ``hydra.run.dir`` (or a ``resume=true`` while the
+    """Hydra callback (``conf/train.yaml``, ``eval.yaml``, ``map.yaml``; in ``train.yaml`` after
+    ``RunFolderCheck``, so a refused resume leaves even the lock file as it was): locks a single
+    run's folder (:func:`hold_run_folder`) before Hydra writes anything into it (``.hydra/``,
+    the log file), so a second job given the same ``hydra.run.dir`` (or a ``resume=true`` while the
     first still runs) is refused and leaves the first one's files as they were. Sweep jobs are
     locked by :func:`run_task`; ranks > 0 of a DDP run (re-launched by Lightning into rank 0's
     folder) take no lock."""
