@@ -42,9 +42,9 @@ def _files(folder):
 def test_second_job_on_a_locked_folder_is_refused_and_a_killed_holder_frees_it(
     tmp_path, tiny_export
 ):
-    """A folder a job holds: resireg-eval and resireg-map given it are refused with one line
-    naming the holder's PID, before writing anything (the holder's files stay byte for byte);
-    once the holder is killed with SIGKILL the lock is free again (the OS released it)."""
+    """A folder a job holds: resireg-eval given it is refused with one line naming the
+    holder's PID, before writing anything (the holder's files stay byte for byte); once the
+    holder is killed with SIGKILL the lock is free again (the OS released it)."""
     out = tmp_path / "run"
     out.mkdir()
     (out / "results.json").write_text('{"name": "map", "status": "running"}\n')
@@ -54,23 +54,71 @@ def test_second_job_on_a_locked_folder_is_refused_and_a_killed_holder_frees_it(
     holder = _hold(out)
     try:
         before = _files(out)
-        for script, *args in (
-            ("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic"),
-            ("resireg-map", f"model_path={tiny_export}", "source.kind=tum", "resume=true",
-             f"source.path={tmp_path}"),
-        ):  # fmt: skip
-            proc = run(script, *args, f"hydra.run.dir={out}", check=False, timeout=300)
-            assert proc.returncode != 0, proc.stdout + proc.stderr
-            lines = [x for x in proc.stderr.splitlines() if x.strip()]
-            assert lines == [lines[0]] and f"(PID {holder.pid}," in lines[0], proc.stderr
-            assert str(out) in lines[0] and "Traceback" not in proc.stderr
-            assert _files(out) == before  # nothing written: no log, no .hydra, no record
+        proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+                   f"hydra.run.dir={out}", check=False, timeout=300)  # fmt: skip
+        _assert_refused(proc, out, holder.pid)
+        assert _files(out) == before  # nothing written: no log, no .hydra, no record
     finally:
         holder.kill()  # SIGKILL: no clean-up code runs in the holder
         holder.wait()
     assert holder.returncode == -signal.SIGKILL
-    with open(out / ".run.lock") as f:  # free again: this process takes it at once
+    _assert_free(out)
+
+
+def _assert_refused(proc, out, pid):
+    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
+    lines = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and f"(PID {pid}," in lines[0], proc.stderr
+    assert str(out) in lines[0] and "refused" in lines[0]
+
+
+def _assert_free(out):
+    with open(out / ".run.lock") as f:  # this process takes the lock at once
         fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+@pytest.mark.slow
+def test_a_running_training_job_keeps_its_folder_until_killed(tmp_path, tiny_export):
+    """A real resireg-train job, paused once training started: resireg-map and resireg-eval
+    (resume=true, the same hydra.run.dir) are refused naming its PID and change none of its
+    files; after kill -9 the lock is free."""
+    import shutil
+
+    out = tmp_path / "run"
+    exe = shutil.which("resireg-train")
+    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
+    tests = str(Path(__file__).parent)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1",
+           "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}  # fmt: skip
+    job = subprocess.Popen(
+        [*cmd, "experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",
+         "+callbacks.hold._target_=_hold.WaitFor", f"+callbacks.hold.path={tmp_path / 'go'}",
+         f"hydra.run.dir={out}"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
+    )  # fmt: skip
+    try:
+        for line in job.stdout:  # until training has started (the folder written, locked)
+            if line.strip() == "holding":
+                break
+        else:
+            pytest.fail(f"the training job ended ({job.wait()}) before training")
+        before = _files(out)
+        assert (out / ".hydra" / "overrides.yaml").is_file() and (out / "train.log").is_file()
+        refused = run_side_by_side(
+            ("resireg-map", f"model_path={tiny_export}", "source.kind=tum", "resume=true",
+             f"source.path={tmp_path}", f"hydra.run.dir={out}"),
+            ("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+             f"hydra.run.dir={out}"),
+            check=False, threads=None,
+        )  # fmt: skip
+        for proc in refused:
+            _assert_refused(proc, out, job.pid)
+        assert _files(out) == before
+    finally:
+        job.kill()
+        job.wait()
+    assert job.returncode == -signal.SIGKILL
+    _assert_free(out)
 
 
 @pytest.mark.slow
