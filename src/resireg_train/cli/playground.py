@@ -91,10 +91,11 @@ def _uncached_repo(source: str) -> str | None:
     try:
         HfApi().model_info(source, timeout=5)
     except RepositoryNotFoundError:
-        return f"{source!r} is no local folder and no Hugging Face model repo; {hint}"
-    except Exception as err:  # no network: the loader's own check says what it needs
+        return (f"{source!r} is no local folder and no Hugging Face model repo (or none this "
+                f"machine's token may read); {hint}")  # fmt: skip
+    except Exception as err:  # no network, a proxy, a server error: the model cannot load
         return (f"{source!r} is no local folder and, as a Hugging Face repo id, not cached; "
-                f"huggingface.co cannot be reached ({type(err).__name__}); {hint}")  # fmt: skip
+                f"huggingface.co could not be asked ({type(err).__name__}); {hint}")  # fmt: skip
     return None
 
 
