@@ -196,7 +196,13 @@ def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
     from lightning.pytorch.loggers import WandbLogger
 
     run_name, group = wandb_run_name(name)
-    return WandbLogger(name=run_name, project=project, group=group, **kwargs)
+    logger = WandbLogger(name=run_name, project=project, group=group, **kwargs)
+    # Lightning passes anonymous=None to wandb.init unless asked for it, and wandb warns "The
+    # anonymous setting has no effect" for any value given: leave the key out when unset.
+    init = getattr(logger, "_wandb_init", {})
+    if init.get("anonymous") is None:
+        init.pop("anonymous", None)
+    return logger
 
 
 def wandb_loggers(cfg: Any) -> list[Any]:

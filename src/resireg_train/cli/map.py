@@ -299,8 +299,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     summary = (f"{counts.line()}; unpaired colour messages: "
                f"{getattr(source, 'unpaired_colour', 0)}; map: {len(smap)} voxels, "
                f"{smap.nbytes / 2**20:.1f} MiB, {smap.frames} frames in all")  # fmt: skip
-    print(summary)
-    log.info(summary)
+    log.info(summary)  # to the console (stdout) and map.log, once: Hydra's handlers
     for kind, reason in sorted(counts.reasons.items()):
         log.warning("skipped %d %s, e.g. %s", counts.skipped[kind], kind, reason)
     for line in _source_warnings(source_record):

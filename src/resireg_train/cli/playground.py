@@ -67,6 +67,38 @@ def _prior(kind: str, model: str | None, device: str):
         raise ValueError(f"--prior-model (prior.model={spec['model']!r}): {err}") from err
 
 
+def _uncached_repo(source: str) -> str | None:
+    """Why ``source``, not a local folder and so a Hugging Face repo id, cannot load here: not
+    in the local cache while offline (``HF_HUB_OFFLINE``) or, online, no such repo; ``None``
+    when it may load. Checked with huggingface_hub alone, before torch and Gradio load (the
+    model loader would find the same after seconds of imports, naming its own config key)."""
+    if os.path.isdir(source):
+        return None
+    from huggingface_hub import constants, snapshot_download
+    from huggingface_hub.errors import LocalEntryNotFoundError, RepositoryNotFoundError
+
+    try:
+        snapshot_download(source, local_files_only=True)
+        return None
+    except LocalEntryNotFoundError:
+        pass
+    hint = "give an export folder (resireg-train's <run>/export) or a cached repo id"
+    if constants.HF_HUB_OFFLINE:
+        return (f"{source!r} is no local folder and, as a Hugging Face repo id, not cached "
+                f"(HF_HUB_OFFLINE is set); {hint}")  # fmt: skip
+    from huggingface_hub import HfApi
+
+    try:
+        HfApi().model_info(source, timeout=5)
+    except RepositoryNotFoundError:
+        return (f"{source!r} is no local folder and no Hugging Face model repo (or none this "
+                f"machine's token may read); {hint}")  # fmt: skip
+    except Exception as err:  # no network, a proxy, a server error: the model cannot load
+        return (f"{source!r} is no local folder and, as a Hugging Face repo id, not cached; "
+                f"huggingface.co could not be asked ({type(err).__name__}); {hint}")  # fmt: skip
+    return None
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (see the module docstring)."""
     parser = _parser()
@@ -90,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
     if reads_model_path(spec):  # the loader's rule, before torch (resireg.sources)
         from resireg.sources import export_source_problem
 
-        problem = export_source_problem(spec["path"])
+        problem = export_source_problem(spec["path"]) or _uncached_repo(spec["path"])
         if problem:
             parser.exit(2, f"resireg-playground: error: --model-path: {problem}\n")
     os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # no request leaves the machine

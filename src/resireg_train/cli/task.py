@@ -29,6 +29,11 @@ from hydra.errors import CompactHydraException
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+try:  # POSIX; where it is missing (Windows) run folders are not locked
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
 from resireg_train.files import WriteError
 from resireg_train.paths import CONFIG_DIR, RUN_ID
 from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
@@ -37,12 +42,17 @@ from resireg_train.validation import ConfigError
 __all__ = [
     "CONFIG_DIR",
     "RUN_ID",
+    "LOCK_FILE",
     "JobFailed",
+    "RunFolderBusy",
+    "RunFolderLock",
     "SweepRecords",
     "added_keys",
     "hydra_entry_point",
     "instantiate_group",
+    "hold_run_folder",
     "optimized_value",
+    "process_rank",
     "register_resolvers",
     "run_task",
     "safe_dirname",
@@ -129,6 +139,90 @@ def register_resolvers() -> None:
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
 
 
+#: The lock file in a run folder: held (``flock``) by the job writing the folder, with its PID.
+LOCK_FILE = ".run.lock"
+
+#: Run folders this process holds: resolved path -> the open lock file (its lock lives with it).
+_HELD: dict[Path, Any] = {}
+
+
+class RunFolderBusy(RuntimeError):
+    """Another running job holds the run folder (its PID is named)."""
+
+
+def process_rank() -> int:
+    """This process's global rank from the launcher's environment (the variables Lightning's
+    ``rank_zero_only`` reads), without importing Lightning; 0 for a single process."""
+    for name in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        if os.environ.get(name, "").isdigit():
+            return int(os.environ[name])
+    return 0
+
+
+def hold_run_folder(out: Path) -> bool:
+    """Lock the run folder ``out`` for this process: an OS lock (``fcntl.flock``) on its
+    :data:`LOCK_FILE`, into which this process's PID is written. The lock is the process's
+    until :func:`release_run_folder` or its exit, a crash or ``kill -9`` included (the OS drops
+    it with the process's files), so a stale lock file never blocks a later job.
+
+    Returns ``True`` if this call took the lock, ``False`` if this process already held it.
+    Raises :class:`RunFolderBusy` naming the holder's PID if another process holds it: two
+    jobs writing one folder would interleave their logs, maps and records.
+    """
+    key = out.resolve()
+    if key in _HELD or fcntl is None:
+        return False
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / LOCK_FILE
+    handle = open(path, "a+")  # not "w": truncating would erase the holder's PID
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "unknown (it is starting)"
+        handle.close()
+        raise RunFolderBusy(
+            f"{out} is in use by another job (PID {holder}, lock file {path}): wait for it to "
+            "end, or give this run its own folder (leave hydra.run.dir unset for a new one)"
+        ) from None
+    except BaseException:
+        handle.close()
+        raise
+    handle.truncate(0)
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    _HELD[key] = handle
+    return True
+
+
+def release_run_folder(out: Path) -> None:
+    """Release this process's lock on ``out`` (the lock file stays: removing it could let two
+    jobs lock two different files of the same name)."""
+    handle = _HELD.pop(out.resolve(), None)
+    if handle is not None:
+        handle.close()  # closing the file drops the flock
+
+
+class RunFolderLock(Callback):
+    """Hydra callback (``conf/train.yaml``, ``eval.yaml``, ``map.yaml``; in ``train.yaml`` after
+    ``RunFolderCheck``, so a refused resume leaves even the lock file as it was): locks a single
+    run's folder (:func:`hold_run_folder`) before Hydra writes anything into it (``.hydra/``,
+    the log file), so a second job given the same ``hydra.run.dir`` (or a ``resume=true`` while the
+    first still runs) is refused and leaves the first one's files as they were. Sweep jobs are
+    locked by :func:`run_task`; ranks > 0 of a DDP run (re-launched by Lightning into rank 0's
+    folder) take no lock."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if process_rank() != 0:
+            return
+        try:
+            hold_run_folder(Path(str(config.hydra.run.dir)))
+        except RunFolderBusy as err:
+            # Hydra turns a callback's exception into a warning and runs the job anyway: exit.
+            sys.stderr.write(f"resireg-{config.hydra.job.name}: refused: {err}\n")
+            raise SystemExit(1) from None
+
+
 def run_task(
     cfg: DictConfig,
     body: Callable[[DictConfig, Path], dict[str, Any]],
@@ -155,6 +249,25 @@ def run_task(
 
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # Before anything is written: a folder another job writes is refused (its PID named). A
+    # lock taken here (a sweep job, a call from Python) is released when the job ends; a
+    # single run's, taken before Hydra wrote (RunFolderLock), lasts as long as the process.
+    took = rank_zero and hold_run_folder(out)
+    try:
+        return _run_locked(cfg, body, out, rank_zero, resume_hint, fresh)
+    finally:
+        if took:
+            release_run_folder(out)
+
+
+def _run_locked(
+    cfg: DictConfig,
+    body: Callable[[DictConfig, Path], dict[str, Any]],
+    out: Path,
+    rank_zero: bool,
+    resume_hint: str | None,
+    fresh: bool,
+) -> dict[str, Any]:
     if rank_zero:
         if fresh:
             _set_aside(out)
@@ -288,7 +401,7 @@ class JobFailed(CompactHydraException):
 def _reported_types() -> tuple[type[BaseException], ...]:
     """The errors whose message is the whole report (see the module docstring). The classes
     of modules not loaded yet cannot have been raised, so nothing heavy is imported here."""
-    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError]
+    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy]
     for module, name in (
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation", "NothingScoredError"),

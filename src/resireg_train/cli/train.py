@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import os
 import re
 import shlex
 import sys
@@ -38,6 +37,7 @@ from resireg_train.cli.task import (
     error_text,
     hydra_entry_point,
     instantiate_group,
+    process_rank,
     run_task,
     top_level_keys,
 )
@@ -56,12 +56,8 @@ log = logging.getLogger(__name__)
 
 
 def _process_rank() -> int:
-    """This process's global rank from the launcher's environment (the variables Lightning's
-    ``rank_zero_only`` reads), without importing Lightning; 0 for a single process."""
-    for name in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
-        if os.environ.get(name, "").isdigit():
-            return int(os.environ[name])
-    return 0
+    """This process's global rank (:func:`~resireg_train.cli.task.process_rank`)."""
+    return process_rank()
 
 
 def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
@@ -257,7 +253,12 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     from resireg_train.provenance import write_export_provenance
     from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
-    from resireg_train.training.console import EpochLog, on_terminal, quiet_library_noise
+    from resireg_train.training.console import (
+        EpochLog,
+        ModelSummary,
+        on_terminal,
+        quiet_library_noise,
+    )
 
     quiet_library_noise()
     L.seed_everything(cfg.seed, workers=True)
@@ -276,16 +277,23 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
 
     loggers = [ResumableCSVLogger(out, resume_step=resume_step), *instantiate_group(cfg.logger)]
     configured = instantiate_group(cfg.callbacks)
-    bar = {}
+    # The model summary without an unmeasured "Total Flops: 0" (a configured one is kept); the
+    # Trainer's own is off, else it would say that it skips its default for this one.
+    summary = []
+    if cfg.trainer.get("enable_model_summary", True) and not any(
+        isinstance(c, L.pytorch.callbacks.ModelSummary) for c in configured
+    ):
+        summary = [ModelSummary()]
+    bar: dict[str, Any] = {"enable_model_summary": False}
     if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
         configured = [c for c in configured if not isinstance(c, ProgressBar)]
-        bar = {"enable_progress_bar": False}
+        bar["enable_progress_bar"] = False
     # logger=wandb: one W&B run per job, given the config and results.json, finished here
     with wandb_runs(loggers, cfg, out):
         trainer: L.Trainer = hydra.utils.instantiate(
             cfg.trainer,
             logger=loggers,
-            callbacks=[*configured, ResultsTracker(out), EpochLog(), *callbacks],
+            callbacks=[*configured, ResultsTracker(out), EpochLog(), *summary, *callbacks],
             plugins=[AtomicCheckpointIO()],
             default_root_dir=str(out),
             **bar,

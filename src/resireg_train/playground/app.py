@@ -154,7 +154,12 @@ def launch(demo: gr.Blocks, host: str = "127.0.0.1", port: int | None = None) ->
     machine)."""
     theme = gr.themes.Default(font=["ui-sans-serif", "system-ui", "sans-serif"],
                               font_mono=["ui-monospace", "monospace"])  # fmt: skip
+    # quiet: Gradio would also print "To create a public link, set `share=True`", advice this
+    # page (127.0.0.1 by default, no request leaving the machine) must not follow; the one line
+    # a user needs, the address, is printed here.
     demo.queue(default_concurrency_limit=1).launch(
         server_name=host, server_port=port, share=False, ssr_mode=False, show_error=True,
-        theme=theme, max_file_size="50mb", footer_links=[],
+        theme=theme, max_file_size="50mb", footer_links=[], quiet=True, prevent_thread_lock=True,
     )  # fmt: skip
+    print(f"* Running on local URL:  {demo.local_url}", flush=True)
+    demo.block_thread()  # until Ctrl-C

@@ -21,10 +21,14 @@ import warnings
 from typing import Any
 
 import lightning as L
+from lightning.pytorch.callbacks import ModelSummary as _ModelSummary
+from lightning.pytorch.callbacks import RichProgressBar
+from lightning.pytorch.utilities.model_summary.model_summary import _format_summary_table
 
 from resireg_train.tracking import epoch_metrics
 
-__all__ = ["EpochLog", "epoch_line", "on_terminal", "quiet_library_noise"]
+__all__ = ["EpochLog", "ModelSummary", "ProgressBar", "bar_metrics", "epoch_line", "on_terminal",
+           "quiet_library_noise"]  # fmt: skip
 
 log = logging.getLogger(__name__)
 #: Hydra's default log line format (conf/hydra keeps Hydra's job_logging).
@@ -65,9 +69,19 @@ _DROP = _DropRecords()
 
 def quiet_library_noise() -> None:
     """Silence :data:`_NOISE_WARNINGS` and :data:`_NOISE_RECORDS` in this process (idempotent;
-    called by the entry points and, for spawned DDP ranks, by :class:`EpochLog`)."""
+    called by the entry points and, for spawned DDP ranks, by :class:`EpochLog`).
+
+    Lightning's package adds its own console handler (``INFO: ...``) to the ``lightning``
+    logger, whose records also reach the root logger's handlers (Hydra's console and log
+    file): with root handlers configured, that handler goes, so each line is printed once
+    (in Hydra's format, and kept in the run's log file)."""
     for pattern, _why in _NOISE_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
+    if logging.getLogger().handlers:
+        own = logging.getLogger("lightning")
+        for handler in list(own.handlers):
+            if type(handler) is logging.StreamHandler and own.propagate:
+                own.removeHandler(handler)
     # Lightning logs through whichever of these loggers its rank-zero helpers were bound to.
     for name in ("lightning_utilities.core.rank_zero", "lightning.pytorch.utilities.rank_zero",
                  "lightning.fabric.utilities.rank_zero", "lightning.pytorch", "lightning.fabric"):  # fmt: skip
@@ -103,6 +117,54 @@ def epoch_line(epoch: int, max_epochs: int, metrics: dict[str, float], steps: in
     names = sorted(shown, key=lambda k: (order.get(k.split("/")[0], 3), k))
     values = " ".join(f"{k}={_format(metrics[k])}" for k in names)
     return f"epoch {epoch}/{max_epochs - 1} | {values} | {steps} steps | {seconds:.1f} s"
+
+
+def bar_metrics(metrics: dict[str, float]) -> dict[str, str]:
+    """What the progress bar shows: the values of :func:`epoch_line`, in its order and format
+    (losses, learning rate, evaluation mIoU, skip counts), with the running step loss first."""
+    order = {"train": 0, "val": 1, "data": 2}
+    step = {k: metrics[k] for k in ("train/loss_step",) if k in metrics}
+    shown = [k for k in metrics if "/fmiou_" not in k and not k.endswith("_step")]
+    names = sorted(shown, key=lambda k: (order.get(k.split("/")[0], 3), k))
+    return {k: _format(float(v)) for k, v in {**step, **{k: metrics[k] for k in names}}.items()}
+
+
+class ProgressBar(RichProgressBar):
+    """Lightning's rich progress bar showing what the epoch lines log (:func:`bar_metrics`):
+    the running step loss, and the last finished epoch's losses, learning rate, evaluation
+    mIoU and skip counts (Lightning's own bar shows only the values logged with
+    ``prog_bar=True``). Drawn only on a terminal (``resireg-train`` leaves it out otherwise)."""
+
+    def get_metrics(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict[str, Any]:
+        metrics = epoch_metrics(trainer)
+        step = trainer.callback_metrics.get("train/loss_step")
+        if step is not None:
+            metrics["train/loss_step"] = float(step)
+        return bar_metrics(metrics)
+
+
+class ModelSummary(_ModelSummary):
+    """Lightning's model summary (through logging: the console and the run's log file) without
+    the FLOPs column and ``Total Flops: 0`` line when FLOPs were not measured (they are only
+    with an ``example_input_array``, which the module has not: its inputs are image-caption
+    batches); a measured count is shown as Lightning shows it."""
+
+    @staticmethod
+    def summarize(summary_data: list[tuple[str, list[str]]], total_parameters: int,
+                  trainable_parameters: int, model_size: float,
+                  total_training_modes: dict[str, int], total_flops: int,
+                  **summarize_kwargs: Any) -> None:  # fmt: skip
+        if total_flops:
+            _ModelSummary.summarize(summary_data, total_parameters, trainable_parameters,
+                                    model_size, total_training_modes, total_flops)  # fmt: skip
+            return
+        columns = [c for c in summary_data if c[0] != "FLOPs"]
+        table = _format_summary_table(total_parameters, trainable_parameters, model_size,
+                                      total_training_modes, 0, *columns)  # fmt: skip
+        head, _, last = table.rpartition("\n")
+        logging.getLogger("lightning.pytorch.callbacks.model_summary").info(
+            "\n" + (head if "Flops" in last else table)
+        )
 
 
 class _NotOnTerminal(logging.Filter):
