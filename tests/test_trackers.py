@@ -106,6 +106,10 @@ def test_mlflow_server_gets_train_eval_multirun_and_map(tmp_path, tiny_export, m
         assert tracked.data.tags["provenance.code.version"] == prov["code"]["version"]
         artifacts = {a.path for a in client.list_artifacts(tracked.info.run_id)}
         assert "results.json" in artifacts
+    # the training run carries its export with the model card
+    trained = runs[str(train.resolve())].info.run_id
+    exported = {a.path for a in client.list_artifacts(trained, "export")}
+    assert {"export/README.md", "export/config.json", "export/model.safetensors"} <= exported
     # the training run is the one Lightning logged its curves to (one run, steps > 1)
     history = client.get_metric_history(runs[str(train.resolve())].info.run_id, "train/loss_step")
     assert len(history) == 2

@@ -12,7 +12,7 @@ the end of every run, completed or not, and reads everything from the run folder
   as parameters, the provenance block as ``provenance.*`` tags, every finite final metric, the
   per-class IoU as a table artifact (``per_class_iou.json``) and the run's files as artifacts
   (``results.json``, CSVs, PNGs, ``code.diff``, the PLY when under 64 MiB, else its path as a
-  tag); the jobs of one multirun or search are children of one parent run named after the sweep
+  tag; a training run's export folder with its model card under ``export/``); the jobs of one multirun or search are children of one parent run named after the sweep
   (MLflow's ``mlflow.parentRunId`` tag). The run ends FINISHED, FAILED or KILLED with the job.
 - **TensorBoard** (evaluations and maps; training logs its own curves): the final metrics as
   scalars and the provenance as text, under ``<run>/tensorboard``.
@@ -163,6 +163,11 @@ def to_mlflow(settings: Mapping[str, Any], cfg: Any, out: Path) -> str:
                 client.log_artifact(run_id, str(path))
             else:
                 client.set_tag(run_id, f"resireg.file.{path.name}", str(path.resolve()))
+    export = Path(str(record["export"])) if record.get("export") else None
+    if export is not None and export.is_dir():  # a training run's export, with its model card
+        for path in sorted(export.iterdir()):
+            if path.is_file() and path.stat().st_size <= MLFLOW_ARTIFACT_MAX_BYTES:
+                client.log_artifact(run_id, str(path), artifact_path="export")
     client.set_terminated(run_id, _STATUS.get(str(record.get("status")), "FINISHED"))
     return run_id
 

@@ -245,8 +245,6 @@ def run_task(
     before it is re-raised, so a sweep report lists the job with its reason. Only rank 0
     (``rank_zero``) writes.
     """
-    from resireg_train.provenance import start_provenance
-
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     # Before anything is written: a folder another job writes is refused (its PID named). A
@@ -268,6 +266,8 @@ def _run_locked(
     resume_hint: str | None,
     fresh: bool,
 ) -> dict[str, Any]:
+    from resireg_train.provenance import start_provenance
+
     if rank_zero:
         if fresh:
             _set_aside(out)
