@@ -100,7 +100,9 @@ def test_mlflow_server_gets_train_eval_multirun_and_map(tmp_path, tiny_export, m
         assert tracked.info.status == "FINISHED"
         assert record["tracking"]["mlflow_run_id"] == tracked.info.run_id
         expected = _finite(record)
-        assert expected and {k: tracked.data.metrics[k] for k in expected} == pytest.approx(expected)
+        assert expected and {k: tracked.data.metrics[k] for k in expected} == pytest.approx(
+            expected
+        )
         prov = record["provenance"]
         assert tracked.data.tags["provenance.run_id"] == prov["run_id"]
         assert tracked.data.tags["provenance.code.version"] == prov["code"]["version"]
