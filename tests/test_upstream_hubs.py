@@ -76,8 +76,12 @@ def test_radio_radseg_and_teacher_on_upstream_code(tmp_path, monkeypatch):
     from resireg_train.training.teacher import RadSegTeacher
 
     hub = offline_hub(monkeypatch, tmp_path / "hub")
-    radio_dir = str(hub / "NVlabs_RADIO_main")
-    shutil.copytree(RADIO, radio_dir, ignore=shutil.ignore_patterns(".git"))
+    # torch.hub's folder of NVlabs/RADIO at the pinned commit (RADSeg's own load is pinned)
+    pinned = f"NVlabs_RADIO_{hub_module.PINNED_REFS['NVlabs/RADIO']}"
+    radio_dir = str(hub / pinned)
+    for folder in (radio_dir, str(hub / "NVlabs_RADIO_main")):  # upstream's own unpinned call
+        shutil.rmtree(folder, ignore_errors=True)
+        shutil.copytree(RADIO, folder, ignore=shutil.ignore_patterns(".git"))
     ckpt = _random_radio_checkpoint(radio_dir, tmp_path / "radio_random.pth.tar")
     rgb = torch.rand(2, 3, 64, 96, generator=torch.Generator().manual_seed(1))
     mean = torch.tensor(IMAGENET_DEFAULT_MEAN).view(1, 3, 1, 1)
@@ -116,7 +120,7 @@ def test_radio_radseg_and_teacher_on_upstream_code(tmp_path, monkeypatch):
 
     shutil.rmtree(radio_dir)  # RADIO's code neither cached nor reachable: the teacher stops
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
-    with pytest.raises(WeightsUnavailableError, match="NVlabs_RADIO_main"):
+    with pytest.raises(WeightsUnavailableError, match=pinned):
         RadSegTeacher(repo=RADSEG, source="local", model_version=ckpt)
 
 

@@ -49,7 +49,7 @@ tracker) load C-RADIOv3 with ``siglip2``. The name is the checkpoint's teacher n
 ``radseg/radseg.py`` ``RADSegEncoder``): builds RADIO itself with
 ``torch.hub.load("NVlabs/RADIO", "radio_model", adaptor_names=[lang_model, "sam"])``
 (always from GitHub, or torch's hub cache ``<hub>/NVlabs_RADIO_main`` when GitHub is
-unreachable; the repository is hard-coded, so RADSeg's own ``ref`` does not reach it:
+unreachable; pinned: ``<hub>/NVlabs_RADIO_<radio_ref>``; the repository is hard-coded, so RADSeg's own ``ref`` does not reach it:
 :func:`load_radseg` pins that nested call to ``radio_ref`` itself, see there), detaches the adaptors (``model.adaptors = None``, so ``model(x)`` returns
 one ``RadioOutput``) and replaces the last block's attention by self-correlating
 recursive attention (SCRA). ``encode_image_to_feat_map(rgb)``: ``slide_crop > 0``
@@ -243,11 +243,11 @@ def load_radseg(
     ``torch.hub.load`` 's). RADSeg keeps its modules on ``device`` (default CPU); the result
     is a plain object, not an ``nn.Module``.
     """
+    radio_folder = os.path.join(torch.hub.get_dir(), f"NVlabs_RADIO_{radio_ref or 'main'}")
     hint = (
         f"Clone RADSeg-OVSS/RADSeg elsewhere and pass {key}.repo=/path/to/RADSeg "
         f"{key}.source=local (NVlabs/RADIO must be in the torch hub cache as "
-        f"{os.path.join(torch.hub.get_dir(), 'NVlabs_RADIO_main')}, with its checkpoint "
-        f"in checkpoints/){hint_extra}."
+        f"{radio_folder}, with its checkpoint in checkpoints/){hint_extra}."
     )
     check_hub_source(repo, source, "RADSeg", hint, key, ref)
     check_hub_ref(radio_ref, f"{key}.radio_ref")
