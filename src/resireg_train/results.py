@@ -24,6 +24,7 @@ __all__ = [
     "NON_FINITE",
     "RESULTS_FILE",
     "flat",
+    "flatten",
     "metric_mode",
     "read_results",
     "strict_json",
@@ -60,6 +61,16 @@ def flat(text: str) -> str:
     if len(lines) <= 1:
         return lines[0] if lines else ""
     return f"{lines[0]} {'; '.join(lines[1:])}"
+
+
+def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested record as ``{"a.b.c": value}`` (dotted paths of its leaves, after ``prefix``)."""
+    if isinstance(node, dict):
+        out: dict[str, Any] = {}
+        for key, value in node.items():
+            out.update(flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: node}
 
 
 def _pointer(path: tuple[Any, ...]) -> str:

@@ -24,7 +24,7 @@ from typing import Any
 import yaml
 
 from resireg_train.provenance import EXPORT_PROVENANCE
-from resireg_train.results import RESULTS_FILE, read_results
+from resireg_train.results import RESULTS_FILE, flatten, read_results
 
 __all__ = [
     "COLUMNS",
@@ -44,15 +44,6 @@ _SKIP = {"checkpoints", ".hydra", "export", "map", "csv", "wandb", "mlruns", "__
 #: ``resireg-runs ls``'s default columns.
 COLUMNS = ("run_id", "cli", "name", "status", "start", "duration", "overrides", "metric", "value")
 _HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
-
-
-def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(node, Mapping):
-        out: dict[str, Any] = {}
-        for key, value in node.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: node}
 
 
 def _pid_alive(pid: int) -> bool:
@@ -111,7 +102,7 @@ class Run:
         if not path.is_file():
             return {}
         with open(path) as f:
-            return _flatten(yaml.load(f, Loader=_LOADER) or {})
+            return flatten(yaml.load(f, Loader=_LOADER) or {})
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -153,7 +144,7 @@ class Run:
         if key in self.metrics:
             return self.metrics[key]
         if key.startswith("provenance."):
-            return _flatten(self.provenance, "provenance.").get(key)
+            return flatten(self.provenance, "provenance.").get(key)
         if key in self.results and not isinstance(self.results[key], (dict, list)):
             return self.results[key]
         return self.config.get(key)
@@ -283,8 +274,8 @@ _VOLATILE = ("provenance.run_id", "provenance.time.", "provenance.machine.pid",
 def diff_runs(a: Run, b: Run) -> dict[str, list[tuple[str, Any, Any]]]:
     """``{"config", "provenance", "metrics"}``: each differing key with A's and B's value
     (provenance without what differs for every pair of runs: ids, times, PIDs)."""
-    prov = [row for row in _compare(_flatten(a.provenance, "provenance."),
-                                    _flatten(b.provenance, "provenance."))
+    prov = [row for row in _compare(flatten(a.provenance, "provenance."),
+                                    flatten(b.provenance, "provenance."))
             if not row[0].startswith(_VOLATILE)]  # fmt: skip
     return {
         "config": _compare(a.config, b.config),

@@ -31,7 +31,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg_train.results import RESULTS_FILE, read_results
+from resireg_train.results import RESULTS_FILE, flatten, read_results
 
 __all__ = [
     "MLFLOW_ARTIFACT_MAX_BYTES",
@@ -54,15 +54,6 @@ def mlflow_key(name: str) -> str:
     """``name`` with the characters MLflow refuses in a key replaced by ``_``
     (``val/ovss/x/miou_full@n_prototypes:24`` -> ``val/ovss/x/miou_full_n_prototypes_24``)."""
     return _KEY.sub("_", name)
-
-
-def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(node, Mapping):
-        out: dict[str, Any] = {}
-        for key, value in node.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: node}
 
 
 def _number(v: Any) -> bool:
@@ -139,11 +130,11 @@ def to_mlflow(settings: Mapping[str, Any], cfg: Any, out: Path) -> str:
             config = OmegaConf.to_container(cfg, resolve=True)
         except Exception:  # an interpolation only Hydra's runtime resolves
             config = OmegaConf.to_container(cfg, resolve=False)
-        params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in _flatten(config).items()]
+        params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in flatten(config).items()]
         for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
             client.log_batch(run_id, params=params[i : i + 100])
     tags.update({mlflow_key(k)[:250]: str(v)[:5000]
-                 for k, v in _flatten(record.get("provenance") or {}, "provenance.").items()})  # fmt: skip
+                 for k, v in flatten(record.get("provenance") or {}, "provenance.").items()})  # fmt: skip
     tags["resireg.status"] = str(record.get("status"))
     metrics = [Metric(mlflow_key(k), v, 0, 0) for k, v in run_metrics(record).items()]
     tag_list = [RunTag(k, v) for k, v in tags.items()]

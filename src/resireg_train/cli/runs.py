@@ -94,6 +94,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
 
     from resireg_train import runs as index
+    from resireg_train.results import flatten
 
     try:
         if args.command == "ls":
@@ -127,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
             if run.results.get("error"):
                 print(f"error: {run.results['error']}")
             print("overrides: " + (" ".join(run.overrides) or "none"))
-            flat = index._flatten(prov, "provenance.")
+            flat = flatten(prov, "provenance.")
             for key in sorted(flat):
                 if not key.startswith("provenance.environment.packages."):
                     print(f"  {key} = {_cell(flat[key])}")
