@@ -7,16 +7,15 @@ checks before encoding, the feature cache's key and contents, the sweep config a
 report's table and figure.
 """
 
-import json
 import math
 
 import pandas as pd
 import pytest
 import torch
-import yaml
 from hydra import compose, initialize_config_dir
 from PIL import Image
 
+from _sweeps import make_job as _job
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import ResiregVLM
 from resireg.models.zoo.clip import ClipEncoder
@@ -166,15 +165,6 @@ def test_clip_layers_sweep_config():
     assert list(cfg.variants) == expected
     validate_eval({"encoder": {"kind": "clip", "name": "clip_vit_b16", "third_party": True},
                    "variants": list(cfg.variants)})  # fmt: skip
-
-
-def _job(sweep, number, overrides, results):
-    folder = sweep / f"{number}_{','.join(f'{k}={v}' for k, v in overrides.items())}"
-    (folder / ".hydra").mkdir(parents=True)
-    (folder / ".hydra" / "overrides.yaml").write_text(
-        yaml.safe_dump([f"{k}={v}" for k, v in overrides.items()])
-    )
-    (folder / "results.json").write_text(json.dumps(results))
 
 
 def test_report_draws_miou_against_the_block(tmp_path):

@@ -5,7 +5,6 @@ the paper does not report blank, and list the protocol settings that differ from
 from __future__ import annotations
 
 import csv
-import json
 import math
 import subprocess
 import sys
@@ -13,6 +12,7 @@ import sys
 import pytest
 import yaml
 
+from _sweeps import make_job as _job
 from resireg_train.paths import CONFIG_DIR
 from resireg_train.report import report
 
@@ -22,15 +22,6 @@ PAPER = yaml.safe_load((CONFIG_DIR / "paper" / "results.yaml").read_text())
 def _rows(path):
     with open(path, newline="") as f:
         return {r.get("model") or r["encoder"]: r for r in csv.DictReader(f)}
-
-
-def _job(sweep, number, overrides, results):
-    folder = sweep / f"{number}_{','.join(f'{k}={v}' for k, v in overrides.items())}"
-    (folder / ".hydra").mkdir(parents=True)
-    (folder / ".hydra" / "overrides.yaml").write_text(
-        yaml.safe_dump([f"{k}={v}" for k, v in overrides.items()])
-    )
-    (folder / "results.json").write_text(json.dumps(results))
 
 
 def _table1(tmp_path, scores, short_side=576):

@@ -21,6 +21,7 @@ from PIL import Image
 
 from _run import report as report_stdout
 from _run import run, run_side_by_side
+from _sweeps import make_job as _job
 from resireg.heuristic import PrototypeHeuristic
 from resireg.reconstruct import ReSiRegFull
 from resireg_train.cli import report as report_cli
@@ -43,18 +44,6 @@ MIOU = "val/ovss/synthetic/miou_full"
 def _rows(path):
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
-
-
-def _job(sweep, number, overrides, results=None):
-    """A job folder as Hydra and run_task leave it: ``.hydra/overrides.yaml`` (+ results.json)."""
-    folder = sweep / f"{number}_{','.join(f'{k}={v}' for k, v in overrides.items())}"
-    (folder / ".hydra").mkdir(parents=True)
-    (folder / ".hydra" / "overrides.yaml").write_text(
-        yaml.safe_dump([f"{k}={v}" for k, v in overrides.items()])
-    )
-    if results is not None:
-        (folder / "results.json").write_text(json.dumps(results))
-    return folder
 
 
 def _tick_labels(axis):
