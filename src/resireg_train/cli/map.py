@@ -194,7 +194,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     encoder = build_encoder(**encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True)),
                             device=_device(str(cfg.device)), config_key="encoder")  # fmt: skip
     prior = None
-    from resireg.variant_names import takes_prior
+    from resireg.specs.variants import takes_prior
 
     if takes_prior(str(cfg.configuration)):
         from resireg.priors import build_prior
