@@ -43,7 +43,7 @@ def test_metric_matches_torchmetrics_over_batches():
         ref.update(pred, target)
     out = ours.compute()
     iou_ref = ref.compute()
-    iou = torch.tensor(out["per_class_iou"])
+    iou = torch.tensor(out["iou"])
     present = ~torch.isnan(iou)
     assert present.sum() == k - 1  # class k-1: never predicted nor labelled -> excluded
     assert torch.allclose(iou[present].float(), iou_ref[present].float(), atol=1e-6)
@@ -57,10 +57,10 @@ def test_metric_fmiou_accuracy_and_reduce_zero_label():
     m.update(pred, target)
     out = m.compute()
     # class 0: tp=1, gt=2, pred=2 -> IoU 1/3 ; class 1: tp=2, gt=3, pred=3 -> IoU 2/4
-    assert out["per_class_iou"] == pytest.approx([1 / 3, 0.5])
+    assert out["iou"] == pytest.approx([1 / 3, 0.5])
     assert out["miou"] == pytest.approx((1 / 3 + 0.5) / 2)
     assert out["fmiou"] == pytest.approx(2 / 5 * 1 / 3 + 3 / 5 * 0.5)
-    assert out["pixel_acc"] == pytest.approx(3 / 5)
+    assert out["acc"] == pytest.approx(3 / 5)
 
 
 def test_metric_rejects_out_of_range_labels_naming_the_stored_value():

@@ -38,6 +38,7 @@ from resireg.mapping import (
     transfer_labels,
     transfer_labels_by_voxel,
 )
+from resireg.mapping import metric as metric_module
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
 from resireg.variants import build_variants
 from resireg_train.data.scannet import (
@@ -48,7 +49,6 @@ from resireg_train.data.scannet import (
     resize_nearest,
 )
 from resireg_train.data.scannet_room import Box, SyntheticRoom, write_scene
-from resireg_train.mapping import metric as metric_module
 from resireg_train.mapping.engine import (
     GT_RULES,
     POINTS,

@@ -266,7 +266,7 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
     size and temperature (``conf/eval.yaml``)."""
     from resireg.models.vlm.text import CAPTION_CACHE_SIZE, FrozenTextTower
     from resireg.priors.sam import SamPrior
-    from resireg.priors.settings import SAM_DEFAULTS, SAM_MODEL
+    from resireg.specs.priors import SAM_DEFAULTS, SAM_MODEL
 
     for path in sorted((CONFIG_DIR / "model" / "text").glob("*.yaml")):
         assert OmegaConf.load(path).cache_size == CAPTION_CACHE_SIZE, path.name

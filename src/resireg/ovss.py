@@ -311,4 +311,4 @@ class SegmentationMetric:
         miou = iou[present].mean().item() if bool(present.any()) else float("nan")
         fmiou = (gt[present] / total * iou[present]).sum().item() if total > 0 else float("nan")
         acc = (tp.sum() / total).item() if total > 0 else float("nan")
-        return {"miou": miou, "fmiou": fmiou, "pixel_acc": acc, "per_class_iou": iou.tolist()}
+        return {"miou": miou, "fmiou": fmiou, "acc": acc, "iou": iou.tolist()}  # SCORE_SPECS

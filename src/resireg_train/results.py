@@ -41,17 +41,17 @@ _REASON = (
     "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.results.read_results "
     "restores the numbers"
 )
-_HIGHER = ("miou", "iou", "acc", "retrieval")
 
 
 def metric_mode(name: str) -> str | None:
-    """``"min"`` for losses, ``"max"`` for accuracy / retrieval / IoU metrics, else ``None``."""
-    lower = name.lower()
-    if "loss" in lower:
-        return "min"
-    if any(tag in lower for tag in _HIGHER):
+    """``"min"`` for losses, ``"max"`` for the scores of the metric table
+    (:func:`resireg.specs.metrics.direction`) and retrieval accuracies, else ``None``."""
+    from resireg.specs.metrics import direction
+
+    found = direction(name)
+    if found is None and "retrieval" in name.lower():
         return "max"
-    return None
+    return found
 
 
 def flat(text: str) -> str:

@@ -40,6 +40,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.specs.metrics import METRIC_SPECS
+
 __all__ = [
     "SEARCH_FILE",
     "STUDY_FILE",
@@ -208,7 +210,10 @@ def check_metric(cfg: DictConfig) -> None:
         where = "dataset"
     variants = [str(v) for v in variants]
     names = sorted(
-        f"val/ovss/{d}/{kind}_{v}" for d in datasets for v in variants for kind in ("miou", "fmiou")
+        f"val/ovss/{d}/{kind}_{v}"
+        for d in datasets
+        for v in variants
+        for kind in METRIC_SPECS["pixels"].logged  # the OVSS engine logs these
     )
     if metric not in names:
         raise ConfigError(

@@ -11,8 +11,11 @@ table from its entry. ``resireg-eval``
 (:func:`resireg_train.cli.eval.evaluate`, through
 :func:`resireg_train.evaluation.require_task`) builds the entry's protocol class
 (:class:`resireg_train.evaluation.TaskProtocol`: ``check``, ``build``, ``run``, ``results``),
-named lazily as ``"module:Class"``. Adding a task: one protocol class, one entry here
-(docs/design.md section 13).
+named lazily as ``"module:Class"``.
+
+Adding a task: one protocol class (a :class:`resireg_train.evaluation.TaskProtocol`:
+``check``, ``build``, ``run``, ``results``), one :class:`TaskSpec` below, and the dataset
+kinds it scores naming it in their ``tasks`` (:data:`resireg_train.data.specs.DATASET_SPECS`).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from resireg.specs.table import SpecTable
 from resireg_train.data.specs import DATASET_SPECS, find_dataset
 
 __all__ = ["TASK_SPECS", "TaskSpec", "find_task", "task_config_errors", "task_names"]
@@ -72,72 +76,76 @@ class TaskSpec:
 
     def load(self) -> type:
         """The protocol class (imports torch and the task's engine)."""
-        from resireg.specs import load
+        from resireg.specs.table import load
 
         return load(self.target)
 
 
 #: Every task of ``resireg-eval`` (the ``task`` config key).
-TASK_SPECS: dict[str, TaskSpec] = {
-    "ovss": TaskSpec(
-        "ovss",
-        "resireg_train.ovss.task:OVSSProtocol",
-        "image",
-        prior=True,
-        layers=True,
-        summary="2D open-vocabulary segmentation (ade20k, orad3d, synthetic; Table 1)",
-        # docs/protocol.md section 1; the entry's where it has them, the others the built set's
-        protocol_keys=(
-            "short_side",
-            "resize",
-            "templates",
-            "reduce_zero_label",
-            "classes",
-            "sliding_window",
-        ),  # fmt: skip
-        protocol_params=("temperature",),
-        report="table1",
+TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
+    "resireg-eval task",
+    (
+        TaskSpec(
+            "ovss",
+            "resireg_train.ovss.task:OVSSProtocol",
+            "image",
+            prior=True,
+            layers=True,
+            summary="2D open-vocabulary segmentation (ade20k, orad3d, synthetic; Table 1)",
+            # docs/protocol.md section 1; the entry's where it has them, the others the built set's
+            protocol_keys=(
+                "short_side",
+                "resize",
+                "templates",
+                "reduce_zero_label",
+                "classes",
+                "sliding_window",
+            ),  # fmt: skip
+            protocol_params=("temperature",),
+            report="table1",
+        ),
+        TaskSpec(
+            "scannet3d",
+            "resireg_train.mapping.task:ScanNet3DProtocol",
+            "frame",
+            prior=False,
+            layers=False,
+            summary="3D semantic mapping of ScanNet scenes (dataset=scannet; Table 2)",
+            # docs/protocol.md section 4 (conf/dataset/scannet.yaml)
+            protocol_keys=(
+                "frame_skip",
+                "image_size",
+                "short_side",
+                "resize",
+                "intrinsics",
+                "gt_resolution",
+                "gt_unlabelled",
+                "points",
+                "lattice",
+                "voxel_size",
+                "knn",
+                "prediction_threshold",
+                "prompt_denoising",
+                "metric",
+                "class_names",
+                "classes_to_ignore",
+            ),  # fmt: skip
+            report="table2",
+        ),
     ),
-    "scannet3d": TaskSpec(
-        "scannet3d",
-        "resireg_train.mapping.task:ScanNet3DProtocol",
-        "frame",
-        prior=False,
-        layers=False,
-        summary="3D semantic mapping of ScanNet scenes (dataset=scannet; Table 2)",
-        # docs/protocol.md section 4 (conf/dataset/scannet.yaml)
-        protocol_keys=(
-            "frame_skip",
-            "image_size",
-            "short_side",
-            "resize",
-            "intrinsics",
-            "gt_resolution",
-            "gt_unlabelled",
-            "points",
-            "lattice",
-            "voxel_size",
-            "knn",
-            "prediction_threshold",
-            "prompt_denoising",
-            "metric",
-            "class_names",
-            "classes_to_ignore",
-        ),  # fmt: skip
-        report="table2",
-    ),
-}
+    where="resireg_train.tasks",
+)
 
 
 def task_names() -> list[str]:
     """The ``task`` values of the table, in its order."""
-    return list(TASK_SPECS)
+    return list(TASK_SPECS.names())
 
 
 def find_task(name: Any) -> TaskSpec | None:
     """The entry of ``name``, ``None`` for a name the table lacks (the config check's error,
     and :func:`resireg_train.evaluation.require_task`'s)."""
-    return TASK_SPECS.get(str(name))
+    return TASK_SPECS.find(str(name))
 
 
 def task_config_errors(
@@ -151,7 +159,7 @@ def task_config_errors(
     ``+prior`` / ``@layer:`` configurations a task does not score."""
     spec = find_task(name)
     if spec is None:
-        return [f"{key}={name!r}: expected one of {task_names()} (resireg_train.tasks)"]
+        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.tasks)"]
     errors = []
     dataset = find_dataset(kind)
     if dataset is not None and spec.name not in dataset.tasks:

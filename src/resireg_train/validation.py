@@ -24,9 +24,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.sources import export_source_problem
 from resireg.specs.encoders import ENCODER_SPECS, Needs
+from resireg.specs.priors import PRIOR_KINDS, SAM_RULES
 from resireg.specs.rules import (
     BATCH_SIZE,
     Rule,
@@ -253,7 +253,7 @@ _EVAL_RULES: dict[str, Rule] = {
         lambda v: v is None or (isinstance(v, str) and v.split(":")[0] in _DEVICE_KINDS),
         "null (the evaluation's device), auto, cpu, cuda, cuda:N or mps",
     ),
-    **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.priors.settings
+    **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.specs.priors
     "task": (lambda v: v in TASK_SPECS, f"one of {list(TASK_SPECS)} (resireg_train.tasks)"),
     "report": (
         lambda v: v is None or (isinstance(v, list) and all(x in REPORT_SECTIONS for x in v)),

@@ -10,7 +10,7 @@ take its output as ``prior`` (docs/design.md sections 4.2, 4.3, 4.3c) and
 - :func:`masks_to_instances`: overlapping binary masks -> one instance-id map (the
   smaller mask wins; see its docstring).
 
-The names load on first use (PEP 562): :mod:`resireg.priors.settings` (the settings and
+The names load on first use (PEP 562): :mod:`resireg.specs.priors` (the settings and
 their rules) imports no torch; the rest imports torch, and ``transformers`` loads when a
 :class:`SamPrior` is built.
 """
@@ -31,10 +31,10 @@ __all__ = [
 ]
 
 _SOURCES = {
-    "PRIOR_KINDS": "resireg.priors.settings",
-    "SAM_DEFAULTS": "resireg.priors.settings",
-    "SAM_MODEL": "resireg.priors.settings",
-    "SAM_RULES": "resireg.priors.settings",
+    "PRIOR_KINDS": "resireg.specs.priors",
+    "SAM_DEFAULTS": "resireg.specs.priors",
+    "SAM_MODEL": "resireg.specs.priors",
+    "SAM_RULES": "resireg.specs.priors",
     "SamPrior": "resireg.priors.sam",
     "build_prior": "resireg.priors.sam",
     "check_sam_source": "resireg.priors.sam",

@@ -24,7 +24,7 @@ from PIL import Image
 from torch import Tensor
 
 from resireg.models.hub import WeightsUnavailableError, require_hf_files
-from resireg.priors.settings import PRIOR_KINDS, SAM_DEFAULTS, SAM_MODEL, SAM_RULES
+from resireg.specs.priors import PRIOR_KINDS, SAM_DEFAULTS, SAM_MODEL, SAM_RULES
 
 __all__ = [
     "check_sam_source",

@@ -19,6 +19,7 @@ __all__ = [
     "check_batch_size",
     "check_kwargs",
     "checked",
+    "finite",
     "integer",
     "interval",
     "is_int",
@@ -60,6 +61,11 @@ def number(minimum: float, strict: bool = False, finite: bool = False) -> Rule:
 
     what = f"a number {'>' if strict else '>='} {minimum:g}{' (finite)' if finite else ''}"
     return check, what
+
+
+def finite() -> Rule:
+    """Any finite number (not NaN, not inf)."""
+    return (lambda v: is_num(v) and math.isfinite(v)), "a finite number"
 
 
 def interval(low: float, high: float) -> Rule:

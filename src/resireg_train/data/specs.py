@@ -15,8 +15,11 @@ kind (:attr:`DatasetSpec.keys`; a missing one is an error naming ``dataset.<key>
 :func:`dataset_conf` reads a ``conf/dataset/`` file for callers outside Hydra (tests,
 benchmarks, notebooks), as :meth:`resireg_train.mapping.engine.MappingProtocol.from_conf` does.
 
-Adding a dataset: one builder, one entry here, one ``conf/dataset/`` file (docs/design.md
-section 13). The training captions (``conf/data/``) are not evaluation datasets: their source
+Adding a dataset: one builder (``(name, spec, common) -> SegmentationSet`` for a 2D kind), one
+:class:`DatasetSpec` below (its keys, the tasks that score it, the value rules of its keys),
+one ``conf/dataset/<name>.yaml`` file with its ``kind`` and every key (found by scanning
+``conf/dataset/``). ``resireg-eval dataset=<name>`` then builds and checks it;
+``tests/test_tables.py`` checks the entry against its file. The training captions (``conf/data/``) are not evaluation datasets: their source
 keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.captions.
 open_caption_source`.
 """
@@ -28,7 +31,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from resireg.specs.mapping import LATTICES, POINTS
+from resireg.specs.metrics import VOXEL_METRICS
 from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of
+from resireg.specs.table import SpecTable
 
 __all__ = [
     "CAPTION_SOURCE_KEYS",
@@ -80,8 +85,8 @@ RESIZES = ("torch", "exact")
 INTRINSICS = ("multiply", "half_pixel")
 #: Where the names of the classes come from (``resireg_train.data.scannet``).
 CLASS_NAMES = ("label_map", "nyu40")
-#: 3D metric definitions (``resireg_train.mapping.metric``).
-METRICS = ("rayfronts", "union")
+#: 3D metric definitions (the metric table's voxel scorers, :mod:`resireg.specs.metrics`).
+METRICS = VOXEL_METRICS
 
 #: The 3D protocol's value rules of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
 #: section 4), by key; checked by :func:`resireg_train.validation.validate_eval` for that kind
@@ -133,7 +138,6 @@ class DatasetSpec:
         optional: the keys an entry may leave out (``name``: the kind, or the name the entry is
             listed under).
         tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.tasks.TASK_SPECS`).
-        configs: its ``conf/dataset/`` files (``dataset=<config>``).
         check: ``"module:function"`` ``(spec, key) -> None`` raising the errors its build
             would on a missing source, run before the encoder loads; ``None``: none.
         summary: one line for errors and docs.
@@ -147,92 +151,98 @@ class DatasetSpec:
     builder: str
     keys: tuple[str, ...]
     tasks: tuple[str, ...]
-    configs: tuple[str, ...]
     summary: str
     optional: tuple[str, ...] = ("name",)
     check: str | None = None
     rules: Mapping[str, Rule] = field(default_factory=dict, hash=False)
 
+    @property
+    def configs(self) -> tuple[str, ...]:
+        """Its ``conf/dataset/`` files (``dataset=<config>``), found by scanning for its kind."""
+        return DATASET_SPECS.configs(self.kind)
+
     def load(self) -> Any:
         """The builder (imports torch and the dataset's readers)."""
-        from resireg.specs import load
+        from resireg.specs.table import load
 
         return load(self.builder)
 
     def load_check(self) -> Any:
         """The source check, or ``None``."""
-        from resireg.specs import load
+        from resireg.specs.table import load
 
         return load(self.check) if self.check else None
 
 
 #: Every evaluation dataset kind (the ``dataset.kind`` config key).
-DATASET_SPECS: dict[str, DatasetSpec] = {
-    "synthetic": DatasetSpec(
-        "synthetic",
-        "resireg_train.data.segmentation:synthetic_source",
-        (*_SEGMENTATION, "size", "image_size", "seed", "noise"),
-        ("ovss",),
-        ("synthetic",),
-        "generated scenes with exact masks, 8 classes (tests, smoke runs)",
-        rules={"image_size": _IMAGE_SIZE},
+DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
+    "dataset kind",
+    (
+        DatasetSpec(
+            "synthetic",
+            "resireg_train.data.segmentation:synthetic_source",
+            (*_SEGMENTATION, "size", "image_size", "seed", "noise"),
+            ("ovss",),
+            "generated scenes with exact masks, 8 classes (tests, smoke runs)",
+            rules={"image_size": _IMAGE_SIZE},
+        ),
+        DatasetSpec(
+            "ade20k",
+            "resireg_train.data.segmentation:ade20k_source",
+            (*_SEGMENTATION, "path", "config", "revision", "split", "image", "label"),
+            ("ovss",),
+            "ADE20K-150 validation (hub parquet or ADEChallengeData2016 folder; Table 1)",
+            check="resireg_train.data.segmentation:check_ade20k_source",
+        ),
+        DatasetSpec(
+            "orad3d",
+            "resireg_train.data.segmentation:orad3d_source",
+            (*_SEGMENTATION, "path", "split", "polygon_tags", "gt_image_classes"),
+            ("ovss",),
+            "ORAD-3D validation from its local layout (Table 1)",
+            check="resireg_train.data.segmentation:check_orad3d_source",
+        ),
+        DatasetSpec(
+            "scannet",
+            "resireg_train.data.scannet:build_scannet",
+            (
+                # the entry's own
+                "name",
+                "kind",
+                "path",
+                "scenes",
+                "protocol",
+                # the frame reader's (resireg_train.data.scannet.READER_KEYS)
+                "label_map",
+                "frame_skip",
+                "image_size",
+                "gt_resolution",
+                "short_side",
+                "limit",
+                "resize",
+                "intrinsics",
+                "class_names",
+                "classes_to_ignore",
+                # the 3D task's (resireg_train.mapping.engine.TASK_KEYS)
+                "voxel_size",
+                "lattice",
+                "gt_unlabelled",
+                "points",
+                "knn",
+                "prediction_threshold",
+                "prompt_denoising",
+                "metric",
+            ),  # fmt: skip
+            ("scannet3d",),
+            "ScanNet v2 scenes exported by SensReader (posed RGB-D frames; Table 2)",
+            check="resireg_train.data.scannet:check_scannet_spec",
+            rules=_SCANNET_RULES,
+        ),
     ),
-    "ade20k": DatasetSpec(
-        "ade20k",
-        "resireg_train.data.segmentation:ade20k_source",
-        (*_SEGMENTATION, "path", "config", "revision", "split", "image", "label"),
-        ("ovss",),
-        ("ade20k",),
-        "ADE20K-150 validation (hub parquet or ADEChallengeData2016 folder; Table 1)",
-        check="resireg_train.data.segmentation:check_ade20k_source",
-    ),
-    "orad3d": DatasetSpec(
-        "orad3d",
-        "resireg_train.data.segmentation:orad3d_source",
-        (*_SEGMENTATION, "path", "split", "polygon_tags", "gt_image_classes"),
-        ("ovss",),
-        ("orad3d",),
-        "ORAD-3D validation from its local layout (Table 1)",
-        check="resireg_train.data.segmentation:check_orad3d_source",
-    ),
-    "scannet": DatasetSpec(
-        "scannet",
-        "resireg_train.data.scannet:build_scannet",
-        (
-            # the entry's own
-            "name",
-            "kind",
-            "path",
-            "scenes",
-            "protocol",
-            # the frame reader's (resireg_train.data.scannet.READER_KEYS)
-            "label_map",
-            "frame_skip",
-            "image_size",
-            "gt_resolution",
-            "short_side",
-            "limit",
-            "resize",
-            "intrinsics",
-            "class_names",
-            "classes_to_ignore",
-            # the 3D task's (resireg_train.mapping.engine.TASK_KEYS)
-            "voxel_size",
-            "lattice",
-            "gt_unlabelled",
-            "points",
-            "knn",
-            "prediction_threshold",
-            "prompt_denoising",
-            "metric",
-        ),  # fmt: skip
-        ("scannet3d",),
-        ("scannet", "scannet_legacy", "scannet_synthetic"),
-        "ScanNet v2 scenes exported by SensReader (posed RGB-D frames; Table 2)",
-        check="resireg_train.data.scannet:check_scannet_spec",
-        rules=_SCANNET_RULES,
-    ),
-}
+    name="kind",
+    where="resireg_train.data.specs",
+    conf="dataset",
+)
 
 #: The keys of a training caption source (``data.sources.<name>``, ``conf/data/``), by what its
 #: ``path`` names: ``synthetic`` (the generated scenes) or any other (a hub id, a local folder,
@@ -254,12 +264,12 @@ CAPTION_SOURCE_KEYS: dict[str, dict[str, tuple[str, ...]]] = {
 
 def dataset_kinds() -> list[str]:
     """The ``dataset.kind`` values of the table, in its order."""
-    return list(DATASET_SPECS)
+    return list(DATASET_SPECS.names())
 
 
 def find_dataset(kind: Any) -> DatasetSpec | None:
     """The entry of ``kind``; ``None`` for a kind the table lacks."""
-    return DATASET_SPECS.get(str(kind))
+    return DATASET_SPECS.find(str(kind))
 
 
 def missing_keys_error(key: str, missing: Any, source: str) -> str:
@@ -284,7 +294,7 @@ def dataset_key_errors(spec: Mapping[str, Any], key: str = "dataset") -> list[st
     kind = spec.get("kind")
     entry = find_dataset(kind)
     if entry is None:
-        return [f"{key}.kind={kind!r}: expected one of {dataset_kinds()} "
+        return [f"{DATASET_SPECS.unknown(kind, setting=f'{key}.kind')} "
                 "(resireg_train.data.specs)"]  # fmt: skip
     errors = []
     unknown = set(spec) - set(entry.keys)

@@ -32,7 +32,7 @@ At scene end each variant's voxel features are classified against the class text
 cosine argmax, or RayFronts' rule with ``prediction_threshold`` / ``prompt_denoising``), the
 predictions are transferred to the ground-truth voxels (``knn``: the mode of the ``k`` nearest
 predicted voxels, RayFronts' ``align_labels_with_knn``; 0: the same voxel or no prediction) and
-scored per scene (:mod:`resireg_train.mapping.metric`).
+scored per scene (:mod:`resireg.mapping.metric`).
 
 Precision: ``"32"`` or ``"bf16"`` applies to the encoder pass and the variants, as in the OVSS
 engine; lifting, fusion, the ground truth and the classification always run with autocast off
@@ -59,14 +59,15 @@ from resireg.mapping import (
     transfer_labels_by_voxel,
     unproject,
 )
+from resireg.mapping import metric as metrics
 from resireg.models import DenseEncoder
 from resireg.specs.mapping import POINTS
+from resireg.specs.metrics import METRIC_SPECS
 from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
 from resireg_train.data.specs import GT_RULES, check_dataset_values, dataset_conf
 from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference, nonfinite_output
-from resireg_train.mapping import metric as metrics
 from resireg_train.tasks import TASK_SPECS
 
 __all__ = [
@@ -102,7 +103,7 @@ class MappingProtocol:
         knn: neighbours of the label transfer (0: same voxel only).
         prediction_threshold: ``None`` or RayFronts' "no prediction" probability.
         prompt_denoising: ``None`` or RayFronts' prompt-denoising probability.
-        metric: :data:`resireg_train.mapping.metric.METRICS`.
+        metric: :data:`resireg.mapping.metric.METRICS` (the metric table's voxel scorers).
     """
 
     voxel_size: float
@@ -187,10 +188,11 @@ class MappingResult:
         for variant in self.confusions:
             per_scene = self.scene_scores(variant).values()
             pooled = metrics.scores(self.pooled(variant), self.metric)
-            for name in ("miou", "fmiou", "acc"):
+            logged = METRIC_SPECS[self.metric].logged  # miou, fmiou, acc
+            for name in logged:
                 mean = metrics.mean_over_scenes([s[name] for s in per_scene])
                 out[f"{prefix}{self.dataset}/{name}_{variant}"] = mean
-            for name in ("miou", "fmiou", "acc"):
+            for name in logged:
                 out[f"{prefix}{self.dataset}/pooled_{name}_{variant}"] = pooled[name]
         return out
 

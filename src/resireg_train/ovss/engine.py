@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
+from resireg.specs.metrics import METRIC_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
@@ -65,6 +66,9 @@ __all__ = [
 METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
 #: The variants that read the intermediates: all but the backbone alone (the @layer: error).
 _INTERMEDIATE_VARIANTS = tuple(v for v in VARIANTS if v != BASELINE)
+
+#: The scores logged per configuration (the metric table's pixel scorer).
+_LOGGED = METRIC_SPECS["pixels"].logged
 
 
 def configuration_layers(
@@ -178,12 +182,12 @@ class OVSSResult:
         out = {}
         for variant, metric in self.metrics.items():
             computed = metric.compute()
-            out[f"{prefix}{self.dataset}/miou_{variant}"] = float(computed["miou"])
-            out[f"{prefix}{self.dataset}/fmiou_{variant}"] = float(computed["fmiou"])
+            for name in _LOGGED:
+                out[f"{prefix}{self.dataset}/{name}_{variant}"] = float(computed[name])
         return out
 
     def per_class_iou(self) -> dict[str, list[float]]:
-        return {v: m.compute()["per_class_iou"] for v, m in self.metrics.items()}
+        return {v: m.compute()["iou"] for v, m in self.metrics.items()}
 
 
 class OVSSTask(EvalEngine):

@@ -10,6 +10,7 @@ from typing import Any
 
 import pandas as pd
 
+from resireg.specs.metrics import SCORE_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
 from resireg.variants import parse_variant
 from resireg_train.report.figures import DPI, layer_sweep_figure
@@ -220,8 +221,10 @@ MAPPING_PREFIX = metric_prefix("table2")
 
 
 #: Table 2's score columns: (key of ``final`` before ``_<variant>``, column name).
-MAPPING_COLUMNS = (("miou", "mIoU"), ("fmiou", "f-mIoU"), ("pooled_miou", "mIoU (pooled)"),
-                   ("pooled_fmiou", "f-mIoU (pooled)"))  # fmt: skip
+MAPPING_COLUMNS = (
+    *((n, SCORE_SPECS[n].label) for n in ("miou", "fmiou")),
+    *((f"pooled_{n}", f"{SCORE_SPECS[n].label} (pooled)") for n in ("miou", "fmiou")),
+)
 
 
 def is_mapping_sweep(jobs: list[Job]) -> bool:
