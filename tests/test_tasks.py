@@ -176,7 +176,7 @@ def test_a_dataset_kind_registered_through_the_table_runs_through_resireg_eval(
         validate_eval(cfg)
     keys = ("name", "kind", "short_side", "limit", "count", "height")
     monkeypatch.setitem(DATASET_SPECS, "stripes", DatasetSpec(
-        "stripes", f"{__name__}:{_stripes_source.__name__}", keys, ("ovss",), ("stripes",),
+        "stripes", f"{__name__}:{_stripes_source.__name__}", keys, ("ovss",),
         "two-class stripes",
     ))  # fmt: skip
     validate_eval(cfg)

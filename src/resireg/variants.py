@@ -30,6 +30,7 @@ from resireg.specs.variants import (
     PRIOR_VARIANTS,
     VARIANT_SPECS,
     VARIANTS,
+    build_variant,
     parse_variant,
     takes_prior,
 )
@@ -51,16 +52,6 @@ class BackboneOnly(nn.Module):
         self, intermediates: Tensor, language: Tensor, prior: Tensor | None = None
     ) -> Tensor:
         return F.normalize(language.float(), dim=1)
-
-
-def build_variant(name: str, **kwargs: Any) -> nn.Module:
-    """The variant ``name`` built with ``kwargs`` (``bb`` takes none)."""
-    if name not in VARIANT_SPECS:
-        raise ValueError(f"unknown ReSiReg variant {name!r}; choose from {list(VARIANTS)}")
-    spec = VARIANT_SPECS[name]
-    if not spec.params and kwargs:
-        raise ValueError(f"variant {name!r} takes no parameters, got {sorted(kwargs)}")
-    return spec.load()(**kwargs)
 
 
 def build_variants(

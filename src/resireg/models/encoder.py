@@ -40,7 +40,7 @@ from PIL import Image
 from torch import Tensor, nn
 
 from resireg.models.images import pil_to_tensor, resize_to_patch_grid
-from resireg.variants import build_variant
+from resireg.specs.variants import build_variant
 
 __all__ = ["InputRule", "DenseOutput", "DenseEncoder", "block_index", "block_indices"]
 
@@ -212,7 +212,7 @@ class DenseEncoder(nn.Module, ABC):
         Args:
             images: PIL images / RGB tensors, or (``normalized=True``) a normalised batch.
             resireg: ``None`` or ``"bb"`` (the language tokens), a variant name of
-                :func:`resireg.variants.build_variant` (``"lite"``, ``"full"``), or a
+                :func:`resireg.specs.variants.build_variant` (``"lite"``, ``"full"``), or a
                 variant module. ReSiReg's grid is ``upscale`` times finer.
             short_side: resize for PIL/tensor input (see :meth:`preprocess`).
             prior: optional segmentation prior for ReSiReg: instance ids ``[B, H', W']``

@@ -134,6 +134,17 @@ class SpecTable(Mapping[str, E], Generic[E]):
     def __contains__(self, name: object) -> bool:
         return name in self._entries
 
+    def __setitem__(self, name: str, entry: E) -> None:
+        """Add (or replace) an entry at run time: a notebook's or a test's own kind. Its name
+        must be the entry's own."""
+        if getattr(entry, self._name) != name:
+            raise ValueError(f"{self.what} {name!r}: the entry's {self._name} is "
+                             f"{getattr(entry, self._name)!r}")  # fmt: skip
+        self._entries[name] = entry
+
+    def __delitem__(self, name: str) -> None:
+        del self._entries[name]
+
     def __repr__(self) -> str:
         return f"SpecTable({self.what!r}, {list(self._entries)})"
 

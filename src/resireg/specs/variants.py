@@ -41,6 +41,7 @@ __all__ = [
     "VARIANTS",
     "VARIANT_SPECS",
     "VariantSpec",
+    "build_variant",
     "check_variant_kwargs",
     "parse_variant",
     "takes_prior",
@@ -168,6 +169,19 @@ PARAM_VARIANTS: tuple[str, ...] = tuple(n for n, s in VARIANT_SPECS.items() if s
 PRIOR_VARIANTS: tuple[str, ...] = tuple(n for n, s in VARIANT_SPECS.items() if s.takes_prior)
 #: The variant the report's deltas are measured against (the backbone alone).
 BASELINE = "bb"
+
+
+def build_variant(name: str, **kwargs: Any) -> Any:
+    """The variant ``name`` (a torch module) built with ``kwargs`` (``bb`` takes none); its
+    class is imported now, from the table's ``target``. The encoder interface
+    (:meth:`resireg.models.DenseEncoder.encode_image`) builds named variants through this, so it
+    depends on the table, not on the method's modules."""
+    if name not in VARIANT_SPECS:
+        raise ValueError(f"unknown ReSiReg variant {name!r}; choose from {list(VARIANTS)}")
+    spec = VARIANT_SPECS[name]
+    if not spec.params and kwargs:
+        raise ValueError(f"variant {name!r} takes no parameters, got {sorted(kwargs)}")
+    return spec.load()(**kwargs)
 
 
 def check_variant_kwargs(name: str, values: dict[str, Any]) -> None:
