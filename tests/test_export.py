@@ -298,7 +298,7 @@ def test_25m_fp16_graph_matches_torch_fp32(vlm25m, tmp_path):
 def test_the_hub_folder_holds_the_export_a_parsable_card_and_the_digests(tiny_export, tmp_path):
     from huggingface_hub import ModelCard
 
-    from resireg.deploy.card import hub_folder
+    from resireg.models.vlm.card import hub_folder
 
     folder = hub_folder(tiny_export, tmp_path / "up", "someone/resireg-tiny", {"license": "mit"})
     names = sorted(p.name for p in folder.iterdir())

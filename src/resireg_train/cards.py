@@ -1,5 +1,5 @@
 """Model cards for exports: every export ``resireg-train`` writes gets a ``README.md`` in
-Hugging Face's model-card format (:func:`resireg.deploy.card.model_card`'s front matter and
+Hugging Face's model-card format (:func:`resireg.models.vlm.card.model_card`'s front matter and
 body), with the training data as ``datasets``, the run's validation scores as ``model-index``
 results, and a provenance section (run id, commit, checkpoint digest, data identity);
 ``resireg-runs card <export> --add <eval run>`` adds an evaluation's results
@@ -87,12 +87,12 @@ def _provenance_section(record: Mapping[str, Any], export: Path) -> str:
 
 def write_export_card(export: Path, out: Path) -> Path:
     """``<export>/README.md`` for the export the training run in ``out`` wrote: the card of
-    :func:`resireg.deploy.card.model_card` named after the run, its training data as
+    :func:`resireg.models.vlm.card.model_card` named after the run, its training data as
     ``datasets``, its final validation scores as ``model-index`` results, and a provenance
     section."""
     from huggingface_hub import ModelCard
 
-    from resireg.deploy.card import model_card
+    from resireg.models.vlm.card import model_card
     from resireg.models.vlm.model import read_config
 
     record = read_results(out)

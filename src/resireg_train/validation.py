@@ -25,7 +25,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.sources import export_source_problem
-from resireg.specs.encoders import ENCODER_SPECS, Needs
+from resireg.specs.encoders import ENCODER_REPORT_KEYS, ENCODER_SPECS, Needs, encoder_kwargs
 from resireg.specs.priors import PRIOR_KINDS, SAM_RULES
 from resireg.specs.rules import (
     BATCH_SIZE,
@@ -85,9 +85,6 @@ class ConfigError(ValueError):
 _MISSING = object()
 #: Device kinds of ``device`` / ``prior.device`` (``cuda:N`` included).
 _DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
-#: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
-#: of ``resireg.models.build_encoder``.
-ENCODER_REPORT_KEYS = ("name", "third_party")
 #: What ``resireg-report`` can write for a sweep beyond its summary (``report: [...]`` in a
 #: ``conf/sweep/`` file names them; ``null`` leaves the choice to the jobs' overrides).
 REPORT_SECTIONS = ("table1", "table2", "prototype_grid", "layer_sweep")
@@ -118,11 +115,6 @@ def encoder_import_errors(entry: Any, key: str = "encoder") -> list[str]:
                 f'installed: pip install -e ".[encoders]" (or pip install {dist})'
             )
     return errors
-
-
-def encoder_kwargs(entry: Any) -> dict[str, Any]:
-    """``build_encoder``'s keywords (``kind`` and the builder's keys) of an encoder entry."""
-    return {k: v for k, v in entry.items() if k not in ENCODER_REPORT_KEYS}
 
 
 _PRECISIONS = {

@@ -123,13 +123,13 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
     if args.encoder is None and not args.model_path:
         return _fail("--model-path (an export folder or Hub repo id) or --encoder is required")
     if args.encoder is not None:
+        from resireg.specs.encoders import encoder_entry
+
         try:
-            from resireg_train.playground.config import encoder_spec
+            encoder = encoder_entry(args.encoder, args.model_path)
         except ImportError as err:
             return _fail(f"--encoder reads conf/encoder/ with the train extra ({err}); "
-                         "pip install 'resireg[train]', or pass --model-path")  # fmt: skip
-        try:
-            encoder = encoder_spec(args.encoder, args.model_path)
+                         "pass --model-path instead")  # fmt: skip
         except ValueError as err:
             return _fail(str(err))
     else:

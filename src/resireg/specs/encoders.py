@@ -30,13 +30,19 @@ from resireg.specs.table import SpecTable
 
 __all__ = [
     "ENCODER_ENTRY_POINTS",
+    "ENCODER_REPORT_KEYS",
     "ENCODER_SPECS",
     "EncoderSpec",
     "Needs",
+    "encoder_entry",
+    "encoder_kwargs",
 ]
 
 #: The entry-point group of encoder kinds from other packages.
 ENCODER_ENTRY_POINTS = "resireg.encoders"
+#: Keys of a ``conf/encoder/`` entry that describe it in reports; the others are the keywords
+#: of ``resireg.models.build_encoder``.
+ENCODER_REPORT_KEYS = ("name", "third_party")
 
 
 class Needs(NamedTuple):
@@ -136,3 +142,60 @@ ENCODER_SPECS: SpecTable[EncoderSpec] = SpecTable(
     conf="encoder",
     entry_points=ENCODER_ENTRY_POINTS,
 )  # fmt: skip
+
+
+def encoder_kwargs(entry: Any) -> dict[str, Any]:
+    """``build_encoder``'s keywords (``kind`` and the builder's keys) of an encoder entry."""
+    return {k: v for k, v in entry.items() if k not in ENCODER_REPORT_KEYS}
+
+
+def encoder_entry(
+    encoder: str | None = None, model_path: str | None = None, config_dir: Any = None
+) -> dict[str, Any]:
+    """``build_encoder`` keywords (``kind`` and the entry's keys) of a ``conf/encoder/`` file,
+    its interpolations (``${model_path}``, ``${paths.data_dir}``) resolved with OmegaConf (the
+    ``train`` extra installs it; ``resireg-segment --encoder`` and the playground read entries
+    this way, outside Hydra).
+
+    Args:
+        encoder: a name of ``conf/encoder/`` (``clip_vit_b16``) or the path of such a YAML
+            file; ``None`` means ``resireg_vlm`` (our VLM from ``model_path``).
+        model_path: an export folder or hub repo id, for entries whose ``path`` is
+            ``${model_path}``.
+        config_dir: the ``conf/`` folder (default: :func:`resireg.specs.table.conf_dir`).
+    """
+    from pathlib import Path
+
+    from resireg.specs.table import conf_dir
+
+    try:
+        from omegaconf import OmegaConf
+        from omegaconf.errors import OmegaConfBaseException
+    except ImportError as err:
+        raise ImportError(f"reading conf/encoder/ needs OmegaConf ({err}): "
+                          "pip install 'resireg[train]'") from err  # fmt: skip
+    conf = Path(config_dir or conf_dir())
+    name = encoder or "resireg_vlm"
+    if name.endswith((".yaml", ".yml")) or "/" in name:
+        path = Path(name).expanduser()
+    else:
+        path = conf / "encoder" / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in (conf / "encoder").glob("*.yaml"))
+        raise ValueError(f"--encoder={name!r}: no such config ({path}); expected one of {known} "
+                         "or the path of an encoder YAML file")  # fmt: skip
+    paths = OmegaConf.load(conf / "paths" / "default.yaml")
+    root = OmegaConf.create({"model_path": model_path, "paths": paths})
+    root.encoder = OmegaConf.load(path)
+    try:
+        spec = OmegaConf.to_container(root.encoder, resolve=True)
+    except OmegaConfBaseException as err:
+        raise ValueError(f"--encoder={name!r}: cannot resolve {path}: {err}") from err
+    spec = encoder_kwargs(spec)
+    found = ENCODER_SPECS.find(spec.get("kind"))
+    if found is not None and found.needs_model_path and not spec.get("path"):
+        raise ValueError(
+            f"--model-path is required with --encoder={name!r}: an export folder "
+            "(resireg-train's <run>/export) or a Hugging Face repo id"
+        )
+    return spec

@@ -66,40 +66,8 @@ def encoder_spec(
     model_path: str | None = None,
     config_dir: str | Path | None = None,
 ) -> dict[str, Any]:
-    """``build_encoder`` keywords (``kind`` and the entry's keys) of an encoder config.
+    """``build_encoder`` keywords of an encoder config:
+    :func:`resireg.specs.encoders.encoder_entry` on the project's ``conf/``."""
+    from resireg.specs.encoders import encoder_entry
 
-    Args:
-        encoder: a name of ``conf/encoder/`` (``clip_vit_b16``) or the path of such a YAML
-            file; ``None`` means ``resireg_vlm`` (our VLM from ``model_path``).
-        model_path: an export folder or hub repo id, for entries whose ``path`` is
-            ``${model_path}``.
-    """
-    from omegaconf import OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    from resireg_train.validation import encoder_kwargs
-
-    conf = Path(config_dir or _config_dir())
-    name = encoder or "resireg_vlm"
-    if name.endswith((".yaml", ".yml")) or "/" in name:
-        path = Path(name).expanduser()
-    else:
-        path = conf / "encoder" / f"{name}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in (conf / "encoder").glob("*.yaml"))
-        raise ValueError(f"--encoder={name!r}: no such config ({path}); expected one of {known} "
-                         "or the path of an encoder YAML file")  # fmt: skip
-    paths = _load_yaml(conf / "paths" / "default.yaml")
-    root = OmegaConf.create({"model_path": model_path, "paths": paths})
-    root.encoder = _load_yaml(path)
-    try:
-        spec = OmegaConf.to_container(root.encoder, resolve=True)
-    except OmegaConfBaseException as err:
-        raise ValueError(f"--encoder={name!r}: cannot resolve {path}: {err}") from err
-    spec = encoder_kwargs(spec)
-    if reads_model_path(spec) and not spec.get("path"):
-        raise ValueError(
-            f"--model-path is required with --encoder={name!r}: an export folder "
-            "(resireg-train's <run>/export) or a Hugging Face repo id"
-        )
-    return spec
+    return encoder_entry(encoder, model_path, config_dir or _config_dir())

@@ -14,7 +14,7 @@ exact; ``include_frozen=True`` embeds them always (a self-contained bundle).
 ``config.json`` records the SHA-256 of every tensor file (``digests``), verified by
 :meth:`from_pretrained` before a tensor is read (:mod:`resireg.integrity`); files are written
 atomically with the umask's mode. :meth:`push_to_hub` publishes an export folder with a model
-card (:mod:`resireg.deploy.card`) to the Hugging Face Hub.
+card (:mod:`resireg.models.vlm.card`) to the Hugging Face Hub.
 """
 
 from __future__ import annotations
@@ -251,7 +251,7 @@ class ResiregVLM(DenseEncoder):
     ) -> Any:
         """Publish this model to the Hugging Face Hub repository ``repo_id`` (``owner/name``).
 
-        The folder uploaded is :func:`resireg.deploy.card.hub_folder`'s: an export with its
+        The folder uploaded is :func:`resireg.models.vlm.card.hub_folder`'s: an export with its
         digests (by default a fresh :meth:`save_pretrained` of this model as it is now, so
         weights changed since loading are what is published; ``export``: an existing export
         folder or repo id as it is, verified first), plus a model card ``README.md``
@@ -263,7 +263,7 @@ class ResiregVLM(DenseEncoder):
 
         from huggingface_hub import HfApi
 
-        from resireg.deploy.card import hub_folder
+        from resireg.models.vlm.card import hub_folder
 
         with tempfile.TemporaryDirectory(prefix="resireg-push-") as tmp:
             source = export if export is not None else self.save_pretrained(Path(tmp) / "export")
