@@ -1,0 +1,122 @@
+"""One contract for every spec table (:class:`resireg.specs.table.SpecTable`): every entry's
+code loads, its ``conf/`` files exist and are found by scanning, unknown names are answered
+with the closest ones, and each entry's rules refuse what they should."""
+
+from __future__ import annotations
+
+import inspect
+
+import pytest
+import torch
+import yaml
+
+from resireg.specs.encoders import ENCODER_SPECS
+from resireg.specs.metrics import METRIC_SPECS, SCORE_SPECS, direction
+from resireg.specs.priors import PRIOR_SPECS
+from resireg.specs.table import SpecTable, UnknownNameError, conf_dir
+from resireg.specs.variants import VARIANT_SPECS
+from resireg_train.data.specs import DATASET_SPECS
+from resireg_train.tasks import TASK_SPECS
+
+TABLES = {
+    "variants": VARIANT_SPECS,
+    "encoders": ENCODER_SPECS,
+    "priors": PRIOR_SPECS,
+    "metrics": METRIC_SPECS,
+    "datasets": DATASET_SPECS,
+    "tasks": TASK_SPECS,
+}
+try:  # the map sources' table lands with resireg.sources
+    from resireg.specs.sources import SOURCE_SPECS
+
+    TABLES["sources"] = SOURCE_SPECS
+except ImportError:
+    pass
+
+
+@pytest.mark.parametrize("kind", sorted(TABLES))
+def test_every_entry_loads_and_its_conf_files_hold_its_kind(kind):
+    table = TABLES[kind]
+    assert isinstance(table, SpecTable) and len(table) > 0
+    for name, entry in table.items():
+        assert table.get(name) is entry and table.find(name) is entry
+        target = entry.load()
+        assert callable(target), (kind, name)
+        if table.conf is None:
+            continue
+        configs = table.configs(name)
+        assert configs, f"{kind}: {name} has no conf/{table.conf}/ file"
+        for stem in configs:
+            path = conf_dir() / table.conf / f"{stem}.yaml"
+            data = yaml.safe_load(path.read_text())
+            parents = [p for p in data.get("defaults") or [] if p != "_self_"]
+            assert data.get("kind") == name or parents, (path, data.get("kind"))
+    if table.conf is not None:  # every file of the folder belongs to one entry
+        on_disk = sorted(p.stem for p in (conf_dir() / table.conf).glob("*.yaml")
+                         if not p.stem.startswith("_"))  # fmt: skip
+        assert sorted(table.all_configs()) == on_disk
+
+
+@pytest.mark.parametrize("kind", sorted(TABLES))
+def test_unknown_names_are_answered_with_the_closest(kind):
+    table = TABLES[kind]
+    first = table.names()[0]
+    typo = first[:-1] + ("x" if first[-1] != "x" else "y")
+    with pytest.raises(UnknownNameError) as err:
+        table.get(typo)
+    text = str(err.value)
+    assert f"unknown {table.what} {typo!r}" in text and repr(first) in text
+    assert isinstance(err.value, KeyError) and isinstance(err.value, ValueError)
+    assert table.find(typo) is None and table.get(typo, None) is None
+    assert table.unknown("zzzzzz", setting="x.kind") == (
+        f"x.kind='zzzzzz': expected one of {list(table.everything())}"
+    )
+
+
+_BAD = {  # one value each rule must refuse, by (table, entry, key)
+    ("variants", "full", "alpha"): -1.0,
+    ("variants", "lite", "attention"): "flash",
+    ("variants", "calib", "contamination"): 0.9,
+    ("priors", "sam2", "points_per_side"): 0,
+    ("priors", "sam2", "mask_threshold"): float("nan"),
+    ("datasets", "scannet", "voxel_size"): 0,
+    ("datasets", "scannet", "metric"): "dice",
+}
+
+
+@pytest.mark.parametrize("where", sorted(_BAD))
+def test_the_rules_refuse_what_they_should(where):
+    kind, name, key = where
+    entry = TABLES[kind][name]
+    rules = entry.params if hasattr(entry, "params") else entry.rules
+    check, expected = rules[key]
+    assert not check(_BAD[where]) and expected
+
+
+def test_every_scorer_returns_exactly_its_keys():
+    """Each scorer of the metric table, on one confusion, returns its keys; the values agree
+    with a recomputation (numpy) of IoU and accuracy; every key is a score of the vocabulary."""
+    import numpy as np
+
+    cm = np.array([[3, 1, 0], [0, 2, 1]])  # 2 classes (+ "no prediction" column for voxels)
+    for name, spec in METRIC_SPECS.items():
+        assert set(spec.keys) <= set(SCORE_SPECS) and set(spec.logged) <= set(spec.keys)
+        scorer = spec.load()
+        if spec.unit == "pixel":
+            metric = scorer(num_classes=2, ignore_index=255)
+            assert "num_classes" in inspect.signature(scorer).parameters
+            pred = torch.tensor([0, 0, 0, 1, 1, 1, 0])
+            gt = torch.tensor([0, 0, 0, 0, 1, 1, 255])
+            metric.update(pred, gt)
+            out = metric.compute()
+            tp, union = np.array([3, 2]), np.array([4, 3])
+        else:
+            out = scorer(torch.tensor(cm), name)
+            tp = np.diag(cm[:, :2])
+            union = cm.sum(1) + cm[:, :2].sum(0) - tp  # ground truth + false positives
+        assert set(out) == set(spec.keys), name
+        assert out["iou"] == pytest.approx(list(tp / union)), name
+        assert out["miou"] == pytest.approx(float(np.mean(tp / union))), name
+    assert direction("val/ovss/ade20k/miou_full") == "max"
+    assert direction("val/ovss/ade20k/fmiou_full") == "max"
+    assert direction("train/loss") == "min" and direction("epoch") is None
