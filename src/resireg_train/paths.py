@@ -4,20 +4,15 @@ and the playground, so that none of them reaches up into ``cli/``."""
 
 from __future__ import annotations
 
-import os
 import secrets
-from pathlib import Path
+
+from resireg.specs.table import conf_dir
 
 __all__ = ["CONFIG_DIR", "RUN_ID"]
 
-
-def _config_dir() -> Path:
-    env = os.environ.get("RESIREG_CONFIG_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "conf"
-
-
-#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it).
-CONFIG_DIR = _config_dir()
+#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it; the spec tables scan
+#: the same folder, :func:`resireg.specs.table.conf_dir`).
+CONFIG_DIR = conf_dir()
 
 #: A short random token drawn once per process: two runs started in the same second (a job
 #: array, a shell loop) still get two run folders.

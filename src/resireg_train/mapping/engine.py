@@ -177,7 +177,13 @@ class MappingResult:
         return total
 
     def scene_scores(self, variant: str) -> dict[str, dict[str, Any]]:
-        return {s: metrics.scores(m, self.metric) for s, m in self.confusions[variant].items()}
+        return {s: self._score(m, self.metric) for s, m in self.confusions[variant].items()}
+
+    def _score(self, matrix: Any, metric: str) -> dict[str, Any]:
+        """The scores of a voxel confusion matrix by the scorer of ``metric`` in the metric
+        table (:data:`resireg.specs.metrics.METRIC_SPECS`: a new definition is a scorer and
+        an entry there)."""
+        return METRIC_SPECS[metric].load()(matrix, metric)
 
     def scores(self, prefix: str = METRIC_PREFIX) -> dict[str, float]:
         """Per variant: ``miou_<v>``, ``fmiou_<v>``, ``acc_<v>``, each the mean over the scenes
@@ -187,7 +193,7 @@ class MappingResult:
         out = {}
         for variant in self.confusions:
             per_scene = self.scene_scores(variant).values()
-            pooled = metrics.scores(self.pooled(variant), self.metric)
+            pooled = self._score(self.pooled(variant), self.metric)
             logged = METRIC_SPECS[self.metric].logged  # miou, fmiou, acc
             for name in logged:
                 mean = metrics.mean_over_scenes([s[name] for s in per_scene])
@@ -204,7 +210,7 @@ class MappingResult:
             scores = {}
             for variant in self.confusions:
                 if scene in self.confusions[variant]:
-                    c = metrics.scores(self.confusions[variant][scene], self.metric)
+                    c = self._score(self.confusions[variant][scene], self.metric)
                     scores[variant] = {"miou": c["miou"], "fmiou": c["fmiou"], "acc": c["acc"],
                                        "voxels": self.feature_voxels[variant].get(scene, 0)}  # fmt: skip
             out[scene] = {
@@ -216,7 +222,7 @@ class MappingResult:
 
     def per_class_iou(self) -> dict[str, list[float]]:
         """Per variant the pooled per-class IoU (NaN where undefined)."""
-        return {v: metrics.scores(self.pooled(v), self.metric)["iou"] for v in self.confusions}
+        return {v: self._score(self.pooled(v), self.metric)["iou"] for v in self.confusions}
 
     def write_csv(self, out: Path) -> dict[str, str]:
         """Per variant, next to ``results.json``: ``scannet3d/<variant>/<scene>_class_results.csv``
@@ -231,7 +237,7 @@ class MappingResult:
             (out / folder).mkdir(parents=True, exist_ok=True)
             rows = []
             for scene, matrix in [*scenes.items(), ("pooled", self.pooled(variant))]:
-                c = metrics.scores(matrix, self.metric)
+                c = self._score(matrix, self.metric)
                 cm = matrix.double()
                 tp, freq = cm.diagonal(), cm.sum(1)
                 fp = cm[:, :k].sum(0) - tp
@@ -246,7 +252,7 @@ class MappingResult:
                 if scene != "pooled":
                     rows.append([scene, c["miou"], c["fmiou"], c["acc"],
                                  int(freq.sum())])  # fmt: skip
-            pooled = metrics.scores(self.pooled(variant), self.metric)
+            pooled = self._score(self.pooled(variant), self.metric)
             mean = [metrics.mean_over_scenes([r[i] for r in rows]) for i in (1, 2, 3)]
             with (out / folder / "summary.csv").open("w", newline="") as f:
                 writer = csv.writer(f)
