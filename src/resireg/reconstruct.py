@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.checks import check_features
+from resireg.checks import check_positive_int, check_variant_inputs
 from resireg.cluster import (
     ELBO_MAX_POINTS,
     PCAResult,
@@ -53,56 +53,6 @@ _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
 # passes win there): 8M (32 MB in float32) is the compromise.
 _FACTORISED_BLOCK = 8 * 1024 * 1024
 _FACTORISED_TILE = 8 * 1024 * 1024
-
-
-def _check_positive_int(name: str, value: object) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return value
-
-
-def _check_inputs(intermediates: Tensor, language: Tensor, prior: Tensor | None) -> None:
-    """The rules every variant's inputs follow (Full, Lite and :class:`resireg.calib.Calib`):
-    floating-point and finite features (:func:`resireg.checks.check_features`; a NaN would
-    spread to the whole batch in Full and to the whole image in Lite), four dimensions, none
-    of them empty (a batch of 0 images, 0 channels or a 0-cell grid has nothing to
-    reconstruct), one batch size, and an integer prior of the same batch. Each error is a
-    :class:`ValueError` (:class:`TypeError` for a non-tensor or a non-floating dtype) naming
-    the argument and its shape."""
-    for name, x, dims in (
-        ("intermediates", intermediates, "[B, Dv, Hv, Wv]"),
-        ("language", language, "[B, Dl, Hl, Wl]"),
-    ):
-        if not isinstance(x, Tensor):  # the shape test below needs a tensor
-            check_features(name, x)
-        if x.ndim != 4:
-            raise ValueError(f"{name} must have shape {dims}, got shape {tuple(x.shape)}")
-        if 0 in x.shape:
-            raise ValueError(
-                f"{name} must have no empty dimension ({dims}: at least one image, channel and "
-                f"grid cell), got shape {tuple(x.shape)}"
-            )
-    if language.shape[0] != intermediates.shape[0]:
-        raise ValueError(
-            f"language batch size {language.shape[0]} does not match intermediates batch size "
-            f"{intermediates.shape[0]}"
-        )
-    if prior is not None:
-        if not isinstance(prior, Tensor) or prior.ndim != 3:
-            shape = tuple(prior.shape) if isinstance(prior, Tensor) else type(prior).__name__
-            raise ValueError(f"prior must have shape [B, H, W], got {shape}")
-        if prior.shape[0] != intermediates.shape[0]:
-            raise ValueError(
-                f"prior batch size {prior.shape[0]} does not match intermediates batch size "
-                f"{intermediates.shape[0]}"
-            )
-        if 0 in prior.shape:
-            raise ValueError(f"prior must have a non-empty grid, got shape {tuple(prior.shape)}")
-        if prior.is_floating_point() or prior.is_complex():
-            raise ValueError(f"prior must hold integer instance ids, got dtype {prior.dtype}")
-    # Last: the finiteness test reads every value, the shape tests above are free.
-    check_features("intermediates", intermediates)
-    check_features("language", language)
 
 
 def _upsample(x: Tensor, scale: int) -> Tensor:
@@ -439,7 +389,7 @@ class ReSiRegFull(nn.Module):
                     f"got elbo_candidates={elbo_candidates!r}"
                 )
             self.elbo_candidates = tuple(
-                sorted({_check_positive_int("elbo_candidates", c) for c in elbo_candidates})
+                sorted({check_positive_int("elbo_candidates", c) for c in elbo_candidates})
             )
         elif n_prototypes == "auto":
             from resireg.heuristic import PrototypeHeuristic
@@ -467,7 +417,7 @@ class ReSiRegFull(nn.Module):
         if self.elbo_candidates is not None:  # the most "elbo" can choose
             return self.elbo_candidates[-1]
         if self.heuristic is not None:
-            return _check_positive_int(
+            return check_positive_int(
                 "n_prototypes (from heuristic)", int(self.heuristic(batch_size))
             )
         return int(self.n_prototypes)
@@ -607,7 +557,7 @@ class ReSiRegFull(nn.Module):
                 or inf (:class:`resireg.checks.NonFiniteError`); the message names the
                 argument.
         """
-        _check_inputs(intermediates, language, prior)
+        check_variant_inputs(intermediates, language, prior)
         if shared is None:
             shared = FullShared(intermediates, language, self.upscale)
         shared.check(intermediates, language, self.upscale)
@@ -696,7 +646,7 @@ class ReSiRegLite(nn.Module):
     ) -> Tensor:
         """Reconstruct language features; arguments, result, errors and ``no_grad`` as
         :meth:`ReSiRegFull.forward`."""
-        _check_inputs(intermediates, language, prior)
+        check_variant_inputs(intermediates, language, prior)
         dtype = torch.promote_types(intermediates.dtype, language.dtype)
         with torch.autocast(device_type=intermediates.device.type, enabled=False):
             if self.resolve_attention(intermediates.device) == "factorised":
