@@ -5,7 +5,8 @@ from sklearn.cluster import KMeans
 from sklearn.cluster._kmeans import _tolerance as sk_tolerance
 from sklearn.decomposition import PCA
 
-from resireg.cluster import _lloyd, _tolerance, gram, kmeans, kmeans_plusplus, pca, sq_distances
+from resireg.kmeans import _lloyd, _tolerance, kmeans, kmeans_plusplus, sq_distances
+from resireg.pca import gram, pca
 
 
 def _mixture(n=3000, d=24, k=8, seed=0, spread=1.0):
@@ -196,7 +197,7 @@ def test_assign_rows_bounds_hold_for_exact_distances():
     """The float32 bounds of a computed row bound the float64 distances: the upper one the
     distance to the nearest centroid, each group's lower one the distance to the group's
     other centroids, also for points that sit nearly on a centroid or a boundary."""
-    from resireg.cluster import _GROUP, _assign_rows, _sq_error
+    from resireg.kmeans import _GROUP, _assign_rows, _sq_error
 
     g = torch.Generator().manual_seed(3)
     c = torch.randn(10, 16, generator=g)  # 10 centroids: groups of 4, 4 and 2 (padded)
@@ -225,11 +226,11 @@ def test_assign_rows_bounds_hold_for_exact_distances():
 def test_grouped_bounds_skip_more_rows_than_hamerly_with_the_same_result(monkeypatch):
     """Groups of centroids (Yinyang) vs one group of all centroids (Hamerly's single lower
     bound): the same labels, centroids and iterations, fewer distance rows."""
-    import resireg.cluster as cluster
+    import resireg.kmeans as kmeans_module
 
     x = torch.nn.functional.normalize(_mixture(n=6000, d=32, k=40, spread=2.0), dim=1)
     grouped = kmeans(x, 40, seed=1)
-    monkeypatch.setattr(cluster, "_GROUP", 40)
+    monkeypatch.setattr(kmeans_module, "_GROUP", 40)
     hamerly = kmeans(x, 40, seed=1)
     assert grouped.n_iter == hamerly.n_iter >= 5
     assert torch.equal(grouped.labels, hamerly.labels)
@@ -243,14 +244,14 @@ def test_near_centroid_groups_skip_rows_and_change_nothing(monkeypatch):
     permutation whose groups are the planted quadruples, then (on points without near-ties,
     where only rounding could decide) the same labels, centroids, iterations and distances,
     with fewer distance rows."""
-    import resireg.cluster as cluster
+    import resireg.kmeans as kmeans_module
 
     g = torch.Generator().manual_seed(4)
     # 12 quadruples of near centroids, listed in a shuffled order.
     hubs = torch.randn(12, 16, generator=g) * 4
     centroids = hubs.repeat_interleave(4, 0) + 0.2 * torch.randn(48, 16, generator=g)
     shuffle = torch.randperm(48, generator=g)
-    order = cluster._proximity_order(centroids[shuffle])
+    order = kmeans_module._proximity_order(centroids[shuffle])
     assert torch.equal(order.sort().values, torch.arange(48))
     quadruple = (shuffle // 4)[order].view(12, 4)  # planted quadruple of each grouped centroid
     assert (quadruple == quadruple[:, :1]).all()
@@ -258,7 +259,7 @@ def test_near_centroid_groups_skip_rows_and_change_nothing(monkeypatch):
     # 60 centroids on 15 blobs: several centroids share a blob, as Full's 24-132 prototypes do.
     x = torch.nn.functional.normalize(_mixture(n=8000, d=32, k=15, spread=1.0, seed=5), dim=1)
     near = kmeans(x, 60, seed=2)
-    monkeypatch.setattr(cluster, "_proximity_order", lambda c: torch.arange(c.shape[0]))
+    monkeypatch.setattr(kmeans_module, "_proximity_order", lambda c: torch.arange(c.shape[0]))
     consecutive = kmeans(x, 60, seed=2)
     assert near.n_iter == consecutive.n_iter >= 5
     assert torch.equal(near.labels, consecutive.labels)
@@ -272,7 +273,7 @@ def test_assign_rows_ties_go_to_the_lowest_index():
     """Exact ties (duplicated centroids, also across groups) give the lowest index, as
     numpy's argmin of the same computed row; the group bound of the nearest's group then
     holds its duplicate (distance equal to the nearest), not inf."""
-    from resireg.cluster import _GROUP, _assign_rows, _sq_error
+    from resireg.kmeans import _GROUP, _assign_rows, _sq_error
 
     g = torch.Generator().manual_seed(6)
     c = torch.randn(10, 8, generator=g)

@@ -21,15 +21,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.checks import check_positive_int, check_variant_inputs
-from resireg.cluster import (
-    ELBO_MAX_POINTS,
-    PCAResult,
-    PCASpectrum,
-    elbo_prototype_count,
-    elbo_subsample,
-    gram,
-    kmeans,
-)
+from resireg.elbo import ELBO_MAX_POINTS, elbo_prototype_count, elbo_subsample
+from resireg.kmeans import kmeans
+from resireg.pca import PCAResult, PCASpectrum, gram
 from resireg.specs.variants import check_variant_kwargs
 
 __all__ = [
@@ -148,7 +142,7 @@ def _apply_factor(t: Tensor, diag: Tensor, sub: Tensor, dim: int, out: Tensor) -
 def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tensor]:
     """Moments of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, from the grid.
 
-    Returns ``(second, first, n, shift)`` as :func:`resireg.cluster.pca_from_moments` takes
+    Returns ``(second, first, n, shift)`` as :func:`resireg.pca.pca_from_moments` takes
     them: ``shift`` is the grid's mean, ``second = sum_p (u_p - shift)(u_p - shift)^T`` and
     ``first = sum_p (u_p - shift)`` over the ``n = B h w s^2`` upsampled points ``u_p``.
 
@@ -156,7 +150,7 @@ def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tenso
     rows summing to one, so ``second = X^T (U^T U) X`` and ``first = (U^T 1)^T X`` for the
     centred grid points ``X``. Each ``U_a^T U_a`` is tridiagonal with a lower bidiagonal
     Cholesky factor ``L_a``, hence ``second = Y^T Y`` with ``Y = (L_h^T (x) L_w^T) X``: four
-    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.cluster.gram`),
+    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.pca.gram`),
     accumulated over chunks of images so no batch-sized temporary is formed.
     """
     b, d, h, w = x.shape
@@ -200,7 +194,7 @@ def upsampled_pca(x: Tensor, scale: int, n_components: int) -> PCAResult:
 
 def upsampled_spectrum(x: Tensor, scale: int) -> PCASpectrum:
     """The covariance eigendecomposition behind :func:`upsampled_pca` (any component count
-    is then a slice: :meth:`~resireg.cluster.PCASpectrum.top`)."""
+    is then a slice: :meth:`~resireg.pca.PCASpectrum.top`)."""
     second, first, n, shift = upsampled_moments(x, scale)
     return PCASpectrum.from_moments(second, first, n, shift=shift)
 
@@ -324,7 +318,7 @@ class ReSiRegFull(nn.Module):
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
             prototype heuristic as a function of the batch size (see ``heuristic``), or
             ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
-            bound (:func:`resireg.cluster.elbo_prototype_count`, docs/design.md section 4.4b).
+            bound (:func:`resireg.elbo.elbo_prototype_count`, docs/design.md section 4.4b).
         n_components: PCA components ``r``; ``None`` (default): equal to the prototype
             count of the batch (tied, as in the paper's ablation and ``full.n_components:
             null`` of conf/resireg/default.yaml). Clipped to the intermediate dimension.
@@ -344,13 +338,13 @@ class ReSiRegFull(nn.Module):
             axes as the largest candidate); Full then runs with the chosen count (tied: on
             that many axes). :attr:`chosen` lists the count of every batch.
         elbo_max_points: with ``"elbo"``, the bound is fitted on a uniform subsample of at
-            most this many points (:func:`resireg.cluster.elbo_subsample`), each standing for
+            most this many points (:func:`resireg.elbo.elbo_subsample`), each standing for
             ``N / M`` of the batch's ``N``.
         elbo_stop_after: with ``"elbo"``, the scan of the candidates (in increasing order)
             stops once this many consecutive ones fall below the largest bound so far;
-            ``None`` fits them all (:func:`resireg.cluster.elbo_prototype_count`).
+            ``None`` fits them all (:func:`resireg.elbo.elbo_prototype_count`).
         elbo_tol: with ``"elbo"``, EM stops once the bound changes by less than this many
-            nats per point (:func:`resireg.cluster.elbo_fits`).
+            nats per point (:func:`resireg.elbo.elbo_fits`).
     """
 
     def __init__(
