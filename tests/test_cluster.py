@@ -292,3 +292,170 @@ def test_assign_rows_ties_go_to_the_lowest_index():
     assert labels[:4].tolist() == [2, 1, 2, 1]
     # point 1's nearest is centroid 1; centroid 3 (same group, same distance) bounds group 0
     assert lower[0, 1] <= upper[1] * (1 + 1e-5)
+
+
+def test_nested_kmeans_is_one_seeding_cut_at_each_count():
+    """Count k's labels come from the first k centres of one greedy k-means++ run with the
+    largest count's trials (the nearest seed, or Lloyd from those seeds), so they equal
+    kmeans_plusplus of k centres with those trials; the scan is lazy and checks its counts."""
+    import math
+
+    from resireg.kmeans import nested_kmeans
+
+    x = _mixture(n=800, d=6, k=5, seed=7)
+    counts = [2, 3, 7]
+    trials = 2 + int(math.log(counts[-1]))
+    nearest = dict(nested_kmeans(x, counts, seed=4))
+    lloyd = dict(nested_kmeans(x, counts, seed=4, max_iter=5))
+    assert list(nearest) == counts
+    for k in counts:
+        seeds = kmeans_plusplus(x, k, torch.Generator().manual_seed(4), n_local_trials=trials)
+        assert torch.equal(nearest[k], sq_distances(x, seeds).argmin(1))
+        assert torch.equal(lloyd[k], _lloyd(x, seeds, 5, _tolerance(x, 1e-4)).labels)
+    scan = nested_kmeans(x, counts, seed=4)
+    assert next(scan)[0] == 2  # lazy: the later counts are not computed
+    for bad in ([], [0, 2], [3, 2], [2, 2], [801]):
+        with pytest.raises(ValueError, match="counts="):
+            nested_kmeans(x, bad)
+
+
+# Every public name resireg.cluster held, and the module that holds it now.
+_CLUSTER_NAMES = {
+    "resireg.pca": ["PCAResult", "PCASpectrum", "pca", "pca_from_moments", "gram"],
+    "resireg.kmeans": ["KMeansResult", "kmeans", "kmeans_plusplus", "sq_distances"],
+    "resireg.elbo": [
+        "VBGMMResult",
+        "vb_gmm",
+        "ELBO_MAX_POINTS",
+        "elbo_subsample",
+        "elbo_fits",
+        "elbo_prototype_count",
+    ],
+}
+
+
+def test_cluster_shim_warns_and_keeps_the_old_names(monkeypatch):
+    """``resireg.cluster`` (split into resireg.pca, resireg.kmeans and resireg.elbo) stays
+    importable for one release: importing it warns, naming the new modules, and every former
+    public name is the new module's object, with a warning naming that module. ``import
+    resireg`` and the method's modules do not import it (so they do not warn)."""
+    import importlib
+    import subprocess
+    import sys
+
+    monkeypatch.delitem(sys.modules, "resireg.cluster", raising=False)
+    with pytest.warns(DeprecationWarning, match="resireg.pca.*resireg.kmeans.*resireg.elbo"):
+        cluster = importlib.import_module("resireg.cluster")
+    assert sorted(cluster.__all__) == sorted(n for names in _CLUSTER_NAMES.values() for n in names)
+    for module, names in _CLUSTER_NAMES.items():
+        new = importlib.import_module(module)
+        for name in names:
+            with pytest.warns(DeprecationWarning, match=rf"import it from {module}\b"):
+                assert getattr(cluster, name) is getattr(new, name)
+            assert name in new.__all__
+    with pytest.warns(DeprecationWarning):
+        from resireg.cluster import elbo_prototype_count
+        from resireg.cluster import kmeans as old_kmeans
+        from resireg.cluster import pca as old_pca
+    assert (old_pca, old_kmeans) == (pca, kmeans)
+    assert elbo_prototype_count.__module__ == "resireg.elbo"
+    with pytest.raises(AttributeError, match="_lloyd"):
+        cluster._lloyd  # noqa: B018 - private names did not move to the shim
+    code = (
+        "import sys, resireg, resireg.reconstruct, resireg.calib, resireg.variants, "
+        "resireg.mapping\nassert 'resireg.cluster' not in sys.modules, 'imported the shim'"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _private_imports(path, module: str, root) -> list[str]:
+    """``module``'s (its file ``path``) uses of another resireg module's private name: ``from
+    resireg.x import _name`` (relative imports resolved) or ``x._name`` where ``x`` is bound to a
+    resireg module (``import resireg.x as x``, ``from resireg import x``)."""
+    import ast
+
+    def is_module(dotted: str) -> bool:
+        parts = dotted.split(".")
+        return (root / "/".join(parts)).with_suffix(".py").is_file() or (
+            root / "/".join(parts) / "__init__.py"
+        ).is_file()
+
+    def private(name: str) -> bool:
+        return name.startswith("_") and not name.startswith("__")
+
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    bound: dict[str, str] = {}  # local name -> resireg module
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1])
+                base = f"{base}.{node.module}" if node.module else base
+            if not (base == "resireg" or base.startswith("resireg.")):
+                continue
+            for alias in node.names:
+                if private(alias.name) and base != module:
+                    found.append(f"{module}:{node.lineno}: from {base} import {alias.name}")
+                elif is_module(f"{base}.{alias.name}"):
+                    bound[alias.asname or alias.name] = f"{base}.{alias.name}"
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name == "resireg" or alias.name.startswith("resireg."):
+                    if alias.asname:
+                        bound[alias.asname] = alias.name
+                    else:
+                        bound["resireg"] = "resireg"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and private(node.attr):
+            chain, value = [], node.value
+            while isinstance(value, ast.Attribute):
+                chain.append(value.attr)
+                value = value.value
+            if isinstance(value, ast.Name) and value.id in bound:
+                target = ".".join([bound[value.id], *reversed(chain)])
+                if is_module(target) and target != module:
+                    found.append(f"{module}:{node.lineno}: {target}.{node.attr}")
+    return found
+
+
+def test_no_module_of_resireg_uses_another_ones_private_names(tmp_path):
+    """Helpers one module of ``resireg`` needs from another are public (resireg.checks'
+    check_variant_inputs, resireg.mapping.keys, resireg.kmeans.nested_kmeans, ...): an AST scan
+    of src/resireg finds no import or attribute use of another resireg module's private name.
+    The scanner itself is checked on planted uses."""
+    from pathlib import Path
+
+    import resireg
+
+    root = Path(resireg.__file__).resolve().parents[1]
+    files = sorted((root / "resireg").rglob("*.py"))
+    modules = {}
+    for path in files:
+        name = ".".join(path.relative_to(root).with_suffix("").parts)
+        modules[name.removesuffix(".__init__")] = path
+    assert {"resireg.pca", "resireg.kmeans", "resireg.elbo", "resireg.mapping.keys"} <= set(modules)
+    found = [hit for name, path in modules.items() for hit in _private_imports(path, name, root)]
+    assert found == []
+
+    planted = tmp_path / "resireg" / "mapping" / "planted.py"
+    planted.parent.mkdir(parents=True)
+    for name in ("keys", "voxels"):
+        (planted.parent / f"{name}.py").write_text("")
+    (tmp_path / "resireg" / "kmeans.py").write_text("")
+    planted.write_text(
+        "import resireg.kmeans as km\nimport resireg.mapping.voxels\n"
+        "from resireg.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
+        "from resireg.mapping import voxels\n"
+        "km._tolerance(1)\nresireg.mapping.voxels._check(1)\nvoxels._x\n"
+        "from torch import _C\nkm.kmeans\nself._private\n"
+    )
+    hits = _private_imports(planted, "resireg.mapping.planted", tmp_path)
+    assert sorted(hit.split(": ", 1)[1] for hit in hits) == [
+        "from resireg.kmeans import _lloyd",
+        "from resireg.mapping.keys import _OFFSET",
+        "resireg.kmeans._tolerance",
+        "resireg.mapping.voxels._check",
+        "resireg.mapping.voxels._x",
+    ]
