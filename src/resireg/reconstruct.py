@@ -6,6 +6,24 @@ language-aligned (but spatially noisy) features, and an optional segmentation pr
 ``S`` ``[B, H', W']`` holds instance ids (0 = none). Both modules return
 ``[B, Dl, Hv*s, Wv*s]`` features of unit L2 norm over ``Dl``.
 
+The module reads top to bottom: the helpers both variants use; the PCA of ReSiReg Full's
+upsampled points, computed from the small grid (:func:`upsampled_moments`); then
+:class:`ReSiRegFull`, whose ``forward`` (first among its steps) runs:
+
+1. the input check, :func:`resireg.checks.check_variant_inputs`;
+2. the covariance spectrum of the bilinearly upsampled intermediates, from the grid
+   (:meth:`FullShared.spectrum`, :func:`upsampled_spectrum`, :class:`resireg.pca.PCASpectrum`);
+3. :meth:`ReSiRegFull.assign`: with ``n_prototypes="elbo"`` the count
+   (:meth:`ReSiRegFull._elbo_count`: the subsample of :func:`resireg.elbo.elbo_subsample`,
+   only its points computed, then :func:`resireg.elbo.elbo_prototype_count`); the projection
+   on the grid, its upsampling and normalisation; :func:`resireg.kmeans.kmeans` of the
+   points (its products with the points taken on the grid);
+4. the prototypes (the mean language token of every cluster, and one per prior instance),
+   the softmax of the distances to them and the mix.
+
+Last, :class:`ReSiRegLite` and its helpers. The clustering modules (:mod:`resireg.pca`,
+:mod:`resireg.kmeans`, :mod:`resireg.elbo`) know nothing of this one; it calls them.
+
 Resolved ambiguity: the paper calls the Lite normalisation "column-wise"; we normalise
 over the prototype (key) axis, the same axis as Full, so every output patch is a convex
 combination of language tokens (before the optional tau gate).
@@ -36,19 +54,8 @@ __all__ = [
     "upsampled_spectrum",
 ]
 
-# Budget for one chunk of the explicit (tau > 0) Lite attention matrix, in elements.
-_LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
-# Factorised Lite (ReSiRegLite._factorised), in elements: a block of queries' Gram rows
-# interpolated on the query side ([queries, h w]), and a tile of their similarities to every
-# key ([N, queries]). Measured on 2 cores at the protocol's size (6,912 points, one image):
-# tiles of 1M, 4M, 8M, 16M elements took 0.46, 0.50, 0.49, 0.81 s on one thread, and 2.3,
-# 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
-# pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
-# passes win there): 8M (32 MB in float32) is the compromise.
-_FACTORISED_BLOCK = 8 * 1024 * 1024
-_FACTORISED_TILE = 8 * 1024 * 1024
 
-
+# ------------------------------------------------------------------------ shared by Full and Lite
 def _upsample(x: Tensor, scale: int) -> Tensor:
     """Bilinear upsampling of ``[B, D, H, W]`` by an integer factor."""
     if scale == 1:
@@ -63,35 +70,66 @@ def _nearest(x: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(x, size=size, mode="nearest")
 
 
-def factorised_blocks(h: int, w: int, scale: int) -> list[tuple[int, int, int, int]]:
-    """The query blocks of factorised Lite on an ``h x w`` grid upsampled by ``scale``:
-    ``(r0, r1, c0, c1)``, coarse query rows ``r0:r1`` (their upsampled rows
-    ``scale*r0:scale*r1``) and the coarse rows ``c0:c1`` their bilinear weights read (one
-    above and one below), each block's ``[queries, h w]`` Gram rows within
-    ``_FACTORISED_BLOCK`` elements (at least one coarse row)."""
-    rows = max(1, _FACTORISED_BLOCK // max(1, scale * scale * w * h * w))
-    return [
-        (r0, min(h, r0 + rows), max(0, r0 - 1), min(h, r0 + rows + 1)) for r0 in range(0, h, rows)
-    ]
+def _to_points(x: Tensor) -> Tensor:
+    """``[B, D, H, W]`` -> ``[B*H*W, D]`` (row-major over batch, then space)."""
+    return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
 
 
-def _token_index(
-    lang_size: tuple[int, int], grid: tuple[int, int], scale: int, device: torch.device
-) -> tuple[Tensor, bool]:
-    """The language token of every point of the upsampled grid (``scale`` x ``grid``), as
-    :func:`_nearest` picks it (the nearest resize of the token index map, so exactly
-    ``F.interpolate``'s choice): ``([N] indices into the row-major token grid, whether token
-    j is the s x s block j)``, the latter when the language grid is the intermediates'."""
-    (hl, wl), (h, w) = lang_size, grid
-    size = (h * scale, w * scale)
-    index = torch.arange(hl * wl, dtype=torch.float64, device=device).view(1, 1, hl, wl)
-    token = _nearest(index, size).view(-1).long()
-    rows = torch.arange(size[0], device=device).div(scale, rounding_mode="floor")
-    cols = torch.arange(size[1], device=device).div(scale, rounding_mode="floor")
-    block = (rows.unsqueeze(1) * w + cols).view(-1)
-    return token, (hl, wl) == (h, w) and torch.equal(token, block)
+def _normalise_(x: Tensor, dim: int) -> Tensor:
+    """``F.normalize(x, dim=dim)`` in place (the same arithmetic, equal results). On the CPU a
+    fresh tensor of the size of a batch's features (e.g. 55,296 x 512 floats) costs more in
+    page faults than the division itself: 40 ms against 5 ms measured."""
+    return x.div_(torch.linalg.vector_norm(x, dim=dim, keepdim=True).clamp_min_(1e-12))
 
 
+def _masked_mean_normalised(values: Tensor, index: Tensor, n_groups: int) -> Tensor:
+    """L2-normalised mean of ``values`` ``[N, D]`` per group of ``index`` ``[N]``.
+
+    Points with ``index < 0`` belong to no group; an empty group yields a zero vector.
+    Returns ``[n_groups, D]``.
+    """
+    sums = values.new_zeros(n_groups, values.shape[1])
+    keep = index >= 0
+    if bool(keep.all()):  # every point in a group (k-means masks): no masked copy of values
+        sums.index_add_(0, index, values)
+    else:
+        sums.index_add_(0, index[keep], values[keep])
+    # The mean and the sum have the same direction; normalising the sum is enough and a
+    # zero sum (empty group) stays zero.
+    return F.normalize(sums, dim=1)
+
+
+class _Instances:
+    """Instances of a segmentation prior, enumerated across the batch.
+
+    Attributes:
+        index: ``[B*H*W]`` global instance index of every point, -1 where the prior is 0.
+        owner: ``[m]`` image index of each instance.
+        local: ``[m]`` index of each instance within its image (0..m_b-1).
+        count: number of instances ``m`` across the batch.
+        max_per_image: largest ``m_b``.
+    """
+
+    def __init__(self, prior: Tensor, size: tuple[int, int]) -> None:
+        grid = _nearest(prior.unsqueeze(1).float(), size).squeeze(1).long()  # [B, H, W]
+        b = grid.shape[0]
+        ids = grid.reshape(b, -1)
+        span = int(ids.max().item()) + 1 if ids.numel() else 1
+        image = torch.arange(b, device=ids.device).unsqueeze(1).expand_as(ids)
+        key = torch.where(ids > 0, image * span + ids, torch.full_like(ids, -1)).reshape(-1)
+        valid = key >= 0
+        uniq, inverse = torch.unique(key[valid], return_inverse=True)
+        self.index = torch.full_like(key, -1)
+        self.index[valid] = inverse
+        self.owner = torch.div(uniq, span, rounding_mode="floor")
+        per_image = torch.bincount(self.owner, minlength=b)
+        first = torch.cumsum(per_image, 0) - per_image
+        self.local = torch.arange(uniq.numel(), device=ids.device) - first[self.owner]
+        self.count = int(uniq.numel())
+        self.max_per_image = int(per_image.max().item()) if b else 0
+
+
+# ------------------------------------------- Full: the PCA of the upsampled points, from the grid
 def _linear_interp_matrix(size: int, scale: int, device: torch.device) -> Tensor:
     """``[size*scale, size]`` matrix of 1-D linear upsampling as ``F.interpolate`` does it."""
     eye = torch.eye(size, device=device).unsqueeze(0)  # channel i holds the unit impulse e_i
@@ -214,65 +252,7 @@ def _project_grid(x: Tensor, fit: PCAResult) -> Tensor:
     return out
 
 
-def _to_points(x: Tensor) -> Tensor:
-    """``[B, D, H, W]`` -> ``[B*H*W, D]`` (row-major over batch, then space)."""
-    return x.permute(0, 2, 3, 1).reshape(-1, x.shape[1])
-
-
-def _normalise_(x: Tensor, dim: int) -> Tensor:
-    """``F.normalize(x, dim=dim)`` in place (the same arithmetic, equal results). On the CPU a
-    fresh tensor of the size of a batch's features (e.g. 55,296 x 512 floats) costs more in
-    page faults than the division itself: 40 ms against 5 ms measured."""
-    return x.div_(torch.linalg.vector_norm(x, dim=dim, keepdim=True).clamp_min_(1e-12))
-
-
-def _masked_mean_normalised(values: Tensor, index: Tensor, n_groups: int) -> Tensor:
-    """L2-normalised mean of ``values`` ``[N, D]`` per group of ``index`` ``[N]``.
-
-    Points with ``index < 0`` belong to no group; an empty group yields a zero vector.
-    Returns ``[n_groups, D]``.
-    """
-    sums = values.new_zeros(n_groups, values.shape[1])
-    keep = index >= 0
-    if bool(keep.all()):  # every point in a group (k-means masks): no masked copy of values
-        sums.index_add_(0, index, values)
-    else:
-        sums.index_add_(0, index[keep], values[keep])
-    # The mean and the sum have the same direction; normalising the sum is enough and a
-    # zero sum (empty group) stays zero.
-    return F.normalize(sums, dim=1)
-
-
-class _Instances:
-    """Instances of a segmentation prior, enumerated across the batch.
-
-    Attributes:
-        index: ``[B*H*W]`` global instance index of every point, -1 where the prior is 0.
-        owner: ``[m]`` image index of each instance.
-        local: ``[m]`` index of each instance within its image (0..m_b-1).
-        count: number of instances ``m`` across the batch.
-        max_per_image: largest ``m_b``.
-    """
-
-    def __init__(self, prior: Tensor, size: tuple[int, int]) -> None:
-        grid = _nearest(prior.unsqueeze(1).float(), size).squeeze(1).long()  # [B, H, W]
-        b = grid.shape[0]
-        ids = grid.reshape(b, -1)
-        span = int(ids.max().item()) + 1 if ids.numel() else 1
-        image = torch.arange(b, device=ids.device).unsqueeze(1).expand_as(ids)
-        key = torch.where(ids > 0, image * span + ids, torch.full_like(ids, -1)).reshape(-1)
-        valid = key >= 0
-        uniq, inverse = torch.unique(key[valid], return_inverse=True)
-        self.index = torch.full_like(key, -1)
-        self.index[valid] = inverse
-        self.owner = torch.div(uniq, span, rounding_mode="floor")
-        per_image = torch.bincount(self.owner, minlength=b)
-        first = torch.cumsum(per_image, 0) - per_image
-        self.local = torch.arange(uniq.numel(), device=ids.device) - first[self.owner]
-        self.count = int(uniq.numel())
-        self.max_per_image = int(per_image.max().item()) if b else 0
-
-
+# ------------------------------------------------------------------------------------------- Full
 class FullShared:
     """What every ReSiReg Full configuration computes identically for one batch: the
     covariance spectrum of the upsampled intermediates (each configuration slices its own
@@ -430,6 +410,60 @@ class ReSiRegFull(nn.Module):
         return n
 
     @torch.no_grad()
+    def forward(
+        self,
+        intermediates: Tensor,
+        language: Tensor,
+        prior: Tensor | None = None,
+        shared: FullShared | None = None,
+    ) -> Tensor:
+        """Reconstruct language features.
+
+        ReSiReg has no parameters and its clustering (k-means' assignments) has no useful
+        gradient, so it runs under :func:`torch.no_grad`: inputs that require grad are
+        accepted and the result does not require grad (Lite and Calib alike).
+
+        Args:
+            intermediates: ``[B, Dv, Hv, Wv]`` backbone features used for clustering.
+            language: ``[B, Dl, Hl, Wl]`` language-aligned patch tokens.
+            prior: optional ``[B, H', W']`` integer instance ids (0 = none).
+            shared: work shared with other configurations of this batch (:class:`FullShared`
+                of these two tensors and this ``upscale``); ``None`` computes it here.
+
+        Returns:
+            ``[B, Dl, Hv*s, Wv*s]``, unit L2 norm over ``Dl``, in ``language.dtype``.
+
+        Raises:
+            TypeError: ``intermediates`` or ``language`` is not a floating-point tensor.
+            ValueError: a shape is wrong or has an empty dimension, or the features hold NaN
+                or inf (:class:`resireg.checks.NonFiniteError`); the message names the
+                argument.
+        """
+        check_variant_inputs(intermediates, language, prior)
+        if shared is None:
+            shared = FullShared(intermediates, language, self.upscale)
+        shared.check(intermediates, language, self.upscale)
+        with torch.autocast(device_type=intermediates.device.type, enabled=False):
+            dist, (b, h, w) = self.assign(intermediates, shared.spectrum())
+            tokens = shared.tokens((h, w))  # [N, Dl]
+            masks = dist.argmin(dim=1)
+            protos = _masked_mean_normalised(tokens, masks, dist.shape[1])
+            if prior is not None:
+                inst = _Instances(prior, (h, w))
+                prior_dist = torch.ones(dist.shape[0], inst.count, device=dist.device)
+                has = inst.index >= 0
+                prior_dist[has.nonzero().squeeze(1), inst.index[has]] = 0.0
+                dist = torch.cat([dist, prior_dist], dim=1)
+                protos = torch.cat(
+                    [protos, _masked_mean_normalised(tokens, inst.index, inst.count)]
+                )
+            weights = torch.softmax(dist.mul_(-self.alpha), dim=1)  # dist is ours: in place
+            if self.tau > 0:
+                weights = weights * (weights >= self.tau)
+            out = _normalise_(weights @ protos, dim=1)
+        return out.reshape(b, h, w, -1).permute(0, 3, 1, 2).to(language.dtype)
+
+    @torch.no_grad()
     def assign(
         self, intermediates: Tensor, spectrum: PCASpectrum | None = None
     ) -> tuple[Tensor, Tensor]:
@@ -521,59 +555,48 @@ class ReSiRegFull(nn.Module):
             up[at] = taps[0, :, 0].T
         return F.normalize((up - fit.mean) @ fit.components.T, dim=1)
 
-    @torch.no_grad()
-    def forward(
-        self,
-        intermediates: Tensor,
-        language: Tensor,
-        prior: Tensor | None = None,
-        shared: FullShared | None = None,
-    ) -> Tensor:
-        """Reconstruct language features.
 
-        ReSiReg has no parameters and its clustering (k-means' assignments) has no useful
-        gradient, so it runs under :func:`torch.no_grad`: inputs that require grad are
-        accepted and the result does not require grad (Lite and Calib alike).
+# ------------------------------------------------------------------------------------------- Lite
+# Budget for one chunk of the explicit (tau > 0) Lite attention matrix, in elements.
+_LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
+# Factorised Lite (ReSiRegLite._factorised), in elements: a block of queries' Gram rows
+# interpolated on the query side ([queries, h w]), and a tile of their similarities to every
+# key ([N, queries]). Measured on 2 cores at the protocol's size (6,912 points, one image):
+# tiles of 1M, 4M, 8M, 16M elements took 0.46, 0.50, 0.49, 0.81 s on one thread, and 2.3,
+# 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
+# pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
+# passes win there): 8M (32 MB in float32) is the compromise.
+_FACTORISED_BLOCK = 8 * 1024 * 1024
+_FACTORISED_TILE = 8 * 1024 * 1024
 
-        Args:
-            intermediates: ``[B, Dv, Hv, Wv]`` backbone features used for clustering.
-            language: ``[B, Dl, Hl, Wl]`` language-aligned patch tokens.
-            prior: optional ``[B, H', W']`` integer instance ids (0 = none).
-            shared: work shared with other configurations of this batch (:class:`FullShared`
-                of these two tensors and this ``upscale``); ``None`` computes it here.
 
-        Returns:
-            ``[B, Dl, Hv*s, Wv*s]``, unit L2 norm over ``Dl``, in ``language.dtype``.
+def factorised_blocks(h: int, w: int, scale: int) -> list[tuple[int, int, int, int]]:
+    """The query blocks of factorised Lite on an ``h x w`` grid upsampled by ``scale``:
+    ``(r0, r1, c0, c1)``, coarse query rows ``r0:r1`` (their upsampled rows
+    ``scale*r0:scale*r1``) and the coarse rows ``c0:c1`` their bilinear weights read (one
+    above and one below), each block's ``[queries, h w]`` Gram rows within
+    ``_FACTORISED_BLOCK`` elements (at least one coarse row)."""
+    rows = max(1, _FACTORISED_BLOCK // max(1, scale * scale * w * h * w))
+    return [
+        (r0, min(h, r0 + rows), max(0, r0 - 1), min(h, r0 + rows + 1)) for r0 in range(0, h, rows)
+    ]
 
-        Raises:
-            TypeError: ``intermediates`` or ``language`` is not a floating-point tensor.
-            ValueError: a shape is wrong or has an empty dimension, or the features hold NaN
-                or inf (:class:`resireg.checks.NonFiniteError`); the message names the
-                argument.
-        """
-        check_variant_inputs(intermediates, language, prior)
-        if shared is None:
-            shared = FullShared(intermediates, language, self.upscale)
-        shared.check(intermediates, language, self.upscale)
-        with torch.autocast(device_type=intermediates.device.type, enabled=False):
-            dist, (b, h, w) = self.assign(intermediates, shared.spectrum())
-            tokens = shared.tokens((h, w))  # [N, Dl]
-            masks = dist.argmin(dim=1)
-            protos = _masked_mean_normalised(tokens, masks, dist.shape[1])
-            if prior is not None:
-                inst = _Instances(prior, (h, w))
-                prior_dist = torch.ones(dist.shape[0], inst.count, device=dist.device)
-                has = inst.index >= 0
-                prior_dist[has.nonzero().squeeze(1), inst.index[has]] = 0.0
-                dist = torch.cat([dist, prior_dist], dim=1)
-                protos = torch.cat(
-                    [protos, _masked_mean_normalised(tokens, inst.index, inst.count)]
-                )
-            weights = torch.softmax(dist.mul_(-self.alpha), dim=1)  # dist is ours: in place
-            if self.tau > 0:
-                weights = weights * (weights >= self.tau)
-            out = _normalise_(weights @ protos, dim=1)
-        return out.reshape(b, h, w, -1).permute(0, 3, 1, 2).to(language.dtype)
+
+def _token_index(
+    lang_size: tuple[int, int], grid: tuple[int, int], scale: int, device: torch.device
+) -> tuple[Tensor, bool]:
+    """The language token of every point of the upsampled grid (``scale`` x ``grid``), as
+    :func:`_nearest` picks it (the nearest resize of the token index map, so exactly
+    ``F.interpolate``'s choice): ``([N] indices into the row-major token grid, whether token
+    j is the s x s block j)``, the latter when the language grid is the intermediates'."""
+    (hl, wl), (h, w) = lang_size, grid
+    size = (h * scale, w * scale)
+    index = torch.arange(hl * wl, dtype=torch.float64, device=device).view(1, 1, hl, wl)
+    token = _nearest(index, size).view(-1).long()
+    rows = torch.arange(size[0], device=device).div(scale, rounding_mode="floor")
+    cols = torch.arange(size[1], device=device).div(scale, rounding_mode="floor")
+    block = (rows.unsqueeze(1) * w + cols).view(-1)
+    return token, (hl, wl) == (h, w) and torch.equal(token, block)
 
 
 class ReSiRegLite(nn.Module):
