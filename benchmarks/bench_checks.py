@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     print("| call | median s | check / call (median) | per round |")
     print("|---|---:|---:|---|")
-    print(f"| check (`_check_inputs`) | {med['check']:.6f} | | |")
+    print(f"| check (`check_variant_inputs`) | {med['check']:.6f} | | |")
     for name in ("full", "lite"):
         per_round = ", ".join(
             f"{c / t:.2e}" for c, t in zip(times["check"], times[name], strict=True)
