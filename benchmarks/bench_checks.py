@@ -1,7 +1,7 @@
 """The cost of the variants' input check against ReSiReg Full's and Lite's forward.
 
 ``ReSiRegFull``, ``ReSiRegLite`` and ``Calib`` refuse non-finite, non-floating and empty
-inputs before computing (``resireg.reconstruct._check_inputs``, whose finiteness rule is
+inputs before computing (``resireg.checks.check_variant_inputs``, whose finiteness rule is
 ``resireg.checks.check_features``): the shape tests are free, the finiteness test reads every
 value of ``intermediates`` and ``language`` once (one fused ``isfinite(...).all()`` each).
 This measures that check as a share of each variant's forward (which includes it), on the
@@ -24,7 +24,8 @@ import time
 import torch
 
 from _common import build_model, encode_generated, resireg_defaults
-from resireg.reconstruct import ReSiRegFull, ReSiRegLite, _check_inputs
+from resireg.checks import check_variant_inputs
+from resireg.reconstruct import ReSiRegFull, ReSiRegLite
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -48,7 +49,7 @@ def main(argv: list[str] | None = None) -> None:
 
     def check() -> None:
         for _ in range(args.inner):
-            _check_inputs(inter, lang, None)
+            check_variant_inputs(inter, lang, None)
 
     fns = {"full": lambda: full(inter, lang), "lite": lambda: lite(inter, lang), "check": check}
     for fn in fns.values():  # warm-up
@@ -67,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     print("| call | median s | check / call (median) | per round |")
     print("|---|---:|---:|---|")
-    print(f"| check (`_check_inputs`) | {med['check']:.6f} | | |")
+    print(f"| check (`check_variant_inputs`) | {med['check']:.6f} | | |")
     for name in ("full", "lite"):
         per_round = ", ".join(
             f"{c / t:.2e}" for c, t in zip(times["check"], times[name], strict=True)

@@ -8,18 +8,20 @@ One run prints, as ratios to ``ReSiRegFull.assign`` at the chosen count (Full's 
 PCA, projection, upsampling, k-means), the fastest of ``--repeats`` interleaved calls of:
 
 1. the choice alone (:meth:`ReSiRegFull._elbo_count`: the subsample's points on the largest
-   candidate's axes, then :func:`resireg.cluster.elbo_prototype_count`: k-means and a
+   candidate's axes, then :func:`resireg.elbo.elbo_prototype_count`: k-means and a
    variational mixture per candidate, in increasing order, on ``max_points`` points, until
    two candidates in a row fall below the best bound),
 2. ``ReSiRegFull(n_prototypes="elbo").assign``: the choice and the clustering,
 
 with ``--impl DIR`` the same two of the ``ReSiRegFull`` in ``DIR/reconstruct.py`` (bound to
-``DIR/cluster.py``; e.g. an earlier version, for before/after in one run), and the count
+the clustering of ``DIR``, see ``bench_reconstruct.load_impl``; e.g. an earlier version, for
+before/after in one run), and the count
 chosen. Then, per candidate, the full scan's VB iterations and bound (``elbo_fits``,
 ``stop_after=None``), and which candidates the chooser's scan fitted.
 
     python benchmarks/bench_elbo.py [--threads 2] [--repeats 3] [--impl DIR]
     git show c69510a:src/resireg/cluster.py > /tmp/before/cluster.py   # and reconstruct.py
+    # (for a version after the split: its pca.py, kmeans.py and elbo.py instead of cluster.py)
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import torch
 
 from _common import resireg_defaults
 from bench_reconstruct import interleaved_best, load_impl, make_features
-from resireg.cluster import elbo_fits, elbo_subsample
+from resireg.elbo import elbo_fits, elbo_subsample
 from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
 
 
@@ -41,7 +43,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
-        "--impl", default=None, help="folder of another reconstruct.py + cluster.py"
+        "--impl", default=None, help="folder of another reconstruct.py + its clustering"
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads")
     parser.add_argument(
         "--impl", default=None,
-        help="folder of another reconstruct.py (and cluster.py) whose Lite joins table 1",
+        help="folder of another reconstruct.py (and its clustering) whose Lite joins table 1",
     )  # fmt: skip
     parser.add_argument("--no-accuracy", action="store_true", help="skip table 2")
     args = parser.parse_args(argv)

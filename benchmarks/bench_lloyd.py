@@ -6,7 +6,7 @@ upsampled by s = 2 and normalised (55,296 points). For each prototype count, one
 seeding, then Lloyd from it with each implementation, interleaved, fastest of ``--repeats``:
 
     python benchmarks/bench_lloyd.py
-    python benchmarks/bench_lloyd.py --impl <folder with an older cluster.py>   # before/after
+    python benchmarks/bench_lloyd.py --impl <folder with an older kmeans.py or cluster.py>
 
 "distance rows" is ``KMeansResult.dist_rows / N``: rows of point-to-all-centroid distances
 Lloyd computed, the first and the final assignment included (plain Lloyd: iterations + 1).
@@ -107,7 +107,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--images", type=int, default=8)
     parser.add_argument("--short-side", type=int, default=576)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--impl", default=None, help="folder of an older cluster.py to compare")
+    parser.add_argument(
+        "--impl", default=None, help="folder of an older kmeans.py (or cluster.py) to compare"
+    )
     parser.add_argument(
         "--configurations", action="store_true",
         help="time Full's forward for every count per batch (the ablation's added work)",
@@ -133,9 +135,9 @@ def main(argv: list[str] | None = None) -> None:
         best = {name: float("inf") for name in impls}
         results = {}
         for _ in range(args.repeats):
-            for name, cluster in impls.items():
+            for name, impl in impls.items():
                 start = time.perf_counter()
-                results[name] = cluster._lloyd(z, init.clone(), 100, tol, x_sq=x_sq)
+                results[name] = impl._lloyd(z, init.clone(), 100, tol, x_sq=x_sq)
                 best[name] = min(best[name], time.perf_counter() - start)
         ours = results["installed" if "installed" in results else "after"]
         for name, r in results.items():

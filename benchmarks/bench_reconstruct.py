@@ -23,9 +23,10 @@ One run prints:
    ``time.perf_counter`` around the implementation's own functions (the fastest call);
 4. ReSiReg Full's and Lite's forward.
 
-``--impl DIR`` runs everything against another copy of ``cluster.py`` and
-``reconstruct.py`` (e.g. the files before a change, copied to DIR), so before/after
-figures come from the same script:
+``--impl DIR`` runs everything against another copy of ``reconstruct.py`` and of the
+clustering it imports: ``pca.py``, ``kmeans.py`` and ``elbo.py``, or ``cluster.py`` for
+versions before the clustering was split into those three (e.g. the files before a change,
+copied to DIR), so before/after figures come from the same script:
 
     python benchmarks/bench_reconstruct.py [--threads 2] [--repeats 7] [--seeds 20] [--impl DIR]
         [--features regions mixture] [--no-forward]
@@ -41,7 +42,7 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -50,7 +51,8 @@ from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 from threadpoolctl import threadpool_limits
 
-import resireg.cluster
+import resireg.kmeans
+import resireg.pca
 import resireg.reconstruct
 
 
@@ -88,11 +90,22 @@ def make_mixture_features(
 FEATURES = {"regions": make_features, "mixture": make_mixture_features}
 
 
-def load_impl(directory: str | None) -> tuple[ModuleType, ModuleType]:
-    """``(cluster, reconstruct)`` modules: the installed ones, or the copies in ``directory``
-    (its ``reconstruct.py`` is bound to its own ``cluster.py``)."""
+class Impl(NamedTuple):
+    """An implementation's modules: ``kmeans`` (``impl[0]``: ``kmeans``, ``kmeans_plusplus``,
+    ``_lloyd``, ...), ``reconstruct`` (``impl[1]``) and ``pca``; for a version from before the
+    clustering was split, ``kmeans`` and ``pca`` are both its ``cluster.py``."""
+
+    kmeans: ModuleType
+    reconstruct: ModuleType
+    pca: ModuleType
+
+
+def load_impl(directory: str | None) -> Impl:
+    """The installed modules, or the copies in ``directory``: its ``pca.py``, ``kmeans.py``,
+    ``elbo.py`` (or, from before the split, its ``cluster.py``) and ``reconstruct.py``, each
+    bound to the directory's own copies of the others."""
     if directory is None:
-        return resireg.cluster, resireg.reconstruct
+        return Impl(resireg.kmeans, resireg.reconstruct, resireg.pca)
 
     def load(name: str) -> ModuleType:
         spec = importlib.util.spec_from_file_location(
@@ -104,14 +117,25 @@ def load_impl(directory: str | None) -> tuple[ModuleType, ModuleType]:
         spec.loader.exec_module(module)
         return module
 
-    cluster = load("cluster")
-    installed = sys.modules["resireg.cluster"]
-    sys.modules["resireg.cluster"] = cluster  # `from resireg.cluster import ...` gets the copy
+    split = (Path(directory) / "kmeans.py").is_file()
+    names = ["pca", "kmeans", "elbo"] if split else ["cluster"]
+    installed = {name: sys.modules.get(f"resireg.{name}") for name in names}
+    loaded: dict[str, ModuleType] = {}
     try:
+        for name in names:  # in import order: elbo imports kmeans
+            loaded[name] = load(name)
+            # `from resireg.<name> import ...` in the copies gets the copy
+            sys.modules[f"resireg.{name}"] = loaded[name]
         reconstruct = load("reconstruct")
     finally:
-        sys.modules["resireg.cluster"] = installed
-    return cluster, reconstruct
+        for name, module in installed.items():
+            if module is None:
+                sys.modules.pop(f"resireg.{name}", None)
+            else:
+                sys.modules[f"resireg.{name}"] = module
+    if split:
+        return Impl(loaded["kmeans"], reconstruct, loaded["pca"])
+    return Impl(loaded["cluster"], reconstruct, loaded["cluster"])
 
 
 def interleaved_best(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, float]:
@@ -135,9 +159,9 @@ _TIMED = [
     ("reconstruct", "_upsample"),
     ("reconstruct", "kmeans"),
     ("reconstruct", "sq_distances"),  # before the change: assign's second distance matrix
-    ("cluster", "kmeans_plusplus"),  # before: seeding (called by kmeans)
-    ("cluster", "_kmeans_plusplus"),  # after: seeding
-    ("cluster", "_lloyd"),
+    ("kmeans", "kmeans_plusplus"),  # before: seeding (called by kmeans)
+    ("kmeans", "_kmeans_plusplus"),  # after: seeding
+    ("kmeans", "_lloyd"),
 ]
 
 
@@ -228,23 +252,24 @@ def main() -> None:
         help="regions: hard regions of codes + noise; mixture: smooth mixtures of directions",
     )  # fmt: skip
     parser.add_argument(
-        "--impl", default=None, help="directory with cluster.py and reconstruct.py to time"
+        "--impl", default=None, help="directory with the clustering and reconstruct.py to time"
     )
     parser.add_argument("--no-forward", action="store_true", help="skip the Full/Lite forwards")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    cluster, reconstruct = load_impl(args.impl)
+    impl = load_impl(args.impl)
     for kind in args.features:
         torch.manual_seed(0)
         inter, lang = FEATURES[kind]()
         print(f"\n## features: {kind}")
-        compare(args, cluster, reconstruct, inter, lang, forward=not args.no_forward)
+        compare(args, impl, inter, lang, forward=not args.no_forward)
 
 
-def compare(args, cluster, reconstruct, inter, lang, forward: bool) -> None:
+def compare(args, impl: Impl, inter, lang, forward: bool) -> None:
     """One feature kind: the timing table, the inertia comparison, the stage profile and
     (``forward``) the Full/Lite forwards."""
-    modules = {"cluster": cluster, "reconstruct": reconstruct}
+    reconstruct = impl.reconstruct
+    modules = {"kmeans": impl.kmeans, "reconstruct": reconstruct}
     points = F.interpolate(inter, scale_factor=2, mode="bilinear", align_corners=False)
     points = points.permute(0, 2, 3, 1).reshape(-1, inter.shape[1]).contiguous()
     r, n = args.components, args.prototypes
@@ -259,8 +284,8 @@ def compare(args, cluster, reconstruct, inter, lang, forward: bool) -> None:
         return full.assign(inter)
 
     def torch_generic():  # the same algorithms on the materialised points
-        z = F.normalize(cluster.pca(points, r).transform(points), dim=1)
-        return cluster.kmeans(z, n, seed=0).inertia.item()
+        z = F.normalize(impl.pca.pca(points, r).transform(points), dim=1)
+        return impl.kmeans.kmeans(z, n, seed=0).inertia.item()
 
     x_np = points.numpy()
 

@@ -33,7 +33,7 @@ FLOP convention: 1 multiply-add = 2 FLOP; only matrix products (linear layers, c
 attention's two products, matmul / einsum) are counted; normalisations, softmax, GELU, RoPE,
 interpolation, ``index_add_`` and Full's ``D x D`` float64 ``eigh`` are left out (each is
 memory-bound or small). These are the ops ``torch.utils.flop_counter.FlopCounterMode`` counts
-(it lacks formulas for ``mv`` and the in-place ``addmm_`` of ``cluster.gram``), and ``tests/test_bench_throughput.py`` checks
+(it lacks formulas for ``mv`` and the in-place ``addmm_`` of ``pca.gram``), and ``tests/test_bench_throughput.py`` checks
 every formula against it, exactly, on the real modules.
 
 - Backbone (ViT, ``P = H*W/p^2`` patches, ``N = P + 1 + R`` tokens with R = 4 registers, width
@@ -52,8 +52,8 @@ every formula against it, exactly, on the real modules.
   is not used here.
 - Full (the batch is one scene; ``n = B s^2 h w`` points, K prototypes, r = min(components,
   Dv), ``t = 2 + floor(ln K)`` k-means++ candidates per step), as ``resireg.reconstruct`` /
-  ``resireg.cluster`` compute it: PCA moments from the small grid, ``U_a^T U_a`` of both axes
-  ``2 s (h^3 + w^3)``, first moment ``2 h w Dv``, second moment by ``cluster.gram`` (upper
+  ``resireg.pca`` compute it: PCA moments from the small grid, ``U_a^T U_a`` of both axes
+  ``2 s (h^3 + w^3)``, first moment ``2 h w Dv``, second moment by ``pca.gram`` (upper
   block triangle of 3 column slabs: 6 of 9 slab products, ``(4/3) B h w Dv^2``, accumulated
   over chunks of images; the Cholesky factors are applied elementwise); projection on the
   small grid ``2 B h w Dv r``; k-means++ ``2 n r (1 + t (K - 1))``; k-means ``2 K r R`` for
@@ -182,12 +182,12 @@ def lite_flops(
 
 
 def kmeanspp_candidates(k: int) -> int:
-    """Candidates per k-means++ step, as ``resireg.cluster.kmeans_plusplus`` draws them."""
+    """Candidates per k-means++ step, as ``resireg.kmeans.kmeans_plusplus`` draws them."""
     return 2 + int(math.log(k))
 
 
 def gram_flops(rows: int, dim: int, blocks: int = 4) -> int:
-    """``resireg.cluster.gram``: ``y^T y`` of ``[rows, dim]`` from the upper block triangle of
+    """``resireg.pca.gram``: ``y^T y`` of ``[rows, dim]`` from the upper block triangle of
     ``blocks`` column slabs (one plain product when ``dim < 32 * blocks``)."""
     if blocks <= 1 or dim < 32 * blocks:
         return 2 * rows * dim * dim

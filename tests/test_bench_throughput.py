@@ -50,7 +50,7 @@ def _addmm_flop(self_shape, a_shape, b_shape, *args, out_shape=None, **kwargs) -
 
 
 #: Matrix products FlopCounterMode has no formula for: matrix-vector products and the
-#: in-place ``addmm_`` that ``resireg.cluster.gram`` accumulates with.
+#: in-place ``addmm_`` that ``resireg.pca.gram`` accumulates with.
 _MISSING = {torch.ops.aten.mv: _mv_flop, torch.ops.aten.addmm_: _addmm_flop}
 
 
@@ -216,7 +216,7 @@ def test_full_flops_at_protocol_size_match_flop_counter():
 
 
 def test_gram_flops_match_flop_counter():
-    from resireg.cluster import gram
+    from resireg.pca import gram
 
     for d in (64, 95, 96, 384, 385):
         y = torch.randn(10, d)

@@ -5,7 +5,8 @@ from sklearn.cluster import KMeans
 from sklearn.cluster._kmeans import _tolerance as sk_tolerance
 from sklearn.decomposition import PCA
 
-from resireg.cluster import _lloyd, _tolerance, gram, kmeans, kmeans_plusplus, pca, sq_distances
+from resireg.kmeans import _lloyd, _tolerance, kmeans, kmeans_plusplus, sq_distances
+from resireg.pca import gram, pca
 
 
 def _mixture(n=3000, d=24, k=8, seed=0, spread=1.0):
@@ -196,7 +197,7 @@ def test_assign_rows_bounds_hold_for_exact_distances():
     """The float32 bounds of a computed row bound the float64 distances: the upper one the
     distance to the nearest centroid, each group's lower one the distance to the group's
     other centroids, also for points that sit nearly on a centroid or a boundary."""
-    from resireg.cluster import _GROUP, _assign_rows, _sq_error
+    from resireg.kmeans import _GROUP, _assign_rows, _sq_error
 
     g = torch.Generator().manual_seed(3)
     c = torch.randn(10, 16, generator=g)  # 10 centroids: groups of 4, 4 and 2 (padded)
@@ -225,11 +226,11 @@ def test_assign_rows_bounds_hold_for_exact_distances():
 def test_grouped_bounds_skip_more_rows_than_hamerly_with_the_same_result(monkeypatch):
     """Groups of centroids (Yinyang) vs one group of all centroids (Hamerly's single lower
     bound): the same labels, centroids and iterations, fewer distance rows."""
-    import resireg.cluster as cluster
+    import resireg.kmeans as kmeans_module
 
     x = torch.nn.functional.normalize(_mixture(n=6000, d=32, k=40, spread=2.0), dim=1)
     grouped = kmeans(x, 40, seed=1)
-    monkeypatch.setattr(cluster, "_GROUP", 40)
+    monkeypatch.setattr(kmeans_module, "_GROUP", 40)
     hamerly = kmeans(x, 40, seed=1)
     assert grouped.n_iter == hamerly.n_iter >= 5
     assert torch.equal(grouped.labels, hamerly.labels)
@@ -243,14 +244,14 @@ def test_near_centroid_groups_skip_rows_and_change_nothing(monkeypatch):
     permutation whose groups are the planted quadruples, then (on points without near-ties,
     where only rounding could decide) the same labels, centroids, iterations and distances,
     with fewer distance rows."""
-    import resireg.cluster as cluster
+    import resireg.kmeans as kmeans_module
 
     g = torch.Generator().manual_seed(4)
     # 12 quadruples of near centroids, listed in a shuffled order.
     hubs = torch.randn(12, 16, generator=g) * 4
     centroids = hubs.repeat_interleave(4, 0) + 0.2 * torch.randn(48, 16, generator=g)
     shuffle = torch.randperm(48, generator=g)
-    order = cluster._proximity_order(centroids[shuffle])
+    order = kmeans_module._proximity_order(centroids[shuffle])
     assert torch.equal(order.sort().values, torch.arange(48))
     quadruple = (shuffle // 4)[order].view(12, 4)  # planted quadruple of each grouped centroid
     assert (quadruple == quadruple[:, :1]).all()
@@ -258,7 +259,7 @@ def test_near_centroid_groups_skip_rows_and_change_nothing(monkeypatch):
     # 60 centroids on 15 blobs: several centroids share a blob, as Full's 24-132 prototypes do.
     x = torch.nn.functional.normalize(_mixture(n=8000, d=32, k=15, spread=1.0, seed=5), dim=1)
     near = kmeans(x, 60, seed=2)
-    monkeypatch.setattr(cluster, "_proximity_order", lambda c: torch.arange(c.shape[0]))
+    monkeypatch.setattr(kmeans_module, "_proximity_order", lambda c: torch.arange(c.shape[0]))
     consecutive = kmeans(x, 60, seed=2)
     assert near.n_iter == consecutive.n_iter >= 5
     assert torch.equal(near.labels, consecutive.labels)
@@ -272,7 +273,7 @@ def test_assign_rows_ties_go_to_the_lowest_index():
     """Exact ties (duplicated centroids, also across groups) give the lowest index, as
     numpy's argmin of the same computed row; the group bound of the nearest's group then
     holds its duplicate (distance equal to the nearest), not inf."""
-    from resireg.cluster import _GROUP, _assign_rows, _sq_error
+    from resireg.kmeans import _GROUP, _assign_rows, _sq_error
 
     g = torch.Generator().manual_seed(6)
     c = torch.randn(10, 8, generator=g)
@@ -291,3 +292,170 @@ def test_assign_rows_ties_go_to_the_lowest_index():
     assert labels[:4].tolist() == [2, 1, 2, 1]
     # point 1's nearest is centroid 1; centroid 3 (same group, same distance) bounds group 0
     assert lower[0, 1] <= upper[1] * (1 + 1e-5)
+
+
+def test_nested_kmeans_is_one_seeding_cut_at_each_count():
+    """Count k's labels come from the first k centres of one greedy k-means++ run with the
+    largest count's trials (the nearest seed, or Lloyd from those seeds), so they equal
+    kmeans_plusplus of k centres with those trials; the scan is lazy and checks its counts."""
+    import math
+
+    from resireg.kmeans import nested_kmeans
+
+    x = _mixture(n=800, d=6, k=5, seed=7)
+    counts = [2, 3, 7]
+    trials = 2 + int(math.log(counts[-1]))
+    nearest = dict(nested_kmeans(x, counts, seed=4))
+    lloyd = dict(nested_kmeans(x, counts, seed=4, max_iter=5))
+    assert list(nearest) == counts
+    for k in counts:
+        seeds = kmeans_plusplus(x, k, torch.Generator().manual_seed(4), n_local_trials=trials)
+        assert torch.equal(nearest[k], sq_distances(x, seeds).argmin(1))
+        assert torch.equal(lloyd[k], _lloyd(x, seeds, 5, _tolerance(x, 1e-4)).labels)
+    scan = nested_kmeans(x, counts, seed=4)
+    assert next(scan)[0] == 2  # lazy: the later counts are not computed
+    for bad in ([], [0, 2], [3, 2], [2, 2], [801]):
+        with pytest.raises(ValueError, match="counts="):
+            nested_kmeans(x, bad)
+
+
+# Every public name resireg.cluster held, and the module that holds it now.
+_CLUSTER_NAMES = {
+    "resireg.pca": ["PCAResult", "PCASpectrum", "pca", "pca_from_moments", "gram"],
+    "resireg.kmeans": ["KMeansResult", "kmeans", "kmeans_plusplus", "sq_distances"],
+    "resireg.elbo": [
+        "VBGMMResult",
+        "vb_gmm",
+        "ELBO_MAX_POINTS",
+        "elbo_subsample",
+        "elbo_fits",
+        "elbo_prototype_count",
+    ],
+}
+
+
+def test_cluster_shim_warns_and_keeps_the_old_names(monkeypatch):
+    """``resireg.cluster`` (split into resireg.pca, resireg.kmeans and resireg.elbo) stays
+    importable for one release: importing it warns, naming the new modules, and every former
+    public name is the new module's object, with a warning naming that module. ``import
+    resireg`` and the method's modules do not import it (so they do not warn)."""
+    import importlib
+    import subprocess
+    import sys
+
+    monkeypatch.delitem(sys.modules, "resireg.cluster", raising=False)
+    with pytest.warns(DeprecationWarning, match="resireg.pca.*resireg.kmeans.*resireg.elbo"):
+        cluster = importlib.import_module("resireg.cluster")
+    assert sorted(cluster.__all__) == sorted(n for names in _CLUSTER_NAMES.values() for n in names)
+    for module, names in _CLUSTER_NAMES.items():
+        new = importlib.import_module(module)
+        for name in names:
+            with pytest.warns(DeprecationWarning, match=rf"import it from {module}\b"):
+                assert getattr(cluster, name) is getattr(new, name)
+            assert name in new.__all__
+    with pytest.warns(DeprecationWarning):
+        from resireg.cluster import elbo_prototype_count
+        from resireg.cluster import kmeans as old_kmeans
+        from resireg.cluster import pca as old_pca
+    assert (old_pca, old_kmeans) == (pca, kmeans)
+    assert elbo_prototype_count.__module__ == "resireg.elbo"
+    with pytest.raises(AttributeError, match="_lloyd"):
+        cluster._lloyd  # noqa: B018 - private names did not move to the shim
+    code = (
+        "import sys, resireg, resireg.reconstruct, resireg.calib, resireg.variants, "
+        "resireg.mapping\nassert 'resireg.cluster' not in sys.modules, 'imported the shim'"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def _private_imports(path, module: str, root) -> list[str]:
+    """``module``'s (its file ``path``) uses of another resireg module's private name: ``from
+    resireg.x import _name`` (relative imports resolved) or ``x._name`` where ``x`` is bound to a
+    resireg module (``import resireg.x as x``, ``from resireg import x``)."""
+    import ast
+
+    def is_module(dotted: str) -> bool:
+        parts = dotted.split(".")
+        return (root / "/".join(parts)).with_suffix(".py").is_file() or (
+            root / "/".join(parts) / "__init__.py"
+        ).is_file()
+
+    def private(name: str) -> bool:
+        return name.startswith("_") and not name.startswith("__")
+
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    bound: dict[str, str] = {}  # local name -> resireg module
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1])
+                base = f"{base}.{node.module}" if node.module else base
+            if not (base == "resireg" or base.startswith("resireg.")):
+                continue
+            for alias in node.names:
+                if private(alias.name) and base != module:
+                    found.append(f"{module}:{node.lineno}: from {base} import {alias.name}")
+                elif is_module(f"{base}.{alias.name}"):
+                    bound[alias.asname or alias.name] = f"{base}.{alias.name}"
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name == "resireg" or alias.name.startswith("resireg."):
+                    if alias.asname:
+                        bound[alias.asname] = alias.name
+                    else:
+                        bound["resireg"] = "resireg"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and private(node.attr):
+            chain, value = [], node.value
+            while isinstance(value, ast.Attribute):
+                chain.append(value.attr)
+                value = value.value
+            if isinstance(value, ast.Name) and value.id in bound:
+                target = ".".join([bound[value.id], *reversed(chain)])
+                if is_module(target) and target != module:
+                    found.append(f"{module}:{node.lineno}: {target}.{node.attr}")
+    return found
+
+
+def test_no_module_of_resireg_uses_another_ones_private_names(tmp_path):
+    """Helpers one module of ``resireg`` needs from another are public (resireg.checks'
+    check_variant_inputs, resireg.mapping.keys, resireg.kmeans.nested_kmeans, ...): an AST scan
+    of src/resireg finds no import or attribute use of another resireg module's private name.
+    The scanner itself is checked on planted uses."""
+    from pathlib import Path
+
+    import resireg
+
+    root = Path(resireg.__file__).resolve().parents[1]
+    files = sorted((root / "resireg").rglob("*.py"))
+    modules = {}
+    for path in files:
+        name = ".".join(path.relative_to(root).with_suffix("").parts)
+        modules[name.removesuffix(".__init__")] = path
+    assert {"resireg.pca", "resireg.kmeans", "resireg.elbo", "resireg.mapping.keys"} <= set(modules)
+    found = [hit for name, path in modules.items() for hit in _private_imports(path, name, root)]
+    assert found == []
+
+    planted = tmp_path / "resireg" / "mapping" / "planted.py"
+    planted.parent.mkdir(parents=True)
+    for name in ("keys", "voxels"):
+        (planted.parent / f"{name}.py").write_text("")
+    (tmp_path / "resireg" / "kmeans.py").write_text("")
+    planted.write_text(
+        "import resireg.kmeans as km\nimport resireg.mapping.voxels\n"
+        "from resireg.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
+        "from resireg.mapping import voxels\n"
+        "km._tolerance(1)\nresireg.mapping.voxels._check(1)\nvoxels._x\n"
+        "from torch import _C\nkm.kmeans\nself._private\n"
+    )
+    hits = _private_imports(planted, "resireg.mapping.planted", tmp_path)
+    assert sorted(hit.split(": ", 1)[1] for hit in hits) == [
+        "from resireg.kmeans import _lloyd",
+        "from resireg.mapping.keys import _OFFSET",
+        "resireg.kmeans._tolerance",
+        "resireg.mapping.voxels._check",
+        "resireg.mapping.voxels._x",
+    ]

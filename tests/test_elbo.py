@@ -1,4 +1,4 @@
-"""The ELBO prototype-count chooser (resireg.cluster.vb_gmm / elbo_prototype_count) against
+"""The ELBO prototype-count chooser (resireg.elbo.vb_gmm / elbo_prototype_count) against
 scikit-learn's BayesianGaussianMixture and the closed-form evidence of a conjugate model."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ import torch
 from scipy import stats
 from sklearn.mixture import BayesianGaussianMixture
 
-from resireg.cluster import elbo_fits, elbo_prototype_count, elbo_subsample, kmeans, vb_gmm
+from resireg.elbo import elbo_fits, elbo_prototype_count, elbo_subsample, vb_gmm
+from resireg.kmeans import kmeans
 
 
 def _blobs(n_clusters: int, dim: int, seed: int, per: int = 150, spread: float = 0.15):

@@ -390,7 +390,7 @@ def test_resireg_raises_miou_over_noisy_language_tokens():
 
 @pytest.mark.parametrize("scale", [1, 2, 3])
 def test_upsampled_pca_equals_pca_of_materialised_points(scale):
-    from resireg.cluster import pca
+    from resireg.pca import pca
     from resireg.reconstruct import upsampled_pca
 
     x = torch.randn(3, 20, 5, 7) + 5.0  # an offset mean checks the float32 centring

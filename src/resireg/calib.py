@@ -84,7 +84,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.reconstruct import _check_inputs, _check_positive_int
+from resireg.checks import check_positive_int, check_variant_inputs
 from resireg.specs.rules import checked
 from resireg.specs.variants import VARIANT_SPECS, check_variant_kwargs
 
@@ -118,7 +118,7 @@ def negative_outlier_factor(points: Tensor, n_neighbors: int = 30) -> Tensor:
         ``[B, N]`` ``-LOF`` in ``points.dtype`` (around -1 for inliers, lower = more
         anomalous); all ``-1`` when ``N == 1``.
     """
-    _check_positive_int("n_neighbors", n_neighbors)
+    check_positive_int("n_neighbors", n_neighbors)
     if points.ndim != 3 or not points.is_floating_point():
         raise ValueError(
             f"points must be a floating [B, N, D] tensor, got {points.dtype} {tuple(points.shape)}"
@@ -277,10 +277,10 @@ class Calib(nn.Module):
     ) -> Tensor:
         """Calibrate the language tokens.
 
-        The inputs follow ReSiReg's rules (the shared ``_check_inputs`` of
-        :mod:`resireg.reconstruct`: floating-point, finite, no empty dimension; each error
-        names the argument) and, like ReSiReg, Calib has no parameters and runs under
-        :func:`torch.no_grad`.
+        The inputs follow ReSiReg's rules (the shared
+        :func:`resireg.checks.check_variant_inputs`: floating-point, finite, no empty
+        dimension; each error names the argument) and, like ReSiReg, Calib has no parameters
+        and runs under :func:`torch.no_grad`.
 
         Args:
             intermediates: ``[B, Dv, Hv, Wv]`` backbone features (LOF and affinities).
@@ -291,7 +291,7 @@ class Calib(nn.Module):
         Returns:
             ``[B, Dl, Hv, Wv]`` float32, unit L2 norm over ``Dl`` (a zero token stays zero).
         """
-        _check_inputs(intermediates, language, prior)
+        check_variant_inputs(intermediates, language, prior)
         wide = torch.float64 in (intermediates.dtype, language.dtype)
         dtype = torch.float64 if wide else torch.float32
         with torch.autocast(device_type=intermediates.device.type, enabled=False):

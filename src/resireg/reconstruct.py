@@ -6,6 +6,24 @@ language-aligned (but spatially noisy) features, and an optional segmentation pr
 ``S`` ``[B, H', W']`` holds instance ids (0 = none). Both modules return
 ``[B, Dl, Hv*s, Wv*s]`` features of unit L2 norm over ``Dl``.
 
+The module reads top to bottom: the helpers both variants use; the PCA of ReSiReg Full's
+upsampled points, computed from the small grid (:func:`upsampled_moments`); then
+:class:`ReSiRegFull`, whose ``forward`` (first among its steps) runs:
+
+1. the input check, :func:`resireg.checks.check_variant_inputs`;
+2. the covariance spectrum of the bilinearly upsampled intermediates, from the grid
+   (:meth:`FullShared.spectrum`, :func:`upsampled_spectrum`, :class:`resireg.pca.PCASpectrum`);
+3. :meth:`ReSiRegFull.assign`: with ``n_prototypes="elbo"`` the count
+   (:meth:`ReSiRegFull._elbo_count`: the subsample of :func:`resireg.elbo.elbo_subsample`,
+   only its points computed, then :func:`resireg.elbo.elbo_prototype_count`); the projection
+   on the grid, its upsampling and normalisation; :func:`resireg.kmeans.kmeans` of the
+   points (its products with the points taken on the grid);
+4. the prototypes (the mean language token of every cluster, and one per prior instance),
+   the softmax of the distances to them and the mix.
+
+Last, :class:`ReSiRegLite` and its helpers. The clustering modules (:mod:`resireg.pca`,
+:mod:`resireg.kmeans`, :mod:`resireg.elbo`) know nothing of this one; it calls them.
+
 Resolved ambiguity: the paper calls the Lite normalisation "column-wise"; we normalise
 over the prototype (key) axis, the same axis as Full, so every output patch is a convex
 combination of language tokens (before the optional tau gate).
@@ -20,16 +38,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.checks import check_features
-from resireg.cluster import (
-    ELBO_MAX_POINTS,
-    PCAResult,
-    PCASpectrum,
-    elbo_prototype_count,
-    elbo_subsample,
-    gram,
-    kmeans,
-)
+from resireg.checks import check_positive_int, check_variant_inputs
+from resireg.elbo import ELBO_MAX_POINTS, elbo_prototype_count, elbo_subsample
+from resireg.kmeans import kmeans
+from resireg.pca import PCAResult, PCASpectrum, gram
 from resireg.specs.variants import check_variant_kwargs
 
 __all__ = [
@@ -42,69 +54,8 @@ __all__ = [
     "upsampled_spectrum",
 ]
 
-# Budget for one chunk of the explicit (tau > 0) Lite attention matrix, in elements.
-_LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
-# Factorised Lite (ReSiRegLite._factorised), in elements: a block of queries' Gram rows
-# interpolated on the query side ([queries, h w]), and a tile of their similarities to every
-# key ([N, queries]). Measured on 2 cores at the protocol's size (6,912 points, one image):
-# tiles of 1M, 4M, 8M, 16M elements took 0.46, 0.50, 0.49, 0.81 s on one thread, and 2.3,
-# 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
-# pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
-# passes win there): 8M (32 MB in float32) is the compromise.
-_FACTORISED_BLOCK = 8 * 1024 * 1024
-_FACTORISED_TILE = 8 * 1024 * 1024
 
-
-def _check_positive_int(name: str, value: object) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-    return value
-
-
-def _check_inputs(intermediates: Tensor, language: Tensor, prior: Tensor | None) -> None:
-    """The rules every variant's inputs follow (Full, Lite and :class:`resireg.calib.Calib`):
-    floating-point and finite features (:func:`resireg.checks.check_features`; a NaN would
-    spread to the whole batch in Full and to the whole image in Lite), four dimensions, none
-    of them empty (a batch of 0 images, 0 channels or a 0-cell grid has nothing to
-    reconstruct), one batch size, and an integer prior of the same batch. Each error is a
-    :class:`ValueError` (:class:`TypeError` for a non-tensor or a non-floating dtype) naming
-    the argument and its shape."""
-    for name, x, dims in (
-        ("intermediates", intermediates, "[B, Dv, Hv, Wv]"),
-        ("language", language, "[B, Dl, Hl, Wl]"),
-    ):
-        if not isinstance(x, Tensor):  # the shape test below needs a tensor
-            check_features(name, x)
-        if x.ndim != 4:
-            raise ValueError(f"{name} must have shape {dims}, got shape {tuple(x.shape)}")
-        if 0 in x.shape:
-            raise ValueError(
-                f"{name} must have no empty dimension ({dims}: at least one image, channel and "
-                f"grid cell), got shape {tuple(x.shape)}"
-            )
-    if language.shape[0] != intermediates.shape[0]:
-        raise ValueError(
-            f"language batch size {language.shape[0]} does not match intermediates batch size "
-            f"{intermediates.shape[0]}"
-        )
-    if prior is not None:
-        if not isinstance(prior, Tensor) or prior.ndim != 3:
-            shape = tuple(prior.shape) if isinstance(prior, Tensor) else type(prior).__name__
-            raise ValueError(f"prior must have shape [B, H, W], got {shape}")
-        if prior.shape[0] != intermediates.shape[0]:
-            raise ValueError(
-                f"prior batch size {prior.shape[0]} does not match intermediates batch size "
-                f"{intermediates.shape[0]}"
-            )
-        if 0 in prior.shape:
-            raise ValueError(f"prior must have a non-empty grid, got shape {tuple(prior.shape)}")
-        if prior.is_floating_point() or prior.is_complex():
-            raise ValueError(f"prior must hold integer instance ids, got dtype {prior.dtype}")
-    # Last: the finiteness test reads every value, the shape tests above are free.
-    check_features("intermediates", intermediates)
-    check_features("language", language)
-
-
+# ------------------------------------------------------------------------ shared by Full and Lite
 def _upsample(x: Tensor, scale: int) -> Tensor:
     """Bilinear upsampling of ``[B, D, H, W]`` by an integer factor."""
     if scale == 1:
@@ -117,157 +68,6 @@ def _nearest(x: Tensor, size: tuple[int, int]) -> Tensor:
     if tuple(x.shape[-2:]) == tuple(size):
         return x
     return F.interpolate(x, size=size, mode="nearest")
-
-
-def factorised_blocks(h: int, w: int, scale: int) -> list[tuple[int, int, int, int]]:
-    """The query blocks of factorised Lite on an ``h x w`` grid upsampled by ``scale``:
-    ``(r0, r1, c0, c1)``, coarse query rows ``r0:r1`` (their upsampled rows
-    ``scale*r0:scale*r1``) and the coarse rows ``c0:c1`` their bilinear weights read (one
-    above and one below), each block's ``[queries, h w]`` Gram rows within
-    ``_FACTORISED_BLOCK`` elements (at least one coarse row)."""
-    rows = max(1, _FACTORISED_BLOCK // max(1, scale * scale * w * h * w))
-    return [
-        (r0, min(h, r0 + rows), max(0, r0 - 1), min(h, r0 + rows + 1)) for r0 in range(0, h, rows)
-    ]
-
-
-def _token_index(
-    lang_size: tuple[int, int], grid: tuple[int, int], scale: int, device: torch.device
-) -> tuple[Tensor, bool]:
-    """The language token of every point of the upsampled grid (``scale`` x ``grid``), as
-    :func:`_nearest` picks it (the nearest resize of the token index map, so exactly
-    ``F.interpolate``'s choice): ``([N] indices into the row-major token grid, whether token
-    j is the s x s block j)``, the latter when the language grid is the intermediates'."""
-    (hl, wl), (h, w) = lang_size, grid
-    size = (h * scale, w * scale)
-    index = torch.arange(hl * wl, dtype=torch.float64, device=device).view(1, 1, hl, wl)
-    token = _nearest(index, size).view(-1).long()
-    rows = torch.arange(size[0], device=device).div(scale, rounding_mode="floor")
-    cols = torch.arange(size[1], device=device).div(scale, rounding_mode="floor")
-    block = (rows.unsqueeze(1) * w + cols).view(-1)
-    return token, (hl, wl) == (h, w) and torch.equal(token, block)
-
-
-def _linear_interp_matrix(size: int, scale: int, device: torch.device) -> Tensor:
-    """``[size*scale, size]`` matrix of 1-D linear upsampling as ``F.interpolate`` does it."""
-    eye = torch.eye(size, device=device).unsqueeze(0)  # channel i holds the unit impulse e_i
-    return F.interpolate(eye, scale_factor=scale, mode="linear", align_corners=False)[0].T
-
-
-# Points per chunk of the moment and projection passes. Chunks hold whole images (the
-# bilinear factor couples neighbouring rows and columns of an image); their temporaries are
-# allocated once and stay in cache instead of being batch-sized fresh allocations.
-_CHUNK_POINTS = 4096
-
-
-def _image_chunks(b: int, h: int, w: int) -> list[tuple[int, int]]:
-    """``(start, stop)`` image ranges of about ``_CHUNK_POINTS`` grid points (>= 1 image)."""
-    per = max(1, _CHUNK_POINTS // max(1, h * w))
-    return [(i, min(b, i + per)) for i in range(0, b, per)]
-
-
-def _linear_gram_factor(size: int, scale: int, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Cholesky factor of ``U^T U`` for the 1-D linear upsampling ``U`` of ``size`` samples.
-
-    Every upsampled sample interpolates two neighbouring inputs, so ``U^T U`` is tridiagonal
-    (and positive definite) and its Cholesky factor ``L`` is lower bidiagonal. Returns its
-    diagonal ``[size]``, its subdiagonal ``[size - 1]`` (``L[i + 1, i]``) and ``U^T 1``
-    ``[size]``, in ``like``'s dtype and device.
-    """
-    u = _linear_interp_matrix(size, scale, like.device)
-    low = torch.linalg.cholesky((u.T @ u).double())
-    return (
-        low.diagonal().to(like.dtype),
-        low.diagonal(-1).to(like.dtype),
-        u.sum(0).to(like.dtype),
-    )
-
-
-def _apply_factor(t: Tensor, diag: Tensor, sub: Tensor, dim: int, out: Tensor) -> Tensor:
-    """``L^T`` of a lower bidiagonal ``L`` applied along ``dim`` of ``t``, into ``out``:
-    ``out_a = L[a, a] t_a + L[a + 1, a] t_(a + 1)`` (two vectorised passes)."""
-    shape = [1] * t.ndim
-    shape[dim] = -1
-    torch.mul(t, diag.view(shape), out=out)
-    size = t.shape[dim]
-    if size > 1:
-        out.narrow(dim, 0, size - 1).addcmul_(t.narrow(dim, 1, size - 1), sub.view(shape))
-    return out
-
-
-def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tensor]:
-    """Moments of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, from the grid.
-
-    Returns ``(second, first, n, shift)`` as :func:`resireg.cluster.pca_from_moments` takes
-    them: ``shift`` is the grid's mean, ``second = sum_p (u_p - shift)(u_p - shift)^T`` and
-    ``first = sum_p (u_p - shift)`` over the ``n = B h w s^2`` upsampled points ``u_p``.
-
-    Bilinear upsampling is a linear map ``U`` that is separable (``U = U_h (x) U_w``) with
-    rows summing to one, so ``second = X^T (U^T U) X`` and ``first = (U^T 1)^T X`` for the
-    centred grid points ``X``. Each ``U_a^T U_a`` is tridiagonal with a lower bidiagonal
-    Cholesky factor ``L_a``, hence ``second = Y^T Y`` with ``Y = (L_h^T (x) L_w^T) X``: four
-    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.cluster.gram`),
-    accumulated over chunks of images so no batch-sized temporary is formed.
-    """
-    b, d, h, w = x.shape
-    pts = x.permute(0, 2, 3, 1)  # [B, h, w, D]; a plain view for channels-last maps
-    shift = pts.mean(dim=(0, 1, 2), dtype=torch.float32)  # centring avoids cancellation
-    chunks = _image_chunks(b, h, w)
-    size = (chunks[0][1], h, w, d)
-    centred = torch.empty(size, dtype=shift.dtype, device=x.device)
-    total = torch.zeros(size[1:], dtype=shift.dtype, device=x.device)  # sum over images
-    second = torch.zeros(d, d, dtype=shift.dtype, device=x.device)
-    if scale > 1:
-        dh, sub_h, wh = _linear_gram_factor(h, scale, centred)
-        dw, sub_w, ww = _linear_gram_factor(w, scale, centred)
-        half, factored = torch.empty_like(centred), torch.empty_like(centred)
-    for start, stop in chunks:
-        m = stop - start
-        c = torch.sub(pts[start:stop], shift, out=centred[:m])
-        total += c.sum(0)
-        if scale > 1:
-            c = _apply_factor(c, dh, sub_h, 1, out=half[:m])
-            c = _apply_factor(c, dw, sub_w, 2, out=factored[:m])
-        gram(c.reshape(-1, d), out=second)
-    if scale > 1:
-        first = torch.outer(wh, ww).reshape(h * w) @ total.reshape(h * w, d)
-    else:
-        first = total.sum(dim=(0, 1))
-    return second, first, b * h * w * scale * scale, shift
-
-
-def upsampled_pca(x: Tensor, scale: int, n_components: int) -> PCAResult:
-    """Exact PCA of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, cheaply.
-
-    Upsampling by ``s`` multiplies the point count by ``s^2`` (55k points of dimension
-    384 for a batch of 8 at 36 x 48 and s = 2) and the ``N x D x D`` covariance product
-    dominated ReSiReg Full's run time. The moments of the upsampled points follow from the
-    small grid (:func:`upsampled_moments`), so this is the same PCA, ``s^2`` times cheaper;
-    the projection likewise commutes with upsampling (``upsample(X) W = upsample(X W)``).
-    """
-    return upsampled_spectrum(x, scale).top(n_components)
-
-
-def upsampled_spectrum(x: Tensor, scale: int) -> PCASpectrum:
-    """The covariance eigendecomposition behind :func:`upsampled_pca` (any component count
-    is then a slice: :meth:`~resireg.cluster.PCASpectrum.top`)."""
-    second, first, n, shift = upsampled_moments(x, scale)
-    return PCASpectrum.from_moments(second, first, n, shift=shift)
-
-
-def _project_grid(x: Tensor, fit: PCAResult) -> Tensor:
-    """``(x_p - mean) W^T`` for the grid points of ``x`` ``[B, D, h, w]`` -> ``[B*h*w, r]``
-    (row-major over batch, then space), in chunks of images."""
-    b, d, h, w = x.shape
-    pts = x.permute(0, 2, 3, 1)
-    chunks = _image_chunks(b, h, w)
-    centred = torch.empty((chunks[0][1], h, w, d), dtype=fit.mean.dtype, device=x.device)
-    comps_t = fit.components.T
-    out = torch.empty(b * h * w, comps_t.shape[1], dtype=fit.mean.dtype, device=x.device)
-    for start, stop in chunks:
-        c = torch.sub(pts[start:stop], fit.mean, out=centred[: stop - start])
-        torch.mm(c.reshape(-1, d), comps_t, out=out[start * h * w : stop * h * w])
-    return out
 
 
 def _to_points(x: Tensor) -> Tensor:
@@ -329,6 +129,130 @@ class _Instances:
         self.max_per_image = int(per_image.max().item()) if b else 0
 
 
+# ------------------------------------------- Full: the PCA of the upsampled points, from the grid
+def _linear_interp_matrix(size: int, scale: int, device: torch.device) -> Tensor:
+    """``[size*scale, size]`` matrix of 1-D linear upsampling as ``F.interpolate`` does it."""
+    eye = torch.eye(size, device=device).unsqueeze(0)  # channel i holds the unit impulse e_i
+    return F.interpolate(eye, scale_factor=scale, mode="linear", align_corners=False)[0].T
+
+
+# Points per chunk of the moment and projection passes. Chunks hold whole images (the
+# bilinear factor couples neighbouring rows and columns of an image); their temporaries are
+# allocated once and stay in cache instead of being batch-sized fresh allocations.
+_CHUNK_POINTS = 4096
+
+
+def _image_chunks(b: int, h: int, w: int) -> list[tuple[int, int]]:
+    """``(start, stop)`` image ranges of about ``_CHUNK_POINTS`` grid points (>= 1 image)."""
+    per = max(1, _CHUNK_POINTS // max(1, h * w))
+    return [(i, min(b, i + per)) for i in range(0, b, per)]
+
+
+def _linear_gram_factor(size: int, scale: int, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Cholesky factor of ``U^T U`` for the 1-D linear upsampling ``U`` of ``size`` samples.
+
+    Every upsampled sample interpolates two neighbouring inputs, so ``U^T U`` is tridiagonal
+    (and positive definite) and its Cholesky factor ``L`` is lower bidiagonal. Returns its
+    diagonal ``[size]``, its subdiagonal ``[size - 1]`` (``L[i + 1, i]``) and ``U^T 1``
+    ``[size]``, in ``like``'s dtype and device.
+    """
+    u = _linear_interp_matrix(size, scale, like.device)
+    low = torch.linalg.cholesky((u.T @ u).double())
+    return (
+        low.diagonal().to(like.dtype),
+        low.diagonal(-1).to(like.dtype),
+        u.sum(0).to(like.dtype),
+    )
+
+
+def _apply_factor(t: Tensor, diag: Tensor, sub: Tensor, dim: int, out: Tensor) -> Tensor:
+    """``L^T`` of a lower bidiagonal ``L`` applied along ``dim`` of ``t``, into ``out``:
+    ``out_a = L[a, a] t_a + L[a + 1, a] t_(a + 1)`` (two vectorised passes)."""
+    shape = [1] * t.ndim
+    shape[dim] = -1
+    torch.mul(t, diag.view(shape), out=out)
+    size = t.shape[dim]
+    if size > 1:
+        out.narrow(dim, 0, size - 1).addcmul_(t.narrow(dim, 1, size - 1), sub.view(shape))
+    return out
+
+
+def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tensor]:
+    """Moments of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, from the grid.
+
+    Returns ``(second, first, n, shift)`` as :func:`resireg.pca.pca_from_moments` takes
+    them: ``shift`` is the grid's mean, ``second = sum_p (u_p - shift)(u_p - shift)^T`` and
+    ``first = sum_p (u_p - shift)`` over the ``n = B h w s^2`` upsampled points ``u_p``.
+
+    Bilinear upsampling is a linear map ``U`` that is separable (``U = U_h (x) U_w``) with
+    rows summing to one, so ``second = X^T (U^T U) X`` and ``first = (U^T 1)^T X`` for the
+    centred grid points ``X``. Each ``U_a^T U_a`` is tridiagonal with a lower bidiagonal
+    Cholesky factor ``L_a``, hence ``second = Y^T Y`` with ``Y = (L_h^T (x) L_w^T) X``: four
+    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.pca.gram`),
+    accumulated over chunks of images so no batch-sized temporary is formed.
+    """
+    b, d, h, w = x.shape
+    pts = x.permute(0, 2, 3, 1)  # [B, h, w, D]; a plain view for channels-last maps
+    shift = pts.mean(dim=(0, 1, 2), dtype=torch.float32)  # centring avoids cancellation
+    chunks = _image_chunks(b, h, w)
+    size = (chunks[0][1], h, w, d)
+    centred = torch.empty(size, dtype=shift.dtype, device=x.device)
+    total = torch.zeros(size[1:], dtype=shift.dtype, device=x.device)  # sum over images
+    second = torch.zeros(d, d, dtype=shift.dtype, device=x.device)
+    if scale > 1:
+        dh, sub_h, wh = _linear_gram_factor(h, scale, centred)
+        dw, sub_w, ww = _linear_gram_factor(w, scale, centred)
+        half, factored = torch.empty_like(centred), torch.empty_like(centred)
+    for start, stop in chunks:
+        m = stop - start
+        c = torch.sub(pts[start:stop], shift, out=centred[:m])
+        total += c.sum(0)
+        if scale > 1:
+            c = _apply_factor(c, dh, sub_h, 1, out=half[:m])
+            c = _apply_factor(c, dw, sub_w, 2, out=factored[:m])
+        gram(c.reshape(-1, d), out=second)
+    if scale > 1:
+        first = torch.outer(wh, ww).reshape(h * w) @ total.reshape(h * w, d)
+    else:
+        first = total.sum(dim=(0, 1))
+    return second, first, b * h * w * scale * scale, shift
+
+
+def upsampled_pca(x: Tensor, scale: int, n_components: int) -> PCAResult:
+    """Exact PCA of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, cheaply.
+
+    Upsampling by ``s`` multiplies the point count by ``s^2`` (55k points of dimension
+    384 for a batch of 8 at 36 x 48 and s = 2) and the ``N x D x D`` covariance product
+    dominated ReSiReg Full's run time. The moments of the upsampled points follow from the
+    small grid (:func:`upsampled_moments`), so this is the same PCA, ``s^2`` times cheaper;
+    the projection likewise commutes with upsampling (``upsample(X) W = upsample(X W)``).
+    """
+    return upsampled_spectrum(x, scale).top(n_components)
+
+
+def upsampled_spectrum(x: Tensor, scale: int) -> PCASpectrum:
+    """The covariance eigendecomposition behind :func:`upsampled_pca` (any component count
+    is then a slice: :meth:`~resireg.pca.PCASpectrum.top`)."""
+    second, first, n, shift = upsampled_moments(x, scale)
+    return PCASpectrum.from_moments(second, first, n, shift=shift)
+
+
+def _project_grid(x: Tensor, fit: PCAResult) -> Tensor:
+    """``(x_p - mean) W^T`` for the grid points of ``x`` ``[B, D, h, w]`` -> ``[B*h*w, r]``
+    (row-major over batch, then space), in chunks of images."""
+    b, d, h, w = x.shape
+    pts = x.permute(0, 2, 3, 1)
+    chunks = _image_chunks(b, h, w)
+    centred = torch.empty((chunks[0][1], h, w, d), dtype=fit.mean.dtype, device=x.device)
+    comps_t = fit.components.T
+    out = torch.empty(b * h * w, comps_t.shape[1], dtype=fit.mean.dtype, device=x.device)
+    for start, stop in chunks:
+        c = torch.sub(pts[start:stop], fit.mean, out=centred[: stop - start])
+        torch.mm(c.reshape(-1, d), comps_t, out=out[start * h * w : stop * h * w])
+    return out
+
+
+# ------------------------------------------------------------------------------------------- Full
 class FullShared:
     """What every ReSiReg Full configuration computes identically for one batch: the
     covariance spectrum of the upsampled intermediates (each configuration slices its own
@@ -374,7 +298,7 @@ class ReSiRegFull(nn.Module):
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
             prototype heuristic as a function of the batch size (see ``heuristic``), or
             ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
-            bound (:func:`resireg.cluster.elbo_prototype_count`, docs/design.md section 4.4b).
+            bound (:func:`resireg.elbo.elbo_prototype_count`, docs/design.md section 4.4b).
         n_components: PCA components ``r``; ``None`` (default): equal to the prototype
             count of the batch (tied, as in the paper's ablation and ``full.n_components:
             null`` of conf/resireg/default.yaml). Clipped to the intermediate dimension.
@@ -394,13 +318,13 @@ class ReSiRegFull(nn.Module):
             axes as the largest candidate); Full then runs with the chosen count (tied: on
             that many axes). :attr:`chosen` lists the count of every batch.
         elbo_max_points: with ``"elbo"``, the bound is fitted on a uniform subsample of at
-            most this many points (:func:`resireg.cluster.elbo_subsample`), each standing for
+            most this many points (:func:`resireg.elbo.elbo_subsample`), each standing for
             ``N / M`` of the batch's ``N``.
         elbo_stop_after: with ``"elbo"``, the scan of the candidates (in increasing order)
             stops once this many consecutive ones fall below the largest bound so far;
-            ``None`` fits them all (:func:`resireg.cluster.elbo_prototype_count`).
+            ``None`` fits them all (:func:`resireg.elbo.elbo_prototype_count`).
         elbo_tol: with ``"elbo"``, EM stops once the bound changes by less than this many
-            nats per point (:func:`resireg.cluster.elbo_fits`).
+            nats per point (:func:`resireg.elbo.elbo_fits`).
     """
 
     def __init__(
@@ -439,7 +363,7 @@ class ReSiRegFull(nn.Module):
                     f"got elbo_candidates={elbo_candidates!r}"
                 )
             self.elbo_candidates = tuple(
-                sorted({_check_positive_int("elbo_candidates", c) for c in elbo_candidates})
+                sorted({check_positive_int("elbo_candidates", c) for c in elbo_candidates})
             )
         elif n_prototypes == "auto":
             from resireg.heuristic import PrototypeHeuristic
@@ -467,7 +391,7 @@ class ReSiRegFull(nn.Module):
         if self.elbo_candidates is not None:  # the most "elbo" can choose
             return self.elbo_candidates[-1]
         if self.heuristic is not None:
-            return _check_positive_int(
+            return check_positive_int(
                 "n_prototypes (from heuristic)", int(self.heuristic(batch_size))
             )
         return int(self.n_prototypes)
@@ -484,6 +408,60 @@ class ReSiRegFull(nn.Module):
                 f"B={batch_size} intermediates of {height} x {width}, upscale={s})"
             )
         return n
+
+    @torch.no_grad()
+    def forward(
+        self,
+        intermediates: Tensor,
+        language: Tensor,
+        prior: Tensor | None = None,
+        shared: FullShared | None = None,
+    ) -> Tensor:
+        """Reconstruct language features.
+
+        ReSiReg has no parameters and its clustering (k-means' assignments) has no useful
+        gradient, so it runs under :func:`torch.no_grad`: inputs that require grad are
+        accepted and the result does not require grad (Lite and Calib alike).
+
+        Args:
+            intermediates: ``[B, Dv, Hv, Wv]`` backbone features used for clustering.
+            language: ``[B, Dl, Hl, Wl]`` language-aligned patch tokens.
+            prior: optional ``[B, H', W']`` integer instance ids (0 = none).
+            shared: work shared with other configurations of this batch (:class:`FullShared`
+                of these two tensors and this ``upscale``); ``None`` computes it here.
+
+        Returns:
+            ``[B, Dl, Hv*s, Wv*s]``, unit L2 norm over ``Dl``, in ``language.dtype``.
+
+        Raises:
+            TypeError: ``intermediates`` or ``language`` is not a floating-point tensor.
+            ValueError: a shape is wrong or has an empty dimension, or the features hold NaN
+                or inf (:class:`resireg.checks.NonFiniteError`); the message names the
+                argument.
+        """
+        check_variant_inputs(intermediates, language, prior)
+        if shared is None:
+            shared = FullShared(intermediates, language, self.upscale)
+        shared.check(intermediates, language, self.upscale)
+        with torch.autocast(device_type=intermediates.device.type, enabled=False):
+            dist, (b, h, w) = self.assign(intermediates, shared.spectrum())
+            tokens = shared.tokens((h, w))  # [N, Dl]
+            masks = dist.argmin(dim=1)
+            protos = _masked_mean_normalised(tokens, masks, dist.shape[1])
+            if prior is not None:
+                inst = _Instances(prior, (h, w))
+                prior_dist = torch.ones(dist.shape[0], inst.count, device=dist.device)
+                has = inst.index >= 0
+                prior_dist[has.nonzero().squeeze(1), inst.index[has]] = 0.0
+                dist = torch.cat([dist, prior_dist], dim=1)
+                protos = torch.cat(
+                    [protos, _masked_mean_normalised(tokens, inst.index, inst.count)]
+                )
+            weights = torch.softmax(dist.mul_(-self.alpha), dim=1)  # dist is ours: in place
+            if self.tau > 0:
+                weights = weights * (weights >= self.tau)
+            out = _normalise_(weights @ protos, dim=1)
+        return out.reshape(b, h, w, -1).permute(0, 3, 1, 2).to(language.dtype)
 
     @torch.no_grad()
     def assign(
@@ -577,59 +555,48 @@ class ReSiRegFull(nn.Module):
             up[at] = taps[0, :, 0].T
         return F.normalize((up - fit.mean) @ fit.components.T, dim=1)
 
-    @torch.no_grad()
-    def forward(
-        self,
-        intermediates: Tensor,
-        language: Tensor,
-        prior: Tensor | None = None,
-        shared: FullShared | None = None,
-    ) -> Tensor:
-        """Reconstruct language features.
 
-        ReSiReg has no parameters and its clustering (k-means' assignments) has no useful
-        gradient, so it runs under :func:`torch.no_grad`: inputs that require grad are
-        accepted and the result does not require grad (Lite and Calib alike).
+# ------------------------------------------------------------------------------------------- Lite
+# Budget for one chunk of the explicit (tau > 0) Lite attention matrix, in elements.
+_LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
+# Factorised Lite (ReSiRegLite._factorised), in elements: a block of queries' Gram rows
+# interpolated on the query side ([queries, h w]), and a tile of their similarities to every
+# key ([N, queries]). Measured on 2 cores at the protocol's size (6,912 points, one image):
+# tiles of 1M, 4M, 8M, 16M elements took 0.46, 0.50, 0.49, 0.81 s on one thread, and 2.3,
+# 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
+# pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
+# passes win there): 8M (32 MB in float32) is the compromise.
+_FACTORISED_BLOCK = 8 * 1024 * 1024
+_FACTORISED_TILE = 8 * 1024 * 1024
 
-        Args:
-            intermediates: ``[B, Dv, Hv, Wv]`` backbone features used for clustering.
-            language: ``[B, Dl, Hl, Wl]`` language-aligned patch tokens.
-            prior: optional ``[B, H', W']`` integer instance ids (0 = none).
-            shared: work shared with other configurations of this batch (:class:`FullShared`
-                of these two tensors and this ``upscale``); ``None`` computes it here.
 
-        Returns:
-            ``[B, Dl, Hv*s, Wv*s]``, unit L2 norm over ``Dl``, in ``language.dtype``.
+def factorised_blocks(h: int, w: int, scale: int) -> list[tuple[int, int, int, int]]:
+    """The query blocks of factorised Lite on an ``h x w`` grid upsampled by ``scale``:
+    ``(r0, r1, c0, c1)``, coarse query rows ``r0:r1`` (their upsampled rows
+    ``scale*r0:scale*r1``) and the coarse rows ``c0:c1`` their bilinear weights read (one
+    above and one below), each block's ``[queries, h w]`` Gram rows within
+    ``_FACTORISED_BLOCK`` elements (at least one coarse row)."""
+    rows = max(1, _FACTORISED_BLOCK // max(1, scale * scale * w * h * w))
+    return [
+        (r0, min(h, r0 + rows), max(0, r0 - 1), min(h, r0 + rows + 1)) for r0 in range(0, h, rows)
+    ]
 
-        Raises:
-            TypeError: ``intermediates`` or ``language`` is not a floating-point tensor.
-            ValueError: a shape is wrong or has an empty dimension, or the features hold NaN
-                or inf (:class:`resireg.checks.NonFiniteError`); the message names the
-                argument.
-        """
-        _check_inputs(intermediates, language, prior)
-        if shared is None:
-            shared = FullShared(intermediates, language, self.upscale)
-        shared.check(intermediates, language, self.upscale)
-        with torch.autocast(device_type=intermediates.device.type, enabled=False):
-            dist, (b, h, w) = self.assign(intermediates, shared.spectrum())
-            tokens = shared.tokens((h, w))  # [N, Dl]
-            masks = dist.argmin(dim=1)
-            protos = _masked_mean_normalised(tokens, masks, dist.shape[1])
-            if prior is not None:
-                inst = _Instances(prior, (h, w))
-                prior_dist = torch.ones(dist.shape[0], inst.count, device=dist.device)
-                has = inst.index >= 0
-                prior_dist[has.nonzero().squeeze(1), inst.index[has]] = 0.0
-                dist = torch.cat([dist, prior_dist], dim=1)
-                protos = torch.cat(
-                    [protos, _masked_mean_normalised(tokens, inst.index, inst.count)]
-                )
-            weights = torch.softmax(dist.mul_(-self.alpha), dim=1)  # dist is ours: in place
-            if self.tau > 0:
-                weights = weights * (weights >= self.tau)
-            out = _normalise_(weights @ protos, dim=1)
-        return out.reshape(b, h, w, -1).permute(0, 3, 1, 2).to(language.dtype)
+
+def _token_index(
+    lang_size: tuple[int, int], grid: tuple[int, int], scale: int, device: torch.device
+) -> tuple[Tensor, bool]:
+    """The language token of every point of the upsampled grid (``scale`` x ``grid``), as
+    :func:`_nearest` picks it (the nearest resize of the token index map, so exactly
+    ``F.interpolate``'s choice): ``([N] indices into the row-major token grid, whether token
+    j is the s x s block j)``, the latter when the language grid is the intermediates'."""
+    (hl, wl), (h, w) = lang_size, grid
+    size = (h * scale, w * scale)
+    index = torch.arange(hl * wl, dtype=torch.float64, device=device).view(1, 1, hl, wl)
+    token = _nearest(index, size).view(-1).long()
+    rows = torch.arange(size[0], device=device).div(scale, rounding_mode="floor")
+    cols = torch.arange(size[1], device=device).div(scale, rounding_mode="floor")
+    block = (rows.unsqueeze(1) * w + cols).view(-1)
+    return token, (hl, wl) == (h, w) and torch.equal(token, block)
 
 
 class ReSiRegLite(nn.Module):
@@ -696,7 +663,7 @@ class ReSiRegLite(nn.Module):
     ) -> Tensor:
         """Reconstruct language features; arguments, result, errors and ``no_grad`` as
         :meth:`ReSiRegFull.forward`."""
-        _check_inputs(intermediates, language, prior)
+        check_variant_inputs(intermediates, language, prior)
         dtype = torch.promote_types(intermediates.dtype, language.dtype)
         with torch.autocast(device_type=intermediates.device.type, enabled=False):
             if self.resolve_attention(intermediates.device) == "factorised":

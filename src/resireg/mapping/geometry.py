@@ -20,6 +20,8 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "check_hw",
+    "check_intrinsics",
     "scale_intrinsics",
     "nearest_indices",
     "nearest_downsample",
@@ -28,7 +30,9 @@ __all__ = [
 ]
 
 
-def _check_hw(name: str, hw: tuple[int, int]) -> tuple[int, int]:
+def check_hw(name: str, hw: tuple[int, int]) -> tuple[int, int]:
+    """``(height, width)`` as two ints when ``hw`` holds two integers >= 1; else a ValueError
+    naming ``name``."""
     try:
         h, w = (int(s) for s in hw)
         ok = len(tuple(hw)) == 2 and h >= 1 and w >= 1 and all(int(s) == s for s in hw)
@@ -39,7 +43,8 @@ def _check_hw(name: str, hw: tuple[int, int]) -> tuple[int, int]:
     return h, w
 
 
-def _check_intrinsics(intrinsics: Tensor, name: str = "intrinsics") -> None:
+def check_intrinsics(intrinsics: Tensor, name: str = "intrinsics") -> None:
+    """A ValueError naming ``name`` unless ``intrinsics`` is a floating ``[..., 3, 3]`` tensor."""
     if not isinstance(intrinsics, Tensor) or intrinsics.ndim < 2 or intrinsics.shape[-2:] != (3, 3):
         shape = tuple(intrinsics.shape) if isinstance(intrinsics, Tensor) else type(intrinsics)
         raise ValueError(f"{name} of shape {shape}: expected a [..., 3, 3] tensor")
@@ -67,9 +72,9 @@ def scale_intrinsics(
     Returns:
         ``[..., 3, 3]`` intrinsics for ``to_hw``, in the input's dtype and device.
     """
-    _check_intrinsics(intrinsics)
-    h, w = _check_hw("from_hw", from_hw)
-    h2, w2 = _check_hw("to_hw", to_hw)
+    check_intrinsics(intrinsics)
+    h, w = check_hw("from_hw", from_hw)
+    h2, w2 = check_hw("to_hw", to_hw)
     sx, sy = w2 / w, h2 / h
     scale = torch.tensor(
         [[sx, 0.0, (sx - 1) / 2], [0.0, sy, (sy - 1) / 2], [0.0, 0.0, 1.0]],
@@ -116,7 +121,7 @@ def nearest_downsample(depth: Tensor, size: tuple[int, int]) -> Tensor:
     if not isinstance(depth, Tensor) or depth.ndim < 2:
         shape = tuple(depth.shape) if isinstance(depth, Tensor) else type(depth)
         raise ValueError(f"depth of shape {shape}: expected a [..., H, W] tensor")
-    h, w = _check_hw("size", size)
+    h, w = check_hw("size", size)
     rows = nearest_indices(depth.shape[-2], h, depth.device)
     cols = nearest_indices(depth.shape[-1], w, depth.device)
     return depth[..., rows[:, None], cols[None, :]]
@@ -149,7 +154,7 @@ def unproject(depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor) -> tuple[
             "(convert integer millimetres with depth / 1000)"
         )
     b, h, w = depth.shape
-    _check_intrinsics(intrinsics)
+    check_intrinsics(intrinsics)
     if intrinsics.shape not in ((3, 3), (b, 3, 3)):
         raise ValueError(
             f"intrinsics of shape {tuple(intrinsics.shape)}: expected [3, 3] or [{b}, 3, 3]"
@@ -204,8 +209,8 @@ def patch_points(
     if not isinstance(depth, Tensor) or depth.ndim != 3:
         shape = tuple(depth.shape) if isinstance(depth, Tensor) else type(depth)
         raise ValueError(f"depth of shape {shape}: expected a [B, H, W] tensor")
-    grid = _check_hw("grid", grid)
+    grid = check_hw("grid", grid)
     small = nearest_downsample(depth, grid)
-    _check_intrinsics(intrinsics)
+    check_intrinsics(intrinsics)
     k = scale_intrinsics(intrinsics, tuple(depth.shape[-2:]), grid)
     return unproject(small, k, cam_to_world)

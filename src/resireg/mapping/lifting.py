@@ -26,13 +26,14 @@ import torch
 from torch import Tensor
 
 from resireg.mapping.geometry import (
-    _check_hw,
-    _check_intrinsics,
+    check_hw,
+    check_intrinsics,
     nearest_downsample,
     nearest_indices,
     unproject,
 )
-from resireg.mapping.voxels import _MAX_INDEX, _check_voxel_size, _pack, _unpack, check_lattice
+from resireg.mapping.keys import MAX_INDEX, pack_keys, unpack_keys
+from resireg.mapping.voxels import check_lattice, check_voxel_size
 
 __all__ = ["pixel_pairs", "pixel_points"]
 
@@ -69,7 +70,7 @@ def _pairs_by_sorting(
     axes = [_lattice_op(r[:, :, None] + c[:, None, :], lattice).to(torch.int64) for r, c in tables]
     owner = torch.arange(axes[0].shape[0], device=axes[0].device)[:, None, None]
     owner = owner.expand_as(axes[0]).reshape(-1)
-    key = _pack(torch.stack([a.reshape(-1) for a in axes], 1))
+    key = pack_keys(torch.stack([a.reshape(-1) for a in axes], 1))
     if keep is not None:
         kept = keep.expand_as(axes[0]).reshape(-1)
         key, owner = key[kept], owner[kept]
@@ -80,7 +81,7 @@ def _pairs_by_sorting(
     first[1:] = (key[1:] != key[:-1]) | (owner[1:] != owner[:-1])
     start = first.nonzero().squeeze(1)
     count = torch.diff(start, append=start.new_tensor([key.numel()]))
-    return _unpack(key[start]), owner[start], count
+    return unpack_keys(key[start]), owner[start], count
 
 
 def _patch_of_pixels(n_in: int, n_out: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -113,7 +114,7 @@ def pixel_points(
         ``[H, W]`` int64: the flat patch index ``i * w + j`` of every pixel.
     """
     b, hh, ww = depth.shape
-    h, w = _check_hw("grid", grid)
+    h, w = check_hw("grid", grid)
     small = nearest_downsample(depth, (h, w))
     rows = nearest_indices(h, hh, depth.device)
     cols = nearest_indices(w, ww, depth.device)
@@ -168,10 +169,10 @@ def pixel_pairs(
         shape = tuple(depth.shape) if isinstance(depth, Tensor) else type(depth)
         raise ValueError(f"depth of shape {shape}: expected a floating [B, H, W] tensor (metres)")
     b, hh, ww = depth.shape
-    h, w = _check_hw("grid", grid)
-    voxel = _check_voxel_size(voxel_size)
+    h, w = check_hw("grid", grid)
+    voxel = check_voxel_size(voxel_size)
     check_lattice(lattice)
-    _check_intrinsics(intrinsics)
+    check_intrinsics(intrinsics)
     if intrinsics.shape not in ((3, 3), (b, 3, 3)):
         raise ValueError(
             f"intrinsics of shape {tuple(intrinsics.shape)}: expected [3, 3] or [{b}, 3, 3]"
@@ -212,9 +213,9 @@ def pixel_pairs(
     # Checked here, before any integer conversion: the codes below are exact only for indices
     # in the range that VoxelMap packs (its add_pairs would refuse the others anyway).
     extreme = float(torch.maximum(lo.abs(), hi.abs()).max()) if frame.numel() else 0.0
-    if extreme > _MAX_INDEX:
+    if extreme > MAX_INDEX:
         raise ValueError(
-            f"voxel indices up to {extreme:g} at voxel_size={voxel:g}: beyond +-{_MAX_INDEX} "
+            f"voxel indices up to {extreme:g} at voxel_size={voxel:g}: beyond +-{MAX_INDEX} "
             "(keys pack 21 bits per axis; a depth or a pose translation too large)"
         )
     low = lo.to(torch.int64)  # [3, n]

@@ -177,16 +177,16 @@ def transfer_labels_by_voxel(source: Tensor, labels: Tensor, targets: Tensor, fi
     Returns:
         ``[T]`` labels, ``labels``' dtype and device.
     """
-    from resireg.mapping.voxels import _pack
+    from resireg.mapping.keys import pack_keys
 
     for name, x in (("source", source), ("targets", targets)):
         if not isinstance(x, Tensor) or x.ndim != 2 or x.shape[1] != 3 or x.is_floating_point():
             shape = tuple(x.shape) if isinstance(x, Tensor) else type(x)
             raise ValueError(f"{name} of shape {shape}: expected [N, 3] integer voxel indices")
-    keys = _pack(source.long().cpu())
+    keys = pack_keys(source.long().cpu())
     order = torch.argsort(keys)
     keys = keys[order]
-    want = _pack(targets.long().cpu())
+    want = pack_keys(targets.long().cpu())
     pos = torch.searchsorted(keys, want).clamp_max(max(len(keys) - 1, 0))
     out = torch.full((len(want),), fill, dtype=labels.dtype)
     if len(keys):

@@ -13,13 +13,13 @@ occupied voxels only, a per-voxel accumulator (feature sum and point count, or c
 memory grows with the occupied voxels and a map can grow frame by frame.
 
 Storage: rows of a dense accumulator in order of first occupation, plus the voxels' packed
-int64 keys kept sorted with the row of each key. ``add`` finds the keys of new points with
-``torch.searchsorted`` (one ``torch.unique`` per call), appends rows for unseen voxels (capacity
-grows geometrically, so appending is amortised O(1) per voxel) and scatters with ``index_add_``:
-vectorised, no Python loop over points, chunked so no temporary exceeds ~8 MB. Everything stays
-on the map's device. Results are returned in key order, which is the lexicographic order of the
-``(i, j, k)`` indices (the order of ``numpy.unique(indices, axis=0)``), whatever order the points
-came in.
+int64 keys (:mod:`resireg.mapping.keys`) kept sorted with the row of each key. ``add`` finds the
+keys of new points with ``torch.searchsorted`` (one ``torch.unique`` per call), appends rows for
+unseen voxels (capacity grows geometrically, so appending is amortised O(1) per voxel) and
+scatters with ``index_add_``: vectorised, no Python loop over points, chunked so no temporary
+exceeds ~8 MB. Everything stays on the map's device. Results are returned in key order, which is
+the lexicographic order of the ``(i, j, k)`` indices (the order of ``numpy.unique(indices,
+axis=0)``), whatever order the points came in.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
+from resireg.mapping.keys import KEY_BITS, MAX_INDEX, pack_keys, unpack_keys
 from resireg.specs.mapping import LATTICES
 
 __all__ = [
@@ -39,14 +40,11 @@ __all__ = [
     "VoxelMap",
     "LabelVoxelMap",
     "check_lattice",
+    "check_voxel_size",
     "voxel_centres",
     "voxel_indices",
 ]
 
-# Packed key: 21 bits per axis, index + 2**20 in [0, 2**21); 63 bits in all (non-negative int64).
-_BITS = 21
-_OFFSET = 1 << (_BITS - 1)
-_MAX_INDEX = _OFFSET - 1
 # Elements per float64 temporary in add, add_pairs and features (8 MB): glibc serves such blocks
 # from its heap once freed, while one over its 32 MB mmap threshold is page-faulted afresh on
 # every call, which on a 512-d frame costs more than the additions (docs/benchmarks.md).
@@ -73,11 +71,11 @@ def lattice_index(scaled: Tensor, lattice: str = "round") -> Tensor:
     index = op(scaled)
     # Refused before the int64 cast: a float beyond int64's range casts to -2**63 (or
     # wraps), which would pass a range check on the integers and pack into a wrong voxel.
-    if index.numel() and not bool((index.abs() <= _MAX_INDEX).all()):
-        bad = index[~(index.abs() <= _MAX_INDEX)]
+    if index.numel() and not bool((index.abs() <= MAX_INDEX).all()):
+        bad = index[~(index.abs() <= MAX_INDEX)]
         raise ValueError(
-            f"voxel indices beyond +-{_MAX_INDEX} (up to {float(bad.abs().max()):g}, or "
-            f"non-finite; keys pack {_BITS} bits per axis): points that far (e.g. from "
+            f"voxel indices beyond +-{MAX_INDEX} (up to {float(bad.abs().max()):g}, or "
+            f"non-finite; keys pack {KEY_BITS} bits per axis): points that far (e.g. from "
             "out-of-range depth) cannot be mapped; drop them first"
         )
     return index.to(torch.int64)
@@ -102,20 +100,8 @@ def voxel_centres(index: Tensor, voxel_size: float, lattice: str = "round") -> T
     return ((index.to(torch.float64) + 0.5) * voxel_size).to(torch.float32)
 
 
-def _pack(index: Tensor) -> Tensor:
-    """``[N, 3]`` int64 voxel indices -> ``[N]`` int64 keys, ordered like the index tuples."""
-    shifted = index + _OFFSET
-    return (shifted[:, 0] << (2 * _BITS)) | (shifted[:, 1] << _BITS) | shifted[:, 2]
-
-
-def _unpack(keys: Tensor) -> Tensor:
-    """Inverse of :func:`_pack`: ``[M]`` keys -> ``[M, 3]`` int64 indices."""
-    mask = (1 << _BITS) - 1
-    parts = [(keys >> (2 * _BITS)) & mask, (keys >> _BITS) & mask, keys & mask]
-    return torch.stack(parts, dim=1) - _OFFSET
-
-
-def _check_voxel_size(voxel_size: float) -> float:
+def check_voxel_size(voxel_size: float) -> float:
+    """``voxel_size`` as a float when it is a finite number > 0 (metres); else a ValueError."""
     try:
         v = float(voxel_size)
     except (TypeError, ValueError):
@@ -143,7 +129,7 @@ class _SparseVoxels:
     """
 
     def __init__(self, voxel_size: float, device: torch.device | str, lattice: str) -> None:
-        self.voxel_size = _check_voxel_size(voxel_size)
+        self.voxel_size = check_voxel_size(voxel_size)
         self.lattice = check_lattice(lattice)
         self.device = torch.device(device)
         self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted
@@ -207,17 +193,17 @@ class _SparseVoxels:
 
     def _keys_of(self, index: Tensor, points: Tensor | None = None) -> Tensor:
         """Packed keys ``[N]`` of voxel indices ``[N, 3]``, or a ValueError naming the range."""
-        if index.numel() and int(index.abs().max()) > _MAX_INDEX:
+        if index.numel() and int(index.abs().max()) > MAX_INDEX:
             where = (
                 f"points with |coordinate| {float(points.abs().max()):g} m"
                 if points is not None
                 else f"voxel indices up to {int(index.abs().max())}"
             )
             raise ValueError(
-                f"{where}: voxel indices beyond +-{_MAX_INDEX} "
+                f"{where}: voxel indices beyond +-{MAX_INDEX} "
                 f"at voxel_size={self.voxel_size:g} (keys pack 21 bits per axis)"
             )
-        return _pack(index)
+        return pack_keys(index)
 
     def _rows_of_keys(self, keys: Tensor) -> Tensor:
         """Accumulator rows ``[K]`` of distinct sorted keys ``[K]``; unseen voxels get new rows."""
@@ -262,8 +248,8 @@ class _SparseVoxels:
         index = index.to(device=self.device, dtype=torch.int64)
         if index.numel() == 0:
             return 0
-        inside = (index.abs() <= _MAX_INDEX).all(dim=1)
-        keys = torch.unique(_pack(index[inside]))
+        inside = (index.abs() <= MAX_INDEX).all(dim=1)
+        keys = torch.unique(pack_keys(index[inside]))
         if not self._size:
             return int(keys.numel()) + int((~inside).sum())
         pos = torch.searchsorted(self._keys, keys).clamp_max(self._size - 1)
@@ -283,7 +269,7 @@ class _SparseVoxels:
         them to the map that was saved."""
         index = state["indices"].to(device=self.device, dtype=torch.int64)
         m = index.shape[0]
-        keys = _pack(index)
+        keys = pack_keys(index)
         if m and not bool((keys[1:] > keys[:-1]).all()):
             raise ValueError("state: indices are not distinct and in lexicographic order")
         acc = {}
@@ -305,7 +291,7 @@ class _SparseVoxels:
     @property
     def indices(self) -> Tensor:
         """``[M, 3]`` int64 voxel indices, in lexicographic order."""
-        return _unpack(self._keys)
+        return unpack_keys(self._keys)
 
     def centres(self) -> Tensor:
         """``[M, 3]`` float32 voxel centres of :attr:`indices` (:func:`voxel_centres`)."""
@@ -316,8 +302,8 @@ class _SparseVoxels:
         ``-1`` where the map has no such voxel (no voxel is created)."""
         index = index.to(device=self.device, dtype=torch.int64)
         out = torch.full((index.shape[0],), -1, dtype=torch.int64, device=self.device)
-        inside = (index.abs() <= _MAX_INDEX).all(dim=1)
-        keys = _pack(index[inside])
+        inside = (index.abs() <= MAX_INDEX).all(dim=1)
+        keys = pack_keys(index[inside])
         pos = torch.searchsorted(self._keys, keys).clamp_max(max(self._size - 1, 0))
         hit = self._keys[pos] == keys if self._size else torch.zeros_like(keys, dtype=torch.bool)
         found = torch.full_like(keys, -1)
