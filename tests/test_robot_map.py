@@ -221,7 +221,7 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     from rerun.chunk import RrdReader
 
     bag = write_bag(tmp_path / "room", room)
-    common = [f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag", f"source.path={bag}",
+    common = [f"model_path={tiny_export}", "device=cpu", "source=rosbag", f"source.path={bag}",
               f"source.colour_topic={TOPICS['colour']}", f"source.depth_topic={TOPICS['depth']}",
               f"source.camera_info_topic={TOPICS['info']}", "configuration=full@n_prototypes:4",
               "window=2", f"voxel_size={VOXEL}", "save_every=1"]  # fmt: skip

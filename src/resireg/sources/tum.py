@@ -28,18 +28,15 @@ from PIL import Image
 from resireg.errors import DataError
 from resireg.sources.frames import DECODE_ERRORS, RGBDFrame, SkippedFrame, SourceNotFoundError
 from resireg.sources.pairing import PoseTrack, pair_nearest, pose_matrix
+from resireg.specs.sources import TUM_CAMERAS
 
 __all__ = ["CAMERAS", "DEPTH_SCALE", "TumSource", "read_list", "read_trajectory"]
 
 #: TUM's depth PNGs: 5000 units per metre.
 DEPTH_SCALE = 5000.0
-#: ``[fx, fy, cx, cy]`` of TUM's cameras (file_formats page, "Intrinsic Camera Calibration").
-CAMERAS = {
-    "ros_default": (525.0, 525.0, 319.5, 239.5),
-    "fr1": (517.3, 516.5, 318.6, 255.3),
-    "fr2": (520.9, 521.0, 325.1, 249.7),
-    "fr3": (535.4, 539.2, 320.1, 247.6),
-}
+#: ``[fx, fy, cx, cy]`` of TUM's cameras (file_formats page, "Intrinsic Camera Calibration"; the
+#: source table's, :data:`resireg.specs.sources.TUM_CAMERAS`).
+CAMERAS = TUM_CAMERAS
 
 
 def _lines(path: Path) -> list[list[str]]:

@@ -1,21 +1,23 @@
 """``resireg-map``: a language-queryable voxel map from a posed RGB-D recording (Hydra main;
 ``conf/map.yaml``, docs/design.md section 10.3).
 
-    resireg-map source.kind=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
-    resireg-map source.kind=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
-    resireg-map source.kind=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
+    resireg-map source=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
+    resireg-map source=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
+    resireg-map source=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
+    resireg-map source=nerfstudio source.path=data/scene
 
-The source (:mod:`resireg.sources`: :mod:`~resireg.sources.rosbag`, :mod:`~resireg.sources.tum`,
-:mod:`~resireg.sources.scannet`) is opened and checked before the encoder loads
-(every missing topic is reported in a second, with the bag's topics). Windows of ``window``
-consecutive frames go through :meth:`resireg.mapping.SemanticMap.add` (a window whose encoder
-output is not finite is skipped and counted); the map is saved every ``save_every`` windows and
-at the end to ``<output dir>/map`` with its identity (source, settings, ReSiReg parameters,
-encoder entry, a digest of the encoder's weights): ``resume=true`` continues it from the last
-frame it holds, or is refused naming the keys that differ. Then ``map.ply``; ``results.json``
-records frames read / used / skipped (by kind, the first reason of each, examples), corrupt
-messages, out-of-range depth, the map's voxels and bytes, and seconds per stage; a run that
-maps nothing fails with the reason per kind.
+The source (``source=<kind>``: ``conf/source/<kind>.yaml``, a kind of the table
+:data:`resireg.specs.sources.SOURCE_SPECS`, read by :mod:`resireg.sources`) is checked and
+opened before the encoder loads (every missing topic is reported in a second, with the bag's
+topics). Windows of ``window`` consecutive frames go through
+:meth:`resireg.mapping.SemanticMap.add` (a window whose encoder output is not finite is skipped
+and counted); the map is saved every ``save_every`` windows and at the end to
+``<output dir>/map`` with its identity (source, settings, ReSiReg parameters, encoder entry, a
+digest of the encoder's weights): ``resume=true`` continues it from the last frame it holds, or
+is refused naming the keys that differ. Then ``map.ply``; ``results.json`` records frames read
+/ used / skipped (by kind, the first reason of each, examples), corrupt messages, out-of-range
+depth, the map's voxels and bytes, and seconds per stage; a run that maps nothing fails with the
+reason per kind.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ResiregError
+from resireg.specs.sources import SOURCE_SPECS, source_errors
 from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.results import update_results
 from resireg_train.validation import ConfigError, encoder_kwargs
@@ -39,55 +42,24 @@ __all__ = ["SOURCES", "build_source", "make_map", "main"]
 
 log = logging.getLogger(__name__)
 
-#: ``source.kind`` values.
-SOURCES = ("rosbag", "tum", "scannet")
-_COMMON = ("kind", "path", "tolerance", "max_pose_gap", "frame_skip", "limit", "max_depth")
-_KEYS = {
-    "rosbag": (*_COMMON, "colour_topic", "depth_topic", "camera_info_topic", "pose_topic",
-               "tf_topic", "tf_static_topic", "world_frame", "camera_frame", "depth_scale"),
-    "tum": (*_COMMON, "camera", "intrinsics"),
-    "scannet": _COMMON,
-}  # fmt: skip
+#: ``source.kind`` values: the built-in kinds of the source table.
+SOURCES = SOURCE_SPECS.names()
 
 
 def build_source(spec: dict[str, Any], key: str = "source"):
-    """The frame source of a ``source`` entry (its kind's keys; the others' keys may stay at
-    their defaults); opens it, so a missing file or topic fails here. A refusal of the library
-    (``path='x': ...``) is re-raised as a :class:`ConfigError` naming the config path
-    (``source.path='x': ...``)."""
-    kind = spec.get("kind")
-    if kind not in SOURCES:
-        raise ConfigError(f"{key}.kind={kind!r}: expected one of {SOURCES}")
-    if spec.get("path") in (None, "", "???"):
-        raise ConfigError(f"{key}.path={spec.get('path')!r}: set the recording to map")
+    """The frame source of a ``source`` block (``conf/source/<kind>.yaml``): its keys and
+    values checked against its kind's entry of :data:`~resireg.specs.sources.SOURCE_SPECS`,
+    then the entry's reader called with the block's keys; it opens the recording, so a missing
+    file or topic fails here. Every refusal is a :class:`ConfigError` naming the config path:
+    the library's own (``path='x': ...``) as ``source.path='x': ...``."""
+    errors = source_errors(spec, key)
+    if errors:
+        raise ConfigError("; ".join(errors))
+    entry = SOURCE_SPECS.get(spec["kind"])
     try:
-        return _open(kind, spec)
+        return entry.load()(**entry.arguments(spec))
     except (ResiregError, ValueError, FileNotFoundError) as err:
-        raise ConfigError(config_path(str(err), key, _KEYS[kind])) from err
-
-
-def _open(kind: str, spec: dict[str, Any]):
-    if kind == "rosbag":
-        from resireg.sources.rosbag import open_bag
-
-        return open_bag(spec["path"], colour_topic=spec["colour_topic"],
-                        depth_topic=spec["depth_topic"],
-                        camera_info_topic=spec["camera_info_topic"], pose_topic=spec["pose_topic"],
-                        tf_topic=spec["tf_topic"], tf_static_topic=spec["tf_static_topic"],
-                        world_frame=spec["world_frame"], camera_frame=spec["camera_frame"],
-                        depth_scale=float(spec["depth_scale"]),
-                        tolerance=float(spec["tolerance"]),
-                        max_pose_gap=float(spec["max_pose_gap"]))  # fmt: skip
-    if kind == "tum":
-        from resireg.sources.tum import TumSource
-
-        intr = spec.get("intrinsics")
-        return TumSource(spec["path"], float(spec["tolerance"]), str(spec["camera"]),
-                         list(intr) if intr is not None else None,
-                         max_pose_gap=float(spec["max_pose_gap"]))  # fmt: skip
-    from resireg.sources.scannet import ScanNetSource
-
-    return ScanNetSource(str(spec["path"]))
+        raise ConfigError(config_path(str(err), key, entry.rules)) from err
 
 
 def config_path(message: str, key: str, names: Iterable[str]) -> str:
@@ -184,13 +156,10 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 0:
         raise ConfigError(f"save_every={save_every!r}: expected an integer >= 0")
     spec = OmegaConf.to_container(cfg.source, resolve=True)
-    unknown = set(spec) - {k for keys in _KEYS.values() for k in keys}
-    if unknown:
-        raise ConfigError(f"source: unknown keys {sorted(unknown)}")
-    max_depth = spec.get("max_depth")
-    if max_depth is not None and (isinstance(max_depth, bool) or not isinstance(
-            max_depth, int | float) or not 0 < max_depth < float("inf")):  # fmt: skip
-        raise ConfigError(f"source.max_depth={max_depth!r}: expected metres > 0, or null")
+    errors = source_errors(spec)  # before anything is written or loaded
+    if errors:
+        raise ConfigError("; ".join(errors))
+    max_depth = spec["max_depth"]
     rrd = None
     if cfg.rerun.save:  # under the run folder unless absolute; recorded absolute
         rrd = Path(str(cfg.rerun.save)).expanduser()
