@@ -105,7 +105,7 @@ def test_a_running_training_job_keeps_its_folder_until_killed(tmp_path, tiny_exp
         before = _files(out)
         assert (out / ".hydra" / "overrides.yaml").is_file() and (out / "train.log").is_file()
         refused = run_side_by_side(
-            ("resireg-map", f"model_path={tiny_export}", "source.kind=tum", "resume=true",
+            ("resireg-map", f"model_path={tiny_export}", "source=tum", "resume=true",
              f"source.path={tmp_path}", f"hydra.run.dir={out}"),
             ("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
              f"hydra.run.dir={out}"),
@@ -130,7 +130,7 @@ def test_two_resireg_map_runs_into_one_folder_one_is_refused(tmp_path, tiny_expo
 
     bag = write_bag(tmp_path / "room", room_frames(6))
     out = tmp_path / "run"
-    common = [f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag",
+    common = [f"model_path={tiny_export}", "device=cpu", "source=rosbag",
               f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
               f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
               "configuration=full@n_prototypes:4", "window=2", "voxel_size=0.2",
@@ -308,7 +308,7 @@ def test_resireg_map_prints_its_summary_once(tmp_path, tiny_export):
     from resireg_train.data.room_bag import TOPICS
 
     out = tmp_path / "run"
-    proc = run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag",
+    proc = run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source=rosbag",
                f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
                f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
                "configuration=full@n_prototypes:4", "window=4", f"hydra.run.dir={out}")  # fmt: skip

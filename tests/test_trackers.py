@@ -63,7 +63,7 @@ def _room_bag(tmp_path):
     from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
 
     bag = write_bag(tmp_path / "room", room_frames(4))
-    return [f"source.path={bag}", "source.kind=rosbag", f"source.colour_topic={TOPICS['colour']}",
+    return [f"source.path={bag}", "source=rosbag", f"source.colour_topic={TOPICS['colour']}",
             f"source.depth_topic={TOPICS['depth']}",
             f"source.camera_info_topic={TOPICS['info']}"]  # fmt: skip
 

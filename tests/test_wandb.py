@@ -126,7 +126,7 @@ def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
            "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip
     bag = write_bag(tmp_path / "room", room_frames(4))
     out = tmp_path / "map"
-    run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source.kind=rosbag",
+    run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source=rosbag",
         f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
         f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
         "configuration=bb", "window=2", "logger=wandb", f"hydra.run.dir={out}", env=env)  # fmt: skip

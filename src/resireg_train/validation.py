@@ -24,8 +24,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.sources import export_source_problem
+from resireg.errors import ConfigError as _ConfigError
 from resireg.specs.encoders import ENCODER_REPORT_KEYS, ENCODER_SPECS, Needs, encoder_kwargs
+from resireg.specs.exports import export_source_problem
 from resireg.specs.priors import PRIOR_KINDS, SAM_RULES
 from resireg.specs.rules import (
     BATCH_SIZE,
@@ -78,8 +79,10 @@ PRECISIONS: dict[str, str | None] = {
 }  # fmt: skip
 
 
-class ConfigError(ValueError):
-    """A config value of the wrong type or out of range; the message names key and value."""
+class ConfigError(_ConfigError):
+    """A config value of the wrong type or out of range; the message names key and value. A
+    :class:`resireg.errors.ConfigError` (one ``except`` catches the library's and the CLIs'),
+    under its own name, which the CLIs' one-line failures print."""
 
 
 _MISSING = object()
@@ -548,8 +551,8 @@ def init_from_problem(source: str | os.PathLike) -> str | None:
 
 def check_available(cfg: DictConfig | dict) -> None:
     """Check that this machine has what a config names, before torch loads: the export of
-    ``model_path`` (resireg-eval, ``encoder=resireg_vlm``; :func:`resireg.sources.
-    export_source_problem`), the checkpoint or export of ``model.init_from`` (resireg-train;
+    ``model_path`` (resireg-eval, ``encoder=resireg_vlm``; :func:`resireg.specs.
+    exports.export_source_problem`), the checkpoint or export of ``model.init_from`` (resireg-train;
     :func:`init_from_problem`) and the modules the encoder's code imports
     (:func:`encoder_import_errors`); raise :class:`ConfigError` listing every problem. Separate
     from :func:`validate`, as :func:`check_devices` is: a valid config names files and needs

@@ -1,33 +1,39 @@
 """``resireg-map``: a language-queryable voxel map from a posed RGB-D recording (Hydra main;
 ``conf/map.yaml``, docs/design.md section 10.3).
 
-    resireg-map source.kind=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
-    resireg-map source.kind=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
-    resireg-map source.kind=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
+    resireg-map source=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
+    resireg-map source=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
+    resireg-map source=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
+    resireg-map source=nerfstudio source.path=data/scene
 
-The source (:mod:`resireg_train.data.rosbag`, :mod:`resireg_train.data.tum`,
-:func:`resireg_train.data.scannet.scannet_rgbd`) is opened and checked before the encoder loads
-(every missing topic is reported in a second, with the bag's topics). Windows of ``window``
-consecutive frames go through :meth:`resireg.mapping.SemanticMap.add` (a window whose encoder
-output is not finite is skipped and counted); the map is saved every ``save_every`` windows and
-at the end to ``<output dir>/map`` with its identity (source, settings, ReSiReg parameters,
-encoder entry, a digest of the encoder's weights): ``resume=true`` continues it from the last
-frame it holds, or is refused naming the keys that differ. Then ``map.ply``; ``results.json``
-records frames read / used / skipped (by kind, the first reason of each, examples), corrupt
-messages, out-of-range depth, the map's voxels and bytes, and seconds per stage; a run that
-maps nothing fails with the reason per kind.
+The source (``source=<kind>``: ``conf/source/<kind>.yaml``, a kind of the table
+:data:`resireg.specs.sources.SOURCE_SPECS`, read by :mod:`resireg.sources`) is checked and
+opened before the encoder loads (every missing topic is reported in a second, with the bag's
+topics). Windows of ``window`` consecutive frames go through
+:meth:`resireg.mapping.SemanticMap.add` (a window whose encoder output is not finite is skipped
+and counted); the map is saved every ``save_every`` windows and at the end to
+``<output dir>/map`` with its identity (source, settings, ReSiReg parameters, encoder entry, a
+digest of the encoder's weights): ``resume=true`` continues it from the last frame it holds, or
+is refused naming the keys that differ. Then ``map.ply``; ``results.json`` records frames read
+/ used / skipped (by kind, the first reason of each, examples), corrupt messages, out-of-range
+depth, the map's voxels and bytes, and seconds per stage; a run that maps nothing fails with the
+reason per kind.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections import defaultdict
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ResiregError
+from resireg.specs.sources import SOURCE_SPECS, source_errors
 from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.results import update_results
 from resireg_train.validation import ConfigError, encoder_kwargs
@@ -36,52 +42,32 @@ __all__ = ["SOURCES", "build_source", "make_map", "main"]
 
 log = logging.getLogger(__name__)
 
-#: ``source.kind`` values.
-SOURCES = ("rosbag", "tum", "scannet")
-_COMMON = ("kind", "path", "tolerance", "max_pose_gap", "frame_skip", "limit", "max_depth")
-_KEYS = {
-    "rosbag": (*_COMMON, "colour_topic", "depth_topic", "camera_info_topic", "pose_topic",
-               "tf_topic", "tf_static_topic", "world_frame", "camera_frame", "depth_scale"),
-    "tum": (*_COMMON, "camera", "intrinsics"),
-    "scannet": _COMMON,
-}  # fmt: skip
+#: ``source.kind`` values: the built-in kinds of the source table.
+SOURCES = SOURCE_SPECS.names()
 
 
 def build_source(spec: dict[str, Any], key: str = "source"):
-    """The frame source of a ``source`` entry (its kind's keys; the others' keys may stay at
-    their defaults); opens it, so a missing file or topic fails here."""
-    kind = spec.get("kind")
-    if kind not in SOURCES:
-        raise ConfigError(f"{key}.kind={kind!r}: expected one of {SOURCES}")
-    if spec.get("path") in (None, "", "???"):
-        raise ConfigError(f"{key}.path={spec.get('path')!r}: set the recording to map")
-    if kind == "rosbag":
-        from resireg_train.data.rosbag import BagSource, BagTopics
-
-        topics = BagTopics(colour=spec["colour_topic"], depth=spec["depth_topic"],
-                           camera_info=spec["camera_info_topic"], pose=spec["pose_topic"],
-                           tf=spec["tf_topic"], tf_static=spec["tf_static_topic"],
-                           world_frame=spec["world_frame"], camera_frame=spec["camera_frame"])  # fmt: skip
-        return BagSource(spec["path"], topics, float(spec["tolerance"]),
-                         float(spec["depth_scale"]), key, float(spec["max_pose_gap"]))  # fmt: skip
-    if kind == "tum":
-        from resireg_train.data.tum import TumSource
-
-        intr = spec.get("intrinsics")
-        return TumSource(spec["path"], float(spec["tolerance"]), str(spec["camera"]),
-                         list(intr) if intr is not None else None, key=key,
-                         max_pose_gap=float(spec["max_pose_gap"]))  # fmt: skip
-    from resireg_train.data.scannet import scannet_rgbd
-
-    folder = Path(str(spec["path"])).expanduser()
-    frames = scannet_rgbd(folder, key)  # a generator: it checks the folder at its first frame
-    first = next(frames, None)
-    return frames if first is None else _chain(first, frames)
+    """The frame source of a ``source`` block (``conf/source/<kind>.yaml``): its keys and
+    values checked against its kind's entry of :data:`~resireg.specs.sources.SOURCE_SPECS`,
+    then the entry's reader called with the block's keys; it opens the recording, so a missing
+    file or topic fails here. Every refusal is a :class:`ConfigError` naming the config path:
+    the library's own (``path='x': ...``) as ``source.path='x': ...``."""
+    errors = source_errors(spec, key)
+    if errors:
+        raise ConfigError("; ".join(errors))
+    entry = SOURCE_SPECS.get(spec["kind"])
+    try:
+        return entry.load()(**entry.arguments(spec))
+    except (ResiregError, ValueError, FileNotFoundError) as err:
+        raise ConfigError(config_path(str(err), key, entry.rules)) from err
 
 
-def _chain(first, rest):
-    yield first
-    yield from rest
+def config_path(message: str, key: str, names: Iterable[str]) -> str:
+    """``message`` of the library, each of its arguments ``name=`` (one of ``names``, not
+    already under a prefix) written as the config path ``<key>.name=``: the boundary between
+    the library's messages and the config's keys."""
+    words = "|".join(re.escape(n) for n in sorted(set(names), key=len, reverse=True))
+    return re.sub(rf"(?<![\w.])({words})=", rf"{key}.\1=", message)
 
 
 def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
@@ -161,7 +147,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg.mapping import MapFullError, SemanticMap
     from resireg.mapping.semantic_map import ENCODER_OUTPUT
     from resireg.models import build_encoder
-    from resireg_train.data.rgbd import FrameCounts, SkippedFrame, windows
+    from resireg.sources.frames import FrameCounts, SkippedFrame, windows
 
     window = cfg.window
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
@@ -170,13 +156,10 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 0:
         raise ConfigError(f"save_every={save_every!r}: expected an integer >= 0")
     spec = OmegaConf.to_container(cfg.source, resolve=True)
-    unknown = set(spec) - {k for keys in _KEYS.values() for k in keys}
-    if unknown:
-        raise ConfigError(f"source: unknown keys {sorted(unknown)}")
-    max_depth = spec.get("max_depth")
-    if max_depth is not None and (isinstance(max_depth, bool) or not isinstance(
-            max_depth, int | float) or not 0 < max_depth < float("inf")):  # fmt: skip
-        raise ConfigError(f"source.max_depth={max_depth!r}: expected metres > 0, or null")
+    errors = source_errors(spec)  # before anything is written or loaded
+    if errors:
+        raise ConfigError("; ".join(errors))
+    max_depth = spec["max_depth"]
     rrd = None
     if cfg.rerun.save:  # under the run folder unless absolute; recorded absolute
         rrd = Path(str(cfg.rerun.save)).expanduser()
@@ -185,10 +168,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     update_results(out, params=params)
     timer: dict[str, float] = defaultdict(float)
     start = time.perf_counter()
-    try:  # a wrong path, a missing topic: the message says it all (no traceback)
-        source = build_source(spec)
-    except (FileNotFoundError, ValueError) as err:
-        raise ConfigError(str(err)) from err
+    source = build_source(spec)  # a wrong path, a missing topic: one line, no traceback
     timer["open_source"] += time.perf_counter() - start
     torch.manual_seed(int(cfg.seed))
     encoder = build_encoder(**encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True)),
@@ -325,14 +305,18 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
 def _source_record(source: Any, counts: Any) -> dict[str, Any]:
     """What ``results.json`` records of the source beyond the frames: unpaired colour
     messages, messages that could not be deserialised (by topic, with examples), colour images
-    left out for their stamps, and the damage that stopped a bag's read."""
+    left out for their stamps, and the damage that stopped a bag's read (a
+    :class:`~resireg.sources.frames.MessageSource`'s; its ``path=`` as ``source.path=``)."""
+    from resireg.sources.frames import MessageSource
+
     out: dict[str, Any] = {"unpaired_colour": getattr(source, "unpaired_colour", 0)}
-    if getattr(source, "corrupt", None) is not None:
+    if isinstance(source, MessageSource):
         out["corrupt_messages"] = {"by_topic": dict(source.corrupt),
                                    "examples": list(source.corrupt_examples)}  # fmt: skip
         out["colour_stamp_faults"] = {"count": len(source.colour_stamp_faults),
-                                      "examples": source.colour_stamp_faults[:20]}  # fmt: skip
-        out["damage"] = source.damage
+                                      "examples": list(source.colour_stamp_faults[:20])}  # fmt: skip
+        damage = source.damage
+        out["damage"] = None if damage is None else config_path(damage, "source", ("path",))
     if counts.depth_out_of_range:
         out["depth_out_of_range"] = {"pixels": counts.depth_out_of_range,
                                      "frames": counts.depth_out_of_range_frames}  # fmt: skip

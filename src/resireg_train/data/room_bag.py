@@ -2,7 +2,7 @@
 recording of ``resireg-map``, and a way to try it without a robot (docs/design.md section 10.3).
 
     python -m resireg_train.data.room_bag OUT [--frames 6] [--ros1] [--mcap]
-    resireg-map source.kind=rosbag source.path=OUT source.colour_topic=/cam/color \
+    resireg-map source=rosbag source.path=OUT source.colour_topic=/cam/color \
         source.depth_topic=/cam/depth source.camera_info_topic=/cam/depth/info model_path=<export>
 
 The room is :class:`resireg_train.data.scannet_room.SyntheticRoom` (exact depth by ray casting,
