@@ -398,6 +398,12 @@ def every_encoder() -> str:
     return ",".join(ENCODER_SPECS.all_configs())
 
 
+# Registered on import, so a config composed outside the CLIs (a test, a notebook composing
+# conf/ with Hydra's compose API) resolves the sweeps' encoder axis too.
+if not OmegaConf.has_resolver("resireg_encoders"):
+    OmegaConf.register_new_resolver("resireg_encoders", every_encoder)
+
+
 def sweep_config_errors(conf_dir: str | os.PathLike) -> list[str]:
     """The config check of ``conf/sweep/``: every sweep's ``variants`` are valid configurations,
     the encoders on an ``encoder`` axis (``hydra.sweeper.params.encoder``) are configurations of

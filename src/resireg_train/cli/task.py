@@ -135,10 +135,7 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
-    if not OmegaConf.has_resolver("resireg_encoders"):  # conf/sweep/table1.yaml, table2.yaml
-        from resireg_train.validation import every_encoder
-
-        OmegaConf.register_new_resolver("resireg_encoders", every_encoder)
+    import resireg_train.validation  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
     from resireg_train.search import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
