@@ -1,4 +1,6 @@
-"""A live 3D view of a mapping run with Rerun (``rerun-sdk``; docs/design.md section 10.3).
+"""A live 3D view of a mapping run with Rerun (``rerun-sdk``, the ``robot`` extra, imported when a
+view is made; docs/design.md section 10.3): ``resireg-map``'s recording and ``resireg-ros2``'s
+live stream log the same entities.
 
 Entities (world frame, metres; Rerun's ``Pinhole`` takes OpenCV camera axes, RDF, by default)::
 
@@ -11,7 +13,10 @@ Entities (world frame, metres; Rerun's ``Pinhole`` takes OpenCV camera axes, RDF
     world/map/query         Points3D: coloured by the similarity to ``query`` (blue..red)
 
 on the ``frame`` timeline (the kept frame's position). ``save`` writes a ``.rrd`` file (open it
-with ``rerun map.rrd``; read it back with ``rerun.chunk.RrdReader``); ``spawn`` starts a viewer.
+with ``rerun map.rrd``; read it back with ``rerun.chunk.RrdReader``); ``spawn`` starts a viewer;
+``connect`` streams to a running viewer's gRPC URL (``rr.connect_grpc``); ``serve`` serves the
+stream over gRPC (``rr.serve_grpc``, port 9876: ``rerun --connect
+rerun+http://<host>:9876/proxy``). Any of them together.
 """
 
 from __future__ import annotations
@@ -31,22 +36,35 @@ class RerunView:
         save: ``.rrd`` path or ``None``.
         spawn: open a viewer.
         query: a text whose similarity colours ``world/map/query``.
+        connect: a running viewer's gRPC URL (``rerun+http://host:9876/proxy``) or ``None``.
+        serve: serve the stream over gRPC (``rr.serve_grpc``); :attr:`url` is its address.
+        application: the recording's application id.
     """
 
-    def __init__(self, save: str | Path | None, spawn: bool = False, query: str | None = None):
+    def __init__(self, save: str | Path | None, spawn: bool = False, query: str | None = None,
+                 connect: str | None = None, serve: bool = False,
+                 application: str = "resireg-map") -> None:  # fmt: skip
         import rerun as rr
 
         self.rr = rr
-        self.rec = rr.RecordingStream("resireg-map")
+        self.rec = rr.RecordingStream(application)
+        self.url: str | None = None
         if save:
             Path(save).parent.mkdir(parents=True, exist_ok=True)
-        if save and spawn:  # both sinks: the file and the viewer (spawned, then connected)
-            self.rec.spawn(connect=False)
-            self.rec.set_sinks(rr.FileSink(str(save)), rr.GrpcSink())
-        elif save:
+        if save and not (spawn or connect or serve):
             self.rec.save(str(save))
-        elif spawn:
+        elif spawn and not (save or connect or serve):
             self.rec.spawn()
+        elif save or spawn or connect or serve:  # several sinks: a spawned viewer is connected to
+            if spawn:
+                self.rec.spawn(connect=False)
+            sinks = [rr.FileSink(str(save))] if save else []
+            sinks += [rr.GrpcSink()] if spawn else []
+            sinks += [rr.GrpcSink(connect)] if connect else []
+            sinks += [rr.GrpcServerSink()] if serve else []
+            self.rec.set_sinks(*sinks)
+        if serve:
+            self.url = "rerun+http://127.0.0.1:9876/proxy"
         self.query = query
         self.centres: list[np.ndarray] = []
 
