@@ -168,7 +168,8 @@ def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
     context, test_node, spinner = ros
     folder = tmp_path_factory.mktemp("ros2")
     node = ResiregMapNode(parameter_overrides=node_parameters(
-        folder, model_path=str(tiny_export)), context=context)  # fmt: skip
+        folder, model_path=str(tiny_export), **{"rerun.save": str(folder / "live.rrd"),
+                                                "rerun.map_every": 1}), context=context)  # fmt: skip
     pub = Replayer(REPLAY_TOPICS, context=context)
     spinner.add(node)
     spinner.add(pub)
@@ -202,6 +203,24 @@ def test_live_map_equals_resireg_map_over_shared_memory(mapped, room, encoder, t
     assert status["unpaired_colour"] == source.unpaired_colour == FRAMES + 1
     assert status["map"]["voxels"] == len(ref) and status["map"]["windows"] == FRAMES // WINDOW
     assert udp_sockets(os.getpid()) == set()
+
+
+def test_live_rerun_stream_logs_resireg_map_entities(mapped):
+    """The node's Rerun recording (rerun.save here; rerun.serve / rerun.connect stream the same)
+    holds resireg-map's entities: each frame's camera, image and depth, the path, the map."""
+    from rerun.chunk import RrdReader
+
+    node, folder, _ = mapped
+    node.view.rec.flush()
+    chunks = RrdReader(folder / "live.rrd").stream().to_chunks()
+    entities = {str(c.entity_path) for c in chunks}
+    for name in ("/world/camera", "/world/camera/image", "/world/camera/depth",
+                 "/world/trajectory", "/world/map/rgb", "/world/map/pca"):  # fmt: skip
+        assert name in entities, (name, entities)
+    last = [c for c in chunks if str(c.entity_path) == "/world/map/pca"][-1]
+    positions = last.to_record_batch().column("Points3D:positions")
+    assert len(positions[len(positions) - 1]) == len(node.worker.smap)
+    assert sum(c.num_rows for c in chunks if str(c.entity_path) == "/world/camera/depth") == FRAMES
 
 
 def test_query_save_and_clear_through_ros(mapped, ros, encoder):
