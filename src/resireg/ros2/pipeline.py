@@ -6,8 +6,9 @@ as in a bag (:mod:`resireg_train.data.rosbag`): the colour image of the nearest 
 first), the camera pose at its stamp (a pose source: :class:`PoseBuffer` for a
 ``PoseStamped`` / ``Odometry`` topic and a fixed camera offset, interpolated by
 :class:`PoseTrack`; or tf). A depth image is decided as soon as nothing that could still
-arrive would change the answer: a colour image stamped ``tolerance`` past it has arrived
-(stamps increase per topic) and the pose source has a sample at or after its stamp; or else
+arrive would change the answer: a colour image stamped as far past it as its best match (or
+``tolerance``) has arrived (stamps increase per topic) and the pose source has a sample at or
+after its stamp; or else
 after ``max_wait`` seconds, with what has arrived. Frames leave in stamp order, so a live
 stream is paired as the whole recording would be. Messages whose stamp goes back or repeats on
 their topic are left out (``bad_stamp``), as in a bag.
@@ -256,11 +257,14 @@ class FramePairer:
     def _decide(self, d: _Depth, now: float) -> RGBDFrame | SkippedFrame | None:
         expired = now - d.received >= self.max_wait
         name = f"{self.topics['depth']}@{d.stamp:.6f}"
-        decided = bool(self.colours) and self.colours[-1].stamp >= d.stamp + self.tolerance
-        if not (decided or expired):
-            return None
         stamps = np.array([c.stamp for c in self.colours], dtype=np.float64)
         m = int(pair_nearest(np.array([d.stamp]), stamps, self.tolerance)[0])
+        # decided once a colour image no nearer one can follow has arrived: stamps increase,
+        # so any later one lies beyond the latest (and of two equally near the earlier wins)
+        reach = self.tolerance if m < 0 else abs(stamps[m] - d.stamp)
+        decided = stamps.size > 0 and stamps[-1] >= d.stamp + reach
+        if not (decided or expired):
+            return None
         if m < 0:
             why = f"no {self.topics['colour']} image within {self.tolerance} s"
             if stamps.size:
