@@ -8,11 +8,11 @@ the head of ``conf/model/vlm25m.yaml``), both with random weights (``_common.bui
 ReSiReg's parameters from ``conf/resireg/default.yaml``, the map's from ``conf/map.yaml``
 (``configuration: full``, voxel 0.05 m, ``points: patch``, float64 sums).
 
-1. Bag decoding alone: iterating :class:`resireg_train.data.rosbag.BagSource` (both passes:
+1. Bag decoding alone: iterating :class:`resireg.sources.rosbag.BagSource` (both passes:
    stamps and poses, then PNG colour and depth decoding, tf lookups), frames per second.
 2. Fusion alone: :meth:`SemanticMap.fuse` of random unit features at ReSiReg's grid (upscale 2:
    60 x 80 for 480 x 640) and ``D`` = 48 (tiny) / 512 (25M), windows of 8 frames.
-3. End to end: bag -> :func:`resireg_train.data.rgbd.windows` -> :meth:`SemanticMap.add`
+3. End to end: bag -> :func:`resireg.sources.frames.windows` -> :meth:`SemanticMap.add`
    (encode, ReSiReg Full on the window, lift, fuse), for both models and windows of 4 and 8;
    frames per second, each measured once after one warm-up window.
 4. Peak memory of a ScanNet-size recording: ``--scene-frames`` (500: a ~5,500-frame scene at
@@ -52,8 +52,8 @@ def _bag(folder: Path, frames: int, size: tuple[int, int]) -> Path:
 
 
 def _source(path: Path):
+    from resireg.sources.rosbag import BagSource, BagTopics
     from resireg_train.data.room_bag import TOPICS
-    from resireg_train.data.rosbag import BagSource, BagTopics
 
     topics = BagTopics(colour=TOPICS["colour"], depth=TOPICS["depth"], camera_info=TOPICS["info"])
     return BagSource(path, topics)
@@ -78,7 +78,7 @@ def fusion(path: Path, dim: int, cfg: dict) -> dict:
     import torch
 
     from resireg.mapping import SemanticMap
-    from resireg_train.data.rgbd import FrameCounts, windows
+    from resireg.sources.frames import FrameCounts, windows
 
     smap = SemanticMap(None, "bb", cfg["voxel_size"], points=cfg["points"], colour=False)
     batches = list(windows(_source(path), 8, FrameCounts()))
@@ -99,7 +99,7 @@ def fusion(path: Path, dim: int, cfg: dict) -> dict:
 def end_to_end(path: Path, tiny: bool, window: int, cfg: dict) -> dict:
     import torch
 
-    from resireg_train.data.rgbd import FrameCounts, windows
+    from resireg.sources.frames import FrameCounts, windows
 
     torch.manual_seed(0)
     model = build_model(tiny)

@@ -20,7 +20,7 @@ from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import ResiregVLM
 from resireg.models.zoo.clip import ClipEncoder
 from resireg.ovss import TEMPLATES
-from resireg.variant_names import parse_variant, variant_layer
+from resireg.specs.variants import parse_variant, variant_layer
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache
 from resireg_train.cli.task import CONFIG_DIR

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from _run import report, run
 from resireg.models import ENCODERS, build_encoder
-from resireg.specs.encoders import ENCODER_SPECS, encoder_configs
+from resireg.specs.encoders import ENCODER_SPECS
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.validation import ConfigError, sweep_config_errors, validate_eval
 
@@ -24,7 +24,7 @@ def test_every_encoder_config_names_a_known_kind_and_builds_its_class_arguments(
 
     assert set(ENCODER_SPECS) == set(ENCODERS)  # the factory reads the table's kinds
     names = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))
-    assert sorted(encoder_configs()) == names  # the table names every conf/encoder/ file
+    assert sorted(ENCODER_SPECS.all_configs()) == names  # the table names every conf/encoder/ file
     sweep = OmegaConf.load(CONFIG_DIR / "sweep" / "table1.yaml")
     assert sorted(sweep.hydra.sweeper.params.encoder.split(",")) == names
     assert sweep_config_errors(CONFIG_DIR) == []  # the config check agrees

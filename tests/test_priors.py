@@ -273,7 +273,7 @@ def test_an_all_zero_prior_changes_nothing():
 
 # ----------------------------------------------------------------------------- names, config
 def test_prior_configuration_names():
-    from resireg.variant_names import parse_variant, takes_prior
+    from resireg.specs.variants import parse_variant, takes_prior
     from resireg.variants import build_variants
 
     assert parse_variant("full+prior@n_prototypes:24") == ("full", {"n_prototypes": 24})

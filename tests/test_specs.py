@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from resireg.specs import load
-from resireg.specs.encoders import ENCODER_SPECS, encoder_configs
+from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg_train.cli.task import CONFIG_DIR
 from resireg_train.validation import ConfigError, sweep_config_errors, validate_eval
@@ -102,7 +102,7 @@ def test_each_encoder_entry_names_its_builder_and_its_conf_files():
     """Every built-in kind's builder loads and takes ``device`` and ``config_key``; the
     table's configurations are exactly the ``conf/encoder/`` files, each of its kind."""
     on_disk = {p.stem: OmegaConf.load(p).kind for p in (CONFIG_DIR / "encoder").glob("*.yaml")}
-    assert sorted(encoder_configs()) == sorted(on_disk)
+    assert sorted(ENCODER_SPECS.all_configs()) == sorted(on_disk)
     for kind, spec in ENCODER_SPECS.items():
         builder = spec.load()
         assert {"device", "config_key"} <= set(inspect.signature(builder).parameters), kind
@@ -112,35 +112,62 @@ def test_each_encoder_entry_names_its_builder_and_its_conf_files():
         load("resireg.variants.BackboneOnly")
 
 
-def test_the_config_check_names_a_sweep_that_misses_or_misspells_an_encoder(tmp_path):
-    """``sweep_config_errors``: today's conf/ passes; a copy whose Table 1 sweep lacks an
-    encoder, whose Table 2 sweep misspells one, with a bad variant list, and an encoder file
-    the table does not list is reported, each naming the file and the key."""
+def test_the_config_check_names_a_sweep_that_types_or_misspells_an_encoder(tmp_path):
+    """``sweep_config_errors``: today's conf/ passes; a copy whose Table 1 sweep types its
+    encoder list (instead of generating it from the table), whose Table 2 sweep misspells one,
+    with a bad variant list, and an encoder file of an unknown kind is reported, each naming the
+    file and the key. A new file of a known kind needs no list: scanning finds it."""
     assert sweep_config_errors(CONFIG_DIR) == []
     conf = tmp_path / "conf"
     shutil.copytree(CONFIG_DIR, conf)
     table1 = OmegaConf.load(conf / "sweep" / "table1.yaml")
-    table1.hydra.sweeper.params.encoder = ",".join(encoder_configs()[:-1])
+    table1.hydra.sweeper.params.encoder = ",".join(ENCODER_SPECS.all_configs()[:-1])
     table1.variants = ["bb", "fulll"]
     OmegaConf.save(table1, conf / "sweep" / "table1.yaml")
     table2 = OmegaConf.load(conf / "sweep" / "table2.yaml")
-    table2.hydra.sweeper.params.encoder = ",".join([*encoder_configs(), "radio_v5"])
+    table2.hydra.sweeper.params.encoder = ",".join([*ENCODER_SPECS.all_configs(), "radio_v5"])
     OmegaConf.save(table2, conf / "sweep" / "table2.yaml")
     (conf / "encoder" / "clip_extra.yaml").write_text("name: clip_extra\nkind: clip\n")
+    (conf / "encoder" / "clop.yaml").write_text("name: clop\nkind: clop\n")
     errors = sweep_config_errors(conf)
-    last = encoder_configs()[-1]
-    assert len(errors) == 4, errors
-    assert any(e.startswith("clip_extra.yaml: kind='clip': not listed") for e in errors)
+    assert len(errors) == 5, errors
+    assert any(e.startswith("encoder/clop.yaml: kind='clop': unknown encoder kind 'clop'; "
+                            "did you mean 'clip'?") for e in errors)  # fmt: skip
     assert any(e.startswith("sweep/table1.yaml: variants=['bb', 'fulll']") for e in errors)
-    assert any(e.startswith("sweep/table1.yaml: hydra.sweeper.params.encoder lacks")
-               and repr([last]) in e for e in errors)  # fmt: skip
+    assert any(e.startswith("sweep/table1.yaml: hydra.sweeper.params.encoder=") and
+               "${resireg_encoders:}" in e for e in errors)  # fmt: skip
+    assert any(e.startswith("sweep/table2.yaml") and "${resireg_encoders:}" in e for e in errors)
     assert any(e.startswith("sweep/table2.yaml") and "['radio_v5']" in e for e in errors)
+    assert not any("clip_extra" in e for e in errors)
+
+
+def test_the_sweeps_over_every_encoder_resolve_to_the_table(monkeypatch, tmp_path):
+    """Table 1's and Table 2's encoder axis, composed through Hydra, is every configuration the
+    encoder table finds by scanning ``conf/encoder/``; a file added there joins the sweep with
+    no list to edit."""
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.task import register_resolvers
+
+    register_resolvers()
+    on_disk = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))
+    for sweep in ("table1", "table2"):
+        with initialize_config_dir(str(CONFIG_DIR), version_base=None):
+            cfg = compose("eval", [f"sweep={sweep}"], return_hydra_config=True)
+        axis = cfg.hydra.sweeper.params.encoder.split(",")
+        assert sorted(axis) == on_disk, sweep
+    conf = tmp_path / "conf"
+    shutil.copytree(CONFIG_DIR, conf)
+    (conf / "encoder" / "clip_extra.yaml").write_text("name: clip_extra\nkind: clip\n")
+    monkeypatch.setenv("RESIREG_CONFIG_DIR", str(conf))
+    assert "clip_extra" in ENCODER_SPECS["clip"].configs
+    assert ENCODER_SPECS.all_configs().count("clip_extra") == 1
 
 
 _TOY_SPEC = """
 from resireg.specs.encoders import EncoderSpec
 
-SPEC = EncoderSpec("toy", "toy_encoder:ToyEncoder", ("toy",))
+SPEC = EncoderSpec("toy", "toy_encoder:ToyEncoder")
 """
 
 _TOY_ENCODER = '''

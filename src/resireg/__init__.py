@@ -1,7 +1,7 @@
 """ReSiReg: spatially consistent dense vision-language features (method, encoders, inference).
 
 The top-level names load on first use (PEP 562), so importing a light submodule such as
-``resireg.variant_names`` does not import torch.
+``resireg.specs`` does not import torch.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ _SOURCES = {
     "ReSiRegFull": "resireg.reconstruct",
     "ReSiRegLite": "resireg.reconstruct",
     "PrototypeHeuristic": "resireg.heuristic",
-    "VARIANTS": "resireg.variant_names",
+    "VARIANTS": "resireg.specs.variants",
     "build_variant": "resireg.variants",
     "segment": "resireg.deploy.segment",  # one image, a few labels (resireg-segment)
     "SegmentationResult": "resireg.deploy.segment",

@@ -26,8 +26,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.reconstruct import FullShared, ReSiRegFull
-from resireg.specs.variants import VARIANT_SPECS
-from resireg.variant_names import PRIOR_VARIANTS, VARIANTS, parse_variant, takes_prior
+from resireg.specs.variants import (
+    PRIOR_VARIANTS,
+    VARIANT_SPECS,
+    VARIANTS,
+    parse_variant,
+    takes_prior,
+)
 
 __all__ = [
     "VARIANTS",

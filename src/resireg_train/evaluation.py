@@ -80,7 +80,7 @@ class TaskProtocol(ABC):
         loads (a large backbone takes minutes): the builders' own checks, run early. The base
         checks the prior of ``+prior`` configurations; a task adds its dataset's."""
         from resireg.priors import SAM_MODEL, check_sam_source
-        from resireg.variant_names import takes_prior
+        from resireg.specs.variants import takes_prior
 
         if any(takes_prior(v) for v in variants):
             check_sam_source(str(self.params["prior"].get("model") or SAM_MODEL), "prior")

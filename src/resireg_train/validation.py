@@ -24,9 +24,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ConfigError as _ConfigError
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
-from resireg.sources import export_source_problem
-from resireg.specs.encoders import ENCODER_SPECS, Needs, find_encoder
+from resireg.specs.encoders import ENCODER_SPECS, Needs
+from resireg.specs.exports import export_source_problem
 from resireg.specs.rules import (
     BATCH_SIZE,
     Rule,
@@ -37,8 +38,14 @@ from resireg.specs.rules import (
     number,
     optional_int,
 )
-from resireg.specs.variants import PRIOR_VARIANTS, VARIANT_SPECS, VARIANTS
-from resireg.variant_names import parse_variant, takes_prior, variant_layer
+from resireg.specs.variants import (
+    PRIOR_VARIANTS,
+    VARIANT_SPECS,
+    VARIANTS,
+    parse_variant,
+    takes_prior,
+    variant_layer,
+)
 from resireg_train.data.specs import (
     dataset_key_errors,
     dataset_value_errors,
@@ -72,8 +79,10 @@ PRECISIONS: dict[str, str | None] = {
 }  # fmt: skip
 
 
-class ConfigError(ValueError):
-    """A config value of the wrong type or out of range; the message names key and value."""
+class ConfigError(_ConfigError):
+    """A config value of the wrong type or out of range; the message names key and value. A
+    :class:`resireg.errors.ConfigError` (one ``except`` catches the library's and the CLIs'),
+    under its own name, which the CLIs' one-line failures print."""
 
 
 _MISSING = object()
@@ -102,7 +111,7 @@ def encoder_import_errors(entry: Any, key: str = "encoder") -> list[str]:
     if not isinstance(entry, dict):
         return []
     errors = []
-    spec = find_encoder(entry.get("kind"))
+    spec = ENCODER_SPECS.find(entry.get("kind"))
     for module, dist, who, when in spec.imports if spec is not None else ():
         if when is not None and not when(entry):
             continue
@@ -225,7 +234,7 @@ _EVAL_RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
     "model_path": (_opt_str, "null or an export folder / Hugging Face repo id"),
     "encoder.kind": (
-        lambda v: find_encoder(v) is not None,
+        lambda v: ENCODER_SPECS.find(v) is not None,
         f"one of {list(ENCODER_SPECS)} (resireg.specs.encoders) or a kind an installed package "
         "registers (entry points resireg.encoders)",
     ),
@@ -380,32 +389,37 @@ def _device_errors(
 
 def _needs_model_path(kind: Any) -> bool:
     """Whether encoder ``kind`` reads ``model_path`` (our VLM's export; the encoder table)."""
-    spec = find_encoder(kind) if isinstance(kind, str) else None
+    spec = ENCODER_SPECS.find(kind) if isinstance(kind, str) else None
     return spec is not None and spec.needs_model_path
 
 
 #: The sweeps over every encoder (the paper's Tables 1 and 2; their report is an encoder table).
 ENCODER_SWEEPS = ("table1", "table2")
+#: The ``encoder`` axis of a sweep over every encoder: the resolver (registered by the CLIs,
+#: :func:`resireg_train.cli.task.register_resolvers`) joins the encoder table's configurations.
+EVERY_ENCODER = "${resireg_encoders:}"
+
+
+def every_encoder() -> str:
+    """The value of ``${resireg_encoders:}``: every ``conf/encoder/`` configuration of the
+    encoder table, comma-separated (a Hydra sweep axis)."""
+    return ",".join(ENCODER_SPECS.all_configs())
 
 
 def sweep_config_errors(conf_dir: str | os.PathLike) -> list[str]:
     """The config check of ``conf/sweep/``: every sweep's ``variants`` are valid configurations,
     the encoders on an ``encoder`` axis (``hydra.sweeper.params.encoder``) are configurations of
-    the encoder table (:func:`resireg.specs.encoders.encoder_configs`) and those of
-    :data:`ENCODER_SWEEPS` list every one; every ``conf/encoder/`` file is in the table under
-    its ``kind``. One message per problem, naming the file and the key."""
-    from resireg.specs.encoders import encoder_configs
-
+    the encoder table (:meth:`resireg.specs.table.SpecTable.all_configs`, found by scanning
+    ``conf/encoder/``) and those of :data:`ENCODER_SWEEPS` generate the list from the table
+    (``${resireg_encoders:}``) rather than type it. One message per problem, naming the file
+    and the key."""
     conf, errors = Path(conf_dir), []
-    known = encoder_configs()
+    known = ENCODER_SPECS.all_configs()
     for path in sorted((conf / "encoder").glob("*.yaml")):
         kind = OmegaConf.load(path).get("kind")
-        spec = ENCODER_SPECS.get(kind)
-        if spec is None or path.stem not in spec.configs:
-            errors.append(f"{path.name}: kind={kind!r}: not listed in the encoder table "
-                          "(resireg.specs.encoders.ENCODER_SPECS[kind].configs)")  # fmt: skip
-    errors += [f"encoder/{name}.yaml: named by the encoder table, no such file"
-               for name in known if not (conf / "encoder" / f"{name}.yaml").is_file()]  # fmt: skip
+        if ENCODER_SPECS.find(kind) is None:
+            errors.append(f"encoder/{path.name}: kind={kind!r}: "
+                          f"{ENCODER_SPECS.unknown(kind)}")  # fmt: skip
     for path in sorted((conf / "sweep").glob("*.yaml")):
         sweep = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
         variants = sweep.get("variants")
@@ -416,17 +430,18 @@ def sweep_config_errors(conf_dir: str | os.PathLike) -> list[str]:
         axis = ((sweep.get("hydra") or {}).get("sweeper") or {}).get("params") or {}
         if "encoder" not in axis:
             continue
-        names = [n.strip() for n in str(axis["encoder"]).split(",")]
+        text = str(axis["encoder"])
+        if text.replace(" ", "") == EVERY_ENCODER:
+            continue
+        if path.stem in ENCODER_SWEEPS:
+            errors.append(f"sweep/{path.name}: hydra.sweeper.params.encoder={text!r}: a sweep "
+                          f"over every encoder generates its list from the table: "
+                          f"{EVERY_ENCODER}")  # fmt: skip
+        names = [n.strip() for n in text.split(",")]
         unknown = [n for n in names if n not in known]
         if unknown:
             errors.append(f"sweep/{path.name}: hydra.sweeper.params.encoder: {unknown} are not "
                           f"encoders of the table; known: {list(known)}")  # fmt: skip
-        missing = [n for n in known if n not in names]
-        if path.stem in ENCODER_SWEEPS and missing:
-            errors.append(
-                f"sweep/{path.name}: hydra.sweeper.params.encoder lacks {missing}: "
-                "a sweep over every encoder lists the table's (encoder_configs())"
-            )
     return errors
 
 
@@ -544,8 +559,8 @@ def init_from_problem(source: str | os.PathLike) -> str | None:
 
 def check_available(cfg: DictConfig | dict) -> None:
     """Check that this machine has what a config names, before torch loads: the export of
-    ``model_path`` (resireg-eval, ``encoder=resireg_vlm``; :func:`resireg.sources.
-    export_source_problem`), the checkpoint or export of ``model.init_from`` (resireg-train;
+    ``model_path`` (resireg-eval, ``encoder=resireg_vlm``; :func:`resireg.specs.
+    exports.export_source_problem`), the checkpoint or export of ``model.init_from`` (resireg-train;
     :func:`init_from_problem`) and the modules the encoder's code imports
     (:func:`encoder_import_errors`); raise :class:`ConfigError` listing every problem. Separate
     from :func:`validate`, as :func:`check_devices` is: a valid config names files and needs

@@ -116,7 +116,7 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
         labels = parse_labels(args.labels, "--labels")
     except ValueError as err:
         return _fail(str(err))
-    from resireg.variant_names import VARIANTS
+    from resireg.specs.variants import VARIANTS
 
     if args.variant not in VARIANTS:
         return _fail(f"--variant={args.variant!r}: expected one of {list(VARIANTS)}")

@@ -55,7 +55,7 @@ from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
 from resireg.mapping.voxels import SUM_DTYPES, VoxelMap, check_lattice, voxel_indices
 from resireg.specs.mapping import POINTS
-from resireg.variant_names import takes_prior, variant_layer
+from resireg.specs.variants import takes_prior, variant_layer
 from resireg.variants import apply_variant, build_variants
 
 __all__ = [

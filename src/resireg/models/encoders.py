@@ -29,7 +29,7 @@ import torch
 from resireg.models.encoder import DenseEncoder
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.vlm import ResiregVLM
-from resireg.specs.encoders import encoder_specs, find_encoder
+from resireg.specs.encoders import ENCODER_SPECS
 
 __all__ = ["ENCODERS", "build_encoder", "count_parameters", "encoder_modules", "load_resireg_vlm"]
 
@@ -51,16 +51,16 @@ class _Builders(Mapping[str, Callable[..., DenseEncoder]]):
     kinds; installed packages' kinds included), each builder imported on first access."""
 
     def __getitem__(self, kind: str) -> Callable[..., DenseEncoder]:
-        spec = find_encoder(kind)
+        spec = ENCODER_SPECS.find(kind)
         if spec is None:
             raise KeyError(kind)
         return spec.load()
 
     def __iter__(self) -> Iterator[str]:
-        return iter(encoder_specs())
+        return iter(ENCODER_SPECS.everything())
 
     def __len__(self) -> int:
-        return len(encoder_specs())
+        return len(ENCODER_SPECS.everything())
 
 
 #: ``kind`` -> builder taking the entry's keys, ``device`` and ``config_key``.
@@ -74,9 +74,9 @@ def build_encoder(
     **kwargs: Any,
 ) -> DenseEncoder:
     """The encoder ``kind`` built from its config keys (errors name ``<config_key>.<key>``)."""
-    spec = find_encoder(kind)
+    spec = ENCODER_SPECS.find(kind)
     if spec is None:
-        known = sorted(encoder_specs())
+        known = sorted(ENCODER_SPECS.everything())
         raise ValueError(f"{config_key}.kind={kind!r}: expected one of {known}")
     try:
         return spec.load()(device=device, config_key=config_key, **kwargs)

@@ -1,24 +1,26 @@
-"""One table per kind of component, without importing torch (docs/design.md section 13).
+"""The ground floor: one table per kind of component, and the rules of their settings, without
+importing torch (docs/architecture.md).
 
-Each kind has one table, the only place its names, classes and parameter rules are written:
+Every table is a :class:`~resireg.specs.table.SpecTable` (``names()``, ``get(name)`` answering
+an unknown name with the closest ones, lazy ``"module:Class"`` targets, ``configs(name)``: the
+``conf/<group>/`` files of an entry, found by scanning):
 
 - :data:`VARIANT_SPECS` (:mod:`resireg.specs.variants`): the ReSiReg variants (``bb``,
-  ``calib``, ``lite``, ``full``), their classes, parameter rules and report labels;
+  ``calib``, ``lite``, ``full``) and the configuration syntax (``full+prior@n_prototypes:24``);
   defaults in ``conf/resireg/default.yaml``,
-- :data:`ENCODER_SPECS` (:mod:`resireg.specs.encoders`): the dense encoders by ``kind``,
-  their builders, the ``conf/encoder/`` files of each and the modules they import,
-- :data:`PRIOR_SPECS` (:mod:`resireg.specs.priors`): the segmentation priors, their rules;
-  defaults in ``conf/prior/``.
+- :data:`ENCODER_SPECS` (:mod:`resireg.specs.encoders`): the dense encoders by ``kind``;
+  ``conf/encoder/``; installed packages add kinds through entry points,
+- :data:`PRIOR_SPECS` (:mod:`resireg.specs.priors`): the segmentation priors; ``conf/prior/``,
+- :data:`METRIC_SPECS` (:mod:`resireg.specs.metrics`): the scores, their keys and direction,
+- :data:`SOURCE_SPECS` (:mod:`resireg.specs.sources`): the map's frame sources;
+  ``conf/source/``.
 
-The training package keeps two more tables of the same pattern, beside what they describe:
-``resireg_train.tasks.TASK_SPECS`` (``resireg-eval``'s tasks) and
-``resireg_train.data.specs.DATASET_SPECS`` (the evaluation datasets by ``kind``: builder, keys,
-tasks; defaults in ``conf/dataset/``).
+The training package keeps two more tables of the same type beside what they describe:
+``resireg_train.tasks.TASK_SPECS`` and ``resireg_train.data.specs.DATASET_SPECS``. Each table
+module's docstring holds its "adding a ..." recipe.
 
-An entry names its class lazily (``"resireg.reconstruct:ReSiRegFull"``, loaded by
-:func:`load` when something is built), so the config checks (``resireg_train.validation``),
-the report and the CLIs read the tables before torch loads. The classes check their keywords
-against the same rules (:mod:`resireg.specs.rules`).
+This package imports nothing of ``resireg`` above it (:mod:`resireg.errors` only; the import
+contracts in ``pyproject.toml`` check it).
 """
 
 from __future__ import annotations
@@ -26,19 +28,30 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__all__ = ["ENCODER_SPECS", "PRIOR_SPECS", "VARIANT_SPECS", "load"]
+from resireg.specs.table import SpecTable, UnknownNameError, conf_dir, load
 
+__all__ = [
+    "ENCODER_SPECS",
+    "METRIC_SPECS",
+    "PRIOR_SPECS",
+    "SOURCE_SPECS",
+    "VARIANT_SPECS",
+    "SpecTable",
+    "UnknownNameError",
+    "conf_dir",
+    "load",
+]
 
-def load(target: str) -> Any:
-    """The object a ``"package.module:attribute"`` path names (imported now)."""
-    module, sep, attribute = target.partition(":")
-    if not sep or not module or not attribute:
-        raise ValueError(f"{target!r}: expected 'package.module:attribute'")
-    return getattr(importlib.import_module(module), attribute)
+_TABLES = {
+    "VARIANT_SPECS": "variants",
+    "ENCODER_SPECS": "encoders",
+    "PRIOR_SPECS": "priors",
+    "METRIC_SPECS": "metrics",
+    "SOURCE_SPECS": "sources",
+}
 
 
 def __getattr__(name: str) -> Any:  # PEP 562: each table loads with its module
-    sources = {"VARIANT_SPECS": "variants", "ENCODER_SPECS": "encoders", "PRIOR_SPECS": "priors"}
-    if name in sources:
-        return getattr(importlib.import_module(f"resireg.specs.{sources[name]}"), name)
+    if name in _TABLES:
+        return getattr(importlib.import_module(f"resireg.specs.{_TABLES[name]}"), name)
     raise AttributeError(f"module 'resireg.specs' has no attribute {name!r}")

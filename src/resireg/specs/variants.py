@@ -1,4 +1,5 @@
-"""The ReSiReg variants: one entry each, in the report order of the paper's Table 1.
+"""The ReSiReg variants: one entry each, in the report order of the paper's Table 1, and the
+configuration syntax that names them (``full+prior@n_prototypes:24``).
 
 Every reader takes the names, classes and parameter rules from :data:`VARIANT_SPECS`:
 :func:`resireg.variants.build_variant` (the class), the classes' ``__init__`` (the rules),
@@ -7,27 +8,43 @@ callback and ``resireg-eval`` (which settings are a variant's), the report (labe
 the baseline of the deltas) and the playground (titles). Defaults live in
 ``conf/resireg/default.yaml`` (one block per variant with parameters); the classes' own
 keyword defaults equal them (tests/test_specs.py composes the config and compares).
+
+Adding a variant: a module with the class (``variant(intermediates, language, prior=None) ->
+[B, Dl, h, w]``, checking its keywords with :func:`check_variant_kwargs`), one
+:class:`VariantSpec` below (its parameter rules), one block of defaults under its name in
+``conf/resireg/default.yaml``. The factory (:func:`resireg.variants.build_variant`), the config
+checks, the report and the playground then know it; ``tests/test_tables.py`` checks the entry.
+
+The configuration syntax (:func:`parse_variant`) is read by the config checks before torch
+loads, so a bad ``variants=`` value is reported in a fraction of a second.
 """
 
 from __future__ import annotations
 
+import ast
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from resireg.specs.rules import Rule, integer, interval, is_int, number, one_of, optional_int
+from resireg.specs.table import SpecTable
 
 __all__ = [
     "BASELINE",
     "DEFAULTS_FILE",
+    "LAYER_KEY",
     "LITE_ATTENTION",
     "PARAM_VARIANTS",
+    "PRIOR_SUFFIX",
     "PRIOR_VARIANTS",
     "VARIANTS",
     "VARIANT_SPECS",
     "VariantSpec",
     "check_variant_kwargs",
+    "parse_variant",
+    "takes_prior",
+    "variant_layer",
 ]
 
 #: Where the variants' defaults live (the ``resireg`` config group; key = the variant name).
@@ -66,16 +83,16 @@ class VariantSpec:
 
     def load(self) -> Any:
         """The class (imports torch)."""
-        from resireg.specs import load
+        from resireg.specs.table import load
 
         return load(self.target)
 
 
 _TAU = interval(0, 1)
 
-VARIANT_SPECS: dict[str, VariantSpec] = {
-    spec.name: spec
-    for spec in (
+VARIANT_SPECS: SpecTable[VariantSpec] = SpecTable(
+    "ReSiReg variant",
+    (
         VariantSpec("bb", "resireg.variants:BackboneOnly", "BB", "BB (language tokens)"),
         VariantSpec(
             "calib",
@@ -138,8 +155,9 @@ VARIANT_SPECS: dict[str, VariantSpec] = {
             },
             takes_prior=True,
         ),
-    )
-}
+    ),
+    where="resireg.specs.variants",
+)
 
 #: Variant names, in the report order of the paper's Table 1 (BB, Calib, Lite, Full).
 VARIANTS: tuple[str, ...] = tuple(VARIANT_SPECS)
@@ -158,3 +176,62 @@ def check_variant_kwargs(name: str, values: dict[str, Any]) -> None:
     from resireg.specs.rules import check_kwargs
 
     check_kwargs(VARIANT_SPECS[name].params, values)
+
+
+#: ``<variant>+prior``: the configuration is called with the segmentation prior
+#: (``full+prior``, ``lite+prior@alpha:5.0``); only the variants that use one take it
+#: (:data:`PRIOR_VARIANTS`).
+PRIOR_SUFFIX = "+prior"
+
+#: ``<variant>@layer:<block>``: the configuration runs on that encoder block's intermediates
+#: (``lite@layer:5``; the CLIP layer sweep). It is an instruction to the evaluation, not a
+#: parameter of the variant: :func:`parse_variant` leaves it out.
+LAYER_KEY = "layer"
+
+
+def takes_prior(name: str) -> bool:
+    """Whether configuration ``name`` is scored with the segmentation prior (``full+prior``,
+    ``full+prior@n_prototypes:24``)."""
+    return str(name).split("@")[0].endswith(PRIOR_SUFFIX)
+
+
+def parse_variant(name: str) -> tuple[str, dict[str, Any]]:
+    """``"full@n_prototypes:24@alpha:5.0"`` -> ``("full", {"n_prototypes": 24, "alpha": 5.0})``.
+
+    A *configuration* is a variant name with parameter overrides after ``@`` (``key:value``,
+    repeated; values are Python literals, else strings such as ``auto``). The syntax passes
+    through Hydra's command line (``variants=[bb,full@n_prototypes:24]``) and YAML unquoted.
+    A ``+prior`` suffix on the name (``full+prior@n_prototypes:24``) is not part of the base
+    (``"full"``); :func:`takes_prior` reads it. Nor is ``@layer:<block>`` one of the
+    overrides; :func:`variant_layer` reads it.
+    """
+    base, *items = str(name).split("@")
+    base = base.removesuffix(PRIOR_SUFFIX)
+    overrides: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"{name!r}: expected <variant>@<key>:<value>[@<key>:<value>...]")
+        try:
+            overrides[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            overrides[key] = text
+    overrides.pop(LAYER_KEY, None)
+    return base, overrides
+
+
+def variant_layer(name: str) -> int | None:
+    """The encoder block of ``@layer:<block>`` in configuration ``name`` (``"lite@layer:5"`` ->
+    5, negative counts from the end), or ``None`` (the encoder's own intermediates). A value
+    that is not an integer is a ValueError naming the configuration."""
+    layer = None
+    for item in str(name).split("@")[1:]:
+        key, _, text = item.partition(":")
+        if key == LAYER_KEY:
+            try:
+                layer = ast.literal_eval(text)
+            except (ValueError, SyntaxError):
+                layer = text
+            if isinstance(layer, bool) or not isinstance(layer, int):
+                raise ValueError(f"{name!r}: @{LAYER_KEY}: takes a block index, got {text!r}")
+    return layer

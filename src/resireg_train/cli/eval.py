@@ -41,7 +41,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from resireg.specs.encoders import find_encoder
+from resireg.specs.encoders import ENCODER_SPECS
 from resireg_train.cli.task import (
     CONFIG_DIR,
     added_keys,
@@ -107,7 +107,7 @@ def _defaults() -> DictConfig:
 def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
     """``cfg`` with the export's recorded evaluation settings in place of the values still at
     their default (see the module docstring), and the keys that were taken."""
-    spec = find_encoder(cfg.encoder.kind)
+    spec = ENCODER_SPECS.find(cfg.encoder.kind)
     if spec is None or not spec.needs_model_path or not cfg.model_path:  # not our VLM's export
         return cfg, []
     export = Path(str(cfg.model_path)).expanduser()

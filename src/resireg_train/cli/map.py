@@ -5,8 +5,8 @@
     resireg-map source.kind=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
     resireg-map source.kind=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
 
-The source (:mod:`resireg_train.data.rosbag`, :mod:`resireg_train.data.tum`,
-:func:`resireg_train.data.scannet.scannet_rgbd`) is opened and checked before the encoder loads
+The source (:mod:`resireg.sources`: :mod:`~resireg.sources.rosbag`, :mod:`~resireg.sources.tum`,
+:mod:`~resireg.sources.scannet`) is opened and checked before the encoder loads
 (every missing topic is reported in a second, with the bag's topics). Windows of ``window``
 consecutive frames go through :meth:`resireg.mapping.SemanticMap.add` (a window whose encoder
 output is not finite is skipped and counted); the map is saved every ``save_every`` windows and
@@ -21,13 +21,16 @@ maps nothing fails with the reason per kind.
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections import defaultdict
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ResiregError
 from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.results import update_results
 from resireg_train.validation import ConfigError, encoder_kwargs
@@ -49,39 +52,50 @@ _KEYS = {
 
 def build_source(spec: dict[str, Any], key: str = "source"):
     """The frame source of a ``source`` entry (its kind's keys; the others' keys may stay at
-    their defaults); opens it, so a missing file or topic fails here."""
+    their defaults); opens it, so a missing file or topic fails here. A refusal of the library
+    (``path='x': ...``) is re-raised as a :class:`ConfigError` naming the config path
+    (``source.path='x': ...``)."""
     kind = spec.get("kind")
     if kind not in SOURCES:
         raise ConfigError(f"{key}.kind={kind!r}: expected one of {SOURCES}")
     if spec.get("path") in (None, "", "???"):
         raise ConfigError(f"{key}.path={spec.get('path')!r}: set the recording to map")
-    if kind == "rosbag":
-        from resireg_train.data.rosbag import BagSource, BagTopics
+    try:
+        return _open(kind, spec)
+    except (ResiregError, ValueError, FileNotFoundError) as err:
+        raise ConfigError(config_path(str(err), key, _KEYS[kind])) from err
 
-        topics = BagTopics(colour=spec["colour_topic"], depth=spec["depth_topic"],
-                           camera_info=spec["camera_info_topic"], pose=spec["pose_topic"],
-                           tf=spec["tf_topic"], tf_static=spec["tf_static_topic"],
-                           world_frame=spec["world_frame"], camera_frame=spec["camera_frame"])  # fmt: skip
-        return BagSource(spec["path"], topics, float(spec["tolerance"]),
-                         float(spec["depth_scale"]), key, float(spec["max_pose_gap"]))  # fmt: skip
+
+def _open(kind: str, spec: dict[str, Any]):
+    if kind == "rosbag":
+        from resireg.sources.rosbag import open_bag
+
+        return open_bag(spec["path"], colour_topic=spec["colour_topic"],
+                        depth_topic=spec["depth_topic"],
+                        camera_info_topic=spec["camera_info_topic"], pose_topic=spec["pose_topic"],
+                        tf_topic=spec["tf_topic"], tf_static_topic=spec["tf_static_topic"],
+                        world_frame=spec["world_frame"], camera_frame=spec["camera_frame"],
+                        depth_scale=float(spec["depth_scale"]),
+                        tolerance=float(spec["tolerance"]),
+                        max_pose_gap=float(spec["max_pose_gap"]))  # fmt: skip
     if kind == "tum":
-        from resireg_train.data.tum import TumSource
+        from resireg.sources.tum import TumSource
 
         intr = spec.get("intrinsics")
         return TumSource(spec["path"], float(spec["tolerance"]), str(spec["camera"]),
-                         list(intr) if intr is not None else None, key=key,
+                         list(intr) if intr is not None else None,
                          max_pose_gap=float(spec["max_pose_gap"]))  # fmt: skip
-    from resireg_train.data.scannet import scannet_rgbd
+    from resireg.sources.scannet import ScanNetSource
 
-    folder = Path(str(spec["path"])).expanduser()
-    frames = scannet_rgbd(folder, key)  # a generator: it checks the folder at its first frame
-    first = next(frames, None)
-    return frames if first is None else _chain(first, frames)
+    return ScanNetSource(str(spec["path"]))
 
 
-def _chain(first, rest):
-    yield first
-    yield from rest
+def config_path(message: str, key: str, names: Iterable[str]) -> str:
+    """``message`` of the library, each of its arguments ``name=`` (one of ``names``, not
+    already under a prefix) written as the config path ``<key>.name=``: the boundary between
+    the library's messages and the config's keys."""
+    words = "|".join(re.escape(n) for n in sorted(set(names), key=len, reverse=True))
+    return re.sub(rf"(?<![\w.])({words})=", rf"{key}.\1=", message)
 
 
 def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
@@ -161,7 +175,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg.mapping import MapFullError, SemanticMap
     from resireg.mapping.semantic_map import ENCODER_OUTPUT
     from resireg.models import build_encoder
-    from resireg_train.data.rgbd import FrameCounts, SkippedFrame, windows
+    from resireg.sources.frames import FrameCounts, SkippedFrame, windows
 
     window = cfg.window
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
@@ -185,16 +199,13 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     update_results(out, params=params)
     timer: dict[str, float] = defaultdict(float)
     start = time.perf_counter()
-    try:  # a wrong path, a missing topic: the message says it all (no traceback)
-        source = build_source(spec)
-    except (FileNotFoundError, ValueError) as err:
-        raise ConfigError(str(err)) from err
+    source = build_source(spec)  # a wrong path, a missing topic: one line, no traceback
     timer["open_source"] += time.perf_counter() - start
     torch.manual_seed(int(cfg.seed))
     encoder = build_encoder(**encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True)),
                             device=_device(str(cfg.device)), config_key="encoder")  # fmt: skip
     prior = None
-    from resireg.variant_names import takes_prior
+    from resireg.specs.variants import takes_prior
 
     if takes_prior(str(cfg.configuration)):
         from resireg.priors import build_prior
@@ -325,14 +336,18 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
 def _source_record(source: Any, counts: Any) -> dict[str, Any]:
     """What ``results.json`` records of the source beyond the frames: unpaired colour
     messages, messages that could not be deserialised (by topic, with examples), colour images
-    left out for their stamps, and the damage that stopped a bag's read."""
+    left out for their stamps, and the damage that stopped a bag's read (a
+    :class:`~resireg.sources.frames.MessageSource`'s; its ``path=`` as ``source.path=``)."""
+    from resireg.sources.frames import MessageSource
+
     out: dict[str, Any] = {"unpaired_colour": getattr(source, "unpaired_colour", 0)}
-    if getattr(source, "corrupt", None) is not None:
+    if isinstance(source, MessageSource):
         out["corrupt_messages"] = {"by_topic": dict(source.corrupt),
                                    "examples": list(source.corrupt_examples)}  # fmt: skip
         out["colour_stamp_faults"] = {"count": len(source.colour_stamp_faults),
-                                      "examples": source.colour_stamp_faults[:20]}  # fmt: skip
-        out["damage"] = source.damage
+                                      "examples": list(source.colour_stamp_faults[:20])}  # fmt: skip
+        damage = source.damage
+        out["damage"] = None if damage is None else config_path(damage, "source", ("path",))
     if counts.depth_out_of_range:
         out["depth_out_of_range"] = {"pixels": counts.depth_out_of_range,
                                      "frames": counts.depth_out_of_range_frames}  # fmt: skip

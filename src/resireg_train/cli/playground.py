@@ -119,8 +119,8 @@ def main(argv: list[str] | None = None) -> None:
         resireg_defaults()
     except ValueError as err:
         parser.exit(2, f"resireg-playground: error: {err}\n")
-    if reads_model_path(spec):  # the loader's rule, before torch (resireg.sources)
-        from resireg.sources import export_source_problem
+    if reads_model_path(spec):  # the loader's rule, before torch (resireg.specs.exports)
+        from resireg.specs.exports import export_source_problem
 
         problem = export_source_problem(spec["path"]) or _uncached_repo(spec["path"])
         if problem:

@@ -129,11 +129,16 @@ def instantiate_group(group: DictConfig | None) -> list[Any]:
 
 def register_resolvers() -> None:
     """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
-    ``first_key`` in ``conf/hparams_search``)."""
+    ``first_key`` in ``conf/hparams_search``, ``resireg_encoders`` in the sweeps over every
+    encoder)."""
     if not OmegaConf.has_resolver("safe_dirname"):
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
+    if not OmegaConf.has_resolver("resireg_encoders"):  # conf/sweep/table1.yaml, table2.yaml
+        from resireg_train.validation import every_encoder
+
+        OmegaConf.register_new_resolver("resireg_encoders", every_encoder)
     from resireg_train.search import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=

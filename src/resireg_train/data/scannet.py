@@ -61,6 +61,13 @@ from PIL import Image
 from resireg.mapping import nearest_downsample, scale_intrinsics
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import NYU40_CLASSES
+from resireg.sources.scannet import (
+    FrameFileError,
+    read_image,
+    read_matrix,
+    resize_rgb,
+    scannet_rgbd,
+)
 from resireg.specs.rules import check_batch_size
 from resireg_train.data.segmentation import IGNORE_INDEX, SkippedSample
 from resireg_train.data.specs import (
@@ -225,13 +232,6 @@ def label_lookup(raw_to_nyu40: Mapping[int, int], class_ids: Sequence[int]) -> n
     return table
 
 
-def _read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    m = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    if m.shape != shape:
-        raise ValueError(f"{path}: expected a {shape[0]} x {shape[1]} matrix, got {m.shape}")
-    return m
-
-
 @dataclass(frozen=True)
 class _Frame:
     scene: int
@@ -240,27 +240,6 @@ class _Frame:
     depth: Path
     label: Path
     pose: np.ndarray
-
-
-class _FrameError(Exception):
-    """A frame file that could not be read: the file and why (a :class:`SkippedSample`)."""
-
-    def __init__(self, path: Path, reason: str) -> None:
-        super().__init__(f"{path}: {reason}")
-        self.path, self.reason = path, reason
-
-
-def _read_image(path: Path, what: str, decode: Any = np.asarray) -> Any:
-    """``decode`` of the image at ``path`` (its pixels as an array by default); a missing or
-    undecodable file is a :class:`_FrameError` naming that file (PIL decodes lazily: a
-    truncated PNG fails in ``np.asarray``, after ``Image.open`` succeeded)."""
-    try:
-        with Image.open(path) as im:
-            return decode(im)
-    except FileNotFoundError:
-        raise _FrameError(path, f"missing {what} file") from None
-    except (*DECODE_ERRORS, RuntimeError) as err:
-        raise _FrameError(path, f"unreadable {what}: {err}") from None
 
 
 class ScanNetFrames(torch.utils.data.Dataset):
@@ -345,7 +324,7 @@ class ScanNetFrames(torch.utils.data.Dataset):
         k_path = folder / "intrinsic" / "intrinsic_depth.txt"
         if not k_path.is_file():
             raise FileNotFoundError(f"{key}.scenes: {folder} has no intrinsic/intrinsic_depth.txt")
-        self.intrinsics.append(_read_matrix(k_path, (4, 4))[:3, :3])
+        self.intrinsics.append(read_matrix(k_path, (4, 4))[:3, :3])
         label_dir = next(
             (folder / d.format(scene=scene) for d in _LABEL_DIRS
              if (folder / d.format(scene=scene)).is_dir()),
@@ -369,7 +348,7 @@ class ScanNetFrames(torch.utils.data.Dataset):
             stem = stems[i]
             pose_file = folder / "pose" / f"{stem}.txt"
             try:
-                pose = _read_matrix(pose_file, (4, 4))
+                pose = read_matrix(pose_file, (4, 4))
             except (OSError, ValueError) as err:
                 self.dropped.append(SkippedSample(-1, str(pose_file), f"unreadable pose: {err}"))
                 continue
@@ -415,18 +394,18 @@ class ScanNetFrames(torch.utils.data.Dataset):
 
     def _load(self, frame: _Frame) -> dict[str, Any]:
         k = torch.from_numpy(self.intrinsics[frame.scene])
-        colour = _read_image(frame.color, "colour", pil_to_tensor)
-        depth_mm = _read_image(frame.depth, "depth").astype(np.float32)
-        raw = _read_image(frame.label, "label")
+        colour = read_image(frame.color, "colour", pil_to_tensor)
+        depth_mm = read_image(frame.depth, "depth").astype(np.float32)
+        raw = read_image(frame.label, "label")
         if depth_mm.ndim != 2:
-            raise _FrameError(
+            raise FrameFileError(
                 frame.depth, f"depth has shape {depth_mm.shape}: expected one channel"
             )
         if raw.ndim != 2:
-            raise _FrameError(frame.label, f"label has shape {raw.shape}: expected one channel")
+            raise FrameFileError(frame.label, f"label has shape {raw.shape}: expected one channel")
         depth = torch.from_numpy(depth_mm / 1000.0)
         size = tuple(depth.shape)
-        image = resize_to_patch_grid(_resize_rgb(colour, self.image_size), self.short_side,
+        image = resize_to_patch_grid(resize_rgb(colour, self.image_size), self.short_side,
                                      self.patch_size)  # fmt: skip
         label = torch.from_numpy(self.lookup[raw.astype(np.int64)].astype(np.int64))
         gt_size = {"image": self.image_size, "label": tuple(label.shape)}.get(
@@ -450,20 +429,10 @@ class ScanNetFrames(torch.utils.data.Dataset):
         frame = self.frames[index]
         try:
             item = self._load(frame)
-        except _FrameError as err:
+        except FrameFileError as err:
             return SkippedSample(index, str(err.path), err.reason)
         item["index"] = index
         return item
-
-
-def _resize_rgb(image: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """uint8 RGB ``[3, H, W]`` -> float ``[3, *size]`` in [0, 1] (bilinear, antialiased)."""
-    x = image.float() / 255.0
-    if tuple(x.shape[-2:]) == tuple(size):
-        return x
-    return torch.nn.functional.interpolate(
-        x[None], size=size, mode="bilinear", align_corners=False, antialias=True
-    )[0].clamp_(0, 1)
 
 
 def collate_frames(items: list[dict[str, Any] | SkippedSample]) -> dict[str, Any]:
@@ -530,52 +499,3 @@ def build_scannet(spec: Mapping[str, Any], patch_size: int, key: str = "dataset"
             options[size] = tuple(int(v) for v in options[size])
     return ScanNetFrames(root, scenes, patch_size=patch_size,
                          name=str(spec.get("name") or "scannet"), key=key, **options)  # fmt: skip
-
-
-def scannet_rgbd(folder: str | Path, key: str = "source"):
-    """The posed RGB-D frames of one scene folder of ScanNet's export layout (module docstring;
-    no labels needed), in frame order, for ``resireg-map``: ``color/<i>.jpg``, ``depth/<i>.png``
-    (uint16 mm), ``pose/<i>.txt``, ``intrinsic/intrinsic_depth.txt``. Colour is resized to the
-    depth image's size (bilinear, antialiased; ScanNet's colour and depth share the field of
-    view, module docstring). Yields :class:`~resireg_train.data.rgbd.RGBDFrame`, or
-    :class:`~resireg_train.data.rgbd.SkippedFrame` for a frame whose file is missing or
-    unreadable; a ``-inf`` pose is passed on (the windows drop it as ``no_pose``)."""
-    from resireg_train.data.rgbd import RGBDFrame, SkippedFrame
-
-    folder = Path(folder).expanduser()
-    for sub in ("color", "depth", "pose"):
-        if not (folder / sub).is_dir():
-            raise FileNotFoundError(f"{key}.path={str(folder)!r}: no {sub}/ folder (a ScanNet "
-                                    "scene export: color/, depth/, pose/, intrinsic/)")  # fmt: skip
-    k_path = folder / "intrinsic" / "intrinsic_depth.txt"
-    if not k_path.is_file():
-        raise FileNotFoundError(f"{key}.path={str(folder)!r}: no intrinsic/intrinsic_depth.txt")
-    k = _read_matrix(k_path, (4, 4))[:3, :3]
-    stems = {int(p.stem): p.stem for p in (folder / "color").glob("*.jpg")
-             if re.fullmatch(r"\d+", p.stem)}  # fmt: skip
-    for i in sorted(stems):
-        stem = stems[i]
-        try:
-            pose = _read_matrix(folder / "pose" / f"{stem}.txt", (4, 4))
-        except (OSError, ValueError) as err:
-            yield SkippedFrame(str(folder / "pose" / f"{stem}.txt"), f"unreadable pose: {err}",
-                               "no_pose")  # fmt: skip
-            continue
-        try:
-            colour = _read_image(folder / "color" / f"{stem}.jpg", "colour", pil_to_tensor)
-            depth = _read_image(folder / "depth" / f"{stem}.png", "depth").astype(np.float32)
-        except _FrameError as err:
-            yield SkippedFrame(str(err.path), err.reason, "undecodable")
-            continue
-        if depth.ndim != 2:
-            yield SkippedFrame(
-                str(folder / "depth" / f"{stem}.png"),
-                f"depth has shape {depth.shape}: expected one channel",
-                "undecodable",
-            )
-            continue
-        rgb = _resize_rgb(colour, depth.shape)
-        image = (rgb * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-        yield RGBDFrame(
-            image, depth / 1000.0, k, pose, float(i), str(folder / "color" / f"{stem}.jpg")
-        )

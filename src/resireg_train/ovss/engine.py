@@ -33,8 +33,7 @@ from torch import Tensor, nn
 
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
-from resireg.specs.variants import BASELINE, VARIANTS
-from resireg.variant_names import parse_variant, takes_prior, variant_layer
+from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
 from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.engine import (  # shared with the 3D engine; importable from here too

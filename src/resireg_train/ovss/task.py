@@ -13,7 +13,7 @@ from typing import Any
 from torch import nn
 
 from resireg.models import DenseEncoder
-from resireg.variant_names import takes_prior
+from resireg.specs.variants import takes_prior
 from resireg_train.data.segmentation import build_segmentation_set, check_segmentation_source
 from resireg_train.engine import StageTimer
 from resireg_train.evaluation import TaskProtocol

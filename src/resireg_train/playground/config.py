@@ -20,9 +20,9 @@ SLIDERS: dict[str, tuple[str, ...]] = {
 def reads_model_path(spec: dict[str, Any]) -> bool:
     """Whether the encoder entry ``spec`` is our VLM's export (its kind's ``needs_model_path``
     in the encoder table, resireg.specs.encoders)."""
-    from resireg.specs.encoders import find_encoder
+    from resireg.specs.encoders import ENCODER_SPECS
 
-    found = find_encoder(spec.get("kind"))
+    found = ENCODER_SPECS.find(spec.get("kind"))
     return found is not None and found.needs_model_path
 
 

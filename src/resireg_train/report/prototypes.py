@@ -8,7 +8,7 @@ import math
 import pandas as pd
 
 from resireg.heuristic import PrototypeHeuristic
-from resireg.variant_names import takes_prior
+from resireg.specs.variants import takes_prior
 from resireg.variants import parse_variant
 from resireg_train.report.jobs import BATCH_KEY, PROTOTYPES_KEY, Job, job_scores, varying_keys
 

@@ -10,8 +10,7 @@ from typing import Any
 
 import pandas as pd
 
-from resireg.specs.variants import BASELINE, VARIANTS
-from resireg.variant_names import takes_prior, variant_layer
+from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
 from resireg.variants import parse_variant
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys

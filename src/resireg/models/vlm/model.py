@@ -43,7 +43,7 @@ from resireg.models.hub import require_online
 from resireg.models.vlm.eupe import EUPEBackbone
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half
-from resireg.sources import is_repo_id
+from resireg.specs.exports import is_repo_id
 
 __all__ = ["ResiregVLM"]
 
@@ -339,7 +339,7 @@ def _export_dir(source: str | os.PathLike) -> Path:
     if path.is_dir():
         return path
     text = os.fspath(source)
-    if path.exists() or not is_repo_id(text):  # (resireg.sources: the config checks' rule too)
+    if path.exists() or not is_repo_id(text):  # (resireg.specs.exports: the checks' rule too)
         raise FileNotFoundError(
             f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"
         )

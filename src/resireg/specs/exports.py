@@ -1,7 +1,8 @@
 """Where a model comes from, decided without torch: the rule of
 :meth:`resireg.models.ResiregVLM.from_pretrained` for its ``source`` (an export folder or a
 Hugging Face repo id), shared with the config checks of ``resireg-eval`` and
-``resireg-playground``, which run it before torch and the models load."""
+``resireg-playground``, which run it before torch and the models load. (This was
+``resireg.sources`` before that name became the map's frame sources.)"""
 
 from __future__ import annotations
 

@@ -1,0 +1,74 @@
+"""Posed RGB-D frame sources for the semantic map, on the robot side: ``pip install
+"resireg[robot]"`` is all they need (no Lightning, Hydra or ``datasets``).
+
+- :mod:`~resireg.sources.frames`: the records (:class:`RGBDFrame`, :class:`SkippedFrame`), their
+  tally (:class:`FrameCounts`), what a source is (:class:`FrameSource`, :class:`MessageSource`)
+  and :func:`windows`, the ``[B, ...]`` tensors :meth:`resireg.mapping.SemanticMap.add` takes;
+- :mod:`~resireg.sources.pairing`: timestamp pairing, pose tracks, the tf tree, stamp faults;
+- :mod:`~resireg.sources.messages`: ROS message -> numpy (rosbags' and rclpy's messages alike);
+- the readers: :mod:`~resireg.sources.rosbag` (ROS 1 / ROS 2 bags), :mod:`~resireg.sources.tum`
+  (TUM RGB-D), :mod:`~resireg.sources.scannet` (a ScanNet scene export),
+  :mod:`~resireg.sources.nerfstudio` (a Nerfstudio ``transforms.json`` folder).
+
+The kinds of source, their settings and their rules are the table
+:data:`resireg.specs.sources.SOURCE_SPECS` (its docstring: adding a source). The library's
+messages name its own arguments (``path='run.bag': no such bag``); ``resireg-map`` adds the
+config path (``source.path=...``).
+
+The names below load on first use (PEP 562). ``export_source_problem`` and ``is_repo_id`` (where
+a *model* comes from, what this module held before) moved to :mod:`resireg.specs.exports`; they
+are re-exported here with a ``DeprecationWarning`` for one release.
+"""
+
+from __future__ import annotations
+
+import importlib
+import warnings
+from typing import Any
+
+__all__ = [
+    "BagSource",
+    "BagTopics",
+    "FrameCounts",
+    "FrameSource",
+    "MessageSource",
+    "NerfstudioSource",
+    "RGBDFrame",
+    "ScanNetSource",
+    "SkippedFrame",
+    "TumSource",
+    "windows",
+]
+
+_NAMES = {
+    "RGBDFrame": "resireg.sources.frames",
+    "SkippedFrame": "resireg.sources.frames",
+    "FrameCounts": "resireg.sources.frames",
+    "FrameSource": "resireg.sources.frames",
+    "MessageSource": "resireg.sources.frames",
+    "windows": "resireg.sources.frames",
+    "BagSource": "resireg.sources.rosbag",
+    "BagTopics": "resireg.sources.rosbag",
+    "TumSource": "resireg.sources.tum",
+    "ScanNetSource": "resireg.sources.scannet",
+    "NerfstudioSource": "resireg.sources.nerfstudio",
+}
+#: moved away (the model-source rule): old name -> its module now
+_MOVED = {
+    "export_source_problem": "resireg.specs.exports",
+    "is_repo_id": "resireg.specs.exports",
+}
+
+
+def __getattr__(name: str) -> Any:  # PEP 562
+    if name in _MOVED:
+        warnings.warn(
+            f"resireg.sources.{name} moved to {_MOVED[name]}.{name}; this alias goes in the "
+            "next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(importlib.import_module(_MOVED[name]), name)
+    if name in _NAMES:
+        return getattr(importlib.import_module(_NAMES[name]), name)
+    raise AttributeError(f"module 'resireg.sources' has no attribute {name!r}")
