@@ -115,7 +115,7 @@ def test_pose_buffer_equals_the_whole_stream_track():
     """A live pose buffer (samples arriving one by one) answers at each time as PoseTrack
     over the whole stream does, times the camera offset; final once a later sample came."""
     from resireg.ros2.pipeline import PoseBuffer
-    from resireg_train.data.rgbd import PoseTrack
+    from resireg.sources.pairing import PoseTrack
 
     rng = np.random.default_rng(1)
     stamps = np.cumsum(rng.uniform(0.02, 0.2, 30))

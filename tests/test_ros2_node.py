@@ -87,9 +87,9 @@ def reference_map(bag, encoder, frames_window=WINDOW):
     with the same overrides), SemanticMap.add per window as its _map does."""
     from hydra import compose, initialize_config_dir
 
+    from resireg.sources.frames import FrameCounts, windows
     from resireg_train.cli.map import build_source, make_map
     from resireg_train.cli.task import CONFIG_DIR
-    from resireg_train.data.rgbd import FrameCounts, windows
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"configuration={CONFIG}", f"window={frames_window}",
@@ -381,15 +381,16 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
 
 
 def test_imports_carry_no_lightning_or_hydra():
-    """resireg.ros2 (node, CLI, pipeline) and resireg.sources import no Lightning, Hydra or
-    datasets: checked in a fresh interpreter's sys.modules."""
+    """resireg.ros2 (node, CLI, pipeline) and resireg.sources import no Lightning, Hydra,
+    datasets, nor resireg_train: checked in a fresh interpreter's sys.modules."""
     code = ("import json, sys, resireg.ros2.node, resireg.ros2.cli, resireg.ros2.pipeline, "
             "resireg.sources; print(json.dumps(sorted(sys.modules)))")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env=ros_env(), check=True).stdout  # fmt: skip
     roots = {m.split(".")[0] for m in json.loads(out)}
-    assert "rclpy" in roots and "torch" in roots
-    assert not roots & {"lightning", "pytorch_lightning", "hydra", "omegaconf", "datasets"}
+    assert "rclpy" in roots and "resireg" in roots
+    assert not roots & {"lightning", "pytorch_lightning", "hydra", "omegaconf", "datasets",
+                        "resireg_train"}  # fmt: skip
 
 
 def test_threads_end_with_close(ros, encoder, tmp_path):

@@ -62,8 +62,17 @@ from resireg.ros2.settings import (
     parameters,
     variant_params,
 )
-from resireg_train.data.rgbd import RGBDFrame, SkippedFrame, pose_matrix
-from resireg_train.data.rosbag import decode_colour, decode_depth
+from resireg.sources.frames import RGBDFrame, SkippedFrame
+from resireg.sources.messages import (
+    camera_intrinsics,
+    camera_size,
+    decode_colour,
+    decode_depth,
+    pose_msg_matrix,
+    stamp_seconds,
+    transform_matrix,
+)
+from resireg.sources.pairing import pose_matrix
 
 __all__ = ["ResiregMapNode", "TfPoses"]
 
@@ -80,15 +89,9 @@ def _msg_type(name: str):
             _ODOMETRY: Odometry}[name]  # fmt: skip
 
 
-def _stamp(header: Any) -> float:
-    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
-
-
 def _pose_of(msg: Any) -> np.ndarray:
     """The pose of a ``PoseStamped`` or ``Odometry`` message, ``[4, 4]``."""
-    p = msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose
-    return pose_matrix((p.position.x, p.position.y, p.position.z),
-                       (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))  # fmt: skip
+    return pose_msg_matrix(msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose)
 
 
 def _plain(value: Any) -> Any:
@@ -119,8 +122,7 @@ class TfPoses:
                                               Time(nanoseconds=int(round(t * 1e9))))  # fmt: skip
         except Exception as err:  # tf2's lookup, connectivity and extrapolation errors
             return None, f"no tf {self.world} -> {frame_id} at {t:.6f}: {err}", False
-        tl, q = tr.transform.translation, tr.transform.rotation
-        return pose_matrix((tl.x, tl.y, tl.z), (q.x, q.y, q.z, q.w)), "", True
+        return transform_matrix(tr.transform), "", True
 
 
 class ResiregMapNode(Node):
@@ -333,21 +335,20 @@ class ResiregMapNode(Node):
     # ------------------------------------------------------------------ inputs (callbacks)
     def _on_colour(self, msg: Any) -> None:
         t0 = time.perf_counter()
-        self.pairer.colour(_stamp(msg.header), msg)
+        self.pairer.colour(stamp_seconds(msg.header), msg)
         self._drain(time.monotonic(), t0)
 
     def _on_depth(self, msg: Any) -> None:
         t0 = time.perf_counter()
-        self.pairer.depth(_stamp(msg.header), msg, msg.header.frame_id, time.monotonic())
+        self.pairer.depth(stamp_seconds(msg.header), msg, msg.header.frame_id, time.monotonic())
         self._drain(time.monotonic(), t0)
 
     def _on_info(self, msg: Any) -> None:
-        k = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
-        self.pairer.info(_stamp(msg.header), k, (int(msg.height), int(msg.width)))
+        self.pairer.info(stamp_seconds(msg.header), camera_intrinsics(msg), camera_size(msg))
         self._drain(time.monotonic(), time.perf_counter())
 
     def _on_pose(self, msg: Any) -> None:
-        self.pairer.poses.add(_stamp(msg.header), _pose_of(msg))
+        self.pairer.poses.add(stamp_seconds(msg.header), _pose_of(msg))
         self._drain(time.monotonic(), time.perf_counter())
 
     def _poll(self) -> None:

@@ -1,7 +1,7 @@
 """The live node's frame path without ROS: pairing, keyframes and the mapping thread.
 
 Messages come in one at a time (:class:`FramePairer`); each depth image is a candidate frame,
-as in a bag (:mod:`resireg_train.data.rosbag`): the colour image of the nearest stamp within
+as in a bag (:mod:`resireg.sources.rosbag`): the colour image of the nearest stamp within
 ``tolerance`` (:func:`pair_nearest`), the latest camera info received up to its stamp (else the
 first), the camera pose at its stamp (a pose source: :class:`PoseBuffer` for a
 ``PoseStamped`` / ``Odometry`` topic and a fixed camera offset, interpolated by
@@ -35,15 +35,9 @@ from typing import Any
 
 import numpy as np
 
-# The frame records, pairing and pose interpolation of resireg-map's readers.
-from resireg_train.data.rgbd import (
-    FrameCounts,
-    PoseTrack,
-    RGBDFrame,
-    SkippedFrame,
-    pair_nearest,
-    windows,
-)
+# The frame records, windows, pairing and pose interpolation of resireg-map's readers.
+from resireg.sources.frames import FrameCounts, RGBDFrame, SkippedFrame, windows
+from resireg.sources.pairing import PoseTrack, pair_nearest
 
 __all__ = [
     "FramePairer",

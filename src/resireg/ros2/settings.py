@@ -116,7 +116,7 @@ def _optional_text(v: Any) -> bool:
 
 
 def _configuration_ok(v: Any) -> bool:
-    from resireg.variant_names import parse_variant, takes_prior, variant_layer
+    from resireg.specs.variants import parse_variant, takes_prior, variant_layer
 
     if not isinstance(v, str) or takes_prior(v):
         return False
