@@ -336,6 +336,7 @@ def _start_node(tmp_path, export, *extra):
         text = json.dumps(value) if isinstance(value, list) else str(value)
         args += ["-p", f"{p.name}:={text}"]
     args += [x for kv in extra for x in ("-p", kv)]
+    args += ["-r", "__node:=resireg_sigint"]  # apart from the module's in-process node
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**ros_env(), "OMP_NUM_THREADS": "1"})  # fmt: skip
 
@@ -351,7 +352,7 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
     pub = Replayer(REPLAY_TOPICS, context=context, name="replay_sigint")
     spinner.add(pub)
     status = []
-    sub = test_node.create_subscription(String, "/resireg_map/status",
+    sub = test_node.create_subscription(String, "/resireg_sigint/status",
                                         lambda m: status.append(json.loads(m.data)), 10)  # fmt: skip
     for start, stop, extra in ((0, 4, ()), (4, FRAMES, ("resume:=true",))):
         proc = _start_node(tmp_path, tiny_export, *extra)
