@@ -83,14 +83,22 @@ def test_a_missing_module_is_named_before_the_encoder_loads(monkeypatch):
     check_available(clip)  # the CLIP adaptor of RADIO does not import transformers
 
 
-def _imported_distributions(package, module_level=True):
+#: Modules resireg.ros2 imports where a ROS 2 install provides them (not on PyPI): the camera
+#: pose from tf (resireg.ros2.node.TfPoses); without them the pose comes from a topic.
+FROM_A_ROS_INSTALL = ("tf2_ros",)
+
+
+def _imported_distributions(package, module_level=True, skip=()):
     """Third-party distributions a package imports, from the source's own AST: its module-level
-    imports, or every import (functions' lazy ones too: transformers, sentencepiece, sklearn)."""
+    imports, or every import (functions' lazy ones too: transformers, sentencepiece, sklearn);
+    ``skip``: subpackages left out."""
     import ast
 
     root = Path(__file__).parents[1] / "src" / package
     top = set()
     for path in root.rglob("*.py"):
+        if path.relative_to(root).parts[0] in skip:
+            continue
         tree = ast.parse(path.read_text())
         for node in tree.body if module_level else ast.walk(tree):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
@@ -98,7 +106,7 @@ def _imported_distributions(package, module_level=True):
             top |= {n.split(".")[0] for n in names if n}
     top -= set(sys.stdlib_module_names) | {"resireg", "resireg_train", "__future__"}
     dists = importlib.metadata.packages_distributions()
-    return {module: {canonicalize_name(d) for d in dists[module]} for module in sorted(top)}
+    return {module: {canonicalize_name(d) for d in dists.get(module, ())} for module in sorted(top)}
 
 
 def test_the_core_install_is_what_resireg_imports_and_train_carries_the_rest():
@@ -108,14 +116,17 @@ def test_the_core_install_is_what_resireg_imports_and_train_carries_the_rest():
     datasets live in the `train` extra, which `dev` includes."""
     core = _names(PYPROJECT["project"]["dependencies"])
     train, dev = _names(EXTRAS["train"]), _names(EXTRAS["dev"])
-    for module, dists in _imported_distributions("resireg").items():
+    for module, dists in _imported_distributions("resireg", skip=("ros2",)).items():
         assert dists & core, f"resireg imports {module} at module level; not a core dependency"
     anywhere = _imported_distributions("resireg", module_level=False)
     needed = set().union(*anywhere.values())
     unused = core - needed
     assert unused <= {"torchvision"}, f"core dependencies resireg never imports: {unused}"
+    robot = _installed_with(_names(EXTRAS["robot"]))  # the ROS meta-packages' ros-* wheels
     for module, dists in anywhere.items():
-        assert dists & (core | dev), f"resireg imports {module}; in no extra"
+        if module in FROM_A_ROS_INSTALL:
+            continue
+        assert dists & (core | dev | robot), f"resireg imports {module}; in no extra"
     for module, dists in _imported_distributions("resireg_train").items():
         assert dists & (core | train | dev), f"resireg_train imports {module}; in no extra"
     # the 25M VLM's SigLIP 2 tokenizer is open_clip's HFTokenizer: text queries need it
@@ -123,6 +134,45 @@ def test_the_core_install_is_what_resireg_imports_and_train_carries_the_rest():
     assert {"lightning", "hydra-core", "datasets"} <= train
     assert not {"lightning", "hydra-core", "datasets"} & core
     assert train <= dev
+
+
+def _installed_with(names):
+    """``names`` and every distribution they require, as installed (importlib.metadata)."""
+    from importlib.metadata import PackageNotFoundError, requires
+
+    todo, seen = list(names), set()
+    while todo:
+        name = canonicalize_name(todo.pop())
+        if name in seen:
+            continue
+        seen.add(name)
+        try:
+            reqs = requires(name) or []
+        except PackageNotFoundError:
+            continue
+        for r in map(Requirement, reqs):
+            if r.marker is None or r.marker.evaluate({"extra": ""}):
+                todo.append(r.name)
+    return seen
+
+
+def test_the_live_node_imports_the_core_and_the_robot_extra():
+    """resireg.ros2 (the live node, docs/robot.md) imports at module level only the core and
+    what the robot extra installs: ROS 2 Jazzy's wheels (rclpy, the message packages; the
+    ros-jazzy-* distributions are meta-packages of ros-* ones, expanded as installed)."""
+    core, robot = _names(PYPROJECT["project"]["dependencies"]), _names(EXTRAS["robot"])
+    if not any(name.startswith("ros-jazzy-") for name in robot):
+        pytest.skip("no ROS 2 wheels for this Python / platform (the robot extra's marker)")
+    allowed = core | _installed_with(robot)
+    root = Path(__file__).parents[1] / "src" / "resireg"
+    for module, dists in _imported_distributions("resireg").items():
+        if dists & core:
+            continue
+        assert dists & allowed, f"resireg.ros2 imports {module}; neither core nor robot extra"
+        users = [p for p in root.rglob("*.py") if f"import {module}" in p.read_text()
+                 or f"from {module}" in p.read_text()]  # fmt: skip
+        assert all("ros2" in p.relative_to(root).parts for p in users), (module, users)
+    assert "robot" in {x for r in EXTRAS["dev"] for x in Requirement(r).extras}
 
 
 def test_resireg_train_names_the_train_extra_when_it_is_missing(monkeypatch):

@@ -1,0 +1,81 @@
+"""``resireg-ros2``: the live mapping node (:class:`resireg.ros2.node.ResiregMapNode`), with
+rclpy's argument handling::
+
+    resireg-ros2 --ros-args -p model_path:=<export> -p source.world_frame:=odom \\
+        -r __node:=resireg_map -p source.colour_topic:=/camera/camera/color/image_raw
+
+Every parameter, its default and where the default is read: ``resireg-ros2 --parameters``
+(docs/robot.md). Ctrl-C (SIGINT) maps the queued keyframes and saves the map. Exit status: 0,
+2 for a bad parameter or a missing ``robot`` extra (one line on stderr), 1 for a failure of
+the mapping thread.
+"""
+
+from __future__ import annotations
+
+import sys
+
+__all__ = ["main"]
+
+PROG = "resireg-ros2"
+
+
+def _missing_rclpy() -> str | None:
+    import importlib.util
+
+    for module in ("rclpy", "sensor_msgs", "std_srvs", "nav_msgs", "visualization_msgs"):
+        if importlib.util.find_spec(module) is None:
+            return module
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv if argv is None else [PROG, *argv])
+    if "--parameters" in argv[1:]:
+        from resireg.ros2.settings import SettingsError, parameter_table
+
+        try:
+            print(parameter_table())
+        except SettingsError as err:
+            print(f"{PROG}: error: {err}", file=sys.stderr)
+            return 2
+        return 0
+    missing = _missing_rclpy()
+    if missing is not None:
+        print(f"{PROG}: error: needs the 'robot' extra ({missing} not installed): pip install "
+              '"resireg[robot]" (in a clone: pip install -e ".[robot]" -c constraints.txt), '
+              "or source a ROS 2 Jazzy install", file=sys.stderr)  # fmt: skip
+        return 2
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    from resireg.ros2.settings import SettingsError
+
+    rclpy.init(args=argv)
+    node = None
+    try:
+        from resireg.ros2.node import ResiregMapNode
+
+        try:
+            node = ResiregMapNode()
+        except SettingsError as err:
+            print(f"{PROG}: error: {err}", file=sys.stderr)
+            return 2
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            executor.spin()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+    finally:
+        if node is not None:
+            folder = node.close()
+            if folder is not None:
+                print(f"{PROG}: map saved to {folder} ({len(node.worker.smap)} voxels, "
+                      f"{node.worker.smap.frames} frames)", flush=True)  # fmt: skip
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 1 if node is not None and node.worker.error is not None else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

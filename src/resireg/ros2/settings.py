@@ -1,0 +1,332 @@
+"""The live node's parameters: names and defaults read from the project's YAML files at start,
+checked with the project's rules (no rclpy, no torch: a bad value is reported in a second).
+
+One source per default. ``resireg-ros2`` takes the names and defaults of ``resireg-map``
+(``conf/map.yaml``) for what the two share, and adds its own in ``conf/ros2.yaml``:
+
+- the map's keys (``configuration``, ``window``, ``voxel_size``, ``points``, ``lattice``,
+  ``sum_dtype``, ``max_voxels``, ``short_side``, ``model_path``, ``device``, ``seed``,
+  ``save_every``, ``resume``) and ``encoder`` (a ``conf/encoder/<name>.yaml`` file, the
+  ``encoder`` entry of map.yaml's defaults list): ``conf/map.yaml``;
+- the ReSiReg variants' parameters (``full.n_prototypes``, ``lite.alpha``, ...):
+  ``conf/resireg/default.yaml``, checked by the variant table's rules
+  (:data:`resireg.specs.variants.VARIANT_SPECS`);
+- the source keys that apply to live topics (``source.tolerance``, ``source.max_pose_gap``,
+  ``source.max_depth``, the topics, ``source.world_frame``, ``source.camera_frame``,
+  ``source.depth_scale``): ``conf/source/rosbag.yaml`` where it exists, else the ``source``
+  block of ``conf/map.yaml``;
+- ``rerun.save``, ``rerun.spawn``, ``rerun.query``, ``rerun.map_every``: ``conf/map.yaml``;
+- the node's own (queue, keyframes, pose offset, rates, QoS, the live Rerun stream):
+  ``conf/ros2.yaml``.
+
+As ROS parameters they keep their dotted YAML paths (``-p source.tolerance:=0.05``,
+``-p full.n_prototypes:=24``). The folder is ``conf/`` beside ``src/`` (a checkout or an
+editable install) unless ``$RESIREG_CONFIG_DIR`` names another.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from resireg.specs.mapping import LATTICES, POINTS
+from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of, optional_int
+from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
+
+__all__ = [
+    "MAP_KEYS",
+    "NODE_FILE",
+    "SOURCE_KEYS",
+    "Parameter",
+    "SettingsError",
+    "check",
+    "config_dir",
+    "encoder_entry",
+    "parameter_table",
+    "parameters",
+]
+
+#: The node's own parameters (the file is read at start).
+NODE_FILE = "ros2.yaml"
+#: The map keys of ``conf/map.yaml`` the node takes (with ``encoder``, the defaults list's).
+MAP_KEYS = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
+            "max_voxels", "short_side", "model_path", "device", "seed", "save_every",
+            "resume")  # fmt: skip
+#: The source keys that apply to live topics (a bag's path, limit, frame_skip and its tf topic
+#: names do not: tf2_ros subscribes to /tf and /tf_static, remapped with ``-r``).
+SOURCE_KEYS = ("tolerance", "max_pose_gap", "max_depth", "colour_topic", "depth_topic",
+               "camera_info_topic", "pose_topic", "world_frame", "camera_frame",
+               "depth_scale")  # fmt: skip
+#: The Rerun keys of ``conf/map.yaml`` the node takes.
+RERUN_KEYS = ("save", "spawn", "query", "map_every")
+#: Keys of an encoder entry that name it in reports and are no builder keyword.
+_REPORT_KEYS = ("name", "third_party")
+
+
+class SettingsError(ValueError):
+    """A bad parameter value or file: the message is one line naming the parameter."""
+
+
+def config_dir() -> Path:
+    """The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it)."""
+    env = os.environ.get("RESIREG_CONFIG_DIR")
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "conf"
+
+
+def _yaml(path: Path) -> dict[str, Any]:
+    import yaml
+
+    if not path.is_file():
+        raise SettingsError(f"{path}: no such file (the node reads its defaults from conf/; set "
+                            "RESIREG_CONFIG_DIR to the project's conf folder)")  # fmt: skip
+    with open(path) as f:
+        return yaml.safe_load(f) or {}
+
+
+def _defaults_entry(cfg: Mapping[str, Any], group: str) -> Any:
+    """The option of config group ``group`` in a Hydra defaults list (``- encoder: x``)."""
+    for item in cfg.get("defaults", []):
+        if isinstance(item, dict) and group in item:
+            return item[group]
+    return None
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One node parameter: its ROS name (the YAML path), default, where the default is read
+    (``file:key``) and its rule (``None``: any value)."""
+
+    name: str
+    default: Any
+    origin: str
+    rule: Rule | None = None
+
+
+def _text(v: Any) -> bool:
+    return isinstance(v, str) and bool(v)
+
+
+def _optional_text(v: Any) -> bool:
+    return v is None or isinstance(v, str)
+
+
+def _configuration_ok(v: Any) -> bool:
+    from resireg.specs.variants import parse_variant, takes_prior, variant_layer
+
+    if not isinstance(v, str) or takes_prior(v):
+        return False
+    try:
+        base, overrides = parse_variant(v)
+        if variant_layer(v) is not None:
+            return False
+    except ValueError:
+        return False
+    if base not in VARIANT_SPECS:
+        return False
+    try:
+        from resireg.specs.variants import check_variant_kwargs
+
+        check_variant_kwargs(base, overrides)
+    except (ValueError, KeyError):
+        return False
+    return set(overrides) <= set(VARIANT_SPECS[base].params)
+
+
+def _offset_ok(v: Any) -> bool:
+    if not isinstance(v, list | tuple) or len(v) != 7 or not all(is_num(x) for x in v):
+        return False
+    return all(math.isfinite(x) for x in v) and math.hypot(*v[3:]) > 1e-9
+
+
+def _device_ok(v: Any) -> bool:
+    return isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps")
+
+
+_MAP_RULES: dict[str, Rule] = {
+    "configuration": (
+        _configuration_ok,
+        f"one of {list(VARIANT_SPECS)}, optionally with parameter overrides "
+        "(full@n_prototypes:24); +prior and @layer: are not run by the live node",
+    ),
+    "window": integer(1),
+    "voxel_size": number(0, strict=True, finite=True),
+    "points": one_of(POINTS),
+    "lattice": one_of(LATTICES),
+    "sum_dtype": one_of(("float64", "float32")),  # resireg.mapping.voxels.SUM_DTYPES
+    "max_voxels": optional_int(1),
+    "short_side": optional_int(1),
+    "model_path": (_optional_text, "null or an export folder / Hugging Face repo id"),
+    "device": (_device_ok, "auto, cpu, cuda, cuda:N or mps"),
+    "seed": (is_int, "an integer"),
+    "save_every": integer(0),
+    "resume": (lambda v: isinstance(v, bool), "true or false"),
+    "encoder": (_text, "a conf/encoder/<name>.yaml name"),
+}
+_SOURCE_RULES: dict[str, Rule] = {
+    "tolerance": number(0, strict=True, finite=True),
+    "max_pose_gap": number(0, strict=True, finite=True),
+    "max_depth": (
+        lambda v: v is None or (is_num(v) and 0 < v < math.inf),
+        "null or a number of metres > 0 (finite)",
+    ),
+    "colour_topic": (_text, "a topic name"),
+    "depth_topic": (_text, "a topic name"),
+    "camera_info_topic": (_text, "a topic name"),
+    "pose_topic": (_optional_text, "null (the camera pose from tf) or a topic name"),
+    "world_frame": (_text, "a frame name"),
+    "camera_frame": (_optional_text, "null (the depth image's frame) or a frame name"),
+    "depth_scale": number(0, strict=True, finite=True),
+}
+_RERUN_RULES: dict[str, Rule] = {
+    "save": (_optional_text, "null or a .rrd file"),
+    "spawn": (lambda v: isinstance(v, bool), "true or false"),
+    "query": (_optional_text, "null or a text"),
+    "map_every": integer(1),
+    "serve": (lambda v: isinstance(v, bool), "true or false"),
+    "connect": (_optional_text, "null or a viewer's gRPC URL (rerun+http://host:port/proxy)"),
+}
+_NODE_RULES: dict[str, Rule] = {
+    "output_dir": (_text, "a folder"),
+    "queue_size": integer(1),
+    "window_timeout": number(0, strict=True, finite=True),
+    "max_wait": number(0, strict=True, finite=True),
+    "buffer_size": integer(2),
+    "keyframe.translation": number(0, finite=True),
+    "keyframe.rotation": number(0, finite=True),
+    "camera_offset": (
+        _offset_ok,
+        "[x, y, z, qx, qy, qz, qw]: 7 finite numbers, a non-zero quaternion",
+    ),
+    "qos": one_of(("sensor_data", "reliable")),
+    "publish_rate": number(0, strict=True, finite=True),
+    "status_rate": number(0, strict=True, finite=True),
+    "top_k": integer(1),
+}
+
+
+def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _source_defaults(conf: Path) -> tuple[dict[str, Any], str]:
+    """The rosbag source's keys: ``conf/source/rosbag.yaml`` (the source table's file) where it
+    exists, else ``conf/map.yaml``'s ``source`` block."""
+    per_kind = conf / "source" / "rosbag.yaml"
+    if per_kind.is_file():
+        return _yaml(per_kind), "source/rosbag.yaml"
+    return dict(_yaml(conf / "map.yaml").get("source") or {}), "map.yaml:source"
+
+
+def parameters(conf: Path | None = None) -> dict[str, Parameter]:
+    """Every node parameter, its default read from the YAML files (module docstring)."""
+    conf = config_dir() if conf is None else Path(conf)
+    out: dict[str, Parameter] = {}
+    map_cfg = _yaml(conf / "map.yaml")
+    for key in MAP_KEYS:
+        if key not in map_cfg:
+            raise SettingsError(f"{conf / 'map.yaml'}: no {key!r} key")
+        out[key] = Parameter(key, map_cfg[key], f"map.yaml:{key}", _MAP_RULES[key])
+    out["encoder"] = Parameter("encoder", _defaults_entry(map_cfg, "encoder"),
+                               "map.yaml:defaults.encoder", _MAP_RULES["encoder"])  # fmt: skip
+    variants = _yaml(conf / "resireg" / "default.yaml")
+    for name in PARAM_VARIANTS:
+        for key, value in (variants.get(name) or {}).items():
+            rule = VARIANT_SPECS[name].params.get(key)
+            out[f"{name}.{key}"] = Parameter(f"{name}.{key}", value,
+                                             f"resireg/default.yaml:{name}.{key}", rule)  # fmt: skip
+    source, origin = _source_defaults(conf)
+    for key in SOURCE_KEYS:
+        if key not in source:
+            raise SettingsError(f"{conf}/{origin.split(':')[0]}: no source key {key!r}")
+        out[f"source.{key}"] = Parameter(f"source.{key}", source[key], f"{origin}.{key}",
+                                         _SOURCE_RULES[key])  # fmt: skip
+    rerun = map_cfg.get("rerun") or {}
+    for key in RERUN_KEYS:
+        out[f"rerun.{key}"] = Parameter(f"rerun.{key}", rerun.get(key), f"map.yaml:rerun.{key}",
+                                        _RERUN_RULES[key])  # fmt: skip
+    for name, value in _flat(_yaml(conf / NODE_FILE)).items():
+        rule = _RERUN_RULES[name.split(".", 1)[1]] if name.startswith("rerun.") else None
+        rule = _NODE_RULES.get(name, rule)
+        if rule is None:
+            raise SettingsError(f"{conf / NODE_FILE}: {name!r} is no node parameter")
+        out[name] = Parameter(name, value, f"{NODE_FILE}:{name}", rule)
+    return out
+
+
+def _nearest(name: str, known: list[str]) -> str:
+    close = difflib.get_close_matches(name, known, n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def check(values: Mapping[str, Any], table: Mapping[str, Parameter],
+          unknown: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:  # fmt: skip
+    """``values`` (every parameter of ``table``) if each passes its rule, else a
+    :class:`SettingsError` of one line naming every bad ``name=value`` and what is expected, and
+    each ``unknown`` name given on the command line with the nearest known one."""
+    errors = [f"{n}: no such parameter{_nearest(n, list(table))}" for n in unknown]
+    for name, p in table.items():
+        value = values.get(name, p.default)
+        if p.rule is not None and not p.rule[0](value):
+            errors.append(f"{name}={value!r}: expected {p.rule[1]}")
+    if errors:
+        raise SettingsError("; ".join(errors))
+    return {name: values.get(name, p.default) for name, p in table.items()}
+
+
+def variant_params(values: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """``{"full": {...}, "lite": {...}, "calib": {...}}`` of checked values (SemanticMap's
+    ``params``, as resireg-map's ``make_map`` passes them)."""
+    out: dict[str, dict[str, Any]] = {name: {} for name in PARAM_VARIANTS}
+    for key, value in values.items():
+        name, _, rest = key.partition(".")
+        if name in out and rest:
+            out[name][rest] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def encoder_entry(values: Mapping[str, Any], conf: Path | None = None) -> dict[str, Any]:
+    """The encoder entry of ``conf/encoder/<encoder>.yaml`` with ``${model_path}`` resolved:
+    ``build_encoder``'s keywords (``kind`` and the builder's keys)."""
+    conf = config_dir() if conf is None else Path(conf)
+    name = values["encoder"]
+    path = conf / "encoder" / f"{name}.yaml"
+    if not path.is_file():
+        known = sorted(p.stem for p in (conf / "encoder").glob("*.yaml"))
+        raise SettingsError(f"encoder={name!r}: expected one of {known} (conf/encoder/)")
+    entry = _yaml(path)
+    out = {}
+    for key, value in entry.items():
+        if key in _REPORT_KEYS:
+            continue
+        if value == "${model_path}":
+            value = values["model_path"]
+            if value is None:
+                raise SettingsError(f"model_path=None: encoder={name!r} loads an export: set "
+                                    "-p model_path:=<export folder or Hugging Face repo id>")  # fmt: skip
+        elif isinstance(value, str) and "${" in value:
+            raise SettingsError(f"encoder={name!r}: {key}={value!r} refers to another config "
+                                "key, which the live node does not resolve")  # fmt: skip
+        out[key] = value
+    return out
+
+
+def parameter_table(conf: Path | None = None) -> str:
+    """The parameters as a Markdown table (docs/robot.md holds it; a test compares)."""
+    rows = ["| parameter | default | from |", "| --- | --- | --- |"]
+    for p in parameters(conf).values():
+        default = "null" if p.default is None else p.default
+        if isinstance(default, bool):
+            default = str(default).lower()
+        rows.append(f"| `{p.name}` | `{default}` | `conf/{p.origin}` |")
+    return "\n".join(rows)

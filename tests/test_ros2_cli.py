@@ -1,0 +1,145 @@
+"""resireg-ros2's command line and parameters: one line and exit 2 without rclpy or for a bad
+value; the parameter table read from conf/ (one source per default) and the one docs/robot.md
+shows; the pairing, keyframe and cloud code of resireg.ros2 against independent references."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from _ros2 import ros_env
+from resireg.ros2 import settings
+from resireg.ros2.clouds import pack_rgb, unpack_rgb
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_without_rclpy_the_command_names_the_robot_extra(monkeypatch, capsys):
+    import importlib.util
+
+    from resireg.ros2 import cli
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "rclpy" else real(name, *a))  # fmt: skip
+    assert cli.main(["--ros-args", "-p", "window:=2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs the 'robot' extra (rclpy not installed)" in err[0]
+    assert 'pip install "resireg[robot]"' in err[0]
+
+
+def test_defaults_are_the_yaml_files_values():
+    """Every parameter's default is the value at its origin in conf/ (read here with PyYAML
+    independently), and the map keys are resireg-map's own names."""
+    table = settings.parameters()
+    for p in table.values():
+        file, _, key = p.origin.partition(":")
+        node = yaml.safe_load((ROOT / "conf" / file).read_text())
+        if key == "defaults.encoder":
+            value = next(d["encoder"] for d in node["defaults"] if "encoder" in d)
+        else:
+            value = node
+            for part in key.split("."):
+                value = value[part]
+        assert p.default == value, p
+    assert {n for n in table if "." not in n} >= set(settings.MAP_KEYS) | {"encoder"}
+    map_yaml = yaml.safe_load((ROOT / "conf" / "map.yaml").read_text())
+    assert {f"source.{k}" for k in settings.SOURCE_KEYS} <= set(table)
+    assert set(settings.SOURCE_KEYS) <= set(map_yaml["source"])
+
+
+def test_docs_list_every_parameter_with_its_default():
+    text = (ROOT / "docs" / "robot.md").read_text()
+    assert settings.parameter_table() in text
+
+
+def test_bad_values_are_one_line_naming_them():
+    table = settings.parameters()
+    values = {n: p.default for n, p in table.items()}
+    with pytest.raises(settings.SettingsError) as err:
+        settings.check({**values, "window": 0, "full.alpha": -1.0, "qos": "fast"}, table,
+                       ["voxel_sise"])  # fmt: skip
+    text = str(err.value)
+    assert "\n" not in text
+    for part in ("voxel_sise: no such parameter (did you mean voxel_size?)",
+                 "window=0: expected an integer >= 1",
+                 "full.alpha=-1.0: expected a number > 0 (finite)",
+                 "qos='fast': expected one of ['sensor_data', 'reliable']"):  # fmt: skip
+        assert part in text
+    settings.check({**values, "configuration": "lite@alpha:5.0"}, table)
+    for bad in ("full+prior", "lite@layer:3", "nope", "full@n_prototypes:0"):
+        with pytest.raises(settings.SettingsError, match="configuration="):
+            settings.check({**values, "configuration": bad}, table)
+
+
+def test_a_bad_parameter_exits_2_with_one_line(tmp_path):
+    """The real command (a fresh process, Fast DDS on shared memory): exit 2, one stderr line."""
+    proc = subprocess.run([sys.executable, "-m", "resireg.ros2.cli", "--ros-args", "-p",
+                           "window:=0", "-p", "source.tolerance:=-1.0", "-p",
+                           f"output_dir:={tmp_path}"], capture_output=True, text=True,
+                          env=ros_env(), timeout=300)  # fmt: skip
+    lines = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert lines[0] == ("resireg-ros2: error: window=0: expected an integer >= 1; "
+                        "source.tolerance=-1.0: expected a number > 0 (finite)")  # fmt: skip
+
+
+def test_keyframes_follow_the_motion_thresholds():
+    from resireg.ros2.pipeline import KeyframeFilter
+
+    rng = np.random.default_rng(0)
+    poses = []
+    for i in range(40):
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_euler("z", 0.02 * i + rng.normal(0, 0.01)).as_matrix()
+        m[:3, 3] = [0.01 * i, rng.normal(0, 0.005), 0]
+        poses.append(m)
+    keep = KeyframeFilter(0.05, 0.1)
+    got = [keep(p) for p in poses]
+    expected, last = [], None  # by hand: distance and the angle of the relative rotation
+    for p in poses:
+        ok = last is None or (np.linalg.norm(p[:3, 3] - last[:3, 3]) >= 0.05
+                              or Rotation.from_matrix(last[:3, :3].T @ p[:3, :3]).magnitude()
+                              >= 0.1)  # fmt: skip
+        expected.append(ok)
+        last = p if ok else last
+    assert got == expected and 3 < sum(got) < 40
+    assert all(KeyframeFilter(0, 0)(p) for p in poses)
+
+
+def test_pose_buffer_equals_the_whole_stream_track():
+    """A live pose buffer (samples arriving one by one) answers at each time as PoseTrack
+    over the whole stream does, times the camera offset; final once a later sample came."""
+    from resireg.ros2.pipeline import PoseBuffer
+    from resireg.sources.pairing import PoseTrack
+
+    rng = np.random.default_rng(1)
+    stamps = np.cumsum(rng.uniform(0.02, 0.2, 30))
+    poses = np.stack([np.eye(4)] * 30)
+    poses[:, :3, :3] = Rotation.random(30, random_state=2).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(30, 3))
+    offset = np.eye(4)
+    offset[:3, 3] = (0.1, 0.2, 0.3)
+    whole = PoseTrack(stamps, poses, 0.02, 0.15)
+    live = PoseBuffer("/odom", offset, 0.02, 0.15)
+    for i, (s, p) in enumerate(zip(stamps, poses, strict=True)):
+        live.add(s, p)
+        for t in (stamps[max(i - 1, 0)] + 0.01, s, s + 0.01):
+            got, _, final = live.lookup(t)
+            ref = whole.at(t)
+            assert final == (t <= s)
+            if final:
+                assert (got is None) == (ref is None)
+                if ref is not None:
+                    np.testing.assert_allclose(got, ref @ offset, atol=1e-12)
+
+
+def test_rgb_packing_is_rviz_bits():
+    c = np.array([[255, 0, 0], [1, 2, 3], [0, 0, 255]], dtype=np.uint8)
+    bits = pack_rgb(c).view(np.uint32)
+    assert bits.tolist() == [0xFF0000, 0x010203, 0x0000FF]
+    np.testing.assert_array_equal(unpack_rgb(pack_rgb(c)), c)
