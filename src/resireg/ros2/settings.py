@@ -13,8 +13,8 @@ One source per default. ``resireg-ros2`` takes the names and defaults of ``resir
   (:data:`resireg.specs.variants.VARIANT_SPECS`);
 - the source keys that apply to live topics (``source.tolerance``, ``source.max_pose_gap``,
   ``source.max_depth``, the topics, ``source.world_frame``, ``source.camera_frame``,
-  ``source.depth_scale``): ``conf/source/rosbag.yaml`` where it exists, else the ``source``
-  block of ``conf/map.yaml``;
+  ``source.depth_scale``): ``conf/source/rosbag.yaml`` composed with its defaults
+  (``conf/source/_common.yaml``), as ``resireg-map source=rosbag`` has them;
 - ``rerun.save``, ``rerun.spawn``, ``rerun.query``, ``rerun.map_every``: ``conf/map.yaml``;
 - the node's own (queue, keyframes, pose offset, rates, QoS, the live Rerun stream):
   ``conf/ros2.yaml``.
@@ -219,13 +219,27 @@ def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _source_defaults(conf: Path) -> tuple[dict[str, Any], str]:
-    """The rosbag source's keys: ``conf/source/rosbag.yaml`` (the source table's file) where it
-    exists, else ``conf/map.yaml``'s ``source`` block."""
-    per_kind = conf / "source" / "rosbag.yaml"
-    if per_kind.is_file():
-        return _yaml(per_kind), "source/rosbag.yaml"
-    return dict(_yaml(conf / "map.yaml").get("source") or {}), "map.yaml:source"
+def _composed(folder: Path, stem: str, seen: tuple[str, ...] = ()) -> dict[str, tuple[Any, str]]:
+    """``key -> (value, file)`` of ``<folder>/<stem>.yaml`` composed as Hydra composes a config
+    group's file: its ``defaults`` (files of the same folder) in order, its own keys where
+    ``_self_`` stands (last when it is not listed); ``file`` is the one a value comes from."""
+    data = _yaml(folder / f"{stem}.yaml")
+    parents = list(data.pop("defaults", None) or [])
+    if "_self_" not in parents:
+        parents.append("_self_")
+    out: dict[str, tuple[Any, str]] = {}
+    for parent in parents:
+        if parent == "_self_":
+            out.update({k: (v, f"{folder.name}/{stem}.yaml") for k, v in data.items()})
+        elif isinstance(parent, str) and parent not in seen:
+            out.update(_composed(folder, parent, (*seen, stem)))
+    return out
+
+
+def _source_defaults(conf: Path) -> dict[str, tuple[Any, str]]:
+    """The rosbag source's keys and the file each default is in: ``conf/source/rosbag.yaml``
+    composed with its defaults (``_common.yaml``), as ``resireg-map source=rosbag`` has them."""
+    return _composed(conf / "source", "rosbag")
 
 
 def parameters(conf: Path | None = None) -> dict[str, Parameter]:
@@ -245,11 +259,12 @@ def parameters(conf: Path | None = None) -> dict[str, Parameter]:
             rule = VARIANT_SPECS[name].params.get(key)
             out[f"{name}.{key}"] = Parameter(f"{name}.{key}", value,
                                              f"resireg/default.yaml:{name}.{key}", rule)  # fmt: skip
-    source, origin = _source_defaults(conf)
+    source = _source_defaults(conf)
     for key in SOURCE_KEYS:
         if key not in source:
-            raise SettingsError(f"{conf}/{origin.split(':')[0]}: no source key {key!r}")
-        out[f"source.{key}"] = Parameter(f"source.{key}", source[key], f"{origin}.{key}",
+            raise SettingsError(f"{conf / 'source' / 'rosbag.yaml'}: no source key {key!r}")
+        value, file = source[key]
+        out[f"source.{key}"] = Parameter(f"source.{key}", value, f"{file}:{key}",
                                          _SOURCE_RULES[key])  # fmt: skip
     rerun = map_cfg.get("rerun") or {}
     for key in RERUN_KEYS:
