@@ -105,6 +105,9 @@ def test_the_kind_comes_from_the_config_group():
     (error,) = source_errors(compose_map("source=scannet", "source.kind=nerfstudio",
                                          "source.path=x"))  # fmt: skip
     assert "source=nerfstudio" in error
+    (error,) = source_errors(compose_map("source.kind=ros2", "source.path=x"))  # a subset
+    assert error == ("source.kind='ros2' is set on the block of 'rosbag': select the source "
+                     "with source=ros2 (not source.kind=ros2)")  # fmt: skip
     (error,) = source_errors({**compose_map("source.path=x"), "kind": "rosbg"})
     assert error.startswith("source.kind='rosbg': expected one of [") and "'rosbag'" in error
     assert compose_map()["kind"] == "rosbag"

@@ -252,10 +252,11 @@ def source_errors(block: Mapping[str, Any], key: str = "source") -> list[str]:
         other = [s.kind for s in SOURCE_SPECS.everything().values()
                  if s.kind != kind and set(s.rules) == have]  # fmt: skip
         if other:
+            theirs = sorted(have - want)  # none where the kind's file pulls the other's in (ros2)
+            keys = f" (its keys: {theirs})" if theirs else ""
             return [
-                f"{key}.kind={kind!r} is set on the block of {other[0]!r} (its keys: "
-                f"{sorted(have - want)}): select the source with {key}={kind} (not "
-                f"{key}.kind={kind})"
+                f"{key}.kind={kind!r} is set on the block of {other[0]!r}{keys}: select the "
+                f"source with {key}={kind} (not {key}.kind={kind})"
             ]
         errors = []
         if have - want:
