@@ -47,9 +47,10 @@ def test_defaults_are_the_yaml_files_values():
                 value = value[part]
         assert p.default == value, p
     assert {n for n in table if "." not in n} >= set(settings.MAP_KEYS) | {"encoder"}
-    map_yaml = yaml.safe_load((ROOT / "conf" / "map.yaml").read_text())
+    from resireg.specs.sources import SOURCE_SPECS
+
     assert {f"source.{k}" for k in settings.SOURCE_KEYS} <= set(table)
-    assert set(settings.SOURCE_KEYS) <= set(map_yaml["source"])
+    assert set(settings.SOURCE_KEYS) <= set(SOURCE_SPECS["rosbag"].rules)  # resireg-map's names
 
 
 def test_docs_list_every_parameter_with_its_default():

@@ -50,30 +50,42 @@ def compose_map(*overrides):
 
 
 # ---------------------------------------------------------------------------- the table
+def a_block(kind):
+    """The composed block of ``kind`` with a path where the kind reads a recording (a live
+    source's file has ``path: null``)."""
+    takes_path = "path" in SOURCE_SPECS.get(kind).common
+    return compose_map(f"source={kind}", *(["source.path=somewhere"] if takes_path else []))
+
+
 @pytest.mark.parametrize("kind", SOURCE_SPECS.names())
 def test_every_source_entry_loads_and_its_conf_file_holds_exactly_its_keys(kind):
     """Each entry: its reader loads, its conf/source/<kind>.yaml is found by scanning and
     composes (with _common.yaml) to exactly the kind's keys, whose defaults pass its rules;
-    the keys its reader takes are keywords of the reader."""
+    the keys its reader takes are keywords of the reader. A kind that reads no recording
+    (ros2) has path: null, and refuses a path."""
     import inspect
 
     spec = SOURCE_SPECS.get(kind)
     target = spec.load()
     assert callable(target) and spec.summary and "\n" not in spec.summary
     assert spec.configs == (kind,)
-    block = compose_map(f"source={kind}", "source.path=somewhere")
+    block = a_block(kind)
     assert block["kind"] == kind
     assert set(block) == {"kind", *COMMON_RULES, *spec.keys}
     assert source_errors(block) == []
     params = inspect.signature(target).parameters
     assert set(spec.arguments(block)) <= set(params), (kind, list(params))
-    assert "path" in spec.common and not set(spec.common) & set(WINDOW_KEYS)
+    assert not set(spec.common) & set(WINDOW_KEYS)
     assert not set(spec.keys) & set(COMMON_RULES)
+    if "path" not in spec.common:
+        assert block["path"] is None and "path" not in spec.arguments(block)
+        (error,) = source_errors({**block, "path": "run.bag"})
+        assert error.startswith("source.path='run.bag': expected null") and "source=rosbag" in error
 
 
 @pytest.mark.parametrize("kind", SOURCE_SPECS.names())
 def test_every_rule_refuses_a_bad_value_naming_its_key(kind):
-    block = compose_map(f"source={kind}", "source.path=somewhere")
+    block = a_block(kind)
     for name in SOURCE_SPECS.get(kind).rules:
         errors = source_errors({**block, name: {"not": "a value"}})
         assert len(errors) == 1 and errors[0].startswith(f"source.{name}={{'not': "), errors
@@ -93,6 +105,9 @@ def test_the_kind_comes_from_the_config_group():
     (error,) = source_errors(compose_map("source=scannet", "source.kind=nerfstudio",
                                          "source.path=x"))  # fmt: skip
     assert "source=nerfstudio" in error
+    (error,) = source_errors(compose_map("source.kind=ros2", "source.path=x"))  # a subset
+    assert error == ("source.kind='ros2' is set on the block of 'rosbag': select the source "
+                     "with source=ros2 (not source.kind=ros2)")  # fmt: skip
     (error,) = source_errors({**compose_map("source.path=x"), "kind": "rosbg"})
     assert error.startswith("source.kind='rosbg': expected one of [") and "'rosbag'" in error
     assert compose_map()["kind"] == "rosbag"

@@ -2,10 +2,13 @@
 rclpy; no Lightning, no Hydra). ``resireg-ros2`` runs it (:mod:`.cli`); docs/robot.md.
 
 - :mod:`.settings`: the node's parameters, their defaults read from ``conf/`` (map.yaml,
-  resireg/default.yaml, ros2.yaml) and checked by the project's rules (no rclpy, no torch);
+  resireg/default.yaml, source/ros2.yaml, ros2.yaml) and checked by the project's rules (no
+  rclpy, no torch);
 - :mod:`.pipeline`: pairing, keyframes and the mapping thread (no rclpy);
 - :mod:`.clouds`: ``PointCloud2`` of voxel maps, written and read with numpy;
-- :mod:`.node`: the rclpy node (needs the ``robot`` extra or a ROS 2 Jazzy install).
+- :mod:`.node`: the rclpy node (needs the ``robot`` extra or a ROS 2 Jazzy install);
+- :mod:`.source`: live topics as a map source, ``resireg-map source=ros2`` (the node's pairing,
+  its own rclpy context; rclpy imported when a source is made).
 
 Importing this package imports none of them.
 """

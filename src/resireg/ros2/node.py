@@ -74,7 +74,7 @@ from resireg.sources.messages import (
 )
 from resireg.sources.pairing import pose_matrix
 
-__all__ = ["ResiregMapNode", "TfPoses"]
+__all__ = ["ResiregMapNode", "TfPoses", "input_qos", "pose_source", "subscribe_published"]
 
 _IMAGE, _COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
 _POSE, _ODOMETRY = "geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry"
@@ -123,6 +123,47 @@ class TfPoses:
         except Exception as err:  # tf2's lookup, connectivity and extrapolation errors
             return None, f"no tf {self.world} -> {frame_id} at {t:.6f}: {err}", False
         return transform_matrix(tr.transform), "", True
+
+
+def pose_source(node: Node, pose_topic: str | None, camera_offset: Any, tolerance: float,
+                max_pose_gap: float, buffer_size: int, world_frame: str) -> Any:  # fmt: skip
+    """The camera pose source of ``node``'s inputs: a :class:`PoseBuffer` of ``pose_topic``
+    (``PoseStamped`` / ``Odometry``, the latest ``20 * buffer_size`` samples) times
+    ``camera_offset`` (x y z qx qy qz qw), or without a topic tf (:class:`TfPoses`; ImportError
+    without ``tf2_ros``). Shared by the node and :class:`resireg.ros2.source.LiveSource`."""
+    if pose_topic is not None:
+        o = list(camera_offset)
+        offset = pose_matrix(o[:3], o[3:])
+        return PoseBuffer(pose_topic, offset, tolerance, max_pose_gap, 20 * int(buffer_size))
+    return TfPoses(node, world_frame)
+
+
+def input_qos(qos: str, buffer_size: int) -> QoSProfile:
+    """The QoS of the image, camera-info and pose subscriptions: ``sensor_data`` (best effort,
+    as camera drivers publish) or ``reliable`` (keep the last ``buffer_size``)."""
+    if qos == "sensor_data":
+        return qos_profile_sensor_data
+    return QoSProfile(depth=int(buffer_size), reliability=ReliabilityPolicy.RELIABLE,
+                      history=HistoryPolicy.KEEP_LAST)  # fmt: skip
+
+
+def subscribe_published(node: Node, wanted: dict[str, tuple[str, tuple[str, ...]]],
+                        subscribed: dict[str, str], handlers: dict[str, Any],
+                        qos: QoSProfile) -> None:  # fmt: skip
+    """Subscribe ``node`` to each input of ``wanted`` (``key -> (topic, accepted types)``) once
+    a publisher shows its type on the graph (an image topic is ``Image`` or
+    ``CompressedImage``); ``subscribed`` (``key -> type``) records those done."""
+    if len(subscribed) == len(wanted):
+        return
+    graph = dict(node.get_topic_names_and_types())
+    for key, (topic, types) in wanted.items():
+        if key in subscribed:
+            continue
+        found = [t for t in graph.get(node.resolve_topic_name(topic), []) if t in types]
+        if found:
+            node.create_subscription(_msg_type(found[0]), topic, handlers[key], qos)
+            subscribed[key] = found[0]
+            node.get_logger().info(f"subscribed to {topic} ({found[0]})")
 
 
 class ResiregMapNode(Node):
@@ -249,13 +290,10 @@ class ResiregMapNode(Node):
 
     def _pose_source(self) -> Any:
         v = self.values
-        if v["source.pose_topic"] is not None:
-            o = v["camera_offset"]
-            offset = pose_matrix(o[:3], o[3:])
-            return PoseBuffer(v["source.pose_topic"], offset, v["source.tolerance"],
-                              v["source.max_pose_gap"], 20 * v["buffer_size"])  # fmt: skip
         try:
-            import tf2_ros  # noqa: F401
+            return pose_source(self, v["source.pose_topic"], v["camera_offset"],
+                               v["source.tolerance"], v["source.max_pose_gap"],
+                               v["buffer_size"], self.world_frame)  # fmt: skip
         except ImportError:
             raise SettingsError(
                 "source.pose_topic=None: the camera pose from tf needs tf2_ros, which a ROS 2 "
@@ -263,7 +301,6 @@ class ResiregMapNode(Node):
                 "source.pose_topic:=<PoseStamped or Odometry topic> and -p camera_offset:=[x, y, "
                 "z, qx, qy, qz, qw]"
             ) from None
-        return TfPoses(self, self.world_frame)
 
     def _rerun(self) -> Any:
         v = self.values
@@ -279,10 +316,7 @@ class ResiregMapNode(Node):
         return view
 
     def _qos(self) -> QoSProfile:
-        if self.values["qos"] == "sensor_data":
-            return qos_profile_sensor_data
-        return QoSProfile(depth=self.values["buffer_size"], reliability=ReliabilityPolicy.RELIABLE,
-                          history=HistoryPolicy.KEEP_LAST)  # fmt: skip
+        return input_qos(self.values["qos"], self.values["buffer_size"])
 
     def _make_io(self) -> None:
         from geometry_msgs.msg import PoseArray
@@ -319,18 +353,8 @@ class ResiregMapNode(Node):
 
     def _discover(self) -> None:
         """Subscribe to each input topic once a publisher shows its type."""
-        if len(self.subscribed) == len(self.wanted):
-            return
-        graph = dict(self.get_topic_names_and_types())
         handlers = {"colour": self._on_colour, "depth": self._on_depth, "pose": self._on_pose}
-        for key, (topic, types) in self.wanted.items():
-            if key in self.subscribed:
-                continue
-            found = [t for t in graph.get(self.resolve_topic_name(topic), []) if t in types]
-            if found:
-                self.create_subscription(_msg_type(found[0]), topic, handlers[key], self._qos())
-                self.subscribed[key] = found[0]
-                self.get_logger().info(f"subscribed to {topic} ({found[0]})")
+        subscribe_published(self, self.wanted, self.subscribed, handlers, self._qos())
 
     # ------------------------------------------------------------------ inputs (callbacks)
     def _on_colour(self, msg: Any) -> None:

@@ -161,6 +161,10 @@ class FramePairer:
         decode_colour / decode_depth: message -> array (ValueError when not decodable).
         buffer_size: messages kept per input; a depth image past it is dropped (``overflow``).
         camera_frame: the pose's frame (``None``: the depth image's ``header.frame_id``).
+
+    ``on_colour_fault`` (``None``, or called with ``"<colour topic>@<stamp>: why"`` for each
+    colour image left out for its stamp, as a bag's ``colour_stamp_faults`` name them): what
+    the owner keeps of them beyond the count (the live source lists them for results.json).
     """
 
     def __init__(self, poses: Any, topics: dict[str, str], tolerance: float, max_wait: float,
@@ -179,12 +183,19 @@ class FramePairer:
         self.counts = Intake()
         self.last_depth = -math.inf
         self.lock = threading.Lock()
+        self.on_colour_fault: Callable[[str], None] | None = None
 
     # ------------------------------------------------------------------ inputs
     def colour(self, stamp: float, msg: Any) -> None:
         with self.lock:
             if self.colours and stamp <= self.colours[-1].stamp:
                 self.counts.colour_stamp_faults += 1
+                if self.on_colour_fault is not None:
+                    topic, last = self.topics["colour"], self.colours[-1].stamp
+                    self.on_colour_fault(f"{topic}@{stamp:.6f}: header stamp {stamp:.6f} on "
+                                         f"{topic} is not after {last:.6f}, the stamp of a "
+                                         "message received before it: stamps go back or "
+                                         "repeat")  # fmt: skip
                 return
             self.colours.append(_Colour(float(stamp), msg))
             while len(self.colours) > self.buffer_size:

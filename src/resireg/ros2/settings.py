@@ -11,13 +11,15 @@ One source per default. ``resireg-ros2`` takes the names and defaults of ``resir
 - the ReSiReg variants' parameters (``full.n_prototypes``, ``lite.alpha``, ...):
   ``conf/resireg/default.yaml``, checked by the variant table's rules
   (:data:`resireg.specs.variants.VARIANT_SPECS`);
-- the source keys that apply to live topics (``source.tolerance``, ``source.max_pose_gap``,
+- the live source's keys (``conf/source/ros2.yaml``, composed with its defaults,
+  ``rosbag.yaml`` and ``_common.yaml``, as ``resireg-map source=ros2`` has them): those that
+  apply to the node's topics (``source.tolerance``, ``source.max_pose_gap``,
   ``source.max_depth``, the topics, ``source.world_frame``, ``source.camera_frame``,
-  ``source.depth_scale``): ``conf/source/rosbag.yaml`` where it exists, else the ``source``
-  block of ``conf/map.yaml``;
+  ``source.depth_scale``) and, under their own names, the pairing's (``max_wait``,
+  ``buffer_size``, ``camera_offset``, ``qos``), checked by the source table's rules
+  (:data:`resireg.specs.sources.LIVE_RULES`);
 - ``rerun.save``, ``rerun.spawn``, ``rerun.query``, ``rerun.map_every``: ``conf/map.yaml``;
-- the node's own (queue, keyframes, pose offset, rates, QoS, the live Rerun stream):
-  ``conf/ros2.yaml``.
+- the node's own (queue, keyframes, rates, the live Rerun stream): ``conf/ros2.yaml``.
 
 As ROS parameters they keep their dotted YAML paths (``-p source.tolerance:=0.05``,
 ``-p full.n_prototypes:=24``). The folder is ``conf/`` beside ``src/`` (a checkout or an
@@ -36,11 +38,14 @@ from typing import Any
 
 from resireg.specs.mapping import LATTICES, POINTS
 from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of, optional_int
+from resireg.specs.sources import LIVE_RULES
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
 
 __all__ = [
+    "LIVE_KEYS",
     "MAP_KEYS",
     "NODE_FILE",
+    "SOURCE_FILE",
     "SOURCE_KEYS",
     "Parameter",
     "SettingsError",
@@ -62,6 +67,10 @@ MAP_KEYS = ("configuration", "window", "voxel_size", "points", "lattice", "sum_d
 SOURCE_KEYS = ("tolerance", "max_pose_gap", "max_depth", "colour_topic", "depth_topic",
                "camera_info_topic", "pose_topic", "world_frame", "camera_frame",
                "depth_scale")  # fmt: skip
+#: The live source's keys the node takes under their own names (``-p max_wait:=1.0``).
+LIVE_KEYS = ("max_wait", "buffer_size", "camera_offset", "qos")
+#: The file (under ``conf/``) of the source keys and :data:`LIVE_KEYS`: the live source's.
+SOURCE_FILE = "source/ros2.yaml"
 #: The Rerun keys of ``conf/map.yaml`` the node takes.
 RERUN_KEYS = ("save", "spawn", "query", "map_every")
 #: Keys of an encoder entry that name it in reports and are no builder keyword.
@@ -137,12 +146,6 @@ def _configuration_ok(v: Any) -> bool:
     return set(overrides) <= set(VARIANT_SPECS[base].params)
 
 
-def _offset_ok(v: Any) -> bool:
-    if not isinstance(v, list | tuple) or len(v) != 7 or not all(is_num(x) for x in v):
-        return False
-    return all(math.isfinite(x) for x in v) and math.hypot(*v[3:]) > 1e-9
-
-
 def _device_ok(v: Any) -> bool:
     return isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps")
 
@@ -194,15 +197,8 @@ _NODE_RULES: dict[str, Rule] = {
     "output_dir": (_text, "a folder"),
     "queue_size": integer(1),
     "window_timeout": number(0, strict=True, finite=True),
-    "max_wait": number(0, strict=True, finite=True),
-    "buffer_size": integer(2),
     "keyframe.translation": number(0, finite=True),
     "keyframe.rotation": number(0, finite=True),
-    "camera_offset": (
-        _offset_ok,
-        "[x, y, z, qx, qy, qz, qw]: 7 finite numbers, a non-zero quaternion",
-    ),
-    "qos": one_of(("sensor_data", "reliable")),
     "publish_rate": number(0, strict=True, finite=True),
     "status_rate": number(0, strict=True, finite=True),
     "top_k": integer(1),
@@ -219,13 +215,28 @@ def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _source_defaults(conf: Path) -> tuple[dict[str, Any], str]:
-    """The rosbag source's keys: ``conf/source/rosbag.yaml`` (the source table's file) where it
-    exists, else ``conf/map.yaml``'s ``source`` block."""
-    per_kind = conf / "source" / "rosbag.yaml"
-    if per_kind.is_file():
-        return _yaml(per_kind), "source/rosbag.yaml"
-    return dict(_yaml(conf / "map.yaml").get("source") or {}), "map.yaml:source"
+def _composed(folder: Path, stem: str, seen: tuple[str, ...] = ()) -> dict[str, tuple[Any, str]]:
+    """``key -> (value, file)`` of ``<folder>/<stem>.yaml`` composed as Hydra composes a config
+    group's file: its ``defaults`` (files of the same folder) in order, its own keys where
+    ``_self_`` stands (last when it is not listed); ``file`` is the one a value comes from."""
+    data = _yaml(folder / f"{stem}.yaml")
+    parents = list(data.pop("defaults", None) or [])
+    if "_self_" not in parents:
+        parents.append("_self_")
+    out: dict[str, tuple[Any, str]] = {}
+    for parent in parents:
+        if parent == "_self_":
+            out.update({k: (v, f"{folder.name}/{stem}.yaml") for k, v in data.items()})
+        elif isinstance(parent, str) and parent not in seen:
+            out.update(_composed(folder, parent, (*seen, stem)))
+    return out
+
+
+def _source_defaults(conf: Path) -> dict[str, tuple[Any, str]]:
+    """The live source's keys and the file each default is in: ``conf/source/ros2.yaml``
+    composed with its defaults, as ``resireg-map source=ros2`` has them."""
+    folder, _, name = SOURCE_FILE.rpartition("/")
+    return _composed(conf / folder, name.removesuffix(".yaml"))
 
 
 def parameters(conf: Path | None = None) -> dict[str, Parameter]:
@@ -245,12 +256,17 @@ def parameters(conf: Path | None = None) -> dict[str, Parameter]:
             rule = VARIANT_SPECS[name].params.get(key)
             out[f"{name}.{key}"] = Parameter(f"{name}.{key}", value,
                                              f"resireg/default.yaml:{name}.{key}", rule)  # fmt: skip
-    source, origin = _source_defaults(conf)
-    for key in SOURCE_KEYS:
+    source = _source_defaults(conf)
+    for key in (*SOURCE_KEYS, *LIVE_KEYS):
         if key not in source:
-            raise SettingsError(f"{conf}/{origin.split(':')[0]}: no source key {key!r}")
-        out[f"source.{key}"] = Parameter(f"source.{key}", source[key], f"{origin}.{key}",
+            raise SettingsError(f"{conf / SOURCE_FILE}: no source key {key!r}")
+    for key in SOURCE_KEYS:
+        value, file = source[key]
+        out[f"source.{key}"] = Parameter(f"source.{key}", value, f"{file}:{key}",
                                          _SOURCE_RULES[key])  # fmt: skip
+    for key in LIVE_KEYS:
+        value, file = source[key]
+        out[key] = Parameter(key, value, f"{file}:{key}", LIVE_RULES[key])
     rerun = map_cfg.get("rerun") or {}
     for key in RERUN_KEYS:
         out[f"rerun.{key}"] = Parameter(f"rerun.{key}", rerun.get(key), f"map.yaml:rerun.{key}",

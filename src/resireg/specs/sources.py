@@ -11,19 +11,25 @@ The keys every kind shares (:data:`COMMON_RULES`: ``path``, ``tolerance``, ``max
 ``frame_skip``, ``limit``, ``max_depth``) are in ``conf/source/_common.yaml``, which each
 ``conf/source/<kind>.yaml`` pulls in through its ``defaults``; ``frame_skip``, ``limit`` and
 ``max_depth`` are the windows' (:func:`resireg.sources.frames.windows`), the others the source's
-where it takes them (:attr:`SourceSpec.common`). A kind's own keys and their rules are its
-entry's :attr:`SourceSpec.keys`. The ``conf/source/`` files of a kind are found by scanning the
-folder for their ``kind`` (:meth:`~resireg.specs.table.SpecTable.configs`).
+where it takes them (:attr:`SourceSpec.common`). ``path`` is required of a kind that reads a
+recording; a kind that takes none (``ros2``: live topics) has ``path: null`` in its file, and
+any other value is refused. A kind's own keys and their rules are its entry's
+:attr:`SourceSpec.keys`. The ``conf/source/`` files of a kind are found by scanning the folder
+for their ``kind`` (:meth:`~resireg.specs.table.SpecTable.configs`); a kind's file may pull in
+another kind's (``ros2.yaml``: ``defaults: [rosbag, _self_]``, the topics and frames of a bag
+with their defaults typed once).
 
-``ros2``, the live source, is added by the ROS 2 node's package (``resireg.ros2``) with its
-own entry and ``conf/source/ros2.yaml``. Another installed package adds kinds with an entry
-point in the group ``resireg.sources`` naming a :class:`SourceSpec` (looked up only for a kind
-the built-in table lacks).
+``ros2``, the live source, is an entry like the others: its reader is the ROS 2 side's
+(:class:`resireg.ros2.source.LiveSource`, the ``robot`` extra), and the live node
+``resireg-ros2`` reads its pairing keys (``max_wait``, ``buffer_size``, ``camera_offset``,
+``qos``) from the same ``conf/source/ros2.yaml``. Another installed package adds kinds with an
+entry point in the group ``resireg.sources`` naming a :class:`SourceSpec` (looked up only for a
+kind the built-in table lacks).
 
 Adding a map source:
 
 1. one module in ``resireg/sources/`` with the reader: a class (or a function) that takes the
-   recording's ``path`` and the kind's keys as keywords, checks them when called (errors derive
+   recording's ``path`` (unless it reads none) and the kind's keys as keywords, checks them when called (errors derive
    from :class:`resireg.errors.ResiregError` and name the argument: ``path='x': ...``), and
    yields :class:`~resireg.sources.frames.RGBDFrame` / :class:`~resireg.sources.frames.SkippedFrame`
    records (a file or message that cannot be used is a counted, named skip, never fatal);
@@ -47,11 +53,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from resireg.specs.rules import Rule, integer, is_num, number, optional_int
+from resireg.specs.rules import Rule, integer, is_num, number, one_of, optional_int
 from resireg.specs.table import SpecTable
 
 __all__ = [
     "COMMON_RULES",
+    "LIVE_RULES",
+    "NO_PATH",
     "SOURCE_ENTRY_POINTS",
     "SOURCE_SPECS",
     "TUM_CAMERAS",
@@ -60,7 +68,7 @@ __all__ = [
     "source_errors",
 ]
 
-#: The entry-point group of source kinds from other packages (the live ``ros2`` source).
+#: The entry-point group of source kinds from other packages.
 SOURCE_ENTRY_POINTS = "resireg.sources"
 
 #: ``[fx, fy, cx, cy]`` of the TUM RGB-D cameras (TUM's file_formats page, "Intrinsic Camera
@@ -88,6 +96,12 @@ def _optional_positive(what: str) -> Rule:
     return check, f"null or {what}"
 
 
+def _camera_offset(v: Any) -> bool:
+    if not isinstance(v, (list, tuple)) or len(v) != 7 or not all(is_num(x) for x in v):
+        return False
+    return all(math.isfinite(x) for x in v) and math.hypot(*v[3:]) > 1e-9
+
+
 def _intrinsics(v: Any) -> bool:
     if v is None:
         return True
@@ -108,6 +122,11 @@ COMMON_RULES: dict[str, Rule] = {
 }  # fmt: skip
 #: The common keys the windows take (:func:`resireg.sources.frames.windows`), not the source.
 WINDOW_KEYS = ("frame_skip", "limit", "max_depth")
+#: ``path``'s rule for a kind that reads no recording (``path`` not in its
+#: :attr:`SourceSpec.common`).
+NO_PATH: Rule = ((lambda v: v is None),
+                 "null: this source reads live topics, no recording (a bag: source=rosbag "
+                 "source.path=...)")  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -120,7 +139,8 @@ class SourceSpec:
             keywords and returning a :class:`~resireg.sources.frames.FrameSource`.
         summary: one line: what it reads.
         keys: its own keys (beyond :data:`COMMON_RULES`) and their rules.
-        common: the common keys its target takes (``path`` always; ``tolerance`` and
+        common: the common keys its target takes (``path`` where it reads a recording: a
+            kind without it must have ``path: null``, :data:`NO_PATH`; ``tolerance`` and
             ``max_pose_gap`` where it pairs stamps or interpolates poses).
     """
 
@@ -133,7 +153,10 @@ class SourceSpec:
     @property
     def rules(self) -> dict[str, Rule]:
         """Every key of its block (but ``kind``) and its rule."""
-        return {**COMMON_RULES, **self.keys}
+        rules = {**COMMON_RULES, **self.keys}
+        if "path" not in self.common:
+            rules["path"] = NO_PATH
+        return rules
 
     @property
     def configs(self) -> tuple[str, ...]:
@@ -152,8 +175,25 @@ class SourceSpec:
 
 
 _TOPIC = "a topic name"
-#: ``kind -> spec``. (``ros2``, the live source, is not listed here yet: the ROS 2 node's
-#: package, ``resireg.ros2``, adds its entry.)
+#: The topics and frames of a ROS recording or a live ROS 2 graph (``rosbag``, ``ros2``).
+_ROS_KEYS: dict[str, Rule] = {
+    "colour_topic": _text(_TOPIC), "depth_topic": _text(_TOPIC),
+    "camera_info_topic": _text(_TOPIC), "pose_topic": _optional_text(_TOPIC),
+    "tf_topic": _text(_TOPIC), "tf_static_topic": _text(_TOPIC),
+    "world_frame": _text("a tf frame"), "camera_frame": _optional_text("a tf frame"),
+    "depth_scale": number(0, strict=True, finite=True),
+}  # fmt: skip
+#: The live source's own keys (``conf/source/ros2.yaml``); ``resireg-ros2`` reads ``max_wait``,
+#: ``buffer_size``, ``camera_offset`` and ``qos`` from the same file, with these rules.
+LIVE_RULES: dict[str, Rule] = {
+    "idle": _optional_positive("seconds > 0 (finite)"),
+    "max_wait": number(0, strict=True, finite=True),
+    "buffer_size": integer(2),
+    "camera_offset": (_camera_offset,
+                      "[x, y, z, qx, qy, qz, qw]: 7 finite numbers, a non-zero quaternion"),
+    "qos": one_of(("sensor_data", "reliable")),
+}  # fmt: skip
+#: ``kind -> spec``.
 SOURCE_SPECS: SpecTable[SourceSpec] = SpecTable(
     "map source kind",
     (
@@ -161,11 +201,7 @@ SOURCE_SPECS: SpecTable[SourceSpec] = SpecTable(
             "rosbag", "resireg.sources.rosbag:open_bag",
             "a ROS 2 bag (sqlite3 or MCAP) or a ROS 1 bag: colour, depth, CameraInfo, /tf or a "
             "pose topic",
-            {"colour_topic": _text(_TOPIC), "depth_topic": _text(_TOPIC),
-             "camera_info_topic": _text(_TOPIC), "pose_topic": _optional_text(_TOPIC),
-             "tf_topic": _text(_TOPIC), "tf_static_topic": _text(_TOPIC),
-             "world_frame": _text("a tf frame"), "camera_frame": _optional_text("a tf frame"),
-             "depth_scale": number(0, strict=True, finite=True)},
+            _ROS_KEYS,
             common=("path", "tolerance", "max_pose_gap"),
         ),
         SourceSpec(
@@ -184,6 +220,13 @@ SOURCE_SPECS: SpecTable[SourceSpec] = SpecTable(
             "nerfstudio", "resireg.sources.nerfstudio:NerfstudioSource",
             "a Nerfstudio folder: transforms.json with depth_file_path per frame",
             {"depth_unit_scale_factor": _optional_positive("metres per depth unit > 0")},
+        ),
+        SourceSpec(
+            "ros2", "resireg.ros2.source:LiveSource",
+            "live ROS 2 topics (a camera driver, or ros2 bag play): colour, depth, CameraInfo, "
+            "tf or a pose topic; ends after limit frames, idle seconds or Ctrl-C",
+            {**_ROS_KEYS, **LIVE_RULES},
+            common=("tolerance", "max_pose_gap"),
         ),
     ),
     name="kind",
@@ -209,10 +252,11 @@ def source_errors(block: Mapping[str, Any], key: str = "source") -> list[str]:
         other = [s.kind for s in SOURCE_SPECS.everything().values()
                  if s.kind != kind and set(s.rules) == have]  # fmt: skip
         if other:
+            theirs = sorted(have - want)  # none where the kind's file pulls the other's in (ros2)
+            keys = f" (its keys: {theirs})" if theirs else ""
             return [
-                f"{key}.kind={kind!r} is set on the block of {other[0]!r} (its keys: "
-                f"{sorted(have - want)}): select the source with {key}={kind} (not "
-                f"{key}.kind={kind})"
+                f"{key}.kind={kind!r} is set on the block of {other[0]!r}{keys}: select the "
+                f"source with {key}={kind} (not {key}.kind={kind})"
             ]
         errors = []
         if have - want:

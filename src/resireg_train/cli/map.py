@@ -5,6 +5,7 @@
     resireg-map source=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
     resireg-map source=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
     resireg-map source=nerfstudio source.path=data/scene
+    resireg-map source=ros2 source.world_frame=odom     # live topics, until idle or Ctrl-C
 
 The source (``source=<kind>``: ``conf/source/<kind>.yaml``, a kind of the table
 :data:`resireg.specs.sources.SOURCE_SPECS`, read by :mod:`resireg.sources`) is checked and
@@ -13,8 +14,9 @@ topics). Windows of ``window`` consecutive frames go through
 :meth:`resireg.mapping.SemanticMap.add` (a window whose encoder output is not finite is skipped
 and counted); the map is saved every ``save_every`` windows and at the end to
 ``<output dir>/map`` with its identity (source, settings, ReSiReg parameters, encoder entry, a
-digest of the encoder's weights): ``resume=true`` continues it from the last frame it holds, or
-is refused naming the keys that differ. Then ``map.ply``; ``results.json`` records frames read
+digest of the encoder's weights): ``resume=true`` continues it from the last frame it holds (a
+live source, ``source=ros2``: with the frames it receives now), or is refused naming the keys
+that differ. Then ``map.ply``; ``results.json`` records frames read
 / used / skipped (by kind, the first reason of each, examples), corrupt messages, out-of-range
 depth, the map's voxels and bytes, and seconds per stage; a run that maps nothing fails with the
 reason per kind.
@@ -102,8 +104,8 @@ def _resolved(value: Any) -> Any:
 
 def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
     """What a resumed run must share with the saved map: the source (its path resolved; but
-    ``limit``: a run cut short by it resumes without it), the map's settings, the ReSiReg
-    configuration's parameters (``lite`` / ``full`` / ``calib``...), the encoder's entry (its
+    ``limit`` and a live source's ``idle``: a run cut short by them resumes without them), the
+    map's settings, the ReSiReg configuration's parameters (``lite`` / ``full`` / ``calib``...), the encoder's entry (its
     path resolved) and a digest of its weights (:func:`resireg_train.cache.weights_fingerprint`:
     another model at the same path differs)."""
     from resireg.specs.variants import PARAM_VARIANTS
@@ -111,6 +113,7 @@ def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
     every = OmegaConf.to_container(cfg, resolve=True)
     source = dict(every["source"])
     source.pop("limit", None)
+    source.pop("idle", None)  # a live source's stop rule, as limit is
     source["path"] = _resolved(source.get("path"))
     encoder = {k: _resolved(v) if k == "path" else v for k, v in every["encoder"].items()}
     keep = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
@@ -205,6 +208,9 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         smap = make_map(cfg, encoder, prior)
         smap.meta = {"identity": identity, "kept_frames": 0}
     done = int(smap.meta.get("kept_frames", 0))
+    # A recording is read again from its start, so the frames a resumed map holds are skipped;
+    # a live stream (a source whose ``live`` is true: ros2) goes on from now, every frame new.
+    base, start = (done, 0) if getattr(source, "live", False) else (0, done)
     view = None
     if rrd is not None or cfg.rerun.spawn:
         from resireg_train.mapping.viewer import RerunView
@@ -212,9 +218,9 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
     counts = FrameCounts()
     added = 0
-    # start=done: the frames the resumed map holds are skipped, whatever window they fell in
+    # start: the frames the resumed map holds are skipped, whatever window they fell in
     frames = iter(windows(source, window, counts, int(spec["frame_skip"]), spec["limit"],
-                          start=done, max_depth=max_depth))  # fmt: skip
+                          start=start, max_depth=max_depth))  # fmt: skip
     try:
         while True:
             t0 = time.perf_counter()
@@ -233,7 +239,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
                                              f"{err}", "non_finite"))  # fmt: skip
                 log.warning("window %s .. %s skipped: %s", batch["name"][0],
                             batch["name"][-1], err)  # fmt: skip
-                smap.meta["kept_frames"] = batch["first"] + len(batch["name"])
+                smap.meta["kept_frames"] = base + batch["first"] + len(batch["name"])
                 continue
             except ValueError as err:  # e.g. points beyond the voxel lattice: name the frames
                 bound = "null" if max_depth is None else max_depth
@@ -244,10 +250,10 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
             timer["map"] += time.perf_counter() - t0
             counts.used += len(batch["name"])
             added += 1
-            smap.meta["kept_frames"] = batch["first"] + len(batch["name"])
+            smap.meta["kept_frames"] = base + batch["first"] + len(batch["name"])
             if view is not None:
                 t0 = time.perf_counter()
-                view.log_window(batch, batch["first"])
+                view.log_window(batch, base + batch["first"])
                 if added % max(1, int(cfg.rerun.map_every)) == 0:
                     view.log_map(smap)
                 timer["rerun"] += time.perf_counter() - t0
