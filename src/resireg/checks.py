@@ -15,10 +15,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from resireg.errors import DataError
+
 __all__ = ["NonFiniteError", "check_features", "count_nonfinite"]
 
 
-class NonFiniteError(ValueError):
+class NonFiniteError(DataError):
     """A feature tensor holds NaN or infinite values (the message names the argument)."""
 
 

@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from resireg.errors import ResiregError
 from resireg_train.results import update_results
 from resireg_train.tasks import TaskSpec, find_task, task_names
 from resireg_train.validation import ConfigError
@@ -151,7 +152,7 @@ def elbo_counts(variants: Mapping[str, Any]) -> dict[str, Any]:
     return {"elbo_prototypes": counts} if counts else {}
 
 
-class NothingScoredError(RuntimeError):
+class NothingScoredError(ResiregError, RuntimeError):
     """Every image (3D: frame) of the dataset was skipped: there is no score to report."""
 
 

@@ -40,6 +40,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ResiregError
+
 __all__ = [
     "SEARCH_FILE",
     "STUDY_FILE",
@@ -422,7 +424,7 @@ class OptunaSearch:
 _WAIT: Any = object()
 
 
-class SearchError(RuntimeError):
+class SearchError(ResiregError, RuntimeError):
     """A search that cannot go on (too many failed trials); the message says why."""
 
 

@@ -24,6 +24,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ConfigError
 from resireg.priors.settings import PRIOR_KINDS, SAM_RULES
 from resireg.sources import export_source_problem
 from resireg.specs.encoders import ENCODER_SPECS, Needs
@@ -76,10 +77,6 @@ __all__ = [
 PRECISIONS: dict[str, str | None] = {
     "32": None, "32-true": None, "bf16": "bfloat16", "bf16-mixed": "bfloat16",
 }  # fmt: skip
-
-
-class ConfigError(ValueError):
-    """A config value of the wrong type or out of range; the message names key and value."""
 
 
 _MISSING = object()

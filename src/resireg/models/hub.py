@@ -33,6 +33,8 @@ import socket
 import threading
 from collections.abc import Sequence
 
+from resireg.errors import OfflineError
+
 __all__ = [
     "PINNED_REFS",
     "WeightsUnavailableError",
@@ -64,7 +66,7 @@ PINNED_REFS = {
 }
 
 
-class WeightsUnavailableError(RuntimeError):
+class WeightsUnavailableError(OfflineError):
     """Pretrained weights (or a tokenizer) could not be obtained; the message says how to pass them locally."""
 
 

@@ -34,6 +34,7 @@ try:  # POSIX; where it is missing (Windows) run folders are not locked
 except ImportError:  # pragma: no cover
     fcntl = None
 
+from resireg.errors import ResiregError
 from resireg_train.files import WriteError
 from resireg_train.paths import CONFIG_DIR, RUN_ID
 from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
@@ -151,7 +152,7 @@ LOCK_FILE = ".run.lock"
 _HELD: dict[Path, Any] = {}
 
 
-class RunFolderBusy(RuntimeError):
+class RunFolderBusy(ResiregError, RuntimeError):
     """Another running job holds the run folder (its PID is named)."""
 
 
@@ -398,7 +399,7 @@ def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
 
 
-class JobFailed(CompactHydraException):
+class JobFailed(ResiregError, CompactHydraException):
     """A job failed with an error whose message says what to do: Hydra prints the message
     alone, not a traceback (the run's log file keeps it; ``HYDRA_FULL_ERROR=1`` shows it)."""
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from resireg.errors import ConfigError
 from resireg.models import DenseEncoder, build_encoder
 from resireg.specs.variants import VARIANT_SPECS
 from resireg.variants import build_variant
@@ -55,7 +56,7 @@ LABELS: dict[str, str] = {
 }
 
 
-class PlaygroundError(ValueError):
+class PlaygroundError(ConfigError):
     """A problem with the user's input (an upload that is not an image, no query): its
     message is shown in the page as it is."""
 
