@@ -337,8 +337,12 @@ def _set_aside(out: Path) -> None:
 
 
 def error_text(exc: BaseException) -> str:
-    """``module.Type: message`` of an exception (what ``results.json`` records)."""
-    return "".join(traceback.format_exception_only(type(exc), exc)).strip()
+    """``module.Type: message`` of an exception and its notes, one per line (the config path
+    of a library error: ``config: encoder``; what ``results.json`` records)."""
+    text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+    if sys.version_info < (3, 11):  # from 3.11 on, traceback prints the notes itself
+        text = "\n".join([text, *map(str, getattr(exc, "__notes__", None) or ())])
+    return text
 
 
 def _to_log_files(message: str, exc: BaseException | None) -> None:
