@@ -246,7 +246,7 @@ class SemanticMap:
                     "runs on the encoder's own intermediates"
                 )
             self.configuration = name
-            self.variant = build_variants([name], params or {}, key="configuration")[name]
+            self.variant = build_variants([name], params or {})[name]
             self.takes_prior = takes_prior(name)
         if (
             self.takes_prior

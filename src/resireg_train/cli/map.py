@@ -30,7 +30,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.results import update_results
-from resireg_train.validation import ConfigError, encoder_kwargs
+from resireg_train.validation import (
+    ConfigError,
+    config_path,
+    encoder_arguments,
+    encoder_kwargs,
+)
 
 __all__ = ["SOURCES", "build_source", "make_map", "main"]
 
@@ -191,16 +196,18 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         raise ConfigError(str(err)) from err
     timer["open_source"] += time.perf_counter() - start
     torch.manual_seed(int(cfg.seed))
-    encoder = build_encoder(**encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True)),
-                            device=_device(str(cfg.device)), config_key="encoder")  # fmt: skip
+    entry = encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True))
+    with config_path("encoder", encoder_arguments(entry)):
+        encoder = build_encoder(**entry, device=_device(str(cfg.device)))
     prior = None
     from resireg.specs.variants import takes_prior
 
     if takes_prior(str(cfg.configuration)):
         from resireg.priors import build_prior
 
-        prior = build_prior(OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior")
-                            else {}, device=encoder.device, key="prior")  # fmt: skip
+        prior_spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else {}
+        with config_path("prior", {"spec": "prior"}):
+            prior = build_prior(prior_spec, device=encoder.device)
     from resireg_train.cache import weights_fingerprint
 
     t0 = time.perf_counter()

@@ -34,6 +34,7 @@ from resireg_train.playground.config import (
     protocol_short_side,
     resireg_defaults,
 )
+from resireg_train.validation import config_path, encoder_arguments
 
 __all__ = [
     "LABELS",
@@ -155,7 +156,8 @@ class Playground:
     ) -> Playground:
         """Build the encoder of :func:`encoder_spec` on ``device`` with the YAML defaults."""
         spec = encoder_spec(encoder, model_path, config_dir)
-        model = build_encoder(**spec, device=device, config_key="encoder")
+        with config_path("encoder", encoder_arguments(spec)):
+            model = build_encoder(**spec, device=device)
         model = model.to(device)
         if short_side is None:
             short_side = protocol_short_side(config_dir)
