@@ -259,3 +259,24 @@ def test_a_renamed_error_pickles_as_the_librarys_class():
             _raise_in_resireg(FileNotFoundError("repo='/x': no such directory"))()
     back = pickle.loads(pickle.dumps(err.value))
     assert type(back) is FileNotFoundError and str(back) == str(err.value)
+
+
+def test_resireg_eval_names_the_encoder_key_of_a_library_error(tmp_path):
+    """The library says ``weights='...'``; resireg-eval's failed record says
+    ``encoder.weights='...'`` (no model is built: the tag check fails first)."""
+    import json
+
+    from hydra import compose, initialize_config_dir
+
+    from resireg_train.cli.eval import evaluate
+    from resireg_train.cli.task import CONFIG_DIR
+
+    weights = str(tmp_path / "absent.bin")
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("eval", ["encoder=clip_vit_b16", f"encoder.weights={weights}",
+                               "dataset=synthetic", f"paths.output_dir={tmp_path}"])  # fmt: skip
+    with pytest.raises(ConfigError, match=rf"^encoder\.weights='{weights}' is neither"):
+        evaluate(cfg)
+    record = json.loads((tmp_path / "results.json").read_text())
+    assert record["status"] == "failed"
+    assert f"ConfigError: encoder.weights='{weights}' is neither" in record["error"]

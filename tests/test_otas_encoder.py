@@ -335,7 +335,7 @@ def test_bad_arguments(fake_repo, offline, tmp_path):
         _build(fake_repo, n_components=0)
     with pytest.raises(ValueError, match=r"^dense_path='values'"):
         _build(fake_repo, dense_path="values")
-    with pytest.raises(ValueError, match=r"^clip\.dense_path: set dense_path"):
+    with pytest.raises(ValueError, match=r"^clip\.dense_path: pass dense_path= instead"):
         _build(fake_repo, clip={"weights": None, "image_size": CLIP_SIDE, "dense_path": "value"})
 
 

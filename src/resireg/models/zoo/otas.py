@@ -202,7 +202,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
             require_hub_checkpoints([ckpt], "DINOv2 weights", _WEIGHTS_HOST, _hint())
         clip_args = {"weights": "openai", **dict(clip or {})}
         if "dense_path" in clip_args:
-            raise ConfigError("clip.dense_path: set dense_path instead (OTAS's CLIP path)")
+            raise ConfigError("clip.dense_path: pass dense_path= instead (OTAS's CLIP path)")
         check_dense_path(dense_path, "dense_path")  # before any model loads
         clip_model = clip_args.get("model_name", "ViT-B-16")
         clip_weights = clip_args["weights"]
