@@ -170,7 +170,7 @@ def test_uncached_weights_offline_fail_at_once(fake_repo, monkeypatch, tmp_path)
 
 def test_vocabulary_download_offline_fails_naming_model_vocab(fake_repo, offline):
     offline.setattr(hub_module, "_resolves", lambda host, timeout: False)
-    with pytest.raises(WeightsUnavailableError, match=r"vocabulary.*model\.vocab="):
+    with pytest.raises(WeightsUnavailableError, match=r"vocabulary.* vocab=/path/to/"):
         _build(fake_repo, vocab=None)
 
 
@@ -185,7 +185,7 @@ def test_default_tokenizer_is_the_repos_get_tokenizer(fake_repo, offline):
 
 
 def test_bad_local_repo_and_image_size(fake_repo, offline, tmp_path):
-    with pytest.raises(FileNotFoundError, match=r"model\.repo="):
+    with pytest.raises(FileNotFoundError, match=r"^repo="):
         DinoTxtEncoder(repo=str(tmp_path / "absent"), source="local")
-    with pytest.raises(ValueError, match=r"model\.image_size=50"):
+    with pytest.raises(ValueError, match=r"^image_size=50"):
         _build(fake_repo, image_size=50)

@@ -21,6 +21,7 @@ holds what every encoder must do, so a kind added to the registry without an ent
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
 
@@ -49,7 +50,7 @@ from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS
 from resireg.models.zoo.radio import RADIO_CHECKPOINTS
 
-KEY = "encoder"  # the config prefix every error must name
+KEY = "encoder"  # the config prefix every error names at resireg_train's boundary
 TEXTS = ["a photo of a cat", "the sky", "road"]
 
 
@@ -122,7 +123,7 @@ def hub(tmp_path_factory):
 
 def _build(kind, config):
     torch.manual_seed(0)  # the fakes draw their random weights from torch's global generator
-    return build_encoder(kind, config_key=KEY, **config)
+    return build_encoder(kind, **config)
 
 
 @pytest.fixture(scope="module")
@@ -189,6 +190,11 @@ def _hub_load_forbidden(*args, **kwargs):
 
 @pytest.mark.parametrize("kind", sorted(ENCODERS))
 def test_offline_and_not_cached_fails_at_once_naming_the_key(kind, tmp_path, monkeypatch):
+    """The library's message names its own arguments (``repo=``); through resireg_train's
+    boundary (:func:`resireg_train.validation.config_path`) the same error names the config
+    keys (``encoder.repo=``)."""
+    from resireg_train.validation import config_path, encoder_arguments
+
     config, expected = OFFLINE[kind]
     offline_hub(monkeypatch, tmp_path / "hub")  # an empty torch hub cache
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
@@ -197,8 +203,16 @@ def test_offline_and_not_cached_fails_at_once_naming_the_key(kind, tmp_path, mon
     monkeypatch.setattr(hf_constants, "HF_HUB_CACHE", str(tmp_path / "hf"))  # an empty cache
     start = time.monotonic()
     with pytest.raises(WeightsUnavailableError) as err:
-        build_encoder(kind, config_key=KEY, **config)
+        build_encoder(kind, **config)
     assert time.monotonic() - start < 2.0
+    message = str(err.value)
+    for fragment in expected:
+        assert fragment.replace(f"{KEY}.", "") in message, (fragment, message)
+    assert not re.search(rf"(?<![\w.]){KEY}\.", message), message  # no config key
+    entry = {"kind": kind, **config}
+    with pytest.raises(WeightsUnavailableError) as err:
+        with config_path(KEY, encoder_arguments(entry)):
+            build_encoder(**entry)
     message = str(err.value)
     for fragment in expected:
         assert fragment in message, (fragment, message)

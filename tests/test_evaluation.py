@@ -170,7 +170,7 @@ def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scor
 
 
 def test_variant_names_and_modes_are_checked(vlm):
-    with pytest.raises(ValueError, match=r"variants=\['bb', 'mid'\]: unknown \['mid'\]"):
+    with pytest.raises(ValueError, match=r"^names=\['bb', 'mid'\]: unknown \['mid'\]"):
         build_variants(["bb", "mid"])
     with pytest.raises(ValueError, match="n_prototypes"):
         build_variants(["full"], {"full": {"n_prototypes": 0}})

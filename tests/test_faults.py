@@ -421,12 +421,12 @@ def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed
     for n, (line, job) in enumerate(zip(tail[1:], jobs, strict=True)):
         lr = -(n + 1)
         assert line == (
-            f"  job {n} ({job.name}): resireg_train.validation.ConfigError: invalid config: "
+            f"  job {n} ({job.name}): resireg.errors.ConfigError: invalid config: "
             f"model.optimizer.lr={lr}: expected a number > 0; model.scheduler.min_lr=1e-05: "
             f"expected <= model.optimizer.lr={lr}"
         )
         log = (job / "train.log").read_text()
-        assert f"run failed: resireg_train.validation.ConfigError: invalid config:\n  " \
+        assert f"run failed: resireg.errors.ConfigError: invalid config:\n  " \
                f"model.optimizer.lr={lr}: expected a number > 0" in log, log  # fmt: skip
         assert _results(job)["status"] == "failed"
 

@@ -77,14 +77,16 @@ def test_every_hub_conf_pins_a_commit_and_the_encoder_table_knows_every_hub_conf
 
 
 def test_hub_target_and_ref_rules():
-    assert hub_target("NVlabs/RADIO", "github", "abc123", "encoder") == "NVlabs/RADIO:abc123"
-    assert hub_target("/clones/RADIO", "local", "abc123", "encoder") == "/clones/RADIO"
+    assert hub_target("NVlabs/RADIO", "github", "abc123") == "NVlabs/RADIO:abc123"
+    assert hub_target("/clones/RADIO", "local", "abc123") == "/clones/RADIO"
     assert hub_target("NVlabs/RADIO", "github", None) == "NVlabs/RADIO"
     for bad in ("", "a b", "main:x", 7):
-        with pytest.raises(ValueError, match=r"encoder\.ref="):
-            check_hub_ref(bad, "encoder.ref")
-    with pytest.raises(ValueError, match=r"encoder\.repo='NVlabs/RADIO:v1' names a ref"):
-        hub_target("NVlabs/RADIO:v1", "github", "abc", "encoder")
+        with pytest.raises(ValueError, match=r"^ref="):
+            check_hub_ref(bad)
+        with pytest.raises(ValueError, match=r"^radio_ref="):
+            check_hub_ref(bad, "radio_ref")
+    with pytest.raises(ValueError, match=r"^repo='NVlabs/RADIO:v1' names a ref"):
+        hub_target("NVlabs/RADIO:v1", "github", "abc")
 
 
 def test_radio_loads_the_pinned_commit_from_the_hub_cache(tmp_path, monkeypatch, calls):

@@ -37,6 +37,6 @@ def test_jobs_run_elsewhere_are_listed_from_their_records(tmp_path, tiny_export)
     assert tail == [
         f"resireg-eval: 1 of 2 jobs failed (sweep {sweep}; resireg-report {sweep} lists every "
         "job):",
-        f"  job 1 ({bad.name}): resireg_train.validation.ConfigError: invalid config: "
+        f"  job 1 ({bad.name}): resireg.errors.ConfigError: invalid config: "
         "batch_size=0: expected an integer >= 1",
     ], proc.stderr[-3000:]

@@ -99,13 +99,14 @@ def test_one_rule_per_parameter_read_by_the_class_and_the_config_check(variant, 
 
 
 def test_each_encoder_entry_names_its_builder_and_its_conf_files():
-    """Every built-in kind's builder loads and takes ``device`` and ``config_key``; the
+    """Every built-in kind's builder loads and takes ``device`` (and no config key); the
     table's configurations are exactly the ``conf/encoder/`` files, each of its kind."""
     on_disk = {p.stem: OmegaConf.load(p).kind for p in (CONFIG_DIR / "encoder").glob("*.yaml")}
     assert sorted(ENCODER_SPECS.all_configs()) == sorted(on_disk)
     for kind, spec in ENCODER_SPECS.items():
         builder = spec.load()
-        assert {"device", "config_key"} <= set(inspect.signature(builder).parameters), kind
+        parameters = set(inspect.signature(builder).parameters)
+        assert "device" in parameters and "config_key" not in parameters, kind
         assert all(on_disk[name] == kind for name in spec.configs), kind
     assert [k for k, s in ENCODER_SPECS.items() if s.needs_model_path] == ["resireg_vlm"]
     with pytest.raises(ValueError, match="'package.module:attribute'"):
@@ -184,7 +185,7 @@ class ToyEncoder(DenseEncoder):
     """A patch-8 conv stem (intermediates) and a 1x1 conv (language tokens); text queries
     are fixed random directions keyed by the text."""
 
-    def __init__(self, width=16, dim=24, device=None, config_key="encoder"):
+    def __init__(self, width=16, dim=24, device=None):
         super().__init__()
         torch.manual_seed(0)
         self.stem = nn.Conv2d(3, width, 8, stride=8)

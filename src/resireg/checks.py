@@ -19,6 +19,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from resireg.errors import DataError
+
 __all__ = [
     "NonFiniteError",
     "check_features",
@@ -28,7 +30,7 @@ __all__ = [
 ]
 
 
-class NonFiniteError(ValueError):
+class NonFiniteError(DataError):
     """A feature tensor holds NaN or infinite values (the message names the argument)."""
 
 

@@ -19,6 +19,8 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from resireg.errors import IntegrityError
+
 __all__ = [
     "IntegrityError",
     "atomic_write",
@@ -31,10 +33,6 @@ __all__ = [
 ]
 
 _CHUNK = 1 << 20
-
-
-class IntegrityError(ValueError):
-    """A file is missing, truncated, unreadable or does not match its recorded digest."""
 
 
 def sha256_file(path: str | os.PathLike) -> str:

@@ -25,6 +25,7 @@ from typing import Any
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.errors import ConfigError
 from resireg.reconstruct import FullShared, ReSiRegFull
 from resireg.specs.variants import (
     PRIOR_VARIANTS,
@@ -57,7 +58,6 @@ class BackboneOnly(nn.Module):
 def build_variants(
     names: list[str] | tuple[str, ...],
     params: Mapping[str, Mapping[str, Any] | None] | None = None,
-    key: str = "variants",
 ) -> dict[str, nn.Module]:
     """``{name: variant}`` for each name, in order: the variant of :func:`parse_variant`'s
     base name built with ``params[base]`` updated by the name's overrides. The evaluation
@@ -69,20 +69,19 @@ def build_variants(
             ``full+prior`` is built as ``full``, the caller passes it the prior).
         params: per-variant keyword arguments, e.g. ``{"full": {"n_prototypes": 36}}``;
             entries for variants not named are ignored.
-        key: the config key holding ``names``, named in errors.
     """
     if not names:
-        raise ValueError(f"{key}=[]: name at least one of {list(VARIANTS)}")
+        raise ConfigError(f"names=[]: name at least one of {list(VARIANTS)}")
     parsed = {n: parse_variant(n) for n in names}
     bad = [n for n, (base, _) in parsed.items() if base not in VARIANT_SPECS]
     if bad:
-        raise ValueError(f"{key}={list(names)}: unknown {bad}; choose from {list(VARIANTS)}")
+        raise ConfigError(f"names={list(names)}: unknown {bad}; choose from {list(VARIANTS)}")
     if len(parsed) != len(names):
-        raise ValueError(f"{key}={list(names)}: a name appears twice")
+        raise ConfigError(f"names={list(names)}: a name appears twice")
     bad = [n for n, (base, _) in parsed.items() if takes_prior(n) and base not in PRIOR_VARIANTS]
     if bad:
-        raise ValueError(
-            f"{key}={list(names)}: {bad} cannot take a prior; +prior applies to "
+        raise ConfigError(
+            f"names={list(names)}: {bad} cannot take a prior; +prior applies to "
             f"{list(PRIOR_VARIANTS)}"
         )
     params = params or {}

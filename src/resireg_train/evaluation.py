@@ -18,9 +18,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from resireg.errors import ResiregError
 from resireg_train.results import update_results
 from resireg_train.tasks import TaskSpec, find_task, task_names
-from resireg_train.validation import ConfigError
+from resireg_train.validation import ConfigError, config_path
 
 if TYPE_CHECKING:
     from torch import nn
@@ -83,7 +84,8 @@ class TaskProtocol(ABC):
         from resireg.specs.variants import takes_prior
 
         if any(takes_prior(v) for v in variants):
-            check_sam_source(str(self.params["prior"].get("model") or SAM_MODEL), "prior")
+            with config_path("prior", ("model",)):
+                check_sam_source(str(self.params["prior"].get("model") or SAM_MODEL))
 
     @abstractmethod
     def build(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module]) -> dict[str, Any]:
@@ -151,7 +153,7 @@ def elbo_counts(variants: Mapping[str, Any]) -> dict[str, Any]:
     return {"elbo_prototypes": counts} if counts else {}
 
 
-class NothingScoredError(RuntimeError):
+class NothingScoredError(ResiregError, RuntimeError):
     """Every image (3D: frame) of the dataset was skipped: there is no score to report."""
 
 

@@ -7,13 +7,15 @@ from pathlib import Path
 
 from PIL import Image
 
+from resireg.errors import ResiregError
+
 __all__ = ["DECODE_ERRORS", "WriteError", "write_atomic"]
 
 #: What PIL raises for an undecodable image file (skipped and counted, never fatal).
 DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 
 
-class WriteError(OSError):
+class WriteError(ResiregError, OSError):
     """A file could not be written (disk full, quota, permissions); one line naming it."""
 
 

@@ -40,6 +40,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ResiregError
 from resireg.specs.metrics import METRIC_SPECS
 
 __all__ = [
@@ -427,7 +428,7 @@ class OptunaSearch:
 _WAIT: Any = object()
 
 
-class SearchError(RuntimeError):
+class SearchError(ResiregError, RuntimeError):
     """A search that cannot go on (too many failed trials); the message says why."""
 
 

@@ -18,13 +18,21 @@ from __future__ import annotations
 
 import difflib
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.errors import ConfigError as _ConfigError
+from resireg.errors import (
+    Arguments,
+    ConfigError,
+    add_note,
+    argument_names,
+    raised_by,
+    renamed,
+)
 from resireg.specs.encoders import ENCODER_REPORT_KEYS, ENCODER_SPECS, Needs, encoder_kwargs
 from resireg.specs.exports import export_source_problem
 from resireg.specs.priors import PRIOR_KINDS, SAM_RULES
@@ -64,6 +72,9 @@ __all__ = [
     "TASKS",
     "check_devices",
     "check_available",
+    "config_path",
+    "encoder_arguments",
+    "error_message",
     "encoder_import_errors",
     "encoder_kwargs",
     "init_from_problem",
@@ -77,12 +88,6 @@ __all__ = [
 PRECISIONS: dict[str, str | None] = {
     "32": None, "32-true": None, "bf16": "bfloat16", "bf16-mixed": "bfloat16",
 }  # fmt: skip
-
-
-class ConfigError(_ConfigError):
-    """A config value of the wrong type or out of range; the message names key and value. A
-    :class:`resireg.errors.ConfigError` (one ``except`` catches the library's and the CLIs'),
-    under its own name, which the CLIs' one-line failures print."""
 
 
 _MISSING = object()
@@ -118,6 +123,53 @@ def encoder_import_errors(entry: Any, key: str = "encoder") -> list[str]:
                 f'installed: pip install -e ".[encoders]" (or pip install {dist})'
             )
     return errors
+
+
+@contextmanager
+def config_path(prefix: str, arguments: Arguments = ()) -> Iterator[None]:
+    """The config path ``prefix`` added to the errors of the library calls inside: resireg's
+    messages name the function's own argument (``path='x': ...``), the config names the entry.
+
+    An error of resireg's code that names one of ``arguments`` (``name=...``, or a message that
+    starts with the name: :func:`resireg.errors.rename_arguments`) names ``<prefix>.<name>``
+    instead (``arguments`` may map a name to its whole config path: ``{"names": "variants"}``);
+    one whose message starts with it comes back a :class:`ConfigError` (still of its own type:
+    a ``FileNotFoundError`` stays one). Any other error gets the note ``config: <prefix>`` and
+    goes on as it was. Errors of ``resireg_train``'s own code name their config paths already
+    and pass untouched.
+
+    Used where a config entry meets the library: ``encoder`` (``build_encoder``), ``prior``
+    (``build_prior``), ``variants`` (``build_variants``), ``model.teacher`` (RADSeg)."""
+    try:
+        yield
+    except Exception as err:
+        if raised_by(err, "resireg_train"):
+            raise
+        new = renamed(err, argument_names(prefix, arguments))
+        if new is not None:
+            raise new from err
+        add_note(err, f"config: {prefix}")
+        raise
+
+
+def encoder_arguments(entry: Any) -> tuple[str, ...]:
+    """What the messages of ``build_encoder(**entry)`` may name: the entry's keys and
+    :func:`resireg.models.encoders.encoder_arguments` (``kind``, ``device``, the builder's
+    arguments; the builder is imported, as ``build_encoder`` would, and one that does not
+    import leaves them out: ``build_encoder`` reports that)."""
+    from resireg.models.encoders import encoder_arguments as of_kind
+
+    keys = tuple(entry) if isinstance(entry, dict) else ()
+    try:
+        named = of_kind(entry.get("kind")) if isinstance(entry, dict) else ()
+    except Exception:
+        named = ("kind", "device")
+    return tuple(dict.fromkeys((*keys, *named)))
+
+
+def error_message(err: BaseException) -> str:
+    """``str(err)`` and its notes (``config: encoder``), one per line."""
+    return "\n".join([str(err), *map(str, getattr(err, "__notes__", None) or ())])
 
 
 _PRECISIONS = {

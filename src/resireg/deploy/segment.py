@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from PIL import Image
 
 from resireg.deploy.labels import parse_labels
+from resireg.errors import arguments_under
 from resireg.models.encoder import DenseEncoder
 from resireg.models.images import pil_to_tensor
 from resireg.ovss import TEMPLATES, class_similarity, predict, text_prototypes
@@ -80,12 +81,15 @@ def load_encoder(encoder: Any, device: str | torch.device = "cpu") -> DenseEncod
     (``{"kind": "clip", "model_name": "ViT-B-16", ...}``, as ``conf/encoder/*.yaml`` give)."""
     if isinstance(encoder, DenseEncoder):
         return encoder
-    from resireg.models.encoders import build_encoder, load_resireg_vlm
+    from resireg.models.encoders import build_encoder, encoder_arguments, load_resireg_vlm
 
     if isinstance(encoder, (str, os.PathLike)):
-        return load_resireg_vlm(os.fspath(encoder), device, config_key="encoder").eval()
+        with arguments_under("encoder", {"path": "encoder"}):  # our argument is the path
+            return load_resireg_vlm(os.fspath(encoder), device).eval()
     if isinstance(encoder, Mapping):
-        return build_encoder(**dict(encoder), device=device, config_key="encoder").eval()
+        keys = dict(encoder)
+        with arguments_under("encoder", (*keys, *encoder_arguments(keys.get("kind")))):
+            return build_encoder(**keys, device=device).eval()
     raise TypeError(
         "encoder must be a DenseEncoder, an export folder / Hub repo id, or build_encoder "
         f"keywords; got {type(encoder).__name__}"

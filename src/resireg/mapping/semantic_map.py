@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.checks import check_features
+from resireg.errors import MapError
 from resireg.integrity import (
     IntegrityError,
     atomic_write,
@@ -78,7 +79,7 @@ _FORMAT = "resireg.semantic_map/1"
 ENCODER_OUTPUT = "encoder output"
 
 
-class MapFullError(RuntimeError):
+class MapFullError(MapError):
     """A window would take the map past its ``max_voxels`` budget (nothing of it was added)."""
 
 
@@ -245,7 +246,7 @@ class SemanticMap:
                     "runs on the encoder's own intermediates"
                 )
             self.configuration = name
-            self.variant = build_variants([name], params or {}, key="configuration")[name]
+            self.variant = build_variants([name], params or {})[name]
             self.takes_prior = takes_prior(name)
         if (
             self.takes_prior

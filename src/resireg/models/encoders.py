@@ -26,24 +26,30 @@ from typing import Any
 
 import torch
 
+from resireg.errors import ConfigError, parameters
 from resireg.models.encoder import DenseEncoder
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.vlm import ResiregVLM
 from resireg.specs.encoders import ENCODER_SPECS
 
-__all__ = ["ENCODERS", "build_encoder", "count_parameters", "encoder_modules", "load_resireg_vlm"]
+__all__ = [
+    "ENCODERS",
+    "build_encoder",
+    "count_parameters",
+    "encoder_arguments",
+    "encoder_modules",
+    "load_resireg_vlm",
+]
 
 
-def load_resireg_vlm(
-    path: str, device: torch.device | str | None = None, config_key: str = "model"
-) -> ResiregVLM:
+def load_resireg_vlm(path: str, device: torch.device | str | None = None) -> ResiregVLM:
     """The ``resireg_vlm`` kind: our VLM from an export folder or a hub repo id."""
     if not path:
-        raise ValueError(f"{config_key}.path is required: an export folder or a hub repo id")
+        raise ConfigError("path is required: an export folder or a hub repo id")
     try:
         return ResiregVLM.from_pretrained(path, map_location=device or "cpu")
-    except WeightsUnavailableError as err:  # name the key, as every other kind does
-        raise WeightsUnavailableError(f"{config_key}.path={path!r}: {err}") from err
+    except WeightsUnavailableError as err:  # name the argument, as every other kind does
+        raise WeightsUnavailableError(f"path={path!r}: {err}") from err
 
 
 class _Builders(Mapping[str, Callable[..., DenseEncoder]]):
@@ -63,25 +69,32 @@ class _Builders(Mapping[str, Callable[..., DenseEncoder]]):
         return len(ENCODER_SPECS.everything())
 
 
-#: ``kind`` -> builder taking the entry's keys, ``device`` and ``config_key``.
+#: ``kind`` -> builder taking the entry's keys and ``device``.
 ENCODERS: Mapping[str, Callable[..., DenseEncoder]] = _Builders()
 
 
 def build_encoder(
-    kind: str,
-    device: torch.device | str | None = None,
-    config_key: str = "model",
-    **kwargs: Any,
+    kind: str, device: torch.device | str | None = None, **kwargs: Any
 ) -> DenseEncoder:
-    """The encoder ``kind`` built from its config keys (errors name ``<config_key>.<key>``)."""
+    """The encoder ``kind`` built from its keys (errors name them: ``weights=...``; an unknown
+    kind is a :class:`~resireg.errors.ConfigError` naming the closest kinds)."""
     spec = ENCODER_SPECS.find(kind)
     if spec is None:
-        known = sorted(ENCODER_SPECS.everything())
-        raise ValueError(f"{config_key}.kind={kind!r}: expected one of {known}")
+        raise ConfigError(ENCODER_SPECS.unknown(kind, setting="kind"))
     try:
-        return spec.load()(device=device, config_key=config_key, **kwargs)
-    except TypeError as err:  # an unknown key for this kind
-        raise TypeError(f"{config_key} (kind {kind!r}): {err}") from err
+        return spec.load()(device=device, **kwargs)
+    except TypeError as err:
+        if err.__traceback__ is not None and err.__traceback__.tb_next is None:
+            # the call itself failed (a key this kind does not take), not the builder's code
+            raise TypeError(f"kind={kind!r}: {err}") from err
+        raise
+
+
+def encoder_arguments(kind: str) -> tuple[str, ...]:
+    """What the messages of ``build_encoder(kind, ...)`` may name: ``kind``, ``device`` and
+    the builder's arguments (:func:`resireg.errors.parameters`; the builder is imported)."""
+    spec = ENCODER_SPECS.find(kind)
+    return tuple(dict.fromkeys(("kind", "device", *(parameters(spec.load()) if spec else ()))))
 
 
 def encoder_modules(encoder: DenseEncoder) -> list[torch.nn.Module]:

@@ -3,7 +3,7 @@
 Without a network a hub request can stall for close to a minute (name look-ups are
 retried) before it fails. Every loader in :mod:`resireg.models` checks, before it asks a
 hub for anything, that what it needs is cached or that the host serving it can be reached,
-so an offline user gets an immediate error that names the local alternative (the config key
+so an offline user gets an immediate error that names the local alternative (the argument
 to set). The checks, one helper per kind of source (docs/design.md section 6):
 
 - :func:`check_hub_source`: a ``torch.hub`` repo / source pair (a local clone, or GitHub),
@@ -32,6 +32,8 @@ import os
 import socket
 import threading
 from collections.abc import Sequence
+
+from resireg.errors import ConfigError, OfflineError
 
 __all__ = [
     "PINNED_REFS",
@@ -64,7 +66,7 @@ PINNED_REFS = {
 }
 
 
-class WeightsUnavailableError(RuntimeError):
+class WeightsUnavailableError(OfflineError):
     """Pretrained weights (or a tokenizer) could not be obtained; the message says how to pass them locally."""
 
 
@@ -113,51 +115,49 @@ def require_online(
         )
 
 
-def check_hub_ref(ref: object, key: str = "model.ref") -> str | None:
+def check_hub_ref(ref: object, name: str = "ref") -> str | None:
     """``ref`` itself when it is ``None`` or a git ref torch.hub can take after ``owner/name:``
     (a tag, a branch or a commit SHA: non-empty, no whitespace, no ``:``); else a
-    :class:`ValueError` naming ``key``."""
+    :class:`~resireg.errors.ConfigError` naming the argument ``name`` (``radio_ref``)."""
     if ref is None:
         return None
     if not isinstance(ref, str) or not ref or any(c.isspace() or c == ":" for c in ref):
-        raise ValueError(
-            f"{key}={ref!r}: expected a git tag or commit SHA of the hub repository (or null "
+        raise ConfigError(
+            f"{name}={ref!r}: expected a git tag or commit SHA of the hub repository (or null "
             "for its default branch)"
         )
     return ref
 
 
-def hub_target(repo: str, source: str, ref: str | None, key: str = "model") -> str:
+def hub_target(repo: str, source: str, ref: str | None) -> str:
     """The first argument of ``torch.hub.load``: ``"owner/name:<ref>"`` from GitHub with a
     ``ref``, else ``repo`` (a local clone ignores the ref). A ``repo`` that names a ref of its
-    own as well as ``ref`` is an error naming both keys."""
-    check_hub_ref(ref, f"{key}.ref")
+    own as well as ``ref`` is an error naming both."""
+    check_hub_ref(ref)
     if source != "github" or ref is None:
         return repo
     if ":" in repo:
-        raise ValueError(f"{key}.repo={repo!r} names a ref and {key}.ref={ref!r} another: keep one")
+        raise ConfigError(f"repo={repo!r} names a ref and ref={ref!r} another: keep one")
     return f"{repo}:{ref}"
 
 
-def check_hub_source(
-    repo: str, source: str, what: str, hint: str, key: str = "model", ref: str | None = None
-) -> None:
+def check_hub_source(repo: str, source: str, what: str, hint: str, ref: str | None = None) -> None:
     """Validate a torch.hub ``repo`` / ``source`` pair (and ``ref``) before anything is loaded.
 
     ``source="local"`` needs ``repo`` to be a directory; ``source="github"`` needs the repo's
     code at ``ref`` in torch's hub cache (:func:`hub_repo_cached`) or github.com, else
     :class:`~resireg.models.hub.WeightsUnavailableError` at once with ``hint`` (which should
-    name ``{key}.repo`` and ``{key}.source=local``).
+    name ``repo=`` and ``source=local``).
     """
     if source not in ("github", "local"):
-        raise ValueError(f"{key}.source={source!r}: expected 'github' or 'local'")
-    check_hub_ref(ref, f"{key}.ref")
+        raise ConfigError(f"source={source!r}: expected 'github' or 'local'")
+    check_hub_ref(ref)
     if source == "local" and not os.path.isdir(repo):
-        raise FileNotFoundError(f"{key}.repo={repo!r}: no such directory ({what} clone)")
+        raise FileNotFoundError(f"repo={repo!r}: no such directory ({what} clone)")
     if source == "github":
         if ref is not None and hub_repo_cached(repo, ref) is not None:
             return  # torch.hub loads the pinned code from its cache, no network needed
-        target = hub_target(repo, source, ref, key)
+        target = hub_target(repo, source, ref)
         require_online(f"{what} ({target})", "github.com", hint, hf=False)
 
 
@@ -221,10 +221,10 @@ def require_hf_files(repo: str, filenames: Sequence[str], what: str, hint: str) 
 _OPEN_CLIP_FILES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
 
 
-def require_open_clip_tag(model_name: str, tag: str, key: str, hint: str) -> None:
+def require_open_clip_tag(model_name: str, tag: str, name: str, hint: str) -> None:
     """The weights of open_clip pretrained tag ``tag`` of ``model_name``: cached, or their
     host reachable, else :class:`WeightsUnavailableError` at once with ``hint``. A tag open_clip
-    does not know is a ``ValueError`` naming ``key`` (e.g. ``model.weights``).
+    does not know is a ``ValueError`` naming ``name``, the caller's argument (``weights``).
 
     Follows open_clip's own resolution (``open_clip.pretrained.get_pretrained_cfg``, then
     ``download_pretrained``): a ``hf_hub`` entry ``org/model/`` (the default file names) or
@@ -235,14 +235,14 @@ def require_open_clip_tag(model_name: str, tag: str, key: str, hint: str) -> Non
 
     cfg = get_pretrained_cfg(model_name, tag)
     if not cfg:
-        raise ValueError(
-            f"{key}={tag!r} is neither an existing file nor an open_clip pretrained tag of "
+        raise ConfigError(
+            f"{name}={tag!r} is neither an existing file nor an open_clip pretrained tag of "
             f"{model_name!r} (tags: {open_clip.list_pretrained_tags_by_model(model_name)})"
         )
     what = f"open_clip weights {model_name}/{tag}"
     if cfg.get("hf_hub"):
-        repo, name = os.path.split(cfg["hf_hub"])  # 'org/model/' -> ('org/model', '')
-        require_hf_files(repo, (name,) if name else _OPEN_CLIP_FILES, what, hint)
+        repo, file = os.path.split(cfg["hf_hub"])  # 'org/model/' -> ('org/model', '')
+        require_hf_files(repo, (file,) if file else _OPEN_CLIP_FILES, what, hint)
     elif cfg.get("url"):
         host = cfg["url"].split("://", 1)[-1].split("/", 1)[0]
         require_online(what, host, hint, hf=False)

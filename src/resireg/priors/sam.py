@@ -23,6 +23,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from resireg.errors import ConfigError, arguments_under, parameters
 from resireg.models.hub import WeightsUnavailableError, require_hf_files
 from resireg.specs.priors import PRIOR_KINDS, SAM_DEFAULTS, SAM_MODEL, SAM_RULES
 
@@ -115,31 +116,29 @@ def _is_local(model: str) -> bool:
     return os.path.isdir(os.path.expanduser(model))
 
 
-def _sam_hint(key: str) -> str:
-    return (
-        f"Set {key}.model to a local directory holding a transformers SAM 2 checkpoint "
-        "(Sam2Model.save_pretrained + Sam2ImageProcessor.save_pretrained), or download it "
-        "once with network access (it is then cached)."
-    )
+#: How to do without the hub (the offline errors' hint).
+_SAM_HINT = (
+    "Pass model=/path/to/sam2, a local directory holding a transformers SAM 2 checkpoint "
+    "(Sam2Model.save_pretrained + Sam2ImageProcessor.save_pretrained), or download it "
+    "once with network access (it is then cached)."
+)
 
 
-def check_sam_source(model: str, key: str = "prior") -> bool:
-    """Whether ``model`` (``<key>.model``) is a local directory (``True``) or a hub id that is
-    cached or reachable (``False``); otherwise the error :class:`SamPrior` would raise, so a
-    caller can fail before loading anything else (``resireg-eval`` checks it before the
-    encoder). No model is loaded.
+def check_sam_source(model: str) -> bool:
+    """Whether ``model`` is a local directory (``True``) or a hub id that is cached or
+    reachable (``False``); otherwise the error :class:`SamPrior` would raise, so a caller can
+    fail before loading anything else (``resireg-eval`` checks it before the encoder). No
+    model is loaded.
 
     Raises:
         FileNotFoundError: a path (not an ``org/name`` hub id) that is not a directory.
-        WeightsUnavailableError: a hub id neither cached nor reachable (names ``<key>.model``).
+        WeightsUnavailableError: a hub id neither cached nor reachable (names ``model``).
     """
     if _is_local(model):
         return True
     if model.startswith((".", "/", "~", os.sep)) or model.count("/") > 1:  # a path, not org/name
-        raise FileNotFoundError(f"{key}.model={model!r}: no such directory")
-    require_hf_files(
-        model, ["config.json"], f"{key}.model={model!r} (SAM 2 weights)", _sam_hint(key)
-    )
+        raise FileNotFoundError(f"model={model!r}: no such directory")
+    require_hf_files(model, ["config.json"], f"model={model!r} (SAM 2 weights)", _SAM_HINT)
     return False
 
 
@@ -168,12 +167,11 @@ class SamPrior:
         crop_n_layers: extra layers of image crops (0: the whole image only).
         crop_overlap_ratio: overlap of the crops of the first crop layer.
         crop_n_points_downscale_factor: points per side shrink by it per crop layer.
-        key: the config key of this prior, named in errors (``prior`` -> ``prior.model``).
 
     Raises:
         WeightsUnavailableError: the hub id is not cached and the hub cannot be reached
-            (``HF_HUB_OFFLINE`` set, or no network); the message names ``<key>.model``.
-        ValueError: a bad keyword value (named as ``<key>.<name>``).
+            (``HF_HUB_OFFLINE`` set, or no network); the message names ``model``.
+        ConfigError: a bad keyword value (named as ``<name>=<value>``).
     """
 
     def __init__(
@@ -190,9 +188,7 @@ class SamPrior:
         crop_n_layers: int = SAM_DEFAULTS["crop_n_layers"],
         crop_overlap_ratio: float = SAM_DEFAULTS["crop_overlap_ratio"],
         crop_n_points_downscale_factor: int = SAM_DEFAULTS["crop_n_points_downscale_factor"],
-        key: str = "prior",
     ) -> None:
-        self.key = key
         settings = {
             "points_per_side": points_per_side,
             "points_per_batch": points_per_batch,
@@ -208,7 +204,7 @@ class SamPrior:
         self._check(settings)
         self.settings = settings
         if not isinstance(model, (str, os.PathLike)) or not str(model):
-            raise ValueError(f"{key}.model={model!r}: expected a hub id or a local directory")
+            raise ConfigError(f"model={model!r}: expected a hub id or a local directory")
         self.model_name = str(model)
         if isinstance(device, str) and device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -218,7 +214,7 @@ class SamPrior:
     def _check(self, settings: dict[str, Any]) -> None:
         for name, (ok, expected) in SAM_RULES.items():
             if not ok(settings[name]):
-                raise ValueError(f"{self.key}.{name}={settings[name]!r}: expected {expected}")
+                raise ConfigError(f"{name}={settings[name]!r}: expected {expected}")
 
     def _load(self, model: str) -> Any:
         """The ``mask-generation`` pipeline of ``Sam2Model`` + ``Sam2ImageProcessor``."""
@@ -226,18 +222,16 @@ class SamPrior:
             from transformers import Sam2ImageProcessor, Sam2Model, pipeline
         except ImportError as err:  # transformers missing or without SAM 2
             raise ImportError(
-                f"{self.key}: the SAM 2 prior needs transformers with SAM 2 "
-                "(pip install 'resireg[priors]')"
+                "the SAM 2 prior needs transformers with SAM 2 (pip install 'resireg[priors]')"
             ) from err
-        local = check_sam_source(model, self.key)
+        local = check_sam_source(model)
         source = os.path.expanduser(model) if local else model
         try:
             net = Sam2Model.from_pretrained(source)
             processor = Sam2ImageProcessor.from_pretrained(source)
         except OSError as err:
             raise WeightsUnavailableError(
-                f"{self.key}.model={model!r}: cannot load a transformers SAM 2 checkpoint "
-                f"({err}). {_sam_hint(self.key)}"
+                f"model={model!r}: cannot load a transformers SAM 2 checkpoint ({err}). {_SAM_HINT}"
             ) from err
         net = net.to(self.device).eval()
         return pipeline("mask-generation", model=net, image_processor=processor, device=self.device)
@@ -304,26 +298,24 @@ class SamPrior:
         return f"SamPrior(model={self.model_name!r}, device={str(self.device)!r}, {args})"
 
 
-def build_prior(
-    spec: dict[str, Any], device: str | torch.device = "cpu", key: str = "prior"
-) -> SamPrior:
+def build_prior(spec: dict[str, Any], device: str | torch.device = "cpu") -> SamPrior:
     """A prior provider from a config entry (``conf/prior/sam2.yaml``).
 
     Args:
         spec: ``kind`` (``sam2``), ``model``, ``device`` (``None``: ``device``) and the
-            :class:`SamPrior` keywords.
+            :class:`SamPrior` keywords; errors name them ``spec.<key>``.
         device: the device used when ``spec["device"]`` is ``None`` (the evaluation's).
-        key: the config key of ``spec``, named in errors.
     """
     spec = dict(spec)
     kind = spec.pop("kind", "sam2")
     if kind not in PRIOR_KINDS:
-        raise ValueError(f"{key}.kind={kind!r}: expected one of {list(PRIOR_KINDS)}")
+        raise ConfigError(f"spec.kind={kind!r}: expected one of {list(PRIOR_KINDS)}")
     unknown = sorted(set(spec) - {"model", "device", *SAM_DEFAULTS})
     if unknown:
-        raise ValueError(
-            f"{key}: unknown keys {unknown}; known: model, device, {list(SAM_DEFAULTS)}"
+        raise ConfigError(
+            f"spec: unknown keys {unknown}; known: model, device, {list(SAM_DEFAULTS)}"
         )
     if spec.get("device") is None:
         spec["device"] = device
-    return SamPrior(**spec, key=key)
+    with arguments_under("spec", parameters(SamPrior)):  # the keys of spec
+        return SamPrior(**spec)

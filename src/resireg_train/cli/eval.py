@@ -57,6 +57,8 @@ from resireg_train.validation import (
     ConfigError,
     check_available,
     check_devices,
+    config_path,
+    encoder_arguments,
     encoder_kwargs,
     sweep_config_errors,
     validate_eval,
@@ -184,11 +186,13 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg_train.engine import StageTimer
 
     torch.manual_seed(cfg.seed)
-    variants = build_variants(list(cfg.variants), params)
+    with config_path("variants", {"names": "variants"}):
+        variants = build_variants(list(cfg.variants), params)
     task = spec.load()(spec, cfg, params, out)
     task.check(variants)  # the dataset's and the prior's sources, before the encoder loads
-    encoder = build_encoder(**encoder_kwargs(params["encoder"]), device=_device(cfg.device),
-                            config_key="encoder")  # fmt: skip
+    entry = encoder_kwargs(params["encoder"])
+    with config_path("encoder", encoder_arguments(entry)):
+        encoder = build_encoder(**entry, device=_device(cfg.device))
     # a hub encoder's hub_ref: the code loaded ("owner/name:<ref>"; None for a local clone)
     hub = {"hub_ref": encoder.hub_ref} if hasattr(encoder, "hub_ref") else {}
     update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,

@@ -25,7 +25,6 @@ reason per kind.
 from __future__ import annotations
 
 import logging
-import re
 import time
 from collections import defaultdict
 from collections.abc import Iterable
@@ -34,11 +33,16 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.errors import ResiregError
+from resireg.errors import ResiregError, argument_names, rename_arguments
 from resireg.specs.sources import SOURCE_SPECS, source_errors
 from resireg_train.cli.task import hydra_entry_point, run_task
 from resireg_train.results import update_results
-from resireg_train.validation import ConfigError, encoder_kwargs
+from resireg_train.validation import (
+    ConfigError,
+    config_path,
+    encoder_arguments,
+    encoder_kwargs,
+)
 
 __all__ = ["SOURCES", "build_source", "make_map", "main"]
 
@@ -61,15 +65,14 @@ def build_source(spec: dict[str, Any], key: str = "source"):
     try:
         return entry.load()(**entry.arguments(spec))
     except (ResiregError, ValueError, FileNotFoundError) as err:
-        raise ConfigError(config_path(str(err), key, entry.rules)) from err
+        raise ConfigError(_under(str(err), key, entry.rules)) from err
 
 
-def config_path(message: str, key: str, names: Iterable[str]) -> str:
-    """``message`` of the library, each of its arguments ``name=`` (one of ``names``, not
-    already under a prefix) written as the config path ``<key>.name=``: the boundary between
-    the library's messages and the config's keys."""
-    words = "|".join(re.escape(n) for n in sorted(set(names), key=len, reverse=True))
-    return re.sub(rf"(?<![\w.])({words})=", rf"{key}.\1=", message)
+def _under(message: str, key: str, names: Iterable[str]) -> str:
+    """``message`` of the library with each of its arguments ``names`` written as the config
+    path ``<key>.<name>`` (:func:`resireg.errors.rename_arguments`, the rule of every boundary):
+    a source's refusal is always a config error of its block."""
+    return rename_arguments(message, argument_names(key, tuple(names)))[0]
 
 
 def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
@@ -174,16 +177,18 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     source = build_source(spec)  # a wrong path, a missing topic: one line, no traceback
     timer["open_source"] += time.perf_counter() - start
     torch.manual_seed(int(cfg.seed))
-    encoder = build_encoder(**encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True)),
-                            device=_device(str(cfg.device)), config_key="encoder")  # fmt: skip
+    entry = encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True))
+    with config_path("encoder", encoder_arguments(entry)):
+        encoder = build_encoder(**entry, device=_device(str(cfg.device)))
     prior = None
     from resireg.specs.variants import takes_prior
 
     if takes_prior(str(cfg.configuration)):
         from resireg.priors import build_prior
 
-        prior = build_prior(OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior")
-                            else {}, device=encoder.device, key="prior")  # fmt: skip
+        prior_spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else {}
+        with config_path("prior", {"spec": "prior"}):
+            prior = build_prior(prior_spec, device=encoder.device)
     from resireg_train.cache import weights_fingerprint
 
     t0 = time.perf_counter()
@@ -322,7 +327,7 @@ def _source_record(source: Any, counts: Any) -> dict[str, Any]:
         out["colour_stamp_faults"] = {"count": len(source.colour_stamp_faults),
                                       "examples": list(source.colour_stamp_faults[:20])}  # fmt: skip
         damage = source.damage
-        out["damage"] = None if damage is None else config_path(damage, "source", ("path",))
+        out["damage"] = None if damage is None else _under(damage, "source", ("path",))
     if counts.depth_out_of_range:
         out["depth_out_of_range"] = {"pixels": counts.depth_out_of_range,
                                      "frames": counts.depth_out_of_range_frames}  # fmt: skip

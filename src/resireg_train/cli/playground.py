@@ -53,6 +53,7 @@ def _prior(kind: str, model: str | None, device: str):
 
     from resireg.priors import build_prior
     from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.validation import config_path
 
     spec = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "prior" / f"{kind}.yaml"))
     if model:
@@ -60,7 +61,8 @@ def _prior(kind: str, model: str | None, device: str):
     from resireg.models import WeightsUnavailableError
 
     try:
-        return build_prior(spec, device=device, key="prior")
+        with config_path("prior", {"spec": "prior"}):
+            return build_prior(spec, device=device)
     except ImportError as err:  # transformers missing: the page works without the prior
         raise ValueError(f"--prior {kind} is not available here: {err}") from err
     except WeightsUnavailableError as err:  # offline: say which option takes a local folder
@@ -137,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     from resireg.models import WeightsUnavailableError
     from resireg_train.playground.app import build_app, launch
     from resireg_train.playground.core import Playground
+    from resireg_train.validation import error_message
 
     device = args.device
     if device == "auto":
@@ -147,7 +150,7 @@ def main(argv: list[str] | None = None) -> None:
             args.encoder, args.model_path, device=device, short_side=args.short_side, prior=prior
         )
     except (ValueError, TypeError, FileNotFoundError, WeightsUnavailableError) as err:
-        parser.exit(2, f"resireg-playground: error: {err}\n")
+        parser.exit(2, f"resireg-playground: error: {error_message(err)}\n")
     name = args.encoder or args.model_path
     print(f"resireg-playground: {name} on {device}, panels {playground.panels}", flush=True)
     launch(build_app(playground, title=f"ReSiReg playground: {name}"), args.host, args.port)

@@ -34,6 +34,7 @@ try:  # POSIX; where it is missing (Windows) run folders are not locked
 except ImportError:  # pragma: no cover
     fcntl = None
 
+from resireg.errors import ResiregError
 from resireg_train.files import WriteError
 from resireg_train.paths import CONFIG_DIR, RUN_ID
 from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
@@ -148,7 +149,7 @@ LOCK_FILE = ".run.lock"
 _HELD: dict[Path, Any] = {}
 
 
-class RunFolderBusy(RuntimeError):
+class RunFolderBusy(ResiregError, RuntimeError):
     """Another running job holds the run folder (its PID is named)."""
 
 
@@ -333,8 +334,12 @@ def _set_aside(out: Path) -> None:
 
 
 def error_text(exc: BaseException) -> str:
-    """``module.Type: message`` of an exception (what ``results.json`` records)."""
-    return "".join(traceback.format_exception_only(type(exc), exc)).strip()
+    """``module.Type: message`` of an exception and its notes, one per line (the config path
+    of a library error: ``config: encoder``; what ``results.json`` records)."""
+    text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+    if sys.version_info < (3, 11):  # from 3.11 on, traceback prints the notes itself
+        text = "\n".join([text, *map(str, getattr(exc, "__notes__", None) or ())])
+    return text
 
 
 def _to_log_files(message: str, exc: BaseException | None) -> None:
@@ -395,7 +400,7 @@ def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
     raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
 
 
-class JobFailed(CompactHydraException):
+class JobFailed(ResiregError, CompactHydraException):
     """A job failed with an error whose message says what to do: Hydra prints the message
     alone, not a traceback (the run's log file keeps it; ``HYDRA_FULL_ERROR=1`` shows it)."""
 

@@ -16,6 +16,7 @@ from resireg.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.ovss.engine import METRIC_PREFIX, OVSSResult, OVSSTask
 from resireg_train.ovss.settings import VARIANT_PARAM_KEYS, save_settings
+from resireg_train.validation import config_path
 
 __all__ = ["ReSiRegEval"]
 
@@ -87,9 +88,8 @@ class ReSiRegEval(L.Callback):
             k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else dict(v or {})
             for k, v in ((k, variant_params.get(k)) for k in VARIANT_PARAM_KEYS)
         }
-        self.variants = build_variants(
-            self.variant_names, self.variant_params, key=f"{_KEY}.variants"
-        )
+        with config_path(f"{_KEY}.variants", {"names": f"{_KEY}.variants"}):
+            self.variants = build_variants(self.variant_names, self.variant_params)
         self.every_n_epochs = int(every_n_epochs)
         self.batch_size = int(batch_size)
         self.num_workers = int(num_workers)

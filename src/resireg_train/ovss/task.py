@@ -19,6 +19,7 @@ from resireg_train.engine import StageTimer
 from resireg_train.evaluation import TaskProtocol
 from resireg_train.ovss.engine import OVSSResult, OVSSTask, requested_layers
 from resireg_train.protocol import protocol_record
+from resireg_train.validation import config_path
 
 __all__ = ["OVSSProtocol"]
 
@@ -52,7 +53,8 @@ class OVSSProtocol(TaskProtocol):
         if any(takes_prior(v) for v in variants):  # SAM loads only for a +prior configuration
             from resireg.priors import build_prior
 
-            self.prior = build_prior(params["prior"], device=encoder.device, key="prior")
+            with config_path("prior", {"spec": "prior"}):
+                self.prior = build_prior(params["prior"], device=encoder.device)
         return {"protocol": protocol_record(params, self.dataset)}
 
     def run(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module],

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from resireg.errors import ConfigError
 from resireg.models import DenseEncoder, build_encoder
 from resireg.specs.variants import VARIANT_SPECS
 from resireg.variants import build_variant
@@ -33,6 +34,7 @@ from resireg_train.playground.config import (
     protocol_short_side,
     resireg_defaults,
 )
+from resireg_train.validation import config_path, encoder_arguments
 
 __all__ = [
     "LABELS",
@@ -55,7 +57,7 @@ LABELS: dict[str, str] = {
 }
 
 
-class PlaygroundError(ValueError):
+class PlaygroundError(ConfigError):
     """A problem with the user's input (an upload that is not an image, no query): its
     message is shown in the page as it is."""
 
@@ -154,7 +156,8 @@ class Playground:
     ) -> Playground:
         """Build the encoder of :func:`encoder_spec` on ``device`` with the YAML defaults."""
         spec = encoder_spec(encoder, model_path, config_dir)
-        model = build_encoder(**spec, device=device, config_key="encoder")
+        with config_path("encoder", encoder_arguments(spec)):
+            model = build_encoder(**spec, device=device)
         model = model.to(device)
         if short_side is None:
             short_side = protocol_short_side(config_dir)

@@ -33,6 +33,7 @@ from typing import Any
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
+from resireg.errors import ResiregError
 from resireg_train.files import write_atomic
 
 __all__ = [
@@ -48,11 +49,11 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(ResiregError, RuntimeError):
     """No readable checkpoint to resume from; the message names the files and the options."""
 
 
-class UnsafeCheckpointError(pickle.UnpicklingError):
+class UnsafeCheckpointError(ResiregError, pickle.UnpicklingError):
     """A checkpoint holds Python objects that weights-only loading refuses (running their
     pickle could execute code); the message names the file and the refused global."""
 

@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor, nn
 
+from resireg.errors import parameters
 from resireg.models.frozen import FrozenModule
 from resireg.models.zoo.radio import (
     RADSEG_LANG_MODEL,
@@ -46,6 +47,7 @@ from resireg.models.zoo.radio import (
     RADSEG_REPO,
     load_radseg,
 )
+from resireg_train.validation import config_path
 
 __all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
 
@@ -100,11 +102,12 @@ class RadSegTeacher(_FrozenTeacher):
     ) -> None:
         super().__init__()
         self.encoder_device = torch.device(device if device is not None else "cpu")
-        self.encoder = load_radseg(
-            repo, source, model_version, lang_model, self.encoder_device, config_key,
-            hint_extra=", or disable distillation (model.loss.distill.scale=0)",
-            slide_crop=slide_crop, **kwargs,
-        )  # fmt: skip
+        with config_path(config_key, parameters(load_radseg)):  # errors: model.teacher.repo=
+            self.encoder = load_radseg(
+                repo, source, model_version, lang_model, self.encoder_device,
+                hint_extra=", or disable distillation (model.loss.distill.scale=0)",
+                slide_crop=slide_crop, **kwargs,
+            )  # fmt: skip
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         probe = torch.zeros(1, 3, 224, 224, device=self.encoder_device)

@@ -48,7 +48,7 @@ weights sum to one and the normalisation is per-channel affine).
 
 **Weights.** ``weights="openai"`` is open_clip's tag (from the Hugging Face cache, or
 downloaded when online; offline with nothing cached it fails at once with a
-:class:`~resireg.models.hub.WeightsUnavailableError` naming ``model.weights``), a local
+:class:`~resireg.models.hub.WeightsUnavailableError` naming ``weights``), a local
 open_clip checkpoint file (a state dict: ``.bin`` / ``.pt`` / ``.safetensors``, loaded by
 ``open_clip.create_model(..., pretrained=path)``), or ``None`` for a seeded random init
 (tests). The architecture is always built with QuickGELU, the activation the OpenAI
@@ -68,6 +68,7 @@ import torch.nn.functional as F
 from open_clip.transformer import ResidualAttentionBlock
 from torch import Tensor
 
+from resireg.errors import ConfigError
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule, block_index
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import require_open_clip_tag
@@ -85,10 +86,10 @@ DENSE_PATHS = ("value", "maskclip")
 
 
 def check_dense_path(dense_path: str, name: str = "dense_path") -> str:
-    """``dense_path`` if it is one of :data:`DENSE_PATHS`, else a ValueError naming the key
-    (``name``, e.g. ``encoder.dense_path``)."""
+    """``dense_path`` if it is one of :data:`DENSE_PATHS`, else a
+    :class:`~resireg.errors.ConfigError` naming the argument ``name``."""
     if dense_path not in DENSE_PATHS:
-        raise ValueError(
+        raise ConfigError(
             f"{name}={dense_path!r}: expected one of {list(DENSE_PATHS)} "
             "(value: SC-CLIP's / OTAS's value path; maskclip: the official MaskCLIP, with the "
             "last block's residual and MLP)"
@@ -96,17 +97,17 @@ def check_dense_path(dense_path: str, name: str = "dense_path") -> str:
     return dense_path
 
 
-def require_clip_weights(model_name: str, weights: str, key: str = "model") -> None:
+def require_clip_weights(model_name: str, weights: str, name: str = "weights") -> None:
     """Raise :class:`~resireg.models.hub.WeightsUnavailableError` at once when the open_clip
-    tag ``weights`` of ``model_name`` is neither cached nor downloadable (the hint names
-    ``<key>.weights``); an unknown tag is a ValueError naming it
+    tag ``weights`` of ``model_name`` is neither cached nor downloadable (the hint names the
+    argument ``name``); an unknown tag is a ValueError naming it
     (:func:`~resireg.models.hub.require_open_clip_tag`)."""
     hint = (
-        f"Pass a local file instead: {key}.weights=/path/to/open_clip_pytorch_model.bin (an "
+        f"Pass a local file instead: {name}=/path/to/open_clip_pytorch_model.bin (an "
         f"open_clip checkpoint of {model_name} with OpenAI weights, .bin / .pt / .safetensors), "
-        f"or {key}.weights=null for a random init."
+        f"or {name}=null for a random init."
     )
-    require_open_clip_tag(model_name, weights, f"{key}.weights", hint)
+    require_open_clip_tag(model_name, weights, name, hint)
 
 
 class ClipEncoder(DenseEncoder, FrozenModule):
@@ -138,7 +139,6 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         device: where the model lives.
         seed: seed of the random init (``weights=None``), so a random encoder is rebuilt
             identically.
-        config_key: the config prefix named in errors (``model`` -> ``model.weights``).
     """
 
     def __init__(
@@ -149,12 +149,11 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         image_size: int | None = None,
         device: str | torch.device | None = None,
         seed: int = 0,
-        config_key: str = "model",
         dense_path: str = "value",
     ) -> None:
         super().__init__()
         if model_name not in CLIP_MODELS:
-            raise ValueError(f"model_name={model_name!r}: choose from {list(CLIP_MODELS)}")
+            raise ConfigError(f"model_name={model_name!r}: choose from {list(CLIP_MODELS)}")
         cfg = open_clip.get_model_config(model_name)
         vision = cfg["vision_cfg"]
         self.model_name = model_name
@@ -165,9 +164,9 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         self.width = int(vision["width"])
         self.embed_dim = int(cfg["embed_dim"])
         self.seed = seed
-        self.dense_path = check_dense_path(dense_path, f"{config_key}.dense_path")
+        self.dense_path = check_dense_path(dense_path)
         if self.image_size % self.patch_size:
-            raise ValueError(
+            raise ConfigError(
                 f"image_size={self.image_size} is not a multiple of the patch size {self.patch_size}"
             )
         default = CLIP_MODELS[model_name]
@@ -175,7 +174,7 @@ class ClipEncoder(DenseEncoder, FrozenModule):
             default if intermediate_layer is None else intermediate_layer
         )
         if self.weights is not None and not os.path.isfile(self.weights):
-            require_clip_weights(model_name, self.weights, config_key)
+            require_clip_weights(model_name, self.weights)
 
         kwargs: dict[str, Any] = {"force_quick_gelu": True}
         if self.image_size != vision["image_size"]:

@@ -65,6 +65,7 @@ import torch
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
+from resireg.errors import ConfigError
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import (
@@ -93,13 +94,13 @@ _WEIGHTS_HOST = "dl.fbaipublicfiles.com"
 _VOCAB = "bpe_simple_vocab_16e6.txt.gz"
 
 
-def _hint(key: str) -> str:
+def _hint() -> str:
     return (
-        f"Clone facebookresearch/dinov2 elsewhere and pass {key}.repo=/path/to/dinov2 "
-        f"{key}.source=local; put its weights ({', '.join(DINOTXT_CHECKPOINTS)}, from "
+        f"Clone facebookresearch/dinov2 elsewhere and pass repo=/path/to/dinov2 "
+        f"source=local; put its weights ({', '.join(DINOTXT_CHECKPOINTS)}, from "
         f"https://{_WEIGHTS_HOST}/dinov2/dinov2_vitl14/) in the torch hub cache "
         f"({os.path.join(torch.hub.get_dir(), 'checkpoints')}) and pass "
-        f"{key}.vocab=/path/to/{_VOCAB} (https://{_WEIGHTS_HOST}/dinov2/thirdparty/{_VOCAB})."
+        f"vocab=/path/to/{_VOCAB} (https://{_WEIGHTS_HOST}/dinov2/thirdparty/{_VOCAB})."
     )
 
 
@@ -116,7 +117,6 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
             ``get_tokenizer()``, which downloads it.
         device: where the model is placed (default CPU).
         text_batch_size: texts per text-tower call.
-        config_key: the config prefix named in errors (``model`` -> ``model.repo``).
         ref: the git tag or commit SHA loaded from GitHub (``"repo:ref"``;
             :func:`resireg.models.hub.hub_target`); conf/encoder/dinotxt.yaml pins the one the
             adapter was checked against (:data:`resireg.models.hub.PINNED_REFS`, the default).
@@ -134,25 +134,19 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         vocab: str | os.PathLike | None = None,
         device: str | torch.device | None = None,
         text_batch_size: int = 256,
-        config_key: str = "model",
         ref: str | None = PINNED_REFS["facebookresearch/dinov2"],
         **kwargs: Any,
     ) -> None:
         super().__init__()
-        key = config_key
         if vocab is not None and not os.path.isfile(vocab):
-            raise FileNotFoundError(f"{key}.vocab={os.fspath(vocab)!r}: no such file")
+            raise FileNotFoundError(f"vocab={os.fspath(vocab)!r}: no such file")
         # Fail at once, before torch.hub asks for anything it cannot reach.
-        check_hub_source(repo, source, "dino.txt", _hint(key), key, ref)
-        target = hub_target(repo, source, ref, key)
+        check_hub_source(repo, source, "dino.txt", _hint(), ref)
+        target = hub_target(repo, source, ref)
         if entry_point == DINOTXT_ENTRY_POINT:
-            require_hub_checkpoints(
-                DINOTXT_CHECKPOINTS, "dino.txt weights", _WEIGHTS_HOST, _hint(key)
-            )
+            require_hub_checkpoints(DINOTXT_CHECKPOINTS, "dino.txt weights", _WEIGHTS_HOST, _hint())
         if vocab is None:
-            require_online(
-                f"the dino.txt vocabulary ({_VOCAB})", _WEIGHTS_HOST, _hint(key), hf=False
-            )
+            require_online(f"the dino.txt vocabulary ({_VOCAB})", _WEIGHTS_HOST, _hint(), hf=False)
 
         # A pinned commit is no branch or tag, which torch.hub's fork check looks for.
         pinned = {"skip_validation": True} if target != repo else {}
@@ -164,8 +158,8 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         self.hub_kwargs = dict(kwargs)  # torch.hub.load's (spec)
         visual = model.visual_model
         if not (visual.use_class_token and visual.use_patch_tokens):
-            raise ValueError(
-                f"{key}.entry_point={entry_point!r}: the model's embedding has no patch half "
+            raise ConfigError(
+                f"entry_point={entry_point!r}: the model's embedding has no patch half "
                 "(needs use_class_token and use_patch_tokens)"
             )
         self.model = model
@@ -174,8 +168,8 @@ class DinoTxtEncoder(DenseEncoder, FrozenModule):
         backbone = visual.backbone
         self.patch_size = int(getattr(backbone, "patch_size", None) or backbone.model.patch_size)
         if image_size is not None and image_size % self.patch_size:
-            raise ValueError(
-                f"{key}.image_size={image_size}: not a multiple of the patch size {self.patch_size}"
+            raise ConfigError(
+                f"image_size={image_size}: not a multiple of the patch size {self.patch_size}"
             )
         self.image_size = image_size
         self.text_batch_size = int(text_batch_size)

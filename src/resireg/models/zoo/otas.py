@@ -86,6 +86,7 @@ import torch.nn.functional as F
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
+from resireg.errors import ConfigError, arguments_under, parameters
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import PINNED_REFS, check_hub_source, hub_target, require_hub_checkpoints
@@ -110,18 +111,18 @@ _OTAS_INTERPOLATE_ANTIALIAS = False
 _OTAS_INTERPOLATE_OFFSET = 0.1
 
 
-def _hint(key: str) -> str:
+def _hint() -> str:
     ckpt = OTAS_CHECKPOINTS[OTAS_ENTRY_POINT]
     return (
-        f"Clone facebookresearch/dinov2 elsewhere and pass {key}.repo=/path/to/dinov2 "
-        f"{key}.source=local; put {ckpt} (https://{_WEIGHTS_HOST}/dinov2/dinov2_vits14/{ckpt}) "
+        f"Clone facebookresearch/dinov2 elsewhere and pass repo=/path/to/dinov2 "
+        f"source=local; put {ckpt} (https://{_WEIGHTS_HOST}/dinov2/dinov2_vits14/{ckpt}) "
         f"in the torch hub cache ({os.path.join(torch.hub.get_dir(), 'checkpoints')})."
     )
 
 
 def _positive_int(value: Any, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name}={value!r}: expected a positive integer")
+        raise ConfigError(f"{name}={value!r}: expected a positive integer")
     return value
 
 
@@ -137,7 +138,7 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         entry_point: the DINOv2 hub entry point (``dinov2_vits14_reg``).
         clip: :class:`ClipEncoder` arguments (``model_name``, ``weights``, ``seed``) of the
             CLIP model; ``None`` = OpenAI ViT-B-16 (``{"weights": "openai"}``). Errors
-            name ``<config_key>.clip.<key>``. (``image_size`` would build CLIP at another
+            name ``clip.<key>``. (``image_size`` would build CLIP at another
             native size: OTAS uses the native 224, so only tiny tests set it.)
         dense_path: the CLIP tokens pooled per mask: ``"value"`` (OTAS's own, default) or
             ``"maskclip"`` (the official MaskCLIP's, residual and MLP kept); see step 3.
@@ -150,7 +151,6 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         output_grid: ``"canvas"`` (the pooled map resized bilinearly to ``(H/14, W/14)``) or
             ``"shared"`` (the ``S x S`` map as OTAS computes it).
         device: where the models live (default CPU).
-        config_key: the config prefix named in errors (``model`` -> ``model.repo``).
         ref: the git tag or commit SHA of DINOv2 loaded from GitHub (``"repo:ref"``;
             :func:`resireg.models.hub.hub_target`); conf/encoder/otas.yaml pins the one the
             adapter was checked against (:data:`resireg.models.hub.PINNED_REFS`, the default).
@@ -174,75 +174,69 @@ class OtasEncoder(DenseEncoder, FrozenModule):
         output_grid: str = "canvas",
         dense_path: str = "value",
         device: str | torch.device | None = None,
-        config_key: str = "model",
         ref: str | None = PINNED_REFS["facebookresearch/dinov2"],
         **kwargs: Any,
     ) -> None:
         super().__init__()
-        key = config_key
         if output_grid not in ("canvas", "shared"):
-            raise ValueError(f"{key}.output_grid={output_grid!r}: expected 'canvas' or 'shared'")
-        self.dino_input_size = _positive_int(dino_input_size, f"{key}.dino_input_size")
-        self.dino_scale_factor = _positive_int(dino_scale_factor, f"{key}.dino_scale_factor")
+            raise ConfigError(f"output_grid={output_grid!r}: expected 'canvas' or 'shared'")
+        self.dino_input_size = _positive_int(dino_input_size, "dino_input_size")
+        self.dino_scale_factor = _positive_int(dino_scale_factor, "dino_scale_factor")
         self.shared_feat_resolution = _positive_int(
-            shared_feat_resolution, f"{key}.shared_feat_resolution"
+            shared_feat_resolution, "shared_feat_resolution"
         )
-        self.n_clusters = _positive_int(n_clusters, f"{key}.n_clusters")
-        self.n_components = _positive_int(n_components, f"{key}.n_components")
-        self.clip_input_size = _positive_int(clip_input_size, f"{key}.clip_input_size")
+        self.n_clusters = _positive_int(n_clusters, "n_clusters")
+        self.n_components = _positive_int(n_components, "n_components")
+        self.clip_input_size = _positive_int(clip_input_size, "clip_input_size")
         self.output_grid = output_grid
         self.repo, self.source, self.entry_point, self.ref = repo, source, entry_point, ref
         self.hub_kwargs = dict(kwargs)  # torch.hub.load's / the entry point's (spec)
 
         # Fail at once, before torch.hub asks for anything it cannot reach.
-        check_hub_source(repo, source, "DINOv2 for OTAS", _hint(key), key, ref)
-        target = hub_target(repo, source, ref, key)
+        check_hub_source(repo, source, "DINOv2 for OTAS", _hint(), ref)
+        target = hub_target(repo, source, ref)
         #: what torch.hub loads, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
         self.hub_ref = target if target != repo else None
         ckpt = OTAS_CHECKPOINTS.get(entry_point)
         if ckpt is not None and kwargs.get("pretrained", True):
-            require_hub_checkpoints([ckpt], "DINOv2 weights", _WEIGHTS_HOST, _hint(key))
+            require_hub_checkpoints([ckpt], "DINOv2 weights", _WEIGHTS_HOST, _hint())
         clip_args = {"weights": "openai", **dict(clip or {})}
         if "dense_path" in clip_args:
-            raise ValueError(
-                f"{key}.clip.dense_path: set {key}.dense_path instead (OTAS's CLIP path)"
-            )
-        check_dense_path(dense_path, f"{key}.dense_path")  # before any model loads
+            raise ConfigError("clip.dense_path: pass dense_path= instead (OTAS's CLIP path)")
+        check_dense_path(dense_path, "dense_path")  # before any model loads
         clip_model = clip_args.get("model_name", "ViT-B-16")
         clip_weights = clip_args["weights"]
         if clip_model in CLIP_MODELS and isinstance(clip_weights, str):
             if not os.path.isfile(clip_weights):  # the open_clip tag must be cached or reachable
-                require_clip_weights(clip_model, clip_weights, f"{key}.clip")
+                require_clip_weights(clip_model, clip_weights, "clip.weights")
 
         # A pinned commit is no branch or tag, which torch.hub's fork check looks for.
         pinned = {"skip_validation": True} if target != repo else {}
         dino = torch.hub.load(target, entry_point, source=source, **{**pinned, **kwargs})
         for attr in ("patch_size", "embed_dim", "forward_features"):
             if not hasattr(dino, attr):
-                raise ValueError(
-                    f"{key}.entry_point={entry_point!r}: not a DINOv2 ViT (no {attr!r})"
-                )
+                raise ConfigError(f"entry_point={entry_point!r}: not a DINOv2 ViT (no {attr!r})")
         # OTAS's own ViT copy interpolates the positional embedding with these settings.
         dino.interpolate_antialias = _OTAS_INTERPOLATE_ANTIALIAS
         dino.interpolate_offset = _OTAS_INTERPOLATE_OFFSET
         self.patch_size = int(dino.patch_size)
         self.dino_dim = int(dino.embed_dim)
         if self.dino_input_size % self.patch_size:
-            raise ValueError(
-                f"{key}.dino_input_size={dino_input_size}: not a multiple of the patch size "
+            raise ConfigError(
+                f"dino_input_size={dino_input_size}: not a multiple of the patch size "
                 f"{self.patch_size}"
             )
         tokens = (self.dino_input_size // self.patch_size * self.dino_scale_factor) ** 2
         if self.n_clusters > tokens:
-            raise ValueError(
-                f"{key}.n_clusters={n_clusters}: more than the {tokens} DINOv2 tokens clustered"
+            raise ConfigError(
+                f"n_clusters={n_clusters}: more than the {tokens} DINOv2 tokens clustered"
             )
         if self.n_components > min(tokens, self.dino_dim):
-            raise ValueError(
-                f"{key}.n_components={n_components}: at most {min(tokens, self.dino_dim)}"
-            )
+            raise ConfigError(f"n_components={n_components}: at most {min(tokens, self.dino_dim)}")
         self.dino = dino
-        self.clip = ClipEncoder(**clip_args, dense_path=dense_path, config_key=f"{key}.clip")
+        clip_arguments = [a for a in parameters(ClipEncoder) if a != "dense_path"]  # (ours)
+        with arguments_under("clip", clip_arguments):  # its errors name clip.<argument>
+            self.clip = ClipEncoder(**clip_args, dense_path=dense_path)
         self.dense_path = self.clip.dense_path
         self.embed_dim = self.clip.embed_dim
         self._input_rule = InputRule(self.patch_size, IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD)

@@ -95,6 +95,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.errors import ConfigError
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import (
@@ -218,7 +219,6 @@ def load_radseg(
     model_version: str = RADSEG_MODEL_VERSION,
     lang_model: str = RADSEG_LANG_MODEL,
     device: str | torch.device | None = None,
-    key: str = "model",
     hint_extra: str = "",
     ref: str | None = RADSEG_REF,
     radio_ref: str | None = RADIO_REF,
@@ -234,8 +234,8 @@ def load_radseg(
     conf/model/teacher/radseg.yaml name both (:data:`RADSEG_REF`, :data:`RADIO_REF` by
     default); ``None`` follows the default branches.
 
-    Checks first, failing at once with a message that names ``<key>.repo`` /
-    ``<key>.source`` (and ``hint_extra``, e.g. how to do without RADSeg): the repo / source
+    Checks first, failing at once with a message that names ``repo=`` /
+    ``source=local`` (and ``hint_extra``, e.g. how to do without RADSeg): the repo / source
     pair, RADIO's code (RADSeg itself ``torch.hub.load`` s ``NVlabs/RADIO``: the hub cache or
     GitHub) and RADIO's checkpoint (the hub cache or its host). Then
     ``torch.hub.load(repo, "radseg_encoder", model_version=, lang_model=, device=, **kwargs)``
@@ -245,19 +245,19 @@ def load_radseg(
     """
     radio_folder = os.path.join(torch.hub.get_dir(), f"NVlabs_RADIO_{radio_ref or 'main'}")
     hint = (
-        f"Clone RADSeg-OVSS/RADSeg elsewhere and pass {key}.repo=/path/to/RADSeg "
-        f"{key}.source=local (NVlabs/RADIO must be in the torch hub cache as "
+        f"Clone RADSeg-OVSS/RADSeg elsewhere and pass repo=/path/to/RADSeg "
+        f"source=local (NVlabs/RADIO must be in the torch hub cache as "
         f"{radio_folder}, with its checkpoint in checkpoints/){hint_extra}."
     )
-    check_hub_source(repo, source, "RADSeg", hint, key, ref)
-    check_hub_ref(radio_ref, f"{key}.radio_ref")
+    check_hub_source(repo, source, "RADSeg", hint, ref)
+    check_hub_ref(radio_ref, "radio_ref")
     require_radio_for_radseg(radio_ref)
     require_radio_weights(model_version, hint)
     if source == "github":
         kwargs.setdefault("skip_validation", True)
     with _nested_hub_ref(_RADIO_REPO, radio_ref):
         return torch.hub.load(
-            hub_target(repo, source, ref, key), "radseg_encoder", source=source,
+            hub_target(repo, source, ref), "radseg_encoder", source=source,
             model_version=model_version, lang_model=lang_model,
             device=str(torch.device(device or "cpu")), **kwargs,
         )  # fmt: skip
@@ -300,7 +300,6 @@ class RadioEncoder(DenseEncoder, FrozenModule):
         adaptor: language adaptor (checkpoint teacher) name; ``None`` takes
             :data:`DEFAULT_ADAPTORS` for the version (``clip`` is the other C-RADIOv3 one).
         device: where the model is placed (default CPU).
-        config_key: the config prefix named in errors (``model`` -> ``model.repo``).
         ref: the git tag or commit SHA loaded from GitHub (``"repo:ref"``;
             :func:`resireg.models.hub.hub_target`); conf/encoder/radio_*.yaml pin the one the
             adapter was checked against (:data:`RADIO_REF`, the default). ``None``: the
@@ -316,30 +315,28 @@ class RadioEncoder(DenseEncoder, FrozenModule):
         version: str = "c-radio_v3-b",
         adaptor: str | None = None,
         device: str | torch.device | None = None,
-        config_key: str = "model",
         ref: str | None = RADIO_REF,
         **kwargs: Any,
     ) -> None:
         super().__init__()
-        key = config_key
         if adaptor is None:
             prefix = next((p for p in DEFAULT_ADAPTORS if version.startswith(p)), None)
             if prefix is None:
-                raise ValueError(
-                    f"{key}.adaptor is required for {key}.version={version!r} "
+                raise ConfigError(
+                    f"adaptor is required for version={version!r} "
                     f"(defaults exist for {sorted(DEFAULT_ADAPTORS)})"
                 )
             adaptor = DEFAULT_ADAPTORS[prefix]
         hint = (
-            f"Clone NVlabs/RADIO elsewhere and pass {key}.repo=/path/to/RADIO {key}.source=local "
+            f"Clone NVlabs/RADIO elsewhere and pass repo=/path/to/RADIO source=local "
             f"(RADIO's checkpoint must be in {os.path.join(torch.hub.get_dir(), 'checkpoints')}, "
-            f"or pass {key}.version=/path/to/checkpoint.pth.tar; the adaptor's text model must "
+            f"or pass version=/path/to/checkpoint.pth.tar; the adaptor's text model must "
             "be in the Hugging Face cache)."
         )
-        check_hub_source(repo, source, "RADIO", hint, key, ref)
+        check_hub_source(repo, source, "RADIO", hint, ref)
         require_radio_weights(version, hint)
         self.repo, self.source, self.hub_kwargs = repo, source, dict(kwargs)  # (spec)
-        target = hub_target(repo, source, ref, key)
+        target = hub_target(repo, source, ref)
         #: what torch.hub loaded, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
         self.ref, self.hub_ref = ref, (target if target != repo else None)
         kwargs.setdefault("progress", False)
@@ -352,7 +349,7 @@ class RadioEncoder(DenseEncoder, FrozenModule):
             )  # fmt: skip
         except ValueError as err:
             if "adaptor" in str(err):
-                raise ValueError(f"{key}.adaptor={adaptor!r}: {err}") from err
+                raise ConfigError(f"adaptor={adaptor!r}: {err}") from err
             raise
         self.version = version
         self.adaptor_name = adaptor
@@ -416,7 +413,6 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
         intermediates: ``"backbone"`` (RADIO's spatial features inside RADSeg) or
             ``"aggregated"`` (after SCGA, what the language head reads).
         device: where RADSeg builds and runs RADIO (default CPU).
-        config_key: the config prefix named in errors.
         ref, radio_ref: the git refs of RADSeg's code and of the RADIO it loads itself
             (:func:`load_radseg`; :data:`RADSEG_REF`, :data:`RADIO_REF` by default); ``None``:
             the default branches.
@@ -435,16 +431,14 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
         lang_model: str = RADSEG_LANG_MODEL,
         intermediates: str = "backbone",
         device: str | torch.device | None = None,
-        config_key: str = "model",
         ref: str | None = RADSEG_REF,
         radio_ref: str | None = RADIO_REF,
         **kwargs: Any,
     ) -> None:
         super().__init__()
-        key = config_key
         if intermediates not in ("backbone", "aggregated"):
-            raise ValueError(
-                f"{key}.intermediates={intermediates!r}: expected 'backbone' or 'aggregated'"
+            raise ConfigError(
+                f"intermediates={intermediates!r}: expected 'backbone' or 'aggregated'"
             )
         fixed = {k: kwargs.pop(k) for k in list(kwargs) if k in self._FIXED}
         bad = {k: v for k, v in fixed.items() if v != self._FIXED[k]}
@@ -456,10 +450,10 @@ class RadSegEncoder(DenseEncoder, FrozenModule):
         self.repo, self.source, self.hub_kwargs = repo, source, dict(kwargs)  # (spec)
         self.encoder_device = torch.device(device if device is not None else "cpu")
         self.encoder = load_radseg(
-            repo, source, model_version, lang_model, self.encoder_device, key,
+            repo, source, model_version, lang_model, self.encoder_device,
             ref=ref, radio_ref=radio_ref, **self._FIXED, **kwargs,
         )  # fmt: skip
-        target = hub_target(repo, source, ref, key)
+        target = hub_target(repo, source, ref)
         self.ref, self.radio_ref = ref, radio_ref
         #: what torch.hub loaded, ``"owner/name:ref"``, or ``None`` (a local clone, unpinned)
         self.hub_ref = target if target != repo else None

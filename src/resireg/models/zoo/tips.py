@@ -75,6 +75,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from resireg.errors import ConfigError
 from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import WeightsUnavailableError
@@ -211,7 +212,7 @@ class _Block(nn.Module):
         elif arch.ffn == "mlp":
             self.mlp = _Mlp(d, arch.mlp_hidden)
         else:
-            raise ValueError(f"ffn={arch.ffn!r}: expected 'mlp' or 'swiglu'")
+            raise ConfigError(f"ffn={arch.ffn!r}: expected 'mlp' or 'swiglu'")
         self.ls2 = _LayerScale(d)
 
     def forward(self, x: Tensor) -> Tensor:
@@ -391,7 +392,7 @@ def load_npz_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
         return {k: torch.from_numpy(np.asarray(arrays[k])).to(torch.float32) for k in arrays.files}
 
 
-def _resolve_arch(variant: str | Mapping[str, Any] | TipsArch, key: str) -> TipsArch:
+def _resolve_arch(variant: str | Mapping[str, Any] | TipsArch) -> TipsArch:
     if isinstance(variant, TipsArch):
         return variant
     if isinstance(variant, Mapping):  # a custom size (tests); a base variant may be named
@@ -400,23 +401,23 @@ def _resolve_arch(variant: str | Mapping[str, Any] | TipsArch, key: str) -> Tips
         names = {f.name for f in fields(TipsArch)}
         unknown = sorted(set(spec) - names)
         if unknown:
-            raise ValueError(f"{key}.variant: unknown fields {unknown} (fields: {sorted(names)})")
+            raise ConfigError(f"variant: unknown fields {unknown} (fields: {sorted(names)})")
         if base is not None:
-            return replace(_resolve_arch(str(base), key), **spec)
+            return replace(_resolve_arch(str(base)), **spec)
         return TipsArch(**spec)
     name = _ALIASES.get(str(variant).lower())
     if name is None:
-        raise ValueError(f"{key}.variant={variant!r}: expected one of {list(TIPS_VARIANTS)}")
+        raise ConfigError(f"variant={variant!r}: expected one of {list(TIPS_VARIANTS)}")
     return TIPS_VARIANTS[name]
 
 
-def _hint(key: str, stem: str) -> str:
+def _hint(stem: str) -> str:
     return (
         f"TIPSv2 weights are not downloaded automatically: fetch {stem}_vision.npz and "
         f"{stem}_text.npz from {TIPS_WEIGHTS_URL} and {TOKENIZER_FILE} from "
-        f"{TIPS_TOKENIZER_URL} into one folder, then pass {key}.weights=/path/to/"
+        f"{TIPS_TOKENIZER_URL} into one folder, then pass weights=/path/to/"
         f"{stem}_vision.npz (or the folder); the text weights and the tokenizer are found "
-        f"beside it, or pass {key}.text_weights= / {key}.tokenizer=."
+        f"beside it, or pass text_weights= / tokenizer=."
     )
 
 
@@ -425,49 +426,48 @@ def _resolve_files(
     weights: str | os.PathLike | None,
     text_weights: str | os.PathLike | None,
     tokenizer: Any,
-    key: str,
 ) -> tuple[str, str, Any]:
     """(vision npz, text npz, tokenizer path or object); a missing file raises at once."""
     stem = arch.stem or "tips_v2_oss_<size>14"
-    hint = _hint(key, stem)
+    hint = _hint(stem)
     if weights is None:
-        raise WeightsUnavailableError(f"{key}.weights is not set. {hint}")
+        raise WeightsUnavailableError(f"weights is not set. {hint}")
     vision = os.fspath(weights)
     if os.path.isdir(vision):
         if arch.stem is None:
-            raise ValueError(f"{key}.weights={vision!r}: a folder needs a release variant")
+            raise ConfigError(f"weights={vision!r}: a folder needs a release variant")
         vision = os.path.join(vision, f"{arch.stem}_vision.npz")
     if not os.path.isfile(vision):
-        raise WeightsUnavailableError(f"{key}.weights={vision!r}: no such file. {hint}")
+        raise WeightsUnavailableError(f"weights={vision!r}: no such file. {hint}")
     folder = os.path.dirname(vision)
     if text_weights is None:
         base = os.path.basename(vision)
         if not base.endswith("_vision.npz"):
             raise WeightsUnavailableError(
-                f"{key}.text_weights is not set and {key}.weights={vision!r} does not end in "
+                f"text_weights is not set and weights={vision!r} does not end in "
                 f"'_vision.npz' (no release name to derive it from). {hint}"
             )
         text = os.path.join(folder, base[: -len("_vision.npz")] + "_text.npz")
     else:
         text = os.fspath(text_weights)
     if not os.path.isfile(text):
-        raise WeightsUnavailableError(f"{key}.text_weights={text!r}: no such file. {hint}")
+        raise WeightsUnavailableError(f"text_weights={text!r}: no such file. {hint}")
     if tokenizer is None or isinstance(tokenizer, (str, os.PathLike)):
         path = os.path.join(folder, TOKENIZER_FILE) if tokenizer is None else os.fspath(tokenizer)
         if not os.path.isfile(path):
-            raise WeightsUnavailableError(f"{key}.tokenizer={path!r}: no such file. {hint}")
+            raise WeightsUnavailableError(f"tokenizer={path!r}: no such file. {hint}")
         tokenizer = path
     elif not callable(getattr(tokenizer, "encode", None)):
-        raise TypeError(f"{key}.tokenizer: expected a path or an object with encode(text)")
+        raise TypeError("tokenizer: expected a path or an object with encode(text)")
     return vision, text, tokenizer
 
 
-def _load(module: nn.Module, state: dict[str, Tensor], path: str, key: str) -> None:
+def _load(module: nn.Module, state: dict[str, Tensor], path: str) -> None:
     try:
         module.load_state_dict(state, strict=True, assign=True)
     except RuntimeError as err:
         raise ValueError(
-            f"{path}: not a checkpoint of the configured TIPS size ({key}.variant): {err}"
+            f"{path}: not a checkpoint of the configured TIPS size (variant): {err}"
         ) from err
 
 
@@ -490,7 +490,6 @@ class TipsEncoder(DenseEncoder, FrozenModule):
             segmentation) or ``"final"`` (the final-norm patch tokens, = the intermediates).
         device: where the model is placed (default CPU).
         text_batch_size: texts per text-tower call.
-        config_key: the config prefix named in errors (``model`` -> ``model.weights``).
     """
 
     def __init__(
@@ -503,24 +502,22 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         language_tokens: str = "values",
         device: str | torch.device | None = None,
         text_batch_size: int = 256,
-        config_key: str = "model",
     ) -> None:
         super().__init__()
-        key = config_key
         if language_tokens not in ("values", "final"):
-            raise ValueError(f"{key}.language_tokens={language_tokens!r}: 'values' or 'final'")
+            raise ConfigError(f"language_tokens={language_tokens!r}: 'values' or 'final'")
         self.language_tokens = language_tokens
-        arch = _resolve_arch(variant, key)
+        arch = _resolve_arch(variant)
         self.arch = arch
         self.patch_size = arch.patch_size
         if image_size is not None and (image_size <= 0 or image_size % self.patch_size):
-            raise ValueError(
-                f"{key}.image_size={image_size}: not a positive multiple of the patch size "
+            raise ConfigError(
+                f"image_size={image_size}: not a positive multiple of the patch size "
                 f"{self.patch_size}"
             )
         self.image_size = image_size
         self.text_batch_size = int(text_batch_size)
-        vision_path, text_path, tok = _resolve_files(arch, weights, text_weights, tokenizer, key)
+        vision_path, text_path, tok = _resolve_files(arch, weights, text_weights, tokenizer)
         self.weights, self.text_weights = vision_path, text_path
         self.tokenizer_path = tok if isinstance(tok, str) else None
         self.tokenizer = SentencePieceTokenizer(tok) if isinstance(tok, str) else tok
@@ -528,11 +525,11 @@ class TipsEncoder(DenseEncoder, FrozenModule):
         with torch.device("meta"):  # no random init of ~1.5B parameters: the files fill them
             self.visual = TipsVisionTransformer(arch)
             self.text = TipsTextEncoder(arch)
-        _load(self.visual, load_npz_state_dict(vision_path), vision_path, key)
+        _load(self.visual, load_npz_state_dict(vision_path), vision_path)
         text_state = load_npz_state_dict(text_path)
         for name in [n for n in text_state if n.startswith("temperature")]:
             del text_state[name]  # the contrastive temperature (popped by the repo too)
-        _load(self.text, text_state, text_path, key)
+        _load(self.text, text_state, text_path)
         self.to(torch.device(device if device is not None else "cpu"))
         self.freeze()
 
