@@ -22,8 +22,6 @@ OUTSIDE_THE_BASE = {
     # ResiregError (a bad input) must not swallow it
     "resireg_train.training.pruning.TrialPrunedStop": "a control-flow signal, not an error",
     # the sources branch moves them under resireg.errors.DataError (its files)
-    "resireg_train.data.rosbag.MissingTopicError": "moved under DataError on the sources branch",
-    "resireg_train.data.rosbag.DamagedBagError": "moved under DataError on the sources branch",
 }
 
 

@@ -234,7 +234,7 @@ class ResiregMapNode(Node):
                   if name == "auto" else torch.device(name))  # fmt: skip
         torch.manual_seed(int(v["seed"]))
         try:
-            return build_encoder(**entry, device=device, config_key="encoder")
+            return build_encoder(**entry, device=device)
         except (OSError, ValueError, TypeError) as err:
             raise SettingsError(f"encoder={v['encoder']!r} (model_path={v['model_path']!r}): "
                                 f"{err}") from err  # fmt: skip

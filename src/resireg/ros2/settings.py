@@ -30,15 +30,17 @@ from __future__ import annotations
 
 import difflib
 import math
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from resireg.errors import ConfigError
+from resireg.specs.encoders import ENCODER_REPORT_KEYS
 from resireg.specs.mapping import LATTICES, POINTS
 from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of, optional_int
 from resireg.specs.sources import LIVE_RULES
+from resireg.specs.table import conf_dir
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
 
 __all__ = [
@@ -73,18 +75,14 @@ LIVE_KEYS = ("max_wait", "buffer_size", "camera_offset", "qos")
 SOURCE_FILE = "source/ros2.yaml"
 #: The Rerun keys of ``conf/map.yaml`` the node takes.
 RERUN_KEYS = ("save", "spawn", "query", "map_every")
-#: Keys of an encoder entry that name it in reports and are no builder keyword.
-_REPORT_KEYS = ("name", "third_party")
 
 
-class SettingsError(ValueError):
+class SettingsError(ConfigError):
     """A bad parameter value or file: the message is one line naming the parameter."""
 
 
-def config_dir() -> Path:
-    """The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it)."""
-    env = os.environ.get("RESIREG_CONFIG_DIR")
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "conf"
+#: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it): the spec tables'.
+config_dir = conf_dir
 
 
 def _yaml(path: Path) -> dict[str, Any]:
@@ -323,7 +321,7 @@ def encoder_entry(values: Mapping[str, Any], conf: Path | None = None) -> dict[s
     entry = _yaml(path)
     out = {}
     for key, value in entry.items():
-        if key in _REPORT_KEYS:
+        if key in ENCODER_REPORT_KEYS:
             continue
         if value == "${model_path}":
             value = values["model_path"]

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from resireg.errors import DataError
 from resireg.sources.frames import DECODE_ERRORS, RGBDFrame, SkippedFrame, SourceNotFoundError
 
 __all__ = [
@@ -46,7 +47,7 @@ def read_matrix(path: Path, shape: tuple[int, int]) -> np.ndarray:
     return m
 
 
-class FrameFileError(Exception):
+class FrameFileError(DataError):
     """A frame file that could not be read: the file and why (a skipped frame or sample)."""
 
     def __init__(self, path: Path, reason: str) -> None:
