@@ -27,14 +27,14 @@ from _common import build_model, generated_spec
 from resireg.models import ResiregVLM
 from resireg.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import OVSSTask, StageTimer
+from resireg_train.ovss.engine import OVSSEngine, StageTimer
 
 BATCH_SIZES = (2, 4, 6, 8, 16, 24, 32)
 COUNTS = tuple(range(24, 133, 12))
 
 
 def _seconds(
-    task: OVSSTask, model: ResiregVLM, names: list[str], timer: StageTimer | None = None
+    task: OVSSEngine, model: ResiregVLM, names: list[str], timer: StageTimer | None = None
 ) -> tuple[float, float]:
     """Wall and process CPU seconds of one evaluation pass scoring ``names`` (its stages
     added to ``timer``)."""
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     else:
         spec = generated_spec(args.images, args.short_side)
     dataset = build_segmentation_set(spec, model.input_rule.patch_size)
-    tasks = {b: OVSSTask(dataset, batch_size=b) for b in args.batch_sizes}
+    tasks = {b: OVSSEngine(dataset, batch_size=b) for b in args.batch_sizes}
     for task in tasks.values():
         task.prototypes(model)  # the class prompts, once (not timed)
     configs = [f"full@n_prototypes:{n}" for n in args.counts]

@@ -2,7 +2,7 @@
 
 One evaluation pass of the 25M architecture (EUPE ViT-S/16 + the 25M head, random init) over
 ``--images`` generated images at ``--short-side`` (4:3, so 576 px gives the 36 x 48 grid of
-an ADE20K-like image) is run three times through the engine (``OVSSTask.run`` with the ``bb``
+an ADE20K-like image) is run three times through the engine (``OVSSEngine.run`` with the ``bb``
 variant, so ReSiReg adds nothing): without a cache, filling a new cache, and reading it in a
 fresh :class:`~resireg_train.cache.FeatureCache` (what a later job of a sweep does). Reported:
 the engine's seconds per stage (``encoder``, ``cache``), images per second of encoding and of
@@ -27,7 +27,7 @@ from _common import build_model, generated_spec
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import OVSSTask, StageTimer
+from resireg_train.ovss.engine import OVSSEngine, StageTimer
 
 ADE20K_VAL_IMAGES = 2000
 SCANNET_FRAMES = 12 * 500  # 12 scenes, ~5,000 frames each at frame skip 10
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     model = build_model()
     spec = generated_spec(args.images, args.short_side)
     dataset = build_segmentation_set(spec, model.input_rule.patch_size)
-    task = OVSSTask(dataset, batch_size=args.batch_size)
+    task = OVSSEngine(dataset, batch_size=args.batch_size)
     task.prototypes(model)
     variants = build_variants(["bb"])
     key = FeatureCache.key_for(model, {"kind": "bench"}, spec, model.input_rule.patch_size, "32")

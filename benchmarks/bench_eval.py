@@ -28,11 +28,11 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from resireg.variants import build_variants
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.cli.train import build
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
-from resireg_train.ovss.engine import OVSSTask, StageTimer
+from resireg_train.ovss.engine import OVSSEngine, StageTimer
 
 STAGES = ("data", "encoder", "reconstruction/bb", "reconstruction/lite",
           "reconstruction/full", "metric")  # fmt: skip
@@ -96,7 +96,7 @@ def vits(repeats: int, images: int) -> None:
     head = {"out_dim": 512, "depth": 2, "num_heads": 8}
     vlm = ResiregVLM.build(backbone, head, TINY_TEXT).eval()
     spec = dataset_conf("synthetic", size=images, image_size=[432, 576], short_side=576)
-    task = OVSSTask(build_segmentation_set(spec, vlm.input_rule.patch_size), batch_size=8)
+    task = OVSSEngine(build_segmentation_set(spec, vlm.input_rule.patch_size), batch_size=8)
     variants = build_variants(
         ["bb", "lite", "full"], {"lite": {"alpha": 10.0}, "full": {"n_prototypes": 36}}
     )

@@ -26,7 +26,7 @@ import lightning as L
 import torch
 from hydra import compose, initialize_config_dir
 
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.cli.train import build
 
 #: The 25M VLM's trained head on a ViT-S/16-sized backbone (random init, no download) at a

@@ -29,12 +29,12 @@ import torch
 import torch.nn.functional as F
 import yaml
 
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES
 from resireg.variants import build_variants
 from resireg_train.data.scannet import READER_KEYS, ScanNetFrames
 from resireg_train.data.scannet_room import NYU40_COLOURS, Box, SyntheticRoom, write_scene
-from resireg_train.mapping.engine import TASK_KEYS, MappingProtocol, MappingTask
+from resireg_train.mapping.engine import TASK_KEYS, MappingEngine, MappingSettings
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 SCENES = ("synthetic0000_00", "synthetic0001_00")
@@ -121,8 +121,8 @@ def score(root: Path, spec: dict[str, Any], encoder: DenseEncoder) -> dict[str, 
     if isinstance(reader.get("gt_resolution"), list):
         reader["gt_resolution"] = tuple(reader["gt_resolution"])
     frames = ScanNetFrames(root, SCENES, patch_size=encoder.input_rule.patch_size, **reader)
-    protocol = MappingProtocol.from_spec({**{k: spec[k] for k in TASK_KEYS}, "voxel_size": VOXEL})
-    result = MappingTask(frames, batch_size=4, protocol=protocol).run(
+    protocol = MappingSettings.from_spec({**{k: spec[k] for k in TASK_KEYS}, "voxel_size": VOXEL})
+    result = MappingEngine(frames, batch_size=4, protocol=protocol).run(
         encoder, build_variants(["bb"])
     )
     s = result.scores()

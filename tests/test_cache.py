@@ -13,7 +13,7 @@ from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache, weights_fingerprint
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
-from resireg_train.ovss.engine import OVSSTask, StageTimer
+from resireg_train.ovss.engine import OVSSEngine, StageTimer
 
 SPEC = dataset_conf("synthetic", size=6, image_size=[40, 56], seed=3, noise=12.0, short_side=32)
 
@@ -44,7 +44,7 @@ class _Counting:
 
 def test_cache_returns_exactly_the_encoders_outputs(tmp_path, model):
     dataset, cache = _cache(tmp_path, model, shard_images=4)
-    task = OVSSTask(dataset, batch_size=2)
+    task = OVSSEngine(dataset, batch_size=2)
     task.run(model, build_variants(["bb"]), cache=cache)
     assert len(cache) == len(dataset) and cache.bytes_written == cache.disk_bytes() > 0
     reread = FeatureCache(tmp_path, cache.key, dataset.describe)  # a later job: from disk
@@ -59,7 +59,7 @@ def test_cache_returns_exactly_the_encoders_outputs(tmp_path, model):
 def test_cached_pass_scores_identically_without_encoding(tmp_path, model, monkeypatch):
     dataset, cache = _cache(tmp_path, model)
     names = ["bb", "lite", "full@n_prototypes:6"]
-    task = OVSSTask(dataset, batch_size=3)
+    task = OVSSEngine(dataset, batch_size=3)
     plain = task.run(model, build_variants(names))
     task.run(model, build_variants(names), cache=cache)  # fills
     counter = _Counting(model)
@@ -91,7 +91,7 @@ def test_any_change_of_weights_resolution_or_precision_is_a_new_key(tmp_path, mo
 
 def test_new_weights_read_their_own_outputs_not_stale_ones(tmp_path, model):
     dataset, cache = _cache(tmp_path, model)
-    task = OVSSTask(dataset, batch_size=2)
+    task = OVSSEngine(dataset, batch_size=2)
     task.run(model, build_variants(["bb"]), cache=cache)
     changed = ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()  # other weights
     _, fresh = _cache(tmp_path, changed)
@@ -104,7 +104,7 @@ def test_new_weights_read_their_own_outputs_not_stale_ones(tmp_path, model):
 
 def test_partial_cache_encodes_only_what_is_missing(tmp_path, model, monkeypatch):
     dataset, cache = _cache(tmp_path, model, shard_images=2)
-    task = OVSSTask(dataset, batch_size=2)
+    task = OVSSEngine(dataset, batch_size=2)
     first = next(iter(task.loader()))  # an interrupted job: one batch stored
     cache.put(first["index"], model.encode(model.input_rule.normalize(first["image"])))
     assert len(FeatureCache(tmp_path, cache.key, dataset.describe)) == 2
@@ -118,7 +118,7 @@ def test_partial_cache_encodes_only_what_is_missing(tmp_path, model, monkeypatch
 
 def test_an_entry_whose_file_changed_is_a_miss(tmp_path, model):
     dataset, cache = _cache(tmp_path, model)
-    OVSSTask(dataset, batch_size=2).run(model, build_variants(["bb"]), cache=cache)
+    OVSSEngine(dataset, batch_size=2).run(model, build_variants(["bb"]), cache=cache)
     renamed = FeatureCache(tmp_path, cache.key, lambda i: f"other-{i}.jpg")
     assert renamed.get([0, 1]) is None and renamed.misses == 1
 
@@ -192,7 +192,7 @@ def test_a_non_finite_batch_is_skipped_and_never_cached(tmp_path, model, monkeyp
     cache stores the other batches only, and a later job reading the cache re-encodes just
     that batch (a clean encoder then scores it)."""
     dataset, cache = _cache(tmp_path, model)
-    task = OVSSTask(dataset, batch_size=2)
+    task = OVSSEngine(dataset, batch_size=2)
     poisoned = dataset.batches(2)[1]
     real, calls = model.encode, []
 

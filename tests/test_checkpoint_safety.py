@@ -16,7 +16,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.cli.train import build, train
 from resireg_train.training.checkpoints import (
     AtomicCheckpointIO,

@@ -23,10 +23,10 @@ from resireg.ovss import TEMPLATES
 from resireg.specs.variants import parse_variant, variant_layer
 from resireg.variants import build_variants
 from resireg_train.cache import FeatureCache
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
-from resireg_train.ovss.engine import OVSSTask, requested_layers
+from resireg_train.ovss.engine import OVSSEngine, requested_layers
 from resireg_train.report import collect, layer_sweep_table, report
 from resireg_train.validation import ConfigError, validate_eval
 
@@ -49,7 +49,7 @@ def enc():
 def _task():
     # two templates: the text tower's cost, not the point of these tests
     dataset = build_segmentation_set(SPEC, patch_size=16)
-    return OVSSTask(dataset, batch_size=3, templates=TEMPLATES[:2])
+    return OVSSEngine(dataset, batch_size=3, templates=TEMPLATES[:2])
 
 
 class _Passes:

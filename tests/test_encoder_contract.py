@@ -1,4 +1,4 @@
-"""The contract of every encoder kind of the registry (``resireg.models.encoders.ENCODERS``).
+"""The contract of every encoder kind of the registry (``resireg.models.factory.ENCODERS``).
 
 One test per property, parametrised over every kind, each built through ``build_encoder``
 from its config entry with same-architecture random weights (a tiny ResiregVLM export, a
@@ -45,7 +45,7 @@ from _fake_hubs import (
     write_tips_release,
 )
 from resireg.models import WeightsUnavailableError
-from resireg.models.encoders import ENCODERS, build_encoder
+from resireg.models.factory import ENCODERS, build_encoder
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS
 from resireg.models.zoo.radio import RADIO_CHECKPOINTS
@@ -219,10 +219,10 @@ def test_offline_and_not_cached_fails_at_once_naming_the_key(kind, tmp_path, mon
 
 
 def test_block_index_rule():
-    """The one block-index rule (resireg.models.encoder.block_indices, over timm's
+    """The one block-index rule (resireg.models.interface.block_indices, over timm's
     feature_take_indices) against Python's own indexing of the block list: negative indices
     count from the end, an int n is the last n blocks; anything else names the key and value."""
-    from resireg.models.encoder import block_index, block_indices
+    from resireg.models.interface import block_index, block_indices
 
     blocks = list(range(12))
     for i in range(-12, 12):

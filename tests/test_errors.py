@@ -68,7 +68,7 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg.mapping.semantic_map import MapFullError
     from resireg.models.hub import WeightsUnavailableError
     from resireg.specs.table import UnknownNameError
-    from resireg_train.cli.task import RunFolderBusy
+    from resireg_train.cli.job import RunFolderBusy
     from resireg_train.evaluation import NothingScoredError
     from resireg_train.files import WriteError
     from resireg_train.playground.core import PlaygroundError
@@ -238,7 +238,7 @@ def test_a_wrapping_library_function_names_its_own_argument():
 
 
 def test_the_cli_error_text_carries_the_notes():
-    from resireg_train.cli.task import error_text
+    from resireg_train.cli.job import error_text
     from resireg_train.validation import error_message
 
     err = RuntimeError("CUDA error: out of memory")
@@ -267,7 +267,7 @@ def test_resireg_eval_names_the_encoder_key_of_a_library_error(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
 
     weights = str(tmp_path / "absent.bin")
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

@@ -12,7 +12,7 @@ from resireg.variants import build_variant, build_variants
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES
-from resireg_train.ovss.engine import OVSSTask, StageTimer
+from resireg_train.ovss.engine import OVSSEngine, StageTimer
 
 SPEC = dataset_conf("synthetic", size=10, image_size=[40, 56], seed=5, short_side=48)
 FULL = {"n_prototypes": 6, "n_components": 6}
@@ -25,7 +25,7 @@ def vlm():
 
 
 def _task(batch_size=4):
-    return OVSSTask(build_segmentation_set(SPEC, patch_size=16), batch_size=batch_size)
+    return OVSSEngine(build_segmentation_set(SPEC, patch_size=16), batch_size=batch_size)
 
 
 def test_prototypes_embed_prompts_once_and_apply_the_current_projection(vlm):
@@ -185,7 +185,7 @@ def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tm
 
     _ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
     spec = dataset_conf("ade20k", path=str(tmp_path / "ade"), short_side=32)
-    task = OVSSTask(build_segmentation_set(spec, patch_size=16), batch_size=2)
+    task = OVSSEngine(build_segmentation_set(spec, patch_size=16), batch_size=2)
     single = task.run(vlm, build_variants(["bb"]))
     assert (single.images, single.skipped) == (3, 1)
     shards = [task.run(vlm, build_variants(["bb"]), rank=r, world_size=2) for r in range(2)]
@@ -198,7 +198,7 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.validation import ConfigError
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
@@ -261,7 +261,7 @@ def test_a_missing_dataset_or_prior_model_fails_before_the_encoder_loads(
 
     import resireg.models
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
 
     def no_encoder(*args, **kwargs):
         raise AssertionError("the encoder was built before the sources were checked")

@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.validation import ENCODER_IMPORTS, ConfigError, check_available
 
 if sys.version_info >= (3, 11):

@@ -314,7 +314,7 @@ def test_skipped_caption_examples_are_reported_once_per_epoch_with_the_epoch_tot
 def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatch):
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.validation import ConfigError, check_devices, validate
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
@@ -344,7 +344,7 @@ def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import with_export_settings
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.ovss.settings import save_settings
 
     save_settings(tmp_path, {"variants": ["bb", "full"], "batch_size": 2, "precision": "32",
@@ -371,7 +371,7 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import NothingScoredError, evaluate
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
 
     bad = poisoned_ade_folder(tmp_path / "ade")
     for sub in ("images", "annotations"):
@@ -443,7 +443,7 @@ def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed
 _RUN_TASK = (
     "import sys\n"
     "from omegaconf import OmegaConf\n"
-    "from resireg_train.cli.task import run_task\n"
+    "from resireg_train.cli.job import run_task\n"
     "from resireg_train.results import update_results\n"
     "def body(cfg, out):\n"
     "    if sys.argv[2] == 'crash':\n"

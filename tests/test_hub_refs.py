@@ -22,7 +22,7 @@ from resireg.models.hub import PINNED_REFS, check_hub_ref, hub_target
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DinoTxtEncoder
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS
 from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadioEncoder, RadSegEncoder
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 
 SHA = re.compile(r"^[0-9a-f]{40}$")
 CONF = Path(CONFIG_DIR)

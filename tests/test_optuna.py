@@ -446,7 +446,7 @@ def test_a_job_scoring_nan_fails_its_trial(stored):
     from hydra.core.utils import JobReturn, JobStatus
     from omegaconf import OmegaConf
 
-    from resireg_train.cli.task import optimized_value
+    from resireg_train.cli.job import optimized_value
     from resireg_train.search import _outcome
 
     cfg = OmegaConf.create({"optimized_metric": "miou_full"})

@@ -52,8 +52,8 @@ from resireg_train.data.scannet_room import Box, SyntheticRoom, write_scene
 from resireg_train.mapping.engine import (
     GT_RULES,
     POINTS,
-    MappingProtocol,
-    MappingTask,
+    MappingEngine,
+    MappingSettings,
     ground_truth_labels,
 )
 from test_scannet import _ClassFromColour
@@ -222,7 +222,7 @@ class _Confused(_ClassFromColour):
         return type(out)(lang, lang, None)
 
 
-class _Recording(MappingTask):
+class _Recording(MappingEngine):
     """The task, keeping each scene's predicted voxels (centres and labels: the map side,
     which the reference takes as given) and ground-truth voxels and labels."""
 
@@ -610,11 +610,11 @@ def test_gt_resolution_and_the_option_checks(rooms):
     with pytest.raises(ValueError, match=r"dataset\.resize='bilinear'"):
         ScanNetFrames(rooms, SCENES[:1], resize="bilinear")
     with pytest.raises(ValueError, match=r"points='voxel'"):
-        MappingProtocol.from_conf(points="voxel")
+        MappingSettings.from_conf(points="voxel")
 
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.validation import ConfigError, validate_eval
 
     bad = ["dataset.resize=area", "dataset.intrinsics=shift", "dataset.lattice=ceil",
@@ -648,19 +648,19 @@ def test_defaults_and_allowed_values_are_the_configs():
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
     # The task's settings have no Python default (conf/ is their one source): the Python API's
     # are read from the yaml, and an entry missing one is an error naming it.
-    for f in dataclasses.fields(MappingProtocol):
+    for f in dataclasses.fields(MappingSettings):
         assert f.default is dataclasses.MISSING, f.name
-    for name, value in dataclasses.asdict(MappingProtocol.from_conf()).items():
+    for name, value in dataclasses.asdict(MappingSettings.from_conf()).items():
         assert spec[name] == value, name
-    assert MappingProtocol.from_conf(voxel_size=0.2).voxel_size == 0.2
+    assert MappingSettings.from_conf(voxel_size=0.2).voxel_size == 0.2
     # A config that composes another (scannet_legacy: defaults [scannet, _self_]) holds its
     # parent's settings too, as Hydra composes it for dataset=scannet_legacy.
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         legacy = compose("eval", overrides=["dataset=scannet_legacy"]).dataset
-    for name, value in dataclasses.asdict(MappingProtocol.from_conf("scannet_legacy")).items():
+    for name, value in dataclasses.asdict(MappingSettings.from_conf("scannet_legacy")).items():
         assert legacy[name] == value, name
     with pytest.raises(ValueError, match=r"dataset\.knn"):
-        MappingProtocol.from_spec({k: v for k, v in spec.items() if k != "knn"})
+        MappingSettings.from_spec({k: v for k, v in spec.items() if k != "knn"})
     params = inspect.signature(ScanNetFrames).parameters
     for name in ("frame_skip", "image_size", "gt_resolution", "resize", "intrinsics",
                  "class_names", "classes_to_ignore", "short_side", "limit"):  # fmt: skip
@@ -675,7 +675,7 @@ def test_defaults_and_allowed_values_are_the_configs():
 
 
 def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
-    """One rule per ScanNet option: MappingProtocol and ScanNetFrames check their values with
+    """One rule per ScanNet option: MappingSettings and ScanNetFrames check their values with
     the dataset table's rules (the config check's), so a rule changed there changes what they
     accept, and they report a bad value in the config check's words."""
     from resireg.specs.rules import one_of
@@ -685,13 +685,13 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
     with pytest.raises(
         ValueError, match=r"dataset\.lattice='ceil': expected one of \['round', 'floor'\]"
     ):
-        MappingProtocol.from_conf(lattice="ceil")
+        MappingSettings.from_conf(lattice="ceil")
     monkeypatch.setitem(rules, "lattice", one_of(("round", "floor", "ceil")))
     monkeypatch.setitem(rules, "resize", one_of(("exact",)))
-    assert MappingProtocol.from_conf(lattice="ceil").lattice == "ceil"  # accepted: the table's rule
+    assert MappingSettings.from_conf(lattice="ceil").lattice == "ceil"  # accepted: the table's rule
     with pytest.raises(ValueError, match=r"dataset\.resize='torch': expected one of \['exact'\]"):
         ScanNetFrames(rooms, SCENES[:1], resize="torch")
-    # every field of MappingProtocol, the two RayFronts probabilities and the voxel size included
+    # every field of MappingSettings, the two RayFronts probabilities and the voxel size included
     # (before, a threshold of 2 passed the class silently: every voxel became "no prediction")
     for name, value, words in (
         ("prediction_threshold", 2.0, r"null or a number in \(0, 1\)"),
@@ -700,11 +700,11 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
         ("voxel_size", float("inf"), r"a number > 0 \(finite\)"),
     ):
         with pytest.raises(ValueError, match=rf"dataset\.{name}={value!r}: expected {words}"):
-            MappingProtocol.from_conf(**{name: value})
+            MappingSettings.from_conf(**{name: value})
     # the config check reads the same rules (no copy of its own), for each kind that has the key
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.validation import ConfigError, validate_eval
 
     for task, config, key, value, words in (
@@ -722,13 +722,13 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
 
 # ------------------------------------------------------------------ the protocol record
 def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
-    """resireg_train.protocol: the 3D record is the dataset entry's protocol keys (only those);
+    """resireg_train.protocol_record: the 3D record is the dataset entry's protocol keys (only those);
     the 2D record the entry's keys, the temperature, the built set's reduce_zero_label, class
     list and templates, and the encoder's dense_path where its config has one. Table 1 prints
     the protocol the jobs share; jobs with two protocols get one line each."""
     from types import SimpleNamespace
 
-    from resireg_train.protocol import protocol_record, protocol_text
+    from resireg_train.protocol_record import protocol_record, protocol_text
     from resireg_train.report import collect, write_encoder_table
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())

@@ -25,7 +25,7 @@ from _sweeps import make_job as _job
 from resireg.heuristic import PrototypeHeuristic
 from resireg.reconstruct import ReSiRegFull
 from resireg_train.cli import report as report_cli
-from resireg_train.cli.task import CONFIG_DIR, hydra_entry_point, safe_dirname
+from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point, safe_dirname
 from resireg_train.report import (
     DPI,
     collect,

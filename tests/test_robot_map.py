@@ -589,8 +589,8 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
     import safetensors.torch
     from hydra import compose, initialize_config_dir
 
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.cli.map import run_map
-    from resireg_train.cli.task import CONFIG_DIR
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
     real = safetensors.torch.save_file

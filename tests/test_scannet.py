@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from PIL import Image
 
 from _run import run
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
 from resireg.variants import build_variants
 from resireg_train.data.scannet import ScanNetFrames, evaluated_classes, label_lookup
@@ -25,7 +25,7 @@ from resireg_train.data.scannet_room import (
     SyntheticRoom,
     write_scene,
 )
-from resireg_train.mapping.engine import MappingTask
+from resireg_train.mapping.engine import MappingEngine
 
 TEST_CONF = Path(__file__).parent / "conf"
 SCENE = "synthetic0000_00"
@@ -244,7 +244,7 @@ def test_too_many_prototypes_for_a_batch_name_the_variant_and_the_batch_of_frame
     frames = _frames(root, room)
     h, w = frames.grid_size()
     n = 4 * h * w * 4 + 1  # one more than 4 frames upsampled by s = 2 have points
-    task = MappingTask(frames, batch_size=4, voxel_size=VOXEL)
+    task = MappingEngine(frames, batch_size=4, voxel_size=VOXEL)
     with pytest.raises(ValueError) as err:
         task.check_variants(build_variants([f"full@n_prototypes:{n}"]), "variants")
     assert str(err.value).startswith(f"variants.full@n_prototypes:{n}: n_prototypes={n} exceeds")
@@ -259,7 +259,7 @@ def test_ground_truth_voxels_match_numpy_and_the_box_geometry(root, room):
     where a single class is in reach)."""
     frames = _frames(root, room)
     assert frames.classes == ROOM_CLASSES
-    task = MappingTask(frames, batch_size=4, voxel_size=VOXEL, gt_unlabelled="vote",
+    task = MappingEngine(frames, batch_size=4, voxel_size=VOXEL, gt_unlabelled="vote",
                        lattice="floor")  # fmt: skip
     state = task._start_scene(0, {}, torch.device("cpu"))
     for batch in task.loader():
@@ -297,7 +297,7 @@ class _null:
 def test_oracle_features_give_miou_one_and_constant_features_the_hand_value(root, room):
     frames = _frames(root, room)
     variants = build_variants(["bb"])
-    task = MappingTask(frames, batch_size=3, voxel_size=VOXEL)
+    task = MappingEngine(frames, batch_size=3, voxel_size=VOXEL)
     oracle = task.run(_ClassFromColour(), variants)
     scores = oracle.scores()
     prefix = "val/scannet3d/scannet"
@@ -309,7 +309,7 @@ def test_oracle_features_give_miou_one_and_constant_features_the_hand_value(root
 
     # constant "floor" (vote ground truth, floor lattice: the numpy reference above):
     # IoU_floor = G_floor / sum G, the other present classes 0; mIoU over the present classes
-    legacy = MappingTask(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
+    legacy = MappingEngine(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
                          lattice="floor")  # fmt: skip
     gt = np.array([c for c in _reference_gt(root, room, VOXEL).values() if c != 255])
     hist = np.bincount(gt, minlength=len(ROOM_CLASSES))
@@ -348,7 +348,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room,
 
     frames = _frames(root, room)
     variants = build_variants(["bb", "full"], {"full": {"n_prototypes": 4}})
-    task = MappingTask(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
+    task = MappingEngine(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
                        lattice="floor")  # fmt: skip
     poisoned = frames.batches(3)[1]
     result = task.run(_NaNOnCall(1), variants)
@@ -477,7 +477,7 @@ def test_table2_sweep_end_to_end_results_and_report(root, room, tiny_export, tmp
     frames = ScanNetFrames(root, [SCENE], frame_skip=0, image_size=room.image_size,
                            patch_size=model.input_rule.patch_size, name="scannet_synthetic")  # fmt: skip
     variants = build_variants(["bb", "full"], {"full": {"n_prototypes": 8, "n_components": None}})
-    engine = MappingTask(frames, batch_size=3, voxel_size=0.1).run(model, variants).scores()
+    engine = MappingEngine(frames, batch_size=3, voxel_size=0.1).run(model, variants).scores()
     assert engine == pytest.approx(r["final"], abs=1e-6)
     scene = r["per_scene"][SCENE]["scores"]  # one scene: its scores are the overall ones
     assert scene["full"]["miou"] == pytest.approx(engine[f"{prefix}/miou_full"])
@@ -513,7 +513,7 @@ def test_3d_sweeps_are_the_papers_settings_and_bad_values_name_the_key():
     encoder config x Full on ScanNet. Bad 3D values are errors naming key and value."""
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.validation import ConfigError, validate_eval
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

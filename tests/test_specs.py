@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.validation import ConfigError, sweep_config_errors, validate_eval
 
 
@@ -148,7 +148,7 @@ def test_the_sweeps_over_every_encoder_resolve_to_the_table(monkeypatch, tmp_pat
     no list to edit."""
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.task import register_resolvers
+    from resireg_train.cli.job import register_resolvers
 
     register_resolvers()
     on_disk = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))
@@ -280,15 +280,15 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
     assert {k: signature[k].default for k in keys} == {k: prior[k] for k in keys}
     assert prior["model"] == SAM_MODEL
     # the evaluation engines' pass settings (conf/eval.yaml)
-    from resireg_train.mapping.engine import MappingTask
-    from resireg_train.ovss.engine import OVSSTask
+    from resireg_train.mapping.engine import MappingEngine
+    from resireg_train.ovss.engine import OVSSEngine
 
     evaluation = _eval_config()
-    for engine in (OVSSTask, MappingTask):
+    for engine in (OVSSEngine, MappingEngine):
         signature = inspect.signature(engine).parameters
         assert signature["batch_size"].default == evaluation.batch_size, engine
         assert signature["num_workers"].default == evaluation.num_workers == 2, engine
-    assert inspect.signature(OVSSTask).parameters["temperature"].default == evaluation.temperature
+    assert inspect.signature(OVSSEngine).parameters["temperature"].default == evaluation.temperature
     # the training callback's (conf/callbacks/default.yaml) and the caption data module's
     # (conf/data/stage1.yaml, the default data=): every keyword default equals the composed key
     from resireg_train.data.captions import CaptionDataModule

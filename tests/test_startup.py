@@ -24,7 +24,7 @@ def test_a_bad_value_is_reported_without_loading_torch(tmp_path):
     code = (
         "import sys\n"
         "from hydra import compose, initialize_config_dir\n"
-        "from resireg_train.cli.task import CONFIG_DIR\n"
+        "from resireg_train.cli.job import CONFIG_DIR\n"
         "from resireg_train.validation import ConfigError, validate\n"
         "with initialize_config_dir(str(CONFIG_DIR), version_base='1.3'):\n"
         "    cfg = compose('train', overrides=['experiment=smoke', 'model.optimizer.lr=-1'])\n"

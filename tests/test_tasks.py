@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 from resireg.ovss import average_prompts, class_prompts
 from resireg.variants import build_variants
 from resireg_train.cli.eval import evaluate
-from resireg_train.cli.task import CONFIG_DIR
+from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import DATASET_SPECS, dataset_conf
 from resireg_train.engine import ClassPrototypes, eval_loader
@@ -201,14 +201,14 @@ def test_a_dataset_kind_registered_through_the_table_runs_through_resireg_eval(
 
 # ---------------------------------------------------- the shared text path
 def test_the_3d_tasks_class_prototypes_are_the_2d_tasks(tmp_path, tiny_export):
-    """MappingTask and OVSSTask take their class prototypes from one text path
+    """MappingEngine and OVSSEngine take their class prototypes from one text path
     (ClassPrototypes); for the same class names and encoder both equal the prompts embedded
     by the encoder's text_features, projected by dense_text and averaged per class (computed
-    here); the 3D task builds no OVSSTask."""
+    here); the 3D task builds no OVSSEngine."""
     from resireg.models import ResiregVLM
     from resireg_train.data.scannet import ScanNetFrames
     from resireg_train.data.scannet_room import SyntheticRoom, write_scene
-    from resireg_train.mapping.engine import MappingTask
+    from resireg_train.mapping.engine import MappingEngine
     from resireg_train.ovss import engine as ovss_engine
 
     vlm = ResiregVLM.from_pretrained(tiny_export).eval()
@@ -218,16 +218,16 @@ def test_the_3d_tasks_class_prototypes_are_the_2d_tasks(tmp_path, tiny_export):
                            patch_size=vlm.input_rule.patch_size)  # fmt: skip
 
     def refuse(*args, **kwargs):
-        raise AssertionError("the 3D task built an OVSSTask")
+        raise AssertionError("the 3D task built an OVSSEngine")
 
-    original = ovss_engine.OVSSTask.__init__
-    ovss_engine.OVSSTask.__init__ = refuse
+    original = ovss_engine.OVSSEngine.__init__
+    ovss_engine.OVSSEngine.__init__ = refuse
     try:
-        three_d = MappingTask(frames, batch_size=3, voxel_size=0.1)
+        three_d = MappingEngine(frames, batch_size=3, voxel_size=0.1)
     finally:
-        ovss_engine.OVSSTask.__init__ = original
+        ovss_engine.OVSSEngine.__init__ = original
     # the 2D task on the 3D set's class names (its text path reads nothing else of a dataset)
-    two_d = ovss_engine.OVSSTask(SimpleNamespace(classes=tuple(frames.classes)), batch_size=2)
+    two_d = ovss_engine.OVSSEngine(SimpleNamespace(classes=tuple(frames.classes)), batch_size=2)
     assert isinstance(three_d.text, ClassPrototypes) and isinstance(two_d.text, ClassPrototypes)
     with torch.no_grad():
         prompts = class_prompts(frames.classes)
@@ -247,7 +247,7 @@ def test_scannet3d_results_hold_the_elbo_prototype_counts(tmp_path, tiny_export)
     from resireg.models import ResiregVLM
     from resireg_train.data.scannet import ScanNetFrames
     from resireg_train.data.scannet_room import SyntheticRoom, write_scene
-    from resireg_train.mapping.engine import MappingTask
+    from resireg_train.mapping.engine import MappingEngine
 
     room = SyntheticRoom()
     root = tmp_path / "scannet"
@@ -266,7 +266,7 @@ def test_scannet3d_results_hold_the_elbo_prototype_counts(tmp_path, tiny_export)
                            patch_size=vlm.input_rule.patch_size, name="scannet_synthetic")  # fmt: skip
     params = {"full": {"n_prototypes": "elbo", "elbo_candidates": candidates, "n_components": None}}
     variants = build_variants([name], params)
-    MappingTask(frames, batch_size=3, voxel_size=0.1).run(vlm, variants)
+    MappingEngine(frames, batch_size=3, voxel_size=0.1).run(vlm, variants)
     expected = dict(sorted(Counter(str(n) for n in variants[name].chosen).items(),
                            key=lambda c: int(c[0])))  # fmt: skip
     assert r["elbo_prototypes"] == {name: expected}

@@ -389,7 +389,7 @@ def test_config_entry_keys_are_constructor_arguments(tmp_path):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from resireg_train.cli.task import CONFIG_DIR
+    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.validation import config_path, encoder_arguments
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

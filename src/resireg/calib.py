@@ -4,7 +4,7 @@ SC-CLIP (Bai et al., "Self-Calibrated CLIP for Training-Free Open-Vocabulary
 Segmentation", github.com/SuleBai/SC-CLIP) calibrates CLIP in two steps that need no
 CLIP internals beyond an intermediate token map. :class:`Calib` keeps exactly these two,
 applied to the ``intermediates`` ``F_v`` ``[B, Dv, Hv, Wv]`` and ``language`` tokens
-``F_vl`` ``[B, Dl, Hl, Wl]`` of any :class:`~resireg.models.encoder.DenseEncoder`:
+``F_vl`` ``[B, Dl, Hl, Wl]`` of any :class:`~resireg.models.interface.DenseEncoder`:
 
 1. **Anomaly resolution.** Per image, the local outlier factor (LOF) of the ``N = Hv*Wv``
    intermediate patch tokens is computed exactly as scikit-learn's

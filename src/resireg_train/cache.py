@@ -56,7 +56,7 @@ from safetensors.torch import save
 from torch import Tensor
 
 from resireg.models import DenseOutput
-from resireg.models.encoders import encoder_modules
+from resireg.models.factory import encoder_modules
 from resireg_train.files import write_atomic
 
 __all__ = ["FeatureCache", "file_digest", "weights_fingerprint"]

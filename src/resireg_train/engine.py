@@ -1,7 +1,7 @@
 """The parts the 2D and 3D evaluation engines share (docs/design.md section 10.4).
 
-The engines (:class:`resireg_train.ovss.engine.OVSSTask`, 2D;
-:class:`resireg_train.mapping.engine.MappingTask`, 3D) derive from :class:`EvalEngine`: one
+The engines (:class:`resireg_train.ovss.engine.OVSSEngine`, 2D;
+:class:`resireg_train.mapping.engine.MappingEngine`, 3D) derive from :class:`EvalEngine`: one
 batch-size check, one class-prototype text path (:class:`ClassPrototypes`), one loader
 (:func:`eval_loader`) and one variant check over the batches (:func:`check_variants_on`); both
 pass the encoder through :func:`inference` and time stages with :class:`StageTimer`.

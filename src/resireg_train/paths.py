@@ -1,5 +1,5 @@
 """Where this process's runs are configured and named: the project's ``conf/`` folder and the
-run id. Imported by the CLIs' task wrapper (``cli/task.py``, which re-exports both), the trackers
+run id. Imported by the CLIs' task wrapper (``cli/job.py``, which re-exports both), the trackers
 and the playground, so that none of them reaches up into ``cli/``."""
 
 from __future__ import annotations

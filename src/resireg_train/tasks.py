@@ -5,7 +5,7 @@ Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
 (:func:`resireg_train.validation.validate_eval`) reads the task names and each task's
 configuration rules from here before anything heavy loads (the dataset kinds a task scores are
 the dataset table's, :data:`resireg_train.data.specs.DATASET_SPECS`, each entry naming its
-tasks); the protocol record (:func:`resireg_train.protocol.protocol_record`) and the report
+tasks); the protocol record (:func:`resireg_train.protocol_record.protocol_record`) and the report
 (:mod:`resireg_train.report.tables`) read a task's recorded keys, metric prefix and report
 table from its entry. ``resireg-eval``
 (:func:`resireg_train.cli.eval.evaluate`, through
@@ -43,7 +43,7 @@ class TaskSpec:
         layers: whether it scores ``@layer:`` configurations (an encoder block's intermediates).
         summary: one line for errors and docs.
         protocol_keys: the dataset entry's keys its ``results.json`` ``protocol`` records
-            (:func:`resireg_train.protocol.protocol_record`; docs/protocol.md).
+            (:func:`resireg_train.protocol_record.protocol_record`; docs/protocol.md).
         protocol_params: the run's parameters (``params``) that record records too.
         report: the ``resireg-report`` table its sweeps feed (``table1``, ``table2``;
             :data:`resireg_train.report.tables.REPORT_TABLES`), ``None``: none.

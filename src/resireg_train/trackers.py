@@ -2,7 +2,7 @@
 ``resireg-train``, ``resireg-eval`` or ``resireg-map`` run when it ends (``logger=wandb``:
 :func:`resireg_train.tracking.wandb_runs`, around the job).
 
-:func:`record_run` is called by the job wrapper (:func:`resireg_train.cli.task.run_task`) at
+:func:`record_run` is called by the job wrapper (:func:`resireg_train.cli.job.run_task`) at
 the end of every run, completed or not, and reads everything from the run folder:
 
 - **MLflow** (``conf/logger/mlflow.yaml``; default store: one SQLite database under

@@ -154,10 +154,10 @@ def config_path(prefix: str, arguments: Arguments = ()) -> Iterator[None]:
 
 def encoder_arguments(entry: Any) -> tuple[str, ...]:
     """What the messages of ``build_encoder(**entry)`` may name: the entry's keys and
-    :func:`resireg.models.encoders.encoder_arguments` (``kind``, ``device``, the builder's
+    :func:`resireg.models.factory.encoder_arguments` (``kind``, ``device``, the builder's
     arguments; the builder is imported, as ``build_encoder`` would, and one that does not
     import leaves them out: ``build_encoder`` reports that)."""
-    from resireg.models.encoders import encoder_arguments as of_kind
+    from resireg.models.factory import encoder_arguments as of_kind
 
     keys = tuple(entry) if isinstance(entry, dict) else ()
     try:
@@ -440,7 +440,7 @@ def _needs_model_path(kind: Any) -> bool:
 #: The sweeps over every encoder (the paper's Tables 1 and 2; their report is an encoder table).
 ENCODER_SWEEPS = ("table1", "table2")
 #: The ``encoder`` axis of a sweep over every encoder: the resolver (registered by the CLIs,
-#: :func:`resireg_train.cli.task.register_resolvers`) joins the encoder table's configurations.
+#: :func:`resireg_train.cli.job.register_resolvers`) joins the encoder table's configurations.
 EVERY_ENCODER = "${resireg_encoders:}"
 
 

@@ -28,8 +28,8 @@ from PIL import Image
 
 from resireg.deploy.labels import parse_labels
 from resireg.errors import arguments_under
-from resireg.models.encoder import DenseEncoder
 from resireg.models.images import pil_to_tensor
+from resireg.models.interface import DenseEncoder
 from resireg.ovss import TEMPLATES, class_similarity, predict, text_prototypes
 
 __all__ = [
@@ -81,7 +81,7 @@ def load_encoder(encoder: Any, device: str | torch.device = "cpu") -> DenseEncod
     (``{"kind": "clip", "model_name": "ViT-B-16", ...}``, as ``conf/encoder/*.yaml`` give)."""
     if isinstance(encoder, DenseEncoder):
         return encoder
-    from resireg.models.encoders import build_encoder, encoder_arguments, load_resireg_vlm
+    from resireg.models.factory import build_encoder, encoder_arguments, load_resireg_vlm
 
     if isinstance(encoder, (str, os.PathLike)):
         with arguments_under("encoder", {"path": "encoder"}):  # our argument is the path

@@ -3,9 +3,9 @@ encoder zoo (``zoo/``) and the 25M dense VLM with its parts (``vlm/``: EUPE, hea
 ``encoders`` builds any of them by kind, the kinds being the table of
 :mod:`resireg.specs.encoders`."""
 
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
-from resireg.models.encoders import ENCODERS, build_encoder, count_parameters
+from resireg.models.factory import ENCODERS, build_encoder, count_parameters
 from resireg.models.hub import WeightsUnavailableError
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.models.vlm import (
     EUPE_MODELS,
     BackboneOutput,

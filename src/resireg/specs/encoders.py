@@ -107,7 +107,7 @@ _BPE = "facebookresearch/dinov2 dinov2/thirdparty/CLIP (the dino.txt BPE tokeniz
 ENCODER_SPECS: SpecTable[EncoderSpec] = SpecTable(
     "encoder kind",
     (
-        EncoderSpec("resireg_vlm", "resireg.models.encoders:load_resireg_vlm",
+        EncoderSpec("resireg_vlm", "resireg.models.factory:load_resireg_vlm",
                     needs_model_path=True),
         EncoderSpec("clip", "resireg.models.zoo.clip:ClipEncoder"),
         EncoderSpec(

@@ -42,7 +42,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from resireg.specs.encoders import ENCODER_SPECS
-from resireg_train.cli.task import (
+from resireg_train.cli.job import (
     CONFIG_DIR,
     added_keys,
     hydra_entry_point,

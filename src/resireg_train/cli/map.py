@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ResiregError, argument_names, rename_arguments
 from resireg.specs.sources import SOURCE_SPECS, source_errors
-from resireg_train.cli.task import hydra_entry_point, run_task
+from resireg_train.cli.job import hydra_entry_point, run_task
 from resireg_train.results import update_results
 from resireg_train.validation import (
     ConfigError,

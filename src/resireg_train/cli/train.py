@@ -32,7 +32,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from resireg_train.cli.task import (
+from resireg_train.cli.job import (
     added_keys,
     error_text,
     hydra_entry_point,
@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 
 def _process_rank() -> int:
-    """This process's global rank (:func:`~resireg_train.cli.task.process_rank`)."""
+    """This process's global rank (:func:`~resireg_train.cli.job.process_rank`)."""
     return process_rank()
 
 
@@ -80,7 +80,7 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     other than 0).
 
     Any failure, from a bad config value to a crash mid-epoch, is recorded in
-    ``results.json`` (see :func:`~resireg_train.cli.task.run_task`).
+    ``results.json`` (see :func:`~resireg_train.cli.job.run_task`).
 
     Args:
         cfg: a composed ``train.yaml`` config (``paths.output_dir`` must be resolvable).

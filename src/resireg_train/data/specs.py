@@ -13,7 +13,7 @@ dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segm
 ``conf/dataset/`` is the one source of a dataset's defaults: an entry holds every key of its
 kind (:attr:`DatasetSpec.keys`; a missing one is an error naming ``dataset.<key>``), and
 :func:`dataset_conf` reads a ``conf/dataset/`` file for callers outside Hydra (tests,
-benchmarks, notebooks), as :meth:`resireg_train.mapping.engine.MappingProtocol.from_conf` does.
+benchmarks, notebooks), as :meth:`resireg_train.mapping.engine.MappingSettings.from_conf` does.
 
 Adding a dataset: one builder (``(name, spec, common) -> SegmentationSet`` for a 2D kind), one
 :class:`DatasetSpec` below (its keys, the tasks that score it, the value rules of its keys),

@@ -4,7 +4,7 @@ Per scene, batches of consecutive kept frames (:meth:`ScanNetFrames.batches`; Re
 batch = scene is a video window). Per batch the encoder runs once (``encode``) and every
 variant / configuration is applied to that one output, as in the OVSS engine (through
 :func:`resireg.variants.apply_variant`, so Full's configurations share one PCA per batch).
-Each variant's features are lifted to 3D on its own grid (:class:`MappingProtocol` ``points``)
+Each variant's features are lifted to 3D on its own grid (:class:`MappingSettings` ``points``)
 and fused into one :class:`~resireg.mapping.SemanticMap` per variant (:meth:`SemanticMap.fuse`:
 running sums in a :class:`~resireg.mapping.VoxelMap`; the L2-normalised mean is read at scene
 end). A robot's ``SemanticMap.add`` runs the same lift-and-fuse code on its own windows:
@@ -75,9 +75,9 @@ __all__ = [
     "METRIC_PREFIX",
     "POINTS",
     "TASK_KEYS",
-    "MappingProtocol",
+    "MappingSettings",
     "MappingResult",
-    "MappingTask",
+    "MappingEngine",
 ]
 
 #: What the scores' names start with, ``val/scannet3d/``: the task table's
@@ -89,7 +89,7 @@ _GT_THRESHOLD, _GT_EPS = 0.1, 1e-10
 
 
 @dataclass(frozen=True)
-class MappingProtocol:
+class MappingSettings:
     """The task's settings: the ``conf/dataset/scannet.yaml`` keys of the same names, which
     hold the protocol's values and document each. No field has a Python default: ``conf/`` is
     their one source (:meth:`from_spec` takes them from a dataset entry, :meth:`from_conf` from
@@ -120,7 +120,7 @@ class MappingProtocol:
         check_dataset_values("scannet", {f.name: getattr(self, f.name) for f in fields(self)})
 
     @classmethod
-    def from_spec(cls, spec: Mapping[str, Any], key: str = "dataset") -> MappingProtocol:
+    def from_spec(cls, spec: Mapping[str, Any], key: str = "dataset") -> MappingSettings:
         """The settings of a dataset entry (``conf/dataset/scannet.yaml``), which must hold
         every one of them: ``conf/`` is their one source of defaults (an entry without one is
         an error naming ``<key>.<name>``, not a silent Python default)."""
@@ -133,7 +133,7 @@ class MappingProtocol:
         return cls(**{f.name: spec[f.name] for f in fields(cls)})
 
     @classmethod
-    def from_conf(cls, dataset: str = "scannet", **settings: Any) -> MappingProtocol:
+    def from_conf(cls, dataset: str = "scannet", **settings: Any) -> MappingSettings:
         """The settings of ``conf/dataset/<dataset>.yaml`` (read by
         :func:`resireg_train.data.specs.dataset_conf`, its ``defaults`` composed, so
         ``scannet_legacy`` holds ``scannet``'s), ``settings`` in place of its values: the
@@ -145,8 +145,8 @@ class MappingProtocol:
         return cls.from_spec({**spec, **settings}, key=f"conf/dataset/{dataset}.yaml")
 
 
-#: The dataset-entry keys the task reads (:class:`MappingProtocol`).
-TASK_KEYS = tuple(f.name for f in fields(MappingProtocol))
+#: The dataset-entry keys the task reads (:class:`MappingSettings`).
+TASK_KEYS = tuple(f.name for f in fields(MappingSettings))
 
 
 @dataclass
@@ -301,7 +301,7 @@ def ground_truth_labels(gt: LabelVoxelMap, rule: str, num_classes: int, ignore: 
     return torch.where(votes[:, :k].sum(1) == 0, ignore, label)
 
 
-class MappingTask(EvalEngine):
+class MappingEngine(EvalEngine):
     """3D semantic mapping of a :class:`ScanNetFrames` set (module docstring).
 
     The class prototypes are the 2D task's (the shared text path,
@@ -310,9 +310,9 @@ class MappingTask(EvalEngine):
     Args:
         dataset: the frames.
         batch_size: consecutive frames per encoder pass (Full's scene).
-        protocol: the task's settings (:class:`MappingProtocol`); keywords of it may be given
+        protocol: the task's settings (:class:`MappingSettings`); keywords of it may be given
             directly instead (``voxel_size=0.1``), the others then come from
-            ``conf/dataset/scannet.yaml`` (:meth:`MappingProtocol.from_conf`).
+            ``conf/dataset/scannet.yaml`` (:meth:`MappingSettings.from_conf`).
         num_workers: DataLoader workers reading and resizing frames.
     """
 
@@ -323,15 +323,15 @@ class MappingTask(EvalEngine):
         self,
         dataset: ScanNetFrames,
         batch_size: int = 8,
-        protocol: MappingProtocol | None = None,
+        protocol: MappingSettings | None = None,
         num_workers: int = 2,
         **settings: Any,
     ) -> None:
         super().__init__(dataset, batch_size, num_workers)
         if protocol is None:
-            self.protocol = MappingProtocol.from_conf(**settings)
+            self.protocol = MappingSettings.from_conf(**settings)
         else:
-            self.protocol = MappingProtocol(**{**asdict(protocol), **settings})
+            self.protocol = MappingSettings(**{**asdict(protocol), **settings})
         self.voxel_size = float(self.protocol.voxel_size)
 
     def batch_shapes(self) -> list[tuple[int, int, int]]:
@@ -491,3 +491,16 @@ class MappingTask(EvalEngine):
                         at_gt = (shifted - 1) % (k + 1)  # fmt: skip
                 result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
                 result.feature_voxels[name][state["name"]] = len(vmap)
+
+
+_RENAMED = {"MappingTask": "MappingEngine", "MappingProtocol": "MappingSettings"}
+
+
+def __getattr__(name: str):  # the old names, for one release
+    if name in _RENAMED:
+        import warnings
+
+        warnings.warn(f"{__name__}.{name} is now {_RENAMED[name]}", DeprecationWarning,
+                      stacklevel=2)  # fmt: skip
+        return globals()[_RENAMED[name]]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,7 +1,7 @@
 """``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet scenes as a task protocol
 (:class:`resireg_train.evaluation.TaskProtocol`; the entry ``scannet3d`` of
 :data:`resireg_train.tasks.TASK_SPECS`) over the engine
-:class:`~resireg_train.mapping.engine.MappingTask` (docs/design.md section 10). Beside the
+:class:`~resireg_train.mapping.engine.MappingEngine` (docs/design.md section 10). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
 :meth:`~resireg_train.mapping.engine.MappingResult.write_csv`), ``frames`` and
 ``frames_dropped``."""
@@ -18,8 +18,8 @@ from resireg.models import DenseEncoder
 from resireg_train.data.scannet import build_scannet, check_scannet_spec
 from resireg_train.engine import StageTimer
 from resireg_train.evaluation import TaskProtocol
-from resireg_train.mapping.engine import MappingProtocol, MappingResult, MappingTask
-from resireg_train.protocol import protocol_record
+from resireg_train.mapping.engine import MappingEngine, MappingResult, MappingSettings
+from resireg_train.protocol_record import protocol_record
 
 __all__ = ["ScanNet3DProtocol"]
 
@@ -37,8 +37,8 @@ class ScanNet3DProtocol(TaskProtocol):
         spec = self.params["dataset"]
         self.dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset")
         self.classes = self.dataset.classes
-        self.engine = MappingTask(self.dataset, int(self.cfg.batch_size),
-                                  MappingProtocol.from_spec(spec),
+        self.engine = MappingEngine(self.dataset, int(self.cfg.batch_size),
+                                  MappingSettings.from_spec(spec),
                                   num_workers=int(self.cfg.num_workers))  # fmt: skip
         self.check_batches(self.engine, variants)
         return {"protocol": protocol_record(self.params)}

@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 from resireg.specs.rules import check_batch_size
 from resireg.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import METRIC_PREFIX, OVSSResult, OVSSTask
+from resireg_train.ovss.engine import METRIC_PREFIX, OVSSEngine, OVSSResult
 from resireg_train.ovss.settings import VARIANT_PARAM_KEYS, save_settings
 from resireg_train.validation import config_path
 
@@ -52,7 +52,7 @@ class ReSiRegEval(L.Callback):
         variants: names of :func:`resireg.variants.build_variant` (``bb``, ``calib``, ``lite``,
             ``full``); no default: ``conf/resireg/default.yaml``'s ``variants`` is the one.
         every_n_epochs: evaluation interval in epochs.
-        batch_size: images per batch (ReSiReg Full's scene; see ``OVSSTask``).
+        batch_size: images per batch (ReSiReg Full's scene; see ``OVSSEngine``).
         num_workers: DataLoader workers per dataset.
         **variant_params: each variant's arguments by its name (``calib``, ``lite``, ``full``:
             the ``resireg`` config group; the variant table names them,
@@ -95,7 +95,7 @@ class ReSiRegEval(L.Callback):
         self.num_workers = int(num_workers)
         self.precision = str(precision)
         self.temperature = float(temperature)
-        self.tasks: dict[str, OVSSTask] = {}
+        self.tasks: dict[str, OVSSEngine] = {}
         #: ``{dataset: [{"file", "reason"}, ...]}`` of the last pass (the same on every rank).
         self.skipped_samples: dict[str, list[dict[str, str]]] = {}
 
@@ -107,7 +107,7 @@ class ReSiRegEval(L.Callback):
         patch = pl_module.vlm.input_rule.patch_size
         for name, spec in self.dataset_specs.items():
             dataset = build_segmentation_set(spec, patch, key=f"{_KEY}.datasets.{name}", name=name)
-            task = OVSSTask(
+            task = OVSSEngine(
                 dataset, self.batch_size, self.num_workers, temperature=self.temperature
             )
             task.check_variants(self.variants, key=_KEY)

@@ -52,7 +52,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "METRIC_PREFIX",
-    "OVSSTask",
+    "OVSSEngine",
     "OVSSResult",
     "StageTimer",
     "check_variants_on",
@@ -190,7 +190,7 @@ class OVSSResult:
         return {v: m.compute()["iou"] for v, m in self.metrics.items()}
 
 
-class OVSSTask(EvalEngine):
+class OVSSEngine(EvalEngine):
     """OVSS of one dataset: its batches, its class prompts and the scoring.
 
     The class prototypes are the tasks' shared text path
@@ -359,3 +359,16 @@ class OVSSTask(EvalEngine):
                     pred = predict_grid(dense[i : i + 1], protos, self.temperature)
                     metrics[name].update_grid(pred[0], label_blocks)
         return None
+
+
+_RENAMED = {"OVSSTask": "OVSSEngine"}
+
+
+def __getattr__(name: str):  # the old names, for one release
+    if name in _RENAMED:
+        import warnings
+
+        warnings.warn(f"{__name__}.{name} is now {_RENAMED[name]}", DeprecationWarning,
+                      stacklevel=2)  # fmt: skip
+        return globals()[_RENAMED[name]]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

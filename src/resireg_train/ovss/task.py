@@ -1,6 +1,6 @@
 """``resireg-eval task=ovss``: 2D open-vocabulary segmentation as a task protocol
 (:class:`resireg_train.evaluation.TaskProtocol`; the entry ``ovss`` of
-:data:`resireg_train.tasks.TASK_SPECS`) over the engine :class:`~resireg_train.ovss.engine.OVSSTask`,
+:data:`resireg_train.tasks.TASK_SPECS`) over the engine :class:`~resireg_train.ovss.engine.OVSSEngine`,
 with the feature cache (``feature_cache``) and the segmentation prior (``+prior``
 configurations, ``prior=``) that only this task takes."""
 
@@ -17,8 +17,8 @@ from resireg.specs.variants import takes_prior
 from resireg_train.data.segmentation import build_segmentation_set, check_segmentation_source
 from resireg_train.engine import StageTimer
 from resireg_train.evaluation import TaskProtocol
-from resireg_train.ovss.engine import OVSSResult, OVSSTask, requested_layers
-from resireg_train.protocol import protocol_record
+from resireg_train.ovss.engine import OVSSEngine, OVSSResult, requested_layers
+from resireg_train.protocol_record import protocol_record
 from resireg_train.validation import config_path
 
 __all__ = ["OVSSProtocol"]
@@ -38,7 +38,7 @@ class OVSSProtocol(TaskProtocol):
         patch = encoder.input_rule.patch_size
         self.dataset = build_segmentation_set(params["dataset"], patch, key="dataset")
         self.classes = self.dataset.classes
-        self.engine = OVSSTask(self.dataset, cfg.batch_size, cfg.num_workers,
+        self.engine = OVSSEngine(self.dataset, cfg.batch_size, cfg.num_workers,
                                temperature=cfg.temperature)  # fmt: skip
         self.check_batches(self.engine, variants)
         self.cache = None

@@ -52,7 +52,7 @@ def protocol_lines(jobs: list[Job]) -> list[str]:
     """The evaluation protocol of the jobs (``results.json``'s ``protocol``, docs/protocol.md):
     one line when they share it, else one per protocol with its jobs; nothing when no job
     recorded one."""
-    from resireg_train.protocol import protocol_text
+    from resireg_train.protocol_record import protocol_text
 
     seen: dict[str, list[int]] = {}
     for job in jobs:

@@ -27,9 +27,9 @@ import torch
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
-from resireg.models.encoder import block_index
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import require_hf_files
+from resireg.models.interface import block_index
 
 __all__ = ["EUPE_MODELS", "BackboneOutput", "EUPEBackbone"]
 
@@ -119,7 +119,7 @@ class EUPEBackbone(FrozenModule):
     def check_layer(self, layer: int | None, name: str = "intermediate_layer") -> int | None:
         """``layer`` (``None``, or a block index: negative counts from the end) if it names a
         block, else a ValueError naming ``name`` (the rule of
-        :func:`~resireg.models.encoder.block_index`)."""
+        :func:`~resireg.models.interface.block_index`)."""
         if layer is not None:
             block_index(self.depth, layer, name, self.model_name)
         return layer

@@ -38,8 +38,8 @@ from resireg.integrity import (
     read_json,
     verify_digests,
 )
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.hub import require_online
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.models.vlm.eupe import EUPEBackbone
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half

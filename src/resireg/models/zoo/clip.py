@@ -69,10 +69,10 @@ from open_clip.transformer import ResidualAttentionBlock
 from torch import Tensor
 
 from resireg.errors import ConfigError
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule, block_index
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import require_open_clip_tag
 from resireg.models.images import tokens_to_grid
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule, block_index
 
 __all__ = ["CLIP_MODELS", "DENSE_PATHS", "ClipEncoder", "check_dense_path", "require_clip_weights"]
 
@@ -198,12 +198,12 @@ class ClipEncoder(DenseEncoder, FrozenModule):
         self.freeze()
 
     def _check_layer(self, layer: int, name: str = "intermediate_layer") -> int:
-        """One block as a 0-based index (:func:`~resireg.models.encoder.block_index`)."""
+        """One block as a 0-based index (:func:`~resireg.models.interface.block_index`)."""
         return block_index(self.depth, layer, name, self.model_name)
 
     def check_layers(self, layers: Sequence[int], name: str = "layer") -> tuple[int, ...]:
         """The blocks of :meth:`encode_layers` as 0-based indices (the rule of
-        :func:`~resireg.models.encoder.block_indices`: negative ones counted from the end),
+        :func:`~resireg.models.interface.block_indices`: negative ones counted from the end),
         sorted and each once; an index out of range is a ValueError naming ``name``."""
         return tuple(sorted({block_index(self.depth, i, name, self.model_name) for i in layers}))
 

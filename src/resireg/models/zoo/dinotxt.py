@@ -66,7 +66,6 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
 from resireg.errors import ConfigError
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import (
     PINNED_REFS,
@@ -76,6 +75,7 @@ from resireg.models.hub import (
     require_online,
 )
 from resireg.models.images import resize_square, tokens_to_grid
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 
 __all__ = ["DINOTXT_ENTRY_POINT", "DINOTXT_CHECKPOINTS", "DinoTxtEncoder"]
 

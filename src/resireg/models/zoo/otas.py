@@ -87,10 +87,10 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch import Tensor
 
 from resireg.errors import ConfigError, arguments_under, parameters
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import PINNED_REFS, check_hub_source, hub_target, require_hub_checkpoints
 from resireg.models.images import tokens_to_grid
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.models.zoo.clip import CLIP_MODELS, ClipEncoder, check_dense_path, require_clip_weights
 
 __all__ = ["OTAS_ENTRY_POINT", "OTAS_CHECKPOINTS", "OtasEncoder"]

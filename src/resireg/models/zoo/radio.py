@@ -96,7 +96,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.errors import ConfigError
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import (
     PINNED_REFS,
@@ -109,6 +108,7 @@ from resireg.models.hub import (
     require_hub_repo,
 )
 from resireg.models.images import tokens_to_grid
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 
 __all__ = [
     "RADIO_CHECKPOINTS",

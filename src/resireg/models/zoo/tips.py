@@ -76,10 +76,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.errors import ConfigError
-from resireg.models.encoder import DenseEncoder, DenseOutput, InputRule
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.images import resize_square, tokens_to_grid
+from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 
 __all__ = [
     "TIPS_TOKENIZER_URL",

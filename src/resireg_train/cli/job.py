@@ -1,0 +1,520 @@
+"""What the Hydra mains share: where the configs live, the run-folder name resolver, and
+the task wrapper that records a failure in ``results.json`` and in the run's log file, and
+returns the value a sweeper optimises.
+
+How a failure is reported (docs/design.md section 9): ``results.json`` gets the status and
+the one-line error, the run's log file (``train.log`` / ``eval.log``) the error with its
+traceback, and the console either Hydra's traceback (an unexpected crash) or, for an error
+whose message says everything (a bad config value, a refused resume, a file that cannot be
+written, an unavailable download, a dataset of which nothing could be scored), that message
+alone. A multirun ends with one line per failed job, or, when none failed, one line naming
+its sweep folder and the ``resireg-report`` command.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import CompactHydraException
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+try:  # POSIX; where it is missing (Windows) run folders are not locked
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
+
+from resireg.errors import ResiregError
+from resireg_train.files import WriteError
+from resireg_train.paths import CONFIG_DIR, RUN_ID
+from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
+from resireg_train.validation import ConfigError
+
+__all__ = [
+    "CONFIG_DIR",
+    "RUN_ID",
+    "LOCK_FILE",
+    "JobFailed",
+    "RunFolderBusy",
+    "RunFolderLock",
+    "SweepRecords",
+    "added_keys",
+    "hydra_entry_point",
+    "instantiate_group",
+    "hold_run_folder",
+    "optimized_value",
+    "process_rank",
+    "register_resolvers",
+    "run_task",
+    "safe_dirname",
+    "top_level_keys",
+]
+
+log = logging.getLogger(__name__)
+
+
+def safe_dirname(text: str, max_length: int = 200) -> str:
+    """``text`` as one folder name: ``/`` becomes ``_``, and a name longer than ``max_length``
+    is cut and given a hash so it stays unique (Hydra's ``override_dirname`` keeps the ``/``
+    of paths given as values, which would nest folders)."""
+    name = str(text).replace("/", "_").replace(os.sep, "_")
+    if len(name) > max_length:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:8]
+        name = f"{name[: max_length - 9]}-{digest}"
+    return name
+
+
+def top_level_keys(config_name: str) -> set[str]:
+    """The top-level keys ``conf/<config_name>.yaml`` defines: its own fields, its groups
+    (``data``, ``model``...; ``experiment`` and ``sweep`` too), and the fields of the groups
+    it places at the top level (``resireg@_here_``: ``variants``, ``lite``, ``full``...)."""
+    raw = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / f"{config_name}.yaml"))
+    keys = {k for k in raw if k not in ("defaults", "hydra")}
+    for entry in raw.get("defaults") or []:
+        if not isinstance(entry, dict):
+            continue  # _self_
+        for spec, option in entry.items():
+            group, _, package = spec.partition("@")
+            if package == "_here_" and option:
+                placed = OmegaConf.load(CONFIG_DIR / group / f"{option}.yaml")
+                keys |= {k for k in placed if k != "defaults"}
+            else:
+                keys.add(package.split(".")[0] if package else group.split("/")[0])
+    return keys
+
+
+def added_keys() -> list[str]:
+    """The config keys this job's ``+key=value`` / ``++key=value`` overrides added (command
+    line or sweep; not the ``+group=option`` of a config group), ``[]`` outside Hydra. A
+    ``++`` override counts only if the config would not hold its key without it."""
+    if not HydraConfig.initialized():
+        return []
+    from hydra import compose
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    runtime = HydraConfig.get()
+    roots = [Path(src.path) for src in runtime.runtime.config_sources
+             if src.schema == "file"] or [CONFIG_DIR]  # fmt: skip
+    given = list(runtime.overrides.task)
+    added, forced = [], []
+    for override in OverridesParser.create().parse_overrides(given):
+        key = override.key_or_group
+        if not (override.is_add() or override.is_force_add()) or "/" in key:
+            continue
+        if any((root / key.replace(".", "/")).is_dir() for root in roots):
+            continue  # a config group: +prior=sam2
+        (forced if override.is_force_add() else added).append(key)
+    if forced:
+        plain = compose(runtime.job.config_name,
+                        overrides=[o for o in given if not o.startswith("+")])  # fmt: skip
+        added += [k for k in forced if OmegaConf.select(plain, k, default=None) is None]
+    return added
+
+
+def instantiate_group(group: DictConfig | None) -> list[Any]:
+    """Instantiate every ``_target_`` entry of a config group (callbacks, loggers)."""
+    if not group:
+        return []
+    return [hydra.utils.instantiate(c) for c in group.values() if c and "_target_" in c]
+
+
+def register_resolvers() -> None:
+    """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
+    ``first_key`` in ``conf/hparams_search``, ``resireg_encoders`` in the sweeps over every
+    encoder)."""
+    if not OmegaConf.has_resolver("safe_dirname"):
+        OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
+    if not OmegaConf.has_resolver("run_id"):
+        OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
+    import resireg_train.validation  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
+    from resireg_train.search import register_search_resolvers
+
+    register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
+
+
+#: The lock file in a run folder: held (``flock``) by the job writing the folder, with its PID.
+LOCK_FILE = ".run.lock"
+
+#: Run folders this process holds: resolved path -> the open lock file (its lock lives with it).
+_HELD: dict[Path, Any] = {}
+
+
+class RunFolderBusy(ResiregError, RuntimeError):
+    """Another running job holds the run folder (its PID is named)."""
+
+
+def process_rank() -> int:
+    """This process's global rank from the launcher's environment (the variables Lightning's
+    ``rank_zero_only`` reads), without importing Lightning; 0 for a single process."""
+    for name in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        if os.environ.get(name, "").isdigit():
+            return int(os.environ[name])
+    return 0
+
+
+def hold_run_folder(out: Path) -> bool:
+    """Lock the run folder ``out`` for this process: an OS lock (``fcntl.flock``) on its
+    :data:`LOCK_FILE`, into which this process's PID is written. The lock is the process's
+    until :func:`release_run_folder` or its exit, a crash or ``kill -9`` included (the OS drops
+    it with the process's files), so a stale lock file never blocks a later job.
+
+    Returns ``True`` if this call took the lock, ``False`` if this process already held it.
+    Raises :class:`RunFolderBusy` naming the holder's PID if another process holds it: two
+    jobs writing one folder would interleave their logs, maps and records.
+    """
+    key = out.resolve()
+    if key in _HELD or fcntl is None:
+        return False
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / LOCK_FILE
+    handle = open(path, "a+")  # not "w": truncating would erase the holder's PID
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "unknown (it is starting)"
+        handle.close()
+        raise RunFolderBusy(
+            f"{out} is in use by another job (PID {holder}, lock file {path}): wait for it to "
+            "end, or give this run its own folder (leave hydra.run.dir unset for a new one)"
+        ) from None
+    except BaseException:
+        handle.close()
+        raise
+    handle.truncate(0)
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    _HELD[key] = handle
+    return True
+
+
+def release_run_folder(out: Path) -> None:
+    """Release this process's lock on ``out`` (the lock file stays: removing it could let two
+    jobs lock two different files of the same name)."""
+    handle = _HELD.pop(out.resolve(), None)
+    if handle is not None:
+        handle.close()  # closing the file drops the flock
+
+
+class RunFolderLock(Callback):
+    """Hydra callback (``conf/train.yaml``, ``eval.yaml``, ``map.yaml``; in ``train.yaml`` after
+    ``RunFolderCheck``, so a refused resume leaves even the lock file as it was): locks a single
+    run's folder (:func:`hold_run_folder`) before Hydra writes anything into it (``.hydra/``,
+    the log file), so a second job given the same ``hydra.run.dir`` (or a ``resume=true`` while the
+    first still runs) is refused and leaves the first one's files as they were. Sweep jobs are
+    locked by :func:`run_task`; ranks > 0 of a DDP run (re-launched by Lightning into rank 0's
+    folder) take no lock."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if process_rank() != 0:
+            return
+        try:
+            hold_run_folder(Path(str(config.hydra.run.dir)))
+        except RunFolderBusy as err:
+            # Hydra turns a callback's exception into a warning and runs the job anyway: exit.
+            sys.stderr.write(f"resireg-{config.hydra.job.name}: refused: {err}\n")
+            raise SystemExit(1) from None
+
+
+def run_task(
+    cfg: DictConfig,
+    body: Callable[[DictConfig, Path], dict[str, Any]],
+    rank_zero: bool = True,
+    resume_hint: str | None = None,
+    fresh: bool = False,
+) -> dict[str, Any]:
+    """Run ``body(cfg, output_dir)`` with ``results.json`` kept up to date.
+
+    With ``fresh`` (a job that never resumes: ``resireg-eval``) the record starts empty: a
+    ``results.json`` already in the folder (an earlier run given the same ``hydra.run.dir`` or
+    ``hydra.sweep.dir``) is kept as ``results.previous-<n>.json`` instead of having its fields
+    merged into this run's, where a field this run does not write would survive as if it were
+    this run's.
+
+    The run is marked ``running`` first. Ctrl-C (``KeyboardInterrupt``) is recorded as
+    ``"status": "interrupted"`` and the process exits with status 130 (what a shell reports
+    for Ctrl-C) after saying how to resume (``resume_hint``). Any other failure, from a bad
+    config value to a crash mid-epoch, is recorded as ``"status": "failed"`` with its error
+    before it is re-raised, so a sweep report lists the job with its reason. Only rank 0
+    (``rank_zero``) writes.
+    """
+    out = Path(cfg.paths.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # Before anything is written: a folder another job writes is refused (its PID named). A
+    # lock taken here (a sweep job, a call from Python) is released when the job ends; a
+    # single run's, taken before Hydra wrote (RunFolderLock), lasts as long as the process.
+    took = rank_zero and hold_run_folder(out)
+    try:
+        return _run_locked(cfg, body, out, rank_zero, resume_hint, fresh)
+    finally:
+        if took:
+            release_run_folder(out)
+
+
+def _run_locked(
+    cfg: DictConfig,
+    body: Callable[[DictConfig, Path], dict[str, Any]],
+    out: Path,
+    rank_zero: bool,
+    resume_hint: str | None,
+    fresh: bool,
+) -> dict[str, Any]:
+    from resireg_train.provenance import start_provenance
+
+    if rank_zero:
+        if fresh:
+            _set_aside(out)
+        previous = read_results(out).get("provenance")  # a resumed run keeps its run id
+        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out),
+                       provenance=start_provenance(cfg, out, previous))  # fmt: skip
+    try:
+        result = body(cfg, out)
+        if rank_zero:
+            _record(out, provenance=_finished(out))
+            _track(cfg, out)
+        return result
+    except KeyboardInterrupt:
+        error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"
+        if resume_hint:
+            error += f"; {resume_hint}"
+        if rank_zero:
+            _record(out, status="interrupted", error=error, provenance=_finished(out))
+            _track(cfg, out)
+            log.warning("%s", error)
+        raise SystemExit(130) from None
+    except BaseException as exc:
+        if rank_zero:
+            error = error_text(exc)
+            status = getattr(exc, "run_status", "failed")  # "pruned": an Optuna search's pruner
+            _record(out, status=status, error=error, provenance=_finished(out))
+            _track(cfg, out)
+            _to_log_files(f"run {status}: {error}", exc)
+        raise
+
+
+def _track(cfg: DictConfig, out: Path) -> None:
+    """The finished run to the trackers of ``logger`` (:mod:`resireg_train.trackers`)."""
+    if cfg.get("logger"):
+        from resireg_train.trackers import record_run
+
+        record_run(cfg, out, training="trainer" in cfg)
+
+
+def _finished(out: Path) -> dict[str, Any]:
+    """The run's provenance block completed with its end (the run failed or was stopped)."""
+    from resireg_train.provenance import finish_provenance
+
+    try:
+        return finish_provenance(read_results(out).get("provenance") or {}, out)
+    except (OSError, ValueError):
+        return {}
+
+
+def _set_aside(out: Path) -> None:
+    """Rename an earlier run's ``results.json`` in ``out`` to the first free
+    ``results.previous-<n>.json`` (nothing is lost, nothing is merged)."""
+    record = out / RESULTS_FILE
+    if not record.is_file():
+        return
+    n = 1
+    while (kept := out / f"{record.stem}.previous-{n}{record.suffix}").exists():
+        n += 1
+    os.replace(record, kept)
+    log.warning("%s held an earlier run's record: kept as %s", out, kept.name)
+
+
+def error_text(exc: BaseException) -> str:
+    """``module.Type: message`` of an exception and its notes, one per line (the config path
+    of a library error: ``config: encoder``; what ``results.json`` records)."""
+    text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+    if sys.version_info < (3, 11):  # from 3.11 on, traceback prints the notes itself
+        text = "\n".join([text, *map(str, getattr(exc, "__notes__", None) or ())])
+    return text
+
+
+def _to_log_files(message: str, exc: BaseException | None) -> None:
+    """Write ``message`` to this process's log files only (Hydra's ``<output dir>/<job
+    name>.log``; the console gets the error from Hydra, once), with ``exc``'s traceback
+    unless its message is the whole report (a config error)."""
+    trace = None
+    if exc is not None and not isinstance(exc, _reported_types()):
+        trace = (type(exc), exc, exc.__traceback__)
+    record = logging.LogRecord(log.name, logging.ERROR, __file__, 0, message, None, trace)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)  # (a handler that cannot write reports it on stderr)
+
+
+def _record(out: Path, **fields: Any) -> None:
+    """Update ``results.json`` without hiding the error being recorded if this write fails
+    too (e.g. on the full disk that failed the run): then stderr (and the log file, if it
+    can be written) says which status could not be recorded and what the record still reads
+    (``running``), and the caller's exception or exit status makes the exit code non-zero."""
+    try:
+        update_results(out, **fields)
+    except OSError as err:
+        try:
+            stale = read_results(out).get("status")
+        except (OSError, ValueError):
+            stale = None
+        message = (
+            f"could not record status {fields.get('status')!r} in {out / RESULTS_FILE} ({err}); "
+            f"it still reads status {stale!r} although the run ended {fields.get('status')!r}: "
+            f"{flat(str(fields.get('error')))}"
+        )
+        sys.stderr.write(f"error: {message}\n")
+        sys.stderr.flush()
+        _to_log_files(message, None)
+
+
+def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
+    """The value a sweeper (e.g. Optuna) optimises: ``optimized_metric``'s best value if the
+    run tracked one, else its final value; ``None`` when unset or on ranks other than 0.
+
+    A metric that was logged but is not finite (NaN, stored as ``null`` in ``results.json``)
+    raises: the job is failed, and an Optuna search records its trial FAIL and goes on."""
+    name = cfg.get("optimized_metric")
+    if not name or not results:
+        return None
+    for section in ("best", "final"):
+        if name not in results.get(section, {}):
+            continue
+        value = results[section][name]
+        value = value["value"] if isinstance(value, dict) else value
+        if value is None or not math.isfinite(float(value)):
+            raise ValueError(
+                f"optimized_metric={name!r} is {value!r}: not finite, so this job scores nothing"
+            )
+        return float(value)
+    logged = sorted(results.get("final", {}))
+    raise KeyError(f"optimized_metric={name!r} was not logged; logged: {logged}")
+
+
+class JobFailed(ResiregError, CompactHydraException):
+    """A job failed with an error whose message says what to do: Hydra prints the message
+    alone, not a traceback (the run's log file keeps it; ``HYDRA_FULL_ERROR=1`` shows it)."""
+
+
+def _reported_types() -> tuple[type[BaseException], ...]:
+    """The errors whose message is the whole report (see the module docstring). The classes
+    of modules not loaded yet cannot have been raised, so nothing heavy is imported here."""
+    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy]
+    for module, name in (
+        ("resireg_train.training.checkpoints", "CheckpointError"),
+        ("resireg_train.evaluation", "NothingScoredError"),
+        ("resireg.models.hub", "WeightsUnavailableError"),
+    ):
+        cls = getattr(sys.modules.get(module), name, None)
+        if cls is not None:
+            types.append(cls)
+    return tuple(types)
+
+
+class SweepRecords(Callback):
+    """Hydra callback (``conf/hydra/default.yaml``) that notes, in the process that launches a
+    multirun, where its jobs write and which job records were already there, so that process
+    can list every failed job once the sweep ends (:func:`hydra_entry_point`).
+
+    The list comes from the jobs' ``results.json`` files, not from this process's memory: with
+    a launcher that runs jobs elsewhere (``hydra/launcher=submitit_slurm``, ``submitit_local``)
+    no job runs in this process, and Hydra itself reports only the first failure. A record is
+    this sweep's when it is new or changed since the sweep started (a resumed Optuna search
+    keeps its earlier trials' folders); changes are found by file size and modification time
+    as the file system gives them, never compared with this machine's clock (a cluster's
+    shared file system may run on another)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep = Path(str(config.hydra.sweep.dir))
+        _SWEEP.clear()
+        _SWEEP.update(dir=sweep, before=_job_records(sweep))
+
+
+#: The multirun this process launched: its folder and its job records before it started.
+_SWEEP: dict[str, Any] = {}
+
+
+def _job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
+    """Every job record of ``sweep`` (``<sweep>/<job>/results.json``): (mtime ns, size)."""
+    records = {}
+    for path in sweep.glob(f"*/{RESULTS_FILE}"):
+        try:
+            stat = path.stat()
+        except OSError:  # removed meanwhile
+            continue
+        records[path] = (stat.st_mtime_ns, stat.st_size)
+    return records
+
+
+def _job_number(folder: Path) -> int:
+    """A job folder's number: the ``<n>_`` its name starts with (conf/hydra/default.yaml)."""
+    head = folder.name.split("_", 1)[0]
+    return int(head) if head.isdigit() else -1
+
+
+def _sweep_summary(prog: str, sweep: Path, before: dict[Path, tuple[int, int]]) -> str:
+    """One line per failed job of the multirun in ``sweep`` (Hydra itself reports only the
+    first): its number, folder and its error (on one line), from the job records written
+    since ``before`` (:class:`SweepRecords`); when none failed, one line with the number of
+    jobs (and pruned trials), the folder and the report command."""
+    now = _job_records(sweep)
+    jobs = sorted((p for p, stat in now.items() if before.get(p) != stat),
+                  key=lambda p: (_job_number(p.parent), p.parent.name))  # fmt: skip
+    failures, pruned = [], 0
+    for path in jobs:
+        record = read_results(path.parent)
+        if record.get("status") == "failed":
+            failures.append((path.parent, str(record.get("error") or "no error recorded")))
+        pruned += record.get("status") == "pruned"
+    if not jobs:
+        return ""
+    if not failures:
+        stopped = f", {pruned} pruned" if pruned else ""
+        return (f"{prog}: {len(jobs)} jobs ran{stopped}, none failed (sweep {sweep}; "
+                f"resireg-report {sweep} lists every job)\n")  # fmt: skip
+    lines = [f"{prog}: {len(failures)} of {len(jobs)} jobs failed (sweep {sweep}; "
+             f"resireg-report {sweep} lists every job):"]  # fmt: skip
+    lines += [f"  job {_job_number(out)} ({out.name}): {flat(error)}" for out, error in failures]
+    return "\n".join(lines) + "\n"
+
+
+def hydra_entry_point(
+    config_name: str, task: Callable[[DictConfig], dict[str, Any]]
+) -> Callable[[], float | None]:
+    """A console entry point: Hydra composes ``conf/<config_name>.yaml`` with the command
+    line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper.
+
+    A failing job is listed; a multirun ends with one line per failed job (on stderr),
+    after Hydra's report of the first one, wherever its jobs ran (:class:`SweepRecords`)."""
+    register_resolvers()
+    prog = f"resireg-{config_name}"
+
+    @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
+    def main(cfg: DictConfig) -> float | None:
+        log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
+        try:
+            return optimized_value(cfg, task(cfg))
+        except Exception as exc:
+            if isinstance(exc, _reported_types()):
+                raise JobFailed(error_text(exc)) from exc
+            raise
+
+    def entry() -> float | None:
+        _SWEEP.clear()
+        try:
+            return main()
+        finally:
+            # (a worker an Optuna search started itself leaves the summary to the search)
+            if _SWEEP and os.environ.get("RESIREG_SEARCH_WORKER") != "1":
+                sys.stderr.write(_sweep_summary(prog, _SWEEP["dir"], _SWEEP["before"]))
+
+    return entry
