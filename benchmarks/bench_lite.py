@@ -4,7 +4,7 @@ its accuracy per dtype and SDPA backend.
 Lite attends every upsampled point of an image to every other (queries = keys = the
 normalised bilinear upsampling of the intermediates; values = the nearest upsampling of the
 language tokens). ``ReSiRegLite(attention=...)`` computes it two exact ways
-(docs/design.md section 4.3): ``sdpa`` (``scaled_dot_product_attention`` on the upsampled
+(docs/method.md#resireg-lite): ``sdpa`` (``scaled_dot_product_attention`` on the upsampled
 points, ``4 N^2 W`` FLOP per image) and ``factorised`` (from the coarse grid's Gram matrix).
 
 1. **Lite / VLM** (the issue's measure). One batch of ``--batch`` generated 3:4 images at
@@ -65,7 +65,7 @@ def generated_batch(model: Any, images: int, short_side: int) -> torch.Tensor:
 def dense_reference(
     inter: torch.Tensor, lang: torch.Tensor, alpha: float, upscale: int
 ) -> torch.Tensor:
-    """Lite's formula (docs/design.md section 4.3, tau = 0, no prior) evaluated densely in
+    """Lite's formula (docs/method.md#resireg-lite, tau = 0, no prior) evaluated densely in
     float64, image by image: ``normalise(softmax(alpha u u^T) l)``. ``[B, Dl, H, W]``."""
     up = F.normalize(
         F.interpolate(inter.double(), scale_factor=upscale, mode="bilinear", align_corners=False),

@@ -46,7 +46,7 @@ every formula against it, exactly, on the real modules.
   image, ``N = s^2 h w`` each. Its ``sdpa`` computation (the default on CUDA): with tau = 0
   SDPA runs on q, k, v zero-padded to ``W = max(Dv, Dl)``: ``4 B N^2 W``. (tau > 0, the
   chunked explicit path: ``2 B N^2 (Dv + Dl)``.) Its ``factorised`` computation (the default
-  elsewhere, docs/design.md section 4.3): the coarse Gram rows of each query block (with the
+  elsewhere, docs/method.md#resireg-lite): the coarse Gram rows of each query block (with the
   row above and below) and the per-token weight sums times the coarse tokens, about
   ``B (2 (h w)^2 Dv + 2 N h w Dl)`` (:func:`lite_flops`). The segmentation prior (extra keys)
   is not used here.

@@ -17,7 +17,7 @@ not a crash):
    the protocol gives Lite, and the features cast to bf16): SDPA with each CUDA backend forced
    (``torch.nn.attention.sdpa_kernel``: flash, memory-efficient, cuDNN, math; flash and cuDNN
    need q/k/v widths <= 256, so at Lite's padded 512 they are expected to be rejected, see
-   docs/design.md section 4.3) and the factorised computation; seconds, GFLOP/s, fraction of
+   docs/method.md#resireg-lite) and the factorised computation; seconds, GFLOP/s, fraction of
    the bf16 peak, max difference from the fp32 factorised output.
 4. **Full's clustering** (``ReSiRegFull.assign``, 8 images, 55,296 points) on the GPU, on this
    host's CPU, and (``--cpu-reference``) on the CPU machine that wrote the reference JSON.

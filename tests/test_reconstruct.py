@@ -1,4 +1,4 @@
-"""ReSiReg Full / Lite against plain-loop references of the docs/design.md section 4 equations."""
+"""ReSiReg Full / Lite against plain-loop references of the docs/method.md#resireg equations."""
 
 import math
 import subprocess
@@ -175,7 +175,7 @@ def test_lite_upscale_matches_manual_bilinear(attention):
 
 
 def _lite_float64(inter, lang, alpha, tau, upscale, prior=None):
-    """Lite's formula (docs/design.md section 4.3) on the materialised upsampled maps, in
+    """Lite's formula (docs/method.md#resireg-lite) on the materialised upsampled maps, in
     float64: bilinear intermediates, nearest language tokens and prior, dense softmax."""
     up = F.interpolate(inter.double(), scale_factor=upscale, mode="bilinear", align_corners=False)
     b, _, h, w = up.shape

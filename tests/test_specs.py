@@ -3,7 +3,7 @@
 The tables are compared with what they describe, read independently: the classes' signatures
 (``inspect``), the composed ``conf/`` (Hydra's compose API), the ``conf/`` files on disk, and a
 hand-written list of values each parameter must accept or refuse (the documented ranges of
-docs/design.md section 4), run through both readers of a rule: the class and the config check.
+docs/method.md#resireg), run through both readers of a rule: the class and the config check.
 """
 
 import inspect
@@ -53,7 +53,7 @@ def test_each_variant_entry_names_its_class_its_keywords_and_conf_defaults():
             assert default == cfg[name][key], (name, key, default, cfg[name][key])
 
 
-# (variant, parameter) -> values accepted, values refused (docs/design.md section 4)
+# (variant, parameter) -> values accepted, values refused (docs/method.md#resireg)
 _VALUES = {
     ("full", "n_prototypes"): ([1, 36, "auto", "elbo"], [0, -2, 2.5, True, "36"]),
     ("full", "elbo_candidates"): ([None, [24, 36], [8]], [[], [0], [2.5], "24", 24]),
@@ -210,7 +210,7 @@ class ToyEncoder(DenseEncoder):
 
 @pytest.mark.slow
 def test_an_encoder_registered_through_the_table_runs_through_resireg_eval(tmp_path):
-    """The recipe of docs/design.md section 13 from outside the project: one module (a tiny
+    """The recipe of docs/architecture.md#spec-tables from outside the project: one module (a tiny
     real DenseEncoder), one table entry (an EncoderSpec, registered by an entry point of an
     installed distribution) and one conf/encoder/ file run ``resireg-eval`` on the synthetic
     set; without the entry (in this process) the config check refuses the kind, naming the key. The parameter

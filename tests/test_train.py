@@ -30,7 +30,7 @@ def _compose(*overrides):
         return compose("train", overrides=list(overrides))
 
 
-# docs/design.md section 7, key by key.
+# docs/method.md#training-recipe, key by key.
 RECIPE = {
     "trainer.max_epochs": (100, 350),
     "data.batch_size": (48, 48),

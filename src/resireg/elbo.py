@@ -1,7 +1,6 @@
 """The prototype count by the evidence lower bound: which of several counts fits the points best.
 
-The one job of this module is ReSiReg Full's ``n_prototypes="elbo"`` (docs/design.md section
-4.4b): :func:`elbo_prototype_count` fits, for each candidate count, a variational Bayesian
+The one job of this module is ReSiReg Full's ``n_prototypes="elbo"`` (docs/method.md#the-prototype-count-by-the-evidence-lower-bound): :func:`elbo_prototype_count` fits, for each candidate count, a variational Bayesian
 Gaussian mixture (:func:`vb_gmm`, scikit-learn's ``BayesianGaussianMixture`` with diagonal
 covariances, in torch) started from k-means labels (:func:`resireg.kmeans.nested_kmeans`), on
 a uniform subsample of the points (:func:`elbo_subsample`), and returns the count of the
@@ -279,7 +278,7 @@ def elbo_fits(
     n_points: int | None = None,
 ) -> dict[int, VBGMMResult]:
     """The variational mixtures of the candidate counts, fitted for
-    :func:`elbo_prototype_count` (docs/design.md section 4.4b).
+    :func:`elbo_prototype_count` (docs/method.md#the-prototype-count-by-the-evidence-lower-bound).
 
     For the candidates ``k`` in increasing order (all, or until ``stop_after`` ends the scan): a
     greedy k-means++ seeding (seed ``seed``), ``kmeans_iter`` Lloyd iterations from it (none by
@@ -369,7 +368,7 @@ def elbo_prototype_count(
     **options: Any,
 ) -> int:
     """The prototype count among ``candidates`` whose mixture has the largest evidence lower
-    bound (the smaller count on a tie; docs/design.md section 4.4b).
+    bound (the smaller count on a tie; docs/method.md#the-prototype-count-by-the-evidence-lower-bound).
 
     The candidates are fitted in increasing order and the scan stops once ``stop_after``
     consecutive candidates fall below the largest bound so far (the bound rises with the

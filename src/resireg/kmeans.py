@@ -1,7 +1,7 @@
 """Torch k-means: cluster points into ``k`` centroids, as scikit-learn's ``KMeans`` does.
 
 The one job of this module is the k-means that groups ReSiReg Full's projected points into
-prototypes (docs/design.md section 4.4). :func:`kmeans` is scikit-learn's
+prototypes (docs/method.md#pca-and-k-means). :func:`kmeans` is scikit-learn's
 ``KMeans(init="k-means++", n_init=1)``: greedy k-means++ seeding (:func:`kmeans_plusplus`),
 then Lloyd iterations stopped by scikit-learn's tolerance rule, with distance bounds
 (Hamerly's upper bound, Yinyang's grouped lower bounds, both widened by a rigorous float

@@ -1,6 +1,6 @@
 """Open-vocabulary semantic segmentation (OVSS): vocabularies, text prototypes, metric.
 
-The protocol follows the paper's appendix (docs/design.md section 5): one text prototype
+The protocol follows the paper's appendix (docs/method.md#2d-evaluation-ovss): one text prototype
 per class from the 80 OpenAI ImageNet templates, cosine similarity with dense features,
 nearest upsampling to the label size, softmax with temperature 100, argmax; mIoU over
 classes present, ignore index 255.
@@ -153,7 +153,7 @@ def predict_grid(dense: Tensor, prototypes: Tensor, temperature: float = 100.0) 
     ``temperature``, argmax. :func:`predict` brings it to the label size.
 
     The softmax does not change the argmax; it is kept so the computation is the protocol's
-    as written (docs/design.md section 5).
+    as written (docs/method.md#2d-evaluation-ovss).
     """
     logits = class_similarity(dense, prototypes)
     return torch.softmax(temperature * logits, dim=1).argmax(dim=1)

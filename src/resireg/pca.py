@@ -1,7 +1,7 @@
 """Torch PCA: fit a principal-component basis to points, from the points or their moments.
 
 The one job of this module is the PCA that ReSiReg Full projects its intermediates with
-before clustering them (docs/design.md section 4.4): :func:`pca` of ``[N, D]`` points,
+before clustering them (docs/method.md#pca-and-k-means): :func:`pca` of ``[N, D]`` points,
 :func:`pca_from_moments` and :class:`PCASpectrum` of points known only by their first and
 second moments (ReSiReg Full's upsampled points, whose moments
 :func:`resireg.reconstruct.upsampled_moments` takes from the small grid), and :func:`gram`,

@@ -1,6 +1,6 @@
 """ReSiReg Full and Lite: parameter-free reconstruction of dense language features.
 
-Notation (docs/design.md section 4): intermediates ``F_v`` ``[B, Dv, Hv, Wv]`` carry the
+Notation (docs/method.md#resireg): intermediates ``F_v`` ``[B, Dv, Hv, Wv]`` carry the
 backbone's spatial structure, language tokens ``F_vl`` ``[B, Dl, Hl, Wl]`` carry the
 language-aligned (but spatially noisy) features, and an optional segmentation prior
 ``S`` ``[B, H', W']`` holds instance ids (0 = none). Both modules return
@@ -298,7 +298,7 @@ class ReSiRegFull(nn.Module):
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
             prototype heuristic as a function of the batch size (see ``heuristic``), or
             ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
-            bound (:func:`resireg.elbo.elbo_prototype_count`, docs/design.md section 4.4b).
+            bound (:func:`resireg.elbo.elbo_prototype_count`, docs/method.md#the-prototype-count-by-the-evidence-lower-bound).
         n_components: PCA components ``r``; ``None`` (default): equal to the prototype
             count of the batch (tied, as in the paper's ablation and ``full.n_components:
             null`` of conf/resireg/default.yaml). Clipped to the intermediate dimension.
@@ -606,7 +606,7 @@ class ReSiRegLite(nn.Module):
     points (gated by ``tau``) and ``f_p = normalise(sum_q lambda_pq L_q)``, with ``u`` the
     bilinearly upsampled intermediates and ``L`` the nearest-upsampled language tokens.
 
-    Two exact computations (docs/design.md section 4.3), chosen by ``attention``:
+    Two exact computations (docs/method.md#resireg-lite), chosen by ``attention``:
 
     - ``"sdpa"``: single-head attention with ``Q = K =`` the normalised upsampled points and
       ``V =`` the upsampled tokens, by ``scaled_dot_product_attention`` in O(N) memory
@@ -681,7 +681,7 @@ class ReSiRegLite(nn.Module):
         return out.transpose(1, 2).reshape(b, -1, h, w).to(language.dtype)
 
     def _factorised(self, intermediates: Tensor, language: Tensor, prior: Tensor | None) -> Tensor:
-        """Lite from the coarse grid, exactly (docs/design.md section 4.3).
+        """Lite from the coarse grid, exactly (docs/method.md#resireg-lite).
 
         Per image, with ``X`` the ``h w`` coarse points, ``U`` the bilinear upsampling and
         ``P`` the nearest one (``N x h_l w_l`` one-hot rows): the upsampled points are

@@ -14,7 +14,7 @@ and returns unit-norm dense language features ``[B, Dl, h, w]``:
 Full). The evaluation engine, the training callback and ``DenseEncoder.encode_image`` build
 variants only through :func:`build_variant`, which takes each class from the variant table
 (:data:`resireg.specs.variants.VARIANT_SPECS`): a new variant is one module, one entry there
-and its defaults in ``conf/resireg/default.yaml`` (docs/design.md section 13).
+and its defaults in ``conf/resireg/default.yaml`` (docs/architecture.md#spec-tables).
 """
 
 from __future__ import annotations

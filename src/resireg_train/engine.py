@@ -1,4 +1,4 @@
-"""The parts the 2D and 3D evaluation engines share (docs/design.md section 10.4).
+"""The parts the 2D and 3D evaluation engines share (docs/architecture.md#adding-a-task).
 
 The engines (:class:`resireg_train.ovss.engine.OVSSEngine`, 2D;
 :class:`resireg_train.mapping.engine.MappingEngine`, 3D) derive from :class:`EvalEngine`: one

@@ -1,4 +1,4 @@
-"""What ``resireg-eval``'s tasks share (docs/design.md section 10.4); torch-free (the engines'
+"""What ``resireg-eval``'s tasks share (docs/architecture.md#adding-a-task); torch-free (the engines'
 shared parts, which import torch, are :mod:`resireg_train.engine`).
 
 The task table (:data:`resireg_train.tasks.TASK_SPECS`) names one :class:`TaskProtocol`
@@ -146,7 +146,7 @@ def write_results(
 
 def elbo_counts(variants: Mapping[str, Any]) -> dict[str, Any]:
     """``{"elbo_prototypes": {configuration: {count: batches}}}`` of the ``full.n_prototypes=
-    elbo`` configurations (the count each batch was given, docs/design.md section 4.4b); ``{}``
+    elbo`` configurations (the count each batch was given, docs/method.md#the-prototype-count-by-the-evidence-lower-bound); ``{}``
     when none ran."""
     counts = {name: dict(sorted(Counter(str(n) for n in v.chosen).items(), key=lambda c: int(c[0])))
               for name, v in variants.items() if getattr(v, "chosen", None)}  # fmt: skip

@@ -1,4 +1,4 @@
-"""Optuna searches (``hparams_search=<name>``, docs/design.md section 9, Optuna searches):
+"""Optuna searches (``hparams_search=<name>``, docs/guide.md#run-records-and-faults, Optuna searches):
 the study's storage, the search space, the ask-and-tell loop that the project's Hydra sweeper
 (``hydra/sweeper=resireg_optuna``) and its workers run, and the study as the report reads it.
 

@@ -1,5 +1,5 @@
 """``resireg-eval``'s tasks by ``task`` (``conf/eval.yaml``): one entry each, the only list of
-them (docs/design.md section 10.4).
+them (docs/architecture.md#adding-a-task).
 
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
 (:func:`resireg_train.validation.validate_eval`) reads the task names and each task's

@@ -242,8 +242,8 @@ def _on_layer(name: Any) -> bool:
 _unit = interval(0, 1)[0]
 
 
-#: resireg-eval's tasks (the table :data:`resireg_train.tasks.TASK_SPECS`; docs/design.md
-#: section 10.4).
+#: resireg-eval's tasks (the table :data:`resireg_train.tasks.TASK_SPECS`;
+#: docs/architecture.md#adding-a-task).
 TASKS = tuple(TASK_SPECS)
 
 

@@ -143,7 +143,7 @@ def _lite_module(attention: str, lite_kwargs: dict[str, Any] | None) -> ReSiRegL
             "attention='factorised': ReSiReg Lite's factorised form does not export to ONNX "
             "(torch.export stops at its data-dependent token-index check, aten.equal, and its "
             "block loop depends on the grid); export attention='sdpa', the same function "
-            "(docs/design.md section 4.3), which TensorRT runs as fused attention"
+            "(docs/method.md#resireg-lite), which TensorRT runs as fused attention"
         )
     return ReSiRegLite(**{**(lite_kwargs or {}), "attention": "sdpa"})
 

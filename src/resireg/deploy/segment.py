@@ -1,6 +1,6 @@
 """One image, a few labels, a segmentation: :func:`segment` and its figures (``resireg-segment``).
 
-The prediction is the evaluation protocol's (:mod:`resireg.ovss`, docs/design.md section 5):
+The prediction is the evaluation protocol's (:mod:`resireg.ovss`, docs/method.md#2d-evaluation-ovss):
 one text prototype per label from the 80 ImageNet templates (:func:`~resireg.ovss.text_prototypes`),
 cosine similarity with the dense features (:func:`~resireg.ovss.class_similarity`), softmax
 with temperature 100 and argmax, brought to the image's size by nearest upsampling

@@ -5,8 +5,7 @@ depth as (patch, voxel, count) pairs (:mod:`.lifting`), sparse voxel maps of run
 sums and of ground-truth class votes (:mod:`.voxels`), and queries: cosine classification
 (optionally with RayFronts' prediction threshold and prompt denoising) and k-nearest-neighbour
 label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`) puts them together
-into the object a robot feeds with posed RGB-D windows and queries by text (docs/design.md
-section 10.3). Conventions: docs/design.md section 10.1.
+into the object a robot feeds with posed RGB-D windows and queries by text (docs/method.md#robot-maps-semanticmap). Conventions: docs/method.md#the-voxel-map.
 
 Typical online use, one batch of frames at a time::
 

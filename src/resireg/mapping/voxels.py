@@ -1,7 +1,7 @@
 """Sparse voxel maps: running feature sums (:class:`VoxelMap`) and class votes (:class:`LabelVoxelMap`).
 
 A point ``p`` (metres) falls in the voxel of an integer index per axis, by one of two lattices
-(:data:`LATTICES`, docs/design.md section 10.1):
+(:data:`LATTICES`, docs/method.md#the-voxel-map):
 
 - ``"round"`` (the default): index ``round(p / voxel_size)`` (half to even, as ``torch.round``),
   centre ``index * voxel_size``: RayFronts' ``geometry3d.pointcloud_to_sparse_voxels``, whose

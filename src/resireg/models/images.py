@@ -3,7 +3,7 @@
 The shorter side is scaled to ``short_side`` (aspect kept; ``None`` keeps the size), then
 each side is rounded to a multiple of the patch size; bilinear with antialiasing. The
 evaluation datasets resize in DataLoader workers with these same functions, so a model's
-own preprocessing and the evaluation agree pixel for pixel (docs/design.md section 3).
+own preprocessing and the evaluation agree pixel for pixel (docs/method.md#the-dense-encoder-interface).
 """
 
 from __future__ import annotations

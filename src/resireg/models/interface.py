@@ -19,8 +19,7 @@ normalises.
 
 ``preprocess``, ``encode_image`` and ``similarity`` are shared by every encoder, so a new
 backbone implements ``input_rule``, ``encode``, ``encode_text`` and ``spec`` (its
-construction config: ``build_encoder(**encoder.spec())`` rebuilds it; docs/design.md
-section 3).
+construction config: ``build_encoder(**encoder.spec())`` rebuilds it; docs/method.md#the-dense-encoder-interface).
 
 An encoder that takes a block index (CLIP's ``intermediate_layer`` and its layer sweep, the
 EUPE backbone's ``intermediate_layer``) reads it with :func:`block_indices`, the one rule:

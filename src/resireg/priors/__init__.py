@@ -1,7 +1,7 @@
 """Segmentation priors for ReSiReg: instance-id maps ``[B, H, W]`` (0 = none) from images.
 
 A prior provider is any callable ``images -> LongTensor [B, H, W]``; ReSiReg Full and Lite
-take its output as ``prior`` (docs/design.md sections 4.2, 4.3, 4.3c) and
+take its output as ``prior`` (docs/method.md#resireg-full) and
 ``DenseEncoder.encode_image(..., prior=provider)`` calls it on the images it encodes.
 
 - :class:`SamPrior`: SAM 2.1 automatic masks through Hugging Face ``transformers``

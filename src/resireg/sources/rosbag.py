@@ -1,6 +1,6 @@
 """Posed RGB-D frames from a ROS 2 bag (sqlite3 or MCAP) or a ROS 1 bag, read with ``rosbags``
 (pure Python, no ROS install; ``rosbags.highlevel.AnyReader``), for ``resireg-map``
-(docs/design.md section 10.3).
+(docs/method.md#robot-maps-semanticmap).
 
 Topics (:class:`BagTopics`; :func:`open_bag` takes them as keywords, the keys of
 ``conf/source/rosbag.yaml``), decoded by :mod:`resireg.sources.messages`:

@@ -51,7 +51,7 @@ __all__ = [
 #: Where the variants' defaults live (the ``resireg`` config group; key = the variant name).
 DEFAULTS_FILE = "conf/resireg/default.yaml"
 
-#: How ReSiReg Lite computes its attention (``lite.attention``, docs/design.md section 4.3):
+#: How ReSiReg Lite computes its attention (``lite.attention``, docs/method.md#resireg-lite):
 #: ``auto`` (by device: ``sdpa`` on CUDA, ``factorised`` elsewhere), ``sdpa`` (PyTorch's fused
 #: attention on the upsampled points) or ``factorised`` (from the coarse grid's Gram matrix).
 LITE_ATTENTION: tuple[str, ...] = ("auto", "sdpa", "factorised")

@@ -15,7 +15,7 @@
 ``scannet3d``) whose protocol (:class:`resireg_train.evaluation.TaskProtocol`) this module
 drives with no task switch of its own: ``check`` the sources, load the encoder, ``build`` the
 dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.
-write_results` with the task's ``results``); docs/design.md section 10.4.
+write_results` with the task's ``results``); docs/architecture.md#adding-a-task.
 The 2D scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
 model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
 ReSiReg's parameters (``variants``, ``lite.*``, ``full.*``) come from the ``resireg``

@@ -2,7 +2,7 @@
 the task wrapper that records a failure in ``results.json`` and in the run's log file, and
 returns the value a sweeper optimises.
 
-How a failure is reported (docs/design.md section 9): ``results.json`` gets the status and
+How a failure is reported (docs/guide.md#run-records-and-faults): ``results.json`` gets the status and
 the one-line error, the run's log file (``train.log`` / ``eval.log``) the error with its
 traceback, and the console either Hydra's traceback (an unexpected crash) or, for an error
 whose message says everything (a bad config value, a refused resume, a file that cannot be

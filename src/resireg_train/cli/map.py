@@ -1,5 +1,5 @@
 """``resireg-map``: a language-queryable voxel map from a posed RGB-D recording (Hydra main;
-``conf/map.yaml``, docs/design.md section 10.3).
+``conf/map.yaml``, docs/method.md#robot-maps-semanticmap).
 
     resireg-map source=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
     resireg-map source=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1

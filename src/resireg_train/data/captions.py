@@ -1,6 +1,6 @@
 """Caption data on Hugging Face ``datasets``: sources -> one ``{image, caption}`` stream -> batches.
 
-Pipeline (docs/design.md section 8):
+Pipeline (docs/guide.md#caption-data):
 
 1. Each configured source is opened in streaming mode (a hub id, a local folder of
    parquet / image files / webdataset shards, a ``datasets`` builder name with
@@ -351,7 +351,7 @@ class _EpochDataLoader(DataLoader):
 
 
 class CaptionDataModule(L.LightningDataModule):
-    """Image-caption training data (docs/design.md section 8).
+    """Image-caption training data (docs/guide.md#caption-data).
 
     Args:
         sources: ``{name: spec}``; see :func:`open_caption_source`. Each spec holds a

@@ -3,7 +3,7 @@
 Every dataset is a map-style :class:`SegmentationSet` yielding the image resized so its
 shorter side is ``short_side`` (576 in the paper's protocol; sides rounded to the patch
 size) and the label map at full resolution (predictions are brought to the label size
-with nearest upsampling, docs/design.md section 5).
+with nearest upsampling, docs/method.md#2d-evaluation-ovss).
 
 Batches: ReSiReg Full treats a batch as one scene (prototypes shared across its images),
 so every image of a batch must have the same resized size. :meth:`SegmentationSet.batches`

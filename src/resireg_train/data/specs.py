@@ -1,6 +1,5 @@
 """The evaluation datasets by ``kind`` (``dataset.kind``, ``conf/dataset/<config>.yaml``): one
-entry each, the only place a kind's builder, keys and task are written (docs/design.md
-sections 2 and 13).
+entry each, the only place a kind's builder, keys and task are written (docs/architecture.md#spec-tables).
 
 Torch-free, like the spec tables of :mod:`resireg.specs` and the task table
 (:mod:`resireg_train.tasks`): the config check (:func:`resireg_train.validation.validate_eval`)

@@ -1,7 +1,7 @@
 """``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet scenes as a task protocol
 (:class:`resireg_train.evaluation.TaskProtocol`; the entry ``scannet3d`` of
 :data:`resireg_train.tasks.TASK_SPECS`) over the engine
-:class:`~resireg_train.mapping.engine.MappingEngine` (docs/design.md section 10). Beside the
+:class:`~resireg_train.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
 :meth:`~resireg_train.mapping.engine.MappingResult.write_csv`), ``frames`` and
 ``frames_dropped``."""

@@ -8,13 +8,11 @@ Per batch (images of one size, see :meth:`SegmentationSet.batches`): the encoder
 (``encode``); each variant of :func:`resireg.variants.build_variants` turns its
 (intermediates, language tokens) into dense features; every image is then predicted
 against the text prototypes at the features' grid (:func:`resireg.ovss.predict_grid`) and
-scored at its label's full resolution in one confusion matrix per variant (docs/design.md
-section 5): each label is counted once per batch against the grid's cells
+scored at its label's full resolution in one confusion matrix per variant (docs/method.md#2d-evaluation-ovss): each label is counted once per batch against the grid's cells
 (:meth:`SegmentationMetric.blocks`), which gives the confusion of the nearest-upsampled
 prediction (:func:`resireg.ovss.predict`) without upsampling it for every configuration.
 
-A configuration ``<variant>@layer:<block>`` (``lite@layer:5``; the CLIP layer sweep, docs/design.md
-section 5) runs on that encoder block's intermediates instead of the encoder's own: the
+A configuration ``<variant>@layer:<block>`` (``lite@layer:5``; the CLIP layer sweep, docs/method.md#2d-evaluation-ovss) runs on that encoder block's intermediates instead of the encoder's own: the
 encoder's ``encode_layers`` returns every block the configurations ask for from the same
 single pass (``DenseOutput.layers``), and each configuration takes its block's tensor. Work
 the configurations of a batch share (:func:`resireg.variants.apply_variant`) is shared only

@@ -176,7 +176,7 @@ def report(
             ]
             elbo = elbo_table(jobs, metric, grid, heuristic)
             if len(elbo):
-                lines += ["", "## ELBO prototype count beside the heuristic (design 4.4b)", "",
+                lines += ["", "## ELBO prototype count beside the heuristic (docs/method.md#the-prototype-count-by-the-evidence-lower-bound)", "",
                           markdown(elbo, floatfmt=".4f")]  # fmt: skip
     if metric and any(j.results.get("history") for j in jobs):
         curves = out / "curves.png"

@@ -106,7 +106,7 @@ def fit_heuristic(grid: pd.DataFrame) -> tuple[PrototypeHeuristic, dict[int, int
     return PrototypeHeuristic.fit(list(best), list(best.values())), best
 
 
-ELBO = "elbo"  # full.n_prototypes=elbo / full@n_prototypes:elbo (docs/design.md section 4.4b)
+ELBO = "elbo"  # full.n_prototypes=elbo / full@n_prototypes:elbo (docs/method.md#the-prototype-count-by-the-evidence-lower-bound)
 
 
 def elbo_table(jobs: list[Job], metric: str, grid: pd.DataFrame,

@@ -38,7 +38,7 @@ def _require(settings: Any, keys: tuple[str, ...], key: str) -> None:
 
 
 class ResiregModule(L.LightningModule):
-    """Two-stage training of the dense VLM (docs/design.md section 7).
+    """Two-stage training of the dense VLM (docs/method.md#training-recipe).
 
     Args:
         backbone, head, text: model configs (see :meth:`ResiregVLM.build`).

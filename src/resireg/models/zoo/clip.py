@@ -7,7 +7,7 @@ One frozen open_clip ``CLIP`` model gives everything:
   class token dropped, patch tokens reshaped to the grid. Default: SC-CLIP's mid-level
   block (see :class:`ClipEncoder`). :meth:`ClipEncoder.encode_layers` returns, from the
   same single pass, the tokens of every block it is asked for (``DenseOutput.layers``: the
-  CLIP layer sweep, docs/design.md section 5).
+  CLIP layer sweep, docs/method.md#2d-evaluation-ovss).
 - ``language`` ``[B, embed_dim, H/p, W/p]``: the dense tokens of the last block with its
   attention replaced by the identity (every token attends only to itself), then
   ``ln_post`` and ``proj``. With ``x`` the last block's input and
