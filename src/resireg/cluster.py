@@ -8,9 +8,9 @@ the module it moved to. ``import resireg`` does not import this module, so it do
 
 from __future__ import annotations
 
-import importlib
 import warnings
-from typing import Any
+
+from resireg.deprecation import moved
 
 # every public name of the former module -> the module that holds it now
 _MOVED = {
@@ -41,18 +41,7 @@ warnings.warn(
 )
 
 
-def __getattr__(name: str) -> Any:
-    """The moved name from its new module, with a :class:`DeprecationWarning` naming it."""
-    if name not in _MOVED:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    module = _MOVED[name]
-    warnings.warn(
-        f"resireg.cluster.{name} is deprecated: import it from {module} "
-        f"(from {module} import {name}); resireg.cluster goes in the next release",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    return getattr(importlib.import_module(module), name)
+__getattr__ = moved(__name__, _MOVED)
 
 
 def __dir__() -> list[str]:

@@ -2,23 +2,18 @@
 table it reads). This module re-exports its names, with a ``DeprecationWarning``, for one
 release."""
 
-from __future__ import annotations
+from resireg.deprecation import moved
 
-import warnings
-from typing import Any
-
-_NAMES = ("LAYER_KEY", "LITE_ATTENTION", "PRIOR_SUFFIX", "PRIOR_VARIANTS", "VARIANTS",
-          "parse_variant", "takes_prior", "variant_layer")  # fmt: skip
-
-
-def __getattr__(name: str) -> Any:
-    if name in _NAMES:
-        warnings.warn(
-            f"resireg.variant_names.{name} moved to resireg.specs.variants.{name}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        from resireg.specs import variants
-
-        return getattr(variants, name)
-    raise AttributeError(f"module 'resireg.variant_names' has no attribute {name!r}")
+__getattr__ = moved(
+    "resireg.variant_names",
+    {
+        "LAYER_KEY": "resireg.specs.variants",
+        "LITE_ATTENTION": "resireg.specs.variants",
+        "PRIOR_SUFFIX": "resireg.specs.variants",
+        "PRIOR_VARIANTS": "resireg.specs.variants",
+        "VARIANTS": "resireg.specs.variants",
+        "parse_variant": "resireg.specs.variants",
+        "takes_prior": "resireg.specs.variants",
+        "variant_layer": "resireg.specs.variants",
+    },
+)

@@ -22,9 +22,10 @@ are re-exported here with a ``DeprecationWarning`` for one release.
 
 from __future__ import annotations
 
-import importlib
-import warnings
 from typing import Any
+
+from resireg import lazy_names
+from resireg.deprecation import moved
 
 __all__ = [
     "BagSource",
@@ -60,15 +61,9 @@ _MOVED = {
 }
 
 
+_lazy = lazy_names("resireg.sources", _NAMES)
+_old = moved("resireg.sources", _MOVED)
+
+
 def __getattr__(name: str) -> Any:  # PEP 562
-    if name in _MOVED:
-        warnings.warn(
-            f"resireg.sources.{name} moved to {_MOVED[name]}.{name}; this alias goes in the "
-            "next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    if name in _NAMES:
-        return getattr(importlib.import_module(_NAMES[name]), name)
-    raise AttributeError(f"module 'resireg.sources' has no attribute {name!r}")
+    return _old(name) if name in _MOVED else _lazy(name)

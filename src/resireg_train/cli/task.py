@@ -1,36 +1,27 @@
 """Deprecated: the Hydra job wrapper of the CLIs moved to :mod:`resireg_train.cli.job`. This module re-exports its names, with a
 ``DeprecationWarning``, for one release."""
 
-from __future__ import annotations
+from resireg.deprecation import moved
 
-import importlib
-import warnings
-from typing import Any
-
-_NAMES = (
-    "CONFIG_DIR",
-    "RUN_ID",
-    "LOCK_FILE",
-    "JobFailed",
-    "RunFolderBusy",
-    "RunFolderLock",
-    "SweepRecords",
-    "added_keys",
-    "hydra_entry_point",
-    "instantiate_group",
-    "hold_run_folder",
-    "optimized_value",
-    "process_rank",
-    "register_resolvers",
-    "run_task",
-    "safe_dirname",
-    "top_level_keys",
+__getattr__ = moved(
+    "resireg_train.cli.task",
+    {
+        "CONFIG_DIR": "resireg_train.cli.job",
+        "RUN_ID": "resireg_train.cli.job",
+        "LOCK_FILE": "resireg_train.cli.job",
+        "JobFailed": "resireg_train.cli.job",
+        "RunFolderBusy": "resireg_train.cli.job",
+        "RunFolderLock": "resireg_train.cli.job",
+        "SweepRecords": "resireg_train.cli.job",
+        "added_keys": "resireg_train.cli.job",
+        "hydra_entry_point": "resireg_train.cli.job",
+        "instantiate_group": "resireg_train.cli.job",
+        "hold_run_folder": "resireg_train.cli.job",
+        "optimized_value": "resireg_train.cli.job",
+        "process_rank": "resireg_train.cli.job",
+        "register_resolvers": "resireg_train.cli.job",
+        "run_task": "resireg_train.cli.job",
+        "safe_dirname": "resireg_train.cli.job",
+        "top_level_keys": "resireg_train.cli.job",
+    },
 )
-
-
-def __getattr__(name: str) -> Any:
-    if name in _NAMES:
-        warnings.warn(f"resireg_train.cli.task.{name} moved to resireg_train.cli.job.{name}",
-                      DeprecationWarning, stacklevel=2)  # fmt: skip
-        return getattr(importlib.import_module("resireg_train.cli.job"), name)
-    raise AttributeError(f"module 'resireg_train.cli.task' has no attribute {name!r}")

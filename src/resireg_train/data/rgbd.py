@@ -3,11 +3,7 @@
 without Lightning or Hydra). This module re-exports the old names, with a ``DeprecationWarning``,
 for one release."""
 
-from __future__ import annotations
-
-import importlib
-import warnings
-from typing import Any
+from resireg.deprecation import moved
 
 #: old name -> the module that holds it now
 _MOVED = {
@@ -20,15 +16,4 @@ _MOVED = {
     "PoseTrack": "resireg.sources.pairing",
 }
 __all__ = list(_MOVED)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        warnings.warn(
-            f"resireg_train.data.rgbd.{name} moved to {_MOVED[name]}.{name}; "
-            "this alias goes in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module 'resireg_train.data.rgbd' has no attribute {name!r}")
+__getattr__ = moved("resireg_train.data.rgbd", _MOVED)

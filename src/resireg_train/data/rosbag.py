@@ -3,11 +3,7 @@ decoders to :mod:`resireg.sources.messages` (the robot side installs them withou
 Hydra; ``BagSource`` takes no ``key`` any more). This module re-exports the old names, with a
 ``DeprecationWarning``, for one release."""
 
-from __future__ import annotations
-
-import importlib
-import warnings
-from typing import Any
+from resireg.deprecation import moved
 
 #: old name -> the module that holds it now
 _MOVED = {
@@ -19,15 +15,4 @@ _MOVED = {
     "decode_depth": "resireg.sources.messages",
 }
 __all__ = list(_MOVED)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        warnings.warn(
-            f"resireg_train.data.rosbag.{name} moved to {_MOVED[name]}.{name}; "
-            "this alias goes in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module 'resireg_train.data.rosbag' has no attribute {name!r}")
+__getattr__ = moved("resireg_train.data.rosbag", _MOVED)

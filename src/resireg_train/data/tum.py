@@ -2,11 +2,7 @@
 installs it without Lightning or Hydra; ``TumSource`` takes no ``key`` any more). This module
 re-exports the old names, with a ``DeprecationWarning``, for one release."""
 
-from __future__ import annotations
-
-import importlib
-import warnings
-from typing import Any
+from resireg.deprecation import moved
 
 #: old name -> the module that holds it now
 _MOVED = {
@@ -17,15 +13,4 @@ _MOVED = {
     "read_trajectory": "resireg.sources.tum",
 }
 __all__ = list(_MOVED)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        warnings.warn(
-            f"resireg_train.data.tum.{name} moved to {_MOVED[name]}.{name}; "
-            "this alias goes in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(importlib.import_module(_MOVED[name]), name)
-    raise AttributeError(f"module 'resireg_train.data.tum' has no attribute {name!r}")
+__getattr__ = moved("resireg_train.data.tum", _MOVED)

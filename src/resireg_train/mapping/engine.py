@@ -51,6 +51,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from resireg.deprecation import moved
 from resireg.mapping import (
     LabelVoxelMap,
     SemanticMap,
@@ -493,14 +494,11 @@ class MappingEngine(EvalEngine):
                 result.feature_voxels[name][state["name"]] = len(vmap)
 
 
-_RENAMED = {"MappingTask": "MappingEngine", "MappingProtocol": "MappingSettings"}
-
-
-def __getattr__(name: str):  # the old names, for one release
-    if name in _RENAMED:
-        import warnings
-
-        warnings.warn(f"{__name__}.{name} is now {_RENAMED[name]}", DeprecationWarning,
-                      stacklevel=2)  # fmt: skip
-        return globals()[_RENAMED[name]]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# The old names, for one release.
+__getattr__ = moved(
+    __name__,
+    {
+        "MappingTask": "resireg_train.mapping.engine:MappingEngine",
+        "MappingProtocol": "resireg_train.mapping.engine:MappingSettings",
+    },
+)

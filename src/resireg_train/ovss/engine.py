@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
+from resireg.deprecation import moved
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
 from resireg.specs.metrics import METRIC_SPECS
@@ -359,14 +360,5 @@ class OVSSEngine(EvalEngine):
         return None
 
 
-_RENAMED = {"OVSSTask": "OVSSEngine"}
-
-
-def __getattr__(name: str):  # the old names, for one release
-    if name in _RENAMED:
-        import warnings
-
-        warnings.warn(f"{__name__}.{name} is now {_RENAMED[name]}", DeprecationWarning,
-                      stacklevel=2)  # fmt: skip
-        return globals()[_RENAMED[name]]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# The old names, for one release.
+__getattr__ = moved(__name__, {"OVSSTask": "resireg_train.ovss.engine:OVSSEngine"})
