@@ -23,7 +23,7 @@ from a second, independently loaded copy through the fake's own modules:
 
 :func:`offline_hub` points torch's hub cache at a private folder (with the checkpoints' names
 and, optionally, the fake RADIO as ``NVlabs_RADIO_main``) and makes any network probe fail
-the test.
+the test; :func:`build_offline` builds an encoder under it (a module-scoped fixture's).
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from pathlib import Path
 from urllib.error import URLError
 
 import numpy as np
+import pytest
 import torch
 
 import resireg.models.hub as hub_module
@@ -913,6 +914,17 @@ def offline_hub(
     monkeypatch.setattr(torch.hub, "urlopen", _offline_urlopen)
     monkeypatch.setattr(hub_module, "_resolves", _no_network)
     return hub_dir
+
+
+def build_offline(tmp_path_factory, checkpoints: Iterable[str], build, *args, **kwargs):
+    """``build(*args, **kwargs)`` under :func:`offline_hub` (a fresh hub cache holding
+    ``checkpoints``), seeded with ``torch.manual_seed(0)`` (the fakes draw their weights from
+    torch's global generator); the patches are undone after, so a module-scoped fixture can
+    keep the encoder."""
+    with pytest.MonkeyPatch.context() as mp:
+        offline_hub(mp, tmp_path_factory.mktemp("hub"), checkpoints)
+        torch.manual_seed(0)
+        return build(*args, **kwargs)
 
 
 # ------------------------------------------------------------------ TIPSv2 release files

@@ -17,7 +17,14 @@ import torch
 import torch.nn.functional as F
 
 import resireg.models.hub as hub_module
-from _fake_hubs import DINOTXT_VOCAB, dinotxt_repo, drop_dinov2_modules, restore_dinov2_modules
+from _fake_hubs import (
+    DINOTXT_VOCAB,
+    build_offline,
+    dinotxt_repo,
+    drop_dinov2_modules,
+    offline_hub,
+    restore_dinov2_modules,
+)
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DINOTXT_ENTRY_POINT, DinoTxtEncoder
 
@@ -34,19 +41,6 @@ def fake_repo(tmp_path_factory):
     restore_dinov2_modules(saved)
 
 
-def _refuse(host, timeout):
-    raise AssertionError(f"a test tried to reach {host}")
-
-
-def _offline(mp, hub_dir, cached=True):
-    """No network (any probe fails the test) and a torch hub cache, with the weights or not."""
-    mp.setattr(hub_module, "_resolves", _refuse)
-    (hub_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    for name in DINOTXT_CHECKPOINTS if cached else ():
-        (hub_dir / "checkpoints" / name).touch()
-    mp.setattr(torch.hub, "get_dir", lambda: str(hub_dir))
-
-
 def _build(repo, **kwargs):
     kwargs = {"source": "local", "image_size": SIDE, "vocab": str(repo / VOCAB), **kwargs}
     return DinoTxtEncoder(repo=str(repo), **kwargs)
@@ -54,15 +48,13 @@ def _build(repo, **kwargs):
 
 @pytest.fixture(scope="module")
 def encoder(fake_repo, tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        _offline(mp, tmp_path_factory.mktemp("hub"))
-        torch.manual_seed(0)
-        return _build(fake_repo)
+    return build_offline(tmp_path_factory, DINOTXT_CHECKPOINTS, _build, fake_repo)
 
 
 @pytest.fixture
 def offline(monkeypatch, tmp_path):
-    _offline(monkeypatch, tmp_path / "hub")
+    """No network (any probe fails the test); a torch hub cache with the weights."""
+    offline_hub(monkeypatch, tmp_path / "hub", DINOTXT_CHECKPOINTS)
     return monkeypatch
 
 
@@ -159,7 +151,7 @@ def test_encode_image_lite_and_similarity_run(encoder):
 
 
 def test_uncached_weights_offline_fail_at_once(fake_repo, monkeypatch, tmp_path):
-    _offline(monkeypatch, tmp_path / "hub", cached=False)
+    offline_hub(monkeypatch, tmp_path / "hub")  # nothing cached
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
     with pytest.raises(WeightsUnavailableError) as err:
         _build(fake_repo)
