@@ -23,7 +23,8 @@ from a second, independently loaded copy through the fake's own modules:
 
 :func:`offline_hub` points torch's hub cache at a private folder (with the checkpoints' names
 and, optionally, the fake RADIO as ``NVlabs_RADIO_main``) and makes any network probe fail
-the test; :func:`build_offline` builds an encoder under it (a module-scoped fixture's).
+the test (:func:`refuse_network`); :func:`build_offline` builds an encoder under it (a
+module-scoped fixture's), and :func:`token_grid` lays patch tokens out as maps.
 """
 
 from __future__ import annotations
@@ -889,7 +890,8 @@ def restore_dinov2_modules(saved: dict) -> None:
     sys.modules.update(saved)
 
 
-def _no_network(host, timeout):
+def refuse_network(host, timeout):
+    """A stand-in for :func:`resireg.models.hub._resolves` that fails the test calling it."""
     raise AssertionError(f"a test probed the network ({host})")
 
 
@@ -912,7 +914,7 @@ def offline_hub(
         radio_repo(hub_dir / f"NVlabs_RADIO_{hub_module.PINNED_REFS['NVlabs/RADIO']}")
     monkeypatch.setattr(torch.hub, "_hub_dir", str(hub_dir))
     monkeypatch.setattr(torch.hub, "urlopen", _offline_urlopen)
-    monkeypatch.setattr(hub_module, "_resolves", _no_network)
+    monkeypatch.setattr(hub_module, "_resolves", refuse_network)
     return hub_dir
 
 
@@ -925,6 +927,12 @@ def build_offline(tmp_path_factory, checkpoints: Iterable[str], build, *args, **
         offline_hub(mp, tmp_path_factory.mktemp("hub"), checkpoints)
         torch.manual_seed(0)
         return build(*args, **kwargs)
+
+
+def token_grid(tokens: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """``[B, N, D]`` patch tokens of a ``size`` grid -> ``[B, D, *size]`` (the tests' own
+    reshape, not the adapters')."""
+    return tokens.permute(0, 2, 1).unflatten(2, size)
 
 
 # ------------------------------------------------------------------ TIPSv2 release files

@@ -24,6 +24,7 @@ from _fake_hubs import (
     drop_dinov2_modules,
     offline_hub,
     restore_dinov2_modules,
+    token_grid,
 )
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DINOTXT_ENTRY_POINT, DinoTxtEncoder
@@ -58,11 +59,6 @@ def offline(monkeypatch, tmp_path):
     return monkeypatch
 
 
-def _grid(tokens, size):
-    """``[B, N, D]`` tokens of a ``size`` grid -> ``[B, D, *size]`` (test's own reshape)."""
-    return tokens.permute(0, 2, 1).unflatten(2, size)
-
-
 def test_dense_maps_are_the_backbone_and_head_patch_tokens(encoder):
     """Non-square canvas 70 x 98 (grid 5 x 7): resized to 56 x 56 (grid 4 x 4), run once, both
     maps upsampled bilinearly to 5 x 7; embedding = the model's own encode_image."""
@@ -81,7 +77,7 @@ def test_dense_maps_are_the_backbone_and_head_patch_tokens(encoder):
 
     def up(tokens):
         return F.interpolate(
-            _grid(tokens, (4, 4)), size=(5, 7), mode="bilinear", align_corners=False
+            token_grid(tokens, (4, 4)), size=(5, 7), mode="bilinear", align_corners=False
         )
 
     torch.testing.assert_close(out.intermediates, up(backbone), atol=1e-5, rtol=1e-5)
@@ -101,9 +97,9 @@ def test_native_resolution_runs_the_canvas_as_it_is(fake_repo, offline):
         backbone = encoder.model.visual_model.backbone.model.forward_features(x)
         _, head = encoder.model.get_visual_class_and_patch_tokens(x)
     torch.testing.assert_close(
-        out.intermediates, _grid(backbone["x_norm_patchtokens"], (3, 5)), atol=1e-5, rtol=1e-5
+        out.intermediates, token_grid(backbone["x_norm_patchtokens"], (3, 5)), atol=1e-5, rtol=1e-5
     )
-    torch.testing.assert_close(out.language, _grid(head, (3, 5)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.language, token_grid(head, (3, 5)), atol=1e-5, rtol=1e-5)
 
 
 def test_text_queries_are_the_normalised_patch_half(encoder):
