@@ -17,12 +17,14 @@ from a second, independently loaded copy through the fake's own modules:
 - :data:`DINOTXT_FILES`: facebookresearch/dinov2's dino.txt hub code (``hubconf.py`` ->
   ``dinov2.hub.dinotxt``; ``DinoTxt``, its tokenizer package),
 - :data:`DINOV2_HUBCONF`: facebookresearch/dinov2 ``dinov2_vits14_reg`` (OTAS's DINOv2),
+  the same ViT (:data:`DINOV2_VIT`, one token path) as dino.txt's backbone,
 - :func:`write_tips_release`: TIPSv2's release files (no hub: ``.npz`` state dicts) at a tiny
   size (:data:`TIPS_TINY`), and :func:`train_sentencepiece` a real tokenizer file.
 
 :func:`offline_hub` points torch's hub cache at a private folder (with the checkpoints' names
 and, optionally, the fake RADIO as ``NVlabs_RADIO_main``) and makes any network probe fail
-the test.
+the test (:func:`refuse_network`); :func:`build_offline` builds an encoder under it (a
+module-scoped fixture's), and :func:`token_grid` lays patch tokens out as maps.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from pathlib import Path
 from urllib.error import URLError
 
 import numpy as np
+import pytest
 import torch
 
 import resireg.models.hub as hub_module
@@ -467,6 +470,80 @@ FAKE_RADSEG = textwrap.dedent(
     '''
 )
 
+# facebookresearch/dinov2's ViT (dinov2/models/vision_transformer.py) as both fake dinov2 clones
+# hold it: one token path (patch embedding, CLS, positions interpolated by DINOv2's rule from
+# the attributes read at every call, registers after CLS, blocks, final norm) for dino.txt's
+# backbone and OTAS's ``dinov2_vits14_reg``. ``Block(dim, num_heads)`` is the clone's own block.
+DINOV2_VIT = textwrap.dedent(
+    """
+    class DinoVisionTransformer(nn.Module):
+        def __init__(self, img_size=518, patch_size=14, embed_dim=32, depth=1, num_heads=2,
+                     num_register_tokens=0, interpolate_antialias=False, interpolate_offset=0.1):
+            super().__init__()
+            self.patch_size, self.embed_dim, self.num_heads = patch_size, embed_dim, num_heads
+            self.num_register_tokens = num_register_tokens
+            self.interpolate_antialias = interpolate_antialias
+            self.interpolate_offset = interpolate_offset
+            self.chunked_blocks = False
+            m = img_size // patch_size
+            self.patch_embed = nn.Conv2d(3, embed_dim, patch_size, stride=patch_size)
+            self.cls_token = nn.Parameter(torch.randn(1, 1, embed_dim))
+            self.pos_embed = nn.Parameter(torch.randn(1, 1 + m * m, embed_dim))
+            self.register_tokens = nn.Parameter(torch.randn(1, num_register_tokens, embed_dim))
+            self.mask_token = nn.Parameter(torch.zeros(1, embed_dim))
+            self.blocks = nn.ModuleList(Block(embed_dim, num_heads) for _ in range(depth))
+            self.norm = nn.LayerNorm(embed_dim, eps=1e-6)
+
+        def interpolate_pos_encoding(self, x, w, h):  # DINOv2's rule (w, h = rows, cols)
+            n = self.pos_embed.shape[1] - 1
+            if x.shape[1] - 1 == n and w == h:
+                return self.pos_embed
+            w0, h0 = w // self.patch_size, h // self.patch_size
+            m = int(math.sqrt(n))
+            if self.interpolate_offset:
+                size = {"scale_factor": ((w0 + self.interpolate_offset) / m,
+                                         (h0 + self.interpolate_offset) / m)}
+            else:
+                size = {"size": (w0, h0)}
+            patch = self.pos_embed[:, 1:].reshape(1, m, m, -1).permute(0, 3, 1, 2)
+            patch = nn.functional.interpolate(patch, mode="bicubic",
+                                              antialias=self.interpolate_antialias, **size)
+            patch = patch.permute(0, 2, 3, 1).reshape(1, w0 * h0, -1)
+            return torch.cat([self.pos_embed[:, :1], patch], dim=1)
+
+        def prepare_tokens_with_masks(self, x, masks=None):
+            _, _, w, h = x.shape
+            x = self.patch_embed(x).flatten(2).transpose(1, 2)
+            x = torch.cat([self.cls_token.expand(x.shape[0], -1, -1), x], dim=1)
+            x = x + self.interpolate_pos_encoding(x, w, h)
+            regs = self.register_tokens.expand(x.shape[0], -1, -1)
+            return torch.cat([x[:, :1], regs, x[:, 1:]], dim=1)
+
+        def forward_features(self, x, masks=None):
+            x = self.prepare_tokens_with_masks(x, masks)
+            for blk in self.blocks:
+                x = blk(x)
+            x_norm = self.norm(x)
+            r = self.num_register_tokens
+            return {"x_norm_clstoken": x_norm[:, 0], "x_norm_regtokens": x_norm[:, 1 : r + 1],
+                    "x_norm_patchtokens": x_norm[:, r + 1 :], "x_prenorm": x, "masks": masks}
+
+        def _get_intermediate_layers_not_chunked(self, x, n=1):
+            x = self.prepare_tokens_with_masks(x)
+            take = range(len(self.blocks) - n, len(self.blocks)) if isinstance(n, int) else n
+            output = []
+            for i, blk in enumerate(self.blocks):
+                x = blk(x)
+                if i in take:
+                    output.append(x)
+            return output
+
+        def forward(self, *args, is_training=False, **kwargs):
+            ret = self.forward_features(*args, **kwargs)
+            return ret if is_training else ret["x_norm_clstoken"]
+    """
+)
+
 DINOTXT_VOCAB = "dinov2/hub/bpe_simple_vocab_16e6.txt.gz"  # inside the fake repo
 DINOTXT_WORDS = "a photo of the cat dog car sky road tree person bicycle"
 
@@ -494,69 +571,15 @@ DINOTXT_FILES = {
                 return x + self.mlp(self.norm2(x))
     """,
     "dinov2/models/__init__.py": "",
-    "dinov2/models/vision_transformer.py": """
+    "dinov2/models/vision_transformer.py": textwrap.dedent(
+        """
         import math
         import torch
         from torch import nn
         from dinov2.layers import NestedTensorBlock as Block
-
-        class DinoVisionTransformer(nn.Module):
-            def __init__(self, img_size=56, patch_size=14, embed_dim=32, depth=2, num_heads=2,
-                         num_register_tokens=4):
-                super().__init__()
-                self.patch_size, self.embed_dim, self.num_heads = patch_size, embed_dim, num_heads
-                self.num_register_tokens = num_register_tokens
-                self.chunked_blocks = False
-                m = img_size // patch_size
-                self.patch_embed = nn.Conv2d(3, embed_dim, patch_size, stride=patch_size)
-                self.cls_token = nn.Parameter(torch.randn(1, 1, embed_dim))
-                self.pos_embed = nn.Parameter(torch.randn(1, 1 + m * m, embed_dim))
-                self.register_tokens = nn.Parameter(torch.randn(1, num_register_tokens, embed_dim))
-                self.blocks = nn.ModuleList(Block(embed_dim, num_heads) for _ in range(depth))
-                self.norm = nn.LayerNorm(embed_dim)
-
-            def interpolate_pos_encoding(self, x, h, w):  # as DINOv2 (size, antialias)
-                n = self.pos_embed.shape[1] - 1
-                h0, w0 = h // self.patch_size, w // self.patch_size
-                if x.shape[1] - 1 == n and h == w:
-                    return self.pos_embed
-                m = int(math.sqrt(n))
-                patch = self.pos_embed[:, 1:].reshape(1, m, m, -1).permute(0, 3, 1, 2)
-                patch = nn.functional.interpolate(patch, size=(h0, w0), mode="bicubic", antialias=True)
-                patch = patch.permute(0, 2, 3, 1).reshape(1, h0 * w0, -1)
-                return torch.cat([self.pos_embed[:, :1], patch], dim=1)
-
-            def prepare_tokens_with_masks(self, x, masks=None):
-                _, _, h, w = x.shape
-                x = self.patch_embed(x).flatten(2).transpose(1, 2)
-                x = torch.cat([self.cls_token.expand(x.shape[0], -1, -1), x], dim=1)
-                x = x + self.interpolate_pos_encoding(x, h, w)
-                regs = self.register_tokens.expand(x.shape[0], -1, -1)
-                return torch.cat([x[:, :1], regs, x[:, 1:]], dim=1)
-
-            def forward_features(self, x, masks=None):
-                x = self.prepare_tokens_with_masks(x, masks)
-                for blk in self.blocks:
-                    x = blk(x)
-                x_norm = self.norm(x)
-                r = self.num_register_tokens
-                return {"x_norm_clstoken": x_norm[:, 0], "x_norm_regtokens": x_norm[:, 1 : r + 1],
-                        "x_norm_patchtokens": x_norm[:, r + 1 :], "x_prenorm": x, "masks": masks}
-
-            def _get_intermediate_layers_not_chunked(self, x, n=1):
-                x = self.prepare_tokens_with_masks(x)
-                take = range(len(self.blocks) - n, len(self.blocks)) if isinstance(n, int) else n
-                output = []
-                for i, blk in enumerate(self.blocks):
-                    x = blk(x)
-                    if i in take:
-                        output.append(x)
-                return output
-
-            def forward(self, *args, is_training=False, **kwargs):
-                ret = self.forward_features(*args, **kwargs)
-                return ret if is_training else ret["x_norm_clstoken"]
-    """,
+        """
+    )
+    + DINOV2_VIT,
     "dinov2/hub/text/dinov2_wrapper.py": """
         import torch
 
@@ -741,7 +764,9 @@ DINOTXT_FILES = {
             from .text.dinov2_wrapper import DINOv2Wrapper
             from .text.text_tower import TextTransformer
 
-            vision_backbone = DINOv2Wrapper(DinoVisionTransformer())
+            vision_backbone = DINOv2Wrapper(DinoVisionTransformer(
+                img_size=56, depth=2, num_register_tokens=4, interpolate_antialias=True,
+                interpolate_offset=0.0))
             text_backbone = TextTransformer(context_length=77, vocab_size=64, dim=32,
                                             num_heads=2, num_layers=1)
             model = DinoTxt(DinoTxtConfig(embed_dim=64), vision_backbone, text_backbone)
@@ -756,78 +781,32 @@ DINOTXT_FILES = {
 }
 
 
-DINOV2_HUBCONF = """
-    import math
+DINOV2_HUBCONF = (
+    textwrap.dedent(
+        """
+        import math
 
-    import torch
-    from torch import nn
+        import torch
+        from torch import nn
 
-    dependencies = ["torch"]
-
-
-    class DinoVisionTransformer(nn.Module):
-        def __init__(self, img_size=518, patch_size=14, embed_dim=32, depth=1, num_heads=2,
-                     num_register_tokens=0, interpolate_antialias=False, interpolate_offset=0.1):
-            super().__init__()
-            self.patch_size, self.embed_dim = patch_size, embed_dim
-            self.num_register_tokens = num_register_tokens
-            self.interpolate_antialias = interpolate_antialias
-            self.interpolate_offset = interpolate_offset
-            m = img_size // patch_size
-            self.patch_embed = nn.Conv2d(3, embed_dim, patch_size, stride=patch_size)
-            self.cls_token = nn.Parameter(torch.randn(1, 1, embed_dim))
-            self.pos_embed = nn.Parameter(torch.randn(1, 1 + m * m, embed_dim))
-            self.register_tokens = nn.Parameter(torch.randn(1, num_register_tokens, embed_dim))
-            self.mask_token = nn.Parameter(torch.zeros(1, embed_dim))
-            self.blocks = nn.ModuleList(
-                nn.TransformerEncoderLayer(embed_dim, num_heads, 2 * embed_dim, dropout=0.0,
-                                           batch_first=True, norm_first=True)
-                for _ in range(depth))
-            self.norm = nn.LayerNorm(embed_dim, eps=1e-6)
-
-        def interpolate_pos_encoding(self, x, w, h):  # DINOv2's rule (w, h = rows, cols)
-            n = self.pos_embed.shape[1] - 1
-            if x.shape[1] - 1 == n and w == h:
-                return self.pos_embed
-            w0, h0 = w // self.patch_size, h // self.patch_size
-            m = int(math.sqrt(n))
-            if self.interpolate_offset:
-                size = {"scale_factor": ((w0 + self.interpolate_offset) / m,
-                                         (h0 + self.interpolate_offset) / m)}
-            else:
-                size = {"size": (w0, h0)}
-            patch = self.pos_embed[:, 1:].reshape(1, m, m, -1).permute(0, 3, 1, 2)
-            patch = nn.functional.interpolate(patch, mode="bicubic",
-                                              antialias=self.interpolate_antialias, **size)
-            patch = patch.permute(0, 2, 3, 1).reshape(1, w0 * h0, -1)
-            return torch.cat([self.pos_embed[:, :1], patch], dim=1)
-
-        def prepare_tokens_with_masks(self, x, masks=None):
-            _, _, w, h = x.shape
-            x = self.patch_embed(x).flatten(2).transpose(1, 2)
-            x = torch.cat([self.cls_token.expand(x.shape[0], -1, -1), x], dim=1)
-            x = x + self.interpolate_pos_encoding(x, w, h)
-            regs = self.register_tokens.expand(x.shape[0], -1, -1)
-            return torch.cat([x[:, :1], regs, x[:, 1:]], dim=1)
-
-        def forward_features(self, x, masks=None):
-            x = self.prepare_tokens_with_masks(x, masks)
-            for blk in self.blocks:
-                x = blk(x)
-            x_norm = self.norm(x)
-            r = self.num_register_tokens
-            return {"x_norm_clstoken": x_norm[:, 0], "x_norm_regtokens": x_norm[:, 1 : r + 1],
-                    "x_norm_patchtokens": x_norm[:, r + 1 :], "x_prenorm": x, "masks": masks}
-
-        def forward(self, *args, is_training=False, **kwargs):
-            ret = self.forward_features(*args, **kwargs)
-            return ret if is_training else ret["x_norm_clstoken"]
+        dependencies = ["torch"]
 
 
-    def dinov2_vits14_reg(*, pretrained=True, **kwargs):
-        return DinoVisionTransformer(num_register_tokens=4, interpolate_antialias=True,
-                                     interpolate_offset=0.0, **kwargs)
-"""
+        def Block(dim, num_heads):  # torch's pre-norm encoder layer
+            return nn.TransformerEncoderLayer(dim, num_heads, 2 * dim, dropout=0.0,
+                                              batch_first=True, norm_first=True)
+        """
+    )
+    + DINOV2_VIT
+    + textwrap.dedent(
+        """
+
+        def dinov2_vits14_reg(*, pretrained=True, **kwargs):
+            return DinoVisionTransformer(num_register_tokens=4, interpolate_antialias=True,
+                                         interpolate_offset=0.0, **kwargs)
+        """
+    )
+)
 
 
 RADSEG_STANDIN = textwrap.dedent(
@@ -911,7 +890,8 @@ def restore_dinov2_modules(saved: dict) -> None:
     sys.modules.update(saved)
 
 
-def _no_network(host, timeout):
+def refuse_network(host, timeout):
+    """A stand-in for :func:`resireg.models.hub._resolves` that fails the test calling it."""
     raise AssertionError(f"a test probed the network ({host})")
 
 
@@ -934,8 +914,25 @@ def offline_hub(
         radio_repo(hub_dir / f"NVlabs_RADIO_{hub_module.PINNED_REFS['NVlabs/RADIO']}")
     monkeypatch.setattr(torch.hub, "_hub_dir", str(hub_dir))
     monkeypatch.setattr(torch.hub, "urlopen", _offline_urlopen)
-    monkeypatch.setattr(hub_module, "_resolves", _no_network)
+    monkeypatch.setattr(hub_module, "_resolves", refuse_network)
     return hub_dir
+
+
+def build_offline(tmp_path_factory, checkpoints: Iterable[str], build, *args, **kwargs):
+    """``build(*args, **kwargs)`` under :func:`offline_hub` (a fresh hub cache holding
+    ``checkpoints``), seeded with ``torch.manual_seed(0)`` (the fakes draw their weights from
+    torch's global generator); the patches are undone after, so a module-scoped fixture can
+    keep the encoder."""
+    with pytest.MonkeyPatch.context() as mp:
+        offline_hub(mp, tmp_path_factory.mktemp("hub"), checkpoints)
+        torch.manual_seed(0)
+        return build(*args, **kwargs)
+
+
+def token_grid(tokens: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """``[B, N, D]`` patch tokens of a ``size`` grid -> ``[B, D, *size]`` (the tests' own
+    reshape, not the adapters')."""
+    return tokens.permute(0, 2, 1).unflatten(2, size)
 
 
 # ------------------------------------------------------------------ TIPSv2 release files

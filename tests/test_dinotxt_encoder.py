@@ -17,7 +17,15 @@ import torch
 import torch.nn.functional as F
 
 import resireg.models.hub as hub_module
-from _fake_hubs import DINOTXT_VOCAB, dinotxt_repo, drop_dinov2_modules, restore_dinov2_modules
+from _fake_hubs import (
+    DINOTXT_VOCAB,
+    build_offline,
+    dinotxt_repo,
+    drop_dinov2_modules,
+    offline_hub,
+    restore_dinov2_modules,
+    token_grid,
+)
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DINOTXT_ENTRY_POINT, DinoTxtEncoder
 
@@ -34,19 +42,6 @@ def fake_repo(tmp_path_factory):
     restore_dinov2_modules(saved)
 
 
-def _refuse(host, timeout):
-    raise AssertionError(f"a test tried to reach {host}")
-
-
-def _offline(mp, hub_dir, cached=True):
-    """No network (any probe fails the test) and a torch hub cache, with the weights or not."""
-    mp.setattr(hub_module, "_resolves", _refuse)
-    (hub_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    for name in DINOTXT_CHECKPOINTS if cached else ():
-        (hub_dir / "checkpoints" / name).touch()
-    mp.setattr(torch.hub, "get_dir", lambda: str(hub_dir))
-
-
 def _build(repo, **kwargs):
     kwargs = {"source": "local", "image_size": SIDE, "vocab": str(repo / VOCAB), **kwargs}
     return DinoTxtEncoder(repo=str(repo), **kwargs)
@@ -54,21 +49,14 @@ def _build(repo, **kwargs):
 
 @pytest.fixture(scope="module")
 def encoder(fake_repo, tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        _offline(mp, tmp_path_factory.mktemp("hub"))
-        torch.manual_seed(0)
-        return _build(fake_repo)
+    return build_offline(tmp_path_factory, DINOTXT_CHECKPOINTS, _build, fake_repo)
 
 
 @pytest.fixture
 def offline(monkeypatch, tmp_path):
-    _offline(monkeypatch, tmp_path / "hub")
+    """No network (any probe fails the test); a torch hub cache with the weights."""
+    offline_hub(monkeypatch, tmp_path / "hub", DINOTXT_CHECKPOINTS)
     return monkeypatch
-
-
-def _grid(tokens, size):
-    """``[B, N, D]`` tokens of a ``size`` grid -> ``[B, D, *size]`` (test's own reshape)."""
-    return tokens.permute(0, 2, 1).unflatten(2, size)
 
 
 def test_dense_maps_are_the_backbone_and_head_patch_tokens(encoder):
@@ -89,7 +77,7 @@ def test_dense_maps_are_the_backbone_and_head_patch_tokens(encoder):
 
     def up(tokens):
         return F.interpolate(
-            _grid(tokens, (4, 4)), size=(5, 7), mode="bilinear", align_corners=False
+            token_grid(tokens, (4, 4)), size=(5, 7), mode="bilinear", align_corners=False
         )
 
     torch.testing.assert_close(out.intermediates, up(backbone), atol=1e-5, rtol=1e-5)
@@ -109,9 +97,9 @@ def test_native_resolution_runs_the_canvas_as_it_is(fake_repo, offline):
         backbone = encoder.model.visual_model.backbone.model.forward_features(x)
         _, head = encoder.model.get_visual_class_and_patch_tokens(x)
     torch.testing.assert_close(
-        out.intermediates, _grid(backbone["x_norm_patchtokens"], (3, 5)), atol=1e-5, rtol=1e-5
+        out.intermediates, token_grid(backbone["x_norm_patchtokens"], (3, 5)), atol=1e-5, rtol=1e-5
     )
-    torch.testing.assert_close(out.language, _grid(head, (3, 5)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.language, token_grid(head, (3, 5)), atol=1e-5, rtol=1e-5)
 
 
 def test_text_queries_are_the_normalised_patch_half(encoder):
@@ -159,7 +147,7 @@ def test_encode_image_lite_and_similarity_run(encoder):
 
 
 def test_uncached_weights_offline_fail_at_once(fake_repo, monkeypatch, tmp_path):
-    _offline(monkeypatch, tmp_path / "hub", cached=False)
+    offline_hub(monkeypatch, tmp_path / "hub")  # nothing cached
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
     with pytest.raises(WeightsUnavailableError) as err:
         _build(fake_repo)

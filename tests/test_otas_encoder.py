@@ -28,7 +28,7 @@ from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 
 import resireg.models.hub as hub_module
-from _fake_hubs import dinov2_repo
+from _fake_hubs import build_offline, dinov2_repo, offline_hub
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS, OTAS_ENTRY_POINT, OtasEncoder
 
@@ -36,24 +36,12 @@ WIDTH = 32  # fake DINOv2 width
 EMBED = 512  # CLIP ViT-B/16 embedding
 CLIP_SIDE = 64  # CLIP's native side here (4 x 4 positional grid) and OTAS's CLIP input side
 CONF = Path(__file__).resolve().parents[1] / "conf" / "encoder" / "otas.yaml"
+_CACHED = [OTAS_CHECKPOINTS[OTAS_ENTRY_POINT]]  # the DINOv2 weights in the hub cache
 
 
 @pytest.fixture(scope="module")
 def fake_repo(tmp_path_factory):
     return Path(dinov2_repo(tmp_path_factory.mktemp("dinov2")))
-
-
-def _refuse(host, timeout):
-    raise AssertionError(f"a test tried to reach {host}")
-
-
-def _offline(mp, hub_dir, cached=True):
-    """No network (any probe fails the test); a torch hub cache with the DINOv2 weights or not."""
-    mp.setattr(hub_module, "_resolves", _refuse)
-    (hub_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    if cached:
-        (hub_dir / "checkpoints" / OTAS_CHECKPOINTS[OTAS_ENTRY_POINT]).touch()
-    mp.setattr(torch.hub, "get_dir", lambda: str(hub_dir))
 
 
 def _build(repo, **kwargs):
@@ -64,15 +52,13 @@ def _build(repo, **kwargs):
 
 @pytest.fixture(scope="module")
 def encoder(fake_repo, tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        _offline(mp, tmp_path_factory.mktemp("hub"))
-        torch.manual_seed(0)
-        return _build(fake_repo)
+    return build_offline(tmp_path_factory, _CACHED, _build, fake_repo)
 
 
 @pytest.fixture
 def offline(monkeypatch, tmp_path):
-    _offline(monkeypatch, tmp_path / "hub")
+    """No network (any probe fails the test); a torch hub cache with the DINOv2 weights."""
+    offline_hub(monkeypatch, tmp_path / "hub", _CACHED)
     return monkeypatch
 
 
@@ -341,7 +327,7 @@ def test_bad_arguments(fake_repo, offline, tmp_path):
 
 # ------------------------------------------------------------------ offline
 def test_uncached_dinov2_weights_offline_fail_at_once(fake_repo, monkeypatch, tmp_path):
-    _offline(monkeypatch, tmp_path / "hub", cached=False)
+    offline_hub(monkeypatch, tmp_path / "hub")  # nothing cached
     monkeypatch.setattr(hub_module, "_resolves", lambda host, timeout: False)
     start = time.monotonic()
     with pytest.raises(WeightsUnavailableError) as err:

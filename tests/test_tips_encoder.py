@@ -30,6 +30,8 @@ from _fake_hubs import (
     TIPS_TINY,
     TIPS_WIDTH,
     TipsWordTokenizer,
+    refuse_network,
+    token_grid,
     train_sentencepiece,
     write_tips_release,
 )
@@ -143,10 +145,6 @@ def _ref_text(model, ids, paddings):
     return x.sum(dim=1) / (mask.sum(dim=1, keepdim=True) + 1e-8)
 
 
-def _grid(tokens, size):
-    return tokens.permute(0, 2, 1).unflatten(2, size)
-
-
 # ---------------------------------------------------------------------------- tests
 def test_release_checkpoints_load_strictly(encoder, release):
     _, vision, text = release
@@ -174,7 +172,7 @@ def test_dense_maps_match_the_repos_computation(encoder):
 
     def up(tokens):
         return F.interpolate(
-            _grid(tokens, (5, 5)), size=(5, 7), mode="bilinear", align_corners=False
+            token_grid(tokens, (5, 5)), size=(5, 7), mode="bilinear", align_corners=False
         )
 
     torch.testing.assert_close(out.intermediates, up(final), atol=1e-5, rtol=1e-5)
@@ -192,15 +190,15 @@ def test_native_resolution_and_native_grid(release):
     out = enc.encode(x)
     with torch.no_grad():
         _, final, values = _ref_vision(enc.visual, x)
-    torch.testing.assert_close(out.intermediates, _grid(final, (3, 5)), atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(out.language, _grid(values, (3, 5)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.intermediates, token_grid(final, (3, 5)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.language, token_grid(values, (3, 5)), atol=1e-5, rtol=1e-5)
 
     enc = _build(release[0], image_size=GRID * P)
     x = torch.rand(1, 3, 56, 56)
     with torch.no_grad():
         _, final, _ = _ref_vision(enc.visual, x)
     torch.testing.assert_close(
-        enc.encode(x).intermediates, _grid(final, (4, 4)), atol=1e-5, rtol=1e-5
+        enc.encode(x).intermediates, token_grid(final, (4, 4)), atol=1e-5, rtol=1e-5
     )
 
 
@@ -219,8 +217,8 @@ def test_swiglu_checkpoint_as_vit_giant(tmp_path):
     with torch.no_grad():
         _, final, values = _ref_vision(enc.visual, x)
     out = enc.encode(x)
-    torch.testing.assert_close(out.intermediates, _grid(final, (4, 3)), atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(out.language, _grid(values, (4, 3)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.intermediates, token_grid(final, (4, 3)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.language, token_grid(values, (4, 3)), atol=1e-5, rtol=1e-5)
 
 
 def test_text_queries_are_the_normalised_text_embeddings(encoder):
@@ -299,10 +297,7 @@ def test_release_sizes_match_the_published_parameter_counts():
 
 
 def test_missing_weights_fail_at_once_naming_the_key(monkeypatch, tmp_path):
-    def refuse(host, timeout):
-        raise AssertionError(f"a test tried to reach {host}")
-
-    monkeypatch.setattr(hub_module, "_resolves", refuse)
+    monkeypatch.setattr(hub_module, "_resolves", refuse_network)
     start = time.monotonic()
     with pytest.raises(WeightsUnavailableError) as err:
         TipsEncoder()
