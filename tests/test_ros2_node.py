@@ -22,7 +22,7 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
 from resireg.mapping import SemanticMap  # noqa: E402
-from resireg.mapping.semantic_map import _ramp  # noqa: E402
+from resireg.mapping.semantic_map import diverging_ramp  # noqa: E402
 from resireg.ros2.clouds import read_cloud  # noqa: E402
 from resireg.ros2.replay import Replayer, frame_messages, offset_parameter  # noqa: E402
 from resireg_train.data.room_bag import (  # noqa: E402
@@ -247,7 +247,7 @@ def test_query_save_and_clear_through_ros(mapped, ros, encoder):
     sim = smap.query("a red chair").numpy()
     np.testing.assert_array_equal(got["points"], smap.centres().numpy())
     np.testing.assert_allclose(got["similarity"], sim, atol=1e-6)
-    np.testing.assert_array_equal(got["rgb"], _ramp(torch.from_numpy(sim)).numpy())
+    np.testing.assert_array_equal(got["rgb"], diverging_ramp(torch.from_numpy(sim)).numpy())
     best = np.argsort(-sim, kind="stable")[: node.values["top_k"]]
     poses = np.array([[p.position.x, p.position.y, p.position.z] for p in top.messages[-1].poses])
     np.testing.assert_allclose(poses, smap.centres().numpy()[best], atol=1e-6)

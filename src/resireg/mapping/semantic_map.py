@@ -116,7 +116,7 @@ def pca_colours(features: Tensor, sample: int = 100_000, seed: int = 0) -> Tenso
     return (out * 255).round().to(torch.uint8)
 
 
-def _ramp(values: Tensor) -> Tensor:
+def diverging_ramp(values: Tensor) -> Tensor:
     """``[M]`` values -> ``[M, 3]`` uint8 from blue (lowest) through white to red (highest), the
     values scaled min..max (a diverging ramp; no matplotlib in ``resireg``)."""
     v = values.float().cpu()
@@ -681,7 +681,7 @@ class SemanticMap:
         if colour_by == "query":
             if not text:
                 raise ValueError("colour_by='query' needs text=")
-            return _ramp(self.query(text))
+            return diverging_ramp(self.query(text))
         if not classes:
             raise ValueError("colour_by='class' needs classes=")
         return _palette(self.classify(classes))

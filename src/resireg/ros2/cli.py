@@ -19,7 +19,7 @@ __all__ = ["main"]
 PROG = "resireg-ros2"
 
 
-def _missing_rclpy() -> str | None:
+def missing_rclpy() -> str | None:
     import importlib.util
 
     for module in ("rclpy", "sensor_msgs", "std_srvs", "nav_msgs", "visualization_msgs"):
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: error: {err}", file=sys.stderr)
             return 2
         return 0
-    missing = _missing_rclpy()
+    missing = missing_rclpy()
     if missing is not None:
         print(f"{PROG}: error: needs the 'robot' extra ({missing} not installed): pip install "
               '"resireg[robot]" (in a clone: pip install -e ".[robot]" -c constraints.txt), '

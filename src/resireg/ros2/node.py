@@ -89,7 +89,7 @@ def _msg_type(name: str):
             _ODOMETRY: Odometry}[name]  # fmt: skip
 
 
-def _pose_of(msg: Any) -> np.ndarray:
+def pose_of(msg: Any) -> np.ndarray:
     """The pose of a ``PoseStamped`` or ``Odometry`` message, ``[4, 4]``."""
     return pose_msg_matrix(msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose)
 
@@ -372,7 +372,7 @@ class ResiregMapNode(Node):
         self._drain(time.monotonic(), time.perf_counter())
 
     def _on_pose(self, msg: Any) -> None:
-        self.pairer.poses.add(stamp_seconds(msg.header), _pose_of(msg))
+        self.pairer.poses.add(stamp_seconds(msg.header), pose_of(msg))
         self._drain(time.monotonic(), time.perf_counter())
 
     def _poll(self) -> None:
@@ -479,7 +479,7 @@ class ResiregMapNode(Node):
         from geometry_msgs.msg import Pose, PoseArray
         from visualization_msgs.msg import Marker, MarkerArray
 
-        from resireg.mapping.semantic_map import _ramp
+        from resireg.mapping.semantic_map import diverging_ramp
 
         with self.worker.lock:
             smap = self.worker.smap
@@ -491,7 +491,7 @@ class ResiregMapNode(Node):
             voxel = smap.voxel_size
         t0 = time.perf_counter()
         header = self._header()
-        self.pub["query"].publish(cloud_message(header, centres, _ramp(sim).numpy(),
+        self.pub["query"].publish(cloud_message(header, centres, diverging_ramp(sim).numpy(),
                                                 similarity=sim.cpu().numpy()))  # fmt: skip
         k = min(self.values["top_k"], sim.shape[0])
         best = np.argsort(-sim.cpu().numpy(), kind="stable")[:k]

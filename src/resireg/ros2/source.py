@@ -122,7 +122,7 @@ class LiveSource:
                   if not rules[k][0](v)]  # fmt: skip
         if errors:
             raise ConfigError("; ".join(errors))
-        missing = _missing_rclpy()
+        missing = missing_rclpy()
         if missing is not None:
             raise ConfigError(f"the ros2 source needs the 'robot' extra ({missing} not "
                               f"installed): {_ROBOT}")  # fmt: skip
@@ -168,7 +168,7 @@ class LiveSource:
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo
 
-        from resireg.ros2.node import _pose_of, input_qos, pose_source, subscribe_published
+        from resireg.ros2.node import input_qos, pose_of, pose_source, subscribe_published
         from resireg.ros2.pipeline import FramePairer
         from resireg.sources.messages import (
             camera_intrinsics,
@@ -217,7 +217,7 @@ class LiveSource:
                 wake.set()
 
             def on_pose(msg: Any) -> None:
-                poses.add(stamp_seconds(msg.header), _pose_of(msg))
+                poses.add(stamp_seconds(msg.header), pose_of(msg))
                 wake.set()
 
             qos = input_qos(s["qos"], s["buffer_size"])
@@ -324,9 +324,9 @@ def _restore_sigint(installed: tuple[Any, Any] | None) -> None:
         signal.signal(signal.SIGINT, previous)
 
 
-def _missing_rclpy() -> str | None:
+def missing_rclpy() -> str | None:
     """The first module of the ``robot`` extra's ROS side that cannot be found, or ``None``."""
-    from resireg.ros2.cli import _missing_rclpy as missing
+    from resireg.ros2.cli import missing_rclpy as missing
 
     return missing()
 
