@@ -40,7 +40,7 @@ from resireg.specs.encoders import ENCODER_REPORT_KEYS
 from resireg.specs.mapping import LATTICES, POINTS
 from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of, optional_int
 from resireg.specs.sources import LIVE_RULES
-from resireg.specs.table import conf_dir
+from resireg.specs.table import compose_conf, conf_dir
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
 
 __all__ = [
@@ -213,28 +213,17 @@ def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def _composed(folder: Path, stem: str, seen: tuple[str, ...] = ()) -> dict[str, tuple[Any, str]]:
-    """``key -> (value, file)`` of ``<folder>/<stem>.yaml`` composed as Hydra composes a config
-    group's file: its ``defaults`` (files of the same folder) in order, its own keys where
-    ``_self_`` stands (last when it is not listed); ``file`` is the one a value comes from."""
-    data = _yaml(folder / f"{stem}.yaml")
-    parents = list(data.pop("defaults", None) or [])
-    if "_self_" not in parents:
-        parents.append("_self_")
-    out: dict[str, tuple[Any, str]] = {}
-    for parent in parents:
-        if parent == "_self_":
-            out.update({k: (v, f"{folder.name}/{stem}.yaml") for k, v in data.items()})
-        elif isinstance(parent, str) and parent not in seen:
-            out.update(_composed(folder, parent, (*seen, stem)))
-    return out
-
-
 def _source_defaults(conf: Path) -> dict[str, tuple[Any, str]]:
     """The live source's keys and the file each default is in: ``conf/source/ros2.yaml``
     composed with its defaults, as ``resireg-map source=ros2`` has them."""
     folder, _, name = SOURCE_FILE.rpartition("/")
-    return _composed(conf / folder, name.removesuffix(".yaml"))
+    try:
+        return compose_conf(conf / folder, name.removesuffix(".yaml"), _yaml)
+    except FileNotFoundError as err:  # a parent of the file (its own is checked by _yaml)
+        raise SettingsError(
+            f"{err} (the node reads its defaults from conf/; set "
+            "RESIREG_CONFIG_DIR to the project's conf folder)"
+        ) from err
 
 
 def parameters(conf: Path | None = None) -> dict[str, Parameter]:

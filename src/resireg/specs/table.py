@@ -20,16 +20,17 @@ Torch-free, and it imports nothing of ``resireg`` but :mod:`resireg.errors`.
 from __future__ import annotations
 
 import difflib
+import errno
 import functools
 import importlib
 import os
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from resireg.errors import ConfigError
 
-__all__ = ["SpecTable", "UnknownNameError", "conf_dir", "load"]
+__all__ = ["SpecTable", "UnknownNameError", "compose_conf", "conf_dir", "load"]
 
 E = TypeVar("E")
 
@@ -55,32 +56,52 @@ class UnknownNameError(ConfigError, KeyError):
         return str(self.args[0]) if self.args else ""
 
 
-@functools.cache
-def _conf_kinds(folder: str, stamp: float) -> dict[str, str]:
-    """``file stem -> kind`` of the YAML files of ``folder`` (``stamp``: the folder's mtime, so
-    a file added during a process is seen)."""
+def _read_yaml(path: Path) -> dict[str, Any]:
     import yaml  # PyYAML: a dependency of huggingface_hub and transformers, in every install
 
-    def read(path: Path) -> dict:
-        data = yaml.safe_load(path.read_text()) or {}
-        return data if isinstance(data, dict) else {}
+    data = yaml.safe_load(path.read_text()) or {}
+    return data if isinstance(data, dict) else {}
 
-    def kind_of(path: Path, seen: tuple[str, ...] = ()) -> str | None:
-        data = read(path)
-        if "kind" in data:
-            return str(data["kind"])
-        for parent in data.get("defaults") or []:
-            if isinstance(parent, str) and parent != "_self_" and parent not in seen:
-                found = kind_of(path.with_name(f"{parent}.yaml"), (*seen, path.stem))
-                if found is not None:
-                    return found
-        return None
 
+def compose_conf(
+    folder: str | os.PathLike,
+    stem: str,
+    read: Callable[[Path], dict[str, Any]] = _read_yaml,
+    _seen: tuple[str, ...] = (),
+) -> dict[str, tuple[Any, str]]:
+    """``key -> (value, file)`` of ``<folder>/<stem>.yaml`` composed as Hydra composes a config
+    group's file: its ``defaults`` (files of the same folder) in order, its own keys where
+    ``_self_`` stands (last when it is not listed); ``file`` (``group/name.yaml``) is the one a
+    value comes from. Interpolations stay as written. ``read`` loads one file (PyYAML by
+    default; the training package passes OmegaConf's loader). A missing file is a
+    ``FileNotFoundError`` naming it. The one composition rule of the tables' scan, the live
+    node's defaults and ``resireg_train.data.specs.dataset_conf``."""
+    folder = Path(folder)
+    path = folder / f"{stem}.yaml"
+    if not path.is_file():
+        raise FileNotFoundError(errno.ENOENT, "no such file", str(path))
+    data = dict(read(path))
+    parents = list(data.pop("defaults", None) or [])
+    if "_self_" not in parents:
+        parents.append("_self_")
+    out: dict[str, tuple[Any, str]] = {}
+    for parent in parents:
+        if parent == "_self_":
+            out.update({k: (v, f"{folder.name}/{stem}.yaml") for k, v in data.items()})
+        elif isinstance(parent, str) and parent not in _seen:
+            out.update(compose_conf(folder, parent, read, (*_seen, stem)))
+    return out
+
+
+@functools.cache
+def _conf_kinds(folder: str, stamp: float) -> dict[str, str]:
+    """``file stem -> kind`` of the YAML files of ``folder``, each composed with its defaults
+    (``stamp``: the folder's mtime, so a file added during a process is seen)."""
     kinds = {}
     for path in sorted(Path(folder).glob("*.yaml")):
-        kind = kind_of(path)
+        kind = compose_conf(folder, path.stem).get("kind")
         if kind is not None:
-            kinds[path.stem] = kind
+            kinds[path.stem] = str(kind[0])
     return kinds
 
 

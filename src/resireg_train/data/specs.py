@@ -345,16 +345,12 @@ def dataset_conf(config: str, **overrides: Any) -> dict[str, Any]:
     caller's entry, with conf/'s defaults read rather than typed again."""
     from omegaconf import OmegaConf
 
+    from resireg.specs.table import compose_conf
     from resireg_train.paths import CONFIG_DIR
 
-    def read(name: str) -> dict[str, Any]:
-        path = CONFIG_DIR / "dataset" / f"{name}.yaml"
-        if not path.is_file():
-            raise FileNotFoundError(f"dataset={name!r}: no {path}")
-        entry = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
-        composed: dict[str, Any] = {}
-        for parent in entry.pop("defaults", []):
-            composed.update(read(parent) if parent != "_self_" else {})
-        return {**composed, **entry}
-
-    return {**read(config), **overrides}
+    folder = CONFIG_DIR / "dataset"
+    if not (folder / f"{config}.yaml").is_file():
+        raise FileNotFoundError(f"dataset={config!r}: no {folder / f'{config}.yaml'}")
+    load = lambda path: OmegaConf.to_container(OmegaConf.load(path), resolve=False)  # noqa: E731
+    composed = {key: value for key, (value, _) in compose_conf(folder, config, load).items()}
+    return {**composed, **overrides}
