@@ -38,6 +38,8 @@ from resireg.specs.exports import export_source_problem
 from resireg.specs.priors import PRIOR_KINDS, SAM_RULES
 from resireg.specs.rules import (
     BATCH_SIZE,
+    DEVICE,
+    DEVICE_KINDS,
     Rule,
     integer,
     interval,
@@ -92,7 +94,6 @@ PRECISIONS: dict[str, str | None] = {
 
 _MISSING = object()
 #: Device kinds of ``device`` / ``prior.device`` (``cuda:N`` included).
-_DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
 #: What ``resireg-report`` can write for a sweep beyond its summary (``report: [...]`` in a
 #: ``conf/sweep/`` file names them; ``null`` leaves the choice to the jobs' overrides).
 REPORT_SECTIONS = ("table1", "table2", "prototype_grid", "layer_sweep")
@@ -284,10 +285,7 @@ _EVAL_RULES: dict[str, Rule] = {
     ),
     "encoder.name": (lambda v: isinstance(v, str) and bool(v), "a name for reports"),
     "encoder.third_party": (lambda v: isinstance(v, bool), "true or false"),
-    "device": (
-        lambda v: isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps"),
-        "auto, cpu, cuda, cuda:N or mps",
-    ),  # fmt: skip
+    "device": DEVICE,
     **_ovss_rules(""),
     "dataset.short_side": _optional_int(16),
     "dataset.limit": _optional_int(1),
@@ -297,7 +295,7 @@ _EVAL_RULES: dict[str, Rule] = {
     "prior.kind": (lambda v: v in PRIOR_KINDS, f"one of {list(PRIOR_KINDS)}"),
     "prior.model": (lambda v: isinstance(v, str) and bool(v), "a hub id or a local directory"),
     "prior.device": (
-        lambda v: v is None or (isinstance(v, str) and v.split(":")[0] in _DEVICE_KINDS),
+        lambda v: v is None or (isinstance(v, str) and v.split(":")[0] in DEVICE_KINDS),
         "null (the evaluation's device), auto, cpu, cuda, cuda:N or mps",
     ),
     **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.specs.priors

@@ -38,7 +38,7 @@ from typing import Any
 from resireg.errors import ConfigError
 from resireg.specs.encoders import ENCODER_REPORT_KEYS
 from resireg.specs.mapping import LATTICES, POINTS
-from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of, optional_int
+from resireg.specs.rules import DEVICE, Rule, integer, is_int, is_num, number, one_of, optional_int
 from resireg.specs.sources import LIVE_RULES
 from resireg.specs.table import compose_conf, conf_dir
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
@@ -144,10 +144,6 @@ def _configuration_ok(v: Any) -> bool:
     return set(overrides) <= set(VARIANT_SPECS[base].params)
 
 
-def _device_ok(v: Any) -> bool:
-    return isinstance(v, str) and v.split(":")[0] in ("auto", "cpu", "cuda", "mps")
-
-
 _MAP_RULES: dict[str, Rule] = {
     "configuration": (
         _configuration_ok,
@@ -162,7 +158,7 @@ _MAP_RULES: dict[str, Rule] = {
     "max_voxels": optional_int(1),
     "short_side": optional_int(1),
     "model_path": (_optional_text, "null or an export folder / Hugging Face repo id"),
-    "device": (_device_ok, "auto, cpu, cuda, cuda:N or mps"),
+    "device": DEVICE,
     "seed": (is_int, "an integer"),
     "save_every": integer(0),
     "resume": (lambda v: isinstance(v, bool), "true or false"),

@@ -15,6 +15,8 @@ from typing import Any
 
 __all__ = [
     "BATCH_SIZE",
+    "DEVICE",
+    "DEVICE_KINDS",
     "Rule",
     "check_batch_size",
     "check_kwargs",
@@ -93,6 +95,15 @@ def check_kwargs(rules: Mapping[str, Rule], values: Mapping[str, Any]) -> None:
         if name in rules:
             checked(name, value, rules[name])
 
+
+#: The devices a ``device`` setting names: ``auto`` (cuda where available), ``cpu``, ``cuda``
+#: (``cuda:N``) or ``mps``.
+DEVICE_KINDS = ("auto", "cpu", "cuda", "mps")
+#: The rule of every ``device`` setting (the CLIs' config checks and the live node's).
+DEVICE: Rule = (
+    lambda v: isinstance(v, str) and v.split(":")[0] in DEVICE_KINDS,
+    "auto, cpu, cuda, cuda:N or mps",
+)
 
 #: Images (3D: frames) per batch: the rule of every ``batch_size`` (the config checks'
 #: ``batch_size`` keys and :func:`check_batch_size`, which every loader, task and the prototype
