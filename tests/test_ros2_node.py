@@ -41,18 +41,29 @@ VOXEL = 0.2
 WINDOW = 2
 CONFIG = "full@n_prototypes:4"
 OFFSET = BASE_TO_LINK @ LINK_TO_OPTICAL
-REPLAY_TOPICS = {"colour": TOPICS["colour"], "depth": TOPICS["depth"], "info": TOPICS["info"],
-                 "pose": "/odom"}  # fmt: skip
 
 
-def node_parameters(tmp_path, **extra):
+def replay_topics(prefix=""):
+    """The room's topics (the bag's, the pose on /odom) under ``prefix``: each test that starts
+    its own mapping node gives it topics of its own, so a node another test left subscribed
+    (the module's mapped node, or one a failed test could not close) never takes its frames."""
+    return {"colour": prefix + TOPICS["colour"], "depth": prefix + TOPICS["depth"],
+            "info": prefix + TOPICS["info"], "pose": prefix + "/odom"}  # fmt: skip
+
+
+REPLAY_TOPICS = replay_topics()
+
+
+def node_parameters(tmp_path, prefix="", **extra):
     """The node's parameters for the room: as resireg-map's test sets them, the pose from
-    /odom with the room's camera mount, every frame a keyframe, reliable inputs."""
+    /odom with the room's camera mount, every frame a keyframe, reliable inputs; the topics
+    under ``prefix`` (replay_topics)."""
     from rclpy.parameter import Parameter
 
+    topics = replay_topics(prefix)
     values = {"configuration": CONFIG, "window": WINDOW, "voxel_size": VOXEL, "device": "cpu",
-              "source.colour_topic": TOPICS["colour"], "source.depth_topic": TOPICS["depth"],
-              "source.camera_info_topic": TOPICS["info"], "source.pose_topic": "/odom",
+              "source.colour_topic": topics["colour"], "source.depth_topic": topics["depth"],
+              "source.camera_info_topic": topics["info"], "source.pose_topic": topics["pose"],
               "camera_offset": offset_parameter(OFFSET), "keyframe.translation": 0.0,
               "keyframe.rotation": 0.0, "qos": "reliable", "max_wait": 1.0,
               "window_timeout": 5.0, "output_dir": str(tmp_path), "publish_rate": 20.0,
@@ -173,20 +184,23 @@ def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
     pub = Replayer(REPLAY_TOPICS, context=context)
     spinner.add(node)
     spinner.add(pub)
-    wait_for(lambda: len(node.subscribed) == 3, what="the node's subscriptions")
-    wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
-             what="the replay's subscribers")  # fmt: skip
-    replay(pub, room)
-    total = FRAMES + 1
-    wait_for(lambda: (lambda s: s["frames"]["used"] + sum(s["frames"]["dropped"].values())
-                      == total)(node.status()), what="every frame used or dropped")  # fmt: skip
-    assert node.worker.drain()
-    yield node, folder, pub
-    spinner.remove(pub)
-    pub.destroy_node()
-    spinner.remove(node)
-    node.close(save=False)
-    node.destroy_node()
+    try:
+        wait_for(lambda: len(node.subscribed) == 3, what="the node's subscriptions")
+        wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
+                 what="the replay's subscribers")  # fmt: skip
+        replay(pub, room)
+        total = FRAMES + 1
+        wait_for(lambda: (lambda s: s["frames"]["used"] + sum(s["frames"]["dropped"].values())
+                          == total)(node.status()), timeout=60,
+                 what="every frame used or dropped")  # fmt: skip
+        assert node.worker.drain()
+        yield node, folder, pub
+    finally:  # also when setting up failed: no node stays subscribed for the next tests
+        spinner.remove(pub)
+        pub.destroy_node()
+        spinner.remove(node)
+        node.close(save=False)
+        node.destroy_node()
 
 
 def test_live_map_equals_resireg_map_over_shared_memory(mapped, room, encoder, tmp_path):
@@ -281,7 +295,7 @@ def test_overload_stays_bounded_and_answers_queries(ros, room, encoder, tmp_path
 
     context, test_node, spinner = ros
     node = ResiregMapNode(encoder, "resireg_overload", context=context,
-                          parameter_overrides=node_parameters(tmp_path, queue_size=3,
+                          parameter_overrides=node_parameters(tmp_path, "/overload", queue_size=3,
                                                               buffer_size=8, max_wait=0.2))  # fmt: skip
     smap, real_add = node.worker.smap, node.worker.smap.add
 
@@ -290,48 +304,53 @@ def test_overload_stays_bounded_and_answers_queries(ros, room, encoder, tmp_path
         return real_add(*args)
 
     smap.add = slow_add  # 2 frames per 0.25 s at most: 8 frames/s
-    pub = Replayer(REPLAY_TOPICS, context=context, name="replay_overload")
+    pub = Replayer(replay_topics("/overload"), context=context, name="replay_overload")
     spinner.add(node)
     spinner.add(pub)
     answers = Inbox(test_node, PointCloud2, "/resireg_overload/query/cloud")
     query = test_node.create_publisher(String, "/resireg_overload/query", 10)
-    wait_for(lambda: len(node.subscribed) == 3 and query.get_subscription_count(),
-             what="the overload node's subscriptions")  # fmt: skip
-    r, frames = room
-    seen, sent = {"queue": 0, "pairing": 0}, 0
-    total = 72
-    for i in range(total):  # 24 frames/s: three times the node's rate
-        rgb, d, pose = frames[i % FRAMES]
-        pub.send(frame_messages(rgb, d, pose, r.intrinsics, T0 + i * DT, OFFSET))
-        seen["queue"] = max(seen["queue"], len(node.worker.queue))
-        seen["pairing"] = max(seen["pairing"], *node.pairer.sizes().values())
-        if i % 24 == 12 and len(node.worker.smap):
-            before = len(answers.messages)
-            query.publish(String(data=f"query {i}"))
-            sent += 1
-            wait_for(lambda b=before: len(answers.messages) > b, timeout=5,
-                     what="an answer under load")  # fmt: skip
-        time.sleep(1 / 24)
-    wait_for(lambda: (lambda s: s["frames"]["used"] + sum(s["frames"]["dropped"].values())
-                      == total)(node.status()), what="every frame accounted for")  # fmt: skip
-    status = node.status()
-    assert node.worker.max_queue == 3 and seen["queue"] <= 3 and seen["pairing"] <= 8
-    assert status["frames"]["received"] == total
-    assert status["frames"]["dropped"]["queue_full"] > 0
-    assert status["frames"]["used"] == node.worker.smap.frames
-    assert total == status["frames"]["used"] + sum(status["frames"]["dropped"].values())
-    assert sent >= 2 and len(answers.messages) == sent
-    spinner.remove(pub)
-    pub.destroy_node()
-    spinner.remove(node)
-    node.close(save=False)
-    node.destroy_node()
-    test_node.destroy_publisher(query)
+    try:
+        wait_for(lambda: len(node.subscribed) == 3 and query.get_subscription_count()
+                 and all(p.get_subscription_count() for p in pub.pubs.values()),
+                 what="the overload node's subscriptions")  # fmt: skip
+        r, frames = room
+        seen, sent = {"queue": 0, "pairing": 0}, 0
+        total = 72
+        for i in range(total):  # 24 frames/s: three times the node's rate
+            rgb, d, pose = frames[i % FRAMES]
+            pub.send(frame_messages(rgb, d, pose, r.intrinsics, T0 + i * DT, OFFSET))
+            seen["queue"] = max(seen["queue"], len(node.worker.queue))
+            seen["pairing"] = max(seen["pairing"], *node.pairer.sizes().values())
+            if i % 24 == 12 and len(node.worker.smap):
+                before = len(answers.messages)
+                query.publish(String(data=f"query {i}"))
+                sent += 1
+                wait_for(lambda b=before: len(answers.messages) > b, timeout=10,
+                         what="an answer under load")  # fmt: skip
+            time.sleep(1 / 24)
+        wait_for(lambda: (lambda s: s["frames"]["used"] + sum(s["frames"]["dropped"].values())
+                          == total)(node.status()), timeout=60,
+                 what="every frame accounted for")  # fmt: skip
+        status = node.status()
+        assert node.worker.max_queue == 3 and seen["queue"] <= 3 and seen["pairing"] <= 8
+        assert status["frames"]["received"] == total
+        assert status["frames"]["dropped"]["queue_full"] > 0
+        assert status["frames"]["used"] == node.worker.smap.frames
+        assert total == status["frames"]["used"] + sum(status["frames"]["dropped"].values())
+        assert sent >= 2 and len(answers.messages) == sent
+    finally:  # a failed test leaves no node subscribed for the next ones
+        spinner.remove(pub)
+        pub.destroy_node()
+        spinner.remove(node)
+        node.close(save=False)
+        node.destroy_node()
+        test_node.destroy_publisher(query)
+        test_node.destroy_subscription(answers.sub)
 
 
 def _start_node(tmp_path, export, *extra):
     args = [sys.executable, "-m", "resireg.ros2.cli", "--ros-args"]
-    for p in node_parameters(tmp_path, model_path=str(export)):
+    for p in node_parameters(tmp_path, "/sigint", model_path=str(export)):
         value = p.value
         text = json.dumps(value) if isinstance(value, list) else str(value)
         args += ["-p", f"{p.name}:={text}"]
@@ -349,36 +368,42 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
     from std_msgs.msg import String
 
     context, test_node, spinner = ros
-    pub = Replayer(REPLAY_TOPICS, context=context, name="replay_sigint")
+    pub = Replayer(replay_topics("/sigint"), context=context, name="replay_sigint")
     spinner.add(pub)
     status = []
     sub = test_node.create_subscription(String, "/resireg_sigint/status",
                                         lambda m: status.append(json.loads(m.data)), 10)  # fmt: skip
-    for start, stop, extra in ((0, 4, ()), (4, FRAMES, ("resume:=true",))):
-        proc = _start_node(tmp_path, tiny_export, *extra)
-        try:
-            status.clear()
-            wait_for(lambda: status and len(status[-1]["subscribed"]) == 3, timeout=60,
-                     what="the node's subscriptions")  # fmt: skip
-            wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
-                     what="the replay's subscribers")  # fmt: skip
-            replay(pub, room, decoys=False, start=start, stop=stop)
-            wait_for(lambda n=stop - start: status and status[-1]["frames"]["used"] == n,
-                     timeout=90, what="the frames mapped")  # fmt: skip
-            assert udp_sockets(proc.pid) == set()
-        finally:
-            proc.send_signal(signal.SIGINT)
-            out, err = proc.communicate(timeout=60)
-        assert proc.returncode == 0, err[-3000:]
-        assert f"map saved to {tmp_path / 'map'}" in out, out + err
-        saved = SemanticMap.load(tmp_path / "map", encoder)
-        assert saved.frames == stop
+    try:
+        for start, stop, extra in ((0, 4, ()), (4, FRAMES, ("resume:=true",))):
+            proc = _start_node(tmp_path, tiny_export, *extra)
+            try:
+                status.clear()
+                wait_for(lambda: status and len(status[-1]["subscribed"]) == 3, timeout=120,
+                         what="the node's subscriptions")  # fmt: skip
+                wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
+                         what="the replay's subscribers")  # fmt: skip
+                replay(pub, room, decoys=False, start=start, stop=stop)
+                wait_for(lambda n=stop - start: status and status[-1]["frames"]["used"] == n,
+                         timeout=90, what="the frames mapped")  # fmt: skip
+                assert udp_sockets(proc.pid) == set()
+            finally:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    out, err = proc.communicate(timeout=60)
+                except subprocess.TimeoutExpired:  # never left running for the next test
+                    proc.kill()
+                    out, err = proc.communicate()
+            assert proc.returncode == 0, err[-3000:]
+            assert f"map saved to {tmp_path / 'map'}" in out, out + err
+            saved = SemanticMap.load(tmp_path / "map", encoder)
+            assert saved.frames == stop
+    finally:
+        test_node.destroy_subscription(sub)
+        spinner.remove(pub)
+        pub.destroy_node()
     bag = write_bag(tmp_path / "room", room, decoys=False)
     ref, _, _ = reference_map(bag, encoder)
     assert_same_map(saved, ref)
-    test_node.destroy_subscription(sub)
-    spinner.remove(pub)
-    pub.destroy_node()
 
 
 def test_imports_carry_no_lightning_or_hydra():
@@ -405,3 +430,4 @@ def test_threads_end_with_close(ros, encoder, tmp_path):
     assert node.close() is None and not (tmp_path / "map").exists()
     node.destroy_node()
     assert {t.name for t in threading.enumerate()} - before == set()
+

@@ -19,6 +19,8 @@ from _ros2 import udp_sockets, wait_for  # sets the DDS environment first
 from resireg.errors import ConfigError
 
 THREAD = "resireg-live-source"
+#: This module's topics (test_ros2_node.replay_topics): apart from any node another module left.
+PREFIX = "/source"
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +34,7 @@ def live():
 
     context = rclpy.Context()
     rclpy.init(context=context)
-    pub = Replayer(helpers.REPLAY_TOPICS, context=context, name="replay_source")
+    pub = Replayer(helpers.replay_topics(PREFIX), context=context, name="replay_source")
     yield pub, helpers
     pub.destroy_node()
     rclpy.try_shutdown(context=context)
@@ -49,10 +51,10 @@ def source_keys(helpers):
     """The room's inputs as resireg-map's source keys: the pose from /odom with the room's
     camera mount, reliable subscriptions."""
     from resireg.ros2.replay import offset_parameter
-    from resireg_train.data.room_bag import TOPICS
 
-    return {"colour_topic": TOPICS["colour"], "depth_topic": TOPICS["depth"],
-            "camera_info_topic": TOPICS["info"], "pose_topic": "/odom",
+    topics = helpers.replay_topics(PREFIX)
+    return {"colour_topic": topics["colour"], "depth_topic": topics["depth"],
+            "camera_info_topic": topics["info"], "pose_topic": topics["pose"],
             "camera_offset": offset_parameter(helpers.OFFSET), "qos": "reliable",
             "max_wait": 1.0}  # fmt: skip
 
