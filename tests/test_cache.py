@@ -9,8 +9,9 @@ import torch
 from _run import evaluate, run
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import ResiregVLM
+from resireg.models.factory import weights_fingerprint
 from resireg.variants import build_variants
-from resireg_train.cache import FeatureCache, weights_fingerprint
+from resireg_train.cache import FeatureCache
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.ovss.engine import OVSSEngine, StageTimer

@@ -24,6 +24,7 @@ MOVED = [  # (old module, name, new module)
     ("resireg_train.mapping.metric", "scores", "resireg.mapping.metric"),
     ("resireg_train.protocol", "protocol_record", "resireg_train.protocol_record"),
     ("resireg_train.cli.task", "run_task", "resireg_train.cli.job"),
+    ("resireg_train.cache", "weights_fingerprint", "resireg.models.factory"),
 ]
 RENAMED = [  # (module, old name, new name)
     ("resireg_train.ovss.engine", "OVSSTask", "OVSSEngine"),

@@ -431,3 +431,39 @@ def test_threads_end_with_close(ros, encoder, tmp_path):
     node.destroy_node()
     assert {t.name for t in threading.enumerate()} - before == set()
 
+
+def test_a_resume_is_refused_for_other_weights_or_settings(ros, encoder, tmp_path):
+    """A map one node saved: a node with resume:=true and the same encoder continues it; one
+    with a weight changed (model_path unchanged) or another voxel size is refused, naming the
+    weights' digest or voxel_size; without resume:=true the folder's map is refused."""
+    import copy
+
+    from resireg.models.factory import weights_fingerprint
+    from resireg.ros2.node import ResiregMapNode
+    from resireg.ros2.settings import SettingsError
+
+    context, _, _ = ros
+
+    def node(enc, name, **extra):
+        return ResiregMapNode(enc, name, context=context,
+                              parameter_overrides=node_parameters(tmp_path, "/resume", **extra))  # fmt: skip
+
+    def closed(n):
+        n.close(save=False)
+        n.destroy_node()
+
+    first = node(encoder, "resireg_resume_a")
+    first.save()
+    closed(first)
+    saved = SemanticMap.load(tmp_path / "map", encoder).meta["identity"]
+    assert saved["weights"] == weights_fingerprint(encoder)
+    closed(node(encoder, "resireg_resume_b", resume=True))
+    other = copy.deepcopy(encoder)
+    with torch.no_grad():
+        next(other.parameters()).view(-1)[0] += 1e-3
+    with pytest.raises(SettingsError, match=r"other settings \(1 differ\): weights: "):
+        node(other, "resireg_resume_c", resume=True)
+    with pytest.raises(SettingsError, match=r"other settings \(1 differ\): voxel_size: 0\.2 in "):
+        node(encoder, "resireg_resume_d", resume=True, voxel_size=0.3)
+    with pytest.raises(SettingsError, match=r"holds a map: -p resume:=true continues it"):
+        node(encoder, "resireg_resume_e")

@@ -55,13 +55,14 @@ from safetensors import safe_open
 from safetensors.torch import save
 from torch import Tensor
 
-from resireg.models import DenseOutput
-from resireg.models.factory import encoder_modules
+from resireg.deprecation import moved
+from resireg.models import DenseOutput, factory
 from resireg_train.files import write_atomic
 
-__all__ = ["FeatureCache", "file_digest", "weights_fingerprint"]
+__all__ = ["FeatureCache", "file_digest"]
 
 log = logging.getLogger(__name__)
+__getattr__ = moved(__name__, {"weights_fingerprint": "resireg.models.factory"})
 
 #: 2: listings carry the shard's size and digest (folders of format 1 are never read).
 _FORMAT = 2
@@ -76,21 +77,6 @@ def file_digest(path: str | os.PathLike) -> str:
     with open(path, "rb") as f:
         while chunk := f.read(_CHUNK):
             digest.update(chunk)
-    return digest.hexdigest()
-
-
-def weights_fingerprint(encoder: torch.nn.Module) -> str:
-    """BLAKE2b digest of every parameter and buffer of ``encoder`` (names, dtypes, shapes and
-    bytes), modules kept outside the module tree included (as ``count_parameters`` counts
-    them). Two encoders share a fingerprint only if their weights are bitwise equal."""
-    digest = hashlib.blake2b(digest_size=16)
-    for prefix, module in enumerate(encoder_modules(encoder)):
-        tensors = {**dict(module.named_parameters()), **dict(module.named_buffers())}
-        for name in sorted(tensors):
-            t = tensors[name].detach()
-            digest.update(f"{prefix}.{name}:{t.dtype}:{tuple(t.shape)};".encode())
-            # bytes of the storage as laid out in memory; view as uint8 covers bf16 too
-            digest.update(t.contiguous().cpu().reshape(-1).view(torch.uint8).numpy().tobytes())
     return digest.hexdigest()
 
 
@@ -155,7 +141,7 @@ class FeatureCache:
         key = {
             "format": _FORMAT,
             "encoder": dict(encoder_spec),
-            "weights": weights_fingerprint(encoder),
+            "weights": factory.weights_fingerprint(encoder),
             "dataset": dict(dataset_spec),
             "resolution": {"short_side": dataset_spec.get("short_side"), "patch": patch_size},
             "precision": str(precision),

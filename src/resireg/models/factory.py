@@ -21,6 +21,7 @@ tabulated in docs/method.md#models-and-encoders.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
@@ -38,6 +39,7 @@ __all__ = [
     "count_parameters",
     "encoder_arguments",
     "encoder_modules",
+    "weights_fingerprint",
     "load_resireg_vlm",
 ]
 
@@ -105,6 +107,22 @@ def encoder_modules(encoder: DenseEncoder) -> list[torch.nn.Module]:
     if inner is not None and not isinstance(inner, torch.nn.Module):
         modules += [m for m in vars(inner).values() if isinstance(m, torch.nn.Module)]
     return modules
+
+
+def weights_fingerprint(encoder: torch.nn.Module) -> str:
+    """BLAKE2b digest of every parameter and buffer of ``encoder`` (names, dtypes, shapes and
+    bytes), modules kept outside the module tree included (as :func:`count_parameters` counts
+    them). Two encoders share a fingerprint only if their weights are bitwise equal: a resumed
+    map (``resireg-map``, ``resireg-ros2``) and the feature cache are keyed by it."""
+    digest = hashlib.blake2b(digest_size=16)
+    for prefix, module in enumerate(encoder_modules(encoder)):
+        tensors = {**dict(module.named_parameters()), **dict(module.named_buffers())}
+        for name in sorted(tensors):
+            t = tensors[name].detach()
+            digest.update(f"{prefix}.{name}:{t.dtype}:{tuple(t.shape)};".encode())
+            # bytes of the storage as laid out in memory; view as uint8 covers bf16 too
+            digest.update(t.contiguous().cpu().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()
 
 
 def count_parameters(encoder: DenseEncoder) -> int:

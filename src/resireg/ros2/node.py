@@ -27,8 +27,9 @@ Outputs, in ``source.world_frame``:
 
 The map is saved to ``<output_dir>/map`` every ``save_every`` windows, on ``~/save_map`` and
 when the node closes (SIGINT); ``resume:=true`` continues a saved map (refused, naming the
-settings, if they differ). ``rerun.*``: the live Rerun stream (:class:`RerunView`), the same
-entities as ``resireg-map``'s recording.
+settings, if they differ: the map's, the source's, the encoder entry or its weights' digest).
+``rerun.*``: the live Rerun stream (:class:`RerunView`), the same entities as ``resireg-map``'s
+recording.
 """
 
 from __future__ import annotations
@@ -254,12 +255,15 @@ class ResiregMapNode(Node):
 
     def _identity(self) -> dict[str, Any]:
         """What a resumed map must share with the node (besides the map's own settings): the
-        encoder entry (its path resolved) and the source parameters."""
+        encoder entry (its path resolved), a digest of the encoder's weights (as resireg-map
+        keys its maps: another model at the same path differs) and the source parameters."""
+        from resireg.models.factory import weights_fingerprint
+
         entry = dict(encoder_entry(self.values)) if self.values["model_path"] else {}
         path = entry.get("path")
         if isinstance(path, str) and Path(path).expanduser().exists():
             entry["path"] = str(Path(path).expanduser().resolve())
-        return {"encoder": entry,
+        return {"encoder": entry, "weights": weights_fingerprint(self.encoder),
                 "source": {k: self.values[f"source.{k}"] for k in SOURCE_KEYS}}  # fmt: skip
 
     def _open_map(self) -> Any:

@@ -109,7 +109,7 @@ def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
     """What a resumed run must share with the saved map: the source (its path resolved; but
     ``limit`` and a live source's ``idle``: a run cut short by them resumes without them), the
     map's settings, the ReSiReg configuration's parameters (``lite`` / ``full`` / ``calib``...), the encoder's entry (its
-    path resolved) and a digest of its weights (:func:`resireg_train.cache.weights_fingerprint`:
+    path resolved) and a digest of its weights (:func:`resireg.models.factory.weights_fingerprint`:
     another model at the same path differs)."""
     from resireg.specs.variants import PARAM_VARIANTS
 
@@ -189,7 +189,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         prior_spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else {}
         with config_path("prior", {"spec": "prior"}):
             prior = build_prior(prior_spec, device=encoder.device)
-    from resireg_train.cache import weights_fingerprint
+    from resireg.models.factory import weights_fingerprint
 
     t0 = time.perf_counter()
     identity = _identity(cfg, weights_fingerprint(encoder))
