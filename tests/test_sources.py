@@ -436,3 +436,24 @@ def test_the_robot_side_imports_no_training_stack():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
+
+
+@pytest.mark.parametrize(("limit", "start", "sizes"), [(5, 0, [2, 2, 1]), (4, 0, [2, 2]),
+                                                       (5, 2, [2, 1]), (2, 2, [])])  # fmt: skip
+def test_windows_stop_at_the_limit_without_asking_for_another_frame(limit, start, sizes):
+    """A stream that fails when asked for more than ``limit`` frames (as a live topic would
+    block): windows(limit=...) ends after the limit-th kept frame, its last window emitted,
+    the frames counted read exactly as many as were taken, in_map ones among them."""
+    rng = np.random.default_rng(0)
+
+    def stream():
+        for i in range(limit):
+            yield RGBDFrame(rng.integers(0, 255, (8, 8, 3), dtype=np.uint8),
+                            np.ones((8, 8), np.float32), np.eye(3), np.eye(4), float(i), str(i))  # fmt: skip
+        raise AssertionError("asked for a frame past the limit")
+
+    counts = FrameCounts()
+    batches = list(windows(stream(), 2, counts, limit=limit, start=start))
+    assert [len(b["name"]) for b in batches] == sizes
+    assert [n for b in batches for n in b["name"]] == [str(i) for i in range(start, limit)]
+    assert counts.read == limit and counts.skipped["in_map"] == start

@@ -164,9 +164,10 @@ def windows(
     (the position of the window's first frame among the kept frames).
 
     ``frame_skip = s`` keeps every ``(s + 1)``-th frame (ScanNet's rule); ``limit`` stops after
-    that many kept frames; ``start`` skips the first kept frames (those a resumed map holds,
-    counted as ``in_map``): the first window starts at kept frame ``start`` whatever window
-    boundaries an earlier run had. ``max_depth`` (metres): depth pixels beyond it (and
+    that many kept frames, without asking for the next one (a live stream ends at once);
+    ``start`` skips the first kept frames (those a resumed map holds, counted as ``in_map``):
+    the first window starts at kept frame ``start`` whatever window boundaries an earlier run
+    had. ``max_depth`` (metres): depth pixels beyond it (and
     negative ones) become 0, "no depth", and are counted in ``counts.depth_out_of_range``.
     Skipped records and frames with a non-finite pose are counted in ``counts``; a window ends
     early where the image size changes."""
@@ -204,12 +205,11 @@ def windows(
         if not np.isfinite(frame.pose).all():
             counts.skip(SkippedFrame(frame.name, "non-finite pose", "no_pose"))
             continue
-        if limit is not None and position >= limit:
-            counts.read -= 1
-            break
         if position < start:
             counts.skip(SkippedFrame(frame.name, "held by the resumed map", "in_map"))
             position += 1
+            if limit is not None and position >= limit:
+                break
             continue
         if max_depth is not None:
             out = ~(frame.depth <= max_depth) & (frame.depth != 0)  # NaN, > max, negative
@@ -229,5 +229,7 @@ def windows(
             first = position
         batch.append(frame)
         position += 1
+        if limit is not None and position >= limit:
+            break  # before asking for another frame: a live stream may never send one
     if batch:
         yield emit()
