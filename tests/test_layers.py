@@ -55,3 +55,106 @@ def test_the_ground_floor_loads_without_torch(module):
     code = f"import sys, {module}; print(sorted(m for m in ('torch', 'numpy') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+PACKAGES = ("resireg", "resireg_train")
+
+
+def _ours(dotted: str) -> bool:
+    return any(dotted == p or dotted.startswith(f"{p}.") for p in PACKAGES)
+
+
+def _private_imports(path, module: str, root) -> list[str]:
+    """``module``'s (its file ``path``) uses of another module's private name, of either
+    package: ``from resireg.x import _name`` (relative imports resolved) or ``x._name`` where
+    ``x`` is bound to one of their modules (``import resireg.x as x``, ``from resireg import
+    x``)."""
+    import ast
+
+    def is_module(dotted: str) -> bool:
+        parts = dotted.split(".")
+        return (root / "/".join(parts)).with_suffix(".py").is_file() or (
+            root / "/".join(parts) / "__init__.py"
+        ).is_file()
+
+    def private(name: str) -> bool:
+        return name.startswith("_") and not name.startswith("__")
+
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    bound: dict[str, str] = {}  # local name -> resireg module
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1])
+                base = f"{base}.{node.module}" if node.module else base
+            if not _ours(base):
+                continue
+            for alias in node.names:
+                if private(alias.name) and base != module:
+                    found.append(f"{module}:{node.lineno}: from {base} import {alias.name}")
+                elif is_module(f"{base}.{alias.name}"):
+                    bound[alias.asname or alias.name] = f"{base}.{alias.name}"
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if _ours(alias.name):
+                    top = alias.name.split(".")[0]
+                    bound[alias.asname or top] = alias.name if alias.asname else top
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and private(node.attr):
+            chain, value = [], node.value
+            while isinstance(value, ast.Attribute):
+                chain.append(value.attr)
+                value = value.value
+            if isinstance(value, ast.Name) and value.id in bound:
+                target = ".".join([bound[value.id], *reversed(chain)])
+                if is_module(target) and target != module:
+                    found.append(f"{module}:{node.lineno}: {target}.{node.attr}")
+    return found
+
+
+def test_no_module_uses_another_ones_private_names(tmp_path):
+    """Helpers one module needs from another are public (resireg.checks' check_variant_inputs,
+    resireg.mapping.keys, resireg_train.search.quiet_optuna, ...): an AST scan of src/resireg
+    and src/resireg_train finds no import or attribute use of another module's private name.
+    The scanner itself is checked on planted uses."""
+    root = ROOT / "src"
+    files = sorted(path for p in PACKAGES for path in (root / p).rglob("*.py"))
+    modules = {}
+    for path in files:
+        name = ".".join(path.relative_to(root).with_suffix("").parts)
+        modules[name.removesuffix(".__init__")] = path
+    assert {"resireg.pca", "resireg.mapping.keys", "resireg_train.search"} <= set(modules)
+    found = [hit for name, path in modules.items() for hit in _private_imports(path, name, root)]
+    assert found == []
+
+    planted = tmp_path / "resireg" / "mapping" / "planted.py"
+    planted.parent.mkdir(parents=True)
+    for name in ("keys", "voxels"):
+        (planted.parent / f"{name}.py").write_text("")
+    (tmp_path / "resireg" / "kmeans.py").write_text("")
+    (tmp_path / "resireg_train").mkdir()
+    for name in ("search", "engine"):
+        (tmp_path / "resireg_train" / f"{name}.py").write_text("")
+    planted.write_text(
+        "from resireg_train.search import _optuna\nimport resireg_train.engine as eng\n"
+        "eng._no_timer\nimport resireg_train\nresireg_train.engine._no_timer\n"
+        "import resireg.kmeans as km\nimport resireg.mapping.voxels\n"
+        "from resireg.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
+        "from resireg.mapping import voxels\n"
+        "km._tolerance(1)\nresireg.mapping.voxels._check(1)\nvoxels._x\n"
+        "from torch import _C\nkm.kmeans\nself._private\n"
+    )
+    hits = _private_imports(planted, "resireg.mapping.planted", tmp_path)
+    assert sorted(hit.split(": ", 1)[1] for hit in hits) == [
+        "from resireg.kmeans import _lloyd",
+        "from resireg.mapping.keys import _OFFSET",
+        "from resireg_train.search import _optuna",
+        "resireg.kmeans._tolerance",
+        "resireg.mapping.voxels._check",
+        "resireg.mapping.voxels._x",
+        "resireg_train.engine._no_timer",
+        "resireg_train.engine._no_timer",
+    ]

@@ -52,6 +52,7 @@ __all__ = [
     "counted_trials",
     "distributions",
     "fail_stale_trials",
+    "quiet_optuna",
     "load_study",
     "open_storage",
     "register_search_resolvers",
@@ -74,7 +75,7 @@ ATTR_HOST, ATTR_PID, ATTR_HEARTBEAT, ATTR_STALE = (
 WORKER_ENV = "RESIREG_SEARCH_WORKER"
 
 
-def _optuna() -> Any:
+def quiet_optuna() -> Any:
     """Optuna, its messages through the logging configuration of the process (Hydra's: the
     job's log file and console, each line once, no colour codes) instead of its own handler."""
     import optuna
@@ -89,7 +90,7 @@ def open_storage(storage: str | None, sweep_dir: str | Path) -> Any:
     """The study's storage: a journal file in ``sweep_dir`` (``storage`` unset or
     ``journal``), or Optuna's RDBStorage for a database URL (``postgresql+psycopg://...``,
     ``sqlite:///...``). A database that cannot be reached is a ConfigError naming the key."""
-    optuna = _optuna()
+    optuna = quiet_optuna()
     from optuna.storages.journal import JournalFileBackend
 
     if storage in (None, "", "journal"):
@@ -114,7 +115,7 @@ def load_study(sweep_dir: str | Path, storage: str | None = None, study_name: st
     """The sweep's ``optuna.Study`` (its only study unless ``study_name``), or ``None``."""
     if storage in (None, "", "journal") and not (Path(sweep_dir) / STUDY_FILE).is_file():
         return None
-    optuna = _optuna()
+    optuna = quiet_optuna()
     store = open_storage(storage, sweep_dir)
     names = [s.study_name for s in optuna.get_all_study_summaries(store)]
     if study_name is None:
@@ -245,7 +246,7 @@ def fail_stale_trials(study: Any, grace_period: float, retries: int = 0) -> list
     system attributes; with ``retries`` > 0 Optuna's RetryHeartbeatStaleTrialCallback (formerly
     RetryFailedTrialCallback) enqueues each
     again (same parameters, at most ``retries`` times). Returns the trial numbers failed."""
-    optuna = _optuna()
+    optuna = quiet_optuna()
     from optuna.storages import RetryHeartbeatStaleTrialCallback
     from optuna.trial import TrialState
 
@@ -319,7 +320,7 @@ class OptunaSearch:
     def study(self) -> Any:
         import hydra
 
-        optuna = _optuna()
+        optuna = quiet_optuna()
         sampler = self._sampler(0)
         pruner_cfg = self.s.get("pruner")
         pruner = hydra.utils.instantiate(pruner_cfg) if pruner_cfg else optuna.pruners.NopPruner()
@@ -384,7 +385,7 @@ class OptunaSearch:
     def run(self, fixed: list[str], space: dict[str, Any], run_job: Any) -> int:
         """Run trials until the study holds ``n_trials`` finished ones (waiting while other
         workers run the last ones, taking over a dead one's); returns how many this ran."""
-        optuna = _optuna()
+        optuna = quiet_optuna()
         from optuna.trial import TrialState
 
         study = self.study()

@@ -68,7 +68,7 @@ from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
 from resireg_train.data.specs import GT_RULES, check_dataset_values, dataset_conf
-from resireg_train.engine import EvalEngine, StageTimer, _no_timer, inference, nonfinite_output
+from resireg_train.engine import EvalEngine, StageTimer, inference, no_timer, nonfinite_output
 from resireg_train.tasks import TASK_SPECS
 
 __all__ = [
@@ -357,7 +357,7 @@ class MappingEngine(EvalEngine):
             timer: collects seconds per stage (``data``, ``encoder``,
                 ``reconstruction/<variant>``, ``fusion``, ``ground_truth``, ``metric``).
         """
-        timed = timer or _no_timer
+        timed = timer or no_timer
         result = MappingResult(
             self.dataset.name,
             tuple(self.dataset.classes),

@@ -39,9 +39,9 @@ from resireg_train.data.segmentation import SegmentationSet, SkippedSample, coll
 from resireg_train.engine import (  # shared with the 3D engine; importable from here too
     EvalEngine,
     StageTimer,
-    _no_timer,
     check_variants_on,
     inference,
+    no_timer,
     nonfinite_output,
 )
 from resireg_train.tasks import TASK_SPECS
@@ -269,7 +269,7 @@ class OVSSEngine(EvalEngine):
                 f"{list(cache.layers)}, the configurations run on {list(layers)}: build its key "
                 "with FeatureCache.key_for(..., layers=requested_layers(encoder, variants))"
             )
-        timed = timer or _no_timer
+        timed = timer or no_timer
         k = len(self.dataset.classes)
         metrics = {
             v: SegmentationMetric(k, self.dataset.ignore_index, self.dataset.reduce_zero_label)

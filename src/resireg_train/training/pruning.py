@@ -13,7 +13,7 @@ from typing import Any
 import lightning as L
 import optuna
 
-from resireg_train.search import _optuna, open_storage
+from resireg_train.search import open_storage, quiet_optuna
 from resireg_train.tracking import epoch_metrics
 
 __all__ = ["OptunaPruning", "TrialPrunedStop"]
@@ -41,7 +41,7 @@ class OptunaPruning(L.Callback):
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if self.number is None or not trainer.is_global_zero:
             return
-        _optuna()
+        quiet_optuna()
         storage = open_storage(self.storage, self.sweep_dir)
         pruner = self.pruner or optuna.pruners.NopPruner()
         study = optuna.load_study(study_name=self.study_name, storage=storage, pruner=pruner)
