@@ -165,6 +165,36 @@ def test_dense_output_shapes_and_dtypes(kind, built):
     torch.testing.assert_close(queries.norm(dim=-1), torch.ones(len(TEXTS)), rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("kind", sorted(ENCODERS))
+def test_a_query_does_not_depend_on_its_batch(kind, built, monkeypatch):
+    """A text's query is the same encoded alone, with others, or split into text batches
+    (``text_batch_size`` where the kind has one)."""
+    enc, _, _ = built[kind]
+    texts = ["cat", "dog", "car", "sky", "road"]
+    whole = enc.encode_text(texts)
+    torch.testing.assert_close(enc.encode_text(texts[3:4]), whole[3:4], atol=1e-6, rtol=1e-6)
+    if hasattr(enc, "text_batch_size"):
+        monkeypatch.setattr(enc, "text_batch_size", 2)
+        torch.testing.assert_close(enc.encode_text(texts), whole, atol=1e-6, rtol=1e-6)
+
+
+@pytest.mark.parametrize("kind", sorted(ENCODERS))
+def test_lite_similarity_is_the_cosine_of_its_map_and_each_query(kind, built):
+    """similarity(images, texts, resireg="lite") is, per pixel, torch's cosine similarity of
+    encode_image's lite map and each text query (so that map is unit-norm per pixel)."""
+    import torch.nn.functional as F
+
+    enc, _, _ = built[kind]
+    rgb = torch.rand(2, 3, 70, 98, generator=torch.Generator().manual_seed(2))
+    images = (rgb * 255).to(torch.uint8)
+    dense = enc.encode_image(images, resireg="lite")
+    sim = enc.similarity(images, TEXTS, resireg="lite")
+    queries = enc.encode_text(TEXTS)
+    expected = F.cosine_similarity(dense[:, None].float(), queries[None, :, :, None, None], dim=2)
+    assert sim.shape == (2, len(TEXTS), *dense.shape[-2:])
+    torch.testing.assert_close(sim, expected, atol=1e-5, rtol=1e-5)
+
+
 @pytest.mark.slow  # rebuilds every encoder (CLIP ViT-B/16 twice, with OTAS's)
 @pytest.mark.parametrize("kind", sorted(ENCODERS))
 def test_spec_round_trip(kind, built):
