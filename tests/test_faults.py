@@ -158,6 +158,11 @@ def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tm
 
 
 # ---------------------------------------------------------------------- full disk (item 4)
+#: The environment of a process under a file-size limit: git finds no checkout, so the run
+#: records no code.diff of this checkout's uncommitted change (its size is not this test's).
+NO_CHECKOUT = {**os.environ, "GIT_DIR": os.devnull}
+
+
 def _file_size_limit(limit):
     def apply():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG)
@@ -196,7 +201,7 @@ def test_a_checkpoint_that_cannot_be_written_fails_in_one_line_and_leaves_nothin
     proc = subprocess.run(
         [str(exe), *SMOKE, "trainer.max_epochs=1", f"hydra.run.dir={out}"],
         capture_output=True, text=True, timeout=600, preexec_fn=_file_size_limit(512 * 1024),
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        env={**NO_CHECKOUT, "HF_HUB_OFFLINE": "1"},
     )  # fmt: skip
     assert proc.returncode != 0
     target = out / "checkpoints" / "epoch000.ckpt"
@@ -462,7 +467,7 @@ def test_a_final_status_reaches_the_record_or_stderr_says_it_could_not(tmp_path,
     the status the record still reads. Both exit non-zero."""
     proc = subprocess.run(
         [sys.executable, "-c", _RUN_TASK, str(tmp_path), how], capture_output=True, text=True,
-        preexec_fn=_file_size_limit(4096), timeout=120,
+        preexec_fn=_file_size_limit(4096), timeout=120, env=NO_CHECKOUT,
     )  # fmt: skip
     assert proc.returncode == 1, proc.stderr[-2000:]
     results = _results(tmp_path)
