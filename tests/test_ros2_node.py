@@ -304,7 +304,8 @@ def test_overload_stays_bounded_and_answers_queries(ros, room, encoder, tmp_path
         return real_add(*args)
 
     smap.add = slow_add  # 2 frames per 0.25 s at most: 8 frames/s
-    pub = Replayer(replay_topics("/overload"), context=context, name="replay_overload")
+    # a deep writer history: under a loaded machine no frame is lost before the node's reader
+    pub = Replayer(replay_topics("/overload"), context=context, name="replay_overload", qos=100)
     spinner.add(node)
     spinner.add(pub)
     answers = Inbox(test_node, PointCloud2, "/resireg_overload/query/cloud")
