@@ -5,14 +5,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from PIL import Image
-
 from resireg.errors import ResiregError
+from resireg.sources.frames import DECODE_ERRORS
 
 __all__ = ["DECODE_ERRORS", "WriteError", "write_atomic"]
-
-#: What PIL raises for an undecodable image file (skipped and counted, never fatal).
-DECODE_ERRORS = (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 
 
 class WriteError(ResiregError, OSError):
