@@ -24,10 +24,10 @@ import time
 import torch
 
 from _common import build_model, generated_spec
+from resireg.method.variants import build_variants
 from resireg.models import ResiregVLM
-from resireg.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import OVSSEngine, StageTimer
+from resireg_train.evaluation.ovss.engine import OVSSEngine, StageTimer
 
 BATCH_SIZES = (2, 4, 6, 8, 16, 24, 32)
 COUNTS = tuple(range(24, 133, 12))

@@ -4,7 +4,7 @@ One evaluation pass of the 25M architecture (EUPE ViT-S/16 + the 25M head, rando
 ``--images`` generated images at ``--short-side`` (4:3, so 576 px gives the 36 x 48 grid of
 an ADE20K-like image) is run three times through the engine (``OVSSEngine.run`` with the ``bb``
 variant, so ReSiReg adds nothing): without a cache, filling a new cache, and reading it in a
-fresh :class:`~resireg_train.cache.FeatureCache` (what a later job of a sweep does). Reported:
+fresh :class:`~resireg_train.evaluation.cache.FeatureCache` (what a later job of a sweep does). Reported:
 the engine's seconds per stage (``encoder``, ``cache``), images per second of encoding and of
 reading, and the bytes per image on disk, with the disk cost this gives for ADE20K val
 (2,000 images) and for the 12 ScanNet scenes (about 500 kept frames each at frame skip 10, at
@@ -24,10 +24,10 @@ import time
 import torch
 
 from _common import build_model, generated_spec
-from resireg.variants import build_variants
-from resireg_train.cache import FeatureCache
+from resireg.method.variants import build_variants
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import OVSSEngine, StageTimer
+from resireg_train.evaluation.cache import FeatureCache
+from resireg_train.evaluation.ovss.engine import OVSSEngine, StageTimer
 
 ADE20K_VAL_IMAGES = 2000
 SCANNET_FRAMES = 12 * 500  # 12 scenes, ~5,000 frames each at frame skip 10

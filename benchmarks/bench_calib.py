@@ -14,7 +14,7 @@ import time
 
 import torch
 
-from resireg.variants import build_variant
+from resireg.method.variants import build_variant
 
 
 def best_of(fn, repeats: int) -> float:

@@ -1,8 +1,8 @@
 """The cost of the variants' input check against ReSiReg Full's and Lite's forward.
 
 ``ReSiRegFull``, ``ReSiRegLite`` and ``Calib`` refuse non-finite, non-floating and empty
-inputs before computing (``resireg.checks.check_variant_inputs``, whose finiteness rule is
-``resireg.checks.check_features``): the shape tests are free, the finiteness test reads every
+inputs before computing (``resireg.method.checks.check_variant_inputs``, whose finiteness rule is
+``resireg.method.checks.check_features``): the shape tests are free, the finiteness test reads every
 value of ``intermediates`` and ``language`` once (one fused ``isfinite(...).all()`` each).
 This measures that check as a share of each variant's forward (which includes it), on the
 25M architecture's features (EUPE ViT-S/16 + the 25M head, random weights: ``Dv = 384``,
@@ -24,8 +24,8 @@ import time
 import torch
 
 from _common import build_model, encode_generated, resireg_defaults
-from resireg.checks import check_variant_inputs
-from resireg.reconstruct import ReSiRegFull, ReSiRegLite
+from resireg.method.checks import check_variant_inputs
+from resireg.method.reconstruct import ReSiRegFull, ReSiRegLite
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -8,7 +8,7 @@ One run prints, as ratios to ``ReSiRegFull.assign`` at the chosen count (Full's 
 PCA, projection, upsampling, k-means), the fastest of ``--repeats`` interleaved calls of:
 
 1. the choice alone (:meth:`ReSiRegFull._elbo_count`: the subsample's points on the largest
-   candidate's axes, then :func:`resireg.elbo.elbo_prototype_count`: k-means and a
+   candidate's axes, then :func:`resireg.method.elbo.elbo_prototype_count`: k-means and a
    variational mixture per candidate, in increasing order, on ``max_points`` points, until
    two candidates in a row fall below the best bound),
 2. ``ReSiRegFull(n_prototypes="elbo").assign``: the choice and the clustering,
@@ -32,8 +32,8 @@ import torch
 
 from _common import resireg_defaults
 from bench_reconstruct import interleaved_best, load_impl, make_features
-from resireg.elbo import elbo_fits, elbo_subsample
-from resireg.reconstruct import ReSiRegFull, upsampled_spectrum
+from resireg.method.elbo import elbo_fits, elbo_subsample
+from resireg.method.reconstruct import ReSiRegFull, upsampled_spectrum
 
 
 def main() -> None:

@@ -18,9 +18,9 @@ import time
 import torch
 
 from _common import TINY_TEXT
+from resireg.method.variants import build_variant
 from resireg.models import ClipEncoder, ResiregVLM
 from resireg.specs.variants import VARIANTS
-from resireg.variants import build_variant
 
 
 def _encoders(names: list[str]) -> dict[str, torch.nn.Module]:

@@ -165,7 +165,7 @@ def fusion_throughput(frames: list[torch.Tensor], voxel: float, dim: int) -> dic
 
 def cost_split(args: argparse.Namespace) -> list[tuple[str, float]]:
     """Median seconds per batch of each stage (section 2 of the docstring)."""
-    from resireg.variants import build_variant
+    from resireg.method.variants import build_variant
 
     torch.manual_seed(0)
     model = build_model(args.smoke)

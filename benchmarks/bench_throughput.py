@@ -51,8 +51,8 @@ every formula against it, exactly, on the real modules.
   ``B (2 (h w)^2 Dv + 2 N h w Dl)`` (:func:`lite_flops`). The segmentation prior (extra keys)
   is not used here.
 - Full (the batch is one scene; ``n = B s^2 h w`` points, K prototypes, r = min(components,
-  Dv), ``t = 2 + floor(ln K)`` k-means++ candidates per step), as ``resireg.reconstruct`` /
-  ``resireg.pca`` compute it: PCA moments from the small grid, ``U_a^T U_a`` of both axes
+  Dv), ``t = 2 + floor(ln K)`` k-means++ candidates per step), as ``resireg.method.reconstruct`` /
+  ``resireg.method.pca`` compute it: PCA moments from the small grid, ``U_a^T U_a`` of both axes
   ``2 s (h^3 + w^3)``, first moment ``2 h w Dv``, second moment by ``pca.gram`` (upper
   block triangle of 3 column slabs: 6 of 9 slab products, ``(4/3) B h w Dv^2``, accumulated
   over chunks of images; the Cholesky factors are applied elementwise); projection on the
@@ -101,8 +101,8 @@ import torch
 from torch import nn
 
 from _common import build_model, resireg_defaults
-from resireg import reconstruct
-from resireg.variants import build_variant
+from resireg.method import reconstruct
+from resireg.method.variants import build_variant
 
 VARIANT_NAMES = ("VLM", "VLM + Lite", "VLM + Full")
 CPU_BATCH_SIZES = (1, 2, 4)
@@ -168,7 +168,7 @@ def lite_flops(
 
     ``attention="sdpa"``: tau = 0, SDPA at the padded width ``max(dv, dl)``, ``4 B N^2 W``;
     tau > 0, the explicit chunks, ``2 B N^2 (dv + dl)``. ``"factorised"`` (any tau): per
-    query block of :func:`resireg.reconstruct.factorised_blocks`, the Gram rows of the coarse
+    query block of :func:`resireg.method.reconstruct.factorised_blocks`, the Gram rows of the coarse
     rows it reads, ``2 (c1 - c0) w * h w * dv``, and the product of the per-token weight sums
     with the coarse tokens, ``2 N h w dl`` (the language grid is the intermediates')."""
     n = upscale * upscale * h * w
@@ -182,12 +182,12 @@ def lite_flops(
 
 
 def kmeanspp_candidates(k: int) -> int:
-    """Candidates per k-means++ step, as ``resireg.kmeans.kmeans_plusplus`` draws them."""
+    """Candidates per k-means++ step, as ``resireg.method.kmeans.kmeans_plusplus`` draws them."""
     return 2 + int(math.log(k))
 
 
 def gram_flops(rows: int, dim: int, blocks: int = 4) -> int:
-    """``resireg.pca.gram``: ``y^T y`` of ``[rows, dim]`` from the upper block triangle of
+    """``resireg.method.pca.gram``: ``y^T y`` of ``[rows, dim]`` from the upper block triangle of
     ``blocks`` column slabs (one plain product when ``dim < 32 * blocks``)."""
     if blocks <= 1 or dim < 32 * blocks:
         return 2 * rows * dim * dim
@@ -226,7 +226,7 @@ def full_flops_breakdown(
     return {
         "moments": moments,
         "projection": 2 * batch * hw * dv * r,
-        # k-means++ products on the grid, then upsampled (resireg.reconstruct: the seeding's dots)
+        # k-means++ products on the grid, then upsampled (resireg.method.reconstruct: the seeding's dots)
         "seeding": 2 * batch * hw * r * (1 + kmeanspp_candidates(k) * (k - 1)),
         "kmeans": kmeans,
         "mixing": 2 * n * k * dl,

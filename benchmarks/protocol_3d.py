@@ -29,12 +29,12 @@ import torch
 import torch.nn.functional as F
 import yaml
 
+from resireg.method.variants import build_variants
 from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES
-from resireg.variants import build_variants
 from resireg_train.data.scannet import READER_KEYS, ScanNetFrames
 from resireg_train.data.scannet_room import NYU40_COLOURS, Box, SyntheticRoom, write_scene
-from resireg_train.mapping.engine import TASK_KEYS, MappingEngine, MappingSettings
+from resireg_train.evaluation.mapping.engine import TASK_KEYS, MappingEngine, MappingSettings
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 SCENES = ("synthetic0000_00", "synthetic0001_00")

@@ -19,8 +19,8 @@ from PIL import Image
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
+from resireg.method.reconstruct import ReSiRegFull, ReSiRegLite
 from resireg.models import EUPEBackbone, LanguageHead
-from resireg.reconstruct import ReSiRegFull, ReSiRegLite
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_throughput.py"
 _spec = importlib.util.spec_from_file_location("bench_throughput", _PATH)
@@ -50,7 +50,7 @@ def _addmm_flop(self_shape, a_shape, b_shape, *args, out_shape=None, **kwargs) -
 
 
 #: Matrix products FlopCounterMode has no formula for: matrix-vector products and the
-#: in-place ``addmm_`` that ``resireg.pca.gram`` accumulates with.
+#: in-place ``addmm_`` that ``resireg.method.pca.gram`` accumulates with.
 _MISSING = {torch.ops.aten.mv: _mv_flop, torch.ops.aten.addmm_: _addmm_flop}
 
 
@@ -154,7 +154,7 @@ def test_median_seconds_returns_none_on_oom_only():
 def test_lite_flops_match_flop_counter(batch, h, w, tau, attention, monkeypatch):
     """The SDPA path (tau = 0, padded to max(Dv, Dl)), the chunked explicit path, and the
     factorised path (with blocks small enough that the Gram rows overlap)."""
-    from resireg import reconstruct
+    from resireg.method import reconstruct
 
     monkeypatch.setattr(reconstruct, "_FACTORISED_BLOCK", 2 * 2 * 4 * h * w)  # 2 coarse rows
     inter, lang = torch.randn(batch, 384, h, w), torch.randn(batch, 512, h, w)
@@ -216,7 +216,7 @@ def test_full_flops_at_protocol_size_match_flop_counter():
 
 
 def test_gram_flops_match_flop_counter():
-    from resireg.pca import gram
+    from resireg.method.pca import gram
 
     for d in (64, 95, 96, 384, 385):
         y = torch.randn(10, d)

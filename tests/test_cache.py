@@ -8,13 +8,13 @@ import torch
 
 from _run import evaluate, run
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.method.variants import build_variants
 from resireg.models import ResiregVLM
 from resireg.models.factory import weights_fingerprint
-from resireg.variants import build_variants
-from resireg_train.cache import FeatureCache
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
-from resireg_train.ovss.engine import OVSSEngine, StageTimer
+from resireg_train.evaluation.cache import FeatureCache
+from resireg_train.evaluation.ovss.engine import OVSSEngine, StageTimer
 
 SPEC = dataset_conf("synthetic", size=6, image_size=[40, 56], seed=3, noise=12.0, short_side=32)
 

@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from sklearn.neighbors import LocalOutlierFactor
 
-from resireg.calib import Calib, lof_outliers, negative_outlier_factor, resolve_anomalies
-from resireg.variants import VARIANTS, build_variant
+from resireg.method.calib import Calib, lof_outliers, negative_outlier_factor, resolve_anomalies
+from resireg.method.variants import VARIANTS, build_variant
 
 
 def _sklearn_lof(points, n_neighbors=30, contamination=0.05):

@@ -20,10 +20,10 @@ from huggingface_hub import constants as hf_constants
 from PIL import Image
 from safetensors.torch import save_file
 
+from resireg.method.reconstruct import ReSiRegLite
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
 from resireg.models.zoo.clip import ClipEncoder
-from resireg.reconstruct import ReSiRegLite
 
 B16 = "ViT-B-16"
 

@@ -17,18 +17,18 @@ from PIL import Image
 
 from _sweeps import make_job as _job
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.method.variants import build_variants
 from resireg.models import ResiregVLM
 from resireg.models.zoo.clip import ClipEncoder
 from resireg.ovss import TEMPLATES
 from resireg.specs.variants import parse_variant, variant_layer
-from resireg.variants import build_variants
-from resireg_train.cache import FeatureCache
 from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.checks import ConfigError, validate_eval
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
-from resireg_train.ovss.engine import OVSSEngine, requested_layers
+from resireg_train.evaluation.cache import FeatureCache
+from resireg_train.evaluation.ovss.engine import OVSSEngine, requested_layers
 from resireg_train.report import collect, layer_sweep_table, report
-from resireg_train.validation import ConfigError, validate_eval
 
 B16 = "ViT-B-16"
 SIDE = 64  # CLIP's native side here: a 4 x 4 token grid keeps the test fast

@@ -5,8 +5,8 @@ from sklearn.cluster import KMeans
 from sklearn.cluster._kmeans import _tolerance as sk_tolerance
 from sklearn.decomposition import PCA
 
-from resireg.kmeans import _lloyd, _tolerance, kmeans, kmeans_plusplus, sq_distances
-from resireg.pca import gram, pca
+from resireg.method.kmeans import _lloyd, _tolerance, kmeans, kmeans_plusplus, sq_distances
+from resireg.method.pca import gram, pca
 
 
 def _mixture(n=3000, d=24, k=8, seed=0, spread=1.0):
@@ -197,7 +197,7 @@ def test_assign_rows_bounds_hold_for_exact_distances():
     """The float32 bounds of a computed row bound the float64 distances: the upper one the
     distance to the nearest centroid, each group's lower one the distance to the group's
     other centroids, also for points that sit nearly on a centroid or a boundary."""
-    from resireg.kmeans import _GROUP, _assign_rows, _sq_error
+    from resireg.method.kmeans import _GROUP, _assign_rows, _sq_error
 
     g = torch.Generator().manual_seed(3)
     c = torch.randn(10, 16, generator=g)  # 10 centroids: groups of 4, 4 and 2 (padded)
@@ -226,7 +226,7 @@ def test_assign_rows_bounds_hold_for_exact_distances():
 def test_grouped_bounds_skip_more_rows_than_hamerly_with_the_same_result(monkeypatch):
     """Groups of centroids (Yinyang) vs one group of all centroids (Hamerly's single lower
     bound): the same labels, centroids and iterations, fewer distance rows."""
-    import resireg.kmeans as kmeans_module
+    import resireg.method.kmeans as kmeans_module
 
     x = torch.nn.functional.normalize(_mixture(n=6000, d=32, k=40, spread=2.0), dim=1)
     grouped = kmeans(x, 40, seed=1)
@@ -244,7 +244,7 @@ def test_near_centroid_groups_skip_rows_and_change_nothing(monkeypatch):
     permutation whose groups are the planted quadruples, then (on points without near-ties,
     where only rounding could decide) the same labels, centroids, iterations and distances,
     with fewer distance rows."""
-    import resireg.kmeans as kmeans_module
+    import resireg.method.kmeans as kmeans_module
 
     g = torch.Generator().manual_seed(4)
     # 12 quadruples of near centroids, listed in a shuffled order.
@@ -273,7 +273,7 @@ def test_assign_rows_ties_go_to_the_lowest_index():
     """Exact ties (duplicated centroids, also across groups) give the lowest index, as
     numpy's argmin of the same computed row; the group bound of the nearest's group then
     holds its duplicate (distance equal to the nearest), not inf."""
-    from resireg.kmeans import _GROUP, _assign_rows, _sq_error
+    from resireg.method.kmeans import _GROUP, _assign_rows, _sq_error
 
     g = torch.Generator().manual_seed(6)
     c = torch.randn(10, 8, generator=g)
@@ -300,7 +300,7 @@ def test_nested_kmeans_is_one_seeding_cut_at_each_count():
     kmeans_plusplus of k centres with those trials; the scan is lazy and checks its counts."""
     import math
 
-    from resireg.kmeans import nested_kmeans
+    from resireg.method.kmeans import nested_kmeans
 
     x = _mixture(n=800, d=6, k=5, seed=7)
     counts = [2, 3, 7]
@@ -321,9 +321,9 @@ def test_nested_kmeans_is_one_seeding_cut_at_each_count():
 
 # Every public name resireg.cluster held, and the module that holds it now.
 _CLUSTER_NAMES = {
-    "resireg.pca": ["PCAResult", "PCASpectrum", "pca", "pca_from_moments", "gram"],
-    "resireg.kmeans": ["KMeansResult", "kmeans", "kmeans_plusplus", "sq_distances"],
-    "resireg.elbo": [
+    "resireg.method.pca": ["PCAResult", "PCASpectrum", "pca", "pca_from_moments", "gram"],
+    "resireg.method.kmeans": ["KMeansResult", "kmeans", "kmeans_plusplus", "sq_distances"],
+    "resireg.method.elbo": [
         "VBGMMResult",
         "vb_gmm",
         "ELBO_MAX_POINTS",
@@ -335,7 +335,7 @@ _CLUSTER_NAMES = {
 
 
 def test_cluster_shim_warns_and_keeps_the_old_names(monkeypatch):
-    """``resireg.cluster`` (split into resireg.pca, resireg.kmeans and resireg.elbo) stays
+    """``resireg.cluster`` (split into resireg.method.pca, resireg.method.kmeans and resireg.method.elbo) stays
     importable for one release: importing it warns, naming the new modules, and every former
     public name is the new module's object, with a warning naming that module. ``import
     resireg`` and the method's modules do not import it (so they do not warn)."""
@@ -344,7 +344,9 @@ def test_cluster_shim_warns_and_keeps_the_old_names(monkeypatch):
     import sys
 
     monkeypatch.delitem(sys.modules, "resireg.cluster", raising=False)
-    with pytest.warns(DeprecationWarning, match="resireg.pca.*resireg.kmeans.*resireg.elbo"):
+    with pytest.warns(
+        DeprecationWarning, match="resireg.method.pca.*resireg.method.kmeans.*resireg.method.elbo"
+    ):
         cluster = importlib.import_module("resireg.cluster")
     assert sorted(cluster.__all__) == sorted(n for names in _CLUSTER_NAMES.values() for n in names)
     for module, names in _CLUSTER_NAMES.items():
@@ -358,11 +360,11 @@ def test_cluster_shim_warns_and_keeps_the_old_names(monkeypatch):
         from resireg.cluster import kmeans as old_kmeans
         from resireg.cluster import pca as old_pca
     assert (old_pca, old_kmeans) == (pca, kmeans)
-    assert elbo_prototype_count.__module__ == "resireg.elbo"
+    assert elbo_prototype_count.__module__ == "resireg.method.elbo"
     with pytest.raises(AttributeError, match="_lloyd"):
         cluster._lloyd  # noqa: B018 - private names did not move to the shim
     code = (
-        "import sys, resireg, resireg.reconstruct, resireg.calib, resireg.variants, "
+        "import sys, resireg, resireg.method.reconstruct, resireg.method.calib, resireg.method.variants, "
         "resireg.mapping\nassert 'resireg.cluster' not in sys.modules, 'imported the shim'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

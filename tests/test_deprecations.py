@@ -14,22 +14,22 @@ MOVED = [  # (old module, name, new module)
     ("resireg.models.encoder", "DenseEncoder", "resireg.models.interface"),
     ("resireg.models.encoders", "build_encoder", "resireg.models.factory"),
     ("resireg.deploy.card", "model_card", "resireg.models.vlm.card"),
-    ("resireg.cluster", "kmeans", "resireg.kmeans"),
-    ("resireg.cluster", "pca", "resireg.pca"),
-    ("resireg.cluster", "elbo_prototype_count", "resireg.elbo"),
+    ("resireg.cluster", "kmeans", "resireg.method.kmeans"),
+    ("resireg.cluster", "pca", "resireg.method.pca"),
+    ("resireg.cluster", "elbo_prototype_count", "resireg.method.elbo"),
     ("resireg.sources", "export_source_problem", "resireg.specs.exports"),
     ("resireg_train.data.rgbd", "RGBDFrame", "resireg.sources.frames"),
     ("resireg_train.data.rosbag", "BagSource", "resireg.sources.rosbag"),
     ("resireg_train.data.tum", "TumSource", "resireg.sources.tum"),
-    ("resireg_train.mapping.metric", "scores", "resireg.mapping.metric"),
-    ("resireg_train.protocol", "protocol_record", "resireg_train.protocol_record"),
+    ("resireg_train.evaluation.mapping.metric", "scores", "resireg.mapping.metric"),
+    ("resireg_train.protocol", "protocol_record", "resireg_train.evaluation.protocol"),
     ("resireg_train.cli.task", "run_task", "resireg_train.cli.job"),
-    ("resireg_train.cache", "weights_fingerprint", "resireg.models.factory"),
+    ("resireg_train.evaluation.cache", "weights_fingerprint", "resireg.models.factory"),
 ]
 RENAMED = [  # (module, old name, new name)
-    ("resireg_train.ovss.engine", "OVSSTask", "OVSSEngine"),
-    ("resireg_train.mapping.engine", "MappingTask", "MappingEngine"),
-    ("resireg_train.mapping.engine", "MappingProtocol", "MappingSettings"),
+    ("resireg_train.evaluation.ovss.engine", "OVSSTask", "OVSSEngine"),
+    ("resireg_train.evaluation.mapping.engine", "MappingTask", "MappingEngine"),
+    ("resireg_train.evaluation.mapping.engine", "MappingProtocol", "MappingSettings"),
 ]
 
 

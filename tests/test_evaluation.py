@@ -6,13 +6,13 @@ import torch
 from sklearn.metrics import confusion_matrix, jaccard_score
 
 from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from resireg.method.variants import build_variant, build_variants
 from resireg.models import ResiregVLM
 from resireg.ovss import predict, text_prototypes
-from resireg.variants import build_variant, build_variants
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES
-from resireg_train.ovss.engine import OVSSEngine, StageTimer
+from resireg_train.evaluation.ovss.engine import OVSSEngine, StageTimer
 
 SPEC = dataset_conf("synthetic", size=10, image_size=[40, 56], seed=5, short_side=48)
 FULL = {"n_prototypes": 6, "n_components": 6}
@@ -139,8 +139,8 @@ def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scor
     module's device ('meta' stands in for cuda:N), and the reduced sums give the scores."""
     from types import SimpleNamespace
 
-    from resireg_train.ovss import callback as callback_module
-    from resireg_train.ovss.callback import ReSiRegEval
+    from resireg_train.evaluation.ovss import callback as callback_module
+    from resireg_train.evaluation.ovss.callback import ReSiRegEval
 
     callback = ReSiRegEval({"synthetic": SPEC}, variants=["bb", "full"], batch_size=4,
                            full=FULL)  # fmt: skip
@@ -199,7 +199,7 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
 
     from resireg_train.cli.eval import evaluate
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.validation import ConfigError
+    from resireg_train.config.checks import ConfigError
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("eval", overrides=["model_path=x", "precision=fp8", "variants=[bb,mid]",
@@ -311,7 +311,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_scored(
     the scores are those of the other batches alone (sklearn's confusion over
     encode_image + predict, image by image). Before the check, Full's whole batch scored
     NaN features as class 0 and a NaN in the intermediates failed the run."""
-    from resireg_train.ovss.task import OVSSProtocol
+    from resireg_train.evaluation.ovss.task import OVSSProtocol
 
     task = _task(batch_size=3)
     batches = task.dataset.batches(3)

@@ -22,8 +22,8 @@ import torch
 import torch.nn.functional as F
 
 from resireg.integrity import IntegrityError, verify_digests
+from resireg.method.reconstruct import ReSiRegLite
 from resireg.models import ResiregVLM
-from resireg.reconstruct import ReSiRegLite
 
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")

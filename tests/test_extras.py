@@ -12,7 +12,7 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.validation import ENCODER_IMPORTS, ConfigError, check_available
+from resireg_train.config.checks import ENCODER_IMPORTS, ConfigError, check_available
 
 if sys.version_info >= (3, 11):
     import tomllib

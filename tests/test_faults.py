@@ -320,7 +320,7 @@ def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatc
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.validation import ConfigError, check_devices, validate
+    from resireg_train.config.checks import ConfigError, check_devices, validate
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         stage1 = compose("train", overrides=["experiment=vlm25m_stage1", "model.text.weights=null"])
@@ -350,7 +350,7 @@ def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
 
     from resireg_train.cli.eval import with_export_settings
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.ovss.settings import save_settings
+    from resireg_train.evaluation.ovss.settings import save_settings
 
     save_settings(tmp_path, {"variants": ["bb", "full"], "batch_size": 2, "precision": "32",
                              "full": {"n_prototypes": 12, "alpha": 5.0}, "lite": {}})  # fmt: skip
@@ -449,7 +449,7 @@ _RUN_TASK = (
     "import sys\n"
     "from omegaconf import OmegaConf\n"
     "from resireg_train.cli.job import run_task\n"
-    "from resireg_train.results import update_results\n"
+    "from resireg_train.runs.record import update_results\n"
     "def body(cfg, out):\n"
     "    if sys.argv[2] == 'crash':\n"
     "        raise RuntimeError('x' * 8000)  # a failure too long to record under the limit\n"

@@ -1,4 +1,4 @@
-"""resireg.integrity (digests, atomic writes, named read errors) and resireg.checks (the one
+"""resireg.integrity (digests, atomic writes, named read errors) and resireg.method.checks (the one
 finite-features rule), against hashlib / numpy / os references."""
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from resireg.checks import NonFiniteError, check_features, count_nonfinite
 from resireg.integrity import (
     IntegrityError,
     atomic_write,
@@ -24,6 +23,7 @@ from resireg.integrity import (
     sha256_file,
     verify_digests,
 )
+from resireg.method.checks import NonFiniteError, check_features, count_nonfinite
 
 
 def test_sha256_matches_hashlib_across_chunks(tmp_path):

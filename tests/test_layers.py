@@ -39,15 +39,15 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
         shutil.copytree(ROOT / "src" / package, src / package,
                         ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
     rules = src / "resireg" / "specs" / "rules.py"
-    rules.write_text(rules.read_text() + "\nfrom resireg.reconstruct import ReSiRegFull\n")
+    rules.write_text(rules.read_text() + "\nfrom resireg.method.reconstruct import ReSiRegFull\n")
     checks = src / "resireg" / "checks.py"
-    checks.write_text(checks.read_text() + "\nimport resireg_train.results\n")
+    checks.write_text(checks.read_text() + "\nimport resireg_train.runs.record\n")
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     out = _lint(src, tmp_path / "pyproject.toml")
     assert out.returncode == 1
     assert "Contracts: 0 kept, 2 broken." in out.stdout
-    assert "resireg.specs.rules -> resireg.reconstruct" in out.stdout
-    assert "resireg.checks -> resireg_train.results" in out.stdout
+    assert "resireg.specs.rules -> resireg.method.reconstruct" in out.stdout
+    assert "resireg.method.checks -> resireg_train.runs.record" in out.stdout
 
 
 @pytest.mark.parametrize("module", ["resireg.specs", "resireg.errors"])
@@ -116,8 +116,8 @@ def _private_imports(path, module: str, root) -> list[str]:
 
 
 def test_no_module_uses_another_ones_private_names(tmp_path):
-    """Helpers one module needs from another are public (resireg.checks' check_variant_inputs,
-    resireg.mapping.keys, resireg_train.search.quiet_optuna, ...): an AST scan of src/resireg
+    """Helpers one module needs from another are public (resireg.method.checks' check_variant_inputs,
+    resireg.mapping.keys, resireg_train.sweeps.search.quiet_optuna, ...): an AST scan of src/resireg
     and src/resireg_train finds no import or attribute use of another module's private name.
     The scanner itself is checked on planted uses."""
     root = ROOT / "src"
@@ -126,7 +126,9 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     for path in files:
         name = ".".join(path.relative_to(root).with_suffix("").parts)
         modules[name.removesuffix(".__init__")] = path
-    assert {"resireg.pca", "resireg.mapping.keys", "resireg_train.search"} <= set(modules)
+    assert {"resireg.method.pca", "resireg.mapping.keys", "resireg_train.sweeps.search"} <= set(
+        modules
+    )
     found = [hit for name, path in modules.items() for hit in _private_imports(path, name, root)]
     assert found == []
 
@@ -139,22 +141,22 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     for name in ("search", "engine"):
         (tmp_path / "resireg_train" / f"{name}.py").write_text("")
     planted.write_text(
-        "from resireg_train.search import _optuna\nimport resireg_train.engine as eng\n"
+        "from resireg_train.sweeps.search import _optuna\nimport resireg_train.evaluation.engine as eng\n"
         "eng._no_timer\nimport resireg_train\nresireg_train.engine._no_timer\n"
-        "import resireg.kmeans as km\nimport resireg.mapping.voxels\n"
-        "from resireg.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
+        "import resireg.method.kmeans as km\nimport resireg.mapping.voxels\n"
+        "from resireg.method.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
         "from resireg.mapping import voxels\n"
         "km._tolerance(1)\nresireg.mapping.voxels._check(1)\nvoxels._x\n"
         "from torch import _C\nkm.kmeans\nself._private\n"
     )
     hits = _private_imports(planted, "resireg.mapping.planted", tmp_path)
     assert sorted(hit.split(": ", 1)[1] for hit in hits) == [
-        "from resireg.kmeans import _lloyd",
+        "from resireg.method.kmeans import _lloyd",
         "from resireg.mapping.keys import _OFFSET",
-        "from resireg_train.search import _optuna",
-        "resireg.kmeans._tolerance",
+        "from resireg_train.sweeps.search import _optuna",
+        "resireg.method.kmeans._tolerance",
         "resireg.mapping.voxels._check",
         "resireg.mapping.voxels._x",
-        "resireg_train.engine._no_timer",
-        "resireg_train.engine._no_timer",
+        "resireg_train.evaluation.engine._no_timer",
+        "resireg_train.evaluation.engine._no_timer",
     ]

@@ -1,4 +1,4 @@
-"""Optuna searches (hparams_search=..., resireg_train.search and the project's Hydra sweeper) on
+"""Optuna searches (hparams_search=..., resireg_train.sweeps.search and the project's Hydra sweeper) on
 the synthetic set: pruning of a bad training trial, workers sharing one study (journal file and
 PostgreSQL), a worker killed mid-trial, a whole search killed and run again, two searches started
 at once on one folder, a metric the validation data never logs, the report and optuna-dashboard.
@@ -44,13 +44,13 @@ def _eval_search(export, sweep, n_trials, *extra):
 
 
 def _study(sweep, name="resireg_optuna", storage=None):
-    from resireg_train.search import load_study
+    from resireg_train.sweeps.search import load_study
 
     return load_study(sweep, storage, name)
 
 
 def _counted(study):
-    from resireg_train.search import counted_trials
+    from resireg_train.sweeps.search import counted_trials
 
     return counted_trials(study.get_trials())
 
@@ -119,7 +119,7 @@ def test_shipped_search_spaces_are_exact_and_warn_nothing(name, caplog):
     divisible" warnings); building the spaces warns nothing."""
     from omegaconf import OmegaConf
 
-    from resireg_train.search import distributions
+    from resireg_train.sweeps.search import distributions
 
     params = OmegaConf.load(CONF / "hparams_search" / f"{name}.yaml").hydra.sweeper.params
     params = OmegaConf.to_container(params)
@@ -282,7 +282,7 @@ def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_
     search = _popen(_eval_search(tiny_export, sweep, 5), log_a)
     _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json")
     worker = subprocess.Popen([shutil.which("resireg-search") or sys.executable, *(
-        [] if shutil.which("resireg-search") else ["-m", "resireg_train.search"]),
+        [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
         "worker", str(sweep)], stdout=log_b, stderr=subprocess.STDOUT, env=_env(None, 1),
         start_new_session=True)  # fmt: skip
     try:
@@ -357,7 +357,7 @@ def test_two_searches_started_at_once_on_one_folder_cooperate(tmp_path, tiny_exp
 def _made_study(sweep, n):
     """A journal study of ``n`` trials (values from a quadratic) made through Optuna's API in
     the sweep folder, with the search record the report reads."""
-    from resireg_train.search import open_storage
+    from resireg_train.sweeps.search import open_storage
 
     study = optuna.create_study(storage=open_storage(None, sweep), study_name="made",
                                 direction="maximize", sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
@@ -380,7 +380,7 @@ def test_the_report_of_a_large_search_is_readable(tmp_path):
     matplotlib.use("Agg")
     from optuna.visualization import matplotlib as ov
 
-    from resireg_train.report.optuna import _readable, write_optuna_report
+    from resireg_train.sweeps.report import _readable, write_optuna_report
 
     warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
     study = _made_study(tmp_path, 120)
@@ -447,7 +447,7 @@ def test_a_job_scoring_nan_fails_its_trial(stored):
     from omegaconf import OmegaConf
 
     from resireg_train.cli.job import optimized_value
-    from resireg_train.search import _outcome
+    from resireg_train.sweeps.search import _outcome
 
     cfg = OmegaConf.create({"optimized_metric": "miou_full"})
     with pytest.raises(ValueError, match=r"optimized_metric='miou_full' is .*not finite"):
@@ -511,7 +511,7 @@ def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path)
     older than the grace period is FAIL, one with a recent heartbeat is not; one of this host
     whose process has exited is FAIL at once; with retries, Optuna's RetryHeartbeatStaleTrialCallback
     enqueues the failed trial's parameters again."""
-    from resireg_train.search import (
+    from resireg_train.sweeps.search import (
         ATTR_HEARTBEAT,
         ATTR_HOST,
         ATTR_PID,

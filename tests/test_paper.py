@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from _sweeps import make_job as _job
-from resireg_train.paths import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.report import report
 
 PAPER = yaml.safe_load((CONFIG_DIR / "paper" / "results.yaml").read_text())

@@ -39,8 +39,8 @@ from resireg.mapping import (
     transfer_labels_by_voxel,
 )
 from resireg.mapping import metric as metric_module
+from resireg.method.variants import build_variants
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
-from resireg.variants import build_variants
 from resireg_train.data.scannet import (
     CLASS_NAMES,
     INTRINSICS,
@@ -49,7 +49,7 @@ from resireg_train.data.scannet import (
     resize_nearest,
 )
 from resireg_train.data.scannet_room import Box, SyntheticRoom, write_scene
-from resireg_train.mapping.engine import (
+from resireg_train.evaluation.mapping.engine import (
     GT_RULES,
     POINTS,
     MappingEngine,
@@ -615,7 +615,7 @@ def test_gt_resolution_and_the_option_checks(rooms):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.validation import ConfigError, validate_eval
+    from resireg_train.config.checks import ConfigError, validate_eval
 
     bad = ["dataset.resize=area", "dataset.intrinsics=shift", "dataset.lattice=ceil",
            "dataset.points=voxel", "dataset.knn=-1", "dataset.prediction_threshold=2",
@@ -642,8 +642,8 @@ def test_defaults_and_allowed_values_are_the_configs():
 
     from hydra import compose, initialize_config_dir
 
+    from resireg_train.config.paths import CONFIG_DIR
     from resireg_train.data.specs import DATASET_SPECS
-    from resireg_train.paths import CONFIG_DIR
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())
     # The task's settings have no Python default (conf/ is their one source): the Python API's
@@ -705,7 +705,7 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.validation import ConfigError, validate_eval
+    from resireg_train.config.checks import ConfigError, validate_eval
 
     for task, config, key, value, words in (
         ("ovss", "synthetic", "image_size", "[0,8]", r"\[height, width\]"),
@@ -722,13 +722,13 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
 
 # ------------------------------------------------------------------ the protocol record
 def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
-    """resireg_train.protocol_record: the 3D record is the dataset entry's protocol keys (only those);
+    """resireg_train.evaluation.protocol: the 3D record is the dataset entry's protocol keys (only those);
     the 2D record the entry's keys, the temperature, the built set's reduce_zero_label, class
     list and templates, and the encoder's dense_path where its config has one. Table 1 prints
     the protocol the jobs share; jobs with two protocols get one line each."""
     from types import SimpleNamespace
 
-    from resireg_train.protocol_record import protocol_record, protocol_text
+    from resireg_train.evaluation.protocol import protocol_record, protocol_text
     from resireg_train.report import collect, write_encoder_table
 
     spec = yaml.safe_load((CONF / "scannet.yaml").read_text())

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from resireg_train.results import NON_FINITE, read_results, update_results
+from resireg_train.runs.record import NON_FINITE, read_results, update_results
 
 
 def _strict_load(text):

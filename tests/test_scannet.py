@@ -15,9 +15,9 @@ import torch.nn.functional as F
 from PIL import Image
 
 from _run import run
+from resireg.method.variants import build_variants
 from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
-from resireg.variants import build_variants
 from resireg_train.data.scannet import ScanNetFrames, evaluated_classes, label_lookup
 from resireg_train.data.scannet_room import (
     NYU40_COLOURS,
@@ -25,7 +25,7 @@ from resireg_train.data.scannet_room import (
     SyntheticRoom,
     write_scene,
 )
-from resireg_train.mapping.engine import MappingEngine
+from resireg_train.evaluation.mapping.engine import MappingEngine
 
 TEST_CONF = Path(__file__).parent / "conf"
 SCENE = "synthetic0000_00"
@@ -344,7 +344,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room,
     and the map is that of the other 6 frames: the scored ground-truth voxels are the numpy
     reference's without those frames, and the oracle still scores 1. Before the check the
     batch was fused (a NaN voxel feature) and counted as mapped."""
-    from resireg_train.mapping.task import ScanNet3DProtocol
+    from resireg_train.evaluation.mapping.task import ScanNet3DProtocol
 
     frames = _frames(root, room)
     variants = build_variants(["bb", "full"], {"full": {"n_prototypes": 4}})
@@ -514,7 +514,7 @@ def test_3d_sweeps_are_the_papers_settings_and_bad_values_name_the_key():
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.validation import ConfigError, validate_eval
+    from resireg_train.config.checks import ConfigError, validate_eval
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         ablation = compose("eval", ["sweep=prototype_batch_3d"], return_hydra_config=True)

@@ -234,7 +234,7 @@ def test_python_defaults_are_the_configs():
     import yaml
 
     from resireg.mapping.semantic_map import POINTS
-    from resireg_train.mapping.engine import POINTS as TASK_POINTS
+    from resireg_train.evaluation.mapping.engine import POINTS as TASK_POINTS
 
     conf = yaml.safe_load((Path(__file__).parents[1] / "conf" / "map.yaml").read_text())
     params = inspect.signature(SemanticMap).parameters
@@ -309,8 +309,8 @@ def test_saved_map_files_prove_their_content(encoder, room, tmp_path):
 
 def test_fuse_refuses_non_finite_and_integer_inputs(room):
     """SemanticMap.fuse refuses NaN / inf features, intrinsics and poses, and integer
-    features, naming the argument (resireg.checks.check_features), and adds nothing."""
-    from resireg.checks import NonFiniteError
+    features, naming the argument (resireg.method.checks.check_features), and adds nothing."""
+    from resireg.method.checks import NonFiniteError
 
     _, depth, k, poses = room
     smap = SemanticMap(None, "bb", VOXEL)

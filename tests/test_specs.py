@@ -18,7 +18,7 @@ from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.validation import ConfigError, sweep_config_errors, validate_eval
+from resireg_train.config.checks import ConfigError, sweep_config_errors, validate_eval
 
 
 def _eval_config(*overrides):
@@ -110,7 +110,7 @@ def test_each_encoder_entry_names_its_builder_and_its_conf_files():
         assert all(on_disk[name] == kind for name in spec.configs), kind
     assert [k for k, s in ENCODER_SPECS.items() if s.needs_model_path] == ["resireg_vlm"]
     with pytest.raises(ValueError, match="'package.module:attribute'"):
-        load("resireg.variants.BackboneOnly")
+        load("resireg.method.variants.BackboneOnly")
 
 
 def test_the_config_check_names_a_sweep_that_types_or_misspells_an_encoder(tmp_path):
@@ -280,8 +280,8 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
     assert {k: signature[k].default for k in keys} == {k: prior[k] for k in keys}
     assert prior["model"] == SAM_MODEL
     # the evaluation engines' pass settings (conf/eval.yaml)
-    from resireg_train.mapping.engine import MappingEngine
-    from resireg_train.ovss.engine import OVSSEngine
+    from resireg_train.evaluation.mapping.engine import MappingEngine
+    from resireg_train.evaluation.ovss.engine import OVSSEngine
 
     evaluation = _eval_config()
     for engine in (OVSSEngine, MappingEngine):
@@ -292,7 +292,7 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
     # the training callback's (conf/callbacks/default.yaml) and the caption data module's
     # (conf/data/stage1.yaml, the default data=): every keyword default equals the composed key
     from resireg_train.data.captions import CaptionDataModule
-    from resireg_train.ovss.callback import ReSiRegEval
+    from resireg_train.evaluation.ovss.callback import ReSiRegEval
 
     train = _compose_train()
     for cls, node in ((ReSiRegEval, train.callbacks.resireg_eval), (CaptionDataModule, train.data)):
@@ -313,7 +313,7 @@ def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source()
     64). The caption sources of conf/data/ hold every key their kind requires."""
     from resireg_train.data.segmentation import build_segmentation_set
     from resireg_train.data.specs import CAPTION_SOURCE_KEYS, DATASET_SPECS, dataset_conf
-    from resireg_train.tasks import TASK_SPECS
+    from resireg_train.evaluation.tasks import TASK_SPECS
 
     files = sorted((CONFIG_DIR / "dataset").glob("*.yaml"))
     assert {p.stem for p in files} == {c for d in DATASET_SPECS.values() for c in d.configs}
@@ -325,7 +325,7 @@ def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source()
         assert all(t in TASK_SPECS for t in spec.tasks), path.name
     # a ScanNet entry's keys include every one its reader and the 3D task read
     from resireg_train.data.scannet import READER_KEYS
-    from resireg_train.mapping.engine import TASK_KEYS
+    from resireg_train.evaluation.mapping.engine import TASK_KEYS
 
     assert {*READER_KEYS, *TASK_KEYS} <= set(DATASET_SPECS["scannet"].keys)
     synthetic = dataset_conf("synthetic")

@@ -16,7 +16,7 @@ from resireg.specs.priors import PRIOR_SPECS
 from resireg.specs.table import SpecTable, UnknownNameError, conf_dir
 from resireg.specs.variants import VARIANT_SPECS
 from resireg_train.data.specs import DATASET_SPECS
-from resireg_train.tasks import TASK_SPECS
+from resireg_train.evaluation.tasks import TASK_SPECS
 
 TABLES = {
     "variants": VARIANT_SPECS,

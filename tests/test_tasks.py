@@ -1,4 +1,4 @@
-"""resireg-eval's task protocol (resireg_train.tasks, resireg_train.evaluation): a task
+"""resireg-eval's task protocol (resireg_train.evaluation.tasks, resireg_train.evaluation.base): a task
 registered through the table runs through the eval entry point; the 2D and 3D tasks share one
 class-prototype text path; the fields every task writes (elbo_prototypes) are written by the
 3D task too."""
@@ -13,16 +13,16 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from resireg.method.variants import build_variants
 from resireg.ovss import average_prompts, class_prompts
-from resireg.variants import build_variants
 from resireg_train.cli.eval import evaluate
 from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.checks import ConfigError, validate_eval
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import DATASET_SPECS, dataset_conf
-from resireg_train.engine import ClassPrototypes, eval_loader
-from resireg_train.evaluation import TaskProtocol, require_task
-from resireg_train.tasks import TASK_SPECS, TaskSpec
-from resireg_train.validation import ConfigError, validate_eval
+from resireg_train.evaluation.base import TaskProtocol, require_task
+from resireg_train.evaluation.engine import ClassPrototypes, eval_loader
+from resireg_train.evaluation.tasks import TASK_SPECS, TaskSpec
 
 SYNTHETIC = dataset_conf("synthetic", size=5, image_size=[32, 48], seed=3, short_side=32)
 
@@ -76,7 +76,7 @@ class _FrequencyProtocol(TaskProtocol):
 def test_a_task_registered_through_the_table_runs_through_resireg_eval(
     monkeypatch, tmp_path, tiny_export
 ):
-    """One entry in resireg_train.tasks.TASK_SPECS (a protocol class outside the project), and
+    """One entry in resireg_train.evaluation.tasks.TASK_SPECS (a protocol class outside the project), and
     its name among the tasks of the dataset table's entry it scores (resireg_train.data.specs),
     are all resireg-eval needs: the config check accepts the task, the entry point runs its
     check/build/run/results, and results.json holds its scores (compared with the class
@@ -208,8 +208,8 @@ def test_the_3d_tasks_class_prototypes_are_the_2d_tasks(tmp_path, tiny_export):
     from resireg.models import ResiregVLM
     from resireg_train.data.scannet import ScanNetFrames
     from resireg_train.data.scannet_room import SyntheticRoom, write_scene
-    from resireg_train.mapping.engine import MappingEngine
-    from resireg_train.ovss import engine as ovss_engine
+    from resireg_train.evaluation.mapping.engine import MappingEngine
+    from resireg_train.evaluation.ovss import engine as ovss_engine
 
     vlm = ResiregVLM.from_pretrained(tiny_export).eval()
     room = SyntheticRoom()
@@ -247,7 +247,7 @@ def test_scannet3d_results_hold_the_elbo_prototype_counts(tmp_path, tiny_export)
     from resireg.models import ResiregVLM
     from resireg_train.data.scannet import ScanNetFrames
     from resireg_train.data.scannet_room import SyntheticRoom, write_scene
-    from resireg_train.mapping.engine import MappingEngine
+    from resireg_train.evaluation.mapping.engine import MappingEngine
 
     room = SyntheticRoom()
     root = tmp_path / "scannet"

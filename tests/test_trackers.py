@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from _run import evaluate_export, run
-from resireg_train.trackers import mlflow_key, run_metrics
+from resireg_train.runs.trackers import mlflow_key, run_metrics
 
 pytest.importorskip("mlflow")
 

@@ -21,8 +21,8 @@ from _run import _MODULES, evaluate_export, run
 from resireg.models import ResiregVLM
 from resireg_train.cli.job import CONFIG_DIR, optimized_value
 from resireg_train.cli.train import build, train
+from resireg_train.config.checks import ConfigError, validate
 from resireg_train.training.module import ResiregModule
-from resireg_train.validation import ConfigError, validate
 
 
 def _compose(*overrides):

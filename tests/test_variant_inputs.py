@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from resireg import ReSiRegFull, ReSiRegLite
-from resireg.calib import Calib
-from resireg.checks import NonFiniteError, check_features, count_nonfinite
+from resireg.method.calib import Calib
+from resireg.method.checks import NonFiniteError, check_features, count_nonfinite
 
 VARIANTS = {
     "full": lambda: ReSiRegFull(n_prototypes=4),

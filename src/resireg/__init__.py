@@ -22,11 +22,11 @@ __all__ = [
 __version__ = "0.1.0"
 
 _SOURCES = {
-    "ReSiRegFull": "resireg.reconstruct",
-    "ReSiRegLite": "resireg.reconstruct",
-    "PrototypeHeuristic": "resireg.heuristic",
+    "ReSiRegFull": "resireg.method.reconstruct",
+    "ReSiRegLite": "resireg.method.reconstruct",
+    "PrototypeHeuristic": "resireg.method.heuristic",
     "VARIANTS": "resireg.specs.variants",
-    "build_variant": "resireg.variants",
+    "build_variant": "resireg.method.variants",
     "segment": "resireg.deploy.segment",  # one image, a few labels (resireg-segment)
     "SegmentationResult": "resireg.deploy.segment",
 }

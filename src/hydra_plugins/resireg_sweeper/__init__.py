@@ -1,3 +1,3 @@
 """The project's Optuna sweeper for Hydra (``hydra/sweeper=resireg_optuna``, set by
 ``hparams_search=<name>``). Hydra instantiates sweepers only from the ``hydra_plugins``
-package; the search itself lives in :mod:`resireg_train.search`."""
+package; the search itself lives in :mod:`resireg_train.sweeps.search`."""

@@ -1,4 +1,4 @@
-"""Hydra's ``Sweeper`` interface over :class:`resireg_train.search.OptunaSearch`: ask-and-tell
+"""Hydra's ``Sweeper`` interface over :class:`resireg_train.sweeps.search.OptunaSearch`: ask-and-tell
 on an Optuna study, each trial one job of Hydra's configured launcher (its own run folder).
 Imports nothing heavy at module level (Hydra imports every plugin module when it starts)."""
 
@@ -44,8 +44,8 @@ class ResiregOptunaSweeper(Sweeper):
 
         from hydra.core.override_parser.overrides_parser import OverridesParser
 
-        from resireg_train import search
-        from resireg_train.validation import ConfigError
+        from resireg_train.config.checks import ConfigError
+        from resireg_train.sweeps import search
 
         assert self.config is not None
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).resolve()

@@ -139,7 +139,7 @@ def segment(
         labels: class names (a list, or one string separated by commas).
         encoder: see :func:`load_encoder`.
         variant: ``bb`` (the language tokens), ``lite``, ``full`` or ``calib``
-            (:func:`resireg.variants.build_variant`); ``variant_kwargs`` are its parameters.
+            (:func:`resireg.method.variants.build_variant`); ``variant_kwargs`` are its parameters.
         short_side: the model input's shorter side (default: the image's own, rounded to the
             patch size); the results are at the image's size all the same.
         temperature: the softmax temperature of the scores (the protocol's 100).

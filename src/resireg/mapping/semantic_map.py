@@ -7,7 +7,7 @@ encoder pass, applies the configuration to the window (ReSiReg Full takes the wi
 scene: its prototypes are shared by the window's frames, as in the 3D task), lifts the features
 to 3D (:func:`patch_points` or :func:`pixel_pairs`) and fuses them. :meth:`SemanticMap.fuse` is
 the lift-and-fuse step alone, for features computed elsewhere: the 3D task's engine
-(``resireg_train.mapping.engine``) encodes a batch once, applies every configuration to it and
+(``resireg_train.evaluation.mapping.engine``) encodes a batch once, applies every configuration to it and
 fuses each into its own ``SemanticMap``, so the benchmark and a robot run the same code.
 
 Queries: :meth:`~SemanticMap.query` (cosine similarity of every voxel to text queries),
@@ -16,7 +16,7 @@ argmax or RayFronts' thresholded rule). Persistence: :meth:`~SemanticMap.save` /
 :meth:`SemanticMap.load` (safetensors + JSON, atomic: a crash mid-save leaves the previous save
 loadable; the JSON records the tensor file's SHA-256 and its own digest, verified on load),
 :meth:`~SemanticMap.to_ply`. :meth:`~SemanticMap.fuse` refuses non-finite or non-floating
-features, intrinsics and poses (:func:`resireg.checks.check_features`).
+features, intrinsics and poses (:func:`resireg.method.checks.check_features`).
 
 Memory bound: the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators (``s`` = 8
 for float64 sums, 4 for ``sum_dtype="float32"``), 16 bytes of key and row, and, with
@@ -41,7 +41,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.checks import check_features
 from resireg.errors import MapError
 from resireg.integrity import (
     IntegrityError,
@@ -55,9 +54,10 @@ from resireg.mapping.geometry import patch_points
 from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
 from resireg.mapping.voxels import SUM_DTYPES, VoxelMap, check_lattice, voxel_indices
+from resireg.method.checks import check_features
+from resireg.method.variants import apply_variant, build_variants
 from resireg.specs.mapping import POINTS
 from resireg.specs.variants import takes_prior, variant_layer
-from resireg.variants import apply_variant, build_variants
 
 __all__ = [
     "COLOUR_BY",
@@ -75,7 +75,7 @@ COLOUR_BY = ("rgb", "pca", "query", "class")
 MAP_JSON = "map.json"
 _FORMAT = "resireg.semantic_map/1"
 #: The name :meth:`SemanticMap.add` gives its encoder's output in a
-#: :class:`resireg.checks.NonFiniteError` (``resireg-map`` skips such a window and counts it).
+#: :class:`resireg.method.checks.NonFiniteError` (``resireg-map`` skips such a window and counts it).
 ENCODER_OUTPUT = "encoder output"
 
 
@@ -191,7 +191,7 @@ class SemanticMap:
     Args:
         encoder: a :class:`~resireg.models.DenseEncoder` (only :meth:`fuse` works without one).
         configuration: a configuration name (``"bb"``, ``"full"``, ``"full@n_prototypes:24"``,
-            ``"full+prior"``) built by :func:`resireg.variants.build_variants` with ``params``,
+            ``"full+prior"``) built by :func:`resireg.method.variants.build_variants` with ``params``,
             or a variant module (``prior_input`` then says whether it takes the prior).
         voxel_size: voxel edge in metres.
         params: per-variant keyword arguments (``{"full": {"n_prototypes": 36}}``; the
@@ -351,7 +351,7 @@ class SemanticMap:
             intrinsics: ``[3, 3]`` or ``[B, 3, 3]`` pinhole intrinsics of the depth image.
             cam_to_world: ``[B, 4, 4]`` camera (OpenCV axes) to world poses.
 
-        Raises :class:`resireg.checks.NonFiniteError` naming :data:`ENCODER_OUTPUT` when the
+        Raises :class:`resireg.method.checks.NonFiniteError` naming :data:`ENCODER_OUTPUT` when the
         encoder's features of the window are not finite (nothing is added).
         """
         if depth.ndim != 3 or depth.shape[0] != images.shape[0]:
@@ -391,7 +391,7 @@ class SemanticMap:
             shape = tuple(features.shape) if isinstance(features, Tensor) else type(features)
             raise ValueError(f"features of shape {shape}: expected [B, D, h, w]")
         # A NaN feature would stay in its voxel's sum for good, and integer features would be
-        # fused as they are: refused here (resireg.checks, one isfinite reduction per tensor).
+        # fused as they are: refused here (resireg.method.checks, one isfinite reduction per tensor).
         check_features(name, features)
         check_features("intrinsics", intrinsics)
         check_features("cam_to_world", cam_to_world)

@@ -409,9 +409,9 @@ class MapWorker:
             return taken
 
     def _run(self) -> None:
-        from resireg.checks import NonFiniteError
         from resireg.mapping import MapFullError
         from resireg.mapping.semantic_map import ENCODER_OUTPUT
+        from resireg.method.checks import NonFiniteError
 
         while True:
             taken = self._take()

@@ -16,7 +16,7 @@ an unknown name with the closest ones, lazy ``"module:Class"`` targets, ``config
   ``conf/source/``.
 
 The training package keeps two more tables of the same type beside what they describe:
-``resireg_train.tasks.TASK_SPECS`` and ``resireg_train.data.specs.DATASET_SPECS``. Each table
+``resireg_train.evaluation.tasks.TASK_SPECS`` and ``resireg_train.data.specs.DATASET_SPECS``. Each table
 module's docstring holds its "adding a ..." recipe.
 
 This package imports nothing of ``resireg`` above it (:mod:`resireg.errors` only; the import

@@ -2,8 +2,8 @@
 configuration syntax that names them (``full+prior@n_prototypes:24``).
 
 Every reader takes the names, classes and parameter rules from :data:`VARIANT_SPECS`:
-:func:`resireg.variants.build_variant` (the class), the classes' ``__init__`` (the rules),
-``resireg_train.validation`` (``full.alpha=...`` and ``variants=[...]`` checks), the training
+:func:`resireg.method.variants.build_variant` (the class), the classes' ``__init__`` (the rules),
+``resireg_train.config.checks`` (``full.alpha=...`` and ``variants=[...]`` checks), the training
 callback and ``resireg-eval`` (which settings are a variant's), the report (labels, order,
 the baseline of the deltas) and the playground (titles). Defaults live in
 ``conf/resireg/default.yaml`` (one block per variant with parameters); the classes' own
@@ -12,7 +12,7 @@ keyword defaults equal them (tests/test_specs.py composes the config and compare
 Adding a variant: a module with the class (``variant(intermediates, language, prior=None) ->
 [B, Dl, h, w]``, checking its keywords with :func:`check_variant_kwargs`), one
 :class:`VariantSpec` below (its parameter rules), one block of defaults under its name in
-``conf/resireg/default.yaml``. The factory (:func:`resireg.variants.build_variant`), the config
+``conf/resireg/default.yaml``. The factory (:func:`resireg.method.variants.build_variant`), the config
 checks, the report and the playground then know it; ``tests/test_tables.py`` checks the entry.
 
 The configuration syntax (:func:`parse_variant`) is read by the config checks before torch
@@ -94,17 +94,17 @@ _TAU = interval(0, 1)
 VARIANT_SPECS: SpecTable[VariantSpec] = SpecTable(
     "ReSiReg variant",
     (
-        VariantSpec("bb", "resireg.variants:BackboneOnly", "BB", "BB (language tokens)"),
+        VariantSpec("bb", "resireg.method.variants:BackboneOnly", "BB", "BB (language tokens)"),
         VariantSpec(
             "calib",
-            "resireg.calib:Calib",
+            "resireg.method.calib:Calib",
             "Calib",
             "Calib (SC-CLIP self-calibration)",
             {"n_neighbors": integer(1), "contamination": interval(0, 0.5), "threshold": _TAU},
         ),
         VariantSpec(
             "lite",
-            "resireg.reconstruct:ReSiRegLite",
+            "resireg.method.reconstruct:ReSiRegLite",
             "Lite",
             "ReSiReg Lite",
             {
@@ -117,7 +117,7 @@ VARIANT_SPECS: SpecTable[VariantSpec] = SpecTable(
         ),
         VariantSpec(
             "full",
-            "resireg.reconstruct:ReSiRegFull",
+            "resireg.method.reconstruct:ReSiRegFull",
             "Full",
             "ReSiReg Full",
             {

@@ -11,12 +11,12 @@
     resireg-eval task=scannet3d dataset=scannet encoder=radseg paths.data_dir=/datasets  # 3D
     resireg-eval sweep=table2 paths.data_dir=/datasets          # 3D mapping: the paper's Table 2
 
-``task`` names an entry of the task table (:data:`resireg_train.tasks.TASK_SPECS`: ``ovss``,
-``scannet3d``) whose protocol (:class:`resireg_train.evaluation.TaskProtocol`) this module
+``task`` names an entry of the task table (:data:`resireg_train.evaluation.tasks.TASK_SPECS`: ``ovss``,
+``scannet3d``) whose protocol (:class:`resireg_train.evaluation.base.TaskProtocol`) this module
 drives with no task switch of its own: ``check`` the sources, load the encoder, ``build`` the
-dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.
+dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.base.
 write_results` with the task's ``results``); docs/architecture.md#adding-a-task.
-The 2D scores use the engine of the training callback (:mod:`resireg_train.ovss.engine`), so a
+The 2D scores use the engine of the training callback (:mod:`resireg_train.evaluation.ovss.engine`), so a
 model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
 ReSiReg's parameters (``variants``, ``lite.*``, ``full.*``) come from the ``resireg``
 config group, which the training callback shares. An export written by ``resireg-train``
@@ -49,10 +49,7 @@ from resireg_train.cli.job import (
     run_task,
     top_level_keys,
 )
-from resireg_train.evaluation import NothingScoredError, require_task, write_results
-from resireg_train.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
-from resireg_train.results import update_results
-from resireg_train.validation import (
+from resireg_train.config.checks import (
     ENCODER_SWEEPS,
     ConfigError,
     check_available,
@@ -63,6 +60,9 @@ from resireg_train.validation import (
     sweep_config_errors,
     validate_eval,
 )
+from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
+from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
+from resireg_train.runs.record import update_results
 
 if TYPE_CHECKING:
     import torch
@@ -155,11 +155,11 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
 def _evaluate_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
     """:func:`_evaluate` inside the job's W&B run with ``logger=wandb`` (one run per job,
     given the config and, at the end, ``results.json``'s summary, then finished:
-    :func:`resireg_train.tracking.wandb_runs`); Lightning loads only then. MLflow,
-    TensorBoard and CSV record the run when it ends (:mod:`resireg_train.trackers`)."""
+    :func:`resireg_train.runs.tracking.wandb_runs`); Lightning loads only then. MLflow,
+    TensorBoard and CSV record the run when it ends (:mod:`resireg_train.runs.trackers`)."""
     if not (cfg.get("logger") or {}).get("wandb"):
         return _evaluate(cfg, out)  # (tracking imports Lightning: only for a W&B run)
-    from resireg_train.tracking import wandb_loggers, wandb_runs
+    from resireg_train.runs.tracking import wandb_loggers, wandb_runs
 
     with wandb_runs(wandb_loggers(cfg), cfg, out):
         return _evaluate(cfg, out)
@@ -176,14 +176,14 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", *SETTING_KEYS)}
     params["task"] = str(cfg.get("task", "ovss"))
     params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
-    spec = require_task(params["task"])  # the task's protocol (resireg_train.tasks)
+    spec = require_task(params["task"])  # the task's protocol (resireg_train.evaluation.tasks)
     update_results(out, params=params, settings_from_export=from_export)
     # The models, datasets and torch load only now, after the config check.
     import torch
 
+    from resireg.method.variants import build_variants
     from resireg.models import build_encoder, count_parameters
-    from resireg.variants import build_variants
-    from resireg_train.engine import StageTimer
+    from resireg_train.evaluation.engine import StageTimer
 
     torch.manual_seed(cfg.seed)
     with config_path("variants", {"names": "variants"}):

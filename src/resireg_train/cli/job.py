@@ -35,10 +35,10 @@ except ImportError:  # pragma: no cover
     fcntl = None
 
 from resireg.errors import ResiregError
+from resireg_train.config.checks import ConfigError
+from resireg_train.config.paths import CONFIG_DIR, RUN_ID
 from resireg_train.files import WriteError
-from resireg_train.paths import CONFIG_DIR, RUN_ID
-from resireg_train.results import RESULTS_FILE, flat, read_results, update_results
-from resireg_train.validation import ConfigError
+from resireg_train.runs.record import RESULTS_FILE, flat, read_results, update_results
 
 __all__ = [
     "CONFIG_DIR",
@@ -136,8 +136,8 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
-    import resireg_train.validation  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
-    from resireg_train.search import register_search_resolvers
+    import resireg_train.config.checks  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
+    from resireg_train.sweeps.search import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
 
@@ -269,7 +269,7 @@ def _run_locked(
     resume_hint: str | None,
     fresh: bool,
 ) -> dict[str, Any]:
-    from resireg_train.provenance import start_provenance
+    from resireg_train.runs.provenance import start_provenance
 
     if rank_zero:
         if fresh:
@@ -303,16 +303,16 @@ def _run_locked(
 
 
 def _track(cfg: DictConfig, out: Path) -> None:
-    """The finished run to the trackers of ``logger`` (:mod:`resireg_train.trackers`)."""
+    """The finished run to the trackers of ``logger`` (:mod:`resireg_train.runs.trackers`)."""
     if cfg.get("logger"):
-        from resireg_train.trackers import record_run
+        from resireg_train.runs.trackers import record_run
 
         record_run(cfg, out, training="trainer" in cfg)
 
 
 def _finished(out: Path) -> dict[str, Any]:
     """The run's provenance block completed with its end (the run failed or was stopped)."""
-    from resireg_train.provenance import finish_provenance
+    from resireg_train.runs.provenance import finish_provenance
 
     try:
         return finish_provenance(read_results(out).get("provenance") or {}, out)
@@ -411,7 +411,7 @@ def _reported_types() -> tuple[type[BaseException], ...]:
     types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy]
     for module, name in (
         ("resireg_train.training.checkpoints", "CheckpointError"),
-        ("resireg_train.evaluation", "NothingScoredError"),
+        ("resireg_train.evaluation.base", "NothingScoredError"),
         ("resireg.models.hub", "WeightsUnavailableError"),
     ):
         cls = getattr(sys.modules.get(module), name, None)

@@ -36,13 +36,13 @@ from omegaconf import DictConfig, OmegaConf
 from resireg.errors import ResiregError, argument_names, rename_arguments
 from resireg.specs.sources import SOURCE_SPECS, source_errors
 from resireg_train.cli.job import hydra_entry_point, run_task
-from resireg_train.results import update_results
-from resireg_train.validation import (
+from resireg_train.config.checks import (
     ConfigError,
     config_path,
     encoder_arguments,
     encoder_kwargs,
 )
+from resireg_train.runs.record import update_results
 
 __all__ = ["SOURCES", "build_source", "make_map", "main"]
 
@@ -149,9 +149,9 @@ def _differences(saved: Any, now: dict[str, Any]) -> list[str]:
 def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     import torch
 
-    from resireg.checks import NonFiniteError
     from resireg.mapping import MapFullError, SemanticMap
     from resireg.mapping.semantic_map import ENCODER_OUTPUT
+    from resireg.method.checks import NonFiniteError
     from resireg.models import build_encoder
     from resireg.sources.frames import FrameCounts, SkippedFrame, windows
 
@@ -218,7 +218,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     base, start = (done, 0) if getattr(source, "live", False) else (0, done)
     view = None
     if rrd is not None or cfg.rerun.spawn:
-        from resireg_train.mapping.viewer import RerunView
+        from resireg_train.evaluation.mapping.viewer import RerunView
 
         view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
     counts = FrameCounts()
@@ -354,10 +354,10 @@ def _source_warnings(record: dict[str, Any]) -> list[str]:
 
 def _map_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
     """:func:`_map` inside the job's W&B run with ``logger=wandb`` (as ``resireg-eval``);
-    MLflow, TensorBoard and CSV record the run when it ends (:mod:`resireg_train.trackers`)."""
+    MLflow, TensorBoard and CSV record the run when it ends (:mod:`resireg_train.runs.trackers`)."""
     if not (cfg.get("logger") or {}).get("wandb"):
         return _map(cfg, out)  # (tracking imports Lightning: only for a W&B run)
-    from resireg_train.tracking import wandb_loggers, wandb_runs
+    from resireg_train.runs.tracking import wandb_loggers, wandb_runs
 
     with wandb_runs(wandb_loggers(cfg), cfg, out):
         return _map(cfg, out)

@@ -93,12 +93,12 @@ def main(argv: list[str] | None = None) -> None:
     two.add_argument("--root", action="append", metavar="ROOT")
     args = parser.parse_args(argv)
 
-    from resireg_train import runs as index
-    from resireg_train.results import flatten
+    from resireg_train.runs import index
+    from resireg_train.runs.record import flatten
 
     try:
         if args.command == "ls":
-            from resireg_train.runs import COLUMNS
+            from resireg_train.runs.index import COLUMNS
 
             columns = args.columns.split(",") if args.columns else list(COLUMNS)
             found = index.sort_runs(index.filter_runs(index.scan(args.roots), args.where),
@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.command == "card":
             from pathlib import Path
 
-            from resireg_train.cards import CARD_FILE, add_evaluation
+            from resireg_train.runs.cards import CARD_FILE, add_evaluation
 
             for run in args.add:
                 add_evaluation(args.export, run)

@@ -41,8 +41,8 @@ from resireg_train.cli.job import (
     run_task,
     top_level_keys,
 )
-from resireg_train.results import RESULTS_FILE, read_results, update_results
-from resireg_train.validation import ConfigError, check_available, check_devices, validate
+from resireg_train.config.checks import ConfigError, check_available, check_devices, validate
+from resireg_train.runs.record import RESULTS_FILE, read_results, update_results
 
 if TYPE_CHECKING:
     import lightning as L
@@ -248,10 +248,10 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     import lightning as L
     from lightning.pytorch.callbacks import ProgressBar
 
-    from resireg_train.cards import write_export_card
-    from resireg_train.ovss.callback import ReSiRegEval
-    from resireg_train.provenance import write_export_provenance
-    from resireg_train.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
+    from resireg_train.evaluation.ovss.callback import ReSiRegEval
+    from resireg_train.runs.cards import write_export_card
+    from resireg_train.runs.provenance import write_export_provenance
+    from resireg_train.runs.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
     from resireg_train.training.console import (
         EpochLog,

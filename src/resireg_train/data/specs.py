@@ -2,9 +2,9 @@
 entry each, the only place a kind's builder, keys and task are written (docs/architecture.md#spec-tables).
 
 Torch-free, like the spec tables of :mod:`resireg.specs` and the task table
-(:mod:`resireg_train.tasks`): the config check (:func:`resireg_train.validation.validate_eval`)
+(:mod:`resireg_train.evaluation.tasks`): the config check (:func:`resireg_train.config.checks.validate_eval`)
 reads the kinds, their keys and the task that scores each before anything heavy loads; the
-task table derives each task's kinds from here (:attr:`resireg_train.tasks.TaskSpec.
+task table derives each task's kinds from here (:attr:`resireg_train.evaluation.tasks.TaskSpec.
 dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segmentation_set`,
 :func:`resireg_train.data.scannet.build_scannet`) check an entry's keys with
 :func:`dataset_key_errors` and load the entry's builder, named lazily as ``"module:function"``.
@@ -12,7 +12,7 @@ dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segm
 ``conf/dataset/`` is the one source of a dataset's defaults: an entry holds every key of its
 kind (:attr:`DatasetSpec.keys`; a missing one is an error naming ``dataset.<key>``), and
 :func:`dataset_conf` reads a ``conf/dataset/`` file for callers outside Hydra (tests,
-benchmarks, notebooks), as :meth:`resireg_train.mapping.engine.MappingSettings.from_conf` does.
+benchmarks, notebooks), as :meth:`resireg_train.evaluation.mapping.engine.MappingSettings.from_conf` does.
 
 Adding a dataset: one builder (``(name, spec, common) -> SegmentationSet`` for a 2D kind), one
 :class:`DatasetSpec` below (its keys, the tasks that score it, the value rules of its keys),
@@ -72,11 +72,11 @@ def _open_unit(v: Any) -> bool:
 
 # The ScanNet protocol's named options (docs/protocol.md section 4), written once: the rules
 # below and the code that reads each option (resireg_train.data.scannet,
-# resireg_train.mapping) take them from here; the mapping library's own (LATTICES, POINTS)
+# resireg_train.evaluation.mapping) take them from here; the mapping library's own (LATTICES, POINTS)
 # from resireg.specs.mapping.
 #: ``gt_resolution`` values besides ``[H, W]``.
 GT_RESOLUTIONS = ("image", "label")
-#: How ignored ground-truth pixels enter the voxel labels (``resireg_train.mapping.engine``).
+#: How ignored ground-truth pixels enter the voxel labels (``resireg_train.evaluation.mapping.engine``).
 GT_RULES = ("rayfronts", "vote", "drop")
 #: Nearest resize rules of depth and labels (``resireg_train.data.scannet``).
 RESIZES = ("torch", "exact")
@@ -88,7 +88,7 @@ CLASS_NAMES = ("label_map", "nyu40")
 METRICS = VOXEL_METRICS
 
 #: The 3D protocol's value rules of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
-#: section 4), by key; checked by :func:`resireg_train.validation.validate_eval` for that kind
+#: section 4), by key; checked by :func:`resireg_train.config.checks.validate_eval` for that kind
 #: only (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
     "scenes": (
@@ -136,13 +136,13 @@ class DatasetSpec:
             files are the defaults), except those of ``optional``.
         optional: the keys an entry may leave out (``name``: the kind, or the name the entry is
             listed under).
-        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.tasks.TASK_SPECS`).
+        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.evaluation.tasks.TASK_SPECS`).
         check: ``"module:function"`` ``(spec, key) -> None`` raising the errors its build
             would on a missing source, run before the encoder loads; ``None``: none.
         summary: one line for errors and docs.
         rules: the value rules of its keys, ``key -> (check, expectation)``
             (:mod:`resireg.specs.rules`), checked by the config check
-            (:func:`resireg_train.validation.validate_eval`, as ``dataset.<key>=<value>:
+            (:func:`resireg_train.config.checks.validate_eval`, as ``dataset.<key>=<value>:
             expected <expectation>``); keys without one are checked for presence only.
     """
 
@@ -222,7 +222,7 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
                 "intrinsics",
                 "class_names",
                 "classes_to_ignore",
-                # the 3D task's (resireg_train.mapping.engine.TASK_KEYS)
+                # the 3D task's (resireg_train.evaluation.mapping.engine.TASK_KEYS)
                 "voxel_size",
                 "lattice",
                 "gt_unlabelled",
@@ -340,13 +340,13 @@ def check_dataset_keys(spec: Mapping[str, Any], key: str = "dataset") -> Dataset
 
 def dataset_conf(config: str, **overrides: Any) -> dict[str, Any]:
     """The entry of ``conf/dataset/<config>.yaml`` (the project's ``conf/``,
-    :data:`resireg_train.paths.CONFIG_DIR`; its ``defaults`` composed, interpolations such as
+    :data:`resireg_train.config.paths.CONFIG_DIR`; its ``defaults`` composed, interpolations such as
     ``${paths.data_dir}`` left as written), ``overrides`` in place of its values: a Python
     caller's entry, with conf/'s defaults read rather than typed again."""
     from omegaconf import OmegaConf
 
     from resireg.specs.table import compose_conf
-    from resireg_train.paths import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     folder = CONFIG_DIR / "dataset"
     if not (folder / f"{config}.yaml").is_file():

@@ -27,7 +27,7 @@ def reads_model_path(spec: dict[str, Any]) -> bool:
 
 
 def _config_dir() -> Path:
-    from resireg_train.paths import CONFIG_DIR  # conf/ ($RESIREG_CONFIG_DIR overrides it)
+    from resireg_train.config.paths import CONFIG_DIR  # conf/ ($RESIREG_CONFIG_DIR overrides it)
 
     return Path(CONFIG_DIR)
 

@@ -4,7 +4,7 @@
 
 Everything goes through resireg's public API: :func:`resireg.models.build_encoder`,
 :meth:`DenseEncoder.resized` / ``encode`` / ``encode_text`` and
-:func:`resireg.variants.build_variant`. The encoder runs once per query and every variant is
+:func:`resireg.method.variants.build_variant`. The encoder runs once per query and every variant is
 applied to that one output (as the evaluation engine does), so the seconds of a variant are
 its own ReSiReg step plus the shared encoder and text passes.
 """
@@ -24,9 +24,10 @@ import torch
 from PIL import Image
 
 from resireg.errors import ConfigError
+from resireg.method.variants import build_variant
 from resireg.models import DenseEncoder, build_encoder
 from resireg.specs.variants import VARIANT_SPECS
-from resireg.variants import build_variant
+from resireg_train.config.checks import config_path, encoder_arguments
 from resireg_train.files import DECODE_ERRORS
 from resireg_train.playground.config import (
     SLIDERS,
@@ -34,7 +35,6 @@ from resireg_train.playground.config import (
     protocol_short_side,
     resireg_defaults,
 )
-from resireg_train.validation import config_path, encoder_arguments
 
 __all__ = [
     "LABELS",

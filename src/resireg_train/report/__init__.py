@@ -54,7 +54,6 @@ from resireg_train.report.jobs import (
     named_sections,
     varying_keys,
 )
-from resireg_train.report.optuna import is_optuna_sweep
 from resireg_train.report.paper import DEFAULT_TOLERANCE
 from resireg_train.report.prototypes import (
     elbo_table,
@@ -79,7 +78,8 @@ from resireg_train.report.tables import (
     write_layer_sweep,
     write_mapping_table,
 )
-from resireg_train.results import flat
+from resireg_train.runs.record import flat
+from resireg_train.sweeps.report import is_optuna_sweep
 
 __all__ = [
     "DPI", "STATUSES", "Job", "check_metric", "collect", "count_statuses", "curves_figure",
@@ -186,7 +186,7 @@ def report(
         files.update(write_layer_sweep(jobs, out))
         lines += ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]
     if is_optuna_sweep(sweep_dir):  # hparams_search=...: the study's trials, best, plots
-        from resireg_train.report.optuna import write_optuna_report
+        from resireg_train.sweeps.report import write_optuna_report
 
         optuna_files, optuna_lines = write_optuna_report(sweep_dir, jobs, out)
         files.update(optuna_files)

@@ -12,7 +12,7 @@ import pandas as pd
 import yaml
 
 from resireg.specs.variants import BASELINE, VARIANT_SPECS, VARIANTS
-from resireg_train.results import RESULTS_FILE, metric_mode, read_results
+from resireg_train.runs.record import RESULTS_FILE, metric_mode, read_results
 
 __all__ = [
     "BATCH_KEY", "METHODS", "METHOD_NAMES", "PROTOTYPES_KEY", "STATUSES", "Job", "check_metric",

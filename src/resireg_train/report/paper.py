@@ -16,7 +16,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
-from resireg_train.paths import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 
 __all__ = [
     "DEFAULT_TOLERANCE",

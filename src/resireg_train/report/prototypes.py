@@ -7,9 +7,9 @@ import math
 
 import pandas as pd
 
-from resireg.heuristic import PrototypeHeuristic
+from resireg.method.heuristic import PrototypeHeuristic
+from resireg.method.variants import parse_variant
 from resireg.specs.variants import takes_prior
-from resireg.variants import parse_variant
 from resireg_train.report.jobs import BATCH_KEY, PROTOTYPES_KEY, Job, job_scores, varying_keys
 
 __all__ = [

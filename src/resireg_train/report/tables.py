@@ -10,9 +10,11 @@ from typing import Any
 
 import pandas as pd
 
+from resireg.method.variants import parse_variant
 from resireg.specs.metrics import SCORE_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
-from resireg.variants import parse_variant
+from resireg_train.config.checks import ENCODER_SWEEPS as _ENCODER_SWEEPS
+from resireg_train.evaluation.tasks import TASK_SPECS
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
 from resireg_train.report.paper import (
@@ -21,9 +23,7 @@ from resireg_train.report.paper import (
     paper_lines,
     protocol_differences,
 )
-from resireg_train.results import flat
-from resireg_train.tasks import TASK_SPECS
-from resireg_train.validation import ENCODER_SWEEPS as _ENCODER_SWEEPS
+from resireg_train.runs.record import flat
 
 __all__ = [
     "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "OVSS_PREFIX",
@@ -52,7 +52,7 @@ def protocol_lines(jobs: list[Job]) -> list[str]:
     """The evaluation protocol of the jobs (``results.json``'s ``protocol``, docs/protocol.md):
     one line when they share it, else one per protocol with its jobs; nothing when no job
     recorded one."""
-    from resireg_train.protocol_record import protocol_text
+    from resireg_train.evaluation.protocol import protocol_text
 
     seen: dict[str, list[int]] = {}
     for job in jobs:
@@ -66,7 +66,7 @@ def protocol_lines(jobs: list[Job]) -> list[str]:
 
 def table_tasks(table: str) -> list[str]:
     """The tasks whose sweeps feed report table ``table`` (``table1``, ``table2``: the task
-    table's :attr:`~resireg_train.tasks.TaskSpec.report`)."""
+    table's :attr:`~resireg_train.evaluation.tasks.TaskSpec.report`)."""
     return [t.name for t in TASK_SPECS.values() if t.report == table]
 
 

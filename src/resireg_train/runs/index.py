@@ -23,8 +23,8 @@ from typing import Any
 
 import yaml
 
-from resireg_train.provenance import EXPORT_PROVENANCE
-from resireg_train.results import RESULTS_FILE, flatten, read_results
+from resireg_train.runs.provenance import EXPORT_PROVENANCE
+from resireg_train.runs.record import RESULTS_FILE, flatten, read_results
 
 __all__ = [
     "COLUMNS",

@@ -8,7 +8,7 @@ then Lloyd iterations stopped by scikit-learn's tolerance rule, with distance bo
 rounding bound) so that an iteration computes distances only for the points whose nearest
 centroid might have changed (same labels, centroids and iteration count as plain Lloyd).
 :func:`nested_kmeans` labels points for several increasing counts from one seeding (what the
-ELBO chooser of :mod:`resireg.elbo` starts its mixtures from); :func:`sq_distances` is the
+ELBO chooser of :mod:`resireg.method.elbo` starts its mixtures from); :func:`sq_distances` is the
 squared-distance matrix all of them use.
 
 Everything runs on the input's device with matrix products and scatter ops only: the
@@ -236,7 +236,7 @@ def nested_kmeans(
     (the default) every point is labelled by its nearest seed.
 
     Lazy: yields ``(k, labels [N])`` per count in the order given, and a caller that stops
-    early (the ELBO chooser of :mod:`resireg.elbo`, once the bound falls) computes no seeding
+    early (the ELBO chooser of :mod:`resireg.method.elbo`, once the bound falls) computes no seeding
     step or label beyond the counts it took.
 
     Args:

@@ -1,6 +1,6 @@
 """One tracker for every run: what ``logger=mlflow`` / ``tensorboard`` / ``csv`` record of a
 ``resireg-train``, ``resireg-eval`` or ``resireg-map`` run when it ends (``logger=wandb``:
-:func:`resireg_train.tracking.wandb_runs`, around the job).
+:func:`resireg_train.runs.tracking.wandb_runs`, around the job).
 
 :func:`record_run` is called by the job wrapper (:func:`resireg_train.cli.job.run_task`) at
 the end of every run, completed or not, and reads everything from the run folder:
@@ -31,7 +31,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg_train.results import RESULTS_FILE, flatten, read_results
+from resireg_train.runs.record import RESULTS_FILE, flatten, read_results
 
 __all__ = [
     "MLFLOW_ARTIFACT_MAX_BYTES",
@@ -195,7 +195,7 @@ def record_run(cfg: Any, out: Path, training: bool) -> None:
         try:
             if kind == "mlflow":
                 run_id = to_mlflow(settings, cfg, out)
-                from resireg_train.results import update_results
+                from resireg_train.runs.record import update_results
 
                 update_results(out, tracking={**(read_results(out).get("tracking") or {}),
                                               "mlflow_run_id": run_id})  # fmt: skip

@@ -9,7 +9,7 @@ in both, under their prefix.
 
 This module is imported before anything heavy: it needs only OmegaConf and the spec tables
 (``resireg.specs``: the variants' names and parameter rules, which the classes check too; the
-encoder kinds and what they import; ``resireg_train.tasks`` and ``resireg_train.data.specs``:
+encoder kinds and what they import; ``resireg_train.evaluation.tasks`` and ``resireg_train.data.specs``:
 the tasks and the dataset kinds with their keys and value rules), no torch: a bad value is reported before torch loads
 (``check_devices`` imports torch when it runs).
 """
@@ -62,7 +62,7 @@ from resireg_train.data.specs import (
     find_dataset,
     missing_keys_error,
 )
-from resireg_train.tasks import TASK_SPECS, task_config_errors
+from resireg_train.evaluation.tasks import TASK_SPECS, task_config_errors
 
 __all__ = [
     "ADDABLE",
@@ -243,7 +243,7 @@ def _on_layer(name: Any) -> bool:
 _unit = interval(0, 1)[0]
 
 
-#: resireg-eval's tasks (the table :data:`resireg_train.tasks.TASK_SPECS`;
+#: resireg-eval's tasks (the table :data:`resireg_train.evaluation.tasks.TASK_SPECS`;
 #: docs/architecture.md#adding-a-task).
 TASKS = tuple(TASK_SPECS)
 
@@ -299,7 +299,10 @@ _EVAL_RULES: dict[str, Rule] = {
         "null (the evaluation's device), auto, cpu, cuda, cuda:N or mps",
     ),
     **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.specs.priors
-    "task": (lambda v: v in TASK_SPECS, f"one of {list(TASK_SPECS)} (resireg_train.tasks)"),
+    "task": (
+        lambda v: v in TASK_SPECS,
+        f"one of {list(TASK_SPECS)} (resireg_train.evaluation.tasks)",
+    ),
     "report": (
         lambda v: v is None or (isinstance(v, list) and all(x in REPORT_SECTIONS for x in v)),
         f"null or a list of {list(REPORT_SECTIONS)}",
@@ -521,7 +524,7 @@ def validate_eval(
             f"prior=None: variants {with_prior} take a segmentation prior; choose one "
             "(prior=sam2, conf/prior/) or drop +prior"
         )
-    # the task's dataset kinds and configurations (resireg_train.tasks; an unknown task is the
+    # the task's dataset kinds and configurations (resireg_train.evaluation.tasks; an unknown task is the
     # "task" rule's error)
     on_layer = [v for v in variants if _on_layer(v)] if isinstance(variants, list) else []
     if (task := "ovss" if task is _MISSING else task) in TASK_SPECS:

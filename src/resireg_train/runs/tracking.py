@@ -14,7 +14,7 @@ at the end of every epoch, so an interrupted or failed run still reports how far
 "Best" is the minimum for losses and the maximum for accuracies, retrieval and IoU metrics;
 other values (learning rate, logit scale, skip counts) are reported as final only. The file is
 strict JSON: a NaN or infinite value is written as ``null`` and listed under ``non_finite``
-(:mod:`resireg_train.results`).
+(:mod:`resireg_train.runs.record`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
-from resireg_train.results import metric_mode, read_results, update_results
+from resireg_train.runs.record import metric_mode, read_results, update_results
 
 __all__ = [
     "ResumableCSVLogger",
@@ -177,12 +177,12 @@ class ResultsTracker(L.Callback):
 # ------------------------------------------------------------------------- W&B
 def wandb_run_name(name: str) -> tuple[str, str | None]:
     """``(run name, group)`` of this job's W&B run: ``<name>-<run id>`` (the run id of the
-    output folder, :data:`resireg_train.paths.RUN_ID`), with ``-<job number>`` and the
+    output folder, :data:`resireg_train.config.paths.RUN_ID`), with ``-<job number>`` and the
     group ``<name>-<run id>`` (the sweep) for a job of a multirun."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    from resireg_train.paths import RUN_ID
+    from resireg_train.config.paths import RUN_ID
 
     base = f"{name}-{RUN_ID}"
     if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
@@ -208,7 +208,7 @@ def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
 def wandb_loggers(cfg: Any) -> list[Any]:
     """The W&B logger of ``cfg.logger`` (``logger=wandb``) for a job without Lightning's
     trainer (``resireg-eval``, ``resireg-map``); ``[]`` without one. The other trackers record
-    such a job when it ends (:mod:`resireg_train.trackers`)."""
+    such a job when it ends (:mod:`resireg_train.runs.trackers`)."""
     settings = (cfg.get("logger") or {}).get("wandb")
     if not settings:
         return []
@@ -221,7 +221,7 @@ def wandb_summary(record: dict[str, Any]) -> dict[str, Any]:
     """``results.json``'s summary as W&B summary values: status, epoch, step, the final values
     (``final/<metric>``) and the best ones (``best/<metric>``, ``best/<metric>/epoch``);
     non-finite values (``null`` in the file) are left out."""
-    from resireg_train.trackers import map_counts
+    from resireg_train.runs.trackers import map_counts
 
     out: dict[str, Any] = {k: record[k] for k in ("status", "epoch", "global_step", "error")
                            if record.get(k) is not None}  # fmt: skip

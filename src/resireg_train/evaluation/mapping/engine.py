@@ -3,7 +3,7 @@
 Per scene, batches of consecutive kept frames (:meth:`ScanNetFrames.batches`; ReSiReg Full's
 batch = scene is a video window). Per batch the encoder runs once (``encode``) and every
 variant / configuration is applied to that one output, as in the OVSS engine (through
-:func:`resireg.variants.apply_variant`, so Full's configurations share one PCA per batch).
+:func:`resireg.method.variants.apply_variant`, so Full's configurations share one PCA per batch).
 Each variant's features are lifted to 3D on its own grid (:class:`MappingSettings` ``points``)
 and fused into one :class:`~resireg.mapping.SemanticMap` per variant (:meth:`SemanticMap.fuse`:
 running sums in a :class:`~resireg.mapping.VoxelMap`; the L2-normalised mean is read at scene
@@ -61,15 +61,21 @@ from resireg.mapping import (
     unproject,
 )
 from resireg.mapping import metric as metrics
+from resireg.method.variants import apply_variant
 from resireg.models import DenseEncoder
 from resireg.specs.mapping import POINTS
 from resireg.specs.metrics import METRIC_SPECS
-from resireg.variants import apply_variant
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
 from resireg_train.data.specs import GT_RULES, check_dataset_values, dataset_conf
-from resireg_train.engine import EvalEngine, StageTimer, inference, no_timer, nonfinite_output
-from resireg_train.tasks import TASK_SPECS
+from resireg_train.evaluation.engine import (
+    EvalEngine,
+    StageTimer,
+    inference,
+    no_timer,
+    nonfinite_output,
+)
+from resireg_train.evaluation.tasks import TASK_SPECS
 
 __all__ = [
     "GT_RULES",
@@ -82,7 +88,7 @@ __all__ = [
 ]
 
 #: What the scores' names start with, ``val/scannet3d/``: the task table's
-#: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`).
+#: (:attr:`resireg_train.evaluation.tasks.TaskSpec.metric_prefix`).
 METRIC_PREFIX = TASK_SPECS["scannet3d"].metric_prefix
 #: RayFronts' ground-truth rule: ``compute_semseg_preds(votes, prompts, 0, 0.1)``, and the
 #: ``eps`` of its ``ImageSemSegEncoder.encode_labels`` one-hot prompts.
@@ -306,7 +312,7 @@ class MappingEngine(EvalEngine):
     """3D semantic mapping of a :class:`ScanNetFrames` set (module docstring).
 
     The class prototypes are the 2D task's (the shared text path,
-    :class:`resireg_train.evaluation.ClassPrototypes`, of the dataset's class names).
+    :class:`resireg_train.evaluation.base.ClassPrototypes`, of the dataset's class names).
 
     Args:
         dataset: the frames.
@@ -352,7 +358,7 @@ class MappingEngine(EvalEngine):
 
         Args:
             encoder: the model (its modules are put in eval mode for the pass and restored).
-            variants: ``resireg.variants.build_variants`` output.
+            variants: ``resireg.method.variants.build_variants`` output.
             precision: ``"32"`` (fp32) or ``"bf16"`` (autocast), as the OVSS engine.
             timer: collects seconds per stage (``data``, ``encoder``,
                 ``reconstruction/<variant>``, ``fusion``, ``ground_truth``, ``metric``).
@@ -498,7 +504,7 @@ class MappingEngine(EvalEngine):
 __getattr__ = moved(
     __name__,
     {
-        "MappingTask": "resireg_train.mapping.engine:MappingEngine",
-        "MappingProtocol": "resireg_train.mapping.engine:MappingSettings",
+        "MappingTask": "resireg_train.evaluation.mapping.engine:MappingEngine",
+        "MappingProtocol": "resireg_train.evaluation.mapping.engine:MappingSettings",
     },
 )

@@ -84,7 +84,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.checks import check_positive_int, check_variant_inputs
+from resireg.method.checks import check_positive_int, check_variant_inputs
 from resireg.specs.rules import checked
 from resireg.specs.variants import VARIANT_SPECS, check_variant_kwargs
 
@@ -278,7 +278,7 @@ class Calib(nn.Module):
         """Calibrate the language tokens.
 
         The inputs follow ReSiReg's rules (the shared
-        :func:`resireg.checks.check_variant_inputs`: floating-point, finite, no empty
+        :func:`resireg.method.checks.check_variant_inputs`: floating-point, finite, no empty
         dimension; each error names the argument) and, like ReSiReg, Calib has no parameters
         and runs under :func:`torch.no_grad`.
 

@@ -2,7 +2,7 @@
 
 The one job of this module is ReSiReg Full's ``n_prototypes="elbo"`` (docs/method.md#the-prototype-count-by-the-evidence-lower-bound): :func:`elbo_prototype_count` fits, for each candidate count, a variational Bayesian
 Gaussian mixture (:func:`vb_gmm`, scikit-learn's ``BayesianGaussianMixture`` with diagonal
-covariances, in torch) started from k-means labels (:func:`resireg.kmeans.nested_kmeans`), on
+covariances, in torch) started from k-means labels (:func:`resireg.method.kmeans.nested_kmeans`), on
 a uniform subsample of the points (:func:`elbo_subsample`), and returns the count of the
 largest bound. :func:`elbo_fits` returns the fits themselves (for reports and benchmarks).
 """
@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from resireg.kmeans import nested_kmeans
+from resireg.method.kmeans import nested_kmeans
 
 __all__ = [
     "ELBO_MAX_POINTS",
@@ -187,7 +187,7 @@ def vb_gmm(
     Args:
         x: ``[N, r]`` points.
         labels: ``[N]`` initial component of every point (e.g. k-means labels,
-            :func:`resireg.kmeans.kmeans`).
+            :func:`resireg.method.kmeans.kmeans`).
         n_components: ``k``.
         point_weight: how many points each row of ``x`` stands for (a frequency weight: the
             fit equals scikit-learn's on ``x`` with every row repeated that many times, for an
@@ -285,7 +285,7 @@ def elbo_fits(
     default: every point is labelled by its nearest seed), then :func:`vb_gmm` from those
     labels. The seedings are the first ``k`` centres of one greedy k-means++ run (``2 + ln(max
     candidate)`` trials per centre for every ``k``): each centre depends only on those before
-    it, so one run seeds every candidate (:func:`resireg.kmeans.nested_kmeans`). Above
+    it, so one run seeds every candidate (:func:`resireg.method.kmeans.nested_kmeans`). Above
     ``max_points`` points the mixtures are fitted on a uniform subsample of ``M = max_points``
     (:func:`elbo_subsample`), each point standing for ``N / M`` (``vb_gmm``'s
     ``point_weight``), so that every :attr:`VBGMMResult.elbo` estimates the bound of all ``N``

@@ -13,8 +13,8 @@ from typing import Any
 import pandas as pd
 
 from resireg_train.report.jobs import Job
-from resireg_train.results import flat
-from resireg_train.search import SEARCH_FILE, STUDY_FILE, load_study, search_record
+from resireg_train.runs.record import flat
+from resireg_train.sweeps.search import SEARCH_FILE, STUDY_FILE, load_study, search_record
 
 __all__ = ["is_optuna_sweep", "optuna_study", "trials_table", "write_optuna_report"]
 

@@ -1,9 +1,9 @@
 """``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet scenes as a task protocol
-(:class:`resireg_train.evaluation.TaskProtocol`; the entry ``scannet3d`` of
-:data:`resireg_train.tasks.TASK_SPECS`) over the engine
-:class:`~resireg_train.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
+(:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``scannet3d`` of
+:data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine
+:class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
-:meth:`~resireg_train.mapping.engine.MappingResult.write_csv`), ``frames`` and
+:meth:`~resireg_train.evaluation.mapping.engine.MappingResult.write_csv`), ``frames`` and
 ``frames_dropped``."""
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from torch import nn
 
 from resireg.models import DenseEncoder
 from resireg_train.data.scannet import build_scannet, check_scannet_spec
-from resireg_train.engine import StageTimer
-from resireg_train.evaluation import TaskProtocol
-from resireg_train.mapping.engine import MappingEngine, MappingResult, MappingSettings
-from resireg_train.protocol_record import protocol_record
+from resireg_train.evaluation.base import TaskProtocol
+from resireg_train.evaluation.engine import StageTimer
+from resireg_train.evaluation.mapping.engine import MappingEngine, MappingResult, MappingSettings
+from resireg_train.evaluation.protocol import protocol_record
 
 __all__ = ["ScanNet3DProtocol"]
 

@@ -1,7 +1,7 @@
 """Checks on tensors that enter the method, the maps and the evaluation engines.
 
 One place for the rule "a feature tensor is floating-point and finite", so every entry point
-(:class:`resireg.ReSiRegFull`, :class:`resireg.ReSiRegLite`, :class:`resireg.calib.Calib`,
+(:class:`resireg.ReSiRegFull`, :class:`resireg.ReSiRegLite`, :class:`resireg.method.calib.Calib`,
 :meth:`resireg.mapping.SemanticMap.fuse`, the engines' encoder outputs) refuses the same inputs
 with the same words. A NaN that enters ReSiReg Full spreads to every patch of the batch (PCA
 and k-means mix all points), and one NaN patch in Lite spreads to its whole image, so the check
@@ -73,7 +73,7 @@ def check_positive_int(name: str, value: object) -> int:
 
 def check_variant_inputs(intermediates: Tensor, language: Tensor, prior: Tensor | None) -> None:
     """The rules every variant's inputs follow (:class:`resireg.ReSiRegFull`,
-    :class:`resireg.ReSiRegLite` and :class:`resireg.calib.Calib`): floating-point and finite
+    :class:`resireg.ReSiRegLite` and :class:`resireg.method.calib.Calib`): floating-point and finite
     features (:func:`check_features`; a NaN would spread to the whole batch in Full and to the
     whole image in Lite), four dimensions, none of them empty (a batch of 0 images, 0 channels
     or a 0-cell grid has nothing to reconstruct), one batch size, and an integer prior of the

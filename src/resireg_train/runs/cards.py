@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg_train.results import read_results
+from resireg_train.runs.record import read_results
 
 __all__ = [
     "CARD_FILE",

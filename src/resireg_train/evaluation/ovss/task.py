@@ -1,6 +1,6 @@
 """``resireg-eval task=ovss``: 2D open-vocabulary segmentation as a task protocol
-(:class:`resireg_train.evaluation.TaskProtocol`; the entry ``ovss`` of
-:data:`resireg_train.tasks.TASK_SPECS`) over the engine :class:`~resireg_train.ovss.engine.OVSSEngine`,
+(:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``ovss`` of
+:data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine :class:`~resireg_train.evaluation.ovss.engine.OVSSEngine`,
 with the feature cache (``feature_cache``) and the segmentation prior (``+prior``
 configurations, ``prior=``) that only this task takes."""
 
@@ -14,12 +14,12 @@ from torch import nn
 
 from resireg.models import DenseEncoder
 from resireg.specs.variants import takes_prior
+from resireg_train.config.checks import config_path
 from resireg_train.data.segmentation import build_segmentation_set, check_segmentation_source
-from resireg_train.engine import StageTimer
-from resireg_train.evaluation import TaskProtocol
-from resireg_train.ovss.engine import OVSSEngine, OVSSResult, requested_layers
-from resireg_train.protocol_record import protocol_record
-from resireg_train.validation import config_path
+from resireg_train.evaluation.base import TaskProtocol
+from resireg_train.evaluation.engine import StageTimer
+from resireg_train.evaluation.ovss.engine import OVSSEngine, OVSSResult, requested_layers
+from resireg_train.evaluation.protocol import protocol_record
 
 __all__ = ["OVSSProtocol"]
 
@@ -43,7 +43,7 @@ class OVSSProtocol(TaskProtocol):
         self.check_batches(self.engine, variants)
         self.cache = None
         if cfg.get("feature_cache"):
-            from resireg_train.cache import FeatureCache
+            from resireg_train.evaluation.cache import FeatureCache
 
             key = FeatureCache.key_for(encoder, params["encoder"], params["dataset"], patch,
                                        str(cfg.precision), requested_layers(encoder, variants))  # fmt: skip

@@ -10,19 +10,19 @@ The module reads top to bottom: the helpers both variants use; the PCA of ReSiRe
 upsampled points, computed from the small grid (:func:`upsampled_moments`); then
 :class:`ReSiRegFull`, whose ``forward`` (first among its steps) runs:
 
-1. the input check, :func:`resireg.checks.check_variant_inputs`;
+1. the input check, :func:`resireg.method.checks.check_variant_inputs`;
 2. the covariance spectrum of the bilinearly upsampled intermediates, from the grid
-   (:meth:`FullShared.spectrum`, :func:`upsampled_spectrum`, :class:`resireg.pca.PCASpectrum`);
+   (:meth:`FullShared.spectrum`, :func:`upsampled_spectrum`, :class:`resireg.method.pca.PCASpectrum`);
 3. :meth:`ReSiRegFull.assign`: with ``n_prototypes="elbo"`` the count
-   (:meth:`ReSiRegFull._elbo_count`: the subsample of :func:`resireg.elbo.elbo_subsample`,
-   only its points computed, then :func:`resireg.elbo.elbo_prototype_count`); the projection
-   on the grid, its upsampling and normalisation; :func:`resireg.kmeans.kmeans` of the
+   (:meth:`ReSiRegFull._elbo_count`: the subsample of :func:`resireg.method.elbo.elbo_subsample`,
+   only its points computed, then :func:`resireg.method.elbo.elbo_prototype_count`); the projection
+   on the grid, its upsampling and normalisation; :func:`resireg.method.kmeans.kmeans` of the
    points (its products with the points taken on the grid);
 4. the prototypes (the mean language token of every cluster, and one per prior instance),
    the softmax of the distances to them and the mix.
 
-Last, :class:`ReSiRegLite` and its helpers. The clustering modules (:mod:`resireg.pca`,
-:mod:`resireg.kmeans`, :mod:`resireg.elbo`) know nothing of this one; it calls them.
+Last, :class:`ReSiRegLite` and its helpers. The clustering modules (:mod:`resireg.method.pca`,
+:mod:`resireg.method.kmeans`, :mod:`resireg.method.elbo`) know nothing of this one; it calls them.
 
 Resolved ambiguity: the paper calls the Lite normalisation "column-wise"; we normalise
 over the prototype (key) axis, the same axis as Full, so every output patch is a convex
@@ -38,10 +38,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.checks import check_positive_int, check_variant_inputs
-from resireg.elbo import ELBO_MAX_POINTS, elbo_prototype_count, elbo_subsample
-from resireg.kmeans import kmeans
-from resireg.pca import PCAResult, PCASpectrum, gram
+from resireg.method.checks import check_positive_int, check_variant_inputs
+from resireg.method.elbo import ELBO_MAX_POINTS, elbo_prototype_count, elbo_subsample
+from resireg.method.kmeans import kmeans
+from resireg.method.pca import PCAResult, PCASpectrum, gram
 from resireg.specs.variants import check_variant_kwargs
 
 __all__ = [
@@ -180,7 +180,7 @@ def _apply_factor(t: Tensor, diag: Tensor, sub: Tensor, dim: int, out: Tensor) -
 def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tensor]:
     """Moments of the bilinearly upsampled points of ``x`` ``[B, D, h, w]``, from the grid.
 
-    Returns ``(second, first, n, shift)`` as :func:`resireg.pca.pca_from_moments` takes
+    Returns ``(second, first, n, shift)`` as :func:`resireg.method.pca.pca_from_moments` takes
     them: ``shift`` is the grid's mean, ``second = sum_p (u_p - shift)(u_p - shift)^T`` and
     ``first = sum_p (u_p - shift)`` over the ``n = B h w s^2`` upsampled points ``u_p``.
 
@@ -188,7 +188,7 @@ def upsampled_moments(x: Tensor, scale: int) -> tuple[Tensor, Tensor, int, Tenso
     rows summing to one, so ``second = X^T (U^T U) X`` and ``first = (U^T 1)^T X`` for the
     centred grid points ``X``. Each ``U_a^T U_a`` is tridiagonal with a lower bidiagonal
     Cholesky factor ``L_a``, hence ``second = Y^T Y`` with ``Y = (L_h^T (x) L_w^T) X``: four
-    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.pca.gram`),
+    vectorised passes for ``Y`` and a symmetric product (:func:`resireg.method.pca.gram`),
     accumulated over chunks of images so no batch-sized temporary is formed.
     """
     b, d, h, w = x.shape
@@ -232,7 +232,7 @@ def upsampled_pca(x: Tensor, scale: int, n_components: int) -> PCAResult:
 
 def upsampled_spectrum(x: Tensor, scale: int) -> PCASpectrum:
     """The covariance eigendecomposition behind :func:`upsampled_pca` (any component count
-    is then a slice: :meth:`~resireg.pca.PCASpectrum.top`)."""
+    is then a slice: :meth:`~resireg.method.pca.PCASpectrum.top`)."""
     second, first, n, shift = upsampled_moments(x, scale)
     return PCASpectrum.from_moments(second, first, n, shift=shift)
 
@@ -298,7 +298,7 @@ class ReSiRegFull(nn.Module):
         n_prototypes: k-means clusters ``n``, or ``"auto"`` to take it from a fitted
             prototype heuristic as a function of the batch size (see ``heuristic``), or
             ``"elbo"`` to choose it per batch among ``elbo_candidates`` by the evidence lower
-            bound (:func:`resireg.elbo.elbo_prototype_count`, docs/method.md#the-prototype-count-by-the-evidence-lower-bound).
+            bound (:func:`resireg.method.elbo.elbo_prototype_count`, docs/method.md#the-prototype-count-by-the-evidence-lower-bound).
         n_components: PCA components ``r``; ``None`` (default): equal to the prototype
             count of the batch (tied, as in the paper's ablation and ``full.n_components:
             null`` of conf/resireg/default.yaml). Clipped to the intermediate dimension.
@@ -311,20 +311,20 @@ class ReSiRegFull(nn.Module):
             per-feature variance (scikit-learn's relative ``tol`` of ``KMeans``, whose default
             it is).
         heuristic: with ``n_prototypes="auto"``, a callable ``batch_size -> n`` (e.g.
-            :class:`resireg.heuristic.PrototypeHeuristic`) or a path to its JSON file;
+            :class:`resireg.method.heuristic.PrototypeHeuristic`) or a path to its JSON file;
             ``None`` reads the file named by ``$RESIREG_PROTOTYPE_HEURISTIC``.
         elbo_candidates: with ``n_prototypes="elbo"``, the counts to choose from. The bound
             is fitted on the normalised PCA points of ``n_components`` axes (tied: of as many
             axes as the largest candidate); Full then runs with the chosen count (tied: on
             that many axes). :attr:`chosen` lists the count of every batch.
         elbo_max_points: with ``"elbo"``, the bound is fitted on a uniform subsample of at
-            most this many points (:func:`resireg.elbo.elbo_subsample`), each standing for
+            most this many points (:func:`resireg.method.elbo.elbo_subsample`), each standing for
             ``N / M`` of the batch's ``N``.
         elbo_stop_after: with ``"elbo"``, the scan of the candidates (in increasing order)
             stops once this many consecutive ones fall below the largest bound so far;
-            ``None`` fits them all (:func:`resireg.elbo.elbo_prototype_count`).
+            ``None`` fits them all (:func:`resireg.method.elbo.elbo_prototype_count`).
         elbo_tol: with ``"elbo"``, EM stops once the bound changes by less than this many
-            nats per point (:func:`resireg.elbo.elbo_fits`).
+            nats per point (:func:`resireg.method.elbo.elbo_fits`).
     """
 
     def __init__(
@@ -366,7 +366,7 @@ class ReSiRegFull(nn.Module):
                 sorted({check_positive_int("elbo_candidates", c) for c in elbo_candidates})
             )
         elif n_prototypes == "auto":
-            from resireg.heuristic import PrototypeHeuristic
+            from resireg.method.heuristic import PrototypeHeuristic
 
             self.heuristic = PrototypeHeuristic.resolve(heuristic)
         self.n_prototypes = n_prototypes
@@ -436,7 +436,7 @@ class ReSiRegFull(nn.Module):
         Raises:
             TypeError: ``intermediates`` or ``language`` is not a floating-point tensor.
             ValueError: a shape is wrong or has an empty dimension, or the features hold NaN
-                or inf (:class:`resireg.checks.NonFiniteError`); the message names the
+                or inf (:class:`resireg.method.checks.NonFiniteError`); the message names the
                 argument.
         """
         check_variant_inputs(intermediates, language, prior)

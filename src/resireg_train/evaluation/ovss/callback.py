@@ -11,12 +11,12 @@ import lightning as L
 import torch.distributed as dist
 from omegaconf import OmegaConf
 
+from resireg.method.variants import build_variants
 from resireg.specs.rules import check_batch_size
-from resireg.variants import build_variants
+from resireg_train.config.checks import config_path
 from resireg_train.data.segmentation import build_segmentation_set
-from resireg_train.ovss.engine import METRIC_PREFIX, OVSSEngine, OVSSResult
-from resireg_train.ovss.settings import VARIANT_PARAM_KEYS, save_settings
-from resireg_train.validation import config_path
+from resireg_train.evaluation.ovss.engine import METRIC_PREFIX, OVSSEngine, OVSSResult
+from resireg_train.evaluation.ovss.settings import VARIANT_PARAM_KEYS, save_settings
 
 __all__ = ["ReSiRegEval"]
 
@@ -31,7 +31,7 @@ class ReSiRegEval(L.Callback):
     Runs at the end of every ``every_n_epochs``-th training epoch (and the last one) -
     the run's validation epoch: the caption data has no held-out split. It logs
     ``val/ovss/<dataset>/miou_<variant>`` and ``.../fmiou_<variant>`` (epoch level), which
-    :class:`~resireg_train.tracking.ResultsTracker` records per epoch and keeps the best of
+    :class:`~resireg_train.runs.tracking.ResultsTracker` records per epoch and keeps the best of
     in ``results.json``.
 
     Under DDP each rank scores a disjoint share of the batches and the confusion matrices
@@ -49,14 +49,14 @@ class ReSiRegEval(L.Callback):
     Args:
         datasets: ``{name: spec}`` segmentation datasets (see
             :func:`~resireg_train.data.segmentation.build_segmentation_set`).
-        variants: names of :func:`resireg.variants.build_variant` (``bb``, ``calib``, ``lite``,
+        variants: names of :func:`resireg.method.variants.build_variant` (``bb``, ``calib``, ``lite``,
             ``full``); no default: ``conf/resireg/default.yaml``'s ``variants`` is the one.
         every_n_epochs: evaluation interval in epochs.
         batch_size: images per batch (ReSiReg Full's scene; see ``OVSSEngine``).
         num_workers: DataLoader workers per dataset.
         **variant_params: each variant's arguments by its name (``calib``, ``lite``, ``full``:
             the ``resireg`` config group; the variant table names them,
-            :data:`~resireg_train.ovss.settings.VARIANT_PARAM_KEYS`).
+            :data:`~resireg_train.evaluation.ovss.settings.VARIANT_PARAM_KEYS`).
         precision: ``"32"`` (default, the protocol's fp32) or ``"bf16"``.
         temperature: softmax temperature of the prediction.
     """

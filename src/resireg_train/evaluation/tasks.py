@@ -2,18 +2,18 @@
 them (docs/architecture.md#adding-a-task).
 
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
-(:func:`resireg_train.validation.validate_eval`) reads the task names and each task's
+(:func:`resireg_train.config.checks.validate_eval`) reads the task names and each task's
 configuration rules from here before anything heavy loads (the dataset kinds a task scores are
 the dataset table's, :data:`resireg_train.data.specs.DATASET_SPECS`, each entry naming its
-tasks); the protocol record (:func:`resireg_train.protocol_record.protocol_record`) and the report
+tasks); the protocol record (:func:`resireg_train.evaluation.protocol.protocol_record`) and the report
 (:mod:`resireg_train.report.tables`) read a task's recorded keys, metric prefix and report
 table from its entry. ``resireg-eval``
 (:func:`resireg_train.cli.eval.evaluate`, through
-:func:`resireg_train.evaluation.require_task`) builds the entry's protocol class
-(:class:`resireg_train.evaluation.TaskProtocol`: ``check``, ``build``, ``run``, ``results``),
+:func:`resireg_train.evaluation.base.require_task`) builds the entry's protocol class
+(:class:`resireg_train.evaluation.base.TaskProtocol`: ``check``, ``build``, ``run``, ``results``),
 named lazily as ``"module:Class"``.
 
-Adding a task: one protocol class (a :class:`resireg_train.evaluation.TaskProtocol`:
+Adding a task: one protocol class (a :class:`resireg_train.evaluation.base.TaskProtocol`:
 ``check``, ``build``, ``run``, ``results``), one :class:`TaskSpec` below, and the dataset
 kinds it scores naming it in their ``tasks`` (:data:`resireg_train.data.specs.DATASET_SPECS`).
 """
@@ -37,13 +37,13 @@ class TaskSpec:
     Attributes:
         name: the ``task`` value.
         target: its protocol, ``"module:Class"``: a subclass of
-            :class:`resireg_train.evaluation.TaskProtocol` (loaded after the config check).
+            :class:`resireg_train.evaluation.base.TaskProtocol` (loaded after the config check).
         unit: what it scores and ``results.json``'s ``images`` counts (``image``, ``frame``).
         prior: whether it scores ``+prior`` configurations (a segmentation prior).
         layers: whether it scores ``@layer:`` configurations (an encoder block's intermediates).
         summary: one line for errors and docs.
         protocol_keys: the dataset entry's keys its ``results.json`` ``protocol`` records
-            (:func:`resireg_train.protocol_record.protocol_record`; docs/protocol.md).
+            (:func:`resireg_train.evaluation.protocol.protocol_record`; docs/protocol.md).
         protocol_params: the run's parameters (``params``) that record records too.
         report: the ``resireg-report`` table its sweeps feed (``table1``, ``table2``;
             :data:`resireg_train.report.tables.REPORT_TABLES`), ``None``: none.
@@ -87,7 +87,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
     (
         TaskSpec(
             "ovss",
-            "resireg_train.ovss.task:OVSSProtocol",
+            "resireg_train.evaluation.ovss.task:OVSSProtocol",
             "image",
             prior=True,
             layers=True,
@@ -106,7 +106,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
         ),
         TaskSpec(
             "scannet3d",
-            "resireg_train.mapping.task:ScanNet3DProtocol",
+            "resireg_train.evaluation.mapping.task:ScanNet3DProtocol",
             "frame",
             prior=False,
             layers=False,
@@ -133,7 +133,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
             report="table2",
         ),
     ),
-    where="resireg_train.tasks",
+    where="resireg_train.evaluation.tasks",
 )
 
 
@@ -144,7 +144,7 @@ def task_names() -> list[str]:
 
 def find_task(name: Any) -> TaskSpec | None:
     """The entry of ``name``, ``None`` for a name the table lacks (the config check's error,
-    and :func:`resireg_train.evaluation.require_task`'s)."""
+    and :func:`resireg_train.evaluation.base.require_task`'s)."""
     return TASK_SPECS.find(str(name))
 
 
@@ -159,7 +159,7 @@ def task_config_errors(
     ``+prior`` / ``@layer:`` configurations a task does not score."""
     spec = find_task(name)
     if spec is None:
-        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.tasks)"]
+        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.evaluation.tasks)"]
     errors = []
     dataset = find_dataset(kind)
     if dataset is not None and spec.name not in dataset.tasks:

@@ -1,5 +1,5 @@
 """``results.json``: a run's record, read and merged without Lightning (the entry points write
-it before anything heavy is imported). The format is described in :mod:`resireg_train.tracking`.
+it before anything heavy is imported). The format is described in :mod:`resireg_train.runs.tracking`.
 
 The file is strict JSON (RFC 8259), which has no NaN or infinity: Python's ``json`` would
 write them as bare ``NaN`` / ``Infinity``, which strict parsers (``jq``, JavaScript's
@@ -38,7 +38,7 @@ _REASON = (
     "strict JSON has no NaN or infinity, so these values are null in this file. NaN is an "
     "undefined value, 0/0: e.g. the IoU of a class that neither the ground truth nor the "
     "prediction holds (excluded from the mIoU), or a score over no image. Keys are JSON "
-    "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.results.read_results "
+    "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.runs.record.read_results "
     "restores the numbers"
 )
 

@@ -5,7 +5,7 @@ re-exports its names, with a ``DeprecationWarning``, for one release."""
 from resireg.deprecation import moved
 
 __getattr__ = moved(
-    "resireg_train.mapping.metric",
+    "resireg_train.evaluation.mapping.metric",
     {
         "METRICS": "resireg.mapping.metric",
         "confusion": "resireg.mapping.metric",

@@ -5,7 +5,7 @@ One engine serves the ``ReSiRegEval`` training callback, ``resireg-eval`` and
 ``resireg-eval`` on the exported model.
 
 Per batch (images of one size, see :meth:`SegmentationSet.batches`): the encoder runs once
-(``encode``); each variant of :func:`resireg.variants.build_variants` turns its
+(``encode``); each variant of :func:`resireg.method.variants.build_variants` turns its
 (intermediates, language tokens) into dense features; every image is then predicted
 against the text prototypes at the features' grid (:func:`resireg.ovss.predict_grid`) and
 scored at its label's full resolution in one confusion matrix per variant (docs/method.md#2d-evaluation-ovss): each label is counted once per batch against the grid's cells
@@ -15,7 +15,7 @@ prediction (:func:`resireg.ovss.predict`) without upsampling it for every config
 A configuration ``<variant>@layer:<block>`` (``lite@layer:5``; the CLIP layer sweep, docs/method.md#2d-evaluation-ovss) runs on that encoder block's intermediates instead of the encoder's own: the
 encoder's ``encode_layers`` returns every block the configurations ask for from the same
 single pass (``DenseOutput.layers``), and each configuration takes its block's tensor. Work
-the configurations of a batch share (:func:`resireg.variants.apply_variant`) is shared only
+the configurations of a batch share (:func:`resireg.method.variants.apply_variant`) is shared only
 between configurations on the same block.
 """
 
@@ -30,13 +30,13 @@ import torch
 from torch import Tensor, nn
 
 from resireg.deprecation import moved
+from resireg.method.variants import apply_variant
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
 from resireg.specs.metrics import METRIC_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
-from resireg.variants import apply_variant
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
-from resireg_train.engine import (  # shared with the 3D engine; importable from here too
+from resireg_train.evaluation.engine import (  # shared with the 3D engine; importable from here too
     EvalEngine,
     StageTimer,
     check_variants_on,
@@ -44,10 +44,10 @@ from resireg_train.engine import (  # shared with the 3D engine; importable from
     no_timer,
     nonfinite_output,
 )
-from resireg_train.tasks import TASK_SPECS
+from resireg_train.evaluation.tasks import TASK_SPECS
 
 if TYPE_CHECKING:
-    from resireg_train.cache import FeatureCache
+    from resireg_train.evaluation.cache import FeatureCache
 
 __all__ = [
     "METRIC_PREFIX",
@@ -61,7 +61,7 @@ __all__ = [
 ]
 
 #: What the scores' names start with, ``val/ovss/``: the task table's
-#: (:attr:`resireg_train.tasks.TaskSpec.metric_prefix`), also the training callback's.
+#: (:attr:`resireg_train.evaluation.tasks.TaskSpec.metric_prefix`), also the training callback's.
 METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
 #: The variants that read the intermediates: all but the backbone alone (the @layer: error).
 _INTERMEDIATE_VARIANTS = tuple(v for v in VARIANTS if v != BASELINE)
@@ -193,7 +193,7 @@ class OVSSEngine(EvalEngine):
     """OVSS of one dataset: its batches, its class prompts and the scoring.
 
     The class prototypes are the tasks' shared text path
-    (:class:`resireg_train.evaluation.ClassPrototypes`: the ``K x 80`` class prompts embedded
+    (:class:`resireg_train.evaluation.base.ClassPrototypes`: the ``K x 80`` class prompts embedded
     once by ``text_features``; every :meth:`prototypes` call applies the encoder's *current*
     ``dense_text``), so a training run re-embeds nothing per epoch.
 
@@ -243,7 +243,7 @@ class OVSSEngine(EvalEngine):
 
         Args:
             encoder: the model (its modules are put in eval mode for the pass and restored).
-            variants: ``resireg.variants.build_variants`` output.
+            variants: ``resireg.method.variants.build_variants`` output.
             rank, world_size: this process's share: batches ``rank::world_size``.
             precision: ``"32"`` (fp32, the protocol's default) or ``"bf16"`` (autocast).
             timer: collects seconds per stage (``data``, ``encoder``, ``cache`` (reads),
@@ -251,7 +251,7 @@ class OVSSEngine(EvalEngine):
             cache: stored encoder outputs of this dataset (read where present, written
                 where missing); its key must match ``encoder``, the dataset,
                 ``precision`` and the blocks the configurations run on
-                (:meth:`resireg_train.cache.FeatureCache.key_for` with
+                (:meth:`resireg_train.evaluation.cache.FeatureCache.key_for` with
                 ``layers=requested_layers(encoder, variants)``).
             prior: segmentation-prior provider (:class:`resireg.priors.SamPrior`), needed
                 when a configuration takes the prior (``full+prior``): called once per batch
@@ -361,4 +361,4 @@ class OVSSEngine(EvalEngine):
 
 
 # The old names, for one release.
-__getattr__ = moved(__name__, {"OVSSTask": "resireg_train.ovss.engine:OVSSEngine"})
+__getattr__ = moved(__name__, {"OVSSTask": "resireg_train.evaluation.ovss.engine:OVSSEngine"})

@@ -1,7 +1,7 @@
 """The parts the 2D and 3D evaluation engines share (docs/architecture.md#adding-a-task).
 
-The engines (:class:`resireg_train.ovss.engine.OVSSEngine`, 2D;
-:class:`resireg_train.mapping.engine.MappingEngine`, 3D) derive from :class:`EvalEngine`: one
+The engines (:class:`resireg_train.evaluation.ovss.engine.OVSSEngine`, 2D;
+:class:`resireg_train.evaluation.mapping.engine.MappingEngine`, 3D) derive from :class:`EvalEngine`: one
 batch-size check, one class-prototype text path (:class:`ClassPrototypes`), one loader
 (:func:`eval_loader`) and one variant check over the batches (:func:`check_variants_on`); both
 pass the encoder through :func:`inference` and time stages with :class:`StageTimer`.
@@ -20,11 +20,11 @@ import torch
 from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 
-from resireg.checks import NonFiniteError, check_features
+from resireg.method.checks import NonFiniteError, check_features
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, average_prompts, class_prompts
 from resireg.specs.rules import check_batch_size
-from resireg_train.validation import PRECISIONS
+from resireg_train.config.checks import PRECISIONS
 
 __all__ = [
     "ClassPrototypes",
@@ -87,7 +87,7 @@ def inference(encoder: DenseEncoder, precision: str) -> Iterator[None]:
 def nonfinite_output(out: DenseOutput) -> str | None:
     """Why the encoder's output for a batch cannot be scored, or ``None``: the engines check
     it once as it enters them (fresh or from the feature cache), with the variants' own rule
-    (:func:`resireg.checks.check_features`), so a batch whose ``intermediates``, ``language``
+    (:func:`resireg.method.checks.check_features`), so a batch whose ``intermediates``, ``language``
     tokens or per-block intermediates hold NaN or inf is skipped and counted (each of its
     images a skipped sample with this reason) instead of scored: in Full one NaN spreads to
     every image of the batch. A non-floating output is an encoder bug and raises."""
