@@ -8,6 +8,7 @@ import re
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import lightning as L
 import numpy as np
@@ -472,3 +473,21 @@ def test_keys_nothing_reads_are_errors_naming_the_known_key(tmp_path, tiny_expor
     assert "batchsize=4: no such key, nothing would read it (did you mean data.batch_size?)" in (
         proc.stderr
     ), proc.stderr[-2000:]
+
+
+def test_a_run_folder_written_before_the_layout_by_role_still_resumes(tmp_path):
+    """tests/data/run_before_layout is a smoke run folder written by the release before the
+    modules moved: its stored config names ``resireg_train.ovss.callback.ReSiRegEval``. The
+    resume check maps the old class paths (resireg_train.config.moves), so the same command
+    resumes it from its checkpoint instead of refusing a changed ``_target_``."""
+    fixture = Path(__file__).parent / "data" / "run_before_layout"
+    logs = tmp_path / "logs"
+    out = logs / "smoke" / "run"
+    shutil.copytree(fixture, out)
+    for stored in [*(out / ".hydra").glob("*.yaml"), out / "results.json"]:
+        text = stored.read_text().replace("@RUN_DIR@", str(out)).replace("@LOG_DIR@", str(logs))
+        stored.write_text(text.replace("@CHECKOUT@", str(CONFIG_DIR.parent)))
+    assert "resireg_train.ovss.callback.ReSiRegEval" in (out / ".hydra" / "config.yaml").read_text()
+    proc = run("resireg-train", *yaml.safe_load((out / ".hydra" / "overrides.yaml").read_text()),
+               "ckpt_path=last", f"hydra.run.dir={out}")  # fmt: skip
+    assert "Restored all states from the checkpoint" in proc.stdout + proc.stderr

@@ -42,6 +42,7 @@ from resireg_train.cli.job import (
     top_level_keys,
 )
 from resireg_train.config.checks import ConfigError, check_available, check_devices, validate
+from resireg_train.config.moves import current_targets
 from resireg_train.runs.record import RESULTS_FILE, read_results, update_results
 
 if TYPE_CHECKING:
@@ -170,7 +171,8 @@ def check_resume(out: Path, composed: DictConfig) -> None:
     stored = out / ".hydra" / "config.yaml"
     if not stored.is_file():
         return
-    run = OmegaConf.to_container(OmegaConf.load(stored), resolve=False)
+    # a run written before a class moved names its old path: compare with today's
+    run = current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False))
     this = OmegaConf.to_container(composed, resolve=False)
     this.pop("hydra", None)
     differences = _differences(run, this)
