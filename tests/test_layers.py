@@ -40,7 +40,7 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
                         ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
     rules = src / "resireg" / "specs" / "rules.py"
     rules.write_text(rules.read_text() + "\nfrom resireg.method.reconstruct import ReSiRegFull\n")
-    checks = src / "resireg" / "checks.py"
+    checks = src / "resireg" / "method" / "checks.py"
     checks.write_text(checks.read_text() + "\nimport resireg_train.runs.record\n")
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     out = _lint(src, tmp_path / "pyproject.toml")
@@ -136,13 +136,13 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     planted.parent.mkdir(parents=True)
     for name in ("keys", "voxels"):
         (planted.parent / f"{name}.py").write_text("")
-    (tmp_path / "resireg" / "kmeans.py").write_text("")
-    (tmp_path / "resireg_train").mkdir()
-    for name in ("search", "engine"):
-        (tmp_path / "resireg_train" / f"{name}.py").write_text("")
+    for name in ("resireg/method/kmeans", "resireg_train/sweeps/search",
+                 "resireg_train/evaluation/engine"):  # fmt: skip
+        (tmp_path / f"{name}.py").parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f"{name}.py").write_text("")
     planted.write_text(
         "from resireg_train.sweeps.search import _optuna\nimport resireg_train.evaluation.engine as eng\n"
-        "eng._no_timer\nimport resireg_train\nresireg_train.engine._no_timer\n"
+        "eng._no_timer\nimport resireg_train\nresireg_train.evaluation.engine._no_timer\n"
         "import resireg.method.kmeans as km\nimport resireg.mapping.voxels\n"
         "from resireg.method.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
         "from resireg.mapping import voxels\n"
@@ -151,12 +151,12 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     )
     hits = _private_imports(planted, "resireg.mapping.planted", tmp_path)
     assert sorted(hit.split(": ", 1)[1] for hit in hits) == [
-        "from resireg.method.kmeans import _lloyd",
         "from resireg.mapping.keys import _OFFSET",
+        "from resireg.method.kmeans import _lloyd",
         "from resireg_train.sweeps.search import _optuna",
-        "resireg.method.kmeans._tolerance",
         "resireg.mapping.voxels._check",
         "resireg.mapping.voxels._x",
+        "resireg.method.kmeans._tolerance",
         "resireg_train.evaluation.engine._no_timer",
         "resireg_train.evaluation.engine._no_timer",
     ]
