@@ -2,13 +2,12 @@
 entry against its conf file and its rules, the Nerfstudio reader on a folder written here from
 the ray-cast room with known poses (and resireg-map on it against the bag of the same frames),
 the ROS message decoders on rosbags' and rclpy's message forms, the config-path boundary of
-resireg-map, the deprecated old names, and that the robot side imports no training stack."""
+resireg-map, and that the robot side imports no training stack."""
 
 import array
 import json
 import subprocess
 import sys
-import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -22,7 +21,6 @@ from resireg.sources.frames import (
     FrameSource,
     MessageSource,
     RGBDFrame,
-    SkippedFrame,
     windows,
 )
 from resireg.specs.sources import COMMON_RULES, SOURCE_SPECS, WINDOW_KEYS, source_errors
@@ -390,34 +388,6 @@ def test_message_decoders_take_rosbags_and_rclpy_messages():
     np.testing.assert_array_equal(
         m.pose_msg_matrix(SimpleNamespace(position=vec, orientation=quat)), t
     )
-
-
-# ---------------------------------------------------------------------------- old names
-def test_old_import_paths_warn_and_give_the_new_objects():
-    import resireg.sources
-    import resireg_train.data.rgbd as rgbd
-    import resireg_train.data.rosbag as rosbag
-    import resireg_train.data.tum as tum
-    from resireg.sources import frames, messages, pairing
-    from resireg.sources import rosbag as new_rosbag
-    from resireg.sources import tum as new_tum
-    from resireg.specs import exports
-
-    for module, name, new in ((rgbd, "RGBDFrame", frames), (rgbd, "windows", frames),
-                              (rgbd, "PoseTrack", pairing), (rgbd, "pair_nearest", pairing),
-                              (rosbag, "BagSource", new_rosbag), (rosbag, "decode_depth", messages),
-                              (tum, "TumSource", new_tum),
-                              (resireg.sources, "is_repo_id", exports),
-                              (resireg.sources, "export_source_problem", exports)):  # fmt: skip
-        with pytest.warns(DeprecationWarning, match=f"{name} moved to {new.__name__}.{name}"):
-            assert getattr(module, name) is getattr(new, name)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert (
-            resireg.sources.RGBDFrame is RGBDFrame and resireg.sources.SkippedFrame is SkippedFrame
-        )
-    with pytest.raises(AttributeError):
-        rgbd.nothing  # noqa: B018
 
 
 def test_the_robot_side_imports_no_training_stack():

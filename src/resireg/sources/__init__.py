@@ -15,17 +15,12 @@ The kinds of source, their settings and their rules are the table
 messages name its own arguments (``path='run.bag': no such bag``); ``resireg-map`` adds the
 config path (``source.path=...``).
 
-The names below load on first use (PEP 562). ``export_source_problem`` and ``is_repo_id`` (where
-a *model* comes from, what this module held before) moved to :mod:`resireg.specs.exports`; they
-are re-exported here with a ``DeprecationWarning`` for one release.
+The names below load on first use (PEP 562).
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 from resireg import lazy_names
-from resireg.deprecation import moved
 
 __all__ = [
     "BagSource",
@@ -54,16 +49,6 @@ _NAMES = {
     "ScanNetSource": "resireg.sources.scannet",
     "NerfstudioSource": "resireg.sources.nerfstudio",
 }
-#: moved away (the model-source rule): old name -> its module now
-_MOVED = {
-    "export_source_problem": "resireg.specs.exports",
-    "is_repo_id": "resireg.specs.exports",
-}
 
 
-_lazy = lazy_names("resireg.sources", _NAMES)
-_old = moved("resireg.sources", _MOVED)
-
-
-def __getattr__(name: str) -> Any:  # PEP 562
-    return _old(name) if name in _MOVED else _lazy(name)
+__getattr__ = lazy_names("resireg.sources", _NAMES)

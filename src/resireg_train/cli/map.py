@@ -218,7 +218,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     base, start = (done, 0) if getattr(source, "live", False) else (0, done)
     view = None
     if rrd is not None or cfg.rerun.spawn:
-        from resireg_train.evaluation.mapping.viewer import RerunView
+        from resireg.mapping.viewer import RerunView
 
         view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
     counts = FrameCounts()

@@ -55,14 +55,12 @@ from safetensors import safe_open
 from safetensors.torch import save
 from torch import Tensor
 
-from resireg.deprecation import moved
 from resireg.models import DenseOutput, factory
 from resireg_train.files import write_atomic
 
 __all__ = ["FeatureCache", "file_digest"]
 
 log = logging.getLogger(__name__)
-__getattr__ = moved(__name__, {"weights_fingerprint": "resireg.models.factory"})
 
 #: 2: listings carry the shard's size and digest (folders of format 1 are never read).
 _FORMAT = 2

@@ -51,7 +51,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from resireg.deprecation import moved
 from resireg.mapping import (
     LabelVoxelMap,
     SemanticMap,
@@ -498,13 +497,3 @@ class MappingEngine(EvalEngine):
                         at_gt = (shifted - 1) % (k + 1)  # fmt: skip
                 result.confusions[name][state["name"]] = metrics.confusion(at_gt, gt, k, ignore)
                 result.feature_voxels[name][state["name"]] = len(vmap)
-
-
-# The old names, for one release.
-__getattr__ = moved(
-    __name__,
-    {
-        "MappingTask": "resireg_train.evaluation.mapping.engine:MappingEngine",
-        "MappingProtocol": "resireg_train.evaluation.mapping.engine:MappingSettings",
-    },
-)

@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
-from resireg.deprecation import moved
 from resireg.method.variants import apply_variant
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
@@ -358,7 +357,3 @@ class OVSSEngine(EvalEngine):
                     pred = predict_grid(dense[i : i + 1], protos, self.temperature)
                     metrics[name].update_grid(pred[0], label_blocks)
         return None
-
-
-# The old names, for one release.
-__getattr__ = moved(__name__, {"OVSSTask": "resireg_train.evaluation.ovss.engine:OVSSEngine"})
