@@ -149,19 +149,19 @@ def test_two_resireg_map_runs_into_one_folder_one_is_refused(tmp_path, tiny_expo
 
 
 def test_results_and_log_files_follow_the_umask(tmp_path):
-    """write_atomic (results.json, metrics, reports) creates files as open() does: mode
+    """atomic_write (results.json, metrics, reports) creates files as open() does: mode
     0666 minus the umask, so a group that may read the folder reads the record."""
-    from resireg_train.files import write_atomic
+    from resireg.integrity import atomic_write
 
     old = os.umask(0o027)
     try:
-        path = write_atomic(tmp_path / "a.json", "{}")
+        path = atomic_write(tmp_path / "a.json", "{}")
     finally:
         os.umask(old)
     assert path.stat().st_mode & 0o777 == 0o640
     old = os.umask(0o002)
     try:
-        path = write_atomic(tmp_path / "a.json", "{}")  # replaced: the new file's mode
+        path = atomic_write(tmp_path / "a.json", "{}")  # replaced: the new file's mode
     finally:
         os.umask(old)
     assert path.stat().st_mode & 0o777 == 0o664

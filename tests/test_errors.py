@@ -63,6 +63,7 @@ def test_every_error_class_derives_from_the_base(modules):
 
 
 def test_each_error_has_its_kind_and_keeps_its_builtin_base():
+    from resireg.errors import WriteError
     from resireg.integrity import IntegrityError
     from resireg.mapping.semantic_map import MapFullError
     from resireg.method.checks import NonFiniteError
@@ -71,7 +72,6 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg_train.cli.job import RunFolderBusy
     from resireg_train.config.checks import ConfigError as TrainConfigError
     from resireg_train.evaluation.base import NothingScoredError
-    from resireg_train.files import WriteError
     from resireg_train.playground.core import PlaygroundError
     from resireg_train.sweeps.search import SearchError
     from resireg_train.training.checkpoints import CheckpointError, UnsafeCheckpointError

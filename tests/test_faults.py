@@ -177,8 +177,8 @@ def test_a_write_failing_midway_keeps_the_old_file_and_leaves_no_temporary(tmp_p
     target = tmp_path / "results.json"
     target.write_text('{"status": "running"}')
     code = (
-        "import sys; from resireg_train.files import write_atomic\n"
-        "try:\n    write_atomic(sys.argv[1], 'x' * 10_000, what='run record')\n"
+        "import sys; from resireg.integrity import atomic_write\n"
+        "try:\n    atomic_write(sys.argv[1], 'x' * 10_000, what='run record')\n"
         "except OSError as err:\n    print(type(err).__name__, err.errno, err)"
     )
     proc = subprocess.run(
@@ -209,10 +209,10 @@ def test_a_checkpoint_that_cannot_be_written_fails_in_one_line_and_leaves_nothin
     results = _results(out)
     assert (
         results["status"] == "failed"
-        and results["error"] == f"resireg_train.files.WriteError: {expected}"
+        and results["error"] == f"resireg.errors.WriteError: {expected}"
     )
     said = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert said[-2] == f"resireg_train.files.WriteError: {expected}"  # then Hydra's hint
+    assert said[-2] == f"resireg.errors.WriteError: {expected}"  # then Hydra's hint
     assert list((out / "checkpoints").iterdir()) == []  # no truncated file, no temporary
 
 
@@ -473,7 +473,7 @@ def test_a_final_status_reaches_the_record_or_stderr_says_it_could_not(tmp_path,
     results = _results(tmp_path)
     if how == "record":
         assert results["status"] == "failed"
-        assert results["error"] == (f"resireg_train.files.WriteError: could not write the run "
+        assert results["error"] == (f"resireg.errors.WriteError: could not write the run "
                                     f"record {tmp_path}/results.json: File too large")  # fmt: skip
     else:
         assert results["status"] == "running"

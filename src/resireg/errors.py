@@ -73,6 +73,11 @@ class MapError(ResiregError, RuntimeError):
     """A map that cannot take what it was given (full, or built by another model)."""
 
 
+class WriteError(ResiregError, OSError):
+    """A file could not be written (disk full, quota, permissions); one line naming it and what
+    it was (:func:`resireg.integrity.atomic_write`)."""
+
+
 # -- naming arguments -------------------------------------------------------------------------
 
 #: What a caller renames: argument names (each becomes ``<prefix>.<argument>``), or

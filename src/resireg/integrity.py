@@ -1,4 +1,5 @@
-"""Files that prove their content: atomic writes, SHA-256 digests recorded when a folder is
+"""Files that prove their content: atomic writes (the one writer of every file the project
+records: run records, checkpoints, caches, maps, exports), SHA-256 digests recorded when a folder is
 written and verified when it is read, and reads that name the damaged file.
 
 Saved maps (:meth:`resireg.mapping.SemanticMap.save`) and model exports
@@ -19,10 +20,11 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg.errors import IntegrityError
+from resireg.errors import IntegrityError, WriteError
 
 __all__ = [
     "IntegrityError",
+    "WriteError",
     "atomic_write",
     "digests",
     "file_mode",
@@ -101,25 +103,40 @@ def file_mode() -> int:
     return 0o666 & ~umask
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
-    """``write(tmp)`` into a temporary file beside ``path``, fsync, set the umask's mode (some
-    writers, safetensors among them, create files 0600), then ``os.replace``: readers see the
-    old file or the new one, and a failure (a full disk) removes the temporary file and
-    re-raises as an ``OSError`` naming ``path``."""
+def atomic_write(
+    path: str | os.PathLike,
+    data: str | bytes | memoryview | Callable[[Path], None],
+    what: str = "file",
+    mode: int | None = None,
+) -> Path:
+    """Write ``path`` so that a reader, or a crash, never sees it half-written: the content goes
+    to a temporary file beside it (same folder: ``os.replace`` is atomic only within one file
+    system), is flushed to disk, gets its mode and replaces ``path`` in one rename.
+
+    ``data``: text or bytes, or ``write(tmp)``, a function that writes the temporary file (a
+    library's own writer: safetensors, ONNX). ``mode``: the file's permission bits; default
+    the umask's (``0o666 & ~umask``, as ``open()`` gives; some writers, safetensors among them,
+    create files 0600). On any failure (a full disk, Ctrl-C) the temporary file is removed and
+    the old ``path``, if any, is left as it was; an ``OSError`` becomes a :class:`WriteError`
+    (an ``OSError`` too, same ``errno``) saying what (``what``) was being written where."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
-        write(tmp)
+        if callable(data):
+            data(tmp)
+        else:
+            with open(tmp, "wb") as f:
+                f.write(data.encode() if isinstance(data, str) else data)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
-        os.chmod(tmp, file_mode())
+        os.chmod(tmp, file_mode() if mode is None else mode)
         os.replace(tmp, path)
     except OSError as err:
-        if err.filename is None:
-            raise OSError(
-                err.errno, f"could not write {path}: {err.strerror or err}", str(path)
-            ) from err
-        raise
+        if isinstance(err, WriteError):
+            raise
+        failure = WriteError(f"could not write the {what} {path}: {err.strerror or err}")
+        failure.errno = err.errno
+        raise failure from err
     finally:
         tmp.unlink(missing_ok=True)
     return path

@@ -41,7 +41,16 @@ __all__ = [
     "encoder_modules",
     "weights_fingerprint",
     "load_resireg_vlm",
+    "resolve_device",
 ]
+
+
+def resolve_device(device: torch.device | str) -> torch.device:
+    """``device`` as a ``torch.device``; ``"auto"`` is CUDA where a GPU is visible, else the CPU
+    (the ``device`` key of conf/eval.yaml, conf/map.yaml, the node and the playground)."""
+    if isinstance(device, str) and device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
 
 
 def load_resireg_vlm(path: str, device: torch.device | str | None = None) -> ResiregVLM:

@@ -24,6 +24,7 @@ from PIL import Image
 from torch import Tensor
 
 from resireg.errors import ConfigError, arguments_under, parameters
+from resireg.models.factory import resolve_device
 from resireg.models.hub import WeightsUnavailableError, require_hf_files
 from resireg.specs.priors import PRIOR_KINDS, SAM_DEFAULTS, SAM_MODEL, SAM_RULES
 
@@ -206,9 +207,7 @@ class SamPrior:
         if not isinstance(model, (str, os.PathLike)) or not str(model):
             raise ConfigError(f"model={model!r}: expected a hub id or a local directory")
         self.model_name = str(model)
-        if isinstance(device, str) and device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         self._generator = self._load(self.model_name)
 
     def _check(self, settings: dict[str, Any]) -> None:

@@ -227,12 +227,11 @@ class ResiregMapNode(Node):
         import torch
 
         from resireg.models import build_encoder
+        from resireg.models.factory import resolve_device
 
         v = self.values
         entry = encoder_entry(v)
-        name = v["device"]
-        device = (torch.device("cuda" if torch.cuda.is_available() else "cpu")
-                  if name == "auto" else torch.device(name))  # fmt: skip
+        device = resolve_device(v["device"])
         torch.manual_seed(int(v["seed"]))
         try:
             return build_encoder(**entry, device=device)

@@ -41,6 +41,7 @@ from resireg.specs.mapping import LATTICES, POINTS
 from resireg.specs.rules import DEVICE, Rule, integer, is_int, is_num, number, one_of, optional_int
 from resireg.specs.sources import LIVE_RULES
 from resireg.specs.table import compose_conf, conf_dir
+from resireg.specs.tree import flatten
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
 
 __all__ = [
@@ -199,16 +200,6 @@ _NODE_RULES: dict[str, Rule] = {
 }
 
 
-def _flat(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, Mapping):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def _source_defaults(conf: Path) -> dict[str, tuple[Any, str]]:
     """The live source's keys and the file each default is in: ``conf/source/ros2.yaml``
     composed with its defaults, as ``resireg-map source=ros2`` has them."""
@@ -254,7 +245,7 @@ def parameters(conf: Path | None = None) -> dict[str, Parameter]:
     for key in RERUN_KEYS:
         out[f"rerun.{key}"] = Parameter(f"rerun.{key}", rerun.get(key), f"map.yaml:rerun.{key}",
                                         _RERUN_RULES[key])  # fmt: skip
-    for name, value in _flat(_yaml(conf / NODE_FILE)).items():
+    for name, value in flatten(_yaml(conf / NODE_FILE)).items():
         rule = _RERUN_RULES[name.split(".", 1)[1]] if name.startswith("rerun.") else None
         rule = _NODE_RULES.get(name, rule)
         if rule is None:

@@ -42,6 +42,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from resireg.specs.encoders import ENCODER_SPECS
+from resireg.specs.tree import flatten
 from resireg_train.cli.job import (
     CONFIG_DIR,
     added_keys,
@@ -65,30 +66,11 @@ from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, 
 from resireg_train.runs.record import update_results
 
 if TYPE_CHECKING:
-    import torch
+    pass
 
 __all__ = ["NothingScoredError", "evaluate", "main"]
 
 log = logging.getLogger(__name__)
-
-
-def _device(name: str) -> torch.device:
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def _leaves(tree: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    """``("full.n_prototypes", 12)``... of a nested dict (lists are values)."""
-    out = []
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out += _leaves(value, f"{prefix}{key}.")
-        else:
-            out.append((f"{prefix}{key}", value))
-    return out
 
 
 def _command_line_keys() -> list[str]:
@@ -121,7 +103,7 @@ def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
     given, defaults = _command_line_keys(), _defaults()
     merged, taken = cfg.copy(), []
     with open_dict(merged):
-        for key, value in _leaves(recorded):
+        for key, value in flatten(recorded).items():
             on_command_line = any(
                 key == g or key.startswith(f"{g}.") or g.startswith(f"{key}.") for g in given
             )
@@ -183,6 +165,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
 
     from resireg.method.variants import build_variants
     from resireg.models import build_encoder, count_parameters
+    from resireg.models.factory import resolve_device
     from resireg_train.evaluation.engine import StageTimer
 
     torch.manual_seed(cfg.seed)
@@ -192,7 +175,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     task.check(variants)  # the dataset's and the prior's sources, before the encoder loads
     entry = encoder_kwargs(params["encoder"])
     with config_path("encoder", encoder_arguments(entry)):
-        encoder = build_encoder(**entry, device=_device(cfg.device))
+        encoder = build_encoder(**entry, device=resolve_device(cfg.device))
     # a hub encoder's hub_ref: the code loaded ("owner/name:<ref>"; None for a local clone)
     hub = {"hub_ref": encoder.hub_ref} if hasattr(encoder, "hub_ref") else {}
     update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,

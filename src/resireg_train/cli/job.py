@@ -34,10 +34,9 @@ try:  # POSIX; where it is missing (Windows) run folders are not locked
 except ImportError:  # pragma: no cover
     fcntl = None
 
-from resireg.errors import ResiregError
+from resireg.errors import ResiregError, WriteError
 from resireg_train.config.checks import ConfigError
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
-from resireg_train.files import WriteError
 from resireg_train.runs.record import RESULTS_FILE, flat, read_results, update_results
 
 __all__ = [

@@ -35,6 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ResiregError, argument_names, rename_arguments
 from resireg.specs.sources import SOURCE_SPECS, source_errors
+from resireg.specs.tree import MISSING, differences
 from resireg_train.cli.job import hydra_entry_point, run_task
 from resireg_train.config.checks import (
     ConfigError,
@@ -90,14 +91,6 @@ def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
         raise ConfigError(str(err)) from err
 
 
-def _device(name: str):
-    import torch
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
 def _resolved(value: Any) -> Any:
     """A local path as its absolute, resolved form (a Hugging Face repo id or a name stays)."""
     if isinstance(value, str) and value and Path(value).expanduser().exists():
@@ -129,21 +122,13 @@ def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
     return out
 
 
-def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
-    if not isinstance(d, dict):
-        return {prefix: d}
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
-    return out
-
-
 def _differences(saved: Any, now: dict[str, Any]) -> list[str]:
     """``key: saved -> now`` for each leaf key that differs (a key one side lacks included)."""
-    a, b = _flat(saved if isinstance(saved, dict) else {}), _flat(now)
-    missing = "(not recorded)"
-    return [f"{k}: {a.get(k, missing)!r} in the map, {b.get(k, missing)!r} now"
-            for k in sorted(set(a) | set(b)) if a.get(k, missing) != b.get(k, missing)]  # fmt: skip
+    shown = {id(MISSING): "(not recorded)"}
+    return [
+        f"{key}: {shown.get(id(a), repr(a))} in the map, {shown.get(id(b), repr(b))} now"
+        for key, a, b in differences(saved if isinstance(saved, dict) else {}, now)
+    ]
 
 
 def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
@@ -153,6 +138,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg.mapping.semantic_map import ENCODER_OUTPUT
     from resireg.method.checks import NonFiniteError
     from resireg.models import build_encoder
+    from resireg.models.factory import resolve_device
     from resireg.sources.frames import FrameCounts, SkippedFrame, windows
 
     window = cfg.window
@@ -179,7 +165,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     torch.manual_seed(int(cfg.seed))
     entry = encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True))
     with config_path("encoder", encoder_arguments(entry)):
-        encoder = build_encoder(**entry, device=_device(str(cfg.device)))
+        encoder = build_encoder(**entry, device=resolve_device(str(cfg.device)))
     prior = None
     from resireg.specs.variants import takes_prior
 

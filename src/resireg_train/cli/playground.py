@@ -134,16 +134,13 @@ def main(argv: list[str] | None = None) -> None:
     except ImportError as err:
         parser.exit(2, f"resireg-playground: error: {err}; install the extra: "
                     'pip install -e ".[playground]"\n')  # fmt: skip
-    import torch
-
     from resireg.models import WeightsUnavailableError
+    from resireg.models.factory import resolve_device
     from resireg_train.config.checks import error_message
     from resireg_train.playground.app import build_app, launch
     from resireg_train.playground.core import Playground
 
-    device = args.device
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = str(resolve_device(args.device))
     try:
         prior = _prior(args.prior, args.prior_model, device)
         playground = Playground.from_config(

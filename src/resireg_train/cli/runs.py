@@ -93,8 +93,8 @@ def main(argv: list[str] | None = None) -> None:
     two.add_argument("--root", action="append", metavar="ROOT")
     args = parser.parse_args(argv)
 
+    from resireg.specs.tree import flatten
     from resireg_train.runs import index
-    from resireg_train.runs.record import flatten
 
     try:
         if args.command == "ls":
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
             if run.results.get("error"):
                 print(f"error: {run.results['error']}")
             print("overrides: " + (" ".join(run.overrides) or "none"))
-            flat = flatten(prov, "provenance.")
+            flat = flatten(prov, "provenance")
             for key in sorted(flat):
                 if not key.startswith("provenance.environment.packages."):
                     print(f"  {key} = {_cell(flat[key])}")

@@ -32,6 +32,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.specs.tree import differences
 from resireg_train.cli.job import (
     added_keys,
     error_text,
@@ -134,31 +135,12 @@ def resume_command(
     return " ".join(shlex.quote(str(w)) for w in words)
 
 
-def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
-    """``{"model.optimizer.lr": 0.003, ...}`` of a nested dict (lists are values)."""
-    if isinstance(node, dict) and node:
-        out: dict[str, Any] = {}
-        for key, value in node.items():
-            out.update(_leaves(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: node}
-
-
-_ABSENT = "<absent>"
-
-
 def _differences(run: dict[str, Any], this: dict[str, Any]) -> list[str]:
     """``key=<this value> (the run: <its value>)`` of every leaf that differs, the shallowest
     keys first (``trainer.max_epochs`` before a dataset's ``split``)."""
-    a, b = _leaves(run), _leaves(this)
-    keys = sorted(
-        (k for k in set(a) | set(b) if k.split(".")[0] not in _RESUME_FREE),
-        key=lambda k: (k.count("."), k),
-    )
     return [
-        f"{k}={b.get(k, _ABSENT)!r} (the run: {a.get(k, _ABSENT)!r})"
-        for k in keys
-        if a.get(k, _ABSENT) != b.get(k, _ABSENT)
+        f"{key}={now!r} (the run: {then!r})"
+        for key, then, now in differences(run, this, skip=_RESUME_FREE)
     ]
 
 

@@ -46,9 +46,9 @@ from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
 from resireg.models.images import pil_to_tensor
+from resireg.sources.frames import DECODE_ERRORS
 from resireg_train.data.specs import CAPTION_SOURCE_KEYS, require_keys
 from resireg_train.data.synthetic import SyntheticScenes
-from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "CaptionDataModule",

@@ -61,6 +61,7 @@ from PIL import Image
 from resireg.mapping import nearest_downsample, scale_intrinsics
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import NYU40_CLASSES
+from resireg.sources.frames import DECODE_ERRORS
 from resireg.sources.scannet import (
     FrameFileError,
     read_image,
@@ -79,7 +80,6 @@ from resireg_train.data.specs import (
     check_dataset_values,
     require_keys,
 )
-from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "CLASS_NAMES",

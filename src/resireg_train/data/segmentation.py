@@ -44,10 +44,10 @@ from PIL import Image, ImageDraw
 from resireg.models.hub import require_online
 from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
+from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
 from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
-from resireg_train.files import DECODE_ERRORS
 
 __all__ = [
     "SegmentationSet",

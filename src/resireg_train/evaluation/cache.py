@@ -55,8 +55,8 @@ from safetensors import safe_open
 from safetensors.torch import save
 from torch import Tensor
 
+from resireg.integrity import atomic_write
 from resireg.models import DenseOutput, factory
-from resireg_train.files import write_atomic
 
 __all__ = ["FeatureCache", "file_digest"]
 
@@ -107,7 +107,7 @@ class FeatureCache:
         self.folder.mkdir(parents=True, exist_ok=True)
         key_file = self.folder / "key.json"
         if not key_file.exists():
-            write_atomic(key_file, json.dumps(self.key, indent=2, default=str), "cache key")
+            atomic_write(key_file, json.dumps(self.key, indent=2, default=str), "cache key")
         self.describe = describe
         self.layers: tuple[int, ...] = tuple(self.key.get("layers") or ())
         self.shard_images = shard_images
@@ -264,11 +264,11 @@ class FeatureCache:
         stem = f"shard-{self._writer}-{self._shards_written:05d}"
         tensors = {f"{i}/{f}": t for i, fields in self._pending.items() for f, t in fields.items()}
         data = save(tensors)
-        write_atomic(self.folder / f"{stem}.safetensors", data, "feature cache shard")
+        atomic_write(self.folder / f"{stem}.safetensors", data, "feature cache shard")
         files = {str(i): self.describe(i) for i in self._pending}
         digest = hashlib.blake2b(data, digest_size=16).hexdigest()
         listing = {"images": files, "bytes": len(data), "blake2b": digest}
-        write_atomic(self.folder / f"{stem}.json", json.dumps(listing), "cache listing")
+        atomic_write(self.folder / f"{stem}.json", json.dumps(listing), "cache listing")
         self._expected[f"{stem}.safetensors"] = (len(data), digest)
         self.bytes_written += len(data)
         for index in self._pending:

@@ -26,9 +26,9 @@ from PIL import Image
 from resireg.errors import ConfigError
 from resireg.method.variants import build_variant
 from resireg.models import DenseEncoder, build_encoder
+from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.variants import VARIANT_SPECS
 from resireg_train.config.checks import config_path, encoder_arguments
-from resireg_train.files import DECODE_ERRORS
 from resireg_train.playground.config import (
     SLIDERS,
     encoder_spec,

@@ -23,8 +23,9 @@ from typing import Any
 
 import yaml
 
+from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import RESULTS_FILE, flatten, read_results
+from resireg_train.runs.record import RESULTS_FILE, read_results
 
 __all__ = [
     "COLUMNS",
@@ -143,8 +144,8 @@ class Run:
             return fields[key]()
         if key in self.metrics:
             return self.metrics[key]
-        if key.startswith("provenance."):
-            return flatten(self.provenance, "provenance.").get(key)
+        if key.startswith("provenance"):
+            return flatten(self.provenance, "provenance").get(key)
         if key in self.results and not isinstance(self.results[key], (dict, list)):
             return self.results[key]
         return self.config.get(key)
@@ -274,8 +275,8 @@ _VOLATILE = ("provenance.run_id", "provenance.time.", "provenance.machine.pid",
 def diff_runs(a: Run, b: Run) -> dict[str, list[tuple[str, Any, Any]]]:
     """``{"config", "provenance", "metrics"}``: each differing key with A's and B's value
     (provenance without what differs for every pair of runs: ids, times, PIDs)."""
-    prov = [row for row in _compare(flatten(a.provenance, "provenance."),
-                                    flatten(b.provenance, "provenance."))
+    prov = [row for row in _compare(flatten(a.provenance, "provenance"),
+                                    flatten(b.provenance, "provenance"))
             if not row[0].startswith(_VOLATILE)]  # fmt: skip
     return {
         "config": _compare(a.config, b.config),

@@ -130,9 +130,9 @@ def code_provenance(out: Path | None, package_dir: Path | None = None) -> dict[s
     if left_out:
         record["untracked_left_out"] = left_out
     if dirty and out is not None:
-        from resireg_train.files import write_atomic
+        from resireg.integrity import atomic_write
 
-        write_atomic(Path(out) / CODE_DIFF, tracked + added, what="uncommitted change")
+        atomic_write(Path(out) / CODE_DIFF, tracked + added, what="uncommitted change")
         record["diff"] = CODE_DIFF
     return {"version": version, "git": record}
 
@@ -429,8 +429,7 @@ def write_export_provenance(export: Path, out: Path, block: Mapping[str, Any]) -
     """``<export>/provenance.json``: the training run that wrote the export (its folder, its
     provenance block) and the SHA-256 of its last checkpoint, so an evaluation of the export
     can name the run, the code and the data that made it."""
-    from resireg.integrity import sha256_file
-    from resireg_train.files import write_atomic
+    from resireg.integrity import atomic_write, sha256_file
 
     last = Path(out) / "checkpoints" / "last.ckpt"
     record = {
@@ -442,5 +441,5 @@ def write_export_provenance(export: Path, out: Path, block: Mapping[str, Any]) -
         },  # fmt: skip
         "provenance": {k: v for k, v in block.items() if k != "time"},
     }
-    return write_atomic(export / EXPORT_PROVENANCE, json.dumps(record, indent=2),
+    return atomic_write(export / EXPORT_PROVENANCE, json.dumps(record, indent=2),
                         what="export provenance")  # fmt: skip

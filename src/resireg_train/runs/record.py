@@ -18,13 +18,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-from resireg_train.files import write_atomic
+from resireg.integrity import atomic_write
 
 __all__ = [
     "NON_FINITE",
     "RESULTS_FILE",
     "flat",
-    "flatten",
     "metric_mode",
     "read_results",
     "strict_json",
@@ -61,16 +60,6 @@ def flat(text: str) -> str:
     if len(lines) <= 1:
         return lines[0] if lines else ""
     return f"{lines[0]} {'; '.join(lines[1:])}"
-
-
-def flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    """A nested record as ``{"a.b.c": value}`` (dotted paths of its leaves, after ``prefix``)."""
-    if isinstance(node, dict):
-        out: dict[str, Any] = {}
-        for key, value in node.items():
-            out.update(flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: node}
 
 
 def _pointer(path: tuple[Any, ...]) -> str:
@@ -145,5 +134,5 @@ def update_results(directory: str | os.PathLike, **fields: Any) -> dict[str, Any
         written[NON_FINITE] = {"reason": _REASON, **found}
     directory.mkdir(parents=True, exist_ok=True)
     text = json.dumps(written, indent=2, allow_nan=False)
-    write_atomic(directory / RESULTS_FILE, text, what="run record")
+    atomic_write(directory / RESULTS_FILE, text, what="run record")
     return results

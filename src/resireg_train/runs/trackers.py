@@ -31,7 +31,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg_train.runs.record import RESULTS_FILE, flatten, read_results
+from resireg.specs.tree import flatten
+from resireg_train.runs.record import RESULTS_FILE, read_results
 
 __all__ = [
     "MLFLOW_ARTIFACT_MAX_BYTES",
@@ -134,7 +135,7 @@ def to_mlflow(settings: Mapping[str, Any], cfg: Any, out: Path) -> str:
         for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
             client.log_batch(run_id, params=params[i : i + 100])
     tags.update({mlflow_key(k)[:250]: str(v)[:5000]
-                 for k, v in flatten(record.get("provenance") or {}, "provenance.").items()})  # fmt: skip
+                 for k, v in flatten(record.get("provenance") or {}, "provenance").items()})  # fmt: skip
     tags["resireg.status"] = str(record.get("status"))
     metrics = [Metric(mlflow_key(k), v, 0, 0) for k, v in run_metrics(record).items()]
     tag_list = [RunTag(k, v) for k, v in tags.items()]

@@ -4,7 +4,7 @@
 checkpoint into the system temp folder and *moves* it to the run folder; across file
 systems a move is a copy, so a full disk leaves a truncated ``epochNNN.ckpt`` (and a temp
 file) behind. Here the checkpoint is written next to its final name and renamed
-(:func:`resireg_train.files.write_atomic`).
+(:func:`resireg.integrity.atomic_write`).
 
 :func:`resolve_checkpoint` turns ``ckpt_path`` into the checkpoint to resume and checks it
 can be read; an unreadable ``last.ckpt`` falls back to the newest readable checkpoint of
@@ -34,7 +34,7 @@ import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
 from resireg.errors import ResiregError
-from resireg_train.files import write_atomic
+from resireg.integrity import atomic_write
 
 __all__ = [
     "SAFE_GLOBALS",
@@ -101,7 +101,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         buffer = io.BytesIO()
         torch.save(checkpoint, buffer)
-        write_atomic(path, buffer.getbuffer(), what="checkpoint")
+        atomic_write(path, buffer.getbuffer(), what="checkpoint")
 
     def load_checkpoint(
         self, path: str | os.PathLike, map_location: Any = None, weights_only: bool | None = None

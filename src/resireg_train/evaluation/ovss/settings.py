@@ -9,8 +9,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from resireg.integrity import atomic_write
 from resireg.specs.variants import PARAM_VARIANTS
-from resireg_train.files import write_atomic
 
 __all__ = [
     "SETTINGS_FILE", "SETTING_KEYS", "VARIANT_PARAM_KEYS", "load_settings", "save_settings",
@@ -30,7 +30,7 @@ def save_settings(directory: str | os.PathLike, settings: Mapping[str, Any]) -> 
     unknown = set(settings) - set(SETTING_KEYS)
     if unknown:
         raise ValueError(f"unknown evaluation settings {sorted(unknown)}; known: {SETTING_KEYS}")
-    return write_atomic(
+    return atomic_write(
         Path(directory) / SETTINGS_FILE, json.dumps(dict(settings), indent=2), "settings"
     )
 
