@@ -111,7 +111,7 @@ def code_provenance(out: Path | None, package_dir: Path | None = None) -> dict[s
         import resireg
 
         version = resireg.__version__
-    package_dir = package_dir or Path(__file__).resolve().parent
+    package_dir = package_dir or Path(__file__).resolve().parents[1]  # resireg_train/
     root = _checkout_root(package_dir)
     if root is None:
         return {"version": version, "git": None}
