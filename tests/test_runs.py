@@ -70,7 +70,7 @@ def test_code_provenance_from_a_checkout_clean_dirty_and_outside_one(tmp_path):
     assert not (tmp_path / "run_clean" / "code.diff").exists()
 
     # Dirty: a tracked file changed and an untracked one added.
-    changed = repo / "src" / "resireg_train" / "runs.py"
+    changed = repo / "src" / "resireg_train" / "runs" / "index.py"
     changed.write_text(changed.read_text() + "\n# a local experiment\nX = 1\n")
     added = repo / "src" / "resireg_train" / "my_callback.py"
     added.write_text("VALUE = 42\n")
