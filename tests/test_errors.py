@@ -20,7 +20,7 @@ OUTSIDE_THE_BASE = {
     "resireg_train.data.scannet._FrameError": "private: one frame's failure, caught in the module",
     # not an error: optuna's signal that the pruner stopped the trial; code that catches
     # ResiregError (a bad input) must not swallow it
-    "resireg_train.training.pruning.TrialPrunedStop": "a control-flow signal, not an error",
+    "resireg_train.sweeps.pruning.TrialPrunedStop": "a control-flow signal, not an error",
     # the sources branch moves them under resireg.errors.DataError (its files)
 }
 
