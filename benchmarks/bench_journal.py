@@ -7,6 +7,8 @@ median of ``--repeats`` runs in this process:
 - Optuna's own open (``JournalStorage(JournalFileBackend(path))``: it replays every entry);
 - :func:`resireg_train.sweeps.journal.open_journal` on the intact file (the tail check first);
 - ``open_journal`` on the file with a torn last line (the repair under the lock, then the open);
+- the two steps ``open_journal`` adds, alone, 50 times as often: the tail check of an intact
+  file, and the repair of a torn one (lock, cut, fsync);
 
 and the check of a ``search.json`` (:func:`resireg_train.sweeps.workers.read_record`: the job's
 config composed with Hydra's compose API, every override checked), once per worker start:
@@ -62,6 +64,7 @@ def main() -> None:
     import optuna
     from optuna.storages.journal import JournalFileBackend
 
+    from resireg_train.sweeps import journal as checks
     from resireg_train.sweeps.journal import open_journal
     from resireg_train.sweeps.workers import read_record, write_record
 
@@ -78,6 +81,8 @@ def main() -> None:
         checked = timed(lambda: open_journal(path), args.repeats)
         repaired = timed(lambda: open_journal(path), args.repeats, before=tear)
         assert path.read_bytes() == whole
+        tail = timed(lambda: checks._needs_repair(path), 50 * args.repeats)
+        repair = timed(lambda: checks._repair(path), 50 * args.repeats, before=tear)
         write_record(Path(tmp), "eval", ["dataset=synthetic", "hparams_search=resireg_optuna",
                      "hparams_search.n_trials=40", "full.alpha=interval(1.0,20.0)"], None, "b")  # fmt: skip
         record = timed(lambda: read_record(tmp), args.repeats)
@@ -85,6 +90,8 @@ def main() -> None:
     print(f"Optuna's open:              {plain * 1e3:8.1f} ms")
     print(f"open_journal, intact:       {checked * 1e3:8.1f} ms  ({checked / plain:.3f}x)")
     print(f"open_journal, torn tail:    {repaired * 1e3:8.1f} ms  ({repaired / plain:.3f}x)")
+    print(f"the tail check alone:       {tail * 1e3:8.3f} ms")
+    print(f"the repair alone:           {repair * 1e3:8.3f} ms")
     print(f"search.json check:          {record * 1e3:8.1f} ms  (once per worker start)")
 
 
