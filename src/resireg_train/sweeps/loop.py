@@ -25,10 +25,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ResiregError
 from resireg_train.config.checks import ConfigError
-from resireg_train.config.secrets import mask_text
+from resireg_train.config.secrets import mask_url
 from resireg_train.sweeps.journal import JournalError
 from resireg_train.sweeps.space import check_metric, distributions, format_value
-from resireg_train.sweeps.storage import STORAGE_ENV, open_storage, quiet_optuna, storage_url
+from resireg_train.sweeps.storage import (
+    STORAGE_ENV,
+    open_storage,
+    quiet_optuna,
+    storage_override,
+    storage_url,
+)
 from resireg_train.sweeps.trials import (
     ATTR_HOST,
     ATTR_PID,
@@ -186,20 +192,16 @@ _WAIT: Any = object()
 def _split(arguments: list[str], params: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
     """The command line's task overrides as the fixed overrides of every trial and the search
     axes: a sweep override adds or replaces an axis, a fixed value takes its key out of the
-    search. The storage's password never reaches a trial's config (its jobs read the whole
-    URL from the environment)."""
+    search."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     fixed = []
     for override in OverridesParser.create().parse_overrides(arguments):
         if override.is_sweep_override():  # a search axis given on the command line
             params[override.key_or_group] = override.input_line.split("=", 1)[1]
-            continue
-        text = override.input_line
-        if override.key_or_group == "hparams_search.storage":
-            text = mask_text(text)
-        fixed.append(text)
-        params.pop(override.key_or_group, None)
+        else:
+            fixed.append(override.input_line)
+            params.pop(override.key_or_group, None)
     return fixed, params
 
 
@@ -223,8 +225,12 @@ def run_search(config: DictConfig, settings: DictConfig, arguments: list[str], r
         url = storage_url(settings.get("storage"))
     except ConfigError as err:
         raise ConfigError(f"refused before the first trial: {err}") from None
-    if url is not None and mask_text(url) != url:  # for this process's jobs and its workers
+    if url is not None and mask_url(url) != url:
+        # The password reaches this process's jobs and its workers through the environment,
+        # never a trial's config (Hydra writes it into the trial's folder)
         os.environ[STORAGE_ENV] = url
+        fixed = [o for o in fixed if not o.lstrip("+").startswith("hparams_search.storage=")]
+        fixed.append(storage_override(url))
     procs = []
     if os.environ.get(WORKER_ENV) != "1":
         hydra = OmegaConf.to_container(config.hydra.overrides.hydra)

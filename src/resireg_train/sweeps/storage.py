@@ -26,6 +26,7 @@ __all__ = [
     "open_storage",
     "quiet_optuna",
     "recorded_storage",
+    "storage_override",
     "storage_url",
 ]
 
@@ -53,6 +54,13 @@ def _is_journal(storage: str | None) -> bool:
 def recorded_storage(storage: str | None) -> str | None:
     """``hparams_search.storage`` as a search may write or print it: the password masked."""
     return None if _is_journal(storage) else mask_url(str(storage))
+
+
+def storage_override(storage: str) -> str:
+    """``hparams_search.storage=<the URL, masked>`` as a Hydra override (quoted: a URL's query
+    holds ``=`` and ``&``), for the jobs and workers of a search."""
+    masked = mask_url(str(storage)).replace("'", "\\'")
+    return f"hparams_search.storage='{masked}'"
 
 
 def storage_url(storage: str | None) -> str | None:

@@ -34,7 +34,7 @@ from typing import Any
 
 from resireg.errors import ResiregError
 from resireg_train.config.secrets import mask_text
-from resireg_train.sweeps.storage import STORAGE_ENV, recorded_storage
+from resireg_train.sweeps.storage import STORAGE_ENV, recorded_storage, storage_override
 
 __all__ = [
     "CLASS_TARGETS",
@@ -314,7 +314,7 @@ def worker_command(sweep_dir: Path, record: SearchRecord | None = None) -> list[
     the recorded job's entry point (:data:`JOBS`) with the recorded overrides, one worker, the
     sweep folder's own location and the recorded (masked) storage."""
     record = record or read_record(sweep_dir)
-    storage = [] if record.storage is None else [f"hparams_search.storage={record.storage}"]
+    storage = [] if record.storage is None else [storage_override(record.storage)]
     return [sys.executable, "-m", JOBS[record.job], *record.overrides, *storage,
             "hparams_search.workers=1", f"hydra.sweep.dir={Path(sweep_dir).resolve()}"]  # fmt: skip
 
