@@ -159,11 +159,13 @@ def test_each_kind_of_recorded_override_is_refused(tmp_path, capsys, entry, why)
         ({"overrides": "rm -rf /"}, "overrides must be a list of strings"),
         ({"study_name": None}, "study_name=None is not a name"),
         ({"format": "resireg.search/1"}, "format 'resireg.search/1' is not"),
+        ({"cwd": "/elsewhere"}, "unknown entry 'cwd'"),
     ],
 )
 def test_a_record_other_than_a_search_of_train_or_eval_is_refused(tmp_path, capsys, record, why):
-    """The job kind is checked against the fixed table (resireg-train, resireg-eval); any other
-    entry of the wrong kind is refused naming search.json and the entry."""
+    """The job kind is checked against the fixed table (resireg-train, resireg-eval); an entry
+    of the wrong kind, or one the format does not have (a working folder to run in), is
+    refused naming search.json and the entry."""
     from resireg_train.sweeps.search import worker_main
 
     sweep = tmp_path / "sweep"

@@ -169,6 +169,9 @@ def read_record(sweep_dir: str | Path) -> SearchRecord:
             "earlier release holds a command line, which a worker never runs); run the search's "
             "command once more: it resumes the study and writes a new record"
         )
+    unknown = sorted(set(record) - {"format", "job", "overrides", "storage", "study_name"})
+    if unknown:  # e.g. a working folder to run in: the worker runs where it is started
+        raise SearchRecordError(f"{path}: unknown entry {unknown[0]!r}: a worker takes none")
     job = record.get("job")
     if job not in JOBS:
         raise SearchRecordError(
