@@ -20,7 +20,7 @@ OUTSIDE_THE_BASE = {
     "resireg_train.data.scannet._FrameError": "private: one frame's failure, caught in the module",
     # not an error: optuna's signal that the pruner stopped the trial; code that catches
     # ResiregError (a bad input) must not swallow it
-    "resireg_train.training.pruning.TrialPrunedStop": "a control-flow signal, not an error",
+    "resireg_train.sweeps.pruning.TrialPrunedStop": "a control-flow signal, not an error",
     # the sources branch moves them under resireg.errors.DataError (its files)
 }
 
@@ -73,7 +73,9 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg_train.config.checks import ConfigError as TrainConfigError
     from resireg_train.evaluation.base import NothingScoredError
     from resireg_train.playground.core import PlaygroundError
-    from resireg_train.sweeps.search import SearchError
+    from resireg_train.sweeps.journal import JournalError
+    from resireg_train.sweeps.loop import SearchError
+    from resireg_train.sweeps.workers import SearchRecordError
     from resireg_train.training.checkpoints import CheckpointError, UnsafeCheckpointError
 
     assert TrainConfigError is ConfigError  # one class, re-exported where it always was
@@ -88,6 +90,8 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
         CheckpointError: (ResiregError, RuntimeError),
         UnsafeCheckpointError: (ResiregError, __import__("pickle").UnpicklingError),
         SearchError: (ResiregError, RuntimeError),
+        SearchRecordError: (ResiregError, ValueError),
+        JournalError: (DataError, ValueError),
         WriteError: (ResiregError, OSError),
         RunFolderBusy: (ResiregError, RuntimeError),
         NothingScoredError: (ResiregError, RuntimeError),

@@ -1,4 +1,4 @@
-"""Optuna searches (hparams_search=..., resireg_train.sweeps.search and the project's Hydra sweeper) on
+"""Optuna searches (hparams_search=..., resireg_train.sweeps and the project's Hydra sweeper) on
 the synthetic set: pruning of a bad training trial, workers sharing one study (journal file and
 PostgreSQL), a worker killed mid-trial, a whole search killed and run again, two searches started
 at once on one folder, a metric the validation data never logs, the report and optuna-dashboard.
@@ -44,13 +44,13 @@ def _eval_search(export, sweep, n_trials, *extra):
 
 
 def _study(sweep, name="resireg_optuna", storage=None):
-    from resireg_train.sweeps.search import load_study
+    from resireg_train.sweeps.storage import load_study
 
     return load_study(sweep, storage, name)
 
 
 def _counted(study):
-    from resireg_train.sweeps.search import counted_trials
+    from resireg_train.sweeps.trials import counted_trials
 
     return counted_trials(study.get_trials())
 
@@ -119,7 +119,7 @@ def test_shipped_search_spaces_are_exact_and_warn_nothing(name, caplog):
     divisible" warnings); building the spaces warns nothing."""
     from omegaconf import OmegaConf
 
-    from resireg_train.sweeps.search import distributions
+    from resireg_train.sweeps.space import distributions
 
     params = OmegaConf.load(CONF / "hparams_search" / f"{name}.yaml").hydra.sweeper.params
     params = OmegaConf.to_container(params)
@@ -357,7 +357,7 @@ def test_two_searches_started_at_once_on_one_folder_cooperate(tmp_path, tiny_exp
 def _made_study(sweep, n):
     """A journal study of ``n`` trials (values from a quadratic) made through Optuna's API in
     the sweep folder, with the search record the report reads."""
-    from resireg_train.sweeps.search import open_storage
+    from resireg_train.sweeps.storage import open_storage
 
     study = optuna.create_study(storage=open_storage(None, sweep), study_name="made",
                                 direction="maximize", sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
@@ -447,7 +447,7 @@ def test_a_job_scoring_nan_fails_its_trial(stored):
     from omegaconf import OmegaConf
 
     from resireg_train.cli.job import optimized_value
-    from resireg_train.sweeps.search import _outcome
+    from resireg_train.sweeps.trials import outcome
 
     cfg = OmegaConf.create({"optimized_metric": "miou_full"})
     with pytest.raises(ValueError, match=r"optimized_metric='miou_full' is .*not finite"):
@@ -455,12 +455,12 @@ def test_a_job_scoring_nan_fails_its_trial(stored):
     assert optimized_value(cfg, {"final": {"miou_full": 0.25}}) == 0.25
     assert optimized_value(cfg, {"best": {"miou_full": {"value": 0.5, "epoch": 2}}}) == 0.5
     nan = JobReturn(status=JobStatus.COMPLETED, _return_value=float("nan"))
-    assert _outcome(nan, optuna) == (TrialState.FAIL, None)
+    assert outcome(nan) == (TrialState.FAIL, None)
     raised = JobReturn(status=JobStatus.FAILED, _return_value=ValueError("x"))
-    assert _outcome(raised, optuna) == (TrialState.FAIL, None)
+    assert outcome(raised) == (TrialState.FAIL, None)
     pruned = JobReturn(status=JobStatus.FAILED, _return_value=optuna.TrialPruned("p"))
-    assert _outcome(pruned, optuna) == (TrialState.PRUNED, None)
-    assert _outcome(JobReturn(status=JobStatus.COMPLETED, _return_value=0.5), optuna) == (
+    assert outcome(pruned) == (TrialState.PRUNED, None)
+    assert outcome(JobReturn(status=JobStatus.COMPLETED, _return_value=0.5)) == (
         TrialState.COMPLETE, 0.5)  # fmt: skip
     assert math.isfinite(0.5)
 
@@ -511,13 +511,13 @@ def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path)
     older than the grace period is FAIL, one with a recent heartbeat is not; one of this host
     whose process has exited is FAIL at once; with retries, Optuna's RetryHeartbeatStaleTrialCallback
     enqueues the failed trial's parameters again."""
-    from resireg_train.sweeps.search import (
+    from resireg_train.sweeps.storage import open_storage
+    from resireg_train.sweeps.trials import (
         ATTR_HEARTBEAT,
         ATTR_HOST,
         ATTR_PID,
         counted_trials,
         fail_stale_trials,
-        open_storage,
     )  # fmt: skip
 
     study = optuna.create_study(storage=open_storage(None, tmp_path), study_name="s")

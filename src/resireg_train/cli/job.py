@@ -136,7 +136,7 @@ def register_resolvers() -> None:
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
     import resireg_train.config.checks  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
-    from resireg_train.sweeps.search import register_search_resolvers
+    from resireg_train.sweeps.space import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
 

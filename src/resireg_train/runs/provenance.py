@@ -44,6 +44,8 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from resireg_train.config.secrets import mask_text
+
 __all__ = [
     "CODE_DIFF",
     "EXPORT_PROVENANCE",
@@ -366,7 +368,8 @@ def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = N
         "code": code_provenance(out),
         "environment": {
             "python": platform.python_version(),
-            "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+            # every URL's password masked (a search's storage, a tracking URI)
+            "command": mask_text(shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])),
             "config_sha256": config_digest(cfg),
             "packages": package_versions(),
         },

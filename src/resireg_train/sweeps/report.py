@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
-from resireg_train.report.jobs import Job
 from resireg_train.runs.record import flat
-from resireg_train.sweeps.search import SEARCH_FILE, STUDY_FILE, load_study, search_record
+from resireg_train.sweeps.storage import STUDY_FILE, load_study
+from resireg_train.sweeps.workers import SEARCH_FILE, study_location
+
+if TYPE_CHECKING:  # the report package imports this module: no import back at run time
+    from resireg_train.report.jobs import Job
 
 __all__ = ["is_optuna_sweep", "optuna_study", "trials_table", "write_optuna_report"]
 
@@ -33,8 +36,8 @@ def is_optuna_sweep(sweep_dir: str | Path) -> bool:
 
 def optuna_study(sweep_dir: str | Path, jobs: list[Job] | None = None) -> Any:
     """The sweep's ``optuna.Study`` (in its journal, or the database its command named)."""
-    record = search_record(sweep_dir)
-    study = load_study(sweep_dir, record.get("storage"), record.get("study_name"))
+    storage, name = study_location(sweep_dir)
+    study = load_study(sweep_dir, storage, name)
     if study is None:
         raise ValueError(
             f"{sweep_dir} holds no Optuna study (or more than one and no {SEARCH_FILE})"

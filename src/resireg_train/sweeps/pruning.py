@@ -1,5 +1,5 @@
 """Pruning of an Optuna search's training trials (``hparams_search=stage1_optuna``;
-resireg_train.sweeps.search): the trial's optimised metric is reported to the study after every
+resireg_train.sweeps.loop): the trial's optimised metric is reported to the study after every
 validation (the ReSiRegEval callback's, at the end of a training epoch), and when the study's pruner says so the run stops at the end of that epoch (its
 metrics and checkpoint written as for any epoch) and ends with :class:`TrialPrunedStop`:
 the search records the trial PRUNED (its last epoch and value are the trial's last
@@ -14,7 +14,7 @@ import lightning as L
 import optuna
 
 from resireg_train.runs.tracking import epoch_metrics
-from resireg_train.sweeps.search import open_storage, quiet_optuna
+from resireg_train.sweeps.storage import open_storage, quiet_optuna
 
 __all__ = ["OptunaPruning", "TrialPrunedStop"]
 

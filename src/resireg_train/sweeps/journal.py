@@ -1,0 +1,156 @@
+"""The study's journal file (``<sweep>/optuna.journal``, Optuna's JournalFileBackend): opened
+so that a crash's damage is repaired or named, never built upon.
+
+Optuna appends one JSON line per operation under its link lock, in one write each. A process
+killed mid-write leaves a last line without its newline: Optuna's reader skips it, but the
+next append lands after it, merging both into a line that is not JSON, and every later open
+fails with a bare ``JSONDecodeError`` (or, while it is the last line, silently drops it).
+
+:func:`open_journal` therefore, under the journal's own lock (Optuna's
+``JournalFileSymlinkLock``, so that no writer appends meanwhile):
+
+- a torn last line is cut off (or, if it is a whole entry that lost only its newline, given
+  it back), with a warning naming the journal: every complete entry, so every finished trial,
+  is kept; a trial whose last entry was lost stays RUNNING and the search marks it failed
+  (its worker is gone) and runs a new one in its place;
+- a last complete line that is not a journal entry is refused, as Optuna would skip it;
+- then Optuna replays the file; a damaged line inside makes that fail, and the error names the
+  journal and the line (:class:`JournalError`).
+
+Checking costs a read of the file's tail on every open; the whole file is scanned only to
+name a damaged line (Optuna's reader reports neither the line nor a damaged last line).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+from resireg.errors import DataError
+
+__all__ = ["JournalError", "open_journal"]
+
+log = logging.getLogger(__name__)
+
+#: Bytes read at a time when looking for the last newline from the end.
+_CHUNK = 1 << 16
+
+
+class JournalError(DataError):
+    """A journal with a damaged line the search cannot replay; the message names the file and
+    the line."""
+
+
+def _entry(line: bytes) -> bool:
+    """Whether ``line`` is a journal entry: a JSON object with Optuna's ``op_code``."""
+    try:
+        value = json.loads(line)
+    except ValueError:  # JSONDecodeError, UnicodeDecodeError
+        return False
+    return isinstance(value, dict) and isinstance(value.get("op_code"), int)
+
+
+def _last_lines(f: Any, size: int) -> tuple[int, bytes, int, bytes]:
+    """(offset, bytes) of the text after the file's last newline (empty when it ends with
+    one), and of the last complete line before it; read backwards from the end."""
+    end, data = size, b""
+    while True:
+        start = max(0, end - _CHUNK)
+        f.seek(start)
+        data = f.read(end - start) + data
+        end = start
+        cut = data.rfind(b"\n")
+        before = data.rfind(b"\n", 0, cut) if cut >= 0 else -1
+        if before >= 0 or start == 0:
+            tail_at = start + cut + 1
+            line_at = start + before + 1
+            return tail_at, data[cut + 1 :], line_at, data[before + 1 : cut + 1]
+
+
+def _line_number(path: Path, offset: int) -> int:
+    """The 1-based number of the line that starts at byte ``offset``."""
+    with open(path, "rb") as f:
+        return f.read(offset).count(b"\n") + 1
+
+
+def _first_damaged_line(path: Path) -> int | None:
+    with open(path, "rb") as f:
+        for number, line in enumerate(f, start=1):
+            if not _entry(line):
+                return number
+    return None
+
+
+def _damaged(path: Path, number: int | None, why: str = "") -> JournalError:
+    where = f"line {number} is not an Optuna journal entry" if number is not None else why
+    return JournalError(
+        f"{path}: {where}: the study cannot be read past it; restore the file from a copy, or "
+        "remove that line and the trials it held"
+    )
+
+
+def _repair(path: Path) -> None:
+    """Under the journal's lock: cut a torn last line, refuse a damaged last complete one."""
+    from optuna.storages.journal import JournalFileSymlinkLock
+
+    lock = JournalFileSymlinkLock(str(path))
+    lock.acquire()
+    try:
+        size = path.stat().st_size
+        if size == 0:
+            return
+        with open(path, "rb+") as f:
+            tail_at, tail, line_at, line = _last_lines(f, size)
+            if tail:
+                if _entry(tail):  # a whole entry that lost only its newline
+                    f.seek(size)
+                    f.write(b"\n")
+                    kept = "completed with its newline"
+                else:
+                    f.truncate(tail_at)
+                    kept = f"removed ({len(tail)} bytes)"
+                f.flush()
+                os.fsync(f.fileno())
+                log.warning(
+                    "%s: its last line was cut mid-write (a process stopped while writing): "
+                    "%s; every complete entry is kept", path, kept,
+                )  # fmt: skip
+            if line and not _entry(line):
+                raise _damaged(path, _line_number(path, line_at))
+    finally:
+        lock.release()
+
+
+def _needs_repair(path: Path) -> bool:
+    """Cheap test outside the lock: the file does not end with a newline, or its last line is
+    not an entry."""
+    size = path.stat().st_size
+    if size == 0:
+        return False
+    with open(path, "rb") as f:
+        _, tail, _, line = _last_lines(f, size)
+    return bool(tail) or (bool(line) and not _entry(line))
+
+
+def open_journal(path: str | os.PathLike) -> Any:
+    """Optuna's ``JournalStorage`` over the journal file ``path`` (created if missing; its
+    default link lock, the one optuna-dashboard takes on the same file, atomic on NFS), after
+    the repairs and checks of the module docstring. Raises :class:`JournalError`."""
+    import optuna
+    from optuna.storages.journal import JournalFileBackend
+
+    path = Path(path)
+    if path.is_file() and _needs_repair(path):
+        try:
+            _repair(path)
+        except PermissionError as err:  # a folder the reader may not write: read what is whole
+            log.warning("%s: its last line is damaged and cannot be repaired here: %s", path, err)
+    backend = JournalFileBackend(str(path))
+    try:
+        return optuna.storages.JournalStorage(backend)
+    except (ValueError, KeyError, TypeError, AssertionError) as err:  # Optuna's replay
+        why = f"Optuna cannot replay it ({type(err).__name__}: {err})"
+        raise _damaged(path, _first_damaged_line(path), why) from None
