@@ -343,6 +343,16 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
     assert len(said) == 1 and f"TrackerUnreachable: logger.wandb: cannot reach http://127.0.0.1:"\
         f"{port} (" in said[0], proc.stderr[-2000:]  # fmt: skip
     assert json.loads((tmp_path / "wandb_run" / "results.json").read_text())["status"] == "failed"
+    # W&B offline beside the unreachable MLflow (left out): W&B's config, its record of the
+    # command line and its console capture keep no password either
+    env = {**env, "WANDB_MODE": "offline", "WANDB_SILENT": "true"}
+    out = tmp_path / "offline"
+    run("resireg-eval", *evaluation, "logger=[wandb,mlflow]", f"logger.mlflow.tracking_uri={uri}",
+        "logger.mlflow.unreachable=warn", "logger.mlflow.check_timeout=2", f"hydra.run.dir={out}",
+        timeout=300, env=env, threads=1)  # fmt: skip
+    assert list(out.glob("wandb/offline-run-*/run-*.wandb"))
+    for path in _files(out):
+        assert SECRETS["password"].encode() not in path.read_bytes(), path
 
 
 # ---------------------------------------------------------------------- the run's record

@@ -32,6 +32,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 from urllib.parse import unquote, urlsplit, urlunsplit
@@ -258,7 +259,12 @@ class WandbTracker(Tracker):
 
     def begin(self) -> None:
         logger = self.lightning_logger(None)
-        experiment = logger.experiment  # rank 0: the wandb run (created here)
+        # W&B records the command line (its run metadata's "args"): give it masked URLs
+        argv, sys.argv = sys.argv, [mask_text(a) for a in sys.argv]
+        try:
+            experiment = logger.experiment  # rank 0: the wandb run (created here)
+        finally:
+            sys.argv = argv
         if hasattr(experiment, "config"):
             experiment.config.update(resolved_config(self.cfg), allow_val_change=True)
 
