@@ -206,6 +206,12 @@ class RunRecord:
     def __repr__(self) -> str:
         return f"RunRecord({str(self.folder)!r})"
 
+    def __getstate__(self) -> dict[str, Any]:
+        """A copy sent to another process (a spawned DDP rank: the per-epoch callback holds the
+        record) only adds fields; the run's start, end and trackers stay with the job's own
+        process."""
+        return {"folder": self.folder, "writer": self.writer, "_report": None, "trackers": None}
+
     # -- reading ----------------------------------------------------------------------------
     @property
     def path(self) -> Path:
