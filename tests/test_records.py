@@ -595,6 +595,7 @@ def test_two_card_adds_at_once_both_land(tmp_path, tiny_export):
 def test_a_password_is_masked_where_urllib_cannot_take_the_url_apart():
     """Hydra's override_dirname joins overrides with ',' (urllib then sees one URL up to the
     next space, '[' in its host part): every password in it is masked all the same."""
+    from resireg_train.cli.job import safe_dirname
     from resireg_train.config.secrets import mask_text
 
     dirname = ("logger.mlflow.tracking_uri=http://user:pw1@127.0.0.1:5000,provenance."
@@ -602,4 +603,9 @@ def test_a_password_is_masked_where_urllib_cannot_take_the_url_apart():
     assert mask_text(dirname) == (
         "logger.mlflow.tracking_uri=http://user:***@127.0.0.1:5000,provenance."
         "untracked_content=[*],storage=postgresql+psycopg://u:***@db/x"
+    )
+    # a sweep job's folder is named after its overrides: no password in a path either
+    assert safe_dirname(dirname) == (
+        "logger.mlflow.tracking_uri=http:__user:masked@127.0.0.1:5000,provenance."
+        "untracked_content=[*],storage=postgresql+psycopg:__u:masked@db_x"
     )

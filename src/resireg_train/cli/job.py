@@ -39,7 +39,7 @@ except ImportError:  # pragma: no cover
 from resireg.errors import ResiregError, WriteError
 from resireg_train.config.checks import ConfigError
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
-from resireg_train.config.secrets import SecretFilter, mask_text
+from resireg_train.config.secrets import MASK, SecretFilter, mask_text
 from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
 
 __all__ = [
@@ -66,10 +66,12 @@ log = logging.getLogger(__name__)
 
 
 def safe_dirname(text: str, max_length: int = 200) -> str:
-    """``text`` as one folder name: ``/`` becomes ``_``, and a name longer than ``max_length``
-    is cut and given a hash so it stays unique (Hydra's ``override_dirname`` keeps the ``/``
-    of paths given as values, which would nest folders)."""
-    name = str(text).replace("/", "_").replace(os.sep, "_")
+    """``text`` as one folder name: ``/`` becomes ``_``, a URL's password becomes ``masked``
+    (a sweep job's folder is named after its overrides, a tracking URI's among them), and a
+    name longer than ``max_length`` is cut and given a hash so it stays unique (Hydra's
+    ``override_dirname`` keeps the ``/`` of paths given as values, which would nest folders)."""
+    name = mask_text(str(text)).replace(MASK, "masked")
+    name = name.replace("/", "_").replace(os.sep, "_")
     if len(name) > max_length:
         digest = hashlib.sha1(name.encode()).hexdigest()[:8]
         name = f"{name[: max_length - 9]}-{digest}"
