@@ -323,14 +323,26 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
             record["status"] == "failed" and "TrackerUnreachable: logger.mlflow" in record["error"]
         )
         assert not (out / "checkpoints").exists()  # refused before any work
-    out = tmp_path / "warn"
-    proc = run("resireg-eval", *evaluation, "logger=mlflow", f"logger.mlflow.tracking_uri={uri}",
-               "logger.mlflow.unreachable=warn", "logger.mlflow.check_timeout=2",
-               f"hydra.run.dir={out}", timeout=120, threads=1)  # fmt: skip
-    record = json.loads((out / "results.json").read_text())
-    assert record["status"] == "completed" and record["final"]
-    assert list(record["tracking"]["unreachable"]) == ["mlflow"]
-    assert "logger.mlflow: cannot reach" in proc.stdout + proc.stderr
+    # unreachable=warn, in a two-job multirun (its job folders are named after the overrides,
+    # escaped by Hydra's sweeper): both complete, and no password in a file, a folder name or
+    # the console
+    sweep = tmp_path / "warn"
+    proc = run("resireg-eval", "-m", *evaluation, "full.alpha=5,10", "logger=mlflow",
+               f"logger.mlflow.tracking_uri={uri}", "logger.mlflow.unreachable=warn",
+               "logger.mlflow.check_timeout=2", f"hydra.sweep.dir={sweep}", timeout=300,
+               threads=1)  # fmt: skip
+    jobs = sorted(p.parent for p in sweep.glob("*/results.json"))
+    assert len(jobs) == 2
+    for job in jobs:
+        record = json.loads((job / "results.json").read_text())
+        assert record["status"] == "completed" and record["final"]
+        assert list(record["tracking"]["unreachable"]) == ["mlflow"]
+        assert r"user\:masked@127.0.0.1" in job.name  # (Hydra escapes the ':')
+    assert (proc.stdout + proc.stderr).count("logger.mlflow: cannot reach") == 2
+    assert SECRETS["password"] not in proc.stdout + proc.stderr
+    for path in [*sweep.rglob("*"), *_files(sweep)]:
+        assert SECRETS["password"] not in str(path)
+        assert not path.is_file() or SECRETS["password"].encode() not in path.read_bytes(), path
     # W&B online, its server on the closed port: the same refusal
     env = {**os.environ, "WANDB_BASE_URL": f"http://127.0.0.1:{port}", "WANDB_MODE": "online",
            "WANDB_CONFIG_DIR": str(tmp_path / "wandb"), "WANDB_API_KEY": "x" * 40}  # fmt: skip
@@ -608,4 +620,10 @@ def test_a_password_is_masked_where_urllib_cannot_take_the_url_apart():
     assert safe_dirname(dirname) == (
         "logger.mlflow.tracking_uri=http:__user:masked@127.0.0.1:5000,provenance."
         "untracked_content=[*],storage=postgresql+psycopg:__u:masked@db_x"
+    )
+    # a multirun job's overrides escape ':' (Hydra's sweeper): masked as well
+    escaped = r"logger.mlflow.tracking_uri=http\://user\:pw3@127.0.0.1\:5000"
+    assert mask_text(escaped) == r"logger.mlflow.tracking_uri=http\://user\:***@127.0.0.1\:5000"
+    assert (
+        safe_dirname(escaped) == r"logger.mlflow.tracking_uri=http\:__user\:masked@127.0.0.1\:5000"
     )

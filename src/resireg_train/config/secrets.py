@@ -41,8 +41,9 @@ _SECRET_PARAMS = frozenset({
 _URL = re.compile(r"\b[a-zA-Z][a-zA-Z0-9+.\-]*://[^\s'\"<>]+")
 #: A URL's ``user:password@`` wherever it stands: masked before urllib sees the text, so a
 #: match urllib cannot take apart (Hydra's ``override_dirname`` joins overrides with ``,``, a
-#: ``[`` makes urllib refuse the host) or that holds two URLs keeps no password either.
-_USERINFO = re.compile(r"(\b[a-zA-Z][a-zA-Z0-9+.\-]*://[^:/@\s'\"<>]*):[^@/\s'\"<>]*@")
+#: ``[`` makes urllib refuse the host) or that holds two URLs keeps no password either; a
+#: multirun's overrides escape ``:`` (``http\://user\:pass@host``), so a ``\`` may precede it.
+_USERINFO = re.compile(r"(\b[a-zA-Z][a-zA-Z0-9+.\-]*\\?://[^:/@\s'\"<>\\]*\\?):[^@/\s'\"<>]*@")
 
 #: File names whose content is never inlined into a record (``code.diff``, a tracker's
 #: artifacts), matched against every part of a path, case-insensitively.
