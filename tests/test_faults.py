@@ -449,11 +449,10 @@ _RUN_TASK = (
     "import sys\n"
     "from omegaconf import OmegaConf\n"
     "from resireg_train.cli.job import run_task\n"
-    "from resireg_train.runs.record import update_results\n"
-    "def body(cfg, out):\n"
+    "def body(cfg, record):\n"
     "    if sys.argv[2] == 'crash':\n"
     "        raise RuntimeError('x' * 8000)  # a failure too long to record under the limit\n"
-    "    return update_results(out, status='completed', final={'m': 0.5}, pad='x' * 8000)\n"
+    "    return record.update(status='completed', final={'m': 0.5}, pad='x' * 8000)\n"
     "run_task(OmegaConf.create({'name': 'n', 'paths': {'output_dir': sys.argv[1]}}), body)\n"
 )
 

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from resireg_train.runs.record import NON_FINITE, read_results, update_results
+from resireg_train.runs.record import NON_FINITE, RunRecord
 
 
 def _strict_load(text):
@@ -33,7 +33,7 @@ def test_non_finite_values_become_null_with_the_reason_and_read_back_as_numbers(
         "per_class_iou": {"bb": {"wall": 0.5, "a~b": nan}},
         "history": [{"epoch": 0, "train/loss": inf}, {"epoch": 1, "train/loss": -inf}],
     }
-    update_results(tmp_path, status="failed", **record)
+    RunRecord(tmp_path).update(status="failed", **record)
     text = (tmp_path / "results.json").read_text()
     written = _strict_load(text)  # no bare NaN / Infinity anywhere
     assert written["final"] == {"val/ovss/ade20k/miou_bb": None, "val/ovss/ade20k/fmiou_bb": 0.25}
@@ -46,23 +46,23 @@ def test_non_finite_values_become_null_with_the_reason_and_read_back_as_numbers(
     for kind in ("NaN", "Infinity", "-Infinity"):
         assert all(_resolve(written, p) is None for p in listed[kind])
 
-    back = read_results(tmp_path)
+    back = RunRecord.read(tmp_path)
     assert NON_FINITE not in back and back["status"] == "failed"
     assert math.isnan(back["final"]["val/ovss/ade20k/miou_bb"])
     assert math.isnan(back["per_class_iou"]["bb"]["a~b"])
     assert [h["train/loss"] for h in back["history"]] == [inf, -inf]
 
     # A later merge that fixes a value drops it from the list; the others stay listed.
-    update_results(tmp_path, final={"val/ovss/ade20k/miou_bb": 0.1})
+    RunRecord(tmp_path).update(final={"val/ovss/ade20k/miou_bb": 0.1})
     again = _strict_load((tmp_path / "results.json").read_text())
     assert again[NON_FINITE]["NaN"] == ["/per_class_iou/bb/a~0b"]
-    update_results(tmp_path, per_class_iou={}, history=[])
+    RunRecord(tmp_path).update(per_class_iou={}, history=[])
     assert NON_FINITE not in _strict_load((tmp_path / "results.json").read_text())
 
 
 def test_a_record_of_finite_values_is_written_unchanged(tmp_path):
     fields = {"status": "completed", "final": {"m": 0.5}, "images": 3, "error": None}
-    assert update_results(tmp_path, **fields) == {**fields}
+    assert RunRecord(tmp_path).update(**fields) == {**fields}
     assert _strict_load((tmp_path / "results.json").read_text()) == fields
     with pytest.raises(TypeError):  # what JSON cannot hold at all is still an error
-        update_results(tmp_path, final={"m": object()})
+        RunRecord(tmp_path).update(final={"m": object()})

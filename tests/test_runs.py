@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import hashlib
 import importlib.metadata as md
 import io
 import json
@@ -29,7 +30,9 @@ _PROBE = textwrap.dedent(
     import json, sys
     from pathlib import Path
     import resireg_train.runs.provenance as p
-    print(json.dumps({"file": p.__file__, "code": p.code_provenance(Path(sys.argv[1]))}))
+    settings = {**p.provenance_settings(), **json.loads(sys.argv[2])}
+    print(json.dumps({"file": p.__file__,
+                      "code": p.code_provenance(Path(sys.argv[1]), settings=settings)}))
     """
 )
 
@@ -49,11 +52,17 @@ def _project_copy(dest: Path, git: bool) -> Path:
     return dest
 
 
-def _probe(repo: Path, out: Path) -> dict:
+def _probe(repo: Path, out: Path, **settings) -> dict:
+    """``code_provenance`` run from the copy ``repo`` into ``out``; ``settings``: keys of the
+    ``provenance`` block (conf/provenance/default.yaml) to override."""
     out.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONPATH": str(repo / "src")}
-    proc = subprocess.run([sys.executable, "-c", _PROBE, str(out)], env=env, check=True,
-                          capture_output=True, text=True)  # fmt: skip
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(repo / "src"),
+        "RESIREG_CONFIG_DIR": str(SRC.parent / "conf"),
+    }
+    proc = subprocess.run([sys.executable, "-c", _PROBE, str(out), json.dumps(settings)],
+                          env=env, check=True, capture_output=True, text=True)  # fmt: skip
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert Path(result["file"]).resolve().is_relative_to(repo.resolve())  # the copy ran
     return result["code"]
@@ -74,9 +83,13 @@ def test_code_provenance_from_a_checkout_clean_dirty_and_outside_one(tmp_path):
     changed.write_text(changed.read_text() + "\n# a local experiment\nX = 1\n")
     added = repo / "src" / "resireg_train" / "my_callback.py"
     added.write_text("VALUE = 42\n")
-    dirty = _probe(repo, tmp_path / "run_dirty")
+    # untracked files' content only on the explicit opt-in (provenance.untracked_content)
+    dirty = _probe(repo, tmp_path / "run_dirty", untracked_content=["src/*.py"])
     assert dirty["git"]["dirty"] is True and dirty["git"]["diff"] == "code.diff"
     assert dirty["git"]["commit"] == git["commit"]
+    assert dirty["git"]["untracked"] == [{
+        "path": "src/resireg_train/my_callback.py", "size": 11,
+        "sha256": hashlib.sha256(b"VALUE = 42\n").hexdigest()}]  # fmt: skip
     # The diff reproduces the change: a clean clone at the commit + git apply == the tree.
     clone = tmp_path / "clone"
     subprocess.run(["git", "clone", "-q", str(repo), str(clone)], check=True)

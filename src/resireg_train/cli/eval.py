@@ -63,7 +63,7 @@ from resireg_train.config.checks import (
 )
 from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
-from resireg_train.runs.record import update_results
+from resireg_train.runs.record import RunRecord
 
 if TYPE_CHECKING:
     pass
@@ -131,23 +131,11 @@ def evaluate(cfg: DictConfig) -> dict[str, Any]:
     A failure (bad value, missing model or dataset, too many prototypes for a batch) is
     recorded in ``results.json`` as ``"status": "failed"`` with its error, then re-raised.
     """
-    return run_task(cfg, _evaluate_logged, fresh=True)
+    return run_task(cfg, _evaluate, fresh=True)
 
 
-def _evaluate_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
-    """:func:`_evaluate` inside the job's W&B run with ``logger=wandb`` (one run per job,
-    given the config and, at the end, ``results.json``'s summary, then finished:
-    :func:`resireg_train.runs.tracking.wandb_runs`); Lightning loads only then. MLflow,
-    TensorBoard and CSV record the run when it ends (:mod:`resireg_train.runs.trackers`)."""
-    if not (cfg.get("logger") or {}).get("wandb"):
-        return _evaluate(cfg, out)  # (tracking imports Lightning: only for a W&B run)
-    from resireg_train.runs.tracking import wandb_loggers, wandb_runs
-
-    with wandb_runs(wandb_loggers(cfg), cfg, out):
-        return _evaluate(cfg, out)
-
-
-def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
+def _evaluate(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
+    out = record.folder
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
     if cfg.get("name") in ENCODER_SWEEPS and (errors := sweep_config_errors(CONFIG_DIR)):
@@ -159,7 +147,7 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
     params["task"] = str(cfg.get("task", "ovss"))
     params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
     spec = require_task(params["task"])  # the task's protocol (resireg_train.evaluation.tasks)
-    update_results(out, params=params, settings_from_export=from_export)
+    record.update(params=params, settings_from_export=from_export)
     # The models, datasets and torch load only now, after the config check.
     import torch
 
@@ -178,13 +166,13 @@ def _evaluate(cfg: DictConfig, out: Path) -> dict[str, Any]:
         encoder = build_encoder(**entry, device=resolve_device(cfg.device))
     # a hub encoder's hub_ref: the code loaded ("owner/name:<ref>"; None for a local clone)
     hub = {"hub_ref": encoder.hub_ref} if hasattr(encoder, "hub_ref") else {}
-    update_results(out, encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,
-                                 "third_party": bool(cfg.encoder.third_party),
-                                 "parameters": count_parameters(encoder), **hub})  # fmt: skip
-    update_results(out, **task.build(encoder, variants))
+    record.update(encoder={"name": cfg.encoder.name, "kind": cfg.encoder.kind,
+                           "third_party": bool(cfg.encoder.third_party),
+                           "parameters": count_parameters(encoder), **hub})  # fmt: skip
+    record.update(**task.build(encoder, variants))
     timer = StageTimer()
     result = task.run(encoder, variants, timer)
-    return write_results(out, task, result, variants, timer)
+    return write_results(record, task, result, variants, timer)
 
 
 main = hydra_entry_point("eval", evaluate)

@@ -1,6 +1,7 @@
 """What the Hydra mains share: where the configs live, the run-folder name resolver, and
-the task wrapper that records a failure in ``results.json`` and in the run's log file, and
-returns the value a sweeper optimises.
+the task wrapper that gives every job its run record
+(:class:`~resireg_train.runs.record.RunRecord`: status, provenance, trackers, final status),
+records a failure in it and in the run's log file, and returns the value a sweeper optimises.
 
 How a failure is reported (docs/guide.md#run-records-and-faults): ``results.json`` gets the status and
 the one-line error, the run's log file (``train.log`` / ``eval.log``) the error with its
@@ -13,13 +14,14 @@ its sweep folder and the ``resireg-report`` command.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import math
 import os
 import sys
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +39,8 @@ except ImportError:  # pragma: no cover
 from resireg.errors import ResiregError, WriteError
 from resireg_train.config.checks import ConfigError
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
-from resireg_train.runs.record import RESULTS_FILE, flat, read_results, update_results
+from resireg_train.config.secrets import MASK, SecretFilter, mask_text
+from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
 
 __all__ = [
     "CONFIG_DIR",
@@ -63,10 +66,12 @@ log = logging.getLogger(__name__)
 
 
 def safe_dirname(text: str, max_length: int = 200) -> str:
-    """``text`` as one folder name: ``/`` becomes ``_``, and a name longer than ``max_length``
-    is cut and given a hash so it stays unique (Hydra's ``override_dirname`` keeps the ``/``
-    of paths given as values, which would nest folders)."""
-    name = str(text).replace("/", "_").replace(os.sep, "_")
+    """``text`` as one folder name: ``/`` becomes ``_``, a URL's password becomes ``masked``
+    (a sweep job's folder is named after its overrides, a tracking URI's among them), and a
+    name longer than ``max_length`` is cut and given a hash so it stays unique (Hydra's
+    ``override_dirname`` keeps the ``/`` of paths given as values, which would nest folders)."""
+    name = mask_text(str(text)).replace(MASK, "masked")
+    name = name.replace("/", "_").replace(os.sep, "_")
     if len(name) > max_length:
         digest = hashlib.sha1(name.encode()).hexdigest()[:8]
         name = f"{name[: max_length - 9]}-{digest}"
@@ -227,24 +232,24 @@ class RunFolderLock(Callback):
 
 def run_task(
     cfg: DictConfig,
-    body: Callable[[DictConfig, Path], dict[str, Any]],
+    body: Callable[[DictConfig, RunRecord], dict[str, Any]],
     rank_zero: bool = True,
     resume_hint: str | None = None,
     fresh: bool = False,
 ) -> dict[str, Any]:
-    """Run ``body(cfg, output_dir)`` with ``results.json`` kept up to date.
+    """Run ``body(cfg, record)`` with the run's record (a
+    :class:`~resireg_train.runs.record.RunRecord` of ``paths.output_dir``), which the body
+    adds its fields to; returns the final record (on ranks other than 0: the body's result).
 
-    With ``fresh`` (a job that never resumes: ``resireg-eval``) the record starts empty: a
-    ``results.json`` already in the folder (an earlier run given the same ``hydra.run.dir`` or
-    ``hydra.sweep.dir``) is kept as ``results.previous-<n>.json`` instead of having its fields
-    merged into this run's, where a field this run does not write would survive as if it were
-    this run's.
-
-    The run is marked ``running`` first. Ctrl-C (``KeyboardInterrupt``) is recorded as
-    ``"status": "interrupted"`` and the process exits with status 130 (what a shell reports
-    for Ctrl-C) after saying how to resume (``resume_hint``). Any other failure, from a bad
-    config value to a crash mid-epoch, is recorded as ``"status": "failed"`` with its error
-    before it is re-raised, so a sweep report lists the job with its reason. Only rank 0
+    The record starts the run (:meth:`RunRecord.start`: ``running``, provenance, trackers;
+    with ``fresh``, a job that never resumes such as ``resireg-eval``, an earlier record in the
+    folder is kept as ``results.previous-<n>.json`` instead of having its fields merged into
+    this run's) and finishes it (:meth:`RunRecord.finish`): ``completed`` whenever the body
+    returns. Ctrl-C (``KeyboardInterrupt``) is recorded as ``"status": "interrupted"`` and the
+    process exits with status 130 (what a shell reports for Ctrl-C) after saying how to
+    resume (``resume_hint``). Any other failure, from a bad config value or an unreachable
+    tracker to a crash mid-epoch, is recorded as ``"status": "failed"`` with its error before
+    it is re-raised, so a sweep report lists the job with its reason. Only rank 0
     (``rank_zero``) writes.
     """
     out = Path(cfg.paths.output_dir)
@@ -254,91 +259,49 @@ def run_task(
     # single run's, taken before Hydra wrote (RunFolderLock), lasts as long as the process.
     took = rank_zero and hold_run_folder(out)
     try:
-        return _run_locked(cfg, body, out, rank_zero, resume_hint, fresh)
+        record = RunRecord(out, writer=rank_zero, report=lambda m: _to_log_files(m, None))
+        return _run_recorded(cfg, body, record, resume_hint, fresh)
     finally:
         if took:
             release_run_folder(out)
 
 
-def _run_locked(
+def _run_recorded(
     cfg: DictConfig,
-    body: Callable[[DictConfig, Path], dict[str, Any]],
-    out: Path,
-    rank_zero: bool,
+    body: Callable[[DictConfig, RunRecord], dict[str, Any]],
+    record: RunRecord,
     resume_hint: str | None,
     fresh: bool,
 ) -> dict[str, Any]:
-    from resireg_train.runs.provenance import start_provenance
-
-    if rank_zero:
-        if fresh:
-            _set_aside(out)
-        previous = read_results(out).get("provenance")  # a resumed run keeps its run id
-        update_results(out, name=cfg.name, status="running", error=None, output_dir=str(out),
-                       provenance=start_provenance(cfg, out, previous))  # fmt: skip
     try:
-        result = body(cfg, out)
-        if rank_zero:
-            _record(out, provenance=_finished(out))
-            _track(cfg, out)
-        return result
+        record.start(cfg, fresh=fresh)
+        result = body(cfg, record)
     except KeyboardInterrupt:
         error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"
         if resume_hint:
             error += f"; {resume_hint}"
-        if rank_zero:
-            _record(out, status="interrupted", error=error, provenance=_finished(out))
-            _track(cfg, out)
-            log.warning("%s", error)
+        record.finish("interrupted", error)
+        if record.writer:
+            log.warning("%s", mask_text(error))
         raise SystemExit(130) from None
     except BaseException as exc:
-        if rank_zero:
+        if record.writer:
             error = error_text(exc)
             status = getattr(exc, "run_status", "failed")  # "pruned": an Optuna search's pruner
-            _record(out, status=status, error=error, provenance=_finished(out))
-            _track(cfg, out)
+            record.finish(status, error)
             _to_log_files(f"run {status}: {error}", exc)
         raise
-
-
-def _track(cfg: DictConfig, out: Path) -> None:
-    """The finished run to the trackers of ``logger`` (:mod:`resireg_train.runs.trackers`)."""
-    if cfg.get("logger"):
-        from resireg_train.runs.trackers import record_run
-
-        record_run(cfg, out, training="trainer" in cfg)
-
-
-def _finished(out: Path) -> dict[str, Any]:
-    """The run's provenance block completed with its end (the run failed or was stopped)."""
-    from resireg_train.runs.provenance import finish_provenance
-
-    try:
-        return finish_provenance(read_results(out).get("provenance") or {}, out)
-    except (OSError, ValueError):
-        return {}
-
-
-def _set_aside(out: Path) -> None:
-    """Rename an earlier run's ``results.json`` in ``out`` to the first free
-    ``results.previous-<n>.json`` (nothing is lost, nothing is merged)."""
-    record = out / RESULTS_FILE
-    if not record.is_file():
-        return
-    n = 1
-    while (kept := out / f"{record.stem}.previous-{n}{record.suffix}").exists():
-        n += 1
-    os.replace(record, kept)
-    log.warning("%s held an earlier run's record: kept as %s", out, kept.name)
+    return record.finish() if record.writer else result
 
 
 def error_text(exc: BaseException) -> str:
     """``module.Type: message`` of an exception and its notes, one per line (the config path
-    of a library error: ``config: encoder``; what ``results.json`` records)."""
+    of a library error: ``config: encoder``; what ``results.json`` records), every URL's
+    password masked."""
     text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
     if sys.version_info < (3, 11):  # from 3.11 on, traceback prints the notes itself
         text = "\n".join([text, *map(str, getattr(exc, "__notes__", None) or ())])
-    return text
+    return mask_text(text)
 
 
 def _to_log_files(message: str, exc: BaseException | None) -> None:
@@ -352,28 +315,6 @@ def _to_log_files(message: str, exc: BaseException | None) -> None:
     for handler in logging.getLogger().handlers:
         if isinstance(handler, logging.FileHandler):
             handler.handle(record)  # (a handler that cannot write reports it on stderr)
-
-
-def _record(out: Path, **fields: Any) -> None:
-    """Update ``results.json`` without hiding the error being recorded if this write fails
-    too (e.g. on the full disk that failed the run): then stderr (and the log file, if it
-    can be written) says which status could not be recorded and what the record still reads
-    (``running``), and the caller's exception or exit status makes the exit code non-zero."""
-    try:
-        update_results(out, **fields)
-    except OSError as err:
-        try:
-            stale = read_results(out).get("status")
-        except (OSError, ValueError):
-            stale = None
-        message = (
-            f"could not record status {fields.get('status')!r} in {out / RESULTS_FILE} ({err}); "
-            f"it still reads status {stale!r} although the run ended {fields.get('status')!r}: "
-            f"{flat(str(fields.get('error')))}"
-        )
-        sys.stderr.write(f"error: {message}\n")
-        sys.stderr.flush()
-        _to_log_files(message, None)
 
 
 def optimized_value(cfg: DictConfig, results: dict[str, Any]) -> float | None:
@@ -409,6 +350,7 @@ def _reported_types() -> tuple[type[BaseException], ...]:
     of modules not loaded yet cannot have been raised, so nothing heavy is imported here."""
     types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy]
     for module, name in (
+        ("resireg_train.runs.trackers", "TrackerUnreachable"),
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation.base", "NothingScoredError"),
         ("resireg.models.hub", "WeightsUnavailableError"),
@@ -433,25 +375,14 @@ class SweepRecords(Callback):
     shared file system may run on another)."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        mask_log_handlers()  # the launcher logs each job's overrides
         sweep = Path(str(config.hydra.sweep.dir))
         _SWEEP.clear()
-        _SWEEP.update(dir=sweep, before=_job_records(sweep))
+        _SWEEP.update(dir=sweep, before=job_records(sweep))
 
 
 #: The multirun this process launched: its folder and its job records before it started.
 _SWEEP: dict[str, Any] = {}
-
-
-def _job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
-    """Every job record of ``sweep`` (``<sweep>/<job>/results.json``): (mtime ns, size)."""
-    records = {}
-    for path in sweep.glob(f"*/{RESULTS_FILE}"):
-        try:
-            stat = path.stat()
-        except OSError:  # removed meanwhile
-            continue
-        records[path] = (stat.st_mtime_ns, stat.st_size)
-    return records
 
 
 def _job_number(folder: Path) -> int:
@@ -465,14 +396,18 @@ def _sweep_summary(prog: str, sweep: Path, before: dict[Path, tuple[int, int]]) 
     first): its number, folder and its error (on one line), from the job records written
     since ``before`` (:class:`SweepRecords`); when none failed, one line with the number of
     jobs (and pruned trials), the folder and the report command."""
-    now = _job_records(sweep)
+    now = job_records(sweep)
     jobs = sorted((p for p, stat in now.items() if before.get(p) != stat),
-                  key=lambda p: (_job_number(p.parent), p.parent.name))  # fmt: skip
+                  key=lambda p: (_job_number(p), p.name))  # fmt: skip
     failures, pruned = [], 0
-    for path in jobs:
-        record = read_results(path.parent)
+    for folder in jobs:
+        try:
+            record = RunRecord.read(folder)
+        except (OSError, RecordError) as err:
+            failures.append((folder, f"unreadable record: {err}"))
+            continue
         if record.get("status") == "failed":
-            failures.append((path.parent, str(record.get("error") or "no error recorded")))
+            failures.append((folder, str(record.get("error") or "no error recorded")))
         pruned += record.get("status") == "pruned"
     if not jobs:
         return ""
@@ -484,6 +419,42 @@ def _sweep_summary(prog: str, sweep: Path, before: dict[Path, tuple[int, int]]) 
              f"resireg-report {sweep} lists every job):"]  # fmt: skip
     lines += [f"  job {_job_number(out)} ({out.name}): {flat(error)}" for out, error in failures]
     return "\n".join(lines) + "\n"
+
+
+class _MaskedStream:
+    """``sys.stdout`` / ``sys.stderr`` with every URL's password masked in what is written
+    through it (Hydra prints a failed job's overrides, libraries print their server's URL);
+    everything else is the stream's own."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        self._stream.write(mask_text(text) if isinstance(text, str) else text)
+        return len(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def masked_console() -> Iterator[None]:
+    """Within: ``sys.stdout`` and ``sys.stderr`` mask URL passwords (:class:`_MaskedStream`)."""
+    saved = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _MaskedStream(sys.stdout), _MaskedStream(sys.stderr)
+    try:
+        yield
+    finally:
+        sys.stdout, sys.stderr = saved
+
+
+def mask_log_handlers() -> None:
+    """Give every handler of the root logger (Hydra's console and the run's log file) the
+    filter that masks URL passwords (:class:`~resireg_train.config.secrets.SecretFilter`),
+    once."""
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, SecretFilter) for f in handler.filters):
+            handler.addFilter(SecretFilter())
 
 
 def hydra_entry_point(
@@ -499,6 +470,7 @@ def hydra_entry_point(
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def main(cfg: DictConfig) -> float | None:
+        mask_log_handlers()  # the console and the run's log file: no URL's password
         log.info("output dir: %s", HydraConfig.get().runtime.output_dir)
         try:
             return optimized_value(cfg, task(cfg))
@@ -509,11 +481,12 @@ def hydra_entry_point(
 
     def entry() -> float | None:
         _SWEEP.clear()
-        try:
-            return main()
-        finally:
-            # (a worker an Optuna search started itself leaves the summary to the search)
-            if _SWEEP and os.environ.get("RESIREG_SEARCH_WORKER") != "1":
-                sys.stderr.write(_sweep_summary(prog, _SWEEP["dir"], _SWEEP["before"]))
+        with masked_console():  # no URL's password on the console, whoever prints it
+            try:
+                return main()
+            finally:
+                # (a worker an Optuna search started itself leaves the summary to the search)
+                if _SWEEP and os.environ.get("RESIREG_SEARCH_WORKER") != "1":
+                    sys.stderr.write(_sweep_summary(prog, _SWEEP["dir"], _SWEEP["before"]))
 
     return entry

@@ -43,7 +43,7 @@ from resireg_train.config.checks import (
     encoder_arguments,
     encoder_kwargs,
 )
-from resireg_train.runs.record import update_results
+from resireg_train.runs.record import RunRecord
 
 __all__ = ["SOURCES", "build_source", "make_map", "main"]
 
@@ -131,7 +131,7 @@ def _differences(saved: Any, now: dict[str, Any]) -> list[str]:
     ]
 
 
-def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
+def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     import torch
 
     from resireg.mapping import MapFullError, SemanticMap
@@ -141,6 +141,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     from resireg.models.factory import resolve_device
     from resireg.sources.frames import FrameCounts, SkippedFrame, windows
 
+    out = record.folder
     window = cfg.window
     if isinstance(window, bool) or not isinstance(window, int) or window < 1:
         raise ConfigError(f"window={window!r}: expected an integer >= 1")
@@ -157,7 +158,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         rrd = Path(str(cfg.rerun.save)).expanduser()
         rrd = (rrd if rrd.is_absolute() else out / rrd).resolve()
     params = {"source": spec, "identity": _identity(cfg)}
-    update_results(out, params=params)
+    record.update(params=params)
     timer: dict[str, float] = defaultdict(float)
     start = time.perf_counter()
     source = build_source(spec)  # a wrong path, a missing topic: one line, no traceback
@@ -180,7 +181,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     identity = _identity(cfg, weights_fingerprint(encoder))
     timer["weights_digest"] += time.perf_counter() - t0
-    update_results(out, params={**params, "identity": identity})
+    record.update(params={**params, "identity": identity})
     folder = out / "map"
     if cfg.resume and (folder / "map.json").is_file():
         smap = SemanticMap.load(folder, encoder, prior, max_voxels=cfg.max_voxels)
@@ -264,7 +265,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         why = why or "the source has no candidate frame"
         for line in _source_warnings(source_record):
             log.warning("%s", line)
-        update_results(out, frames=counts.as_dict(), **source_record)
+        record.update(frames=counts.as_dict(), **source_record)
         raise RuntimeError(f"no frame was mapped ({counts.line()}); why, per kind: {why}")
     t0 = time.perf_counter()
     ply = smap.to_ply(out / "map.ply", str(cfg.ply.colour_by), cfg.ply.text,
@@ -281,8 +282,7 @@ def _map(cfg: DictConfig, out: Path) -> dict[str, Any]:
         log.warning("skipped %d %s, e.g. %s", counts.skipped[kind], kind, reason)
     for line in _source_warnings(source_record):
         log.warning("%s", line)
-    return update_results(
-        out,
+    return record.update(
         status="completed",
         frames=counts.as_dict(),
         **source_record,
@@ -338,20 +338,9 @@ def _source_warnings(record: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _map_logged(cfg: DictConfig, out: Path) -> dict[str, Any]:
-    """:func:`_map` inside the job's W&B run with ``logger=wandb`` (as ``resireg-eval``);
-    MLflow, TensorBoard and CSV record the run when it ends (:mod:`resireg_train.runs.trackers`)."""
-    if not (cfg.get("logger") or {}).get("wandb"):
-        return _map(cfg, out)  # (tracking imports Lightning: only for a W&B run)
-    from resireg_train.runs.tracking import wandb_loggers, wandb_runs
-
-    with wandb_runs(wandb_loggers(cfg), cfg, out):
-        return _map(cfg, out)
-
-
 def run_map(cfg: DictConfig) -> dict[str, Any]:
     """Map from a composed ``map.yaml`` config; returns the ``results.json`` content."""
-    return run_task(cfg, _map_logged, resume_hint="resume=true with the same run folder "
+    return run_task(cfg, _map, resume_hint="resume=true with the same run folder "
                     "continues from the last save")  # fmt: skip
 
 

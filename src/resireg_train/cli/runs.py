@@ -11,6 +11,10 @@ RUN is a run folder or a run id (a unique prefix of ``results.json``'s
 ``provenance.run_id``). ROOT defaults to ``outputs`` (``paths.log_dir``'s default).
 Filters: ``--where status=completed``, ``--where "val/ovss/ade20k/miou_full>0.25"``,
 ``--where model.optimizer.lr<=1e-3`` (metrics, config keys, ``provenance.*`` paths).
+
+A folder whose ``results.json`` is not a run record (another tool's file, a JSON list,
+damaged) or whose ``.hydra/overrides.yaml`` cannot be read is named once on stderr; the other
+runs are listed. A bad option or filter exits with status 2 and one line.
 """
 
 from __future__ import annotations
@@ -58,9 +62,26 @@ def _pairs(rows: list[tuple[str, Any, Any]], a: str, b: str) -> str:
                     disable_numparse=True)  # fmt: skip
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a usage error on one line (``resireg-runs: error: ...``), exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"resireg-runs: error: {message} (resireg-runs --help)\n")
+
+
+def _say(lines: list[str], said: set[str], prefix: str = "") -> None:
+    """Each line on stderr once, URL passwords masked."""
+    from resireg_train.config.secrets import mask_text
+
+    for line in lines:
+        if line not in said:
+            said.add(line)
+            sys.stderr.write(f"resireg-runs: {prefix}{mask_text(line)}\n")
+
+
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="resireg-runs", description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    parser = _Parser(prog="resireg-runs", description=__doc__.split("\n\n")[0],
+                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True)
     ls = sub.add_parser("ls", help="one row per run under the roots")
     ls.add_argument("roots", nargs="*", default=[DEFAULT_ROOT], metavar="ROOT")
@@ -94,16 +115,24 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
 
     from resireg.specs.tree import flatten
+    from resireg_train.config.secrets import mask_text
     from resireg_train.runs import index
 
+    said: set[str] = set()
     try:
         if args.command == "ls":
             from resireg_train.runs.index import COLUMNS
 
             columns = args.columns.split(",") if args.columns else list(COLUMNS)
-            found = index.sort_runs(index.filter_runs(index.scan(args.roots), args.where),
-                                    args.sort)  # fmt: skip
-            _print_rows([{c: r.value(c) for c in columns} for r in found], columns, args.format)
+            for where in args.where:  # a bad filter exits 2 before any folder is walked
+                index.parse_where(where)
+            bad: list[str] = []
+            runs = index.scan(args.roots, bad)
+            _say(bad, said, prefix="skipped ")
+            found = index.sort_runs(index.filter_runs(runs, args.where), args.sort)
+            rows = [{c: r.value(c) for c in columns} for r in found]
+            _say([p for r in runs for p in r.problems], said)
+            _print_rows(rows, columns, args.format)
             if args.format == "table":
                 print(f"{len(found)} run(s)")
             return
@@ -124,30 +153,32 @@ def main(argv: list[str] | None = None) -> None:
             run = index.find_run(args.run, roots)
             prov = run.provenance
             metric, value = run.headline
-            print(f"run {run.run_id} ({run.cli or '?'}) at {run.path}: {run.status}")
+            # (a record written before URL passwords were masked is masked as it is shown)
+            lines = [f"run {run.run_id} ({run.cli or '?'}) at {run.path}: {run.status}"]
             if run.results.get("error"):
-                print(f"error: {run.results['error']}")
-            print("overrides: " + (" ".join(run.overrides) or "none"))
+                lines.append(f"error: {run.results['error']}")
+            lines.append("overrides: " + (" ".join(run.overrides) or "none"))
             flat = flatten(prov, "provenance")
-            for key in sorted(flat):
-                if not key.startswith("provenance.environment.packages."):
-                    print(f"  {key} = {_cell(flat[key])}")
+            lines += [f"  {key} = {_cell(flat[key])}" for key in sorted(flat)
+                      if not key.startswith("provenance.environment.packages.")]  # fmt: skip
             packages = (prov.get("environment") or {}).get("packages") or {}
-            print("  packages: " + ", ".join(f"{k}=={v}" for k, v in packages.items()))
-            for key, val in sorted(run.metrics.items()):
-                print(f"  {key} = {_cell(val)}")
+            lines.append("  packages: " + ", ".join(f"{k}=={v}" for k, v in packages.items()))
+            lines += [f"  {key} = {_cell(val)}" for key, val in sorted(run.metrics.items())]
             if metric:
-                print(f"headline: {metric} = {_cell(value)}")
+                lines.append(f"headline: {metric} = {_cell(value)}")
+            _say(run.problems, said)
+            print("\n".join(mask_text(line) for line in lines))
         elif args.command == "diff":
             a, b = index.find_run(args.a, roots), index.find_run(args.b, roots)
             differences = index.diff_runs(a, b)
             print(f"A: {a.run_id} {a.path}\nB: {b.run_id} {b.path}")
             for part in ("config", "provenance", "metrics"):
                 print(f"\n{part}:")
-                print(_pairs(differences[part], "A", "B"))
+                print(mask_text(_pairs(differences[part], "A", "B")))
+            _say(a.problems + b.problems, said)
         else:
             for line in index.lineage(args.run, roots):
-                print(line)
+                print(mask_text(line))
     except ValueError as err:
         parser.exit(2, f"resireg-runs: error: {err}\n")
 

@@ -44,7 +44,8 @@ from resireg_train.cli.job import (
 )
 from resireg_train.config.checks import ConfigError, check_available, check_devices, validate
 from resireg_train.config.moves import current_targets
-from resireg_train.runs.record import RESULTS_FILE, read_results, update_results
+from resireg_train.config.secrets import mask_text
+from resireg_train.runs.record import RunRecord, masked_tree
 
 if TYPE_CHECKING:
     import lightning as L
@@ -102,8 +103,9 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     return run_task(cfg, body, rank_zero=rank_zero, resume_hint=f"resume with {command}")
 
 
-#: Keys a resume may change: the resume itself.
-_RESUME_FREE = ("ckpt_path",)
+#: Keys a resume may change: the resume itself, and what is recorded of the run without
+#: changing what it computes (its trackers, what provenance keeps of the code).
+_RESUME_FREE = ("ckpt_path", "logger", "provenance")
 #: Overrides a resume command sets itself (or must not repeat: the sweep's own folders).
 _RESUME_SET = ("ckpt_path", "hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir",
                "hydra.mode", "hydra.output_subdir", "hydra.job.name")  # fmt: skip
@@ -115,7 +117,8 @@ def resume_command(
     """The command that resumes the run in ``out``: ``resireg-train`` with the run's own
     overrides (``task``: the command line's, a sweep job's swept values included; ``hydra``:
     Hydra's), ``ckpt_path=last hydra.run.dir=<out>``, and for a sweep job ``hydra.mode=RUN``
-    (it resumes that job alone), shell-quoted."""
+    (it resumes that job alone), shell-quoted, URL passwords masked (a tracking URI's password
+    is given again, or through the tracker's own environment variables)."""
 
     def kept(items: Sequence[str]) -> list[str]:
         return [o for o in items if o.split("=", 1)[0].lstrip("+~") not in _RESUME_SET]
@@ -132,7 +135,7 @@ def resume_command(
     ]
     if multirun:
         words.append("hydra.mode=RUN")
-    return " ".join(shlex.quote(str(w)) for w in words)
+    return mask_text(" ".join(shlex.quote(str(w)) for w in words))
 
 
 def _differences(run: dict[str, Any], this: dict[str, Any]) -> list[str]:
@@ -153,10 +156,12 @@ def check_resume(out: Path, composed: DictConfig) -> None:
     stored = out / ".hydra" / "config.yaml"
     if not stored.is_file():
         return
-    # a run written before a class moved names its old path: compare with today's
+    # a run written before a class moved names its old path: compare with today's; the saved
+    # config has its URL passwords masked (RunRecord.start): compare masked values
     run = current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False))
     this = OmegaConf.to_container(composed, resolve=False)
     this.pop("hydra", None)
+    run, this = masked_tree(run), masked_tree(this)
     differences = _differences(run, this)
     if not differences:
         return
@@ -195,7 +200,7 @@ class RunFolderCheck(Callback):
         try:
             if config.get("ckpt_path") is None:
                 _refuse_occupied(out, multirun=False)
-            elif (out / RESULTS_FILE).is_file():
+            elif RunRecord.exists(out):
                 check_resume(out, config)
         except (ConfigError, FileExistsError) as err:
             # Hydra turns a callback's exception into a warning and runs the job anyway: exit.
@@ -208,7 +213,7 @@ def _refuse_occupied(out: Path, multirun: bool | None = None) -> None:
     results.json would interleave): a folder already holding a run record is refused unless
     the run resumes it. Default folders are unique (time + run id, for sweeps too); this
     guards a folder given by hand."""
-    previous = read_results(out)
+    previous = RunRecord.read(out)
     if not previous:
         return
     if multirun is None:
@@ -224,7 +229,8 @@ def _refuse_occupied(out: Path, multirun: bool | None = None) -> None:
     )
 
 
-def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
+def _fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) -> dict[str, Any]:
+    out = record.folder
     validate(cfg, added_keys(), top_level_keys("train") if HydraConfig.initialized() else None)
     check_available(cfg)
     check_devices(cfg)
@@ -234,8 +240,8 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
 
     from resireg_train.evaluation.ovss.callback import ReSiRegEval
     from resireg_train.runs.cards import write_export_card
+    from resireg_train.runs.epochs import ResultsTracker
     from resireg_train.runs.provenance import write_export_provenance
-    from resireg_train.runs.tracking import ResultsTracker, ResumableCSVLogger, wandb_runs
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
     from resireg_train.training.console import (
         EpochLog,
@@ -259,7 +265,8 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
         resume_step = int(resumed[1]["global_step"])
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
-    loggers = [ResumableCSVLogger(out, resume_step=resume_step), *instantiate_group(cfg.logger)]
+    # metrics.csv and the trackers' Lightning loggers (logger=...), from the run's record
+    loggers = record.trackers.lightning_loggers(resume_step)
     configured = instantiate_group(cfg.callbacks)
     # The model summary without an unmeasured "Total Flops: 0" (a configured one is kept); the
     # Trainer's own is off, else it would say that it skips its default for this one.
@@ -272,39 +279,33 @@ def _fit(cfg: DictConfig, out: Path, callbacks: Sequence[L.Callback]) -> dict[st
     if not on_terminal():  # a batch job, a pipe: the epoch lines, no progress bar redraws
         configured = [c for c in configured if not isinstance(c, ProgressBar)]
         bar["enable_progress_bar"] = False
-    # logger=wandb: one W&B run per job, given the config and results.json, finished here
-    with wandb_runs(loggers, cfg, out):
-        trainer: L.Trainer = hydra.utils.instantiate(
-            cfg.trainer,
-            logger=loggers,
-            callbacks=[*configured, ResultsTracker(out), EpochLog(), *summary, *callbacks],
-            plugins=[AtomicCheckpointIO()],
-            default_root_dir=str(out),
-            **bar,
-        )
-        try:
-            trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
-        except SystemExit:
-            # Lightning answers Ctrl-C by shutting down and calling sys.exit(1); say what it was.
-            if trainer.interrupted:
-                raise KeyboardInterrupt from None
-            raise
-        if not trainer.is_global_zero:
-            return {}
-        extra: dict[str, Any] = {}
-        mlflow_runs = [lg.run_id for lg in loggers if type(lg).__name__ == "MLFlowLogger"]
-        if mlflow_runs:  # the run its curves went to: the trackers add the record to it
-            extra["tracking"] = {"mlflow_run_id": mlflow_runs[0]}
-        if cfg.export:
-            export = module.vlm.save_pretrained(out / "export")
-            # the run that made it (its provenance, the last checkpoint's SHA-256)
-            write_export_provenance(export, out, read_results(out).get("provenance") or {})
-            write_export_card(export, out)  # README.md: a Hugging Face model card
-            for callback in trainer.callbacks:
-                if isinstance(callback, ReSiRegEval):
-                    callback.save_settings(export)
-            extra["export"] = str(export)
-        return update_results(out, **extra)
+    trainer: L.Trainer = hydra.utils.instantiate(
+        cfg.trainer,
+        logger=loggers,
+        callbacks=[*configured, ResultsTracker(record), EpochLog(), *summary, *callbacks],
+        plugins=[AtomicCheckpointIO()],
+        default_root_dir=str(out),
+        **bar,
+    )
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt)
+    except SystemExit:
+        # Lightning answers Ctrl-C by shutting down and calling sys.exit(1); say what it was.
+        if trainer.interrupted:
+            raise KeyboardInterrupt from None
+        raise
+    if not trainer.is_global_zero:
+        return {}
+    if not cfg.export:
+        return record.fields()
+    export = module.vlm.save_pretrained(out / "export")
+    # the run that made it (its provenance, the last checkpoint's SHA-256)
+    write_export_provenance(export, out, record.get("provenance") or {})
+    write_export_card(export, record)  # README.md: a Hugging Face model card
+    for callback in trainer.callbacks:
+        if isinstance(callback, ReSiRegEval):
+            callback.save_settings(export)
+    return record.update(export=str(export))
 
 
 main = hydra_entry_point("train", train)

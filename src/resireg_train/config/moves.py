@@ -20,7 +20,9 @@ __all__ = ["MOVED_TARGETS", "current_targets"]
 MOVED_TARGETS: dict[str, str] = {
     # 0.1 -> the layout by role (resireg_train.ovss -> evaluation/ovss, tracking -> runs/)
     "resireg_train.ovss.callback.ReSiRegEval": "resireg_train.evaluation.ovss.callback.ReSiRegEval",
-    "resireg_train.tracking.wandb_logger": "resireg_train.runs.tracking.wandb_logger",
+    "resireg_train.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
+    # the trackers' table (resireg_train.runs.trackers): W&B's logger factory with the others
+    "resireg_train.runs.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
     # the pruning glue joins the search (resireg_train.training.pruning -> sweeps/pruning)
     "resireg_train.training.pruning.OptunaPruning": "resireg_train.sweeps.pruning.OptunaPruning",
 }

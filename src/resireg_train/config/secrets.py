@@ -39,6 +39,11 @@ _SECRET_PARAMS = frozenset({
 #: up to white space or a quote. Hand-written because no library finds URLs inside a command
 #: line; each match is then taken apart by urllib.
 _URL = re.compile(r"\b[a-zA-Z][a-zA-Z0-9+.\-]*://[^\s'\"<>]+")
+#: A URL's ``user:password@`` wherever it stands: masked before urllib sees the text, so a
+#: match urllib cannot take apart (Hydra's ``override_dirname`` joins overrides with ``,``, a
+#: ``[`` makes urllib refuse the host) or that holds two URLs keeps no password either; a
+#: multirun's overrides escape ``:`` (``http\://user\:pass@host``), so a ``\`` may precede it.
+_USERINFO = re.compile(r"(\b[a-zA-Z][a-zA-Z0-9+.\-]*\\?://[^:/@\s'\"<>\\]*\\?):[^@/\s'\"<>]*@")
 
 #: File names whose content is never inlined into a record (``code.diff``, a tracker's
 #: artifacts), matched against every part of a path, case-insensitively.
@@ -56,8 +61,8 @@ def mask_url(url: str) -> str:
     parameters replaced by ``***``; anything that is not a URL comes back unchanged."""
     try:
         parts = urlsplit(url)
-    except ValueError:
-        return url
+    except ValueError:  # not a URL urllib can take apart: its user part masked all the same
+        return _USERINFO.sub(rf"\1:{MASK}@", url)
     if not parts.scheme or not parts.netloc:
         return url
     netloc = parts.netloc
@@ -79,7 +84,7 @@ def mask_text(text: str) -> str:
     message, a config value)."""
     if "://" not in text:
         return text
-    return _URL.sub(lambda m: mask_url(m.group(0)), text)
+    return _URL.sub(lambda m: mask_url(m.group(0)), _USERINFO.sub(rf"\1:{MASK}@", text))
 
 
 def looks_secret(path: str | PurePath) -> bool:

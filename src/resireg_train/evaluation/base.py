@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 from resireg.errors import ResiregError
 from resireg_train.config.checks import ConfigError, config_path
 from resireg_train.evaluation.tasks import TaskSpec, find_task, task_names
-from resireg_train.runs.record import update_results
+from resireg_train.runs.record import RunRecord
 
 if TYPE_CHECKING:
     from torch import nn
@@ -114,13 +114,13 @@ class TaskProtocol(ABC):
 
 
 def write_results(
-    out: Path,
+    record: RunRecord,
     protocol: TaskProtocol,
     result: Any,
     variants: Mapping[str, nn.Module],
     timer: StageTimer,
 ) -> dict[str, Any]:
-    """Record a finished pass in ``out/results.json``: ``final`` (the scores, logged),
+    """Record a finished pass in the run's record (``results.json``): ``final`` (the scores, logged),
     ``per_class_iou`` (by class name), ``images``, the task's fields
     (:meth:`TaskProtocol.results`), ``elbo_prototypes`` (:func:`elbo_counts`) and ``seconds``;
     then fail if nothing was scored (:func:`require_scored`), else mark it ``completed``.
@@ -129,8 +129,7 @@ def write_results(
     for name, value in scores.items():
         log.info("%s = %.4f", name, value)
     classes = protocol.classes
-    record = update_results(
-        out,
+    fields = record.update(
         final=scores,
         per_class_iou={
             v: dict(zip(classes, ious, strict=True)) for v, ious in result.per_class_iou().items()
@@ -140,8 +139,8 @@ def write_results(
         **elbo_counts(variants),
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
     )
-    require_scored(record, protocol.spec.unit)
-    return update_results(out, status="completed")
+    require_scored(fields, protocol.spec.unit)
+    return record.update(status="completed")
 
 
 def elbo_counts(variants: Mapping[str, Any]) -> dict[str, Any]:

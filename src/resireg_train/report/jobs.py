@@ -12,7 +12,7 @@ import pandas as pd
 import yaml
 
 from resireg.specs.variants import BASELINE, VARIANT_SPECS, VARIANTS
-from resireg_train.runs.record import RESULTS_FILE, metric_mode, read_results
+from resireg_train.runs.record import RecordError, RunRecord, metric_mode
 
 __all__ = [
     "BATCH_KEY", "METHODS", "METHOD_NAMES", "PROTOTYPES_KEY", "STATUSES", "Job", "check_metric",
@@ -53,7 +53,7 @@ class Job:
     @property
     def error(self) -> str | None:
         if not self.results:
-            return f"no {RESULTS_FILE} (the job did not start, or crashed before writing it)"
+            return "no results.json (the job did not start, or crashed before writing it)"
         error = self.results.get("error")
         if error is None and self.status == "interrupted":
             return "interrupted before completing"
@@ -73,7 +73,11 @@ def collect(sweep_dir: str | Path) -> list[Job]:
         overrides = dict(item.split("=", 1) for item in items if "=" in item)
         overrides = {k.lstrip("+~"): v for k, v in overrides.items()}
         number = int(match.group(1)) if match else len(jobs)
-        jobs.append(Job(folder, number, overrides, read_results(folder)))
+        try:
+            results = RunRecord.read(folder)
+        except (OSError, RecordError) as err:  # listed as failed, with the reason
+            results = {"status": "unreadable", "error": str(err)}
+        jobs.append(Job(folder, number, overrides, results))
     if not jobs:
         raise FileNotFoundError(
             f"{str(sweep)!r} holds no job folders (<n>_<overrides>/.hydra/overrides.yaml); "

@@ -3,21 +3,32 @@ Hugging Face's model-card format (:func:`resireg.models.vlm.card.model_card`'s f
 body), with the training data as ``datasets``, the run's validation scores as ``model-index``
 results, and a provenance section (run id, commit, checkpoint digest, data identity);
 ``resireg-runs card <export> --add <eval run>`` adds an evaluation's results
-(:func:`add_evaluation`). ``huggingface_hub.ModelCard.load`` reads both, and
+(:func:`add_evaluation`): under a lock on the export's card (two at once both land, one after
+the other), written atomically. ``huggingface_hub.ModelCard.load`` reads both, and
 ``ResiregVLM.push_to_hub`` publishes the card's results with the model.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Mapping
+import os
+import time
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg_train.runs.record import read_results
+from resireg.integrity import atomic_write
+from resireg_train.runs.record import RecordError, RunRecord
+
+try:  # POSIX; where it is missing (Windows) cards are not locked
+    import fcntl
+except ImportError:  # pragma: no cover
+    fcntl = None
 
 __all__ = [
     "CARD_FILE",
+    "CARD_LOCK",
     "TRAINING_VALIDATION",
     "add_evaluation",
     "eval_results",
@@ -25,6 +36,10 @@ __all__ = [
 ]
 
 CARD_FILE = "README.md"
+#: The lock file beside an export's card, held (``flock``) while an evaluation is added.
+CARD_LOCK = ".card.lock"
+#: How long :func:`add_evaluation` waits for another one adding to the same card.
+CARD_LOCK_WAIT_S = 60.0
 _TASK = "image-segmentation"
 
 
@@ -85,17 +100,17 @@ def _provenance_section(record: Mapping[str, Any], export: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_export_card(export: Path, out: Path) -> Path:
-    """``<export>/README.md`` for the export the training run in ``out`` wrote: the card of
-    :func:`resireg.models.vlm.card.model_card` named after the run, its training data as
-    ``datasets``, its final validation scores as ``model-index`` results, and a provenance
-    section."""
+def write_export_card(export: Path, run: RunRecord) -> Path:
+    """``<export>/README.md`` for the export the training run of ``run`` (its record) wrote:
+    the card of :func:`resireg.models.vlm.card.model_card` named after the run, its training
+    data as ``datasets``, its final validation scores as ``model-index`` results, and a
+    provenance section."""
     from huggingface_hub import ModelCard
 
     from resireg.models.vlm.card import model_card
     from resireg.models.vlm.model import read_config
 
-    record = read_results(out)
+    record, out = run.fields(), run.folder
     cfg = read_config(export)
     name = f"{record.get('name', 'resireg')}-{(record.get('provenance') or {}).get('run_id')}"
     data = (record.get("provenance") or {}).get("data") or {}
@@ -108,8 +123,41 @@ def write_export_card(export: Path, out: Path) -> Path:
     if results:
         fields["eval_results"] = results
     card = model_card(cfg, name, dict(cfg.get("digests") or {}), fields)
-    ModelCard(str(card) + _provenance_section(record, export)).save(export / CARD_FILE)
-    return export / CARD_FILE
+    text = str(ModelCard(str(card) + _provenance_section(record, export)))
+    return atomic_write(export / CARD_FILE, text, what="model card")
+
+
+@contextlib.contextmanager
+def _card_lock(export: Path, wait: float = CARD_LOCK_WAIT_S) -> Iterator[None]:
+    """Hold the export's card lock (:data:`CARD_LOCK`, ``flock``): another process adding to
+    the same card waits up to ``wait`` seconds, then is refused naming the lock (the OS drops
+    a lock with its process, so a crashed holder never blocks)."""
+    if fcntl is None:  # pragma: no cover
+        yield
+        return
+    path = export / CARD_LOCK
+    handle = open(path, "a+")
+    try:
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    handle.seek(0)
+                    holder = handle.read().strip() or "unknown"
+                    raise ValueError(
+                        f"{export / CARD_FILE}: another resireg-runs card --add (PID {holder}) "
+                        f"has held it for over {wait:g} s ({path}); try again when it ends"
+                    ) from None
+                time.sleep(0.05)
+        handle.truncate(0)
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+        yield
+    finally:
+        handle.close()  # drops the lock
 
 
 def add_evaluation(export: str | Path, run: str | Path) -> list[Any]:
@@ -117,13 +165,14 @@ def add_evaluation(export: str | Path, run: str | Path) -> list[Any]:
     export's card: its mIoU / f-mIoU per variant as ``model-index`` results beside the
     training's validation scores (an earlier evaluation of the same dataset, split and metric
     is replaced) and a line in the card's evaluations section. Returns the card's results."""
-    from huggingface_hub import ModelCard
-
     export, run = Path(export), Path(run)
     path = export / CARD_FILE
     if not path.is_file():
         raise ValueError(f"{export}: no {CARD_FILE} (not an export resireg-train wrote a card for)")
-    record = read_results(run)
+    try:
+        record = RunRecord.read(run)
+    except (OSError, RecordError) as err:
+        raise ValueError(str(err)) from None
     if record.get("status") != "completed":
         raise ValueError(f"{run}: status {record.get('status')!r}, not a completed evaluation")
     new = eval_results(
@@ -131,6 +180,13 @@ def add_evaluation(export: str | Path, run: str | Path) -> list[Any]:
     )
     if not new:
         raise ValueError(f"{run}: its results.json holds no mIoU / f-mIoU to add")
+    with _card_lock(export):  # read, add, write: one process at a time
+        return _add_to_card(path, export, run, new)
+
+
+def _add_to_card(path: Path, export: Path, run: Path, new: list[Any]) -> list[Any]:
+    from huggingface_hub import ModelCard
+
     card = ModelCard.load(path)
 
     def key(result: Any) -> tuple:  # an evaluation replaces an earlier one of the same cell
@@ -147,5 +203,5 @@ def add_evaluation(export: str | Path, run: str | Path) -> list[Any]:
     header = "\n## Evaluations\n"
     text = card.text.rstrip("\n")
     card.text = text + ("\n" if header in card.text else "\n" + header + "\n") + line + "\n"
-    card.save(path)
+    atomic_write(path, str(card), what="model card")
     return card.data.eval_results

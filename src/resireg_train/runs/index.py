@@ -2,10 +2,14 @@
 multirun jobs, search trials: any folder with a ``results.json``), one row each, filtered,
 sorted, shown, compared and followed through its lineage.
 
-A row reads only the run's ``results.json`` and ``.hydra/overrides.yaml`` (the resolved
+A row reads only the run's ``results.json`` (:meth:`RunRecord.read
+<resireg_train.runs.record.RunRecord.read>`) and ``.hydra/overrides.yaml`` (the resolved
 ``.hydra/config.yaml`` only when a filter or a column names a config key), so a thousand runs
 list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
-whose process is gone (same host, PID not alive) is shown as ``died``.
+whose process is gone (same host, PID not alive) is shown as ``died``. A file that is not what
+it should be (a record that is not a run record, an overrides file that is not a YAML list) is
+named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other
+runs are listed.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import yaml
 
 from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import RESULTS_FILE, read_results
+from resireg_train.runs.record import RESULTS_FILE, RecordError, RunRecord
 
 __all__ = [
     "COLUMNS",
@@ -35,6 +39,7 @@ __all__ = [
     "find_run",
     "lineage",
     "parse_where",
+    "read_run",
     "scan",
     "sort_runs",
 ]
@@ -63,6 +68,8 @@ class Run:
 
     path: Path
     results: dict[str, Any] = field(default_factory=dict)
+    #: What could not be read of its files (each once), for the caller to name.
+    problems: list[str] = field(default_factory=list)
 
     @property
     def provenance(self) -> dict[str, Any]:
@@ -88,22 +95,34 @@ class Run:
                 return "died"
         return status
 
+    def _yaml(self, name: str, kind: type, what: str) -> Any:
+        """``.hydra/<name>`` parsed (safe YAML), ``None`` when absent; one that cannot be read
+        or is not a ``kind`` is a problem named once (:attr:`problems`) and ``None``."""
+        path = self.path / ".hydra" / name
+        if not path.is_file():
+            return None
+        try:
+            with open(path) as f:
+                data = yaml.load(f, Loader=_LOADER)
+        except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+            self.problems.append(f"{path}: unreadable ({' '.join(str(err).split())}); its "
+                                 f"{what} are not shown")  # fmt: skip
+            return None
+        if data is not None and not isinstance(data, kind):
+            expected = "a YAML list" if kind is list else "a YAML mapping"
+            self.problems.append(f"{path}: not {expected} (it holds {type(data).__name__}); "
+                                 f"its {what} are not shown")  # fmt: skip
+            return None
+        return data
+
     @cached_property
     def overrides(self) -> list[str]:
-        path = self.path / ".hydra" / "overrides.yaml"
-        if not path.is_file():
-            return []
-        with open(path) as f:
-            return [str(o) for o in (yaml.load(f, Loader=_LOADER) or [])]
+        return [str(o) for o in self._yaml("overrides.yaml", list, "overrides") or []]
 
     @cached_property
     def config(self) -> dict[str, Any]:
         """The resolved config, flattened (``model.optimizer.lr``)."""
-        path = self.path / ".hydra" / "config.yaml"
-        if not path.is_file():
-            return {}
-        with open(path) as f:
-            return flatten(yaml.load(f, Loader=_LOADER) or {})
+        return flatten(self._yaml("config.yaml", dict, "config keys") or {})
 
     @property
     def metrics(self) -> dict[str, float]:
@@ -175,19 +194,35 @@ def _run_folders(root: Path) -> Iterator[Path]:
             yield Path(folder)
 
 
-def scan(roots: Iterable[str | os.PathLike]) -> list[Run]:
-    """Every run folder under ``roots`` (a root may itself be a run folder)."""
+def read_run(folder: Path) -> Run:
+    """The run in ``folder``; :class:`~resireg_train.runs.record.RecordError` (a
+    ``ValueError`` naming the file) when its record cannot be read or is not a run record."""
+    try:
+        return Run(folder, RunRecord.read(folder))
+    except OSError as err:
+        raise RecordError(f"{folder / RESULTS_FILE}: unreadable ({err.strerror or err})") from None
+
+
+def scan(roots: Iterable[str | os.PathLike], bad: list[str] | None = None) -> list[Run]:
+    """Every run folder under ``roots`` (a root may itself be a run folder) whose record can
+    be read; each other one is named in ``bad`` (when given) with why."""
     runs, seen = [], set()
     for root in roots:
         for folder in _run_folders(Path(root).expanduser()):
-            key = folder.resolve()
+            try:
+                key = folder.resolve()
+            except (OSError, RuntimeError) as err:  # a symbolic link loop
+                if bad is not None:
+                    bad.append(f"{folder}: {err}")
+                continue
             if key in seen:
                 continue
             seen.add(key)
             try:
-                runs.append(Run(folder, read_results(folder)))
-            except (OSError, ValueError):
-                runs.append(Run(folder, {"status": "unreadable"}))
+                runs.append(read_run(folder))
+            except RecordError as err:
+                if bad is not None:
+                    bad.append(str(err))
     return runs
 
 
@@ -204,7 +239,15 @@ def parse_where(text: str) -> tuple[str, str, Any]:
     match = _WHERE.match(text.strip())
     if not match:
         raise ValueError(f"--where {text!r}: expected KEY=VALUE or KEY OP VALUE (>, <, >=, <=, !=)")
-    value = yaml.load(match["value"], Loader=_LOADER) if match["value"] else None
+    try:  # safe YAML: a tag naming a Python object is refused, never built
+        value = yaml.load(match["value"], Loader=_LOADER) if match["value"] else None
+    except yaml.YAMLError as err:
+        reason = " ".join(str(getattr(err, "problem", None) or err).split())
+        raise ValueError(f"--where {text!r}: the value is not a plain YAML value ({reason}); "
+                         "quote it as text, e.g. status='[x'") from None  # fmt: skip
+    if isinstance(value, (dict, list)):
+        raise ValueError(f"--where {text!r}: expected one value (a number, a word), got a "
+                         f"{type(value).__name__}")  # fmt: skip
     return match["key"].strip(), match["op"], value
 
 
@@ -238,22 +281,25 @@ def sort_runs(runs: list[Run], key: str | None) -> list[Run]:
     descending = key.startswith("-")
     key = key.lstrip("-")
 
-    def order(run: Run) -> tuple[int, Any]:
+    def order(run: Run) -> tuple[int, int, Any]:
         value = run.value(key)
         if value is None or (isinstance(value, float) and math.isnan(value)):
-            return (1, 0)
-        return (0, value if isinstance(value, (int, float)) else str(value))
+            return (1, 0, 0)
+        if isinstance(value, (int, float)):  # numbers first, by value; then text, by text
+            return (0, 0, float(value))
+        return (0, 1, str(value))
 
-    present = [r for r in runs if order(r)[0] == 0]
-    missing = [r for r in runs if order(r)[0] == 1]
-    return sorted(present, key=order, reverse=descending) + missing
+    keys = {id(r): order(r) for r in runs}
+    present = [r for r in runs if keys[id(r)][0] == 0]
+    missing = [r for r in runs if keys[id(r)][0] == 1]
+    return sorted(present, key=lambda r: keys[id(r)], reverse=descending) + missing
 
 
 def find_run(spec: str, roots: Iterable[str | os.PathLike]) -> Run:
     """A run by folder path or by run id (a unique prefix) under ``roots``."""
     path = Path(spec).expanduser()
-    if (path / RESULTS_FILE).is_file():
-        return Run(path, read_results(path))
+    if RunRecord.exists(path):
+        return read_run(path)
     hits = [r for r in scan(roots) if r.run_id.startswith(spec)]
     if len(hits) == 1:
         return hits[0]
@@ -299,9 +345,8 @@ def lineage(spec: str, roots: Iterable[str | os.PathLike]) -> list[str]:
     roots = list(roots)
     path = Path(spec).expanduser()
     if (path / EXPORT_PROVENANCE).is_file() or (path / "config.json").is_file() and not (
-            path / RESULTS_FILE).is_file():  # fmt: skip
-        made = read_results(path.parent) if (path.parent / RESULTS_FILE).is_file() else None
-        run = Run(path.parent, made) if made is not None else None
+            RunRecord.exists(path)):  # fmt: skip
+        run = read_run(path.parent) if RunRecord.exists(path.parent) else None
         export = path.resolve()
     else:
         run = find_run(spec, roots)
@@ -318,13 +363,13 @@ def lineage(spec: str, roots: Iterable[str | os.PathLike]) -> list[str]:
         parent_export = (models.get("export") or {}).get("path")
         if parent_ckpt:
             folder = Path(parent_ckpt).parent.parent  # <run>/checkpoints/<file>.ckpt
-            if (folder / RESULTS_FILE).is_file():
-                ancestors(Run(folder, read_results(folder)))
+            if RunRecord.exists(folder):
+                ancestors(read_run(folder))
             sha = (models.get("init_from") or {}).get("sha256")
             chain.append(f"checkpoint {parent_ckpt} (sha256 {str(sha)[:12]})")
-        elif parent_export and (Path(parent_export).parent / RESULTS_FILE).is_file():
+        elif parent_export and RunRecord.exists(Path(parent_export).parent):
             folder = Path(parent_export).parent
-            ancestors(Run(folder, read_results(folder)))
+            ancestors(read_run(folder))
             chain.append(f"export {parent_export}")
         else:
             for key, data in (r.provenance.get("data") or {}).items():

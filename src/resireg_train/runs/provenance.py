@@ -6,13 +6,15 @@
 - ``run_id``: twelve hex digits drawn once per run folder (a resumed run keeps its own), and
   ``cli``: the command (``resireg-train``, ``resireg-eval``, ``resireg-map``);
 - ``code``: the package version and, when the code runs from a git checkout of the project,
-  its commit, branch and a dirty flag; when dirty, the uncommitted change (tracked files'
-  ``git diff HEAD`` and untracked files' contents) is saved as ``code.diff`` in the run folder,
-  so ``git apply code.diff`` on that commit gives the code that ran. Outside a checkout (an
-  installed wheel) only the version is recorded; nothing fails;
-- ``environment``: Python, the command line, the digest of the resolved config, and the
-  versions of the packages that change numbers (read with :mod:`importlib.metadata`, no
-  import);
+  its commit, branch and a dirty flag; untracked files by name, size and SHA-256 (never their
+  content unless ``provenance.untracked_content`` opts in); tracked files' text changes (and
+  the opted-in files) saved as ``code.diff`` (mode 0600) in the run folder, at most
+  ``provenance.diff_max_bytes``, so ``git apply code.diff`` on that commit gives the code that
+  ran; what was left out named with its size, SHA-256 and reason (:func:`code_provenance`).
+  Outside a checkout (an installed wheel) only the version is recorded; nothing fails;
+- ``environment``: Python, the command line (URL passwords masked), the digest of the
+  resolved config, and the versions of the packages that change numbers (read with
+  :mod:`importlib.metadata`, no import); never an environment variable;
 - ``machine``: host, CPU model, cores, memory, PID and world size;
 - ``seeds``: every config key named ``seed`` or ``*_seed``;
 - ``data``: the identity of every dataset the config names (:func:`data_identity`);
@@ -30,17 +32,20 @@ in the export folder, :func:`write_export_provenance`), evaluations and maps rea
 from __future__ import annotations
 
 import datetime as _dt
+import fnmatch
 import hashlib
 import importlib.metadata as md
 import json
 import os
 import platform
+import re
 import shlex
 import socket
+import stat
 import subprocess
 import sys
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -76,8 +81,6 @@ PACKAGES = (
 )  # fmt: skip
 #: CPU seconds this process (and its children) had used when each run folder's run started.
 _CPU_AT_START: dict[str, float] = {}
-#: Untracked files larger than this are named in the record but left out of ``code.diff``.
-_UNTRACKED_MAX_BYTES = 1 << 20
 
 
 def _now() -> str:
@@ -103,10 +106,109 @@ def _checkout_root(package_dir: Path) -> Path | None:
     return root if (root / "src" / package_dir.name).resolve() == package_dir.resolve() else None
 
 
-def code_provenance(out: Path | None, package_dir: Path | None = None) -> dict[str, Any]:
-    """``{"version", "git": {"commit", "branch", "dirty", "diff", "untracked_left_out"} | None}``
-    of the code that runs (``package_dir``: this package's folder). With ``out`` and a dirty
-    checkout, the change is written to ``out/code.diff``."""
+def provenance_settings(cfg: Any = None) -> dict[str, Any]:
+    """The ``provenance`` block of ``cfg`` (``conf/provenance/default.yaml``), or that file's
+    values when ``cfg`` has none (a config composed without it, a call from Python)."""
+    block = cfg.get("provenance") if isinstance(cfg, Mapping) or hasattr(cfg, "get") else None
+    if block:
+        from omegaconf import OmegaConf
+
+        return dict(OmegaConf.to_container(block, resolve=True) if OmegaConf.is_config(block)
+                    else block)  # fmt: skip
+    from resireg.specs.table import compose_conf, conf_dir
+
+    return {k: v for k, (v, _) in compose_conf(conf_dir() / "provenance", "default").items()}
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _binary(path: Path) -> bool:
+    """git's own test: a NUL byte in the first 8000 bytes."""
+    with open(path, "rb") as f:
+        return b"\0" in f.read(8000)
+
+
+def _identity(root: Path, name: str, hash_max: int) -> dict[str, Any]:
+    """What a file of the checkout is, without its content: ``{"path", "size", "sha256"}``
+    (``sha256`` null above ``hash_max`` bytes), ``{"path", "link"}`` for a symbolic link (its
+    target as written, never followed: it may dangle), ``{"path", "error"}`` if unreadable."""
+    path = root / name
+    try:
+        st = path.lstat()
+        if stat.S_ISLNK(st.st_mode):
+            return {"path": name, "link": os.readlink(path)}
+        if not stat.S_ISREG(st.st_mode):
+            return {"path": name, "kind": "not a regular file"}
+        digest = _sha256(path) if st.st_size <= hash_max else None
+        return {"path": name, "size": st.st_size, "sha256": digest}
+    except OSError as err:
+        return {"path": name, "error": err.strerror or str(err)}
+
+
+def _tracked_changes(root: Path) -> list[tuple[str, bool, str]]:
+    """``(path, binary, patch)`` per tracked file that differs from ``HEAD``: ``git diff HEAD``
+    as text (a binary file's patch is git's one line), split at each file's ``diff --git``."""
+    plain = ("-c", "core.quotepath=off", "diff", "HEAD", "--no-color", "--no-ext-diff",
+             "--no-textconv")  # fmt: skip
+    text = _git(root, *plain).stdout
+    stats = _git(root, *plain, "--numstat", "-z").stdout.split("\0")
+    entries: list[tuple[str, bool]] = []
+    i = 0
+    while i < len(stats) - 1:
+        added, _, rest = stats[i].partition("\t")
+        _, _, path = rest.partition("\t")
+        if path:  # one path
+            entries.append((path, added == "-"))
+            i += 1
+        else:  # a rename: "added\tdeleted\t", then the old and the new path
+            entries.append((stats[i + 2], added == "-"))
+            i += 3
+    chunks = [c for c in re.split(r"(?m)^(?=diff --git )", text) if c]
+    if len(chunks) != len(entries):  # not split as expected: one piece, never lost
+        return [("(tracked changes)", False, text)] if text else []
+    return [(path, binary, chunk) for (path, binary), chunk in zip(entries, chunks, strict=True)]
+
+
+def _write_private(path: Path, text: str) -> Path:
+    """``path`` written atomically and created 0600 (it can hold uncommitted edits)."""
+    from resireg.integrity import atomic_write
+
+    def write(tmp: Path) -> None:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+
+    return atomic_write(path, write, what="uncommitted change", mode=0o600)
+
+
+def code_provenance(
+    out: Path | None,
+    package_dir: Path | None = None,
+    settings: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """``{"version", "git": {...} | None}`` of the code that runs (``package_dir``: this
+    package's folder; ``settings``: the ``provenance`` block, :func:`provenance_settings`).
+
+    From a git checkout, ``git`` holds the commit, branch, a dirty flag and:
+
+    - ``untracked``: every untracked file that git does not ignore, by name, size and SHA-256
+      (a symbolic link by its target, never followed), never by content: the first
+      ``untracked_max_files``, their count in ``untracked_files``;
+    - ``diff``: ``code.diff`` (written 0600 into ``out``) when some change was inlined:
+      tracked files' text changes, and the content of untracked files matching
+      ``untracked_content`` (an explicit opt-in; never a binary file or one whose name looks
+      secret, :func:`resireg_train.config.secrets.looks_secret`), at most ``diff_max_bytes`` in
+      all, so ``git apply code.diff`` on the commit gives the code that ran;
+    - ``left_out``: each change not inlined, by path, size, SHA-256 and reason (binary, a
+      secret-looking name, over ``diff_max_bytes``), and ``diff_bytes``.
+
+    Nothing here fails a run: a git error is recorded as ``git.error``."""
     try:
         version = md.version("resireg")
     except md.PackageNotFoundError:
@@ -117,26 +219,74 @@ def code_provenance(out: Path | None, package_dir: Path | None = None) -> dict[s
     root = _checkout_root(package_dir)
     if root is None:
         return {"version": version, "git": None}
+    try:
+        return {"version": version, "git": _git_record(root, out, settings or
+                                                       provenance_settings())}  # fmt: skip
+    except Exception as err:  # provenance never fails a run: say what could not be read
+        return {"version": version, "git": {"root": str(root),
+                                            "error": f"{type(err).__name__}: {err}"}}  # fmt: skip
+
+
+def _git_record(root: Path, out: Path | None, settings: Mapping[str, Any]) -> dict[str, Any]:
+    from resireg_train.config.secrets import looks_secret
+
+    cap = int(settings["diff_max_bytes"])
+    hash_max = int(settings["hash_max_bytes"])
+    patterns = [str(p) for p in settings.get("untracked_content") or []]
     commit = _git(root, "rev-parse", "HEAD").stdout.strip() or None
     branch = _git(root, "rev-parse", "--abbrev-ref", "HEAD").stdout.strip() or None
-    tracked = _git(root, "diff", "HEAD", "--binary").stdout
-    untracked = [n for n in _git(root, "ls-files", "--others", "--exclude-standard", "-z")
-                 .stdout.split("\0") if n]  # fmt: skip
-    left_out = [n for n in untracked if (root / n).stat().st_size > _UNTRACKED_MAX_BYTES]
-    # An untracked file's diff against /dev/null: `git apply` creates it (exit code 1: differs).
-    added = "".join(_git(root, "diff", "--no-index", "--binary", "--", os.devnull, n).stdout
-                    for n in untracked if n not in left_out)  # fmt: skip
-    dirty = bool(tracked or untracked)
-    record: dict[str, Any] = {"commit": commit, "branch": branch, "dirty": dirty, "diff": None,
-                              "root": str(root)}  # fmt: skip
-    if left_out:
-        record["untracked_left_out"] = left_out
-    if dirty and out is not None:
-        from resireg.integrity import atomic_write
+    tracked = _tracked_changes(root)
+    names = [n for n in _git(root, "ls-files", "--others", "--exclude-standard", "-z")
+             .stdout.split("\0") if n]  # fmt: skip
+    listed = [_identity(root, n, hash_max) for n in names[: int(settings["untracked_max_files"])]]
+    inlined: list[str] = []
+    left_out: list[dict[str, Any]] = []
+    used = 0
 
-        atomic_write(Path(out) / CODE_DIFF, tracked + added, what="uncommitted change")
+    def leave(name: str, reason: str) -> None:
+        known = next((e for e in listed if e["path"] == name), None) or _identity(
+            root, name, hash_max)  # fmt: skip
+        left_out.append({**known, "reason": reason})
+
+    def take(name: str, patch: str, binary: bool) -> None:
+        nonlocal used
+        size = len(patch.encode())
+        if binary:
+            leave(name, "binary")
+        elif looks_secret(name):
+            leave(name, "a secret-looking name: never inlined")
+        elif used + size > cap:
+            leave(name, f"over provenance.diff_max_bytes={cap}")
+        else:
+            inlined.append(patch)
+            used += size
+
+    for name, binary, patch in tracked:
+        take(name, patch, binary)
+    for entry in listed:
+        name = entry["path"]
+        if not any(fnmatch.fnmatch(name, p) for p in patterns) or "size" not in entry:
+            continue  # not opted in, or a link / not a regular file: recorded by name only
+        if looks_secret(name):
+            leave(name, "a secret-looking name: never inlined")
+            continue
+        if _binary(root / name):
+            leave(name, "binary")
+            continue
+        # its diff against /dev/null: `git apply` creates it (exit code 1: they differ)
+        take(name, _git(root, "diff", "--no-index", "--", os.devnull, name).stdout, False)
+    record: dict[str, Any] = {"commit": commit, "branch": branch,
+                              "dirty": bool(tracked or names), "diff": None,
+                              "root": str(root), "untracked": listed}  # fmt: skip
+    if len(names) > len(listed):
+        record["untracked_files"] = len(names)
+    if left_out:
+        record["left_out"] = left_out
+    if inlined and out is not None:
+        _write_private(Path(out) / CODE_DIFF, "".join(inlined))
         record["diff"] = CODE_DIFF
-    return {"version": version, "git": record}
+        record["diff_bytes"] = used
+    return record
 
 
 # -------------------------------------------------------------------------- environment
@@ -351,9 +501,19 @@ def _cli() -> str | None:
     return f"resireg-{HydraConfig.get().job.config_name}"
 
 
+def _guarded(what: Callable[[], Any]) -> Any:
+    """``what()``, or ``{"error": ...}`` naming why it could not be read: provenance never
+    fails a run (a dangling link in a data folder, a file removed meanwhile)."""
+    try:
+        return what()
+    except Exception as err:
+        return {"error": f"{type(err).__name__}: {err}"}
+
+
 def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = None) -> dict:
     """The provenance block written when a run starts (module docstring). ``previous``: the
-    block of the run this one resumes (its ``run_id`` is kept)."""
+    block of the run this one resumes (its ``run_id`` is kept). The command line is recorded
+    with every URL's password masked; environment variables are never recorded."""
     from omegaconf import OmegaConf
 
     try:
@@ -365,7 +525,7 @@ def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = N
     return {
         "run_id": run_id,
         "cli": _cli(),
-        "code": code_provenance(out),
+        "code": _guarded(lambda: code_provenance(out, settings=provenance_settings(cfg))),
         "environment": {
             "python": platform.python_version(),
             # every URL's password masked (a search's storage, a tracking URI)
@@ -376,8 +536,11 @@ def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = N
         "machine": machine_provenance(),
         "time": {"start": _now(), "end": None, "wall_seconds": None},
         "seeds": _seeds(plain),
-        "data": {key: data_identity(entry) for key, entry in _datasets(plain).items()},
-        "models": _models(plain),
+        "data": {
+            key: _guarded(lambda e=entry: data_identity(e))
+            for key, entry in _datasets(plain).items()
+        },  # fmt: skip
+        "models": _guarded(lambda: _models(plain)),
     }
 
 

@@ -1,13 +1,25 @@
-"""``results.json``: a run's record, read and merged without Lightning (the entry points write
-it before anything heavy is imported). The format is described in :mod:`resireg_train.runs.tracking`.
+"""``results.json``, a run's record, and :class:`RunRecord`, its one owner.
+
+A job (``resireg-train``, ``resireg-eval``, ``resireg-map``, each job of a multirun or search)
+holds one :class:`RunRecord` for its run folder from start to end: the job wrapper
+(:func:`resireg_train.cli.job.run_task`) creates it, :meth:`RunRecord.start` writes the status
+``running`` and the provenance and starts the run's trackers (each tracker that needs a
+network is checked first), the job body adds its fields through :meth:`RunRecord.update`, and
+:meth:`RunRecord.finish` writes the final status (``completed`` whenever the body returns) and
+the provenance's end, then hands the record to the trackers. Nothing else writes the file;
+readers of many records (``resireg-runs``, ``resireg-report``) use :meth:`RunRecord.read`.
+The fields are listed in docs/guide.md#run-records-and-faults.
 
 The file is strict JSON (RFC 8259), which has no NaN or infinity: Python's ``json`` would
 write them as bare ``NaN`` / ``Infinity``, which strict parsers (``jq``, JavaScript's
-``JSON.parse``, Go, serde) reject. :func:`update_results` writes such a value as ``null`` and
+``JSON.parse``, Go, serde) reject. :meth:`RunRecord.update` writes such a value as ``null`` and
 says why in the record: ``non_finite`` holds the reason and, per kind (``NaN``,
 ``Infinity``, ``-Infinity``), the JSON Pointers (RFC 6901) of the values it replaced, e.g.
 ``/per_class_iou/bb/wall`` or ``/final/val~1ovss~1ade20k~1miou_bb`` (``~1`` is a ``/`` inside a
-key). :func:`read_results` puts the numbers back, so Python readers see what was recorded.
+key). :meth:`RunRecord.read` puts the numbers back, so Python readers see what was recorded.
+Every string is written with the password of any URL in it masked
+(:func:`resireg_train.config.secrets.mask_text`): a command line or a config value holding
+``http://user:pass@host`` is recorded as ``http://user:***@host``.
 """
 
 from __future__ import annotations
@@ -15,19 +27,23 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from resireg.errors import ResiregError
 from resireg.integrity import atomic_write
+from resireg_train.config.secrets import mask_text
 
 __all__ = [
     "NON_FINITE",
     "RESULTS_FILE",
+    "RecordError",
+    "RunRecord",
     "flat",
     "metric_mode",
-    "read_results",
     "strict_json",
-    "update_results",
 ]
 
 RESULTS_FILE = "results.json"
@@ -37,9 +53,38 @@ _REASON = (
     "strict JSON has no NaN or infinity, so these values are null in this file. NaN is an "
     "undefined value, 0/0: e.g. the IoU of a class that neither the ground truth nor the "
     "prediction holds (excluded from the mIoU), or a score over no image. Keys are JSON "
-    "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.runs.record.read_results "
+    "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.runs.record.RunRecord.read "
     "restores the numbers"
 )
+
+#: The fields every reader relies on, with the JSON types they may hold (``None``: null). A
+#: ``results.json`` whose fields do not fit (another tool's file, a JSON list) is not a run
+#: record (:class:`RecordError`).
+_FIELDS: dict[str, tuple[type, ...]] = {
+    "status": (str,),
+    "name": (str, int, float, type(None)),
+    "error": (str, type(None)),
+    "output_dir": (str, type(None)),
+    "export": (str, type(None)),
+    "final": (dict,),
+    "best": (dict,),
+    "history": (list,),
+    "params": (dict,),
+    "encoder": (dict,),
+    "tracking": (dict,),
+    "provenance": (dict,),
+}
+_PROVENANCE: dict[str, tuple[type, ...]] = {
+    "run_id": (str,),
+    "cli": (str, type(None)),
+    **{k: (dict, type(None)) for k in ("code", "environment", "machine", "time", "seeds",
+                                       "data", "models")},
+}  # fmt: skip
+
+
+class RecordError(ResiregError, ValueError):
+    """A ``results.json`` that is not a run record: not JSON, not a JSON object, or a field of
+    another type than a run record's (the message names the file and the field)."""
 
 
 def metric_mode(name: str) -> str | None:
@@ -72,14 +117,17 @@ def _kind(value: float) -> str:
 
 
 def strict_json(record: dict[str, Any]) -> tuple[dict[str, Any], dict[str, list[str]]]:
-    """``record`` with every non-finite float replaced by ``None``, and the JSON Pointers of
-    the replaced values by kind (``{"NaN": ["/per_class_iou/bb/wall"], ...}``)."""
+    """``record`` with every non-finite float replaced by ``None`` and every string's URL
+    passwords masked, and the JSON Pointers of the replaced numbers by kind
+    (``{"NaN": ["/per_class_iou/bb/wall"], ...}``)."""
     found: dict[str, list[str]] = {}
 
     def clean(value: Any, path: tuple[Any, ...]) -> Any:
         if isinstance(value, float) and not math.isfinite(value):
             found.setdefault(_kind(value), []).append(_pointer(path))
             return None
+        if isinstance(value, str):
+            return mask_text(value)
         if isinstance(value, dict):
             return {k: clean(v, (*path, k)) for k, v in value.items()}
         if isinstance(value, (list, tuple)):
@@ -110,29 +158,234 @@ def _restore(record: dict[str, Any], found: dict[str, Any]) -> None:
                 continue  # the value is no longer there (the record was edited)
 
 
-def read_results(directory: str | os.PathLike) -> dict[str, Any]:
-    """The record of ``<directory>/results.json`` (``{}`` if absent), non-finite values
-    restored (``null`` listed in ``non_finite`` -> NaN / inf; the field itself dropped)."""
-    path = Path(directory) / RESULTS_FILE
-    if not path.is_file():
-        return {}
-    record = json.loads(path.read_text())
-    found = record.pop(NON_FINITE, None)
-    if isinstance(found, dict):
-        _restore(record, found)
+def _type_name(value: Any) -> str:
+    return {dict: "an object", list: "a list", str: "a string", bool: "a boolean",
+            type(None): "null"}.get(type(value), "a number")  # fmt: skip
+
+
+def _check_shape(record: Any, path: Path) -> dict[str, Any]:
+    """``record`` if it has a run record's shape (:data:`_FIELDS`), else :class:`RecordError`."""
+    if not isinstance(record, dict):
+        raise RecordError(f"{path}: not a run record (a JSON document holding "
+                          f"{_type_name(record)}, not an object)")  # fmt: skip
+    if "status" not in record:
+        raise RecordError(f"{path}: not a run record (no 'status' field; another tool's file?)")
+    blocks = ((_FIELDS, "", record), (_PROVENANCE, "provenance.", record.get("provenance") or {}))
+    for fields, where, node in blocks:
+        for key, types in fields.items():
+            if key in node and not isinstance(node[key], types):
+                raise RecordError(
+                    f"{path}: not a run record ('{where}{key}' holds {_type_name(node[key])})"
+                )
     return record
 
 
-def update_results(directory: str | os.PathLike, **fields: Any) -> dict[str, Any]:
-    """Merge ``fields`` into ``<directory>/results.json`` (written atomically, strict JSON:
-    see the module docstring); returns the merged record as Python values (NaN included)."""
-    directory = Path(directory)
-    results = {**read_results(directory), **fields}
-    results.pop(NON_FINITE, None)
-    written, found = strict_json(results)
-    if found:
-        written[NON_FINITE] = {"reason": _REASON, **found}
-    directory.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(written, indent=2, allow_nan=False)
-    atomic_write(directory / RESULTS_FILE, text, what="run record")
-    return results
+class RunRecord:
+    """The record of the run in ``folder`` (its ``results.json``), for the run's whole life.
+
+    Args:
+        folder: the run folder.
+        writer: whether this process writes the record (rank 0 of a run; ranks > 0 only read:
+            their :meth:`update` and :meth:`finish` do nothing and return ``{}``).
+        report: where a final status that could not be written is reported besides stderr
+            (the job wrapper passes a writer to the run's log file).
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        *,
+        writer: bool = True,
+        report: Callable[[str], None] | None = None,
+    ) -> None:
+        self.folder = Path(folder)
+        self.writer = writer
+        self._report = report
+        self.trackers: Any = None  # the run's trackers (RunTrackers), once started
+
+    def __repr__(self) -> str:
+        return f"RunRecord({str(self.folder)!r})"
+
+    def __getstate__(self) -> dict[str, Any]:
+        """A copy sent to another process (a spawned DDP rank: the per-epoch callback holds the
+        record) only adds fields; the run's start, end and trackers stay with the job's own
+        process."""
+        return {"folder": self.folder, "writer": self.writer, "_report": None, "trackers": None}
+
+    # -- reading ----------------------------------------------------------------------------
+    @property
+    def path(self) -> Path:
+        """The record's file, ``<folder>/results.json``."""
+        return self.folder / RESULTS_FILE
+
+    @staticmethod
+    def exists(folder: str | os.PathLike) -> bool:
+        """Whether ``folder`` holds a run record (a ``results.json`` file)."""
+        return (Path(folder) / RESULTS_FILE).is_file()
+
+    @staticmethod
+    def read(folder: str | os.PathLike) -> dict[str, Any]:
+        """The record of ``<folder>/results.json`` (``{}`` if absent), non-finite values
+        restored (``null`` listed in ``non_finite`` -> NaN / inf; the field itself dropped).
+        A file that is not a run record (not JSON, not an object, a field of another type)
+        raises :class:`RecordError` naming it; an unreadable one, ``OSError``."""
+        path = Path(folder) / RESULTS_FILE
+        if not path.is_file():
+            return {}
+        try:
+            record = json.loads(path.read_bytes())
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise RecordError(f"{path}: not a run record (not JSON: {err})") from None
+        found = _check_shape(record, path).pop(NON_FINITE, None)
+        if isinstance(found, dict):
+            _restore(record, found)
+        return record
+
+    def fields(self) -> dict[str, Any]:
+        """The record as it is now (:meth:`read`)."""
+        return self.read(self.folder)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """One field of the record (``default`` when absent)."""
+        return self.fields().get(key, default)
+
+    # -- writing ----------------------------------------------------------------------------
+    def update(self, **fields: Any) -> dict[str, Any]:
+        """Merge ``fields`` into the record (written atomically, strict JSON, URLs masked: see
+        the module docstring); returns the merged record as Python values (NaN included)."""
+        if not self.writer:
+            return {}
+        results = {**self.fields(), **fields}
+        results.pop(NON_FINITE, None)
+        written, found = strict_json(results)
+        if found:
+            written[NON_FINITE] = {"reason": _REASON, **found}
+        self.folder.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(written, indent=2, allow_nan=False)
+        atomic_write(self.path, text, what="run record")
+        return results
+
+    def set_aside(self) -> Path | None:
+        """Rename an earlier run's record in the folder to the first free
+        ``results.previous-<n>.json`` (nothing is lost, nothing is merged); its new path, or
+        ``None`` when there was none."""
+        if not self.path.is_file():
+            return None
+        n = 1
+        while (kept := self.folder / f"{self.path.stem}.previous-{n}{self.path.suffix}").exists():
+            n += 1
+        os.replace(self.path, kept)
+        return kept
+
+    # -- the run's life ---------------------------------------------------------------------
+    def start(self, cfg: Any, *, fresh: bool = False) -> None:
+        """Start the run of the composed config ``cfg``: its trackers are read from
+        ``cfg.logger`` (:class:`resireg_train.runs.trackers.RunTrackers`); the writer then
+        sets an earlier record aside (``fresh``: a job that never resumes), writes ``name``,
+        ``status: running`` and the provenance's start (a resumed run keeps its run id), masks
+        the URL passwords in the config files Hydra saved, and starts the trackers: one that
+        needs a network is checked first (``logger.<name>.check_timeout``) and refused
+        (:class:`~resireg_train.runs.trackers.TrackerUnreachable`) or, with
+        ``logger.<name>.unreachable=warn``, left out with a warning."""
+        import logging
+
+        from resireg_train.runs.provenance import start_provenance
+        from resireg_train.runs.trackers import RunTrackers
+
+        self.trackers = RunTrackers(cfg, self)
+        if not self.writer:
+            return
+        if fresh and (kept := self.set_aside()) is not None:
+            logging.getLogger(__name__).warning(
+                "%s held an earlier run's record: kept as %s", self.folder, kept.name
+            )
+        previous = self.get("provenance")  # a resumed run keeps its run id
+        self.update(name=cfg.get("name"), status="running", error=None,
+                    output_dir=str(self.folder),
+                    provenance=start_provenance(cfg, self.folder, previous))  # fmt: skip
+        mask_saved_configs(self.folder)
+        self.trackers.start()
+
+    def finish(self, status: str = "completed", error: str | None = None) -> dict[str, Any]:
+        """End the run: write ``status`` (``completed`` when the job body returned: a resumed
+        training run with nothing left to train included), ``error`` and the provenance's end,
+        then hand the record to the trackers (a tracker that fails is a warning, never a lost
+        run). A record that cannot be written (a full disk) never hides the run's own error:
+        stderr and the run's log file say which status could not be recorded and which one
+        the file still reads. Returns the record."""
+        if not self.writer:
+            return {}
+        from resireg_train.runs.provenance import finish_provenance
+
+        fields: dict[str, Any] = {"status": status, "error": error}
+        try:
+            fields["provenance"] = finish_provenance(self.get("provenance") or {}, self.folder)
+        except (OSError, ValueError):
+            pass  # the record cannot be read: the status is what matters
+        try:
+            record = self.update(**fields)
+        except OSError as err:
+            try:
+                stale = self.get("status")
+            except (OSError, ValueError):
+                stale = None
+            message = (
+                f"could not record status {status!r} in {self.path} ({err}); it still reads "
+                f"status {stale!r} although the run ended {status!r}: {flat(str(error))}"
+            )
+            sys.stderr.write(f"error: {mask_text(message)}\n")
+            sys.stderr.flush()
+            if self._report is not None:
+                self._report(message)
+            record = {**fields}
+        if self.trackers is not None:
+            self.trackers.finish(record, failed=status != "completed")
+        return record
+
+
+def mask_saved_configs(folder: Path) -> None:
+    """Mask URL passwords in the config files Hydra saved for the run in ``folder``
+    (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and, for a multirun job, in
+    its sweep's ``multirun.yaml``: a tracking URI given on the command line would otherwise
+    keep its password there. A resume compares configs with their URLs masked
+    (:func:`resireg_train.cli.train.check_resume`)."""
+    files = sorted((folder / ".hydra").glob("*.yaml"))
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+            files.append(Path(str(HydraConfig.get().sweep.dir)) / "multirun.yaml")
+    except ImportError:  # pragma: no cover (Hydra is the train extra's)
+        pass
+    for path in files:
+        try:
+            text = path.read_text()
+        except OSError:
+            continue
+        masked = mask_text(text)
+        if masked != text:
+            atomic_write(path, masked, what="saved config", mode=path.stat().st_mode & 0o777)
+
+
+def job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
+    """Every job record of the sweep folder ``sweep`` (``<sweep>/<job>/results.json``), by
+    job folder: (mtime ns, size), as the file system gives them."""
+    records = {}
+    for path in sweep.glob(f"*/{RESULTS_FILE}"):
+        try:
+            stat = path.stat()
+        except OSError:  # removed meanwhile
+            continue
+        records[path.parent] = (stat.st_mtime_ns, stat.st_size)
+    return records
+
+
+def masked_tree(tree: Any) -> Any:
+    """A copy of a config tree (mappings and lists) with the URL passwords of its strings
+    masked: what records, trackers and the resume check compare and show."""
+    if isinstance(tree, Mapping):
+        return {k: masked_tree(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return [masked_tree(v) for v in tree]
+    return mask_text(tree) if isinstance(tree, str) else tree

@@ -1,53 +1,122 @@
-"""One tracker for every run: what ``logger=mlflow`` / ``tensorboard`` / ``csv`` record of a
-``resireg-train``, ``resireg-eval`` or ``resireg-map`` run when it ends (``logger=wandb``:
-:func:`resireg_train.runs.tracking.wandb_runs`, around the job).
+"""The trackers by name (``logger=<name>``, ``conf/logger/<name>.yaml``): one table,
+:data:`TRACKER_SPECS`, read before anything heavy loads, and the trackers of one run
+(:class:`RunTrackers`), which its :class:`~resireg_train.runs.record.RunRecord` drives.
 
-:func:`record_run` is called by the job wrapper (:func:`resireg_train.cli.job.run_task`) at
-the end of every run, completed or not, and reads everything from the run folder:
+A tracker does up to four things, each a method of its :class:`Tracker` class
+(:mod:`resireg_train.runs.loggers` holds the four built in):
 
-- **MLflow** (``conf/logger/mlflow.yaml``; default store: one SQLite database under
-  ``paths.log_dir``, ``mlflow ui --backend-store-uri sqlite:///outputs/mlflow.db``; a server:
-  ``logger.mlflow.tracking_uri=http://host:5000``): one MLflow run per job (a training run
-  reuses the run Lightning's ``MLFlowLogger`` logged its curves to), with the flattened config
-  as parameters, the provenance block as ``provenance.*`` tags, every finite final metric, the
-  per-class IoU as a table artifact (``per_class_iou.json``) and the run's files as artifacts
-  (``results.json``, CSVs, PNGs, ``code.diff``, the PLY when under 64 MiB, else its path as a
-  tag; a training run's export folder with its model card under ``export/``); the jobs of one multirun or search are children of one parent run named after the sweep
-  (MLflow's ``mlflow.parentRunId`` tag). The run ends FINISHED, FAILED or KILLED with the job.
-- **TensorBoard** (evaluations and maps; training logs its own curves): the final metrics as
-  scalars and the provenance as text, under ``<run>/tensorboard``.
-- **CSV**: ``metrics.csv`` is training's; an evaluation or a map writes its final metrics as
-  one row of ``<run>/metrics.csv``.
+- :meth:`Tracker.address`: the network address it needs, checked before any work
+  (:func:`reach`, ``logger.<name>.check_timeout`` seconds): an unreachable tracker refuses
+  the run in one line (:class:`TrackerUnreachable`) or, with ``logger.<name>.unreachable=warn``,
+  is left out with a warning and the run completes with its local records (``results.json``'s
+  ``tracking.unreachable`` names it);
+- :meth:`Tracker.begin`: at the run's start (W&B: its run, given the resolved config);
+- :meth:`Tracker.lightning_logger`: a training run's Lightning logger (its curves);
+- :meth:`Tracker.end`: at the run's end, after the final status is written, with the record
+  (MLflow: parameters, provenance tags, final metrics, artifacts; TensorBoard and CSV: an
+  evaluation's or a map's final metrics; W&B: the summary, then the run is finished).
+
+Adding a tracker:
+
+1. a :class:`Tracker` subclass (its ``address``, ``begin``, ``lightning_logger``, ``end``:
+   those it needs), e.g. in :mod:`resireg_train.runs.loggers`;
+2. a :class:`TrackerSpec` entry below: its name, the class as ``"module:Class"``, one line of
+   what it records, and the rules of its own keys (those that are not its Lightning logger's
+   keywords: ``check_timeout``, ``unreachable``, ``filename``...);
+3. ``conf/logger/<name>.yaml`` holding one block, ``<name>:``, with its Lightning logger's
+   ``_target_`` and keywords (a training run instantiates it) and its own keys' defaults.
+
+``logger=<name>`` then runs it for ``resireg-train``, ``resireg-eval`` and ``resireg-map``;
+``tests/test_records.py`` checks that every table entry has its conf file and every conf file
+its entry.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import logging
 import math
 import re
+import socket
+import urllib.request
 from collections.abc import Mapping
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any
+from urllib.parse import urlsplit
 
-from resireg.specs.tree import flatten
-from resireg_train.runs.record import RESULTS_FILE, read_results
+from resireg.errors import ConfigError, ResiregError
+from resireg.specs.rules import Rule, number, one_of
+from resireg.specs.table import SpecTable
+from resireg_train.config.secrets import mask_text, mask_url
 
 __all__ = [
-    "MLFLOW_ARTIFACT_MAX_BYTES",
+    "TRACKER_SPECS",
+    "RunTrackers",
+    "Tracker",
+    "TrackerSpec",
+    "TrackerUnreachable",
     "map_counts",
     "mlflow_key",
-    "record_run",
+    "reach",
     "run_metrics",
-    "to_mlflow",
 ]
 
 log = logging.getLogger(__name__)
 
-#: Files larger than this are recorded by path (a tag), not uploaded.
-MLFLOW_ARTIFACT_MAX_BYTES = 64 << 20
-_STATUS = {"completed": "FINISHED", "failed": "FAILED", "interrupted": "KILLED", "pruned": "KILLED"}
+#: The own keys of a tracker that needs a network: how long to wait for it, and what to do
+#: when it cannot be reached.
+_NETWORK: dict[str, Rule] = {
+    "check_timeout": number(0, strict=True, finite=True),
+    "unreachable": one_of(("refuse", "warn")),
+}
+
+
+@dataclass(frozen=True)
+class TrackerSpec:
+    """One tracker: its name (the key under ``logger:``), its :class:`Tracker` class
+    (``"module:Class"``), what it records, and the rules of its own keys in
+    ``conf/logger/<name>.yaml`` (the keys its Lightning logger does not take)."""
+
+    name: str
+    target: str
+    summary: str
+    params: dict[str, Rule] = field(default_factory=dict)
+
+    @property
+    def config(self) -> str:
+        """Its defaults' file."""
+        return f"conf/logger/{self.name}.yaml"
+
+    def load(self) -> type[Tracker]:
+        """The :class:`Tracker` class (imported now)."""
+        from resireg.specs.table import load
+
+        return load(self.target)
+
+
+TRACKER_SPECS: SpecTable[TrackerSpec] = SpecTable("tracker", [
+    TrackerSpec("csv", "resireg_train.runs.loggers:CsvTracker",
+                "metrics.csv: training's every step and epoch (always written), an evaluation's "
+                "or a map's final metrics as one row", {"filename": (
+                    lambda v: isinstance(v, str) and bool(v) and "/" not in v,
+                    "a file name (no folder)")}),
+    TrackerSpec("tensorboard", "resireg_train.runs.loggers:TensorBoardTracker",
+                "<run>/tensorboard: training's curves; an evaluation's or a map's final "
+                "metrics as scalars and its provenance as text"),
+    TrackerSpec("mlflow", "resireg_train.runs.loggers:MlflowTracker",
+                "one MLflow run per job (a sweep's jobs under one parent): config, provenance "
+                "tags, final metrics, per-class IoU table, the run's files", dict(_NETWORK)),
+    TrackerSpec("wandb", "resireg_train.runs.loggers:WandbTracker",
+                "one W&B run per job (a sweep's jobs in one group): config, curves, "
+                "results.json's summary", dict(_NETWORK)),
+], where="resireg_train.runs.trackers")  # fmt: skip
+
+
+class TrackerUnreachable(ResiregError, RuntimeError):
+    """A tracker's server could not be reached before the run started (one line: the tracker,
+    the address with its password masked, the reason, and the keys that change it)."""
+
+
+# --------------------------------------------------------------------- what trackers show
 _KEY = re.compile(r"[^A-Za-z0-9_\-. /]")  # what MLflow accepts in a metric or param name
 
 
@@ -79,130 +148,186 @@ def run_metrics(record: Mapping[str, Any]) -> dict[str, float]:
     return {**metrics, **map_counts(record)}
 
 
-def _group() -> tuple[str | None, str | None]:
-    """``(job label, sweep folder)`` of a multirun job, ``(None, None)`` for a single run."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
-        runtime = HydraConfig.get()
-        return str(runtime.job.num), str(runtime.sweep.dir)
-    return None, None
+# --------------------------------------------------------------------------- reachability
+_PORTS = {"http": 80, "https": 443, "postgresql": 5432, "mysql": 3306, "mssql": 1433}
 
 
-def _parent_run(client: Any, experiment_id: str, sweep: str, name: str) -> str:
-    """The MLflow run that stands for the sweep folder ``sweep`` (created on first use; the
-    jobs of a sweep find it by its ``resireg.sweep`` tag)."""
-    quoted = sweep.replace("'", "\\'")
-    found = client.search_runs([experiment_id], f"tags.`resireg.sweep` = '{quoted}' and "
-                               "tags.`resireg.parent` = 'true'", max_results=1)  # fmt: skip
-    if found:
-        return found[0].info.run_id
-    run = client.create_run(experiment_id, run_name=f"{name} sweep {Path(sweep).name}",
-                            tags={"resireg.sweep": sweep, "resireg.parent": "true"})  # fmt: skip
-    return run.info.run_id
+def reach(url: str, timeout: float) -> str | None:
+    """``None`` if a TCP connection to ``url``'s host and port (or to the proxy the
+    environment names for it, ``https_proxy`` / ``no_proxy``) opens within ``timeout``
+    seconds, else why not. A URL without a host (``sqlite:///...``, ``file:``, a path) needs no
+    network: ``None``. Only the connection is tried (no request, no credential sent)."""
+    parts = urlsplit(url)
+    if not parts.hostname:
+        return None
+    scheme = parts.scheme.split("+")[0].lower()
+    try:
+        port = parts.port or _PORTS.get(scheme)
+    except ValueError as err:  # a port that is not a number
+        return str(err)
+    if port is None:
+        return None
+    host = parts.hostname
+    proxy = urllib.request.getproxies().get(scheme)
+    if proxy and not urllib.request.proxy_bypass(host):
+        via = urlsplit(proxy if "://" in proxy else f"http://{proxy}")
+        host, port = via.hostname or host, via.port or 8080
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return None
+    except TimeoutError:
+        return f"no answer within {timeout:g} s"
+    except OSError as err:
+        return str(err.strerror or err)
 
 
-def to_mlflow(settings: Mapping[str, Any], cfg: Any, out: Path) -> str:
-    """Log the run in ``out`` to MLflow (module docstring); ``settings``: the
-    ``logger.mlflow`` entry (``tracking_uri``, ``experiment_name``, ``run_name``). Returns the
-    MLflow run id."""
-    from mlflow import MlflowClient
-    from mlflow.entities import Metric, Param, RunTag
-    from omegaconf import OmegaConf
+# ------------------------------------------------------------------------------- trackers
+class Tracker:
+    """One tracker of one run (base class: every hook does nothing).
 
-    record = read_results(out)
-    client = MlflowClient(tracking_uri=str(settings.get("tracking_uri")))
-    name = str(settings.get("experiment_name") or "resireg")
-    experiment = client.get_experiment_by_name(name)
-    experiment_id = experiment.experiment_id if experiment else client.create_experiment(name)
-    tracking = record.get("tracking") or {}
-    run_id = tracking.get("mlflow_run_id")  # the training run Lightning's logger made
-    job, sweep = _group()
-    tags = {"resireg.run_dir": str(out.resolve())}
-    if sweep:
-        tags["mlflow.parentRunId"] = _parent_run(client, experiment_id, sweep, str(cfg.name))
-        tags["resireg.job"] = job
-    if run_id is None:
-        run_name = str(settings.get("run_name") or cfg.name)
-        run_id = client.create_run(experiment_id, run_name=run_name if job is None
-                                   else f"{run_name}-{job}").info.run_id  # fmt: skip
-        try:
-            config = OmegaConf.to_container(cfg, resolve=True)
-        except Exception:  # an interpolation only Hydra's runtime resolves
-            config = OmegaConf.to_container(cfg, resolve=False)
-        params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in flatten(config).items()]
-        for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
-            client.log_batch(run_id, params=params[i : i + 100])
-    tags.update({mlflow_key(k)[:250]: str(v)[:5000]
-                 for k, v in flatten(record.get("provenance") or {}, "provenance").items()})  # fmt: skip
-    tags["resireg.status"] = str(record.get("status"))
-    metrics = [Metric(mlflow_key(k), v, 0, 0) for k, v in run_metrics(record).items()]
-    tag_list = [RunTag(k, v) for k, v in tags.items()]
-    for i in range(0, max(len(metrics), len(tag_list)), 100):
-        client.log_batch(run_id, metrics=metrics[i : i + 100], tags=tag_list[i : i + 100])
-    per_class = record.get("per_class_iou")
-    if per_class:
-        classes = sorted({c for ious in per_class.values() for c in ious})
-        table = {"class": classes, **{v: [ious.get(c) for c in classes]
-                                      for v, ious in per_class.items()}}  # fmt: skip
-        client.log_table(run_id, data=table, artifact_file="per_class_iou.json")
-    for path in sorted(out.iterdir()):
-        if not path.is_file() or path.name.startswith("."):
-            continue
-        if path.suffix in (".json", ".csv", ".png", ".md", ".diff", ".ply", ".rrd", ".log"):
-            if path.stat().st_size <= MLFLOW_ARTIFACT_MAX_BYTES:
-                client.log_artifact(run_id, str(path))
-            else:
-                client.set_tag(run_id, f"resireg.file.{path.name}", str(path.resolve()))
-    export = Path(str(record["export"])) if record.get("export") else None
-    if export is not None and export.is_dir():  # a training run's export, with its model card
-        for path in sorted(export.iterdir()):
-            if path.is_file() and path.stat().st_size <= MLFLOW_ARTIFACT_MAX_BYTES:
-                client.log_artifact(run_id, str(path), artifact_path="export")
-    client.set_terminated(run_id, _STATUS.get(str(record.get("status")), "FINISHED"))
-    return run_id
+    Args:
+        spec: its table entry.
+        settings: its ``logger.<name>`` block (plain values).
+        cfg: the run's composed config.
+        record: the run's :class:`~resireg_train.runs.record.RunRecord`.
+    """
 
+    def __init__(self, spec: TrackerSpec, settings: dict[str, Any], cfg: Any, record: Any):
+        self.spec = spec
+        self.settings = settings
+        self.cfg = cfg
+        self.record = record
+        self._logger: Any = None
 
-def _to_tensorboard(out: Path) -> None:
-    from torch.utils.tensorboard import SummaryWriter
+    @property
+    def training(self) -> bool:
+        """Whether the run trains (Lightning logs its curves through :meth:`lightning_logger`)."""
+        return "trainer" in self.cfg
 
-    record = read_results(out)
-    with SummaryWriter(str(out / "tensorboard")) as writer:
-        for key, value in run_metrics(record).items():
-            writer.add_scalar(key, value, 0)
-        writer.add_text("provenance", "```\n" + json.dumps(record.get("provenance") or {},
-                                                           indent=2) + "\n```")  # fmt: skip
+    def own(self, key: str) -> Any:
+        """One of its own keys (``logger.<name>.<key>``); conf/logger/<name>.yaml sets each."""
+        if key not in self.settings:
+            raise ConfigError(f"logger.{self.spec.name}.{key}: missing ({self.spec.config} "
+                              "sets it)")  # fmt: skip
+        return self.settings[key]
+
+    def logger_settings(self) -> dict[str, Any]:
+        """Its block without its own keys: its Lightning logger's ``_target_`` and keywords."""
+        return {k: v for k, v in self.settings.items() if k not in self.spec.params}
+
+    def address(self) -> str | None:
+        """The URL it must reach over the network (checked before any work), or ``None``."""
+        return None
+
+    def begin(self) -> None:
+        """At the run's start, after the check."""
+
+    def lightning_logger(self, resume_step: int | None) -> Any:
+        """A training run's Lightning logger: its block's ``_target_`` instantiated (made
+        once); ``None`` without one."""
+        if self._logger is None:
+            settings = self.logger_settings()
+            if "_target_" not in settings:
+                return None
+            import hydra
+
+            self._logger = hydra.utils.instantiate(settings)
+        return self._logger
+
+    def end(self, record: dict[str, Any], failed: bool) -> dict[str, Any] | None:
+        """At the run's end, after the final status is written: record the run (``record``:
+        its ``results.json``). Returns fields to add to the record's ``tracking``, or
+        ``None``."""
+        return None
 
 
-def _to_csv(out: Path, filename: str) -> None:
-    metrics = run_metrics(read_results(out))
-    with open(out / filename, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=sorted(metrics))
-        writer.writeheader()
-        writer.writerow(metrics)
+class RunTrackers:
+    """The trackers of one run: those ``cfg.logger`` names, in its order, built from
+    :data:`TRACKER_SPECS` (an unknown name is a :class:`ConfigError` naming the closest),
+    their own keys checked by the entry's rules. Driven by the run's record."""
 
+    def __init__(self, cfg: Any, record: Any) -> None:
+        from omegaconf import OmegaConf
 
-def record_run(cfg: Any, out: Path, training: bool) -> None:
-    """Send the finished run in ``out`` to the trackers of ``cfg.logger`` (module docstring;
-    training logs its own curves and CSV through Lightning). A tracker that cannot be reached
-    is a warning, never a lost run: ``results.json`` keeps everything."""
-    loggers = cfg.get("logger") or {}
-    if not (out / RESULTS_FILE).is_file():
-        return
-    for kind, settings in loggers.items():
-        if not settings:
-            continue
-        try:
-            if kind == "mlflow":
-                run_id = to_mlflow(settings, cfg, out)
-                from resireg_train.runs.record import update_results
+        self.cfg = cfg
+        self.record = record
+        self.trackers: list[Tracker] = []
+        self.unreachable: dict[str, str] = {}
+        self._begun: list[Tracker] = []
+        loggers = cfg.get("logger") or {}
+        for name, settings in loggers.items():
+            if not settings:
+                continue
+            spec = TRACKER_SPECS.find(name)
+            if spec is None:
+                raise ConfigError(TRACKER_SPECS.unknown(name, setting="logger"))
+            plain = OmegaConf.to_container(settings, resolve=True) if OmegaConf.is_config(
+                settings) else dict(settings)  # fmt: skip
+            errors = [f"logger.{name}.{key}={plain[key]!r}: expected {expected}"
+                      for key, (check, expected) in spec.params.items()
+                      if key in plain and not check(plain[key])]  # fmt: skip
+            if errors:
+                raise ConfigError("; ".join(errors))
+            self.trackers.append(spec.load()(spec, plain, cfg, record))
 
-                update_results(out, tracking={**(read_results(out).get("tracking") or {}),
-                                              "mlflow_run_id": run_id})  # fmt: skip
-            elif kind == "tensorboard" and not training:
-                _to_tensorboard(out)
-            elif kind == "csv" and not training:
-                _to_csv(out, str(settings.get("filename") or "metrics.csv"))
-        except Exception as err:  # a tracker down must not fail a finished run
-            log.warning("logger.%s: could not record the run in %s: %s", kind, out, err)
+    def names(self) -> list[str]:
+        return [t.spec.name for t in self.trackers]
+
+    def start(self) -> None:
+        """Check every tracker that needs a network (:func:`reach`), then begin each. An
+        unreachable one raises :class:`TrackerUnreachable` (``unreachable: refuse``) or is
+        left out with a warning (``warn``), named in ``results.json``'s ``tracking``."""
+        kept = []
+        for tracker in self.trackers:
+            url = tracker.address()
+            if url is not None:
+                timeout = float(tracker.own("check_timeout"))
+                why = reach(url, timeout)
+                if why is not None:
+                    name = tracker.spec.name
+                    line = (f"logger.{name}: cannot reach {mask_url(url)} ({why}); start it, "
+                            f"fix its address, or set logger.{name}.unreachable=warn to run "
+                            "with local records only")  # fmt: skip
+                    if tracker.own("unreachable") != "warn":
+                        raise TrackerUnreachable(line)
+                    log.warning("%s; this run goes on without it", line.split("; start")[0])
+                    self.unreachable[name] = mask_text(why)
+                    continue
+            kept.append(tracker)
+        self.trackers = kept
+        if self.unreachable:
+            tracking = self.record.get("tracking") or {}
+            self.record.update(tracking={**tracking, "unreachable": self.unreachable})
+        for tracker in self.trackers:
+            tracker.begin()
+            self._begun.append(tracker)
+
+    def lightning_loggers(self, resume_step: int | None) -> list[Any]:
+        """A training run's Lightning loggers: ``metrics.csv``'s first (always: it is the
+        training's own record), then each tracker's (:meth:`Tracker.lightning_logger`)."""
+        from resireg_train.runs.loggers import CsvTracker
+
+        csv = next((t for t in self.trackers if isinstance(t, CsvTracker)), None)
+        loggers = [(csv or CsvTracker.always(self.cfg, self.record)).lightning_logger(resume_step)]
+        for tracker in self.trackers:
+            if tracker is not csv and (made := tracker.lightning_logger(resume_step)) is not None:
+                loggers.append(made)
+        return loggers
+
+    def finish(self, record: dict[str, Any], failed: bool) -> None:
+        """Each started tracker records the finished run (:meth:`Tracker.end`); a tracker that
+        fails is a warning naming it, never a lost run (``results.json`` keeps everything)."""
+        added: dict[str, Any] = {}
+        for tracker in self._begun:
+            try:
+                added.update(tracker.end(record, failed) or {})
+            except Exception as err:  # a tracker down must not fail a finished run
+                log.warning("logger.%s: could not record the run in %s: %s", tracker.spec.name,
+                            self.record.folder, mask_text(str(err)))  # fmt: skip
+        self._begun = []
+        if added:
+            try:
+                tracking = self.record.get("tracking") or {}
+                self.record.update(tracking={**tracking, **added})
+            except OSError as err:
+                log.warning("could not add %s to %s: %s", sorted(added), self.record.path, err)

@@ -13,7 +13,7 @@ from typing import Any
 import lightning as L
 import optuna
 
-from resireg_train.runs.tracking import epoch_metrics
+from resireg_train.runs.epochs import epoch_metrics
 from resireg_train.sweeps.storage import open_storage, quiet_optuna
 
 __all__ = ["OptunaPruning", "TrialPrunedStop"]

@@ -1,9 +1,10 @@
-"""Run records: a CSV logger that survives resume, ``results.json`` (final + best metrics), and
-the W&B runs of ``logger=wandb`` (one per job, named by the project's run id, finished at the
-job's end with the config and ``results.json``'s summary: :func:`wandb_logger`, :func:`wandb_runs`).
+"""What a training run records every epoch (Lightning): :class:`ResultsTracker`, the callback
+that keeps the run's :class:`~resireg_train.runs.record.RunRecord` up to date, the epoch-level
+values it takes (:func:`epoch_metrics`), and :class:`ResumableCSVLogger`, the ``metrics.csv``
+that survives a resume (the ``csv`` tracker's Lightning logger, :mod:`resireg_train.runs.loggers`).
 
-``results.json`` is what sweeps are summarised from (``resireg-report``). It is rewritten
-at the end of every epoch, so an interrupted or failed run still reports how far it got::
+``results.json`` is rewritten at the end of every epoch, so an interrupted or failed run still
+reports how far it got::
 
     {"status": "running" | "completed" | "failed", "error": null | "...",
      "epoch": 3, "global_step": 32,
@@ -19,30 +20,18 @@ strict JSON: a NaN or infinite value is written as ``null`` and listed under ``n
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
 import os
-from collections.abc import Iterator, Sequence
-from pathlib import Path
 from typing import Any
 
 import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
-from resireg_train.runs.record import metric_mode, read_results, update_results
+from resireg_train.runs.record import RunRecord, metric_mode
 
-__all__ = [
-    "ResumableCSVLogger",
-    "ResultsTracker",
-    "epoch_metrics",
-    "wandb_logger",
-    "wandb_loggers",
-    "wandb_run_name",
-    "wandb_runs",
-    "wandb_summary",
-]
+__all__ = ["ResumableCSVLogger", "ResultsTracker", "epoch_metrics"]
 
 
 # ------------------------------------------------------------------------- CSV logger
@@ -125,14 +114,16 @@ def _skipped_samples(trainer: L.Trainer) -> dict[str, Any]:
 
 
 class ResultsTracker(L.Callback):
-    """Records every epoch's metrics and keeps ``results.json`` up to date (rank 0).
+    """Records every epoch's metrics in the run's record (rank 0): ``final``, ``best``,
+    ``history``, ``epoch`` and ``global_step``. The record's final status is the job's
+    (:meth:`RunRecord.finish <resireg_train.runs.record.RunRecord.finish>`).
 
     Its history is part of the checkpoint, so a resumed run reports the best values of
     the epochs before the interruption too.
     """
 
-    def __init__(self, directory: str | os.PathLike) -> None:
-        self.directory = Path(directory)
+    def __init__(self, record: RunRecord) -> None:
+        self.record = record
         self.history: list[dict[str, float]] = []
 
     def summary(self) -> dict[str, Any]:
@@ -154,8 +145,7 @@ class ResultsTracker(L.Callback):
         row.update(epoch_metrics(trainer))
         self.history = [r for r in self.history if r["epoch"] < row["epoch"]] + [row]
         if trainer.is_global_zero:
-            update_results(
-                self.directory,
+            self.record.update(
                 status="running",
                 epoch=trainer.current_epoch,
                 global_step=trainer.global_step,
@@ -163,101 +153,8 @@ class ResultsTracker(L.Callback):
                 **_skipped_samples(trainer),
             )
 
-    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if trainer.is_global_zero and self.history:
-            update_results(self.directory, status="completed", error=None, **self.summary())
-
     def state_dict(self) -> dict[str, Any]:
         return {"history": self.history}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         self.history = list(state_dict.get("history", []))
-
-
-# ------------------------------------------------------------------------- W&B
-def wandb_run_name(name: str) -> tuple[str, str | None]:
-    """``(run name, group)`` of this job's W&B run: ``<name>-<run id>`` (the run id of the
-    output folder, :data:`resireg_train.config.paths.RUN_ID`), with ``-<job number>`` and the
-    group ``<name>-<run id>`` (the sweep) for a job of a multirun."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    from resireg_train.config.paths import RUN_ID
-
-    base = f"{name}-{RUN_ID}"
-    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
-        return f"{base}-{HydraConfig.get().job.num}", base
-    return base, None
-
-
-def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
-    """Lightning's ``WandbLogger`` (``conf/logger/wandb.yaml``) with this job's run name and
-    group (:func:`wandb_run_name`); ``WANDB_MODE=offline`` logs without a network."""
-    from lightning.pytorch.loggers import WandbLogger
-
-    run_name, group = wandb_run_name(name)
-    logger = WandbLogger(name=run_name, project=project, group=group, **kwargs)
-    # Lightning passes anonymous=None to wandb.init unless asked for it, and wandb warns "The
-    # anonymous setting has no effect" for any value given: leave the key out when unset.
-    init = getattr(logger, "_wandb_init", {})
-    if init.get("anonymous") is None:
-        init.pop("anonymous", None)
-    return logger
-
-
-def wandb_loggers(cfg: Any) -> list[Any]:
-    """The W&B logger of ``cfg.logger`` (``logger=wandb``) for a job without Lightning's
-    trainer (``resireg-eval``, ``resireg-map``); ``[]`` without one. The other trackers record
-    such a job when it ends (:mod:`resireg_train.runs.trackers`)."""
-    settings = (cfg.get("logger") or {}).get("wandb")
-    if not settings:
-        return []
-    import hydra
-
-    return [hydra.utils.instantiate(settings)]
-
-
-def wandb_summary(record: dict[str, Any]) -> dict[str, Any]:
-    """``results.json``'s summary as W&B summary values: status, epoch, step, the final values
-    (``final/<metric>``) and the best ones (``best/<metric>``, ``best/<metric>/epoch``);
-    non-finite values (``null`` in the file) are left out."""
-    from resireg_train.runs.trackers import map_counts
-
-    out: dict[str, Any] = {k: record[k] for k in ("status", "epoch", "global_step", "error")
-                           if record.get(k) is not None}  # fmt: skip
-    out.update({f"final/{k}": v for k, v in (record.get("final") or {}).items() if v is not None})
-    out.update(map_counts(record))  # a resireg-map run's voxels and frames
-    for key, best in (record.get("best") or {}).items():
-        if best.get("value") is not None:
-            out[f"best/{key}"] = best["value"]
-            out[f"best/{key}/epoch"] = best["epoch"]
-    return out
-
-
-@contextlib.contextmanager
-def wandb_runs(loggers: Sequence[Any], cfg: Any, directory: str | os.PathLike) -> Iterator[None]:
-    """Around a job's training: the W&B runs among ``loggers`` get the job's resolved config
-    first and, at the end (failed or not), ``results.json``'s summary (:func:`wandb_summary`),
-    then are finished (exit code 1 if the job raised). Lightning's ``WandbLogger`` never
-    finishes its run, and a run left open takes the next job's logs in a multirun. Without a
-    W&B logger this does nothing (wandb is not imported)."""
-    runs = [lg for lg in loggers if type(lg).__name__ == "WandbLogger"]
-    if not runs:
-        yield
-        return
-    from omegaconf import OmegaConf
-
-    config = OmegaConf.to_container(cfg, resolve=True)
-    experiments = [lg.experiment for lg in runs]  # rank 0: the wandb runs (created here)
-    experiments = [e for e in experiments if hasattr(e, "finish")]  # other ranks: no run
-    for experiment in experiments:
-        experiment.config.update(config, allow_val_change=True)
-    failed = True
-    try:
-        yield
-        failed = False
-    finally:
-        summary = wandb_summary(read_results(directory))
-        for experiment in experiments:
-            experiment.summary.update(summary)
-            experiment.finish(exit_code=1 if failed else 0)

@@ -1,0 +1,322 @@
+"""The four trackers of :data:`resireg_train.runs.trackers.TRACKER_SPECS` (``logger=<name>``,
+``conf/logger/<name>.yaml``): what each sends to its store. Nothing heavy is imported here:
+each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it is used.
+
+- **csv**: ``metrics.csv``. Training always writes it (every step and epoch, continued on
+  resume: :class:`~resireg_train.runs.epochs.ResumableCSVLogger`); an evaluation or a map with
+  ``logger=csv`` writes its final metrics as one row.
+- **tensorboard**: training's curves (Lightning's ``TensorBoardLogger``); an evaluation or a
+  map writes its final metrics as scalars and its provenance as text under ``<run>/tensorboard``.
+- **mlflow** (default store: one SQLite database under ``paths.log_dir``, ``mlflow ui
+  --backend-store-uri sqlite:///outputs/mlflow.db``; a server:
+  ``logger.mlflow.tracking_uri=http://host:5000``): one MLflow run per job (a training run's is
+  the one Lightning's ``MLFlowLogger`` logged its curves to), with the flattened config as
+  parameters, the provenance block as ``provenance.*`` tags, every finite final metric, the
+  per-class IoU as a table artifact (``per_class_iou.json``) and the run's files as artifacts
+  (``results.json``, CSVs, PNGs, ``code.diff``, the log, the PLY when under 64 MiB, else its
+  path as a tag; a training run's export folder with its model card under ``export/``); the
+  jobs of one multirun or search are children of one parent run named after the sweep
+  (MLflow's ``mlflow.parentRunId`` tag). The run ends FINISHED, FAILED or KILLED with the job.
+- **wandb** (``WANDB_MODE=offline`` needs no network): one W&B run per job, named
+  ``<name>-<run id>[-<job number>]`` (a multirun's jobs grouped as ``<name>-<run id>``), given
+  the resolved config at the start and ``results.json``'s summary at the end, then finished
+  (exit code 1 if the job failed): Lightning's ``WandbLogger`` never finishes its run, and a
+  run left open takes the next job's logs in a multirun.
+
+Every value a tracker receives has the passwords of its URLs masked
+(:func:`resireg_train.config.secrets.mask_text`).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+from urllib.parse import unquote, urlsplit, urlunsplit
+
+from resireg.specs.tree import flatten
+from resireg_train.config.secrets import mask_text
+from resireg_train.runs.record import masked_tree
+from resireg_train.runs.trackers import (
+    TRACKER_SPECS,
+    Tracker,
+    map_counts,
+    mlflow_key,
+    run_metrics,
+)
+
+__all__ = [
+    "MLFLOW_ARTIFACT_MAX_BYTES",
+    "CsvTracker",
+    "MlflowTracker",
+    "TensorBoardTracker",
+    "WandbTracker",
+    "resolved_config",
+    "to_mlflow",
+    "wandb_logger",
+    "wandb_run_name",
+    "wandb_summary",
+]
+
+#: Files larger than this are recorded by path (a tag), not uploaded.
+MLFLOW_ARTIFACT_MAX_BYTES = 64 << 20
+_STATUS = {"completed": "FINISHED", "failed": "FAILED", "interrupted": "KILLED", "pruned": "KILLED"}
+#: The run folder's files an MLflow run takes as artifacts (by suffix; dot files never).
+_ARTIFACTS = (".json", ".csv", ".png", ".md", ".diff", ".ply", ".rrd", ".log")
+
+
+def resolved_config(cfg: Any) -> dict[str, Any]:
+    """The run's config as plain values (resolved where it can be), URL passwords masked:
+    what a tracker is given."""
+    from omegaconf import OmegaConf
+
+    try:
+        config = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # an interpolation only Hydra's runtime resolves
+        config = OmegaConf.to_container(cfg, resolve=False)
+    return masked_tree(config)
+
+
+# ------------------------------------------------------------------------------------ CSV
+class CsvTracker(Tracker):
+    """``metrics.csv`` (module docstring)."""
+
+    @classmethod
+    def always(cls, cfg: Any, record: Any) -> CsvTracker:
+        """The CSV tracker of a training run whose ``logger`` does not name ``csv``: its
+        ``metrics.csv`` is written all the same."""
+        return cls(TRACKER_SPECS.get("csv"), {}, cfg, record)
+
+    def lightning_logger(self, resume_step: int | None) -> Any:
+        if self._logger is None:
+            from resireg_train.runs.epochs import ResumableCSVLogger
+
+            self._logger = ResumableCSVLogger(self.record.folder, resume_step=resume_step)
+        return self._logger
+
+    def end(self, record: dict[str, Any], failed: bool) -> None:
+        if self.training:
+            return  # Lightning wrote every step and epoch
+        metrics = run_metrics(record)
+        filename = str(self.settings.get("filename") or "metrics.csv")
+        with open(self.record.folder / filename, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=sorted(metrics))
+            writer.writeheader()
+            writer.writerow(metrics)
+
+
+# ---------------------------------------------------------------------------- TensorBoard
+class TensorBoardTracker(Tracker):
+    """``<run>/tensorboard`` (module docstring)."""
+
+    def end(self, record: dict[str, Any], failed: bool) -> None:
+        if self.training:
+            return  # Lightning's TensorBoardLogger wrote the curves
+        from torch.utils.tensorboard import SummaryWriter
+
+        with SummaryWriter(str(self.record.folder / "tensorboard")) as writer:
+            for key, value in run_metrics(record).items():
+                writer.add_scalar(key, value, 0)
+            writer.add_text("provenance", "```\n" + json.dumps(record.get("provenance") or {},
+                                                               indent=2) + "\n```")  # fmt: skip
+
+
+# --------------------------------------------------------------------------------- MLflow
+class MlflowTracker(Tracker):
+    """One MLflow run per job (module docstring).
+
+    A ``tracking_uri`` with a user part (``http://user:pass@host:5000``) is given to MLflow
+    without it, the user and password through MLflow's own ``MLFLOW_TRACKING_USERNAME`` /
+    ``MLFLOW_TRACKING_PASSWORD`` (unless the environment sets them already): MLflow then never
+    prints, stores or logs the password (it prints each run's URL, from its tracking URI)."""
+
+    def address(self) -> str | None:
+        return str(self.settings.get("tracking_uri") or "") or None
+
+    def _without_credentials(self) -> dict[str, Any]:
+        settings = dict(self.settings)
+        uri = str(settings.get("tracking_uri") or "")
+        parts = urlsplit(uri)
+        if parts.username is None and parts.password is None:
+            return settings
+        if parts.username:
+            os.environ.setdefault("MLFLOW_TRACKING_USERNAME", unquote(parts.username))
+        if parts.password is not None:
+            os.environ.setdefault("MLFLOW_TRACKING_PASSWORD", unquote(parts.password))
+        host = parts.netloc.rpartition("@")[2]
+        settings["tracking_uri"] = urlunsplit(parts._replace(netloc=host))
+        return settings
+
+    def logger_settings(self) -> dict[str, Any]:
+        own = self.spec.params
+        return {k: v for k, v in self._without_credentials().items() if k not in own}
+
+    def end(self, record: dict[str, Any], failed: bool) -> dict[str, Any]:
+        run_id = getattr(self._logger, "run_id", None)  # the run Lightning logged curves to
+        if run_id is None:
+            run_id = (record.get("tracking") or {}).get("mlflow_run_id")
+        settings = self._without_credentials()
+        return {"mlflow_run_id": to_mlflow(settings, self.cfg, self.record.folder, record,
+                                           run_id)}  # fmt: skip
+
+
+def _group() -> tuple[str | None, str | None]:
+    """``(job label, sweep folder)`` of a multirun job, ``(None, None)`` for a single run."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        runtime = HydraConfig.get()
+        return str(runtime.job.num), str(runtime.sweep.dir)
+    return None, None
+
+
+def _parent_run(client: Any, experiment_id: str, sweep: str, name: str) -> str:
+    """The MLflow run that stands for the sweep folder ``sweep`` (created on first use; the
+    jobs of a sweep find it by its ``resireg.sweep`` tag)."""
+    quoted = sweep.replace("'", "\\'")
+    found = client.search_runs([experiment_id], f"tags.`resireg.sweep` = '{quoted}' and "
+                               "tags.`resireg.parent` = 'true'", max_results=1)  # fmt: skip
+    if found:
+        return found[0].info.run_id
+    run = client.create_run(experiment_id, run_name=f"{name} sweep {Path(sweep).name}",
+                            tags={"resireg.sweep": sweep, "resireg.parent": "true"})  # fmt: skip
+    return run.info.run_id
+
+
+def to_mlflow(
+    settings: dict[str, Any], cfg: Any, out: Path, record: dict[str, Any], run_id: str | None
+) -> str:
+    """Log the run in ``out`` (its record ``record``) to MLflow (module docstring);
+    ``settings``: the ``logger.mlflow`` block (``tracking_uri``, ``experiment_name``,
+    ``run_name``); ``run_id``: the run Lightning logged to, if any. Returns the MLflow run id."""
+    from mlflow import MlflowClient
+    from mlflow.entities import Metric, Param, RunTag
+
+    client = MlflowClient(tracking_uri=str(settings.get("tracking_uri")))
+    name = str(settings.get("experiment_name") or "resireg")
+    experiment = client.get_experiment_by_name(name)
+    experiment_id = experiment.experiment_id if experiment else client.create_experiment(name)
+    job, sweep = _group()
+    tags = {"resireg.run_dir": str(out.resolve())}
+    if sweep:
+        tags["mlflow.parentRunId"] = _parent_run(client, experiment_id, sweep, str(cfg.name))
+        tags["resireg.job"] = job
+    if run_id is None:
+        run_name = str(settings.get("run_name") or cfg.name)
+        run_id = client.create_run(experiment_id, run_name=run_name if job is None
+                                   else f"{run_name}-{job}").info.run_id  # fmt: skip
+        config = flatten(resolved_config(cfg))
+        params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in config.items()]
+        for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
+            client.log_batch(run_id, params=params[i : i + 100])
+    provenance = flatten(record.get("provenance") or {}, "provenance")
+    tags.update({mlflow_key(k)[:250]: mask_text(str(v))[:5000] for k, v in provenance.items()})
+    tags["resireg.status"] = str(record.get("status"))
+    metrics = [Metric(mlflow_key(k), v, 0, 0) for k, v in run_metrics(record).items()]
+    tag_list = [RunTag(k, v) for k, v in tags.items()]
+    for i in range(0, max(len(metrics), len(tag_list)), 100):
+        client.log_batch(run_id, metrics=metrics[i : i + 100], tags=tag_list[i : i + 100])
+    per_class = record.get("per_class_iou")
+    if per_class:
+        classes = sorted({c for ious in per_class.values() for c in ious})
+        table = {"class": classes, **{v: [ious.get(c) for c in classes]
+                                      for v, ious in per_class.items()}}  # fmt: skip
+        client.log_table(run_id, data=table, artifact_file="per_class_iou.json")
+    for path in sorted(out.iterdir()):
+        if not path.is_file() or path.name.startswith(".") or path.suffix not in _ARTIFACTS:
+            continue
+        if path.stat().st_size <= MLFLOW_ARTIFACT_MAX_BYTES:
+            client.log_artifact(run_id, str(path))
+        else:
+            client.set_tag(run_id, f"resireg.file.{path.name}", str(path.resolve()))
+    export = Path(str(record["export"])) if record.get("export") else None
+    if export is not None and export.is_dir():  # a training run's export, with its model card
+        for path in sorted(export.iterdir()):
+            if (path.is_file() and not path.name.startswith(".")
+                    and path.stat().st_size <= MLFLOW_ARTIFACT_MAX_BYTES):  # fmt: skip
+                client.log_artifact(run_id, str(path), artifact_path="export")
+    client.set_terminated(run_id, _STATUS.get(str(record.get("status")), "FINISHED"))
+    return run_id
+
+
+# ------------------------------------------------------------------------------------ W&B
+def _wandb_offline(settings: dict[str, Any]) -> bool:
+    mode = os.environ.get("WANDB_MODE", "").lower()
+    return bool(settings.get("offline")) or mode in ("offline", "dryrun", "disabled")
+
+
+class WandbTracker(Tracker):
+    """One W&B run per job (module docstring)."""
+
+    def address(self) -> str | None:
+        if _wandb_offline(self.settings):
+            return None
+        return os.environ.get("WANDB_BASE_URL") or "https://api.wandb.ai"
+
+    def begin(self) -> None:
+        logger = self.lightning_logger(None)
+        # W&B records the command line (its run metadata's "args"): give it masked URLs
+        argv, sys.argv = sys.argv, [mask_text(a) for a in sys.argv]
+        try:
+            experiment = logger.experiment  # rank 0: the wandb run (created here)
+        finally:
+            sys.argv = argv
+        if hasattr(experiment, "config"):
+            experiment.config.update(resolved_config(self.cfg), allow_val_change=True)
+
+    def end(self, record: dict[str, Any], failed: bool) -> None:
+        experiment = getattr(self._logger, "experiment", None)
+        if not hasattr(experiment, "finish"):
+            return
+        experiment.summary.update(wandb_summary(record))
+        experiment.finish(exit_code=1 if failed else 0)
+
+
+def wandb_run_name(name: str) -> tuple[str, str | None]:
+    """``(run name, group)`` of this job's W&B run: ``<name>-<run id>`` (the run id of the
+    output folder, :data:`resireg_train.config.paths.RUN_ID`), with ``-<job number>`` and the
+    group ``<name>-<run id>`` (the sweep) for a job of a multirun."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from resireg_train.config.paths import RUN_ID
+
+    base = f"{name}-{RUN_ID}"
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        return f"{base}-{HydraConfig.get().job.num}", base
+    return base, None
+
+
+def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
+    """Lightning's ``WandbLogger`` (``conf/logger/wandb.yaml``'s ``_target_``) with this job's
+    run name and group (:func:`wandb_run_name`); ``WANDB_MODE=offline`` logs without a
+    network."""
+    from lightning.pytorch.loggers import WandbLogger
+
+    run_name, group = wandb_run_name(name)
+    logger = WandbLogger(name=run_name, project=project, group=group, **kwargs)
+    # Lightning passes anonymous=None to wandb.init unless asked for it, and wandb warns "The
+    # anonymous setting has no effect" for any value given: leave the key out when unset.
+    init = getattr(logger, "_wandb_init", {})
+    if init.get("anonymous") is None:
+        init.pop("anonymous", None)
+    return logger
+
+
+def wandb_summary(record: dict[str, Any]) -> dict[str, Any]:
+    """``results.json``'s summary as W&B summary values: status, epoch, step, the final values
+    (``final/<metric>``) and the best ones (``best/<metric>``, ``best/<metric>/epoch``);
+    non-finite values (``null`` in the file) are left out."""
+    out: dict[str, Any] = {k: record[k] for k in ("status", "epoch", "global_step", "error")
+                           if record.get(k) is not None}  # fmt: skip
+    out.update({f"final/{k}": v for k, v in (record.get("final") or {}).items() if v is not None})
+    out.update(map_counts(record))  # a resireg-map run's voxels and frames
+    for key, best in (record.get("best") or {}).items():
+        if isinstance(best, dict) and best.get("value") is not None:
+            out[f"best/{key}"] = best["value"]
+            out[f"best/{key}/epoch"] = best["epoch"]
+    return out
