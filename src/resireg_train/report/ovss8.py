@@ -142,15 +142,27 @@ def write_ovss8_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     table.to_csv(files["ovss8_csv"], index=False)
     base = METHOD_NAMES[BASELINE]
     other = [j for j in jobs if (j.results.get("protocol") or {}).get("name") not in (None, "ovss8")]
+    # the Markdown names each peer's source by number, listed under the table (the CSV keeps
+    # the whole source in its column)
+    shown, sources = table.copy(), []
+    for i, origin in shown["source"].items():
+        kind, sep, where = str(origin).partition(": ")
+        if sep and not str(origin).startswith("this run"):
+            sources.append(where)
+            shown.loc[i, "source"] = f"{kind} [{len(sources)}]"
     lines = [
         "# The eight OVSS benchmarks (mIoU x100)",
         "",
         f"Your rows: each encoder with {base} and the post-hoc variants, scored by this sweep. The "
-        f"peers' rows are {PUBLISHED} (their source is in the last column); a peer's empty row is "
-        "one whose paper was not transcribed. Avg: the mean of the eight cells (empty unless all "
-        "eight are there).",
+        f"peers' rows are {PUBLISHED}; a peer's empty row is one whose paper was not transcribed "
+        "(conf/paper/ovss8.yaml). Avg: the mean of the eight cells (empty unless all eight are "
+        "there).",
         "",
-        markdown(table, floatfmt=".2f"),
+        markdown(shown, floatfmt=".2f"),
+        "",
+        "## Sources",
+        "",
+        *(f"{n}. {where}" for n, where in enumerate(sources, 1)),
     ]
     missing = _missing(jobs)
     if missing:
