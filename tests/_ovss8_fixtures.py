@@ -52,12 +52,16 @@ def _blocks(size: tuple[int, int], values: list[int]) -> np.ndarray:
     return label
 
 
-def write_voc(root: Path, ids=("2007_000032", "2007_000039"), size=(40, 56)) -> dict[str, np.ndarray]:
+def write_voc(
+    root: Path, ids=("2007_000032", "2007_000039"), size=(40, 56)
+) -> dict[str, np.ndarray]:
     """``VOCdevkit/VOC2012``: palette PNG labels (0 background, 1..20, a 255 boundary band)."""
     labels = {}
     for n, i in enumerate(ids):
         _image(root / "JPEGImages" / f"{i}.jpg", size, n)
-        label = _blocks(size, [0, 15, 255, 1 + n, 20])  # background, person, boundary, aeroplane (+n), tvmonitor
+        label = _blocks(
+            size, [0, 15, 255, 1 + n, 20]
+        )  # background, person, boundary, aeroplane (+n), tvmonitor
         png = Image.fromarray(label, mode="P")
         png.putpalette(voc_palette())
         (root / "SegmentationClass").mkdir(parents=True, exist_ok=True)
@@ -77,7 +81,9 @@ CONTEXT_IDS = sorted([
 ])  # fmt: skip
 
 
-def write_context(root: Path, ids=("2008_000002", "2008_000003"), size=(40, 56)) -> dict[str, np.ndarray]:
+def write_context(
+    root: Path, ids=("2008_000002", "2008_000003"), size=(40, 56)
+) -> dict[str, np.ndarray]:
     """``VOCdevkit/VOC2010`` in the converted layout (``SegmentationClassContext``, grey 0..59),
     and a ``trainval_merged.json`` whose conversion gives the same maps (the first image's
     annotations overlap: the later one wins, as Detail's getMask paints them in order)."""

@@ -93,7 +93,9 @@ def test_coco_stuff_182_to_171_and_coco_object_derived_from_the_stuff_maps(tmp_p
             assert len(ds.classes) == count and len(ds) == 2
             for i, (stem, maps) in enumerate(written.items()):
                 assert ds.describe(i).endswith(f"{stem}.jpg")
-                np.testing.assert_array_equal(ds[i]["label"].numpy(), maps[column], (config, labels))
+                np.testing.assert_array_equal(
+                    ds[i]["label"].numpy(), maps[column], (config, labels)
+                )
     raw, stuff, obj = next(iter(written.values()))
     for value, (train, thing) in ((v, t) for v, t in COCO_IDS.items() if t):
         if (raw == value).any():

@@ -186,7 +186,9 @@ def _scene(seed, size=(48, 80)):
     """A blocky image (red, crimson-ish, green, blue, grey blocks, noise) and its label."""
     rng = np.random.default_rng(seed)
     h, w = size
-    colours = np.array([[128, 128, 128], [230, 20, 20], [200, 30, 50], [20, 200, 30], [30, 30, 220]])
+    colours = np.array(
+        [[128, 128, 128], [230, 20, 20], [200, 30, 50], [20, 200, 30], [30, 30, 220]]
+    )
     classes = np.array([0, 1, 1, 2, 3])
     pick = rng.integers(0, 5, size=(h // 16, w // 16))
     image = colours[pick].repeat(16, 0).repeat(16, 1) + rng.normal(0, 25, (h, w, 3))
@@ -295,12 +297,12 @@ def test_the_metric_equals_mmsegs_iou_metric(reduce_zero_label):
     k = 7
     metric = SegmentationMetric(k, 255, reduce_zero_label)
     pairs = []
-    for n in range(6):
+    for _ in range(6):
         size = (int(rng.integers(9, 20)), int(rng.integers(9, 20)))
         stored = rng.choice([0, 1, 2, 3, 4, 5], size=size) if reduce_zero_label else (
             rng.choice([0, 1, 2, 3, 4], size=size))  # fmt: skip
         stored[:, 2] = 255
-        pred = rng.choice([0, 1, 2, 3, 4, 6], size=size, p=[.2, .2, .2, .2, .1, .1])
+        pred = rng.choice([0, 1, 2, 3, 4, 6], size=size, p=[0.2, 0.2, 0.2, 0.2, 0.1, 0.1])
         metric.update(torch.from_numpy(pred), torch.from_numpy(stored))
         pairs.append((pred, stored))
     ours, ref = metric.compute(), mmseg_iou_metric(pairs, k, reduce_zero_label=reduce_zero_label)

@@ -33,7 +33,9 @@ def test_the_sweep_lists_the_data_files_benchmarks():
 
 
 @pytest.mark.slow
-def test_ovss8_sweep_scores_eight_benchmarks_and_reports_them_beside_the_peers(tmp_path, tiny_export):
+def test_ovss8_sweep_scores_eight_benchmarks_and_reports_them_beside_the_peers(
+    tmp_path, tiny_export
+):
     data, logs = tmp_path / "datasets", tmp_path / "logs"
     write_all(data)
     run("resireg-eval", "sweep=ovss8", f"model_path={tiny_export}", f"paths.data_dir={data}",
@@ -68,8 +70,16 @@ def test_ovss8_sweep_scores_eight_benchmarks_and_reports_them_beside_the_peers(t
     model = records["voc21"]["encoder"]["name"]
 
     table = pd.read_csv(sweep / "ovss8.csv")
-    labels = {"voc21": "VOC21", "pc60": "PC60", "coco_object": "Object", "voc20": "VOC20",
-              "pc59": "PC59", "coco_stuff": "Stuff", "cityscapes": "City", "ade20k": "ADE"}
+    labels = {
+        "voc21": "VOC21",
+        "pc60": "PC60",
+        "coco_object": "Object",
+        "voc20": "VOC20",
+        "pc59": "PC59",
+        "coco_stuff": "Stuff",
+        "cityscapes": "City",
+        "ade20k": "ADE",
+    }
     assert list(table.columns) == ["model", "variant", *labels.values(), "Avg", "source"]
     ours = table[table["model"] == model].set_index("variant")
     assert list(ours.index) == ["BB", "Calib", "Lite", "Full"]

@@ -117,7 +117,9 @@ def context_label(image: Mapping[str, Any], annotations: Sequence[Mapping[str, A
 
 
 def convert_context(
-    devkit: str | Path, json_path: str | Path | None = None, phases: Sequence[str] = ("train", "val")
+    devkit: str | Path,
+    json_path: str | Path | None = None,
+    phases: Sequence[str] = ("train", "val"),
 ) -> dict[str, int]:
     """Write ``VOC2010/SegmentationClassContext/<id>.png`` and
     ``VOC2010/ImageSets/SegmentationContext/<phase>.txt`` under ``devkit`` (``VOCdevkit``) from
@@ -156,7 +158,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "OVSS benchmarks read (VOC2010/SegmentationClassContext, ImageSets/SegmentationContext).",
     )
     parser.add_argument("devkit", help="the VOCdevkit folder (holding VOC2010/)")
-    parser.add_argument("--json", default=None, help="default: VOCdevkit/VOC2010/trainval_merged.json")
+    parser.add_argument(
+        "--json", default=None, help="default: VOCdevkit/VOC2010/trainval_merged.json"
+    )
     parser.add_argument("--phases", nargs="+", default=["train", "val"])
     args = parser.parse_args(argv)
     try:

@@ -32,7 +32,9 @@ def root_of(spec: Mapping[str, Any], key: str, layout: str, source: str) -> Path
     require_keys(spec, ("path", "split"), key, source)
     root = Path(str(spec["path"])).expanduser()
     if not root.is_dir():
-        raise FileNotFoundError(f"{key}.path={spec['path']!r}: no folder {root} (expected {layout})")
+        raise FileNotFoundError(
+            f"{key}.path={spec['path']!r}: no folder {root} (expected {layout})"
+        )
     return root
 
 

@@ -199,8 +199,10 @@ class SegmentationSet(torch.utils.data.Dataset):
         :meth:`resized_size`, bilinear (``align_corners=False``), antialiased as the protocol
         says (the paper's path is :func:`resireg.models.images.resize_to_patch_grid`'s)."""
         size = self.resized_size(tuple(pixels.shape[-2:]))
-        if self.protocol.antialias and not self.protocol.sliding and (
-            self.protocol.long_side is None
+        if (
+            self.protocol.antialias
+            and not self.protocol.sliding
+            and (self.protocol.long_side is None)
         ):  # the paper's rule, one implementation
             return resize_to_patch_grid(pixels, self.short_side, self.patch_size)
         image = pixels.float() / 255.0

@@ -299,8 +299,10 @@ class OVSSEngine(EvalEngine):
                 "with FeatureCache.key_for(..., layers=requested_layers(encoder, variants))"
             )
         if cache is not None and self.protocol.sliding:
-            raise ValueError("feature_cache stores whole images' encoder outputs; the dataset's "
-                             "protocol slides windows (dataset.slide_crop): run without a cache")
+            raise ValueError(
+                "feature_cache stores whole images' encoder outputs; the dataset's "
+                "protocol slides windows (dataset.slide_crop): run without a cache"
+            )
         timed = timer or no_timer
         k = len(self.dataset.classes)
         metrics = {

@@ -83,7 +83,9 @@ def window_logits(dense: Tensor, prototypes: Tensor, size: tuple[int, int]) -> T
     return F.interpolate(logits, size=tuple(size), mode="bilinear", align_corners=False)
 
 
-def stitch(windows: Sequence[Tensor] | Tensor, boxes: Sequence[Box], size: tuple[int, int]) -> Tensor:
+def stitch(
+    windows: Sequence[Tensor] | Tensor, boxes: Sequence[Box], size: tuple[int, int]
+) -> Tensor:
     """The windows' logits (each ``[Q, h, w]`` at least its box's size; a padded window's extra
     rows and columns are cut) placed in an image of ``size`` ``(H, W)``, summed, divided by the
     number of windows over each pixel: ``[Q, H, W]``. Every pixel must be covered."""

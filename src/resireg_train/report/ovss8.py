@@ -105,7 +105,7 @@ def ovss8_table(jobs: list[Job]) -> pd.DataFrame:
             if value is None:
                 continue
             base = variant.split("@")[0].split("+")[0]
-            label = METHOD_NAMES.get(base, base) + variant[len(base):]
+            label = METHOD_NAMES.get(base, base) + variant[len(base) :]
             row = rows.setdefault((name, variant), {"model": name, "variant": label,
                                                     "source": set()})  # fmt: skip
             row[marks[benchmark]["label"]] = 100 * float(value)
@@ -141,7 +141,9 @@ def write_ovss8_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     files = {"ovss8_csv": out / "ovss8.csv", "ovss8_md": out / "ovss8.md"}
     table.to_csv(files["ovss8_csv"], index=False)
     base = METHOD_NAMES[BASELINE]
-    other = [j for j in jobs if (j.results.get("protocol") or {}).get("name") not in (None, "ovss8")]
+    other = [
+        j for j in jobs if (j.results.get("protocol") or {}).get("name") not in (None, "ovss8")
+    ]
     # the Markdown names each peer's source by number, listed under the table (the CSV keeps
     # the whole source in its column)
     shown, sources = table.copy(), []
