@@ -121,11 +121,14 @@ def classify(
     threshold) because the softmax keeps the order of a pixel's names, and a class's best name's
     probability is the class's."""
     dim = logits.ndim - 3
-    best = logits.argmax(dim=dim)
+    value, best = logits.max(dim=dim)
     labels = name_class.to(best.device)[best]
     if threshold is not None:
         if scale is None:
             raise ValueError("a background threshold needs the scale of its softmax")
-        top = torch.softmax(float(scale) * logits.float(), dim=dim).amax(dim=dim)
+        # the highest softmax probability, exp(s * max - logsumexp(s * logits)), without
+        # materialising the softmax (Q x H x W at the label's resolution)
+        scaled = float(scale) * logits.float()
+        top = torch.exp(float(scale) * value.float() - torch.logsumexp(scaled, dim=dim))
         labels = torch.where(top < threshold, torch.zeros_like(labels), labels)
     return labels
