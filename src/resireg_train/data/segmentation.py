@@ -3,7 +3,13 @@
 Every dataset is a map-style :class:`SegmentationSet` yielding the image resized so its
 shorter side is ``short_side`` (576 in the paper's protocol; sides rounded to the patch
 size) and the label map at full resolution (predictions are brought to the label size
-with nearest upsampling, docs/method.md#2d-evaluation-ovss).
+with nearest upsampling, docs/method.md#2d-evaluation-ovss). The entry's 2D protocol
+(:mod:`resireg_train.data.seg_protocol`: ``conf/protocol/paper.yaml`` or ``ovss8.yaml``) may
+cap the longer side, drop the antialiasing and the patch rounding (sliding windows take any
+size) and have the engine slide windows and resize logits bilinearly. The OVSS field's
+benchmarks read from their downloaded folders are the kinds of :mod:`resireg_train.data.voc`,
+:mod:`~resireg_train.data.context`, :mod:`~resireg_train.data.coco` and
+:mod:`~resireg_train.data.cityscapes`.
 
 Batches: ReSiReg Full treats a batch as one scene (prototypes shared across its images),
 so every image of a batch must have the same resized size. :meth:`SegmentationSet.batches`
@@ -265,8 +271,10 @@ def build_segmentation_set(
         spec: an entry of a kind of the dataset table (:data:`resireg_train.data.specs.
             DATASET_SPECS`: ``synthetic``, ``ade20k``, ``orad3d`` or one registered there),
             holding every key of its kind (``name`` aside): ``short_side``, ``limit`` (first N
-            images only) and the kind's own (module docstring; ADE20K's hub config name is
-            ``config``). ``conf/dataset/<kind>.yaml`` holds them
+            images only), the 2D protocol's (:class:`~resireg_train.data.seg_protocol.
+            SegmentationProtocol`, passed to the builder in ``common`` as ``protocol``) and the
+            kind's own (module docstring; ADE20K's hub config name is ``config``).
+            ``conf/dataset/<kind>.yaml`` holds them
             (:func:`resireg_train.data.specs.dataset_conf` reads it outside Hydra).
         patch_size: the backbone's patch size.
         key: the config key of ``spec``, for error messages.

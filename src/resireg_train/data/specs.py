@@ -176,8 +176,8 @@ class DatasetSpec:
         builder: ``"module:function"`` building it (loaded when a task builds the dataset).
             The ``ovss`` task's kinds: ``(name, spec, key, common) -> SegmentationSet``, called
             by :func:`~resireg_train.data.segmentation.build_segmentation_set` (``common``: the
-            ``SegmentationSet`` keywords shared by every kind, ``short_side`` and
-            ``patch_size``); the ``scannet3d`` task's: :func:`~resireg_train.data.scannet.
+            ``SegmentationSet`` keywords shared by every kind, ``short_side``, ``patch_size``
+            and the entry's 2D ``protocol``); the ``scannet3d`` task's: :func:`~resireg_train.data.scannet.
             build_scannet`.
         keys: every key of an entry of this kind; the entry holds each (``conf/dataset/``
             files are the defaults), except those of ``optional``.

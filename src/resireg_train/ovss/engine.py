@@ -425,8 +425,9 @@ class OVSSEngine(EvalEngine):
             part = dense[i * per_image : (i + 1) * per_image]
             if boxes:
                 image_size = (boxes[-1][1], boxes[-1][3])  # the last window ends at the corner
-                windows = [window_logits(part[j : j + 1], protos, size)[0]
-                           for j in range(per_image)]  # fmt: skip
+                windows = (
+                    window_logits(part[j : j + 1], protos, size)[0] for j in range(per_image)
+                )  # one window at a time
                 logits = stitch(windows, boxes, image_size)
             else:
                 logits = window_logits(part, protos, size)[0]

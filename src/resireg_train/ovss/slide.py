@@ -22,7 +22,7 @@ resized bilinearly to the label, class names as synonyms, the background thresho
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -83,19 +83,20 @@ def window_logits(dense: Tensor, prototypes: Tensor, size: tuple[int, int]) -> T
     return F.interpolate(logits, size=tuple(size), mode="bilinear", align_corners=False)
 
 
-def stitch(
-    windows: Sequence[Tensor] | Tensor, boxes: Sequence[Box], size: tuple[int, int]
-) -> Tensor:
+def stitch(windows: Iterable[Tensor], boxes: Sequence[Box], size: tuple[int, int]) -> Tensor:
     """The windows' logits (each ``[Q, h, w]`` at least its box's size; a padded window's extra
     rows and columns are cut) placed in an image of ``size`` ``(H, W)``, summed, divided by the
-    number of windows over each pixel: ``[Q, H, W]``. Every pixel must be covered."""
-    first = windows[0]
-    out = first.new_zeros((first.shape[0], *size))
-    count = first.new_zeros((1, *size))
+    number of windows over each pixel: ``[Q, H, W]``. Every pixel must be covered. ``windows``
+    may be a generator: one window's logits are held at a time (COCO-Stuff's 171 classes at
+    224 x 224 are 34 MB a window)."""
+    out = count = None
     for logits, (y1, y2, x1, x2) in zip(windows, boxes, strict=True):
+        if out is None:
+            out = logits.new_zeros((logits.shape[0], *size))
+            count = logits.new_zeros((1, *size))
         out[:, y1:y2, x1:x2] += logits[:, : y2 - y1, : x2 - x1]
         count[:, y1:y2, x1:x2] += 1
-    if bool((count == 0).any()):
+    if out is None or bool((count == 0).any()):
         raise ValueError(f"the windows {list(boxes)} leave pixels of {size} uncovered")
     return out / count
 
