@@ -165,6 +165,8 @@ def test_a_dataset_kind_registered_through_the_table_runs_through_resireg_eval(
     conf = tmp_path / "conf" / "dataset"
     conf.mkdir(parents=True)
     (conf / "stripes.yaml").write_text(
+        # the 2D protocol's keys from conf/protocol/paper.yaml (docs/architecture.md)
+        "defaults:\n  - /protocol/paper@_here_\n  - _self_\n"
         "name: stripes\nkind: stripes\ncount: 3\nheight: 32\nshort_side: 32\nlimit: null\n"
     )
     overrides = [f"model_path={tiny_export}", "dataset=stripes", "num_workers=0",
@@ -172,17 +174,19 @@ def test_a_dataset_kind_registered_through_the_table_runs_through_resireg_eval(
                  f"hydra.searchpath=[file://{tmp_path / 'conf'}]"]  # fmt: skip
     cfg = _compose(*overrides)
     with pytest.raises(ConfigError, match=r"dataset\.kind='stripes': expected one of "
-                       r"\['synthetic', 'ade20k', 'orad3d', 'scannet'\]"):  # fmt: skip
+                       r"\['synthetic', 'ade20k', 'orad3d', 'voc', .*'scannet'\]"):  # fmt: skip
         validate_eval(cfg)
-    keys = ("name", "kind", "short_side", "limit", "count", "height")
+    from resireg_train.data.specs import SEGMENTATION_KEYS
+
+    keys = (*SEGMENTATION_KEYS, "count", "height")
     monkeypatch.setitem(DATASET_SPECS, "stripes", DatasetSpec(
         "stripes", f"{__name__}:{_stripes_source.__name__}", keys, ("ovss",),
         "two-class stripes",
     ))  # fmt: skip
     validate_eval(cfg)
     with pytest.raises(ConfigError, match=r"dataset: unknown keys \['width'\] for kind "
-                       r"'stripes' \(\['count', 'height', 'kind', 'limit', 'name', "
-                       r"'short_side'\]\)"):  # fmt: skip
+                       r"'stripes' \(\['antialias', .*'count', 'height', 'kind', 'limit', "
+                       r"'long_side', 'name', .*'upsample'\]\)"):  # fmt: skip
         validate_eval(_compose(*overrides, "+dataset.width=4"))
     with pytest.raises(ConfigError, match=r"dataset: no dataset\.height"):
         validate_eval(_compose(*overrides, "~dataset.height"))

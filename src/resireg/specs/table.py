@@ -70,12 +70,13 @@ def compose_conf(
     _seen: tuple[str, ...] = (),
 ) -> dict[str, tuple[Any, str]]:
     """``key -> (value, file)`` of ``<folder>/<stem>.yaml`` composed as Hydra composes a config
-    group's file: its ``defaults`` (files of the same folder) in order, its own keys where
-    ``_self_`` stands (last when it is not listed); ``file`` (``group/name.yaml``) is the one a
-    value comes from. Interpolations stay as written. ``read`` loads one file (PyYAML by
-    default; the training package passes OmegaConf's loader). A missing file is a
-    ``FileNotFoundError`` naming it. The one composition rule of the tables' scan, the live
-    node's defaults and ``resireg_train.data.specs.dataset_conf``."""
+    group's file: its ``defaults`` in order (files of the same folder, or another group's file
+    merged into this package, ``/<group>/<name>@_here_``: ``conf/protocol/ovss8.yaml`` into a
+    dataset entry), its own keys where ``_self_`` stands (last when it is not listed); ``file``
+    (``group/name.yaml``) is the one a value comes from. Interpolations stay as written. ``read``
+    loads one file (PyYAML by default; the training package passes OmegaConf's loader). A
+    missing file is a ``FileNotFoundError`` naming it. The one composition rule of the tables'
+    scan, the live node's defaults and ``resireg_train.data.specs.dataset_conf``."""
     folder = Path(folder)
     path = folder / f"{stem}.yaml"
     if not path.is_file():
@@ -88,6 +89,14 @@ def compose_conf(
     for parent in parents:
         if parent == "_self_":
             out.update({k: (v, f"{folder.name}/{stem}.yaml") for k, v in data.items()})
+        elif isinstance(parent, str) and parent.startswith("/"):
+            # another group's file merged here (Hydra's /<group>/<name>@_here_); the folder is
+            # a sibling of this one (both under conf/), so no path leaves conf/
+            group, _, name = parent[1:].removesuffix("@_here_").rpartition("/")
+            if not group or "@" in name or ".." in group.split("/"):
+                raise ValueError(f"{path}: defaults entry {parent!r}: expected "
+                                 "/<group>/<name>@_here_")  # fmt: skip
+            out.update(compose_conf(folder.parent / group, name, read, (*_seen, stem)))
         elif isinstance(parent, str) and parent not in _seen:
             out.update(compose_conf(folder, parent, read, (*_seen, stem)))
     return out

@@ -96,7 +96,7 @@ _MISSING = object()
 #: Device kinds of ``device`` / ``prior.device`` (``cuda:N`` included).
 #: What ``resireg-report`` can write for a sweep beyond its summary (``report: [...]`` in a
 #: ``conf/sweep/`` file names them; ``null`` leaves the choice to the jobs' overrides).
-REPORT_SECTIONS = ("table1", "table2", "prototype_grid", "layer_sweep")
+REPORT_SECTIONS = ("table1", "table2", "prototype_grid", "layer_sweep", "ovss8")
 #: ``kind -> modules its code imports`` beyond the core install (``Needs``; the encoder table,
 #: :data:`resireg.specs.encoders.ENCODER_SPECS`, holds them): :func:`encoder_import_errors`
 #: (through :func:`check_available`) checks them before a model loads.

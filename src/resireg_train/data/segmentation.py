@@ -3,7 +3,13 @@
 Every dataset is a map-style :class:`SegmentationSet` yielding the image resized so its
 shorter side is ``short_side`` (576 in the paper's protocol; sides rounded to the patch
 size) and the label map at full resolution (predictions are brought to the label size
-with nearest upsampling, docs/method.md#2d-evaluation-ovss).
+with nearest upsampling, docs/method.md#2d-evaluation-ovss). The entry's 2D protocol
+(:mod:`resireg_train.data.seg_protocol`: ``conf/protocol/paper.yaml`` or ``ovss8.yaml``) may
+cap the longer side, drop the antialiasing and the patch rounding (sliding windows take any
+size) and have the engine slide windows and resize logits bilinearly. The OVSS field's
+benchmarks read from their downloaded folders are the kinds of :mod:`resireg_train.data.voc`,
+:mod:`~resireg_train.data.context`, :mod:`~resireg_train.data.coco` and
+:mod:`~resireg_train.data.cityscapes`.
 
 Batches: ReSiReg Full treats a batch as one scene (prototypes shared across its images),
 so every image of a batch must have the same resized size. :meth:`SegmentationSet.batches`
@@ -42,10 +48,11 @@ import torch
 from PIL import Image, ImageDraw
 
 from resireg.models.hub import require_online
-from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
+from resireg.models.images import pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
+from resireg_train.data.seg_protocol import SegmentationProtocol, protocol_conf
 from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 
@@ -107,6 +114,11 @@ class SegmentationSet(torch.utils.data.Dataset):
         patch_size: sides are rounded to a multiple of it.
         reduce_zero_label: labels are 0 = unlabelled, ``c`` = class ``c - 1`` (ADE20K).
         describe: ``index -> str`` naming the sample's file (or row) in skip reports.
+        protocol: the entry's 2D protocol (:class:`~resireg_train.data.seg_protocol.
+            SegmentationProtocol`: the longer side's cap, antialiasing, windows, upsampling,
+            background); ``None``: ``conf/protocol/paper.yaml``'s.
+        names: every name of each class (synonyms, ``conf/classes/``); ``None``: each class
+            its own name.
 
     A sample whose image cannot be decoded, or whose label is not a single-channel map of
     the image's size holding valid class ids, is skipped: ``__getitem__`` returns a
@@ -124,9 +136,15 @@ class SegmentationSet(torch.utils.data.Dataset):
         patch_size: int,
         reduce_zero_label: bool = False,
         describe: Callable[[int], str] | None = None,
+        protocol: SegmentationProtocol | None = None,
+        names: Sequence[Sequence[str]] | None = None,
     ) -> None:
         self.name = name
         self.classes = tuple(classes)
+        self.names = tuple(tuple(n) for n in names) if names else tuple((c,) for c in classes)
+        if len(self.names) != len(self.classes):
+            raise ValueError(f"{len(self.names)} name lists for {len(self.classes)} classes")
+        self.protocol = protocol if protocol is not None else protocol_conf("paper")
         self._load = load
         self._header_size = header_size
         self.length = length
@@ -172,10 +190,34 @@ class SegmentationSet(torch.utils.data.Dataset):
         if problem is not None:
             return SkippedSample(index, self.describe(index), problem)
         return {
-            "image": resize_to_patch_grid(pixels, self.short_side, self.patch_size),
+            "image": self.resize(pixels),
             "label": torch.from_numpy(label.astype(np.int64)),
             "index": index,
         }
+
+    def resized_size(self, size: tuple[int, int]) -> tuple[int, int]:
+        """``(H, W)`` an image of ``size`` is resized to (the protocol's rule:
+        :meth:`~resireg_train.data.seg_protocol.SegmentationProtocol.resized_size`)."""
+        return self.protocol.resized_size(size, self.short_side, self.patch_size)
+
+    def resize(self, pixels: torch.Tensor) -> torch.Tensor:
+        """An RGB image ``[3, H, W]`` (uint8) -> float ``[3, h, w]`` in [0, 1] at
+        :meth:`resized_size`, bilinear (``align_corners=False``), antialiased as the protocol
+        says (the paper's path is :func:`resireg.models.images.resize_to_patch_grid`'s)."""
+        size = self.resized_size(tuple(pixels.shape[-2:]))
+        if (
+            self.protocol.antialias
+            and not self.protocol.sliding
+            and (self.protocol.long_side is None)
+        ):  # the paper's rule, one implementation
+            return resize_to_patch_grid(pixels, self.short_side, self.patch_size)
+        image = pixels.float() / 255.0
+        if size == tuple(image.shape[-2:]):
+            return image
+        return torch.nn.functional.interpolate(
+            image[None], size=size, mode="bilinear", align_corners=False,
+            antialias=self.protocol.antialias,
+        )[0]  # fmt: skip
 
     def grid_sizes(self) -> dict[int, tuple[int, int]]:
         """Resized ``(h, w)`` of every image whose header is readable (read once); the
@@ -188,7 +230,7 @@ class SegmentationSet(torch.utils.data.Dataset):
                 except DECODE_ERRORS as err:
                     self.unreadable.append(SkippedSample(i, self.describe(i), f"unreadable: {err}"))
                     continue
-                sizes[i] = patch_grid_size(size, self.short_side, self.patch_size)
+                sizes[i] = self.resized_size(size)
             self._grid_sizes = sizes
         return self._grid_sizes
 
@@ -229,8 +271,10 @@ def build_segmentation_set(
         spec: an entry of a kind of the dataset table (:data:`resireg_train.data.specs.
             DATASET_SPECS`: ``synthetic``, ``ade20k``, ``orad3d`` or one registered there),
             holding every key of its kind (``name`` aside): ``short_side``, ``limit`` (first N
-            images only) and the kind's own (module docstring; ADE20K's hub config name is
-            ``config``). ``conf/dataset/<kind>.yaml`` holds them
+            images only), the 2D protocol's (:class:`~resireg_train.data.seg_protocol.
+            SegmentationProtocol`, passed to the builder in ``common`` as ``protocol``) and the
+            kind's own (module docstring; ADE20K's hub config name is ``config``).
+            ``conf/dataset/<kind>.yaml`` holds them
             (:func:`resireg_train.data.specs.dataset_conf` reads it outside Hydra).
         patch_size: the backbone's patch size.
         key: the config key of ``spec``, for error messages.
@@ -241,7 +285,8 @@ def build_segmentation_set(
     short_side = spec["short_side"]
     if short_side is not None and int(short_side) < patch_size:
         raise ValueError(f"{key}.short_side={short_side!r}: expected null or >= {patch_size}")
-    common = {"short_side": short_side, "patch_size": patch_size}
+    protocol = SegmentationProtocol.from_spec(spec, key, patch_size)
+    common = {"short_side": short_side, "patch_size": patch_size, "protocol": protocol}
     dataset = entry.load()(name, spec, key, common)
     limit = spec["limit"]
     if limit is not None:

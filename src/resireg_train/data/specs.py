@@ -38,6 +38,10 @@ __all__ = [
     "CAPTION_SOURCE_KEYS",
     "CLASS_NAMES",
     "DATASET_SPECS",
+    "SEGMENTATION_KEYS",
+    "SEGMENTATION_PROTOCOL_KEYS",
+    "SEGMENTATION_RULES",
+    "UPSAMPLES",
     "DatasetSpec",
     "GT_RESOLUTIONS",
     "GT_RULES",
@@ -68,6 +72,9 @@ _IMAGE_SIZE: Rule = (_size, "[height, width], two integers >= 1")
 def _open_unit(v: Any) -> bool:
     """``null`` or a number in (0, 1)."""
     return v is None or (is_num(v) and 0 < v < 1)
+
+
+_BOOL: Rule = (lambda v: isinstance(v, bool), "true or false")
 
 
 # The ScanNet protocol's named options (docs/protocol.md section 4), written once: the rules
@@ -116,8 +123,48 @@ _SCANNET_RULES: dict[str, Rule] = {
     "protocol": (lambda v: isinstance(v, str) and bool(v), "a name for the protocol"),
 }  # fmt: skip
 
-#: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task).
-_SEGMENTATION = ("name", "kind", "short_side", "limit")
+#: How predictions reach a label's resolution (``upsample``): ``nearest``, the argmax at the
+#: feature grid brought to the label by nearest upsampling (the paper's); ``bilinear``, the logits
+#: resized bilinearly (``align_corners=False``) to the input, then to the label, before the argmax
+#: (mmsegmentation's, the OVSS field's: docs/protocol.md section 6).
+UPSAMPLES = ("nearest", "bilinear")
+
+#: The 2D protocol's keys every segmentation entry holds beside ``short_side``
+#: (``conf/protocol/paper.yaml`` / ``ovss8.yaml`` give them; :mod:`resireg_train.data.
+#: seg_protocol` reads them): the longer side's cap, the resize's antialiasing, the sliding window,
+#: the upsampling, the background rule of the with-background sets and the protocol's name.
+SEGMENTATION_PROTOCOL_KEYS = (
+    "long_side", "antialias", "slide_crop", "slide_stride", "upsample",
+    "background_threshold", "background_logit_scale", "protocol",
+)  # fmt: skip
+#: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task): a kind
+#: outside the project names them first (``(*SEGMENTATION_KEYS, "its", "own")``).
+SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *SEGMENTATION_PROTOCOL_KEYS)
+_SEGMENTATION = SEGMENTATION_KEYS
+
+
+def _optional(rule: Rule) -> Rule:
+    """``null`` or a value of ``rule``."""
+    check, expected = rule
+    return (lambda v: v is None or check(v)), f"null or {expected}"
+
+
+#: The value rules of the protocol keys (every 2D kind's; ``dataset.<key>=<value>: expected``).
+SEGMENTATION_RULES: dict[str, Rule] = {
+    "long_side": _optional(integer(1)),
+    "antialias": (lambda v: isinstance(v, bool), "true or false"),
+    "slide_crop": _optional(integer(1)),
+    "slide_stride": _optional(integer(1)),
+    "upsample": one_of(UPSAMPLES),
+    "background_threshold": (_open_unit, "null or a number in (0, 1)"),
+    "background_logit_scale": _optional(number(0, strict=True, finite=True)),
+    "protocol": (lambda v: v is None or (isinstance(v, str) and bool(v)),
+                 "null or a name for the protocol"),
+}  # fmt: skip
+#: The keys of the benchmarks read from a downloaded folder (VOC, Context, COCO, Cityscapes):
+#: the folder, the split, the class-name file and (VOC, Context) whether label 0 is ignored.
+_FOLDER = ("path", "split", "classes")
+_LABELS = {"labels": one_of(("converted", "raw"))}
 
 
 @dataclass(frozen=True)
@@ -129,8 +176,8 @@ class DatasetSpec:
         builder: ``"module:function"`` building it (loaded when a task builds the dataset).
             The ``ovss`` task's kinds: ``(name, spec, key, common) -> SegmentationSet``, called
             by :func:`~resireg_train.data.segmentation.build_segmentation_set` (``common``: the
-            ``SegmentationSet`` keywords shared by every kind, ``short_side`` and
-            ``patch_size``); the ``scannet3d`` task's: :func:`~resireg_train.data.scannet.
+            ``SegmentationSet`` keywords shared by every kind, ``short_side``, ``patch_size``
+            and the entry's 2D ``protocol``); the ``scannet3d`` task's: :func:`~resireg_train.data.scannet.
             build_scannet`.
         keys: every key of an entry of this kind; the entry holds each (``conf/dataset/``
             files are the defaults), except those of ``optional``.
@@ -183,7 +230,7 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
             (*_SEGMENTATION, "size", "image_size", "seed", "noise"),
             ("ovss",),
             "generated scenes with exact masks, 8 classes (tests, smoke runs)",
-            rules={"image_size": _IMAGE_SIZE},
+            rules={**SEGMENTATION_RULES, "image_size": _IMAGE_SIZE},
         ),
         DatasetSpec(
             "ade20k",
@@ -192,6 +239,7 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
             ("ovss",),
             "ADE20K-150 validation (hub parquet or ADEChallengeData2016 folder; Table 1)",
             check="resireg_train.data.segmentation:check_ade20k_source",
+            rules=SEGMENTATION_RULES,
         ),
         DatasetSpec(
             "orad3d",
@@ -200,6 +248,52 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
             ("ovss",),
             "ORAD-3D validation from its local layout (Table 1)",
             check="resireg_train.data.segmentation:check_orad3d_source",
+            rules=SEGMENTATION_RULES,
+        ),
+        DatasetSpec(
+            "voc",
+            "resireg_train.data.voc:voc_source",
+            (*_SEGMENTATION, *_FOLDER, "reduce_zero_label"),
+            ("ovss",),
+            "Pascal VOC 2012 val from VOCdevkit/VOC2012 (VOC21; VOC20 with reduce_zero_label)",
+            check="resireg_train.data.voc:check_voc_source",
+            rules={**SEGMENTATION_RULES, "reduce_zero_label": _BOOL},
+        ),
+        DatasetSpec(
+            "pascal_context",
+            "resireg_train.data.context:context_source",
+            (*_SEGMENTATION, *_FOLDER, "reduce_zero_label"),
+            ("ovss",),
+            "Pascal Context val, converted labels in VOC2010/SegmentationClassContext (PC60, PC59)",
+            check="resireg_train.data.context:check_context_source",
+            rules={**SEGMENTATION_RULES, "reduce_zero_label": _BOOL},
+        ),
+        DatasetSpec(
+            "coco_stuff",
+            "resireg_train.data.coco:coco_stuff_source",
+            (*_SEGMENTATION, *_FOLDER, "labels"),
+            ("ovss",),
+            "COCO-Stuff 164k val, 171 classes (coco_stuff164k: images/, annotations/)",
+            check="resireg_train.data.coco:check_coco_source",
+            rules={**SEGMENTATION_RULES, **_LABELS},
+        ),
+        DatasetSpec(
+            "coco_object",
+            "resireg_train.data.coco:coco_object_source",
+            (*_SEGMENTATION, *_FOLDER, "labels"),
+            ("ovss",),
+            "COCO-Object val: COCO-Stuff's things 1..80, the rest background (81 classes)",
+            check="resireg_train.data.coco:check_coco_source",
+            rules={**SEGMENTATION_RULES, **_LABELS},
+        ),
+        DatasetSpec(
+            "cityscapes",
+            "resireg_train.data.cityscapes:cityscapes_source",
+            (*_SEGMENTATION, *_FOLDER, "labels"),
+            ("ovss",),
+            "Cityscapes val, 19 classes (leftImg8bit/, gtFine/ train ids or label ids)",
+            check="resireg_train.data.cityscapes:check_cityscapes_source",
+            rules={**SEGMENTATION_RULES, **_LABELS},
         ),
         DatasetSpec(
             "scannet",

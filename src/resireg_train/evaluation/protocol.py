@@ -42,7 +42,8 @@ def protocol_record(params: Mapping[str, Any], dataset: Any = None) -> dict[str,
         from resireg.ovss import TEMPLATES
 
         settings.setdefault("reduce_zero_label", bool(dataset.reduce_zero_label))
-        settings.setdefault("classes", f"{spec.get('kind')} ({len(dataset.classes)})")
+        # the class-name file (conf/classes/) or the kind's built-in list, and the class count
+        settings["classes"] = f"{spec.get('classes') or spec.get('kind')} ({len(dataset.classes)})"
         settings.setdefault("templates", f"open_clip OPENAI_IMAGENET_TEMPLATES ({len(TEMPLATES)})")
     if "dense_path" in encoder:
         settings["encoder.dense_path"] = encoder["dense_path"]

@@ -26,6 +26,9 @@ Writes, into the sweep folder (or ``--out``):
   trial in ``summary.md``, and ``optuna_history.png`` / ``optuna_intermediate.png`` / ``optuna_importance.png``.
 - For the CLIP layer sweep (configurations ``<variant>@layer:<block>``, ``sweep=clip_layers``):
   ``layer_sweep.csv`` / ``.md`` / ``.png``, mIoU of each variant against the block index.
+- For the OVSS field's eight benchmarks (``sweep=ovss8``): ``ovss8.csv`` / ``.md``, encoder x
+  variant against VOC21 ... ADE and their average, beside the published peers
+  (:mod:`resireg_train.report.ovss8`).
 
 An explicit metric must be one the sweep's results hold (a ``final`` or ``best`` key of
 some job); anything else is a :class:`ValueError` that lists them.
@@ -54,6 +57,7 @@ from resireg_train.report.jobs import (
     named_sections,
     varying_keys,
 )
+from resireg_train.report.ovss8 import is_ovss8_sweep, ovss8_table, write_ovss8_table
 from resireg_train.report.paper import DEFAULT_TOLERANCE
 from resireg_train.report.prototypes import (
     elbo_table,
@@ -85,7 +89,8 @@ __all__ = [
     "DPI", "STATUSES", "Job", "check_metric", "collect", "count_statuses", "curves_figure",
     "default_metric", "encoder_table", "fit_heuristic", "grid_statuses", "heatmap_figure",
     "is_encoder_sweep", "is_layer_sweep", "is_mapping_sweep", "known_metrics",
-    "layer_sweep_figure", "layer_sweep_table", "mapping_table", "markdown", "method_means",
+    "is_ovss8_sweep", "layer_sweep_figure", "layer_sweep_table", "mapping_table", "markdown",
+    "method_means", "ovss8_table", "write_ovss8_table",
     "plot_curves", "plot_heatmap", "protocol_lines", "prototype_grid", "report", "report_sections",
     "summary_table",
     "write_encoder_table", "write_layer_sweep", "write_mapping_table",
@@ -106,6 +111,8 @@ def report_sections(jobs: list[Job]) -> list[str]:
         found.append("prototype_grid")
     if is_layer_sweep(jobs):
         found.append("layer_sweep")
+    if is_ovss8_sweep(jobs):
+        found.append("ovss8")
     return found
 
 
@@ -182,6 +189,10 @@ def report(
         curves = out / "curves.png"
         if plot_curves(jobs, metric, curves):
             files["curves"] = curves
+    if "ovss8" in sections:  # sweep=ovss8: the field's eight benchmarks beside the peers
+        files.update(write_ovss8_table(jobs, out))
+        lines += ["", f"The eight OVSS benchmarks, beside the published peers: "
+                  f"`{files['ovss8_md'].name}`."]  # fmt: skip
     if "layer_sweep" in sections:  # sweep=clip_layers
         files.update(write_layer_sweep(jobs, out))
         lines += ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]

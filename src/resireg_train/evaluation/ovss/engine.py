@@ -31,17 +31,28 @@ from torch import Tensor, nn
 
 from resireg.method.variants import apply_variant
 from resireg.models import DenseEncoder, DenseOutput
-from resireg.ovss import TEMPLATES, SegmentationMetric, predict_grid
+from resireg.ovss import TEMPLATES, SegmentationMetric, class_similarity, predict_grid
 from resireg.specs.metrics import METRIC_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
+from resireg_train.data.seg_protocol import protocol_conf
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.evaluation.engine import (  # shared with the 3D engine; importable from here too
+    ClassPrototypes,
     EvalEngine,
     StageTimer,
     check_variants_on,
     inference,
     no_timer,
     nonfinite_output,
+)
+from resireg_train.evaluation.ovss.slide import (
+    classify,
+    crop_windows,
+    stitch,
+    to_label,
+    window_boxes,
+    window_logits,
+    window_shape,
 )
 from resireg_train.evaluation.tasks import TASK_SPECS
 
@@ -220,11 +231,29 @@ class OVSSEngine(EvalEngine):
     ) -> None:
         super().__init__(dataset, batch_size, num_workers, templates, prompt_batch_size)
         self.temperature = temperature
+        # Every name of every class is prompted (synonyms, conf/classes/): one prototype per
+        # name, ``name_class`` its class (the identity when each class has one name).
+        names = getattr(dataset, "names", None) or tuple((c,) for c in dataset.classes)
+        self.name_class = torch.tensor([k for k, n in enumerate(names) for _ in n])
+        if len(self.name_class) != len(dataset.classes):
+            self.text = ClassPrototypes([x for n in names for x in n], templates, prompt_batch_size)
+        self.protocol = getattr(dataset, "protocol", None) or protocol_conf("paper")
 
     def batch_shapes(self) -> list[tuple[int, int, int]]:
-        """``(images, height, width)`` of every batch (images of one batch share a size)."""
+        """``(inputs, height, width)`` of every encoder pass: a batch's images (one size), or
+        with sliding windows every window of them (:func:`~resireg_train.evaluation.ovss.slide.
+        window_shape`)."""
         sizes = self.dataset.grid_sizes()
-        return [(len(b), *sizes[b[0]]) for b in self.dataset.batches(self.batch_size)]
+        shapes = []
+        for b in self.dataset.batches(self.batch_size):
+            h, w = sizes[b[0]]
+            if self.protocol.sliding:
+                crop, stride = self.protocol.slide_crop, self.protocol.slide_stride
+                n = len(window_boxes(h, w, crop, stride))
+                shapes.append((len(b) * n, *window_shape(h, w, crop, self.dataset.patch_size)))
+            else:
+                shapes.append((len(b), h, w))
+        return shapes
 
     @torch.no_grad()
     def run(
@@ -267,6 +296,11 @@ class OVSSEngine(EvalEngine):
                 f"the feature cache {cache.folder} holds the intermediates of blocks "
                 f"{list(cache.layers)}, the configurations run on {list(layers)}: build its key "
                 "with FeatureCache.key_for(..., layers=requested_layers(encoder, variants))"
+            )
+        if cache is not None and self.protocol.sliding:
+            raise ValueError(
+                "feature_cache stores whole images' encoder outputs; the dataset's "
+                "protocol slides windows (dataset.slide_crop): run without a cache"
             )
         timed = timer or no_timer
         k = len(self.dataset.classes)
@@ -331,6 +365,13 @@ class OVSSEngine(EvalEngine):
         """Score one batch with every configuration; returns why it was not scored (a
         non-finite encoder output, :func:`nonfinite_output`) or ``None``."""
         layer_of = layer_of or dict.fromkeys(variants)
+        boxes = None
+        if self.protocol.sliding:  # every window of every image, one encoder pass
+            h, w = batch["image"].shape[-2:]
+            boxes = window_boxes(h, w, self.protocol.slide_crop, self.protocol.slide_stride)
+            batch = {**batch, "image": crop_windows(batch["image"], boxes,
+                                                    self.protocol.slide_crop,
+                                                    self.dataset.patch_size)}  # fmt: skip
         out, bad = self._encode(encoder, batch, timed, cache, _blocks(layer_of))
         if bad is not None:
             return bad
@@ -350,10 +391,46 @@ class OVSSEngine(EvalEngine):
             with timed(f"reconstruction/{name}"):
                 dense = apply_variant(variant, inter, out.language, s, shared=shared[layer])
             with timed("metric"):
+                if self.protocol.upsample == "bilinear":
+                    self._score_logits(dense, batch, protos, metrics[name], boxes)
+                    continue
                 grid = tuple(dense.shape[-2:])
                 if grid not in blocks:
                     blocks[grid] = [metrics[name].blocks(label, grid) for label in batch["label"]]
                 for i, label_blocks in enumerate(blocks[grid]):  # per image: K x h x w logits
-                    pred = predict_grid(dense[i : i + 1], protos, self.temperature)
-                    metrics[name].update_grid(pred[0], label_blocks)
+                    metrics[name].update_grid(self._grid_labels(dense[i : i + 1], protos)[0],
+                                              label_blocks)  # fmt: skip
         return None
+
+    def _grid_labels(self, dense: Tensor, protos: Tensor) -> Tensor:
+        """The paper's path: labels ``[B, h, w]`` at the feature grid (softmax with the
+        temperature, argmax; each class by its best name; the background rule on the grid's
+        probabilities when the entry sets one)."""
+        rule = self.protocol
+        if len(self.name_class) == len(self.dataset.classes) and rule.background_threshold is None:
+            return predict_grid(dense, protos, self.temperature)  # one name per class
+        logits = class_similarity(dense, protos)
+        return classify(logits, self.name_class, rule.background_threshold,
+                        rule.background_logit_scale)  # fmt: skip
+
+    def _score_logits(self, dense, batch, protos, metric, boxes) -> None:
+        """The OVSS field's path (:mod:`resireg_train.evaluation.ovss.slide`): per image, the logits
+        bilinear to each window (or the whole input), the windows averaged, bilinear to the
+        label, then each class's best name, the argmax and the background threshold."""
+        rule = self.protocol
+        size = tuple(batch["image"].shape[-2:])  # the windows' (padded) or the input's size
+        per_image = len(boxes) if boxes else 1
+        for i, label in enumerate(batch["label"]):
+            part = dense[i * per_image : (i + 1) * per_image]
+            if boxes:
+                image_size = (boxes[-1][1], boxes[-1][3])  # the last window ends at the corner
+                windows = (
+                    window_logits(part[j : j + 1], protos, size)[0] for j in range(per_image)
+                )  # one window at a time
+                logits = stitch(windows, boxes, image_size)
+            else:
+                logits = window_logits(part, protos, size)[0]
+            logits = to_label(logits, tuple(label.shape[-2:]))
+            pred = classify(logits, self.name_class, rule.background_threshold,
+                            rule.background_logit_scale)  # fmt: skip
+            metric.update(pred, label)
