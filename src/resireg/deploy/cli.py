@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 
@@ -60,13 +61,17 @@ def export_main(argv: Sequence[str] | None = None) -> int:
     except ImportError as err:
         return _fail(f"{err.name} is not installed: pip install 'resireg[export]'")
 
-    from resireg.deploy.onnx_export import export_onnx, validate
-    from resireg.integrity import IntegrityError
+    from resireg.deploy.onnx_export import check_outputs, export_onnx, validate
+    from resireg.errors import ResiregError
     from resireg.models import ResiregVLM
 
-    try:
+    try:  # the paths first: a bad --out is reported before the model loads
+        check_outputs(args.out, not args.no_text, "--out")
+    except ValueError as err:
+        return _fail(str(err))
+    try:  # a missing, damaged or unreachable export (WeightsUnavailableError offline)
         model = ResiregVLM.from_pretrained(args.export)
-    except (FileNotFoundError, IntegrityError) as err:
+    except (OSError, ResiregError, ValueError) as err:
         return _fail(f"{args.export}: {err}")
     try:
         result = export_onnx(
@@ -76,6 +81,9 @@ def export_main(argv: Sequence[str] | None = None) -> int:
         )  # fmt: skip
     except ValueError as err:
         return _fail(str(err))
+    except OSError as err:  # e.g. a full disk: the staged files are removed, none at --out
+        reason = os.strerror(err.errno) if err.errno else str(err)
+        return _fail(f"--out={args.out!r}: could not write the graphs ({reason}); none was left")
     print(f"image graph: {result.image} ({result.seconds['image']:.1f} s)")
     if not args.no_text:
         print(f"text graph:  {result.text} ({result.seconds['text']:.1f} s)")
