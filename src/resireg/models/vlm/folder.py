@@ -42,6 +42,11 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
         raise IntegrityError(
             f"{str(cfg_file)!r} is not a {EXPORT_FORMAT} config (format={found!r})"
         )
+    for key in ("backbone", "head", "text"):
+        if not isinstance(cfg.get(key), dict):
+            raise IntegrityError(
+                f"{cfg_file}: {key}={cfg.get(key)!r}: expected the part's settings"
+            )
     if "frozen_weights" in cfg:
         resolve_inside(path, cfg["frozen_weights"], f"{cfg_file}: frozen_weights")
     recorded = cfg.get("digests")
