@@ -28,8 +28,8 @@ __all__ = ["MAX_PIXELS", "load_photo", "reduce_photo", "reduced_size"]
 
 #: The most pixels an image hands the 25M VLM unless told otherwise: 1024 x 1024, i.e. 4096
 #: patches of its 16-pixel grid (the protocol's 576 x 768 inputs are 1728; a 16:9 photo at the
-#: protocol's shorter side 576 is 576 x 1024, 2304), and ~1 MP keeps resireg-segment's peak
-#: memory near 1 GiB on the CPU (benchmarks/bench_segment.py).
+#: protocol's shorter side 576 is 576 x 1024, 2304); with it resireg-segment peaks near 1.2 GiB
+#: on the CPU whatever the image's size (docs/benchmarks.md, benchmarks/bench_segment.py).
 MAX_PIXELS = 1024 * 1024
 
 #: PIL modes of 16-bit (and 32-bit integer) grey images, resized as 32-bit integers (``I``)
