@@ -155,12 +155,12 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
         return _fail(str(err))
 
     from resireg.deploy.segment import save_outputs, segment
-    from resireg.errors import ResiregError, rename_arguments
+    from resireg.errors import IntegrityError, OfflineError, rename_arguments
 
     try:
         result = segment(photo, labels, encoder, args.variant, short_side=args.short_side,
                          max_pixels=args.max_pixels, device=args.device)  # fmt: skip
-    except (OSError, ResiregError) as err:  # a missing, damaged or unreachable model
+    except (OSError, IntegrityError, OfflineError) as err:  # a missing, damaged, offline model
         return _fail(f"--model-path={args.model_path}: {err}")
     except ValueError as err:  # e.g. --short-side over --max-pixels
         names = {"short_side": "--short-side", "max_pixels": "--max-pixels"}
