@@ -160,22 +160,30 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     ]
 
 
+_CIRCLES = """
+import json, sys
+import grimp
+
+graph = grimp.build_graph(sys.argv[1], cache_dir=None)
+print(json.dumps([
+    [module, *chain]
+    for module in sorted(graph.modules)
+    for imported in sorted(graph.find_modules_directly_imported_by(module))
+    if (chain := graph.find_shortest_chain(importer=imported, imported=module))
+]))
+"""
+
+
 def _import_circles(src: Path, package: str) -> list[tuple[str, ...]]:
     """Every import circle of ``package`` under ``src`` (grimp, import-linter's graph: imports
-    inside functions count too), each as the chain from a module back to itself."""
-    import grimp
+    inside functions count too), each as the chain from a module back to itself; in a fresh
+    process, so ``src``'s copy is the one scanned, not the package this process imported."""
+    import json
 
-    sys.path.insert(0, str(src))
-    try:
-        graph = grimp.build_graph(package, cache_dir=None)
-    finally:
-        sys.path.remove(str(src))
-    return [
-        (module, *chain)
-        for module in sorted(graph.modules)
-        for imported in sorted(graph.find_modules_directly_imported_by(module))
-        if (chain := graph.find_shortest_chain(importer=imported, imported=module))
-    ]
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    out = subprocess.run([sys.executable, "-c", _CIRCLES, package], capture_output=True,
+                         text=True, env=env, timeout=300, check=True)  # fmt: skip
+    return [tuple(chain) for chain in json.loads(out.stdout)]
 
 
 def test_resireg_has_no_import_circle_counting_imports_inside_functions(tmp_path):
