@@ -30,14 +30,14 @@ import torch
 import torch.nn.functional as F
 
 from _common import build_model
+from resireg.deploy import open_graph
 from resireg.deploy.onnx_export import export_onnx
 from resireg.method.reconstruct import ReSiRegLite
 
 
 def _session(path: Path, threads: int) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    """The graph as the project opens one: its SHA-256 checked against the manifest."""
+    return open_graph(path, threads=threads)
 
 
 def _unit_diff(a: np.ndarray, b: torch.Tensor) -> float:

@@ -15,6 +15,9 @@ _MODULES = {
     "resireg-eval": "resireg_train.cli.eval",
     "resireg-report": "resireg_train.cli.report",
     "resireg-map": "resireg_train.cli.map",
+    # one module, two commands: its __main__ takes the command's name first
+    "resireg-export": "resireg.deploy.cli export",
+    "resireg-segment": "resireg.deploy.cli segment",
 }
 
 
@@ -28,7 +31,7 @@ def _ctrl_c_as_in_a_terminal() -> None:
 
 def _command(script, args):
     exe = shutil.which(script)
-    return [*([exe] if exe else [sys.executable, "-m", _MODULES[script]]), *map(str, args)]
+    return [*([exe] if exe else [sys.executable, "-m", *_MODULES[script].split()]), *map(str, args)]
 
 
 def _env(env, threads=None):

@@ -20,6 +20,7 @@ from resireg.integrity import (
     digests,
     load_safetensors,
     read_json,
+    resolve_inside,
     sha256_file,
     verify_digests,
 )
@@ -46,6 +47,65 @@ def test_verify_digests_names_the_changed_file(tmp_path):
     (tmp_path / "a.bin").unlink()
     with pytest.raises(IntegrityError, match=r"a\.bin: missing"):
         verify_digests(tmp_path, recorded, "saved map")
+
+
+#: Names a record may hold, good and hostile (issue 44 item 6).
+NAMES = ["model.safetensors", "sub/a.bin", "sub/../a.bin", "./a.bin", "a//b.bin", "../a.bin",
+         "a/../../b.bin", "..", ".", "sub/..", "../export2/a.bin", "/etc/passwd", "//host/x",
+         "..\\a.bin", "sub\\..\\..\\a.bin", "C:\\x.bin", "C:x.bin", "\\\\server\\share\\x"]  # fmt: skip
+
+
+def _inside_by_the_file_system(folder, name):
+    """The reference: the path the OS makes of ``folder/name`` (a backslash read as a
+    separator, as on Windows; realpath with no links in the way), under ``folder`` and not
+    the folder itself, for a name that is not absolute on POSIX or Windows."""
+    import ntpath
+
+    if os.path.isabs(name) or ntpath.splitdrive(name)[0] or name.startswith("\\"):
+        return None
+    path = os.path.realpath(os.path.join(folder, name.replace("\\", "/")))
+    base = os.path.realpath(folder)
+    return path if path != base and os.path.commonpath([path, base]) == base else None
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_resolve_inside_agrees_with_the_file_system(tmp_path, name):
+    folder = tmp_path / "export"
+    (folder / "sub").mkdir(parents=True)
+    expected = _inside_by_the_file_system(folder, name)
+    if expected is None:
+        with pytest.raises(IntegrityError) as err:
+            resolve_inside(folder, name, "config.json: frozen_weights")
+        message = str(err.value)
+        assert message.startswith(f"config.json: frozen_weights={name!r}: ")  # field and value
+        assert "\n" not in message and str(folder) in message
+    else:
+        assert os.path.realpath(resolve_inside(folder, name, "f")) == expected
+
+
+@pytest.mark.parametrize("name", [3, None, "", "a\0b", ["a"]])
+def test_resolve_inside_refuses_what_is_not_a_name(tmp_path, name):
+    with pytest.raises(IntegrityError, match=r"^map\.json: files="):
+        resolve_inside(tmp_path, name, "map.json: files")
+
+
+def test_verify_digests_reads_no_file_outside_its_folder(tmp_path):
+    """A record whose digests name a file outside (its digest recomputed, as anyone editing
+    the record would) is refused before any file is hashed, naming the field."""
+    folder, outside = tmp_path / "map", tmp_path / "secret.bin"
+    folder.mkdir()
+    (folder / "a.bin").write_bytes(b"a")
+    outside.write_bytes(b"secret")
+    for name in ("../secret.bin", str(outside)):
+        recorded = {"a.bin": sha256_file(folder / "a.bin"), name: sha256_file(outside)}
+        with pytest.raises(IntegrityError, match=rf"^saved map digests={name!r}: "):
+            verify_digests(folder, recorded, "saved map")
+        with pytest.raises(IntegrityError, match=rf"^map\.json: sha256={name!r}: "):
+            verify_digests(folder, recorded, "saved map", "map.json: sha256")
+    with pytest.raises(IntegrityError, match=r"expected \{file name: sha256\}"):
+        verify_digests(folder, ["a.bin"], "saved map")
+    with pytest.raises(IntegrityError, match=r"a\.bin=7: expected a SHA-256"):
+        verify_digests(folder, {"a.bin": 7}, "saved map")
 
 
 def test_truncated_json_and_safetensors_name_the_file(tmp_path):

@@ -160,3 +160,50 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
         "resireg_train.evaluation.engine._no_timer",
         "resireg_train.evaluation.engine._no_timer",
     ]
+
+
+_CIRCLES = """
+import json, sys
+import grimp
+
+graph = grimp.build_graph(sys.argv[1], cache_dir=None)
+print(json.dumps([
+    [module, *chain]
+    for module in sorted(graph.modules)
+    for imported in sorted(graph.find_modules_directly_imported_by(module))
+    if (chain := graph.find_shortest_chain(importer=imported, imported=module))
+]))
+"""
+
+
+def _import_circles(src: Path, package: str) -> list[tuple[str, ...]]:
+    """Every import circle of ``package`` under ``src`` (grimp, import-linter's graph: imports
+    inside functions count too), each as the chain from a module back to itself; in a fresh
+    process, so ``src``'s copy is the one scanned, not the package this process imported."""
+    import json
+
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    out = subprocess.run([sys.executable, "-c", _CIRCLES, package], capture_output=True,
+                         text=True, env=env, timeout=300, check=True)  # fmt: skip
+    return [tuple(chain) for chain in json.loads(out.stdout)]
+
+
+def test_resireg_has_no_import_circle_counting_imports_inside_functions(tmp_path):
+    """Issue 45: ``models/vlm/card.py`` and ``models/vlm/model.py`` imported each other inside
+    functions; both now read exports through ``models/vlm/folder.py``. The scan can fail: a
+    copy where the card imports the model inside a function again has that circle."""
+    assert _import_circles(ROOT / "src", "resireg") == []
+
+    src = tmp_path / "src"
+    shutil.copytree(ROOT / "src" / "resireg", src / "resireg",
+                    ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
+    card = src / "resireg" / "models" / "vlm" / "card.py"
+    card.write_text(
+        card.read_text() + "\n\ndef _late():\n    from resireg.models.vlm import model\n"
+    )
+    found = _import_circles(src, "resireg")
+    assert (
+        "resireg.models.vlm.card",
+        "resireg.models.vlm.model",
+        "resireg.models.vlm.card",
+    ) in found

@@ -17,6 +17,8 @@ from resireg.ovss import TEMPLATES
 
 skdata = pytest.importorskip("skimage.data")
 pytest.importorskip("matplotlib")
+from matplotlib import colormaps  # noqa: E402
+from scipy.special import softmax  # noqa: E402
 
 LABELS = ("person", "sky", "rocket")
 
@@ -54,9 +56,8 @@ def test_segment_is_the_protocols_prediction_at_the_images_size(tiny_export, pho
     assert result.label_map.shape == result.size == photo.shape[:2]
     np.testing.assert_array_equal(result.label_map, labels)
     np.testing.assert_allclose(result.similarity, sim, atol=1e-5)
-    assert result.scores.shape == (3, *photo.shape[:2])
-    np.testing.assert_allclose(result.scores.sum(0), 1.0, atol=1e-5)
-    np.testing.assert_array_equal(result.scores.argmax(0), result.label_map)
+    # the scores: softmax of 100 x the reference's cosines over the labels (scipy)
+    np.testing.assert_allclose(result.scores, softmax(100.0 * sim, axis=0), atol=1e-3)
     # the export folder itself is an encoder too (from_pretrained)
     again = resireg.segment(photo, list(LABELS), str(tiny_export), variant)
     np.testing.assert_array_equal(again.label_map, result.label_map)
@@ -117,9 +118,16 @@ def test_resireg_segment_writes_label_map_overlay_and_similarity_maps(tiny_expor
     with Image.open(out) as im:
         assert im.mode == "P"
         np.testing.assert_array_equal(np.asarray(im), expected.label_map)
-    overlay = out.with_name("seg.overlay.png")
-    with Image.open(overlay) as im:
-        assert im.size == (decoded.shape[1], decoded.shape[0])
+    # the overlay: the photo blended half and half with matplotlib's tab10 colour of each
+    # pixel's label, within PNG rounding everywhere but under the legend (upper right)
+    with Image.open(out.with_name("seg.overlay.png")) as im:
+        overlay = np.asarray(im.convert("RGB")).astype(float)
+    tab10 = np.asarray(colormaps["tab10"].colors[:3])
+    blend = np.round(255 * (0.5 * decoded / 255.0 + 0.5 * tab10[expected.label_map]))
+    assert overlay.shape == blend.shape
+    rows, cols = np.nonzero(np.abs(overlay - blend).max(-1) > 2)
+    h, w = decoded.shape[:2]
+    assert rows.max() < h // 4 and cols.min() > w // 2, (rows.max(), cols.min())  # the legend
     for i, name in enumerate(LABELS):
         with Image.open(out.with_name(f"seg.similarity.{i}-{name}.png")) as im:
             assert im.size == (decoded.shape[1], decoded.shape[0])
@@ -166,3 +174,113 @@ def test_resireg_segment_reports_bad_arguments_before_torch_loads(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "2 False", out.stdout + out.stderr
     assert "--labels='a,,b'" in out.stderr
+
+
+# ------------------------------------------------------- image bombs (issue 44 item 11)
+def _png(path, width, height, pixels=True):
+    """An RGB PNG declaring ``width`` x ``height``, written row by row through zlib, so the
+    file is small and the test never holds the image: each row is a ramp (a gradient image),
+    or, with ``pixels=False``, no pixel data at all (the header alone, as a bomb's)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    packer = zlib.compressobj(9)
+    row = b"\x00" + np.linspace(0, 255, 3 * width).astype(np.uint8).tobytes()  # filter 0, ramp
+    data = b"".join(packer.compress(row) for _ in range(height)) if pixels else b""
+    with open(path, "wb") as f:
+        f.write(b"\x89PNG\r\n\x1a\n")
+        f.write(chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)))
+        f.write(chunk(b"IDAT", data + packer.flush()))
+        f.write(chunk(b"IEND", b""))
+    return path
+
+
+def _one_line(proc):
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: "), proc.stderr
+    return proc.stderr.strip()
+
+
+@pytest.mark.parametrize(
+    ("side", "said"),
+    [(30000, "exceeds limit of 178956970 pixels"),  # PIL's own refusal (twice its limit)
+     (10000, "declares 10000 x 10000 = 100,000,000 pixels, more than PIL's decompression-bomb "
+             "limit of 89,478,485")],  # PIL only warns here: refused from the header
+)  # fmt: skip
+def test_resireg_segment_refuses_an_image_bomb_in_one_line(tmp_path, side, said):
+    from _run import run
+
+    bomb = _png(tmp_path / "bomb.png", side, side, pixels=False)
+    assert bomb.stat().st_size < 100
+    out = tmp_path / "seg" / "seg.png"
+    proc = run("resireg-segment", bomb, "--labels", "a,b", "--model-path", tmp_path, "--out", out,
+               check=False)  # fmt: skip
+    assert _one_line(proc).startswith(f"error: {bomb}: refused (") and said in proc.stderr
+    assert not out.parent.exists()
+
+
+def _model_input(model):
+    """The list the backbone's input shapes are appended to (a forward pre-hook)."""
+    seen = []
+    model.backbone.register_forward_pre_hook(lambda m, args: seen.append(tuple(args[0].shape)))
+    return seen
+
+
+def test_a_large_image_is_resized_before_the_model(tiny_export, tmp_path):
+    """A 1000 x 1500 image with max_pixels=100,000: each side scaled by sqrt(1e5 / 1.5e6)
+    and rounded down gives 258 x 387 (99,846 pixels), the size of every output; the model's
+    input is that rounded to its 16-pixel patches, 256 x 384. A file takes the same path."""
+    model = ResiregVLM.from_pretrained(tiny_export)
+    seen = _model_input(model)
+    image = np.random.default_rng(0).integers(0, 256, (1000, 1500, 3), dtype=np.uint8)
+    result = resireg.segment(image, LABELS, model, "bb", max_pixels=100_000)
+    assert result.size == result.label_map.shape == (258, 387) and 258 * 387 <= 100_000
+    assert result.scores.shape == result.similarity.shape == (3, 258, 387)
+    assert seen == [(1, 3, 256, 384)]
+    png = _png(tmp_path / "wide.png", 1500, 1000)
+    assert resireg.segment(png, LABELS, model, "bb", max_pixels=100_000).size == (258, 387)
+    assert seen[-1] == (1, 3, 256, 384)
+    with pytest.raises(ValueError, match=r"short_side=640: makes a 640 x 960 model input"):
+        resireg.segment(image, LABELS, model, "bb", short_side=640, max_pixels=100_000)
+
+
+def test_a_large_jpeg_is_decoded_small_and_matches_the_photo(photo, tmp_path):
+    """The astronaut (512 x 512) enlarged 8 times to a 4096 x 4096 JPEG, read with
+    max_pixels = 512 x 512: decoded at 1/8 scale (PIL's draft), it is the photo again up to
+    the two resamplings and JPEG's loss (the reference: the original pixels)."""
+    from resireg.deploy.photo import load_photo
+
+    big = tmp_path / "big.jpg"
+    Image.fromarray(photo).resize((4096, 4096), Image.Resampling.BICUBIC).save(big, quality=95)
+    got = load_photo(big, 512 * 512)
+    assert got.size == (512, 512) and got.mode == "RGB"
+    diff = np.abs(np.asarray(got).astype(float) - photo)
+    assert diff.mean() < 4.0, diff.mean()
+
+
+def test_resireg_segment_writes_a_large_image_at_the_limits_size(tiny_export, tmp_path):
+    from _run import run
+
+    png = _png(tmp_path / "wide.png", 4000, 3000)  # 12 MP
+    out = tmp_path / "seg.png"
+    run("resireg-segment", png, "--labels", "a,b", "--model-path", tiny_export,
+               "--max-pixels", 120_000, "--variant", "bb", "--out", out)  # fmt: skip
+    # sqrt(120000 / 12e6) = 0.1: 300 x 400 exactly
+    for path in (out, tmp_path / "seg.overlay.png", tmp_path / "seg.similarity.0-a.png"):
+        with Image.open(path) as im:
+            assert im.size == (400, 300), path
+    line = _one_line(run("resireg-segment", png, "--labels", "a,b", "--model-path", tiny_export,
+                         "--max-pixels", 120_000, "--short-side", 600, "--out", tmp_path / "x.png",
+                         check=False))  # fmt: skip
+    assert line.startswith("error: --short-side=600: makes a 608 x 800 model input") and (
+        "more than --max-pixels=120,000" in line
+    )
+    line = _one_line(run("resireg-segment", png, "--labels", "a", "--model-path", tiny_export,
+                         "--max-pixels", 0, "--out", tmp_path / "x.png", check=False))  # fmt: skip
+    assert line == "error: --max-pixels=0: expected a number of pixels >= 1"
+    assert not (tmp_path / "x.png").exists()

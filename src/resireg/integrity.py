@@ -6,7 +6,9 @@ Saved maps (:meth:`resireg.mapping.SemanticMap.save`) and model exports
 (:meth:`resireg.models.ResiregVLM.save_pretrained`) record ``{file name: sha256}`` of every
 tensor file in their JSON record; their loaders call :func:`verify_digests` before any tensor
 is read, so a flipped bit or an overwritten block is an :class:`IntegrityError` naming the file,
-never a model or map that loads with wrong numbers. Only the Python standard library and
+never a model or map that loads with wrong numbers. A file name read from such a record goes
+through :func:`resolve_inside`, the one rule for a path that a file names: it stays inside the
+record's folder. Only the Python standard library and
 safetensors are used (``hashlib`` streams the file in 1 MiB chunks).
 """
 
@@ -15,9 +17,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import posixpath
 import uuid
 from collections.abc import Callable, Iterable, Mapping
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
 from resireg.errors import IntegrityError, WriteError
@@ -30,6 +33,7 @@ __all__ = [
     "file_mode",
     "load_safetensors",
     "read_json",
+    "resolve_inside",
     "sha256_file",
     "verify_digests",
 ]
@@ -52,15 +56,57 @@ def digests(folder: str | os.PathLike, names: Iterable[str]) -> dict[str, str]:
     return {name: sha256_file(folder / name) for name in sorted(names)}
 
 
-def verify_digests(folder: str | os.PathLike, recorded: Mapping[str, str], what: str) -> None:
+def resolve_inside(folder: str | os.PathLike, name: object, field: str) -> Path:
+    """``folder / name`` for a file name ``name`` that a record in ``folder`` holds (an export's
+    ``config.json``, a map's ``map.json``, an ONNX manifest), refused unless it stays inside
+    ``folder``: an :class:`IntegrityError` names ``field`` (where the record holds it, e.g.
+    ``"<export>/config.json: frozen_weights"``) and the value when ``name`` is not a non-empty
+    string, is absolute (POSIX, or a Windows drive or share), or climbs out through ``..``.
+
+    The one rule for every path read from a file: a record names files of its own folder (or
+    below it) only; an absolute path is accepted only where the user typed it (an argument,
+    never a file). The check is on the name, not on the file system: symbolic links inside
+    the folder are followed as the folder's owner made them (a Hugging Face snapshot is made of
+    links into the cache's blobs), so its cost does not grow with the folder's depth.
+    """
+    if not isinstance(name, str) or not name or "\0" in name:
+        raise IntegrityError(f"{field}={name!r}: expected the name of a file in {folder}")
+    if PurePosixPath(name).is_absolute() or PureWindowsPath(name).anchor:
+        raise IntegrityError(
+            f"{field}={name!r}: an absolute path, refused (a record may name only files inside "
+            f"its own folder, {folder})"
+        )
+    # a name that climbs out, e.g. "../x" or "a/../../x": ``normpath`` folds "a/.." by the
+    # name (the rule is on names, see above); a backslash counts as a separator on every OS,
+    # so a record is judged the same wherever it is read
+    parts = PurePosixPath(posixpath.normpath(name.replace("\\", "/"))).parts
+    if not parts or parts[0] in (".", ".."):
+        raise IntegrityError(
+            f"{field}={name!r}: leaves the folder, refused (a record may name only files inside "
+            f"its own folder, {folder})"
+        )
+    return Path(folder).joinpath(*parts)
+
+
+def verify_digests(
+    folder: str | os.PathLike, recorded: Mapping[str, str], what: str, field: str | None = None
+) -> None:
     """Check every file of ``recorded`` (``{name: sha256}``, as :func:`digests` returns) in
     ``folder``; an :class:`IntegrityError` names the first file that is missing or differs,
-    and ``what`` (e.g. ``"saved map"``) says whose file it is."""
+    and ``what`` (e.g. ``"saved map"``) says whose file it is. Every name is checked to stay
+    inside ``folder`` (:func:`resolve_inside`) before any file is read; ``field`` says where
+    the record holds them (default ``"<what> digests"``)."""
     folder = Path(folder)
+    field = field or f"{what} digests"
+    if not isinstance(recorded, Mapping):
+        raise IntegrityError(f"{field}={recorded!r}: expected {{file name: sha256}}")
+    paths = {name: resolve_inside(folder, name, field) for name in recorded}
     for name, expected in recorded.items():
-        path = folder / name
+        path = paths[name]
         if not path.is_file():
             raise IntegrityError(f"{path}: missing ({what} records it)")
+        if not isinstance(expected, str):
+            raise IntegrityError(f"{field}: {name}={expected!r}: expected a SHA-256 hex digest")
         actual = sha256_file(path)
         if actual != expected:
             raise IntegrityError(

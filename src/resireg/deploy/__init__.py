@@ -1,4 +1,5 @@
-"""Deployment of the 25M VLM: ONNX graphs for onnxruntime and TensorRT (:mod:`.onnx_export`),
+"""Deployment of the 25M VLM: ONNX graphs for onnxruntime and TensorRT (:mod:`.onnx_export`;
+:func:`open_graph` opens one, verified against its manifest: :mod:`.runtime`),
 Hugging Face Hub folders and model cards (:mod:`.card`), and one-image open-vocabulary
 segmentation (:mod:`.segment`). Needs the core install only; ONNX needs the ``export`` extra
 (onnx, onnxscript, onnxruntime) and the segmentation figures matplotlib (the same extra).
@@ -16,6 +17,7 @@ __all__ = [
     "export_onnx",
     "hub_folder",
     "model_card",
+    "open_graph",
     "segment",
 ]
 
@@ -28,6 +30,7 @@ __getattr__ = lazy_names(
         "export_onnx": "resireg.deploy.onnx_export",
         "hub_folder": "resireg.models.vlm.card",
         "model_card": "resireg.models.vlm.card",
+        "open_graph": "resireg.deploy.runtime",
         "SegmentationResult": "resireg.deploy.segment",
         "segment": "resireg.deploy.segment",
     },

@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
+
+from resireg.deploy.labels import parse_labels
+from resireg.deploy.photo import MAX_PIXELS, check_max_pixels, load_photo
 
 __all__ = ["export_main", "segment_main"]
 
@@ -60,13 +64,17 @@ def export_main(argv: Sequence[str] | None = None) -> int:
     except ImportError as err:
         return _fail(f"{err.name} is not installed: pip install 'resireg[export]'")
 
-    from resireg.deploy.onnx_export import export_onnx, validate
-    from resireg.integrity import IntegrityError
+    from resireg.deploy.onnx_export import check_outputs, export_onnx, validate
+    from resireg.errors import ResiregError
     from resireg.models import ResiregVLM
 
-    try:
+    try:  # the paths first: a bad --out is reported before the model loads
+        check_outputs(args.out, not args.no_text, "--out")
+    except ValueError as err:
+        return _fail(str(err))
+    try:  # a missing, damaged or unreachable export (WeightsUnavailableError offline)
         model = ResiregVLM.from_pretrained(args.export)
-    except (FileNotFoundError, IntegrityError) as err:
+    except (OSError, ResiregError, ValueError) as err:
         return _fail(f"{args.export}: {err}")
     try:
         result = export_onnx(
@@ -76,6 +84,9 @@ def export_main(argv: Sequence[str] | None = None) -> int:
         )  # fmt: skip
     except ValueError as err:
         return _fail(str(err))
+    except OSError as err:  # e.g. a full disk: the staged files are removed, none at --out
+        reason = os.strerror(err.errno) if err.errno else str(err)
+        return _fail(f"--out={args.out!r}: could not write the graphs ({reason}); none was left")
     print(f"image graph: {result.image} ({result.seconds['image']:.1f} s)")
     if not args.no_text:
         print(f"text graph:  {result.text} ({result.seconds['text']:.1f} s)")
@@ -106,14 +117,17 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--short-side", type=int, help="model input's shorter side (default: the image's)"
     )
+    parser.add_argument("--max-pixels", type=int, default=MAX_PIXELS,
+                        help="a larger image is resized (aspect kept) to at most this many pixels "
+                        f"before the model; the outputs are at that size (default {MAX_PIXELS:,}: "
+                        "1024 x 1024, sized for the 25M VLM)")  # fmt: skip
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", required=True, help="the label map PNG, e.g. seg.png")
     args = parser.parse_args(argv)
 
-    from resireg.deploy.labels import parse_labels
-
     try:
         labels = parse_labels(args.labels, "--labels")
+        check_max_pixels(args.max_pixels, "--max-pixels")
     except ValueError as err:
         return _fail(str(err))
     from resireg.specs.variants import VARIANTS
@@ -135,22 +149,22 @@ def segment_main(argv: Sequence[str] | None = None) -> int:
     else:
         encoder = args.model_path
 
-    from PIL import Image, UnidentifiedImageError
-
-    try:  # before torch loads: a bad file is reported at once
-        with Image.open(args.image) as im:
-            photo = im.convert("RGB") if im.mode not in ("RGB", "I;16", "I") else im.copy()
-    except (OSError, UnidentifiedImageError) as err:
-        return _fail(f"{args.image}: not a readable image ({err})")
+    try:  # before torch loads: a bad file is reported at once; a large one decoded small
+        photo = load_photo(args.image, args.max_pixels)
+    except ValueError as err:  # unreadable, or over PIL's decompression-bomb limit
+        return _fail(str(err))
 
     from resireg.deploy.segment import save_outputs, segment
-    from resireg.integrity import IntegrityError
+    from resireg.errors import IntegrityError, OfflineError, rename_arguments
 
     try:
         result = segment(photo, labels, encoder, args.variant, short_side=args.short_side,
-                         device=args.device)  # fmt: skip
-    except (FileNotFoundError, IntegrityError) as err:
+                         max_pixels=args.max_pixels, device=args.device)  # fmt: skip
+    except (OSError, IntegrityError, OfflineError) as err:  # a missing, damaged, offline model
         return _fail(f"--model-path={args.model_path}: {err}")
+    except ValueError as err:  # e.g. --short-side over --max-pixels
+        names = {"short_side": "--short-side", "max_pixels": "--max-pixels"}
+        return _fail(rename_arguments(str(err), names)[0])
     paths = save_outputs(photo, result, args.out)
     print(f"label map:  {paths['label_map']}")
     print(f"overlay:    {paths['overlay']}")

@@ -30,7 +30,9 @@ from __future__ import annotations
 import copy
 import json
 import os
+import shutil
 import time
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from resireg.deploy.runtime import GRAPH_FORMAT, manifest_path, open_graph, text_graph_path
+from resireg.errors import ConfigError
 from resireg.integrity import atomic_write, digests
 from resireg.method.reconstruct import ReSiRegLite
 from resireg.models.vlm.model import ResiregVLM
@@ -49,6 +53,7 @@ __all__ = [
     "OnnxExport",
     "TextGraph",
     "check_graph",
+    "check_outputs",
     "export_onnx",
     "run_graph",
     "text_graph_path",
@@ -119,10 +124,29 @@ class OnnxExport:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-def text_graph_path(image: str | os.PathLike) -> Path:
-    """Where the text graph of an image graph ``model.onnx`` goes: ``model.text.onnx``."""
-    image = Path(image)
-    return image.with_name(f"{image.stem}.text{image.suffix or '.onnx'}")
+def check_outputs(out: str | os.PathLike, text: bool = True, name: str = "out") -> Path:
+    """Check before an export starts that its files can be written: the image graph ``out``,
+    the text graph (:func:`~resireg.deploy.runtime.text_graph_path`, with ``text``) and the
+    manifest (``<out>.json``) are not folders, and the nearest existing folder above ``out``
+    is a folder (not a regular file) this process can write. Returns that folder (where
+    :func:`export_onnx` stages the files). A :class:`~resireg.errors.ConfigError` names
+    ``name`` (the argument: ``--out`` on the command line), the value and the path at fault."""
+    out = Path(out)
+    where = f"{name}={os.fspath(out)!r}"
+    if not out.name or out.name in (".", ".."):
+        raise ConfigError(f"{where}: expected a file path, e.g. model.onnx")
+    for path, role in ((out, "the image graph"), (manifest_path(out), "the manifest"),
+                       *([(text_graph_path(out), "the text graph")] if text else [])):  # fmt: skip
+        if path.is_dir():
+            raise ConfigError(f"{where}: {role}'s path {path} is a folder")
+    folder = out.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ConfigError(f"{where}: {folder} is a regular file, not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ConfigError(f"{where}: the folder {folder} cannot be written by this user")
+    return folder
 
 
 def check_graph(path: str | os.PathLike) -> dict[str, int]:
@@ -203,13 +227,46 @@ def export_onnx(
                 f"{name}={side!r}: expected a positive multiple of the patch size {patch}"
             )
     lite_module = _lite_module(attention, lite_kwargs) if lite else None
+    out = Path(out)
+    existing = check_outputs(out, text)
+    # the files are written into a staging folder beside them and moved to ``out`` at the
+    # end: the graphs and their manifest appear together or not at all
+    stage = existing / f".{out.name}.{uuid.uuid4().hex[:8]}.tmp"
+    stage.mkdir()
+    try:
+        staged = _export(model, stage / out.name, lite_module, fp16, height, width, batch, dynamic,
+                         text)  # fmt: skip
+        out.parent.mkdir(parents=True, exist_ok=True)
+        result = OnnxExport(image=out, text=text_graph_path(out), manifest=manifest_path(out),
+                            opsets=staged.opsets, seconds=staged.seconds)  # fmt: skip
+        moves = [(staged.image, result.image), (staged.manifest, result.manifest)]
+        if text:
+            moves.insert(0, (staged.text, result.text))
+        for src, dest in moves:  # the manifest last: a reader finds it with its graphs
+            os.replace(src, dest)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return result
+
+
+def _export(
+    model: ResiregVLM,
+    out: Path,
+    lite_module: ReSiRegLite | None,
+    fp16: bool,
+    height: int,
+    width: int,
+    batch: int,
+    dynamic: bool,
+    text: bool,
+) -> OnnxExport:
+    """:func:`export_onnx`'s work, its arguments checked, into ``out``'s folder (staging)."""
+    patch = model.input_rule.patch_size
     dtype = torch.float16 if fp16 else torch.float32
     # copies, so the caller's model keeps its dtype and device
     net32 = copy.deepcopy(model).to("cpu", torch.float32).eval()
     net = copy.deepcopy(net32).half() if fp16 else net32
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    result = OnnxExport(image=out, text=text_graph_path(out), manifest=Path(f"{out}.json"))
+    result = OnnxExport(image=out, text=text_graph_path(out), manifest=manifest_path(out))
 
     graph = ImageGraph(net, lite_module).eval()
     if dynamic:
@@ -255,7 +312,7 @@ def export_onnx(
 
     rule = model.input_rule
     manifest = {
-        "format": "resireg-vlm-onnx",
+        "format": GRAPH_FORMAT,
         "version": 1,
         "dtype": "float16" if fp16 else "float32",
         "image": {
@@ -298,13 +355,10 @@ def export_onnx(
 
 
 def run_graph(path: str | os.PathLike, feeds: dict[str, Any], threads: int | None = None) -> dict:
-    """Run a saved graph with onnxruntime's CPU execution provider: ``{output name: array}``."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    if threads is not None:
-        options.intra_op_num_threads = threads
-    session = ort.InferenceSession(os.fspath(path), options, providers=["CPUExecutionProvider"])
+    """Run a saved graph, verified against its manifest
+    (:func:`~resireg.deploy.runtime.open_graph`), with onnxruntime's CPU execution provider:
+    ``{output name: array}``."""
+    session = open_graph(path, threads=threads)
     names = [o.name for o in session.get_outputs()]
     arrays = {k: (v.numpy() if isinstance(v, Tensor) else v) for k, v in feeds.items()}
     return dict(zip(names, session.run(names, arrays), strict=True))

@@ -8,6 +8,11 @@ with temperature 100 and argmax, brought to the image's size by nearest upsampli
 :class:`~resireg.models.DenseEncoder`, an export folder or Hub repo id of our VLM, or
 ``build_encoder`` keywords.
 
+An image of more than ``max_pixels`` pixels (:data:`~resireg.deploy.photo.MAX_PIXELS` by
+default, sized for the 25M VLM) is resized, its aspect kept, before it becomes the model's
+input, and a file is decoded with its memory bounded (:mod:`resireg.deploy.photo`); the
+segmentation is at that size.
+
 The figures (overlay with a legend, similarity maps) need matplotlib (the ``export`` extra);
 :func:`segment` itself needs the core only.
 """
@@ -27,8 +32,15 @@ import torch.nn.functional as F
 from PIL import Image
 
 from resireg.deploy.labels import parse_labels
+from resireg.deploy.photo import (
+    MAX_PIXELS,
+    check_max_pixels,
+    load_photo,
+    reduce_photo,
+    reduced_size,
+)
 from resireg.errors import arguments_under
-from resireg.models.images import pil_to_tensor
+from resireg.models.images import patch_grid_size, pil_to_tensor
 from resireg.models.interface import DenseEncoder
 from resireg.ovss import TEMPLATES, class_similarity, predict, text_prototypes
 
@@ -44,7 +56,8 @@ __all__ = [
 
 @dataclass
 class SegmentationResult:
-    """A segmentation of one image, everything at the image's size ``(H, W)``.
+    """A segmentation of one image, everything at the image's size ``(H, W)`` (after
+    ``max_pixels``: see :func:`segment`).
 
     Attributes:
         labels: the ``K`` labels, in order (the label map's ids are their indices).
@@ -96,13 +109,15 @@ def load_encoder(encoder: Any, device: str | torch.device = "cpu") -> DenseEncod
     )
 
 
-def _image_tensor(image: Any) -> torch.Tensor:
-    """uint8 RGB ``[3, H, W]`` of a path, PIL image, ``[H, W, 3]`` / ``[H, W]`` array or tensor."""
+def _image_tensor(image: Any, max_pixels: int | None = None) -> torch.Tensor:
+    """uint8 RGB ``[3, H, W]`` of a path, PIL image, ``[H, W, 3]`` / ``[H, W]`` array or tensor,
+    with at most ``max_pixels`` pixels (a file or PIL image reduced by PIL before it becomes a
+    tensor: :func:`~resireg.deploy.photo.load_photo`; an array or tensor by
+    :func:`_fit`)."""
     if isinstance(image, (str, os.PathLike)):
-        with Image.open(image) as im:
-            return pil_to_tensor(im)
+        return pil_to_tensor(load_photo(image, max_pixels))
     if isinstance(image, Image.Image):
-        return pil_to_tensor(image)
+        return pil_to_tensor(reduce_photo(image, max_pixels))
     if isinstance(image, np.ndarray):
         arr = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
         if arr.ndim != 3 or arr.shape[2] != 3:
@@ -111,12 +126,27 @@ def _image_tensor(image: Any) -> torch.Tensor:
             arr = np.clip(np.rint(arr * 255.0 if arr.max() <= 1.0 else arr), 0, 255).astype(
                 np.uint8
             )
-        return torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).contiguous()
-    if isinstance(image, torch.Tensor) and image.ndim == 3 and image.shape[0] == 3:
-        return image
-    raise TypeError(
-        f"image: expected a path, PIL image, array or [3, H, W] tensor; got {type(image).__name__}"
-    )
+        pixels = torch.from_numpy(np.ascontiguousarray(arr)).permute(2, 0, 1).contiguous()
+    elif isinstance(image, torch.Tensor) and image.ndim == 3 and image.shape[0] == 3:
+        pixels = image
+    else:
+        raise TypeError(
+            "image: expected a path, PIL image, array or [3, H, W] tensor; got "
+            f"{type(image).__name__}"
+        )
+    return _fit(pixels, reduced_size(tuple(pixels.shape[-2:]), max_pixels))
+
+
+def _fit(pixels: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """``[3, H, W]`` pixels at ``size`` (bilinear, antialiased: the encoders' resize rule,
+    :func:`resireg.models.images.resize_to_patch_grid`), uint8 kept uint8; unchanged at it."""
+    if tuple(pixels.shape[-2:]) == tuple(size):
+        return pixels
+    x = pixels.float()[None]
+    x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)[0]
+    if pixels.dtype == torch.uint8:
+        return x.round_().clamp_(0, 255).to(torch.uint8)
+    return x.to(pixels.dtype)
 
 
 @torch.no_grad()
@@ -127,6 +157,7 @@ def segment(
     variant: str = "lite",
     *,
     short_side: int | None = None,
+    max_pixels: int | None = MAX_PIXELS,
     temperature: float = 100.0,
     templates: Sequence[Callable[[str], str]] = TEMPLATES,
     device: str | torch.device = "cpu",
@@ -142,13 +173,27 @@ def segment(
             (:func:`resireg.method.variants.build_variant`); ``variant_kwargs`` are its parameters.
         short_side: the model input's shorter side (default: the image's own, rounded to the
             patch size); the results are at the image's size all the same.
+        max_pixels: the most pixels of the image: a larger one is resized (aspect kept) to at
+            most that many before it becomes the model's input, and the results are at that
+            size (a file is decoded with bounded memory:
+            :func:`~resireg.deploy.photo.load_photo`). ``short_side`` may not make a model
+            input of more (a ``ValueError`` says so). ``None``: no limit.
         temperature: the softmax temperature of the scores (the protocol's 100).
         templates: prompt templates per label (the 80 ImageNet ones).
     """
     names = parse_labels(labels)
-    model = load_encoder(encoder, device)
-    pixels = _image_tensor(image)
+    max_pixels = check_max_pixels(max_pixels)
+    pixels = _image_tensor(image, max_pixels)  # before the model: a bad image fails at once
     size = tuple(pixels.shape[-2:])
+    model = load_encoder(encoder, device)
+    if short_side is not None and max_pixels is not None:
+        h, w = patch_grid_size(size, short_side, model.input_rule.patch_size)
+        if h * w > max_pixels:
+            raise ValueError(
+                f"short_side={short_side}: makes a {h} x {w} model input ({h * w:,} pixels) of "
+                f"the {size[0]} x {size[1]} image, more than max_pixels={max_pixels:,} (a smaller "
+                "shorter side, or a larger limit)"
+            )
     dense = model.encode_image(pixels, variant, short_side=short_side, **variant_kwargs)
     prototypes = text_prototypes(model.encode_text, names, templates)
     label_map = predict(dense, prototypes, size, temperature)[0]
@@ -180,8 +225,14 @@ def overlay_figure(image: Any, result: SegmentationResult, alpha: float = 0.5, d
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    photo = _image_tensor(image).permute(1, 2, 0).numpy().astype(np.float32) / 255.0
     h, w = result.size
+    # the photo as segmented: the caller's photo, reduced by max_pixels as segment reduced it
+    # (read with at most 4 x the segmentation's pixels, so a large file stays cheap)
+    pixels = _image_tensor(image, 4 * h * w)
+    ph, pw = pixels.shape[-2:]
+    if (ph, pw) != (h, w) and ph >= h and pw >= w and abs(ph * w - pw * h) <= 2 * (ph + pw):
+        pixels = _fit(pixels, (h, w))  # the same aspect, up to the limit's rounding
+    photo = pixels.permute(1, 2, 0).numpy().astype(np.float32) / 255.0
     if photo.shape[:2] != (h, w):
         raise ValueError(f"image size {photo.shape[:2]} is not the segmentation's {(h, w)}")
     colours = _colours(len(result.labels))

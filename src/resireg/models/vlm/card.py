@@ -10,7 +10,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from resireg.integrity import atomic_write, digests
+from resireg.integrity import atomic_write, digests, resolve_inside
+from resireg.models.vlm.folder import read_config
 
 __all__ = ["CARD_DEFAULTS", "hub_folder", "model_card"]
 
@@ -126,16 +127,15 @@ def hub_folder(
     ``config.json`` and the tensor files it records, verified first (a damaged export is not
     published: :class:`~resireg.integrity.IntegrityError`); ``README.md`` (:func:`model_card`)
     and ``SHA256SUMS``. Returns ``dest``."""
-    from resireg.models.vlm.model import read_config
-
     export, dest = Path(export), Path(dest)
-    cfg = read_config(export)
+    cfg = read_config(export)  # verified; its file names stay inside the export
     names = ["config.json", *sorted(cfg.get("digests") or {})]
     if not cfg.get("digests"):  # an export from before digests: its tensor files by name
         names += [n for n in ("model.safetensors", cfg.get("frozen_weights")) if n]
     dest.mkdir(parents=True, exist_ok=True)
     for name in dict.fromkeys(names):
-        shutil.copyfile(export / name, dest / name)
+        where = f"{export}/config.json: file"
+        shutil.copyfile(resolve_inside(export, name, where), resolve_inside(dest, name, where))
     sums = digests(dest, dict.fromkeys(names))
     made = _card_of(export)  # the card resireg-train wrote (results, data, provenance)
     fields = {**({k: v for k, v in made[0].items() if k in _CARRIED} if made else {}),

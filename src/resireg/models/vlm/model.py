@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,26 +30,16 @@ import torch
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
-from resireg.integrity import (
-    IntegrityError,
-    atomic_write,
-    digests,
-    load_safetensors,
-    read_json,
-    verify_digests,
-)
-from resireg.models.hub import require_online
+from resireg.integrity import atomic_write, digests, load_safetensors, resolve_inside
 from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
+from resireg.models.vlm.card import hub_folder
 from resireg.models.vlm.eupe import EUPEBackbone
+from resireg.models.vlm.folder import EXPORT_FORMAT, EXPORT_WHAT, export_dir, read_config
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half
-from resireg.specs.exports import is_repo_id
 
-__all__ = ["ResiregVLM"]
-
-_FORMAT = "resireg-vlm"
-#: Whose files an :class:`~resireg.integrity.IntegrityError` names.
-_WHAT = "ResiregVLM export"
+# read_config: also importable from here, where it was defined before resireg.models.vlm.folder
+__all__ = ["ResiregVLM", "read_config"]
 
 
 def _prefixed(parts: dict[str, nn.Module]) -> dict[str, Tensor]:
@@ -164,7 +154,7 @@ class ResiregVLM(DenseEncoder):
     # ---------------------------------------------------------------- save / load
     def config(self) -> dict[str, Any]:
         return {
-            "format": _FORMAT,
+            "format": EXPORT_FORMAT,
             "version": 1,
             "backbone": self.backbone.spec(),
             "head": self.head.spec(),
@@ -207,12 +197,15 @@ class ResiregVLM(DenseEncoder):
     ) -> ResiregVLM:
         """Load a bundle from a directory written by :meth:`save_pretrained`, or from a Hugging
         Face repo id ``owner/name`` (the local cache first; the hub only when online)."""
-        path = _export_dir(source)
-        cfg = read_config(path)
+        path = export_dir(source)
+        cfg = read_config(path)  # (its file names checked: they stay inside the folder)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
         if "frozen_weights" in cfg:
+            frozen = resolve_inside(
+                path, cfg["frozen_weights"], f"{path}/config.json: frozen_weights"
+            )
             _load_prefixed(
-                load_safetensors(path / cfg["frozen_weights"], _WHAT),
+                load_safetensors(frozen, EXPORT_WHAT),
                 {"backbone": model.backbone, "text": model.text},
             )
         model.load_trained(path, verified=True)
@@ -229,7 +222,7 @@ class ResiregVLM(DenseEncoder):
         if not verified and (Path(directory) / "config.json").is_file():
             read_config(directory)
         file = Path(directory) / "model.safetensors"
-        trained = load_safetensors(file, _WHAT)
+        trained = load_safetensors(file, EXPORT_WHAT)
         parts = {"head": self.head, "text_proj": self.text_proj}
         missing = [n for n in parts if not any(k.startswith(f"{n}.") for k in trained)]
         if missing:
@@ -259,15 +252,11 @@ class ResiregVLM(DenseEncoder):
         The repository is created if missing (``HfApi.create_repo(exist_ok=True)``), then
         the folder is sent in one commit (``HfApi.upload_folder``). Returns its
         ``CommitInfo``. ``from_pretrained(repo_id)`` loads it back."""
-        import tempfile
-
         from huggingface_hub import HfApi
-
-        from resireg.models.vlm.card import hub_folder
 
         with tempfile.TemporaryDirectory(prefix="resireg-push-") as tmp:
             source = export if export is not None else self.save_pretrained(Path(tmp) / "export")
-            folder = hub_folder(_export_dir(source), Path(tmp) / "upload", repo_id, card)
+            folder = hub_folder(export_dir(source), Path(tmp) / "upload", repo_id, card)
             api = HfApi(token=token)
             api.create_repo(repo_id, private=private, repo_type="model", exist_ok=True)
             return api.upload_folder(
@@ -277,31 +266,6 @@ class ResiregVLM(DenseEncoder):
                 revision=revision,
                 commit_message=commit_message,
             )
-
-
-def read_config(directory: str | os.PathLike) -> dict[str, Any]:
-    """An export's ``config.json``, with the SHA-256 of every tensor file it records verified
-    (:func:`~resireg.integrity.verify_digests`); an export written before digests were
-    recorded loads with a warning. A missing, truncated or altered file is an
-    :class:`~resireg.integrity.IntegrityError` naming it."""
-    path = Path(directory)
-    cfg_file = path / "config.json"
-    if not cfg_file.is_file():
-        raise FileNotFoundError(f"{str(path)!r} holds no config.json (not a ResiregVLM export)")
-    cfg = read_json(cfg_file, f"{_WHAT} config")
-    if not isinstance(cfg, dict) or cfg.get("format") != _FORMAT:
-        found = cfg.get("format") if isinstance(cfg, dict) else type(cfg).__name__
-        raise IntegrityError(f"{str(cfg_file)!r} is not a {_FORMAT} config (format={found!r})")
-    recorded = cfg.get("digests")
-    if recorded is None:
-        warnings.warn(
-            f"{cfg_file}: this export records no file digests (written before they were "
-            "recorded): its tensor files are loaded unverified; save_pretrained again to add them",
-            stacklevel=3,
-        )
-    else:
-        verify_digests(path, recorded, _WHAT)
-    return cfg
 
 
 def _check_sizes(
@@ -326,32 +290,3 @@ def _check_sizes(
         )
     if problems:
         raise ValueError("ResiregVLM parts do not fit: " + "; ".join(problems))
-
-
-def _export_dir(source: str | os.PathLike) -> Path:
-    """The local folder of an export: ``source`` itself, or a Hugging Face snapshot.
-
-    A source that is not an existing folder is a repo id only if it has the form
-    ``owner/name`` and names no existing file; the local cache is tried first and only a
-    cache miss (``LocalEntryNotFoundError``) leads to a download.
-    """
-    path = Path(source)
-    if path.is_dir():
-        return path
-    text = os.fspath(source)
-    if path.exists() or not is_repo_id(text):  # (resireg.specs.exports: the checks' rule too)
-        raise FileNotFoundError(
-            f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"
-        )
-    from huggingface_hub import snapshot_download
-    from huggingface_hub.errors import LocalEntryNotFoundError
-
-    try:
-        return Path(snapshot_download(text, local_files_only=True))
-    except LocalEntryNotFoundError:
-        require_online(
-            f"ResiregVLM {text!r} (no such local folder; as a Hugging Face repo id it is not cached)",
-            "huggingface.co",
-            "Pass the export directory instead (resireg-eval: model_path=/path/to/export).",
-        )
-    return Path(snapshot_download(text))
