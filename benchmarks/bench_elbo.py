@@ -33,7 +33,7 @@ import torch
 from _common import resireg_defaults
 from bench_reconstruct import interleaved_best, load_impl, make_features
 from resireg.method.elbo import elbo_fits, elbo_subsample
-from resireg.method.reconstruct import ReSiRegFull, upsampled_spectrum
+from resireg.method.full import ReSiRegFull, upsampled_spectrum
 
 
 def main() -> None:

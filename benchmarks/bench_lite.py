@@ -44,7 +44,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from _common import build_model, generated_spec, median_seconds
 from bench_reconstruct import load_impl
-from resireg.method.reconstruct import ReSiRegLite
+from resireg.method.full import ReSiRegLite
 from resireg.method.variants import build_variant
 from resireg_train.data.segmentation import build_segmentation_set
 

@@ -53,7 +53,7 @@ from threadpoolctl import threadpool_limits
 
 import resireg.method.kmeans
 import resireg.method.pca
-import resireg.method.reconstruct
+import resireg.method.full
 
 
 def make_features(b=8, h=36, w=48, dv=384, dl=512, regions=48, seed=0):
@@ -105,7 +105,7 @@ def load_impl(directory: str | None) -> Impl:
     ``elbo.py`` (or, from before the split, its ``cluster.py``) and ``reconstruct.py``, each
     bound to the directory's own copies of the others."""
     if directory is None:
-        return Impl(resireg.method.kmeans, resireg.method.reconstruct, resireg.method.pca)
+        return Impl(resireg.method.kmeans, resireg.method.full, resireg.method.pca)
 
     def load(name: str) -> ModuleType:
         spec = importlib.util.spec_from_file_location(

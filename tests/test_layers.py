@@ -39,14 +39,14 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
         shutil.copytree(ROOT / "src" / package, src / package,
                         ignore=shutil.ignore_patterns("__pycache__"))  # fmt: skip
     rules = src / "resireg" / "specs" / "rules.py"
-    rules.write_text(rules.read_text() + "\nfrom resireg.method.reconstruct import ReSiRegFull\n")
+    rules.write_text(rules.read_text() + "\nfrom resireg.method.full import ReSiRegFull\n")
     checks = src / "resireg" / "method" / "checks.py"
     checks.write_text(checks.read_text() + "\nimport resireg_train.runs.record\n")
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     out = _lint(src, tmp_path / "pyproject.toml")
     assert out.returncode == 1
     assert "Contracts: 0 kept, 2 broken." in out.stdout
-    assert "resireg.specs.rules -> resireg.method.reconstruct" in out.stdout
+    assert "resireg.specs.rules -> resireg.method.full" in out.stdout
     assert "resireg.method.checks -> resireg_train.runs.record" in out.stdout
 
 

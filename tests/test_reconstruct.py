@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from sklearn.decomposition import PCA
 
-import resireg.method.reconstruct as reconstruct
+import resireg.method.full as reconstruct
 from resireg import ReSiRegFull, ReSiRegLite
 from resireg.ovss import SegmentationMetric, predict
 
@@ -391,7 +391,7 @@ def test_resireg_raises_miou_over_noisy_language_tokens():
 @pytest.mark.parametrize("scale", [1, 2, 3])
 def test_upsampled_pca_equals_pca_of_materialised_points(scale):
     from resireg.method.pca import pca
-    from resireg.method.reconstruct import upsampled_pca
+    from resireg.method.full import upsampled_pca
 
     x = torch.randn(3, 20, 5, 7) + 5.0  # an offset mean checks the float32 centring
     up = (
@@ -411,7 +411,7 @@ def test_upsampled_moments_in_image_chunks_and_any_layout(scale, monkeypatch):
     """The moments equal those of the materialised upsampled points (float64), whether the
     grid is processed in one chunk or one image at a time, for NCHW or channels-last input;
     Full's output does not depend on the chunking either."""
-    from resireg.method.reconstruct import upsampled_moments
+    from resireg.method.full import upsampled_moments
 
     inter, lang, _ = _region_scene(b=5, h=6, w=8, dv=16)
     up = F.interpolate(inter.double(), scale_factor=scale, mode="bilinear") if scale > 1 else inter

@@ -22,8 +22,8 @@ __all__ = [
 __version__ = "0.1.0"
 
 _SOURCES = {
-    "ReSiRegFull": "resireg.method.reconstruct",
-    "ReSiRegLite": "resireg.method.reconstruct",
+    "ReSiRegFull": "resireg.method.full",
+    "ReSiRegLite": "resireg.method.full",
     "PrototypeHeuristic": "resireg.method.heuristic",
     "VARIANTS": "resireg.specs.variants",
     "build_variant": "resireg.method.variants",

@@ -104,7 +104,7 @@ VARIANT_SPECS: SpecTable[VariantSpec] = SpecTable(
         ),
         VariantSpec(
             "lite",
-            "resireg.method.reconstruct:ReSiRegLite",
+            "resireg.method.full:ReSiRegLite",
             "Lite",
             "ReSiReg Lite",
             {
@@ -117,7 +117,7 @@ VARIANT_SPECS: SpecTable[VariantSpec] = SpecTable(
         ),
         VariantSpec(
             "full",
-            "resireg.method.reconstruct:ReSiRegFull",
+            "resireg.method.full:ReSiRegFull",
             "Full",
             "ReSiReg Full",
             {
