@@ -102,6 +102,7 @@ from torch import nn
 
 from _common import build_model, resireg_defaults
 from resireg.method import full as reconstruct
+from resireg.method import lite
 from resireg.method.variants import build_variant
 
 VARIANT_NAMES = ("VLM", "VLM + Lite", "VLM + Full")
@@ -168,12 +169,12 @@ def lite_flops(
 
     ``attention="sdpa"``: tau = 0, SDPA at the padded width ``max(dv, dl)``, ``4 B N^2 W``;
     tau > 0, the explicit chunks, ``2 B N^2 (dv + dl)``. ``"factorised"`` (any tau): per
-    query block of :func:`resireg.method.full.factorised_blocks`, the Gram rows of the coarse
+    query block of :func:`resireg.method.lite.factorised_blocks`, the Gram rows of the coarse
     rows it reads, ``2 (c1 - c0) w * h w * dv``, and the product of the per-token weight sums
     with the coarse tokens, ``2 N h w dl`` (the language grid is the intermediates')."""
     n = upscale * upscale * h * w
     if attention == "factorised":
-        blocks = reconstruct.factorised_blocks(h, w, upscale)
+        blocks = lite.factorised_blocks(h, w, upscale)
         gram = sum(2 * (c1 - c0) * w * h * w * dv for _, _, c0, c1 in blocks)
         return batch * (gram + 2 * n * h * w * dl)
     if tau == 0:

@@ -268,18 +268,18 @@ def test_full_passes_its_clustering_and_elbo_settings_on(monkeypatch):
     ``elbo_tol`` reach the chooser (conf/resireg/default.yaml's keys, not constants): each
     call is recorded and compared with the values given, and the subsample's size follows
     ``elbo_max_points``."""
-    import resireg.method.full as reconstruct
+    import resireg.method.full as full_module
     from resireg.method.full import ReSiRegFull
 
     seen: dict[str, dict] = {}
     for name in ("kmeans", "elbo_prototype_count"):
-        original = getattr(reconstruct, name)
+        original = getattr(full_module, name)
 
         def record(*args, _name=name, _original=original, **kwargs):
             seen[_name] = {"points": args[0].shape[0], **kwargs}
             return _original(*args, **kwargs)
 
-        monkeypatch.setattr(reconstruct, name, record)
+        monkeypatch.setattr(full_module, name, record)
     x = _scene(5, seed=3)
     full = ReSiRegFull(n_prototypes="elbo", elbo_candidates=[3, 5, 8], tol=0.0,
                        elbo_max_points=200, elbo_stop_after=None, elbo_tol=0.5)  # fmt: skip

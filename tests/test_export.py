@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from resireg.integrity import IntegrityError, verify_digests
-from resireg.method.full import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 from resireg.models import ResiregVLM
 
 onnx = pytest.importorskip("onnx")

@@ -19,7 +19,8 @@ from _sam import save_tiny_sam
 
 pytest.importorskip("transformers")
 
-from resireg.method.full import ReSiRegFull, ReSiRegLite  # noqa: E402
+from resireg.method.full import ReSiRegFull  # noqa: E402
+from resireg.method.lite import ReSiRegLite  # noqa: E402
 from resireg.priors import SAM_DEFAULTS, SamPrior, masks_to_instances  # noqa: E402
 
 # Settings that make the random tiny SAM return many overlapping masks quickly: 16 point

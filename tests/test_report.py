@@ -22,8 +22,8 @@ from PIL import Image
 from _run import report as report_stdout
 from _run import run, run_side_by_side
 from _sweeps import make_job as _job
-from resireg.method.heuristic import PrototypeHeuristic
 from resireg.method.full import ReSiRegFull
+from resireg.method.heuristic import PrototypeHeuristic
 from resireg_train.cli import report as report_cli
 from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point, safe_dirname
 from resireg_train.report import (

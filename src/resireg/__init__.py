@@ -23,7 +23,7 @@ __version__ = "0.1.0"
 
 _SOURCES = {
     "ReSiRegFull": "resireg.method.full",
-    "ReSiRegLite": "resireg.method.full",
+    "ReSiRegLite": "resireg.method.lite",
     "PrototypeHeuristic": "resireg.method.heuristic",
     "VARIANTS": "resireg.specs.variants",
     "build_variant": "resireg.method.variants",

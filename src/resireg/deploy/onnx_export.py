@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from resireg.integrity import atomic_write, digests
-from resireg.method.full import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 from resireg.models.vlm.model import ResiregVLM
 from resireg.models.vlm.text import dense_text_half
 
@@ -66,7 +66,7 @@ _MAX_GRID = 512
 
 class ImageGraph(nn.Module):
     """The VLM's image path as one module: ``images -> (intermediates, language, embedding[,
-    lite])`` (:meth:`ResiregVLM.encode`, then :class:`~resireg.method.full.ReSiRegLite`)."""
+    lite])`` (:meth:`ResiregVLM.encode`, then :class:`~resireg.method.lite.ReSiRegLite`)."""
 
     def __init__(self, model: ResiregVLM, lite: ReSiRegLite | None = None) -> None:
         super().__init__()

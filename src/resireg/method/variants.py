@@ -7,7 +7,7 @@ and returns unit-norm dense language features ``[B, Dl, h, w]``:
 - ``calib``: :class:`~resireg.method.calib.Calib`, SC-CLIP's self-calibration made
   backbone-generic (LOF anomaly resolution, then aggregation with thresholded
   intermediate affinities; ``[B, Dl, Hv, Wv]``, the prior is ignored),
-- ``lite``: :class:`~resireg.method.full.ReSiRegLite`,
+- ``lite``: :class:`~resireg.method.lite.ReSiRegLite`,
 - ``full``: :class:`~resireg.method.full.ReSiRegFull`.
 
 :data:`VARIANTS` lists them in the report order of the paper's Table 1 (BB, Calib, Lite,

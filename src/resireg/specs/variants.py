@@ -104,7 +104,7 @@ VARIANT_SPECS: SpecTable[VariantSpec] = SpecTable(
         ),
         VariantSpec(
             "lite",
-            "resireg.method.full:ReSiRegLite",
+            "resireg.method.lite:ReSiRegLite",
             "Lite",
             "ReSiReg Lite",
             {
