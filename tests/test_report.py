@@ -402,7 +402,7 @@ def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cov
     failed job's cells are empty in every table (never `nan`); the mean rows name the
     encoders they average over."""
     sweep = tmp_path / "table1"
-    error = ("resireg_train.config.checks.ConfigError: invalid config:\n  full.alpha=0: expected a "
+    error = ("resireg.errors.ConfigError: invalid config:\n  full.alpha=0: expected a "
              "number > 0\n  lite.tau=2: expected a number in [0, 1] | or null")  # fmt: skip
     jobs = [("ours", False, 0.25, None), ("clip", True, 0.5, None), ("radio", True, None, error)]
     for n, (name, third, bb, err) in enumerate(jobs):
@@ -420,7 +420,7 @@ def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cov
     summary = files["md"].read_text()
     rows = [line for line in summary.splitlines() if line.startswith("|")]
     assert len(rows) == 2 + 3  # header, rule, one line per job
-    flat = ("resireg_train.config.checks.ConfigError: invalid config: full.alpha=0: expected a number "
+    flat = ("resireg.errors.ConfigError: invalid config: full.alpha=0: expected a number "
             "> 0; lite.tau=2: expected a number in [0, 1] \\| or null")  # fmt: skip
     cells = [c.strip() for c in re.split(r"(?<!\\)\|", rows[-1])[1:-1]]  # unescaped pipes
     assert cells[:3] == ["2", "radio", "failed"] and cells[-1] == flat, cells
@@ -504,7 +504,8 @@ def test_the_sweep_config_names_its_report_instead_of_the_report_guessing(tmp_pa
 def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_names():
     """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
     it), every name is one the report writes, and a wrong one is refused naming the key."""
-    from resireg_train.config.checks import REPORT_SECTIONS, ConfigError, validate_eval
+    from resireg.errors import ConfigError
+    from resireg_train.config.eval import REPORT_SECTIONS, validate_eval
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
                    if p.stem != "train_hparams"]  # fmt: skip

@@ -44,7 +44,7 @@ class ResiregOptunaSweeper(Sweeper):
 
         from hydra.core.override_parser.overrides_parser import OverridesParser
 
-        from resireg_train.config.checks import ConfigError
+        from resireg.errors import ConfigError
         from resireg_train.sweeps import search
 
         assert self.config is not None

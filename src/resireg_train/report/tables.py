@@ -13,7 +13,7 @@ import pandas as pd
 from resireg.method.variants import parse_variant
 from resireg.specs.metrics import SCORE_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
-from resireg_train.config.checks import ENCODER_SWEEPS as _ENCODER_SWEEPS
+from resireg_train.config.eval import ENCODER_SWEEPS as _ENCODER_SWEEPS
 from resireg_train.evaluation.tasks import TASK_SPECS
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys

@@ -47,7 +47,7 @@ from resireg.models.zoo.radio import (
     RADSEG_REPO,
     load_radseg,
 )
-from resireg_train.config.checks import config_path
+from resireg_train.config.errors import config_path
 
 __all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
 
