@@ -505,7 +505,8 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
     """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
     it), every name is one the report writes, and a wrong one is refused naming the key."""
     from resireg.errors import ConfigError
-    from resireg_train.config.eval import REPORT_SECTIONS, validate_eval
+    from resireg_train.config.eval import validate_eval
+    from resireg_train.report.sections import section_names
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
                    if p.stem != "train_hparams"]  # fmt: skip
@@ -513,7 +514,57 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
         for name in eval_sweeps:
             cfg = compose("eval", overrides=[f"sweep={name}"])
             assert cfg.report is not None, name
-            assert set(cfg.report) <= set(REPORT_SECTIONS), name
+            assert set(cfg.report) <= set(section_names()), name
         cfg = compose("eval", overrides=["report=[tabel1]"])
     with pytest.raises(ConfigError, match=r"report=\['tabel1'\]: expected null or a list of"):
         validate_eval(cfg)
+
+
+def test_every_report_section_loads_and_takes_what_the_report_gives():
+    """Each entry of the section table: its writer and detector load and take only the report's
+    inputs by name; the names a sweep may list are the entries not written always; the encoder
+    sweeps are the encoder table sections."""
+    import inspect
+
+    from resireg_train.report.sections import (
+        ENCODER_SWEEPS,
+        REPORT_SECTIONS,
+        SECTION_INPUTS,
+        section_names,
+    )
+
+    for name, spec in REPORT_SECTIONS.items():
+        for function in (spec.load(), spec.detector()):
+            if function is not None:
+                assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS), name
+        assert spec.summary and (spec.detect or not spec.always), name
+    assert section_names() == ("table1", "table2", "prototype_grid", "layer_sweep")
+    assert ENCODER_SWEEPS == ("table1", "table2")
+
+
+def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypatch):
+    """The recipe of resireg_train.report.sections: one writer and one entry; a sweep config
+    naming it (report: [...]) gets its file and its summary.md lines, in table order, and
+    the config check accepts the name."""
+    import resireg_train.report.sections as sections
+    from resireg_train.config.eval import EVAL_RULES
+
+    def count_section(jobs, out):
+        path = out / "count.txt"
+        path.write_text(str(len(jobs)))
+        return {"count": path}, ["", f"Jobs counted: `{path.name}`."]
+
+    module = type(sys)("count_section_module")
+    module.count_section = count_section
+    monkeypatch.setitem(sys.modules, "count_section_module", module)
+    entry = sections.SectionSpec("count", "count_section_module:count_section", "the job count")
+    monkeypatch.setitem(sections.REPORT_SECTIONS, "count", entry)
+    sweep = tmp_path / "sweep"
+    for n in range(3):
+        _saved_config(_job(sweep, n, {"seed": n}, {"status": "completed", "final": {}}),
+                      ["count"])  # fmt: skip
+    files = report(sweep)
+    assert files["count"].read_text() == "3"
+    assert "Jobs counted: `count.txt`." in files["md"].read_text()
+    check, _ = EVAL_RULES["report"]
+    assert check(["count"]) and not check(["cuont"])

@@ -52,10 +52,11 @@ from resireg_train.cli.job import (
     top_level_keys,
 )
 from resireg_train.config.errors import config_path, encoder_arguments
-from resireg_train.config.eval import ENCODER_SWEEPS, sweep_config_errors, validate_eval
+from resireg_train.config.eval import sweep_config_errors, validate_eval
 from resireg_train.config.machine import check_available, check_devices
 from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
+from resireg_train.report.sections import ENCODER_SWEEPS
 from resireg_train.runs.record import update_results
 
 if TYPE_CHECKING:

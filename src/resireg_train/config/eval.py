@@ -51,24 +51,17 @@ from resireg_train.config.keys import (
 from resireg_train.config.machine import needs_model_path
 from resireg_train.data.specs import dataset_key_errors, dataset_value_errors, find_dataset
 from resireg_train.evaluation.tasks import PRECISIONS, TASK_SPECS, task_config_errors
+from resireg_train.report.sections import ENCODER_SWEEPS, section_names
 
 __all__ = [
-    "ENCODER_SWEEPS",
     "EVAL_RULES",
     "EVERY_ENCODER",
-    "REPORT_SECTIONS",
     "TASKS",
     "every_encoder",
     "pass_rules",
     "sweep_config_errors",
     "validate_eval",
 ]
-
-#: What ``resireg-report`` can write for a sweep beyond its summary (``report: [...]`` in a
-#: ``conf/sweep/`` file names them; ``null`` leaves the choice to the jobs' overrides).
-REPORT_SECTIONS = ("table1", "table2", "prototype_grid", "layer_sweep")
-#: The sweeps over every encoder (the paper's Tables 1 and 2; their report is an encoder table).
-ENCODER_SWEEPS = ("table1", "table2")
 
 #: resireg-eval's tasks (the table :data:`resireg_train.evaluation.tasks.TASK_SPECS`;
 #: docs/architecture.md#adding-a-task).
@@ -144,9 +137,10 @@ EVAL_RULES: dict[str, Rule] = {
         lambda v: v in TASK_SPECS,
         f"one of {list(TASK_SPECS)} (resireg_train.evaluation.tasks)",
     ),
+    # resireg-report's sections (resireg_train.report.sections)
     "report": (
-        lambda v: v is None or (isinstance(v, list) and all(x in REPORT_SECTIONS for x in v)),
-        f"null or a list of {list(REPORT_SECTIONS)}",
+        lambda v: v is None or (isinstance(v, list) and all(x in section_names() for x in v)),
+        f"null or a list of {list(section_names())}",
     ),
 }
 
