@@ -1,6 +1,6 @@
 """The one table type of the project: :class:`SpecTable`, ``name -> entry`` for each kind of
-component (variants, encoders, priors, metrics, map sources; ``resireg_train``'s datasets and
-tasks).
+component (variants, encoders, priors, metrics, map sources, text towers; ``resireg_train``'s
+datasets, tasks, teachers and report sections).
 
 A table is read before torch loads (the config checks, the report, the CLIs' ``--help``), so an
 entry names its code lazily, ``"package.module:attribute"``, loaded by :func:`load` when
@@ -36,11 +36,12 @@ E = TypeVar("E")
 
 
 def load(target: str) -> Any:
-    """The object a ``"package.module:attribute"`` path names (imported now)."""
+    """The object a ``"package.module:attribute"`` path names (imported now); the attribute
+    may be dotted (``"module:Class.builder"``, a classmethod)."""
     module, sep, attribute = target.partition(":")
     if not sep or not module or not attribute:
         raise ValueError(f"{target!r}: expected 'package.module:attribute'")
-    return getattr(importlib.import_module(module), attribute)
+    return functools.reduce(getattr, attribute.split("."), importlib.import_module(module))
 
 
 def conf_dir() -> Path:

@@ -4,8 +4,9 @@ Hydra/OmegaConf check structure; they do not know that a learning rate must be p
 ``min_lr`` must not exceed ``lr``. :func:`validate` does, and reports every violation at once,
 each as ``key=value: expected ...``: the data, model, loss, trainer keys, the training
 callback's evaluation (the pass rules of :func:`resireg_train.config.eval.pass_rules`, under
-``callbacks.resireg_eval.``, and its datasets by the dataset table), the teacher and text tower
-by their tables, and the cross-field rules. OmegaConf and the tables only: no torch.
+``callbacks.resireg_eval.``, and its datasets by the dataset table), the teacher's and text
+tower's kinds by their tables (:data:`resireg_train.training.specs.TEACHER_SPECS`,
+:data:`resireg.specs.text.TEXT_SPECS`), and the cross-field rules. OmegaConf and the tables only: no torch.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from collections.abc import Iterable
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError
-from resireg.specs.rules import BATCH_SIZE, Rule, integer, is_int, is_num, number, optional_int
+from resireg.specs.rules import BATCH_SIZE, Rule, integer, is_int, is_num, number
+from resireg.specs.text import CACHE_SIZE, TEXT_SPECS
 from resireg.specs.variants import takes_prior
 from resireg_train.config.eval import pass_rules
 from resireg_train.config.keys import (
@@ -27,6 +29,7 @@ from resireg_train.config.keys import (
     value_at,
 )
 from resireg_train.data.specs import dataset_key_errors, missing_keys_error
+from resireg_train.training.specs import TEACHER_SPECS
 
 __all__ = ["TRAIN_RULES", "validate"]
 
@@ -60,7 +63,15 @@ TRAIN_RULES: dict[str, Rule] = {
     "model.head.depth": integer(1),
     "model.init_from": (optional_str, "null or a path"),
     "model.intermediate_layer": (lambda v: v is None or is_int(v), "null or a block index"),
-    "model.text.cache_size": optional_int(0),
+    "model.text.kind": (
+        lambda v: TEXT_SPECS.find(v) is not None,
+        f"one of {list(TEXT_SPECS)} (resireg.specs.text)",
+    ),
+    "model.text.cache_size": CACHE_SIZE,  # the text tower table's
+    "model.teacher.kind": (
+        lambda v: TEACHER_SPECS.find(v) is not None,
+        f"one of {list(TEACHER_SPECS)} (resireg_train.training.specs)",
+    ),
     "trainer.max_epochs": integer(1),
     "trainer.precision": (lambda v: str(v) in _PRECISIONS, f"one of {sorted(_PRECISIONS)}"),
     "ckpt_path": (optional_str, "null, 'last' or a checkpoint path"),
