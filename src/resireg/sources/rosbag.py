@@ -103,16 +103,18 @@ class RosKeys:
     :class:`resireg.ros2.source.LiveSource`) share, with their defaults: where the frames are
     and how they pair (``conf/source/rosbag.yaml``, which ``conf/source/ros2.yaml`` pulls in;
     their rules are the source table's, :data:`resireg.specs.sources.SOURCE_SPECS`). The one
-    list of them: both readers take them as keywords through :func:`takes_ros_keys`."""
+    list of them: both readers take them as keywords through :func:`takes_ros_keys`. The
+    topics and frames are a bag's :class:`BagTopics` (:attr:`topics`), whose defaults they
+    take."""
 
     colour_topic: str
     depth_topic: str
     camera_info_topic: str
-    pose_topic: str | None = None
-    tf_topic: str = "/tf"
-    tf_static_topic: str = "/tf_static"
-    world_frame: str = "map"
-    camera_frame: str | None = None
+    pose_topic: str | None = BagTopics.pose
+    tf_topic: str = BagTopics.tf
+    tf_static_topic: str = BagTopics.tf_static
+    world_frame: str = BagTopics.world_frame
+    camera_frame: str | None = BagTopics.camera_frame
     depth_scale: float = 0.001
     tolerance: float = 0.02
     max_pose_gap: float = 0.5

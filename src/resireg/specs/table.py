@@ -25,12 +25,13 @@ import functools
 import importlib
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from resireg.errors import ConfigError
 
-__all__ = ["SpecTable", "UnknownNameError", "compose_conf", "conf_dir", "load"]
+__all__ = ["KindSpec", "SpecTable", "UnknownNameError", "compose_conf", "conf_dir", "load"]
 
 E = TypeVar("E")
 
@@ -48,6 +49,21 @@ def conf_dir() -> Path:
     """The project's ``conf/`` folder: ``$RESIREG_CONFIG_DIR`` if set, else the checkout's."""
     env = os.environ.get("RESIREG_CONFIG_DIR")
     return Path(env) if env else Path(__file__).resolve().parents[3] / "conf"
+
+
+@dataclass(frozen=True)
+class KindSpec:
+    """An entry that is only its ``kind`` (the ``kind:`` of its ``conf/`` files), its code
+    (``"module:attribute"``, imported by :meth:`load`) and a one-line ``summary``: the entry
+    type of the tables whose kinds need no more (text towers, teachers)."""
+
+    kind: str
+    target: str
+    summary: str
+
+    def load(self) -> Any:
+        """The code (imported now)."""
+        return load(self.target)
 
 
 class UnknownNameError(ConfigError, KeyError):

@@ -22,11 +22,8 @@ Adding a text tower:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 from resireg.specs.rules import Rule, optional_int
-from resireg.specs.table import SpecTable
+from resireg.specs.table import KindSpec, SpecTable
 
 __all__ = ["CACHE_SIZE", "TEXT_SPECS", "TextSpec"]
 
@@ -34,24 +31,8 @@ __all__ = ["CACHE_SIZE", "TEXT_SPECS", "TextSpec"]
 CACHE_SIZE: Rule = optional_int(0)
 
 
-@dataclass(frozen=True)
-class TextSpec:
+class TextSpec(KindSpec):
     """One kind of text tower: its builder (``"module:attribute"``) and what it is."""
-
-    kind: str
-    target: str
-    summary: str
-
-    @property
-    def configs(self) -> tuple[str, ...]:
-        """The ``conf/model/text/`` files of this kind (found by scanning)."""
-        return TEXT_SPECS.configs(self.kind)
-
-    def load(self) -> Any:
-        """The builder (imports torch and open_clip)."""
-        from resireg.specs.table import load
-
-        return load(self.target)
 
 
 #: Text tower kinds of :meth:`resireg.models.vlm.text.FrozenTextTower.from_spec`.

@@ -40,14 +40,7 @@ from resireg.specs.variants import (
     takes_prior,
     variant_layer,
 )
-from resireg_train.config.keys import (
-    ADDABLE,
-    MISSING,
-    optional_str,
-    rule_errors,
-    unknown_key_errors,
-    value_at,
-)
+from resireg_train.config.keys import MISSING, config_errors, optional_str, value_at
 from resireg_train.config.machine import needs_model_path
 from resireg_train.data.specs import dataset_key_errors, dataset_value_errors, find_dataset
 from resireg_train.evaluation.tasks import PRECISIONS, TASK_SPECS, task_config_errors
@@ -150,10 +143,7 @@ def validate_eval(
 ) -> None:
     """Check a ``resireg-eval`` config (``conf/eval.yaml``); raise :class:`ConfigError` listing
     all. ``added`` and ``top_level``: see :func:`resireg_train.config.keys.unknown_key_errors`."""
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.create(cfg)
-    errors = unknown_key_errors(cfg, added, ADDABLE["eval"], top_level)
-    errors += rule_errors(cfg, EVAL_RULES)
+    cfg, errors = config_errors(cfg, "eval", EVAL_RULES, added, top_level)
     if needs_model_path(value_at(cfg, "encoder.kind")) and not value_at(cfg, "model_path"):
         errors.append(
             "model_path=None: encoder=resireg_vlm needs an export folder (resireg-train's "

@@ -16,6 +16,7 @@ from resireg.specs.rules import Rule
 __all__ = [
     "ADDABLE",
     "MISSING",
+    "config_errors",
     "missing_keys",
     "optional_str",
     "rule_errors",
@@ -127,3 +128,20 @@ def unknown_key_errors(
                 errors.append(f"{key}={value_at(cfg, str(key))!r}: no such key, nothing would "
                               f"read it{hint}")  # fmt: skip
     return errors
+
+
+def config_errors(
+    cfg: DictConfig | dict,
+    command: str,
+    rules: dict[str, Rule],
+    added: Iterable[str] = (),
+    top_level: Iterable[str] | None = None,
+) -> tuple[DictConfig, list[str]]:
+    """``cfg`` (a ``DictConfig``) and the errors every config check of ``command`` (``train``,
+    ``eval``) starts with: the keys nothing reads (:func:`unknown_key_errors`, ``+`` allowed in
+    ``ADDABLE[command]``), then the ``???`` keys and the values that break ``rules``
+    (:func:`rule_errors`)."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    errors = unknown_key_errors(cfg, added, ADDABLE[command], top_level)
+    return cfg, errors + rule_errors(cfg, rules)

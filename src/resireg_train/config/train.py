@@ -13,21 +13,14 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from resireg.errors import ConfigError
 from resireg.specs.rules import BATCH_SIZE, Rule, integer, is_int, is_num, number
 from resireg.specs.text import CACHE_SIZE, TEXT_SPECS
 from resireg.specs.variants import takes_prior
 from resireg_train.config.eval import pass_rules
-from resireg_train.config.keys import (
-    ADDABLE,
-    MISSING,
-    optional_str,
-    rule_errors,
-    unknown_key_errors,
-    value_at,
-)
+from resireg_train.config.keys import MISSING, config_errors, optional_str, value_at
 from resireg_train.data.specs import dataset_key_errors, missing_keys_error
 from resireg_train.training.specs import TEACHER_SPECS
 
@@ -91,10 +84,7 @@ def validate(
     and keys nothing reads (``added``, ``top_level``: see
     :func:`resireg_train.config.keys.unknown_key_errors`).
     """
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.create(cfg)
-    errors = unknown_key_errors(cfg, added, ADDABLE["train"], top_level)
-    errors += rule_errors(cfg, TRAIN_RULES)
+    cfg, errors = config_errors(cfg, "train", TRAIN_RULES, added, top_level)
     values = {k: value_at(cfg, k) for k in (
         "model.optimizer.lr", "model.scheduler.min_lr", "model.logit_scale.init",
         "model.logit_scale.max", "model.loss.distill.scale", "model.teacher", "data.sources",

@@ -48,6 +48,18 @@ def prototype_configs(job: Job) -> dict[int, str]:
     return out
 
 
+def _batched(jobs: list[Job]) -> list[tuple[Job, int]]:
+    """The jobs that set the batch size (``batch_size=<n>`` among their overrides), each with
+    it: the rows of the batch size x prototype grid."""
+    out = []
+    for job in jobs:
+        try:
+            out.append((job, int(job.overrides[BATCH_KEY])))
+        except (KeyError, ValueError):
+            continue
+    return out
+
+
 def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
     """One row per (job, prototype count) of the grid: batch size, prototype count, ``metric``
     (NaN unless the job completed) and status. A job either set ``full.n_prototypes`` (one
@@ -55,11 +67,7 @@ def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
     ``metric`` names Full's score (``.../miou_full``), each configuration's is
     ``.../miou_full@n_prototypes:<n>``."""
     cells = []
-    for job in jobs:
-        try:
-            batch = int(job.overrides[BATCH_KEY])
-        except (KeyError, ValueError):
-            continue
+    for job, batch in _batched(jobs):
         scores = job_scores(job.results) if job.status == "completed" else {}
         if PROTOTYPES_KEY in job.overrides:
             try:
@@ -121,11 +129,7 @@ def elbo_table(jobs: list[Job], metric: str, grid: pd.DataFrame,
     (``results.json``'s ``elbo_prototypes``, ``count x batches``) and its mIoU. Empty when no
     job ran it."""
     rows = []
-    for job in jobs:
-        try:
-            batch = int(job.overrides[BATCH_KEY])
-        except (KeyError, ValueError):
-            continue
+    for job, batch in _batched(jobs):
         if job.overrides.get(PROTOTYPES_KEY) == ELBO:
             config, score = "full", metric
         elif any(parse_variant(n) == ("full", {"n_prototypes": ELBO})

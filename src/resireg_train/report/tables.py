@@ -236,22 +236,26 @@ def is_table2(jobs: list[Job]) -> bool:
     return is_encoder_sweep(jobs) and is_mapping_sweep(jobs)
 
 
+def _named(files: dict[str, Path], what: str, key: str) -> tuple[dict[str, Path], list[str]]:
+    """A report section's result (:mod:`resireg_train.report.sections`): its ``files`` and the
+    line of ``summary.md`` that names its Markdown file ``files[key]``."""
+    return files, ["", f"{what}: `{files[key].name}`."]
+
+
 def table1_section(
     jobs: list[Job], out: Path, paper_tolerance: float = DEFAULT_TOLERANCE
 ) -> tuple[dict[str, Path], list[str]]:
-    """The report section ``table1`` (:mod:`resireg_train.report.sections`):
-    :func:`write_encoder_table`, named in ``summary.md``."""
+    """The report section ``table1``: :func:`write_encoder_table`."""
     files = write_encoder_table(jobs, out, paper_tolerance)
-    return files, ["", f"Encoder table (the paper's Table 1): `{files['table1_md'].name}`."]
+    return _named(files, "Encoder table (the paper's Table 1)", "table1_md")
 
 
 def table2_section(
     jobs: list[Job], out: Path, paper_tolerance: float = DEFAULT_TOLERANCE
 ) -> tuple[dict[str, Path], list[str]]:
-    """The report section ``table2`` (:mod:`resireg_train.report.sections`):
-    :func:`write_mapping_table`, named in ``summary.md``."""
+    """The report section ``table2``: :func:`write_mapping_table`."""
     files = write_mapping_table(jobs, out, paper_tolerance)
-    return files, ["", f"3D mapping table (the paper's Table 2): `{files['table2_md'].name}`."]
+    return _named(files, "3D mapping table (the paper's Table 2)", "table2_md")
 
 
 #: The prefix of Table 2's scores (the task table's, :func:`metric_prefix`).
@@ -428,7 +432,6 @@ def write_layer_sweep(jobs: list[Job], out: Path) -> dict[str, Path]:
 
 
 def layer_sweep_section(jobs: list[Job], out: Path) -> tuple[dict[str, Path], list[str]]:
-    """The report section ``layer_sweep`` (:mod:`resireg_train.report.sections`):
-    :func:`write_layer_sweep`, named in ``summary.md``."""
+    """The report section ``layer_sweep``: :func:`write_layer_sweep`."""
     files = write_layer_sweep(jobs, out)
-    return files, ["", f"CLIP layer sweep (mIoU per intermediate block): `{LAYER_SWEEP_FILES[1]}`."]
+    return _named(files, "CLIP layer sweep (mIoU per intermediate block)", "layer_sweep_md")

@@ -22,32 +22,13 @@ Adding a teacher:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
-from resireg.specs.table import SpecTable
+from resireg.specs.table import KindSpec, SpecTable
 
 __all__ = ["TEACHER_SPECS", "TeacherSpec"]
 
 
-@dataclass(frozen=True)
-class TeacherSpec:
+class TeacherSpec(KindSpec):
     """One kind of distillation teacher: its class (``"module:Class"``) and what it is."""
-
-    kind: str
-    target: str
-    summary: str
-
-    @property
-    def configs(self) -> tuple[str, ...]:
-        """The ``conf/model/teacher/`` files of this kind (found by scanning)."""
-        return TEACHER_SPECS.configs(self.kind)
-
-    def load(self) -> Any:
-        """The class (imports torch and its code)."""
-        from resireg.specs.table import load
-
-        return load(self.target)
 
 
 #: Teacher kinds of :func:`resireg_train.training.teacher.build_teacher`.
