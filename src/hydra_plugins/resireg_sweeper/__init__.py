@@ -1,3 +1,6 @@
 """The project's Optuna sweeper for Hydra (``hydra/sweeper=resireg_optuna``, set by
 ``hparams_search=<name>``). Hydra instantiates sweepers only from the ``hydra_plugins``
-package; the search itself lives in :mod:`resireg_train.sweeps.search`."""
+package; the search itself lives in :mod:`resireg_train.sweeps.search`.
+
+May be imported by Hydra only (its plugin discovery); it imports :mod:`resireg_train.sweeps`.
+"""

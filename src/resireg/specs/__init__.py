@@ -25,6 +25,8 @@ The training package keeps four more tables of the same type beside what they de
 
 This package imports nothing of ``resireg`` above it (:mod:`resireg.errors` only; the import
 contracts in ``pyproject.toml`` check it).
+
+May be imported by every module of both packages (it is the ground floor).
 """
 
 from __future__ import annotations
