@@ -1,8 +1,9 @@
 """The import layers (``[tool.importlinter]`` in pyproject.toml), checked with import-linter's
 ``lint-imports``: ``resireg`` never imports ``resireg_train``, Lightning, Hydra or
-``datasets``, and inside ``resireg`` every import points down the layer list (``resireg.specs``
-imports nothing of ``resireg`` but :mod:`resireg.errors`). Anyone can run ``lint-imports`` in
-the checkout for the same report."""
+``datasets``, and inside ``resireg`` and inside ``resireg_train`` every import points down the
+layer list (``resireg.specs`` imports nothing of ``resireg`` but :mod:`resireg.errors`; the
+run records sit below the evaluation and the sweeps, the CLIs on top). Anyone can run
+``lint-imports`` in the checkout for the same report."""
 
 from __future__ import annotations
 
