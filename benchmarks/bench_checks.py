@@ -25,7 +25,8 @@ import torch
 
 from _common import build_model, encode_generated, resireg_defaults
 from resireg.method.checks import check_variant_inputs
-from resireg.method.reconstruct import ReSiRegFull, ReSiRegLite
+from resireg.method.full import ReSiRegFull
+from resireg.method.lite import ReSiRegLite
 
 
 def main(argv: list[str] | None = None) -> None:

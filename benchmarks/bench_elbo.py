@@ -13,7 +13,7 @@ PCA, projection, upsampling, k-means), the fastest of ``--repeats`` interleaved 
    two candidates in a row fall below the best bound),
 2. ``ReSiRegFull(n_prototypes="elbo").assign``: the choice and the clustering,
 
-with ``--impl DIR`` the same two of the ``ReSiRegFull`` in ``DIR/reconstruct.py`` (bound to
+with ``--impl DIR`` the same two of the ``ReSiRegFull`` in ``DIR/full.py`` (or ``reconstruct.py``; bound to
 the clustering of ``DIR``, see ``bench_reconstruct.load_impl``; e.g. an earlier version, for
 before/after in one run), and the count
 chosen. Then, per candidate, the full scan's VB iterations and bound (``elbo_fits``,
@@ -33,7 +33,7 @@ import torch
 from _common import resireg_defaults
 from bench_reconstruct import interleaved_best, load_impl, make_features
 from resireg.method.elbo import elbo_fits, elbo_subsample
-from resireg.method.reconstruct import ReSiRegFull, upsampled_spectrum
+from resireg.method.full import ReSiRegFull, upsampled_spectrum
 
 
 def main() -> None:
@@ -43,7 +43,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
-        "--impl", default=None, help="folder of another reconstruct.py + its clustering"
+        "--impl", default=None, help="folder of another full.py or reconstruct.py + its clustering"
     )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

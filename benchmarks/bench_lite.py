@@ -13,7 +13,7 @@ points, ``4 N^2 W`` FLOP per image) and ``factorised`` (from the coarse grid's G
    rounds (``--rounds``; one call of each per round, after one warm-up call each): the VLM's
    image pass (``encode_image`` with the ``bb`` variant: backbone + head, what the throughput
    protocol calls "VLM alone") and Lite on that batch's features with each computation (and,
-   with ``--impl DIR``, the ``ReSiRegLite`` of another ``reconstruct.py``, e.g. the version
+   with ``--impl DIR``, the ``ReSiRegLite`` of another ``lite.py`` (or ``reconstruct.py``), e.g. the version
    before a change). Medians, each path's ratio to the VLM, and the ratios per round.
 2. **Accuracy** (``--no-accuracy`` skips it). Each computation in fp32 and bf16 (the features
    cast: what ``precision=bf16`` gives Lite), SDPA with PyTorch's default backend choice and
@@ -44,7 +44,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from _common import build_model, generated_spec, median_seconds
 from bench_reconstruct import load_impl
-from resireg.method.reconstruct import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 from resireg.method.variants import build_variant
 from resireg_train.data.segmentation import build_segmentation_set
 
@@ -181,7 +181,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads")
     parser.add_argument(
         "--impl", default=None,
-        help="folder of another reconstruct.py (and its clustering) whose Lite joins table 1",
+        help="folder of another lite.py or reconstruct.py (and its clustering) whose Lite joins "
+        "table 1",
     )  # fmt: skip
     parser.add_argument("--no-accuracy", action="store_true", help="skip table 2")
     args = parser.parse_args(argv)
@@ -195,7 +196,7 @@ def main(argv: list[str] | None = None) -> None:
         "factorised": ReSiRegLite(attention="factorised"),
     }
     if args.impl:
-        paths[f"--impl ({args.impl})"] = load_impl(args.impl)[1].ReSiRegLite()
+        paths[f"--impl ({args.impl})"] = load_impl(args.impl).lite.ReSiRegLite()
     inter, lang = lite_vs_vlm(model, pixels, paths, args.rounds)
     if not args.no_accuracy:
         accuracy(inter, lang, args.repeats)

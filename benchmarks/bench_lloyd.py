@@ -32,12 +32,12 @@ import torch
 
 from _common import build_model, encode_generated
 from bench_reconstruct import load_impl
-from resireg.method.reconstruct import ReSiRegFull
+from resireg.method.full import ReSiRegFull
 
 
 def full_points(n_values: list[int], images: int, short_side: int) -> dict[int, torch.Tensor]:
     """The normalised points Full clusters for each prototype count ``n`` (components = n)."""
-    import resireg.method.reconstruct as reconstruct
+    import resireg.method.full as reconstruct
 
     torch.manual_seed(0)
     out = encode_generated(build_model(), images, short_side)

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from _common import build_model
 from resireg.deploy import open_graph
 from resireg.deploy.onnx_export import export_onnx
-from resireg.method.reconstruct import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 
 
 def _session(path: Path, threads: int) -> ort.InferenceSession:

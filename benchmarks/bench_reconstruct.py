@@ -23,8 +23,9 @@ One run prints:
    ``time.perf_counter`` around the implementation's own functions (the fastest call);
 4. ReSiReg Full's and Lite's forward.
 
-``--impl DIR`` runs everything against another copy of ``reconstruct.py`` and of the
-clustering it imports: ``pca.py``, ``kmeans.py`` and ``elbo.py``, or ``cluster.py`` for
+``--impl DIR`` runs everything against another copy of ``full.py``, ``lite.py`` and ``grid.py``
+(or ``reconstruct.py``, for versions before Full and Lite had files of their own) and of the
+clustering they import: ``pca.py``, ``kmeans.py`` and ``elbo.py``, or ``cluster.py`` for
 versions before the clustering was split into those three (e.g. the files before a change,
 copied to DIR), so before/after figures come from the same script:
 
@@ -51,9 +52,10 @@ from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 from threadpoolctl import threadpool_limits
 
+import resireg.method.full
 import resireg.method.kmeans
+import resireg.method.lite
 import resireg.method.pca
-import resireg.method.reconstruct
 
 
 def make_features(b=8, h=36, w=48, dv=384, dl=512, regions=48, seed=0):
@@ -92,20 +94,25 @@ FEATURES = {"regions": make_features, "mixture": make_mixture_features}
 
 class Impl(NamedTuple):
     """An implementation's modules: ``kmeans`` (``impl[0]``: ``kmeans``, ``kmeans_plusplus``,
-    ``_lloyd``, ...), ``reconstruct`` (``impl[1]``) and ``pca``; for a version from before the
-    clustering was split, ``kmeans`` and ``pca`` are both its ``cluster.py``."""
+    ``_lloyd``, ...), ``reconstruct`` (``impl[1]``: ReSiReg Full's module, ``full.py``, or
+    ``reconstruct.py`` before Full and Lite had files of their own), ``pca`` and ``lite``
+    (ReSiReg Lite's module); for a version from before the clustering was split, ``kmeans``
+    and ``pca`` are both its ``cluster.py``."""
 
     kmeans: ModuleType
     reconstruct: ModuleType
     pca: ModuleType
+    lite: ModuleType
 
 
 def load_impl(directory: str | None) -> Impl:
     """The installed modules, or the copies in ``directory``: its ``pca.py``, ``kmeans.py``,
-    ``elbo.py`` (or, from before the split, its ``cluster.py``) and ``reconstruct.py``, each
-    bound to the directory's own copies of the others."""
+    ``elbo.py`` (or, from before the split, its ``cluster.py``), ``grid.py``, ``full.py`` and
+    ``lite.py`` (or, from before those, ``reconstruct.py``), each bound to the directory's own
+    copies of the others."""
     if directory is None:
-        return Impl(resireg.method.kmeans, resireg.method.reconstruct, resireg.method.pca)
+        return Impl(resireg.method.kmeans, resireg.method.full, resireg.method.pca,
+                    resireg.method.lite)  # fmt: skip
 
     def load(name: str) -> ModuleType:
         spec = importlib.util.spec_from_file_location(
@@ -118,24 +125,31 @@ def load_impl(directory: str | None) -> Impl:
         return module
 
     split = (Path(directory) / "kmeans.py").is_file()
+    own = (Path(directory) / "full.py").is_file()  # Full and Lite in files of their own
     names = ["pca", "kmeans", "elbo"] if split else ["cluster"]
-    installed = {name: sys.modules.get(f"resireg.{name}") for name in names}
+    names += ["grid"] if own else []
+    # `from resireg.<name> import ...` (before resireg/method/) or `from resireg.method.<name>`
+    keys = [f"{package}.{name}" for name in names for package in ("resireg", "resireg.method")]
+    installed = {key: sys.modules.get(key) for key in keys}
     loaded: dict[str, ModuleType] = {}
     try:
         for name in names:  # in import order: elbo imports kmeans
             loaded[name] = load(name)
-            # `from resireg.<name> import ...` in the copies gets the copy
-            sys.modules[f"resireg.{name}"] = loaded[name]
-        reconstruct = load("reconstruct")
+            for package in ("resireg", "resireg.method"):  # the copies import the copy
+                sys.modules[f"{package}.{name}"] = loaded[name]
+        for name in ("full", "lite") if own else ("reconstruct",):
+            loaded[name] = load(name)
     finally:
-        for name, module in installed.items():
+        for key, module in installed.items():
             if module is None:
-                sys.modules.pop(f"resireg.{name}", None)
+                sys.modules.pop(key, None)
             else:
-                sys.modules[f"resireg.{name}"] = module
+                sys.modules[key] = module
+    full = loaded["full"] if own else loaded["reconstruct"]
+    lite = loaded["lite"] if own else full
     if split:
-        return Impl(loaded["kmeans"], reconstruct, loaded["pca"])
-    return Impl(loaded["cluster"], reconstruct, loaded["cluster"])
+        return Impl(loaded["kmeans"], full, loaded["pca"], lite)
+    return Impl(loaded["cluster"], full, loaded["cluster"], lite)
 
 
 def interleaved_best(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, float]:
@@ -156,7 +170,8 @@ _TIMED = [
     ("reconstruct", "upsampled_spectrum"),  # after FullShared: centring + moments + eigh
     ("reconstruct", "pca_from_moments"),  # eigh
     ("reconstruct", "_project_grid"),  # after the change: the projection
-    ("reconstruct", "_upsample"),
+    ("reconstruct", "_upsample"),  # before Full had a file of its own
+    ("reconstruct", "upsample"),  # after: resireg.method.grid's, as full.py binds it
     ("reconstruct", "kmeans"),
     ("reconstruct", "sq_distances"),  # before the change: assign's second distance matrix
     ("kmeans", "kmeans_plusplus"),  # before: seeding (called by kmeans)
@@ -252,7 +267,7 @@ def main() -> None:
         help="regions: hard regions of codes + noise; mixture: smooth mixtures of directions",
     )  # fmt: skip
     parser.add_argument(
-        "--impl", default=None, help="directory with the clustering and reconstruct.py to time"
+        "--impl", default=None, help="directory with the clustering and full.py / lite.py to time"
     )
     parser.add_argument("--no-forward", action="store_true", help="skip the Full/Lite forwards")
     args = parser.parse_args()
@@ -326,7 +341,7 @@ def compare(args, impl: Impl, inter, lang, forward: bool) -> None:
             fwd = interleaved_best(
                 {
                     "full": lambda: full(inter, lang),
-                    "lite": lambda: reconstruct.ReSiRegLite()(inter, lang),
+                    "lite": lambda: impl.lite.ReSiRegLite()(inter, lang),
                 },
                 max(1, args.repeats // 2),
             )

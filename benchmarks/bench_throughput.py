@@ -51,7 +51,7 @@ every formula against it, exactly, on the real modules.
   ``B (2 (h w)^2 Dv + 2 N h w Dl)`` (:func:`lite_flops`). The segmentation prior (extra keys)
   is not used here.
 - Full (the batch is one scene; ``n = B s^2 h w`` points, K prototypes, r = min(components,
-  Dv), ``t = 2 + floor(ln K)`` k-means++ candidates per step), as ``resireg.method.reconstruct`` /
+  Dv), ``t = 2 + floor(ln K)`` k-means++ candidates per step), as ``resireg.method.full`` /
   ``resireg.method.pca`` compute it: PCA moments from the small grid, ``U_a^T U_a`` of both axes
   ``2 s (h^3 + w^3)``, first moment ``2 h w Dv``, second moment by ``pca.gram`` (upper
   block triangle of 3 column slabs: 6 of 9 slab products, ``(4/3) B h w Dv^2``, accumulated
@@ -101,7 +101,8 @@ import torch
 from torch import nn
 
 from _common import build_model, resireg_defaults
-from resireg.method import reconstruct
+from resireg.method import full as reconstruct
+from resireg.method import lite
 from resireg.method.variants import build_variant
 
 VARIANT_NAMES = ("VLM", "VLM + Lite", "VLM + Full")
@@ -168,12 +169,12 @@ def lite_flops(
 
     ``attention="sdpa"``: tau = 0, SDPA at the padded width ``max(dv, dl)``, ``4 B N^2 W``;
     tau > 0, the explicit chunks, ``2 B N^2 (dv + dl)``. ``"factorised"`` (any tau): per
-    query block of :func:`resireg.method.reconstruct.factorised_blocks`, the Gram rows of the coarse
+    query block of :func:`resireg.method.lite.factorised_blocks`, the Gram rows of the coarse
     rows it reads, ``2 (c1 - c0) w * h w * dv``, and the product of the per-token weight sums
     with the coarse tokens, ``2 N h w dl`` (the language grid is the intermediates')."""
     n = upscale * upscale * h * w
     if attention == "factorised":
-        blocks = reconstruct.factorised_blocks(h, w, upscale)
+        blocks = lite.factorised_blocks(h, w, upscale)
         gram = sum(2 * (c1 - c0) * w * h * w * dv for _, _, c0, c1 in blocks)
         return batch * (gram + 2 * n * h * w * dl)
     if tau == 0:
@@ -226,7 +227,7 @@ def full_flops_breakdown(
     return {
         "moments": moments,
         "projection": 2 * batch * hw * dv * r,
-        # k-means++ products on the grid, then upsampled (resireg.method.reconstruct: the seeding's dots)
+        # k-means++ products on the grid, then upsampled (resireg.method.full: the seeding's dots)
         "seeding": 2 * batch * hw * r * (1 + kmeanspp_candidates(k) * (k - 1)),
         "kmeans": kmeans,
         "mixing": 2 * n * k * dl,

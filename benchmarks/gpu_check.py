@@ -166,7 +166,7 @@ def _autocast(args: argparse.Namespace):
 
 def lite(args: argparse.Namespace, peak_bf16: float | None) -> list[dict[str, Any]]:
     """Lite by every SDPA backend and factorised, fp32 and bf16 inputs."""
-    from resireg.method.reconstruct import ReSiRegLite
+    from resireg.method.lite import ReSiRegLite
 
     inter, lang = _features(args, args.lite_batch)
     b, dv, h, w = inter.shape

@@ -19,7 +19,8 @@ from PIL import Image
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
-from resireg.method.reconstruct import ReSiRegFull, ReSiRegLite
+from resireg.method.full import ReSiRegFull
+from resireg.method.lite import ReSiRegLite
 from resireg.models import EUPEBackbone, LanguageHead
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_throughput.py"
@@ -154,9 +155,9 @@ def test_median_seconds_returns_none_on_oom_only():
 def test_lite_flops_match_flop_counter(batch, h, w, tau, attention, monkeypatch):
     """The SDPA path (tau = 0, padded to max(Dv, Dl)), the chunked explicit path, and the
     factorised path (with blocks small enough that the Gram rows overlap)."""
-    from resireg.method import reconstruct
+    from resireg.method import lite as lite_module
 
-    monkeypatch.setattr(reconstruct, "_FACTORISED_BLOCK", 2 * 2 * 4 * h * w)  # 2 coarse rows
+    monkeypatch.setattr(lite_module, "_FACTORISED_BLOCK", 2 * 2 * 4 * h * w)  # 2 coarse rows
     inter, lang = torch.randn(batch, 384, h, w), torch.randn(batch, 512, h, w)
     lite = ReSiRegLite(alpha=10.0, tau=tau, upscale=2, attention=attention)
     expected = bench.lite_flops(batch, h, w, dv=384, dl=512, upscale=2, tau=tau,

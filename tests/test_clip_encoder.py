@@ -20,7 +20,7 @@ from huggingface_hub import constants as hf_constants
 from PIL import Image
 from safetensors.torch import save_file
 
-from resireg.method.reconstruct import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
 from resireg.models.zoo.clip import ClipEncoder

@@ -184,7 +184,7 @@ def _scene(n_regions: int, seed: int) -> torch.Tensor:
 def test_full_with_elbo_is_full_with_the_chosen_count(n_components):
     """ReSiRegFull(n_prototypes="elbo") chooses the scene's region count and then gives
     exactly what Full with that count gives; the counts of every batch are kept."""
-    from resireg.method.reconstruct import ReSiRegFull
+    from resireg.method.full import ReSiRegFull
 
     x = _scene(5, seed=0)
     language = torch.randn(2, 16, 12, 16, generator=torch.Generator().manual_seed(1))
@@ -209,7 +209,7 @@ def test_full_computes_only_the_subsample(upscale, n_components):
     """ReSiRegFull's chooser computes only the subsampled points, each from its four grid
     neighbours: they equal those rows of all upsampled points (F.interpolate's) to float
     rounding, and the count equals the chooser's given all the points."""
-    from resireg.method.reconstruct import ReSiRegFull, upsampled_spectrum
+    from resireg.method.full import ReSiRegFull, upsampled_spectrum
 
     x = _scene(5, seed=3)
     full = ReSiRegFull(n_prototypes="elbo", elbo_candidates=[3, 5, 8], upscale=upscale,
@@ -268,18 +268,18 @@ def test_full_passes_its_clustering_and_elbo_settings_on(monkeypatch):
     ``elbo_tol`` reach the chooser (conf/resireg/default.yaml's keys, not constants): each
     call is recorded and compared with the values given, and the subsample's size follows
     ``elbo_max_points``."""
-    import resireg.method.reconstruct as reconstruct
-    from resireg.method.reconstruct import ReSiRegFull
+    import resireg.method.full as full_module
+    from resireg.method.full import ReSiRegFull
 
     seen: dict[str, dict] = {}
     for name in ("kmeans", "elbo_prototype_count"):
-        original = getattr(reconstruct, name)
+        original = getattr(full_module, name)
 
         def record(*args, _name=name, _original=original, **kwargs):
             seen[_name] = {"points": args[0].shape[0], **kwargs}
             return _original(*args, **kwargs)
 
-        monkeypatch.setattr(reconstruct, name, record)
+        monkeypatch.setattr(full_module, name, record)
     x = _scene(5, seed=3)
     full = ReSiRegFull(n_prototypes="elbo", elbo_candidates=[3, 5, 8], tol=0.0,
                        elbo_max_points=200, elbo_stop_after=None, elbo_tol=0.5)  # fmt: skip

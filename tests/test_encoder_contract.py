@@ -221,9 +221,9 @@ def _hub_load_forbidden(*args, **kwargs):
 @pytest.mark.parametrize("kind", sorted(ENCODERS))
 def test_offline_and_not_cached_fails_at_once_naming_the_key(kind, tmp_path, monkeypatch):
     """The library's message names its own arguments (``repo=``); through resireg_train's
-    boundary (:func:`resireg_train.config.checks.config_path`) the same error names the config
+    boundary (:func:`resireg_train.config.errors.config_path`) the same error names the config
     keys (``encoder.repo=``)."""
-    from resireg_train.config.checks import config_path, encoder_arguments
+    from resireg_train.config.errors import config_path, encoder_arguments
 
     config, expected = OFFLINE[kind]
     offline_hub(monkeypatch, tmp_path / "hub")  # an empty torch hub cache

@@ -11,10 +11,11 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from _run import report, run
+from resireg.errors import ConfigError
 from resireg.models import ENCODERS, build_encoder
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.checks import ConfigError, sweep_config_errors, validate_eval
+from resireg_train.config.eval import sweep_config_errors, validate_eval
 
 TEST_CONF = Path(__file__).parent / "conf"
 

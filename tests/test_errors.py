@@ -1,6 +1,6 @@
 """One error base: every exception class of ``resireg`` and ``resireg_train`` derives from
 :class:`resireg.errors.ResiregError`; the library names its own arguments, and
-``resireg_train`` adds the config path at its boundary (:func:`resireg_train.config.checks.config_path`)."""
+``resireg_train`` adds the config path at its boundary (:func:`resireg_train.config.errors.config_path`)."""
 
 from __future__ import annotations
 
@@ -63,6 +63,7 @@ def test_every_error_class_derives_from_the_base(modules):
 
 
 def test_each_error_has_its_kind_and_keeps_its_builtin_base():
+    from resireg.errors import ConfigError as TrainConfigError
     from resireg.errors import WriteError
     from resireg.integrity import IntegrityError
     from resireg.mapping.semantic_map import MapFullError
@@ -70,7 +71,6 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg.models.hub import WeightsUnavailableError
     from resireg.specs.table import UnknownNameError
     from resireg_train.cli.job import RunFolderBusy
-    from resireg_train.config.checks import ConfigError as TrainConfigError
     from resireg_train.evaluation.base import NothingScoredError
     from resireg_train.playground.core import PlaygroundError
     from resireg_train.sweeps.journal import JournalError
@@ -188,7 +188,7 @@ def test_rename_arguments_renames_mentions_not_words_paths_or_dotted_names():
 
 def test_config_path_names_the_config_key_at_the_boundary():
     from resireg.models.hub import WeightsUnavailableError
-    from resireg_train.config.checks import config_path
+    from resireg_train.config.errors import config_path
 
     # a message about an argument's value: a ConfigError, still of its own type
     with pytest.raises(FileNotFoundError) as err:
@@ -232,7 +232,7 @@ def test_a_wrapping_library_function_names_its_own_argument():
     """``arguments_under``: OtasEncoder passes its ``clip`` on to ClipEncoder, whose errors
     then name ``clip.weights``; resireg_train adds ``encoder.`` to that."""
     from resireg.errors import arguments_under
-    from resireg_train.config.checks import config_path
+    from resireg_train.config.errors import config_path
 
     with pytest.raises(ConfigError) as err:
         with config_path("encoder", ("clip",)):
@@ -243,7 +243,7 @@ def test_a_wrapping_library_function_names_its_own_argument():
 
 def test_the_cli_error_text_carries_the_notes():
     from resireg_train.cli.job import error_text
-    from resireg_train.config.checks import error_message
+    from resireg_train.config.errors import error_message
 
     err = RuntimeError("CUDA error: out of memory")
     err.__notes__ = ["config: encoder"]
@@ -254,7 +254,7 @@ def test_the_cli_error_text_carries_the_notes():
 def test_a_renamed_error_pickles_as_the_librarys_class():
     import pickle
 
-    from resireg_train.config.checks import config_path
+    from resireg_train.config.errors import config_path
 
     with pytest.raises(FileNotFoundError) as err:
         with config_path("encoder", ("repo",)):

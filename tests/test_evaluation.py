@@ -197,9 +197,9 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
 
     from hydra import compose, initialize_config_dir
 
+    from resireg.errors import ConfigError
     from resireg_train.cli.eval import evaluate
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.config.checks import ConfigError
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("eval", overrides=["model_path=x", "precision=fp8", "variants=[bb,mid]",

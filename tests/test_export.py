@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from resireg.integrity import IntegrityError, verify_digests
-from resireg.method.reconstruct import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 from resireg.models import ResiregVLM
 
 onnx = pytest.importorskip("onnx")

@@ -11,8 +11,9 @@ from hydra import compose, initialize_config_dir
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
+from resireg.errors import ConfigError
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.checks import ENCODER_IMPORTS, ConfigError, check_available
+from resireg_train.config.machine import ENCODER_IMPORTS, check_available
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -319,8 +319,10 @@ def test_skipped_caption_examples_are_reported_once_per_epoch_with_the_epoch_tot
 def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatch):
     from hydra import compose, initialize_config_dir
 
+    from resireg.errors import ConfigError
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.config.checks import ConfigError, check_devices, validate
+    from resireg_train.config.machine import check_devices
+    from resireg_train.config.train import validate
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         stage1 = compose("train", overrides=["experiment=vlm25m_stage1", "model.text.weights=null"])

@@ -19,7 +19,8 @@ from _sam import save_tiny_sam
 
 pytest.importorskip("transformers")
 
-from resireg.method.reconstruct import ReSiRegFull, ReSiRegLite  # noqa: E402
+from resireg.method.full import ReSiRegFull  # noqa: E402
+from resireg.method.lite import ReSiRegLite  # noqa: E402
 from resireg.priors import SAM_DEFAULTS, SamPrior, masks_to_instances  # noqa: E402
 
 # Settings that make the random tiny SAM return many overlapping masks quickly: 16 point
@@ -286,7 +287,8 @@ def test_prior_configuration_names():
 
 
 def test_a_prior_configuration_without_a_prior_is_a_config_error():
-    from resireg_train.config.checks import ConfigError, validate_eval
+    from resireg.errors import ConfigError
+    from resireg_train.config.eval import validate_eval
 
     cfg = {"model_path": "x", "encoder": {"kind": "resireg_vlm", "name": "ours",
            "third_party": False}, "variants": ["full", "full+prior"]}  # fmt: skip
@@ -307,7 +309,8 @@ def test_a_prior_configuration_without_a_prior_is_a_config_error():
 def test_the_config_check_and_the_provider_reject_a_setting_alike(tiny_sam, name, bad):
     """One rule per SAM setting: resireg-eval's config check fails fast with the message the
     provider itself would give (so neither accepts what the other rejects)."""
-    from resireg_train.config.checks import ConfigError, validate_eval
+    from resireg.errors import ConfigError
+    from resireg_train.config.eval import validate_eval
 
     cfg = {"model_path": "x", "encoder": {"kind": "resireg_vlm", "name": "ours",
            "third_party": False}, "variants": ["full+prior"]}  # fmt: skip

@@ -3,11 +3,14 @@ exactly the files its recipe names (counted by comparing the copy with the check
 new component then runs through ``resireg-eval`` with no other edit.
 
 - a variant: its module, its table entry, its defaults block (3 files);
-- a 3D metric: its scorer's module and its table entry (2 files).
+- a 3D metric: its scorer's module and its table entry (2 files);
+- a distillation teacher: its module, its table entry, its conf file (3 files; it trains);
+- a text tower: its builder's module, its table entry, its conf file (3 files).
 
 The encoder recipe (module, entry point, conf file) is followed from outside the project in
 ``tests/test_specs.py``, the task and dataset recipes in ``tests/test_tasks.py``, the map
-source recipe in ``tests/test_sources.py``."""
+source recipe in ``tests/test_sources.py``, the report section recipe in
+``tests/test_report.py``."""
 
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from _run import run
 
@@ -166,3 +170,139 @@ def recall(matrix, metric):
     pairs = [(recall[c], iou[c]) for c in iou if iou[c] is not None and recall[c] is not None]
     assert pairs and all(r >= i - 1e-12 for r, i in pairs)
     assert any(r > i for r, i in pairs)
+
+
+def _in_copy(copy: Path, code: str) -> dict:
+    """Run ``code`` (which prints one JSON line last) in a process that imports the copy."""
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=_env(copy), timeout=600)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_adding_a_teacher_is_three_files(tmp_path):
+    """A distillation teacher (``pool``: the image's mean colour over cells of ``cell`` pixels):
+    its module, its entry in resireg_train.training.specs, its conf/model/teacher/ file.
+    ``model/teacher=pool`` selects it: the config check accepts it (and names the closest kind
+    for a typo), the teacher built from the composed config gives the cell means (numpy), and
+    ``resireg-train`` trains an epoch distilling from it."""
+    copy = _copy(tmp_path)
+    (copy / "src" / "resireg_train" / "training" / "pool_teacher.py").write_text("""
+import torch.nn.functional as F
+
+from resireg_train.training.teacher import FrozenTeacher
+
+
+class PoolTeacher(FrozenTeacher):
+    def __init__(self, cell: int = 8, device=None):
+        super().__init__()
+        self.cell, self.out_dim = cell, 3
+        self.freeze()
+        self.to(device or "cpu")
+
+    def dense(self, images):
+        return F.avg_pool2d(images, self.cell)
+""")
+    table = copy / "src" / "resireg_train" / "training" / "specs.py"
+    text = table.read_text()
+    anchor = '    ),\n    name="kind",\n    where="resireg_train.training.specs",'
+    assert anchor in text
+    table.write_text(text.replace(anchor, """        TeacherSpec("pool", "resireg_train.training.pool_teacher:PoolTeacher",
+                    "the mean colour of image cells"),
+""" + anchor))  # fmt: skip
+    (copy / "conf" / "model" / "teacher" / "pool.yaml").write_text("kind: pool\ncell: 8\n")
+    assert _changed(copy) == ["conf/model/teacher/pool.yaml",
+                              "src/resireg_train/training/pool_teacher.py",
+                              "src/resireg_train/training/specs.py"]  # fmt: skip
+    found = _in_copy(
+        copy,
+        """
+import json, numpy as np, torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from resireg.errors import ConfigError
+from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.train import validate
+from resireg_train.training.teacher import build_teacher
+with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+    cfg = compose("train", overrides=["experiment=smoke", "model/teacher=pool"])
+    typo = compose("train", overrides=["experiment=smoke", "model.teacher.kind=pol"])
+validate(cfg)
+try:
+    validate(typo)
+    error = ""
+except ConfigError as err:
+    error = str(err)
+teacher = build_teacher(**OmegaConf.to_container(cfg.model.teacher))
+images = torch.rand(2, 3, 32, 48, generator=torch.Generator().manual_seed(0))
+out = teacher(images, (4, 6)).numpy()
+reference = images.numpy().reshape(2, 3, 4, 8, 6, 8).mean(axis=(3, 5))
+print(json.dumps({"kind": type(teacher).__name__, "error": error,
+                  "difference": float(np.abs(out - reference).max())}))
+""",
+    )
+    assert found["kind"] == "PoolTeacher" and found["difference"] < 1e-6
+    assert "model.teacher.kind='pol': expected one of [" in found["error"]
+    assert "'pool'" in found["error"]
+    out = tmp_path / "train"
+    run("resireg-train", "experiment=smoke", "model/teacher=pool", "trainer.max_epochs=1",
+        "~callbacks.progress_bar", f"hydra.run.dir={out}", env=_env(copy))  # fmt: skip
+    record = json.loads((out / "results.json").read_text())
+    assert record["status"] == "completed"
+    assert "train/loss_distill" in record["final"]  # the pool teacher's distillation loss
+    saved = yaml.safe_load((out / ".hydra" / "config.yaml").read_text())
+    assert saved["model"]["teacher"] == {"kind": "pool", "cell": 8}
+
+
+def test_adding_a_text_tower_is_three_files(tmp_path):
+    """A text tower (``small``: a one-layer random open_clip text transformer): its builder's
+    module, its entry in resireg.specs.text, its conf/model/text/ file. ``model/text=small``
+    selects it: the config check accepts it, and the VLM built from the composed config has the
+    builder's tower (its outputs equal the same seeded tower built directly)."""
+    copy = _copy(tmp_path)
+    (copy / "src" / "resireg" / "models" / "vlm" / "small_text.py").write_text("""
+from resireg.models.vlm.text import CAPTION_CACHE_SIZE, FrozenTextTower
+
+
+def small_tower(width=32, heads=2, out_dim=48, seed=0, cache_size=CAPTION_CACHE_SIZE):
+    tiny = FrozenTextTower.tiny(width=width, layers=1, heads=heads, out_dim=out_dim,
+                                context_length=16, seed=seed)
+    spec = {"kind": "small", "width": width, "heads": heads, "out_dim": out_dim, "seed": seed}
+    return FrozenTextTower(tiny.tower, tiny.tokenizer, out_dim, spec, cache_size)
+""")
+    table = copy / "src" / "resireg" / "specs" / "text.py"
+    text = table.read_text()
+    anchor = '    ),\n    name="kind",\n    where="resireg.specs.text",'
+    assert anchor in text
+    table.write_text(text.replace(anchor, """        TextSpec("small", "resireg.models.vlm.small_text:small_tower", "one layer"),
+""" + anchor))  # fmt: skip
+    (copy / "conf" / "model" / "text" / "small.yaml").write_text(
+        "kind: small\nwidth: 32\nheads: 2\nout_dim: 48\nseed: 3\ncache_size: 200000\n"
+    )
+    assert _changed(copy) == ["conf/model/text/small.yaml", "src/resireg/models/vlm/small_text.py",
+                              "src/resireg/specs/text.py"]  # fmt: skip
+    found = _in_copy(
+        copy,
+        """
+import json, torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+from resireg.models import ResiregVLM
+from resireg.models.vlm.text import FrozenTextTower
+from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.train import validate
+with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+    cfg = compose("train", overrides=["experiment=smoke", "model/text=small"])
+validate(cfg)
+model = OmegaConf.to_container(cfg.model, resolve=True)
+vlm = ResiregVLM.build(model["backbone"], model["head"], model["text"])
+direct = FrozenTextTower.tiny(width=32, layers=1, heads=2, out_dim=48, context_length=16, seed=3)
+texts = ["a chair", "a wall"]
+same = torch.equal(vlm.text(texts, cache=False), direct(texts, cache=False))
+print(json.dumps({"spec": vlm.text.spec(), "same": same, "width": vlm.text_proj.in_features}))
+""",
+    )
+    assert found["same"] and found["width"] == 48
+    assert found["spec"]["kind"] == "small" and found["spec"]["seed"] == 3

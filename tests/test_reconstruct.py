@@ -11,7 +11,8 @@ import torch
 import torch.nn.functional as F
 from sklearn.decomposition import PCA
 
-import resireg.method.reconstruct as reconstruct
+import resireg.method.full as full_module
+import resireg.method.lite as lite_module
 from resireg import ReSiRegFull, ReSiRegLite
 from resireg.ovss import SegmentationMetric, predict
 
@@ -145,7 +146,7 @@ ATTENTION = ["sdpa", "factorised"]
 @pytest.mark.parametrize("attention", ATTENTION)
 @pytest.mark.parametrize("tau", [0.0, 0.02])
 def test_lite_equals_explicit_softmax(tau, attention, monkeypatch):
-    monkeypatch.setattr(reconstruct, "_LITE_CHUNK_ELEMENTS", 100)  # force many row chunks
+    monkeypatch.setattr(lite_module, "_LITE_CHUNK_ELEMENTS", 100)  # force many row chunks
     inter, lang, _ = _region_scene(b=2, h=5, w=6, noise=1.0)
     out = ReSiRegLite(alpha=10.0, tau=tau, upscale=1, attention=attention)(inter, lang)
     assert torch.allclose(out, _loop_lite(inter, lang, 10.0, tau), atol=1e-5)
@@ -215,8 +216,8 @@ def test_factorised_lite_equals_float64_dense_reference(
     """The factorised computation (coarse Gram, interpolated on both sides, weights summed
     per token) equals the formula evaluated densely in float64, to fp32 rounding; tiles and
     blocks small enough that an image takes several of each."""
-    monkeypatch.setattr(reconstruct, "_FACTORISED_TILE", 300)
-    monkeypatch.setattr(reconstruct, "_FACTORISED_BLOCK", 2000)
+    monkeypatch.setattr(lite_module, "_FACTORISED_TILE", 300)
+    monkeypatch.setattr(lite_module, "_FACTORISED_BLOCK", 2000)
     g = torch.Generator().manual_seed(3)
     (h, w), (hl, wl) = grid, lang_grid
     inter = torch.randn(3, 16, h, w, generator=g)
@@ -390,8 +391,8 @@ def test_resireg_raises_miou_over_noisy_language_tokens():
 
 @pytest.mark.parametrize("scale", [1, 2, 3])
 def test_upsampled_pca_equals_pca_of_materialised_points(scale):
+    from resireg.method.full import upsampled_pca
     from resireg.method.pca import pca
-    from resireg.method.reconstruct import upsampled_pca
 
     x = torch.randn(3, 20, 5, 7) + 5.0  # an offset mean checks the float32 centring
     up = (
@@ -411,7 +412,7 @@ def test_upsampled_moments_in_image_chunks_and_any_layout(scale, monkeypatch):
     """The moments equal those of the materialised upsampled points (float64), whether the
     grid is processed in one chunk or one image at a time, for NCHW or channels-last input;
     Full's output does not depend on the chunking either."""
-    from resireg.method.reconstruct import upsampled_moments
+    from resireg.method.full import upsampled_moments
 
     inter, lang, _ = _region_scene(b=5, h=6, w=8, dv=16)
     up = F.interpolate(inter.double(), scale_factor=scale, mode="bilinear") if scale > 1 else inter
@@ -419,8 +420,8 @@ def test_upsampled_moments_in_image_chunks_and_any_layout(scale, monkeypatch):
     full = ReSiRegFull(n_prototypes=4, n_components=8, upscale=scale)
     ref = full(inter, lang)
     for chunk_points in (4096, 1):
-        monkeypatch.setattr(reconstruct, "_CHUNK_POINTS", chunk_points)
-        assert len(reconstruct._image_chunks(5, 6, 8)) == (1 if chunk_points > 1 else 5)
+        monkeypatch.setattr(full_module, "_CHUNK_POINTS", chunk_points)
+        assert len(full_module._image_chunks(5, 6, 8)) == (1 if chunk_points > 1 else 5)
         for x in (inter.contiguous(), inter.contiguous(memory_format=torch.channels_last)):
             second, first, n, shift = upsampled_moments(x, scale)
             centred = points - shift.double()
@@ -437,13 +438,13 @@ def test_full_seeding_products_on_the_grid_are_the_points_products(upscale, monk
     k-means on the points alone does."""
     inter, lang, _ = _region_scene(b=3, h=7, w=9, dv=16, k=5, noise=0.5)
     calls = []
-    real_kmeans = reconstruct.kmeans
+    real_kmeans = full_module.kmeans
 
     def spy(z, n, **kwargs):
         calls.append((z, n, kwargs))
         return real_kmeans(z, n, **kwargs)
 
-    monkeypatch.setattr(reconstruct, "kmeans", spy)
+    monkeypatch.setattr(full_module, "kmeans", spy)
     dist, _ = ReSiRegFull(n_prototypes=5, n_components=8, upscale=upscale, seed=2).assign(inter)
     ((z, n, kwargs),) = calls
     c = z[torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(0))[:4]]
@@ -521,9 +522,9 @@ def test_unset_n_components_is_tied_to_the_prototype_count(monkeypatch):
     inter = torch.randn(2, 64, 8, 8, generator=g)  # Dv = 64 > 36: no clipping hides the rank
     lang = torch.randn(2, 12, 8, 8, generator=g)
     used = []
-    project = reconstruct._project_grid
+    project = full_module._project_grid
     monkeypatch.setattr(
-        reconstruct, "_project_grid", lambda x, fit: used.append(fit) or project(x, fit)
+        full_module, "_project_grid", lambda x, fit: used.append(fit) or project(x, fit)
     )
     out = ReSiRegFull(n_prototypes=24, upscale=1)(inter, lang)
     (fit,) = used

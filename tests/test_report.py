@@ -22,8 +22,8 @@ from PIL import Image
 from _run import report as report_stdout
 from _run import run, run_side_by_side
 from _sweeps import make_job as _job
+from resireg.method.full import ReSiRegFull
 from resireg.method.heuristic import PrototypeHeuristic
-from resireg.method.reconstruct import ReSiRegFull
 from resireg_train.cli import report as report_cli
 from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point, safe_dirname
 from resireg_train.report import (
@@ -402,7 +402,7 @@ def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cov
     failed job's cells are empty in every table (never `nan`); the mean rows name the
     encoders they average over."""
     sweep = tmp_path / "table1"
-    error = ("resireg_train.config.checks.ConfigError: invalid config:\n  full.alpha=0: expected a "
+    error = ("resireg.errors.ConfigError: invalid config:\n  full.alpha=0: expected a "
              "number > 0\n  lite.tau=2: expected a number in [0, 1] | or null")  # fmt: skip
     jobs = [("ours", False, 0.25, None), ("clip", True, 0.5, None), ("radio", True, None, error)]
     for n, (name, third, bb, err) in enumerate(jobs):
@@ -420,7 +420,7 @@ def test_reports_render_errors_on_one_line_failures_alike_and_say_what_means_cov
     summary = files["md"].read_text()
     rows = [line for line in summary.splitlines() if line.startswith("|")]
     assert len(rows) == 2 + 3  # header, rule, one line per job
-    flat = ("resireg_train.config.checks.ConfigError: invalid config: full.alpha=0: expected a number "
+    flat = ("resireg.errors.ConfigError: invalid config: full.alpha=0: expected a number "
             "> 0; lite.tau=2: expected a number in [0, 1] \\| or null")  # fmt: skip
     cells = [c.strip() for c in re.split(r"(?<!\\)\|", rows[-1])[1:-1]]  # unescaped pipes
     assert cells[:3] == ["2", "radio", "failed"] and cells[-1] == flat, cells
@@ -504,7 +504,9 @@ def test_the_sweep_config_names_its_report_instead_of_the_report_guessing(tmp_pa
 def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_names():
     """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
     it), every name is one the report writes, and a wrong one is refused naming the key."""
-    from resireg_train.config.checks import REPORT_SECTIONS, ConfigError, validate_eval
+    from resireg.errors import ConfigError
+    from resireg_train.config.eval import validate_eval
+    from resireg_train.report.sections import section_names
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
                    if p.stem != "train_hparams"]  # fmt: skip
@@ -512,7 +514,57 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
         for name in eval_sweeps:
             cfg = compose("eval", overrides=[f"sweep={name}"])
             assert cfg.report is not None, name
-            assert set(cfg.report) <= set(REPORT_SECTIONS), name
+            assert set(cfg.report) <= set(section_names()), name
         cfg = compose("eval", overrides=["report=[tabel1]"])
     with pytest.raises(ConfigError, match=r"report=\['tabel1'\]: expected null or a list of"):
         validate_eval(cfg)
+
+
+def test_every_report_section_loads_and_takes_what_the_report_gives():
+    """Each entry of the section table: its writer and detector load and take only the report's
+    inputs by name; the names a sweep may list are the entries not written always; the encoder
+    sweeps are the encoder table sections."""
+    import inspect
+
+    from resireg_train.report.sections import (
+        ENCODER_SWEEPS,
+        REPORT_SECTIONS,
+        SECTION_INPUTS,
+        section_names,
+    )
+
+    for name, spec in REPORT_SECTIONS.items():
+        for function in (spec.load(), spec.detector()):
+            if function is not None:
+                assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS), name
+        assert spec.summary and (spec.detect or not spec.always), name
+    assert section_names() == ("table1", "table2", "prototype_grid", "layer_sweep")
+    assert ENCODER_SWEEPS == ("table1", "table2")
+
+
+def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypatch):
+    """The recipe of resireg_train.report.sections: one writer and one entry; a sweep config
+    naming it (report: [...]) gets its file and its summary.md lines, in table order, and
+    the config check accepts the name."""
+    import resireg_train.report.sections as sections
+    from resireg_train.config.eval import EVAL_RULES
+
+    def count_section(jobs, out):
+        path = out / "count.txt"
+        path.write_text(str(len(jobs)))
+        return {"count": path}, ["", f"Jobs counted: `{path.name}`."]
+
+    module = type(sys)("count_section_module")
+    module.count_section = count_section
+    monkeypatch.setitem(sys.modules, "count_section_module", module)
+    entry = sections.SectionSpec("count", "count_section_module:count_section", "the job count")
+    monkeypatch.setitem(sections.REPORT_SECTIONS, "count", entry)
+    sweep = tmp_path / "sweep"
+    for n in range(3):
+        _saved_config(_job(sweep, n, {"seed": n}, {"status": "completed", "final": {}}),
+                      ["count"])  # fmt: skip
+    files = report(sweep)
+    assert files["count"].read_text() == "3"
+    assert "Jobs counted: `count.txt`." in files["md"].read_text()
+    check, _ = EVAL_RULES["report"]
+    assert check(["count"]) and not check(["cuont"])

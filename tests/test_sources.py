@@ -78,7 +78,7 @@ def test_every_source_entry_loads_and_its_conf_file_holds_exactly_its_keys(kind)
     if "path" not in spec.common:
         assert block["path"] is None and "path" not in spec.arguments(block)
         (error,) = source_errors({**block, "path": "run.bag"})
-        assert error.startswith("source.path='run.bag': expected null") and "source=rosbag" in error
+        assert error.startswith("path='run.bag': expected null") and "source=rosbag" in error
 
 
 @pytest.mark.parametrize("kind", SOURCE_SPECS.names())
@@ -86,41 +86,53 @@ def test_every_rule_refuses_a_bad_value_naming_its_key(kind):
     block = a_block(kind)
     for name in SOURCE_SPECS.get(kind).rules:
         errors = source_errors({**block, name: {"not": "a value"}})
-        assert len(errors) == 1 and errors[0].startswith(f"source.{name}={{'not': "), errors
+        assert len(errors) == 1 and errors[0].startswith(f"{name}={{'not': "), errors
         assert ": expected " in errors[0]
     for name, bad in (("tolerance", -1), ("frame_skip", 1.5), ("limit", 0), ("max_depth", 0),
                       ("path", "???")):  # fmt: skip
         (error,) = source_errors({**block, name: bad})
-        assert error.startswith(f"source.{name}={bad!r}: expected"), error
+        assert error.startswith(f"{name}={bad!r}: expected"), error
 
 
 def test_the_kind_comes_from_the_config_group():
     """source.kind=tum on the rosbag block: one error saying to select source=tum; an unknown
-    kind names the closest; the default map.yaml is the rosbag block; a missing path names it."""
-    (error,) = source_errors(compose_map("source.kind=tum", "source.path=x"))
+    kind names the closest; the default map.yaml is the rosbag block; a missing path names it.
+    The library names the block's keys (kind=, path=); resireg-map's boundary (block_errors)
+    writes them as config paths (source.kind=, source.path=), and the block's own problems
+    under source:."""
+    from resireg_train.config.errors import block_errors
+
+    def at_config(block):
+        return block_errors(source_errors(block), "source", block)
+
+    assert source_errors(compose_map("source.kind=ros2", "source.path=x")) == [
+        "kind='ros2' is set on the block of 'rosbag': select the source with source=ros2 "
+        "(not kind=ros2)"
+    ]
+    assert source_errors({**compose_map("source=tum", "source.path=x"), "colour": 1})[0].startswith(
+        "unknown key(s) ['colour'] for kind 'tum'"
+    )
+    (error,) = at_config(compose_map("source.kind=tum", "source.path=x"))
     assert "source.kind='tum'" in error and "select the source with source=tum" in error
     assert "'rosbag'" in error and "colour_topic" in error
-    (error,) = source_errors(compose_map("source=scannet", "source.kind=nerfstudio",
-                                         "source.path=x"))  # fmt: skip
+    (error,) = at_config(compose_map("source=scannet", "source.kind=nerfstudio", "source.path=x"))
     assert "source=nerfstudio" in error
-    (error,) = source_errors(compose_map("source.kind=ros2", "source.path=x"))  # a subset
+    (error,) = at_config(compose_map("source.kind=ros2", "source.path=x"))  # a subset
     assert error == ("source.kind='ros2' is set on the block of 'rosbag': select the source "
                      "with source=ros2 (not source.kind=ros2)")  # fmt: skip
-    (error,) = source_errors({**compose_map("source.path=x"), "kind": "rosbg"})
+    (error,) = at_config({**compose_map("source.path=x"), "kind": "rosbg"})
     assert error.startswith("source.kind='rosbg': expected one of [") and "'rosbag'" in error
     assert compose_map()["kind"] == "rosbag"
-    assert source_errors(compose_map()) == [
-        "source.path='???': expected a path: the recording to map"
-    ]
-    (error,) = source_errors({**compose_map("source=tum", "source.path=x"), "colour": 1})
-    assert "unknown key(s) ['colour'] for kind 'tum'" in error
+    assert at_config(compose_map()) == ["source.path='???': expected a path: the recording to map"]
+    (error,) = at_config({**compose_map("source=tum", "source.path=x"), "colour": 1})
+    assert error.startswith("source: unknown key(s) ['colour'] for kind 'tum'"), error
 
 
 def test_the_map_cli_names_the_config_path(tmp_path, room):
     """resireg-map's boundary: the library names its arguments, the CLI's ConfigError names
     source.<argument>= (each wrong topic of a bag, the path), one line, before any model."""
+    from resireg.errors import ConfigError
     from resireg_train.cli.map import build_source
-    from resireg_train.config.checks import ConfigError
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
     block = {**compose_map("source.path=x"), "path": str(bag), "colour_topic": "/a",

@@ -14,11 +14,12 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from resireg.errors import ConfigError
 from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.checks import ConfigError, sweep_config_errors, validate_eval
+from resireg_train.config.eval import sweep_config_errors, validate_eval
 
 
 def _eval_config(*overrides):

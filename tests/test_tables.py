@@ -14,9 +14,12 @@ from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.metrics import METRIC_SPECS, SCORE_SPECS, direction
 from resireg.specs.priors import PRIOR_SPECS
 from resireg.specs.table import SpecTable, UnknownNameError, conf_dir
+from resireg.specs.text import TEXT_SPECS
 from resireg.specs.variants import VARIANT_SPECS
 from resireg_train.data.specs import DATASET_SPECS
 from resireg_train.evaluation.tasks import TASK_SPECS
+from resireg_train.report.sections import REPORT_SECTIONS
+from resireg_train.training.specs import TEACHER_SPECS
 
 TABLES = {
     "variants": VARIANT_SPECS,
@@ -25,6 +28,9 @@ TABLES = {
     "metrics": METRIC_SPECS,
     "datasets": DATASET_SPECS,
     "tasks": TASK_SPECS,
+    "text towers": TEXT_SPECS,
+    "teachers": TEACHER_SPECS,
+    "report sections": REPORT_SECTIONS,
 }
 try:  # the map sources' table lands with resireg.sources
     from resireg.specs.sources import SOURCE_SPECS

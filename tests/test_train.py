@@ -19,10 +19,11 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from _run import _MODULES, evaluate_export, run
+from resireg.errors import ConfigError
 from resireg.models import ResiregVLM
 from resireg_train.cli.job import CONFIG_DIR, optimized_value
 from resireg_train.cli.train import build, train
-from resireg_train.config.checks import ConfigError, validate
+from resireg_train.config.train import validate
 from resireg_train.training.module import ResiregModule
 
 

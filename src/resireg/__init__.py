@@ -2,6 +2,10 @@
 
 The top-level names load on first use (PEP 562), so importing a light submodule such as
 ``resireg.specs`` does not import torch.
+
+Imports neither ``resireg_train`` nor Lightning, Hydra or ``datasets``
+(``[tool.importlinter]``). May be imported by anything: ``resireg_train``, the benchmarks,
+the tests, ``hubconf.py`` and other packages.
 """
 
 from __future__ import annotations
@@ -22,8 +26,8 @@ __all__ = [
 __version__ = "0.1.0"
 
 _SOURCES = {
-    "ReSiRegFull": "resireg.method.reconstruct",
-    "ReSiRegLite": "resireg.method.reconstruct",
+    "ReSiRegFull": "resireg.method.full",
+    "ReSiRegLite": "resireg.method.lite",
     "PrototypeHeuristic": "resireg.method.heuristic",
     "VARIANTS": "resireg.specs.variants",
     "build_variant": "resireg.method.variants",

@@ -9,7 +9,7 @@ working.
 
 The library's messages name the library's own argument (``path='run.bag': no such folder``);
 ``resireg_train`` adds the config path at its boundary (``source.path='run.bag': ...``,
-:func:`resireg_train.config.checks.config_path`), so no function of ``resireg`` takes a config
+:func:`resireg_train.config.errors.config_path`), so no function of ``resireg`` takes a config
 key to put in its messages.
 
 Adding a kind: one class here, under the base it belongs to.

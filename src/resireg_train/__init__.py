@@ -4,6 +4,10 @@ Its libraries are the ``train`` extra (``pip install -e ".[train]"``; ``dev`` in
 core install (``resireg``'s inference) does not carry them, so a missing one is named here, once
 (by a ``resireg-*`` console script in one line, no traceback),
 instead of surfacing as a bare ``ModuleNotFoundError`` deep inside a command.
+
+Its subpackages (the top level holds no other module): ``cli``, ``config``, ``training``,
+``sweeps``, ``report``, ``playground``, ``evaluation``, ``runs``, ``data`` (docs/architecture.md).
+May be imported by the Hydra sweeper plugin, the benchmarks and the tests; never by ``resireg``.
 """
 
 from importlib.util import find_spec as _find_spec

@@ -3,7 +3,11 @@
 Hugging Face Hub folders and model cards (:mod:`.card`), and one-image open-vocabulary
 segmentation (:mod:`.segment`). Needs the core install only; ONNX needs the ``export`` extra
 (onnx, onnxscript, onnxruntime) and the segmentation figures matplotlib (the same extra).
-The names load on first use, so ``import resireg.deploy`` stays light."""
+The names load on first use, so ``import resireg.deploy`` stays light.
+
+Nothing else in ``resireg`` imports it. May be imported by ``resireg_train``, ``hubconf.py``,
+the console scripts ``resireg-export`` / ``resireg-segment`` and tests.
+"""
 
 from __future__ import annotations
 

@@ -43,7 +43,7 @@ from torch import Tensor, nn
 from resireg.deploy.runtime import GRAPH_FORMAT, manifest_path, open_graph, text_graph_path
 from resireg.errors import ConfigError
 from resireg.integrity import atomic_write, digests
-from resireg.method.reconstruct import ReSiRegLite
+from resireg.method.lite import ReSiRegLite
 from resireg.models.vlm.model import ResiregVLM
 from resireg.models.vlm.text import dense_text_half
 
@@ -71,7 +71,7 @@ _MAX_GRID = 512
 
 class ImageGraph(nn.Module):
     """The VLM's image path as one module: ``images -> (intermediates, language, embedding[,
-    lite])`` (:meth:`ResiregVLM.encode`, then :class:`~resireg.method.reconstruct.ReSiRegLite`)."""
+    lite])`` (:meth:`ResiregVLM.encode`, then :class:`~resireg.method.lite.ReSiRegLite`)."""
 
     def __init__(self, model: ResiregVLM, lite: ReSiRegLite | None = None) -> None:
         super().__init__()

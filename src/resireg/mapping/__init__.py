@@ -20,6 +20,10 @@ or, with the encoding and the text path included::
     smap.add(images, depth, K_depth, cam_to_world)   # a window of consecutive frames
     similarity = smap.query("a red chair")           # [M] per voxel
     smap.save("map/"); smap.to_ply("map.ply", colour_by="query", text="a red chair")
+
+May be imported by ``resireg.deploy``, ``resireg.ros2`` and ``resireg_train`` (``resireg-map``,
+the 3D task); it imports the method, ``resireg.ovss``, ``resireg.specs`` and
+``resireg.integrity`` (the encoder and the prior it is given are built by its callers).
 """
 
 from resireg.mapping.geometry import (

@@ -4,7 +4,7 @@ The one job of this module is the PCA that ReSiReg Full projects its intermediat
 before clustering them (docs/method.md#pca-and-k-means): :func:`pca` of ``[N, D]`` points,
 :func:`pca_from_moments` and :class:`PCASpectrum` of points known only by their first and
 second moments (ReSiReg Full's upsampled points, whose moments
-:func:`resireg.method.reconstruct.upsampled_moments` takes from the small grid), and :func:`gram`,
+:func:`resireg.method.full.upsampled_moments` takes from the small grid), and :func:`gram`,
 the symmetric product ``Y^T Y`` of the covariance at 5/8 of a matrix product. Everything runs
 on the input's device with matrix products only (the PCA sits inside a GPU forward pass, see
 ``benchmarks/bench_reconstruct.py``).
@@ -118,7 +118,7 @@ def pca_from_moments(
             near the mean avoids cancellation in float32.
 
     Lets callers that know their points' structure (e.g. bilinear upsampling of a
-    smaller grid, see :func:`resireg.method.reconstruct.upsampled_moments`) fit the exact PCA of
+    smaller grid, see :func:`resireg.method.full.upsampled_moments`) fit the exact PCA of
     points they never materialise.
     """
     if int(n_components) < 1:

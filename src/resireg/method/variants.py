@@ -7,8 +7,8 @@ and returns unit-norm dense language features ``[B, Dl, h, w]``:
 - ``calib``: :class:`~resireg.method.calib.Calib`, SC-CLIP's self-calibration made
   backbone-generic (LOF anomaly resolution, then aggregation with thresholded
   intermediate affinities; ``[B, Dl, Hv, Wv]``, the prior is ignored),
-- ``lite``: :class:`~resireg.method.reconstruct.ReSiRegLite`,
-- ``full``: :class:`~resireg.method.reconstruct.ReSiRegFull`.
+- ``lite``: :class:`~resireg.method.lite.ReSiRegLite`,
+- ``full``: :class:`~resireg.method.full.ReSiRegFull`.
 
 :data:`VARIANTS` lists them in the report order of the paper's Table 1 (BB, Calib, Lite,
 Full). The evaluation engine, the training callback and ``DenseEncoder.encode_image`` build
@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.errors import ConfigError
-from resireg.method.reconstruct import FullShared, ReSiRegFull
+from resireg.method.full import FullShared, ReSiRegFull
 from resireg.specs.variants import (
     PRIOR_VARIANTS,
     VARIANT_SPECS,
@@ -103,7 +103,7 @@ def apply_variant(
 
     ``shared`` is one dict per encoded batch, passed to every configuration scored on it:
     ReSiReg Full configurations with the same ``upscale`` then decompose the covariance
-    and resize the language tokens once (:class:`~resireg.method.reconstruct.FullShared`), whatever
+    and resize the language tokens once (:class:`~resireg.method.full.FullShared`), whatever
     their prototype and component counts. Results equal each configuration run alone.
     """
     if shared is not None and isinstance(variant, ReSiRegFull):

@@ -13,6 +13,9 @@ take its output as ``prior`` (docs/method.md#resireg-full) and
 The names load on first use (PEP 562): :mod:`resireg.specs.priors` (the settings and
 their rules) imports no torch; the rest imports torch, and ``transformers`` loads when a
 :class:`SamPrior` is built.
+
+Imports ``resireg.models`` and ``resireg.specs``. May be imported by ``resireg.mapping``,
+``deploy``, ``ros2`` and ``resireg_train`` (their kinds: :data:`resireg.specs.priors.PRIOR_SPECS`).
 """
 
 from __future__ import annotations

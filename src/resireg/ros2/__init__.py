@@ -11,4 +11,8 @@ rclpy; no Lightning, no Hydra). ``resireg-ros2`` runs it (:mod:`.cli`); docs/rob
   its own rclpy context; rclpy imported when a source is made).
 
 Importing this package imports none of them.
+
+Nothing else in ``resireg`` imports it. May be imported by ``resireg_train`` only through the
+source table's name (``resireg.ros2.source:LiveSource``, ``resireg-map source=ros2``), by the
+console script ``resireg-ros2`` and by tests.
 """

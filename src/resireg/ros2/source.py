@@ -42,6 +42,7 @@ from typing import Any
 
 from resireg.errors import ConfigError
 from resireg.sources.frames import RGBDFrame, SkippedFrame
+from resireg.sources.rosbag import RosKeys, takes_ros_keys
 
 __all__ = ["LiveSource"]
 
@@ -87,35 +88,21 @@ class LiveSource:
 
     live = True
 
+    @takes_ros_keys  # colour_topic ... max_pose_gap: the keys a bag's reader takes too
     def __init__(
         self,
         *,
-        colour_topic: str,
-        depth_topic: str,
-        camera_info_topic: str,
-        pose_topic: str | None = None,
-        tf_topic: str = "/tf",
-        tf_static_topic: str = "/tf_static",
-        world_frame: str = "map",
-        camera_frame: str | None = None,
-        depth_scale: float = 0.001,
-        tolerance: float = 0.02,
-        max_pose_gap: float = 0.5,
         idle: float | None = 5.0,
         max_wait: float = 0.5,
         buffer_size: int = 30,
         camera_offset: Sequence[float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
         qos: str = "sensor_data",
         node_name: str = "resireg_map_source",
+        **keys: Any,
     ) -> None:
         from resireg.specs.sources import SOURCE_SPECS
 
-        given = {"colour_topic": colour_topic, "depth_topic": depth_topic,
-                 "camera_info_topic": camera_info_topic, "pose_topic": pose_topic,
-                 "tf_topic": tf_topic, "tf_static_topic": tf_static_topic,
-                 "world_frame": world_frame, "camera_frame": camera_frame,
-                 "depth_scale": depth_scale, "tolerance": tolerance,
-                 "max_pose_gap": max_pose_gap, "idle": idle, "max_wait": max_wait,
+        given = {**RosKeys(**keys).as_dict(), "idle": idle, "max_wait": max_wait,
                  "buffer_size": buffer_size, "camera_offset": camera_offset, "qos": qos}  # fmt: skip
         rules = SOURCE_SPECS.get("ros2").rules
         errors = [f"{k}={v!r}: expected {rules[k][1]}" for k, v in given.items()
@@ -126,7 +113,7 @@ class LiveSource:
         if missing is not None:
             raise ConfigError(f"the ros2 source needs the 'robot' extra ({missing} not "
                               f"installed): {_ROBOT}")  # fmt: skip
-        if pose_topic is None:
+        if given["pose_topic"] is None:
             import importlib.util
 
             if importlib.util.find_spec("tf2_ros") is None:

@@ -16,6 +16,11 @@ messages name its own arguments (``path='run.bag': no such bag``); ``resireg-map
 config path (``source.path=...``).
 
 The names below load on first use (PEP 562).
+
+Imports ``resireg.specs``, ``resireg.errors`` and ``resireg.models``' image helpers. May be
+imported by ``resireg.mapping``, ``resireg.ros2`` (the live source shares the bag reader's
+keyword set, :class:`~resireg.sources.rosbag.RosKeys`) and ``resireg_train`` (``resireg-map``,
+the datasets).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ __all__ = [
     "MessageSource",
     "NerfstudioSource",
     "RGBDFrame",
+    "RosKeys",
     "ScanNetSource",
     "SkippedFrame",
     "TumSource",
@@ -45,6 +51,7 @@ _NAMES = {
     "windows": "resireg.sources.frames",
     "BagSource": "resireg.sources.rosbag",
     "BagTopics": "resireg.sources.rosbag",
+    "RosKeys": "resireg.sources.rosbag",
     "TumSource": "resireg.sources.tum",
     "ScanNetSource": "resireg.sources.scannet",
     "NerfstudioSource": "resireg.sources.nerfstudio",

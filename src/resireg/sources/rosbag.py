@@ -3,7 +3,8 @@
 (docs/method.md#robot-maps-semanticmap).
 
 Topics (:class:`BagTopics`; :func:`open_bag` takes them as keywords, the keys of
-``conf/source/rosbag.yaml``), decoded by :mod:`resireg.sources.messages`:
+``conf/source/rosbag.yaml`` that the live source shares, :class:`RosKeys`), decoded by
+:mod:`resireg.sources.messages`:
 
 - colour: ``sensor_msgs/Image`` (``rgb8``, ``bgr8``, ``rgba8``, ``bgra8``, ``mono8``) or
   ``sensor_msgs/CompressedImage`` (JPEG / PNG);
@@ -40,9 +41,10 @@ found again by its (bag time, header stamp), as bag times alone may collide.
 
 from __future__ import annotations
 
+import inspect
 from collections import Counter, defaultdict
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -61,8 +63,8 @@ from resireg.sources.messages import (
 )
 from resireg.sources.pairing import PoseTrack, TfTree, pair_nearest, stamp_faults
 
-__all__ = ["BagSource", "BagTopics", "DamagedBagError", "MissingTopicError", "open_bag",
-           "decode_colour", "decode_depth"]  # fmt: skip
+__all__ = ["BagSource", "BagTopics", "DamagedBagError", "MissingTopicError", "RosKeys",
+           "open_bag", "takes_ros_keys", "decode_colour", "decode_depth"]  # fmt: skip
 
 _IMAGE = ("sensor_msgs/msg/Image",)
 _COMPRESSED = ("sensor_msgs/msg/CompressedImage",)
@@ -95,29 +97,64 @@ class BagTopics:
     camera_frame: str | None = None
 
 
-def open_bag(
-    path: str | Path,
-    *,
-    colour_topic: str,
-    depth_topic: str,
-    camera_info_topic: str,
-    pose_topic: str | None = None,
-    tf_topic: str = "/tf",
-    tf_static_topic: str = "/tf_static",
-    world_frame: str = "map",
-    camera_frame: str | None = None,
-    depth_scale: float = 0.001,
-    tolerance: float = 0.02,
-    max_pose_gap: float = 0.5,
-) -> BagSource:
+@dataclass(frozen=True, kw_only=True)
+class RosKeys:
+    """The keys a ROS recording (``rosbag``) and live ROS 2 topics (``ros2``,
+    :class:`resireg.ros2.source.LiveSource`) share, with their defaults: where the frames are
+    and how they pair (``conf/source/rosbag.yaml``, which ``conf/source/ros2.yaml`` pulls in;
+    their rules are the source table's, :data:`resireg.specs.sources.SOURCE_SPECS`). The one
+    list of them: both readers take them as keywords through :func:`takes_ros_keys`. The
+    topics and frames are a bag's :class:`BagTopics` (:attr:`topics`), whose defaults they
+    take."""
+
+    colour_topic: str
+    depth_topic: str
+    camera_info_topic: str
+    pose_topic: str | None = BagTopics.pose
+    tf_topic: str = BagTopics.tf
+    tf_static_topic: str = BagTopics.tf_static
+    world_frame: str = BagTopics.world_frame
+    camera_frame: str | None = BagTopics.camera_frame
+    depth_scale: float = 0.001
+    tolerance: float = 0.02
+    max_pose_gap: float = 0.5
+
+    def as_dict(self) -> dict[str, Any]:
+        """``keyword -> value``."""
+        return asdict(self)
+
+    @property
+    def topics(self) -> BagTopics:
+        """Where a bag's frames are."""
+        return BagTopics(colour=self.colour_topic, depth=self.depth_topic,
+                         camera_info=self.camera_info_topic, pose=self.pose_topic,
+                         tf=self.tf_topic, tf_static=self.tf_static_topic,
+                         world_frame=self.world_frame, camera_frame=self.camera_frame)  # fmt: skip
+
+
+def takes_ros_keys(function: Callable[..., Any]) -> Callable[..., Any]:
+    """``function(..., **keys)`` shown as taking :class:`RosKeys`' fields as keyword-only
+    parameters (its ``inspect.signature``, which ``help()`` and the source table's checks
+    read), after its own; ``function`` builds ``RosKeys(**keys)`` itself. Hand-written because
+    a signature cannot be shared otherwise: the keyword set is typed once, in :class:`RosKeys`."""
+    signature = inspect.signature(function)
+    own = [p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    empty = inspect.Parameter.empty
+    keys = [inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, annotation=f.type,
+                              default=empty if f.default is MISSING else f.default)
+            for f in fields(RosKeys)]  # fmt: skip
+    function.__signature__ = signature.replace(parameters=[*own, *keys])  # type: ignore[attr-defined]
+    return function
+
+
+@takes_ros_keys
+def open_bag(path: str | Path, **keys: Any) -> BagSource:
     """The :class:`BagSource` of a bag, from the keys of ``conf/source/rosbag.yaml`` as keywords
-    (the ``rosbag`` entry of :data:`resireg.specs.sources.SOURCE_SPECS`); it opens the bag and
-    checks every topic now, naming each wrong one by its keyword."""
-    topics = BagTopics(colour=colour_topic, depth=depth_topic, camera_info=camera_info_topic,
-                       pose=pose_topic, tf=tf_topic, tf_static=tf_static_topic,
-                       world_frame=world_frame, camera_frame=camera_frame)  # fmt: skip
-    return BagSource(path, topics, float(tolerance), float(depth_scale),
-                     max_pose_gap=float(max_pose_gap))  # fmt: skip
+    (:class:`RosKeys`; the ``rosbag`` entry of :data:`resireg.specs.sources.SOURCE_SPECS`); it
+    opens the bag and checks every topic now, naming each wrong one by its keyword."""
+    ros = RosKeys(**keys)
+    return BagSource(path, ros.topics, float(ros.tolerance), float(ros.depth_scale),
+                     max_pose_gap=float(ros.max_pose_gap))  # fmt: skip
 
 
 class BagSource:

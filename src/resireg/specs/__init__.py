@@ -13,14 +13,20 @@ an unknown name with the closest ones, lazy ``"module:Class"`` targets, ``config
 - :data:`PRIOR_SPECS` (:mod:`resireg.specs.priors`): the segmentation priors; ``conf/prior/``,
 - :data:`METRIC_SPECS` (:mod:`resireg.specs.metrics`): the scores, their keys and direction,
 - :data:`SOURCE_SPECS` (:mod:`resireg.specs.sources`): the map's frame sources;
-  ``conf/source/``.
+  ``conf/source/``,
+- :data:`TEXT_SPECS` (:mod:`resireg.specs.text`): the 25M VLM's frozen text towers;
+  ``conf/model/text/``.
 
-The training package keeps two more tables of the same type beside what they describe:
-``resireg_train.evaluation.tasks.TASK_SPECS`` and ``resireg_train.data.specs.DATASET_SPECS``. Each table
-module's docstring holds its "adding a ..." recipe.
+The training package keeps four more tables of the same type beside what they describe:
+``resireg_train.evaluation.tasks.TASK_SPECS``, ``resireg_train.data.specs.DATASET_SPECS``,
+``resireg_train.training.specs.TEACHER_SPECS`` and
+``resireg_train.report.sections.REPORT_SECTIONS``. Each table module's docstring holds its
+"adding a ..." recipe.
 
 This package imports nothing of ``resireg`` above it (:mod:`resireg.errors` only; the import
 contracts in ``pyproject.toml`` check it).
+
+May be imported by every module of both packages (it is the ground floor).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ __all__ = [
     "METRIC_SPECS",
     "PRIOR_SPECS",
     "SOURCE_SPECS",
+    "TEXT_SPECS",
     "VARIANT_SPECS",
     "SpecTable",
     "UnknownNameError",
@@ -48,6 +55,7 @@ _TABLES = {
     "PRIOR_SPECS": "priors",
     "METRIC_SPECS": "metrics",
     "SOURCE_SPECS": "sources",
+    "TEXT_SPECS": "text",
 }
 
 

@@ -236,16 +236,19 @@ SOURCE_SPECS: SpecTable[SourceSpec] = SpecTable(
 )  # fmt: skip
 
 
-def source_errors(block: Mapping[str, Any], key: str = "source") -> list[str]:
-    """What is wrong with a source block (a composed ``conf/source/<kind>.yaml``), each as
-    ``<key>.<name>=<value>: expected ...``: an unknown kind (with the closest kinds), a block
-    whose keys are another kind's (``source.kind=tum`` set on the rosbag block: select the
-    source with ``source=tum``), keys the kind lacks or does not know, and values that break
-    their rules. Empty when the block can be opened."""
+def source_errors(block: Mapping[str, Any]) -> list[str]:
+    """What is wrong with a source block (a composed ``conf/source/<kind>.yaml``), each message
+    naming the block's key as the library names an argument (``path='x': expected ...``; a
+    config's boundary writes it ``source.path=...``, ``resireg_train.config.errors.
+    block_errors``): an unknown kind (with the closest kinds), a block whose keys are another
+    kind's (``kind=tum`` set on the rosbag block: select the source with its config group,
+    ``source=tum``), keys the kind lacks or does not know, and values that break their rules.
+    Empty when the block can be opened."""
+    group = SOURCE_SPECS.conf  # the config group that selects a source: source=<kind>
     kind = block.get("kind")
     spec = SOURCE_SPECS.find(kind)
     if spec is None:
-        return [SOURCE_SPECS.unknown(kind, f"{key}.kind") + f" (select a source with {key}=<kind>)"]
+        return [SOURCE_SPECS.unknown(kind, "kind") + f" (select a source with {group}=<kind>)"]
     have = set(block) - {"kind"}
     want = set(spec.rules)
     if have != want:
@@ -255,17 +258,17 @@ def source_errors(block: Mapping[str, Any], key: str = "source") -> list[str]:
             theirs = sorted(have - want)  # none where the kind's file pulls the other's in (ros2)
             keys = f" (its keys: {theirs})" if theirs else ""
             return [
-                f"{key}.kind={kind!r} is set on the block of {other[0]!r}{keys}: select the "
-                f"source with {key}={kind} (not {key}.kind={kind})"
+                f"kind={kind!r} is set on the block of {other[0]!r}{keys}: select the "
+                f"source with {group}={kind} (not kind={kind})"
             ]
         errors = []
         if have - want:
-            errors.append(f"{key}: unknown key(s) {sorted(have - want)} for kind {kind!r} "
+            errors.append(f"unknown key(s) {sorted(have - want)} for kind {kind!r} "
                           f"(its keys: {sorted(want)})")  # fmt: skip
         if want - have:
-            errors.append(f"{key}: no {', '.join(sorted(want - have))} (kind {kind!r}; select "
-                          f"the source with {key}={kind})")  # fmt: skip
+            errors.append(f"no {', '.join(sorted(want - have))} (kind {kind!r}; select "
+                          f"the source with {group}={kind})")  # fmt: skip
         return errors
     rules = spec.rules
-    return [f"{key}.{name}={block[name]!r}: expected {rules[name][1]}"
+    return [f"{name}={block[name]!r}: expected {rules[name][1]}"
             for name in rules if not rules[name][0](block[name])]  # fmt: skip

@@ -1,6 +1,6 @@
 """The one table type of the project: :class:`SpecTable`, ``name -> entry`` for each kind of
-component (variants, encoders, priors, metrics, map sources; ``resireg_train``'s datasets and
-tasks).
+component (variants, encoders, priors, metrics, map sources, text towers; ``resireg_train``'s
+datasets, tasks, teachers and report sections).
 
 A table is read before torch loads (the config checks, the report, the CLIs' ``--help``), so an
 entry names its code lazily, ``"package.module:attribute"``, loaded by :func:`load` when
@@ -25,28 +25,45 @@ import functools
 import importlib
 import os
 from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from resireg.errors import ConfigError
 
-__all__ = ["SpecTable", "UnknownNameError", "compose_conf", "conf_dir", "load"]
+__all__ = ["KindSpec", "SpecTable", "UnknownNameError", "compose_conf", "conf_dir", "load"]
 
 E = TypeVar("E")
 
 
 def load(target: str) -> Any:
-    """The object a ``"package.module:attribute"`` path names (imported now)."""
+    """The object a ``"package.module:attribute"`` path names (imported now); the attribute
+    may be dotted (``"module:Class.builder"``, a classmethod)."""
     module, sep, attribute = target.partition(":")
     if not sep or not module or not attribute:
         raise ValueError(f"{target!r}: expected 'package.module:attribute'")
-    return getattr(importlib.import_module(module), attribute)
+    return functools.reduce(getattr, attribute.split("."), importlib.import_module(module))
 
 
 def conf_dir() -> Path:
     """The project's ``conf/`` folder: ``$RESIREG_CONFIG_DIR`` if set, else the checkout's."""
     env = os.environ.get("RESIREG_CONFIG_DIR")
     return Path(env) if env else Path(__file__).resolve().parents[3] / "conf"
+
+
+@dataclass(frozen=True)
+class KindSpec:
+    """An entry that is only its ``kind`` (the ``kind:`` of its ``conf/`` files), its code
+    (``"module:attribute"``, imported by :meth:`load`) and a one-line ``summary``: the entry
+    type of the tables whose kinds need no more (text towers, teachers)."""
+
+    kind: str
+    target: str
+    summary: str
+
+    def load(self) -> Any:
+        """The code (imported now)."""
+        return load(self.target)
 
 
 class UnknownNameError(ConfigError, KeyError):

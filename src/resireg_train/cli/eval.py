@@ -41,7 +41,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from resireg.specs.encoders import ENCODER_SPECS
+from resireg.errors import ConfigError
+from resireg.specs.encoders import ENCODER_SPECS, encoder_kwargs
 from resireg.specs.tree import flatten
 from resireg_train.cli.job import (
     CONFIG_DIR,
@@ -50,19 +51,12 @@ from resireg_train.cli.job import (
     run_task,
     top_level_keys,
 )
-from resireg_train.config.checks import (
-    ENCODER_SWEEPS,
-    ConfigError,
-    check_available,
-    check_devices,
-    config_path,
-    encoder_arguments,
-    encoder_kwargs,
-    sweep_config_errors,
-    validate_eval,
-)
+from resireg_train.config.errors import config_path, encoder_arguments
+from resireg_train.config.eval import sweep_config_errors, validate_eval
+from resireg_train.config.machine import check_available, check_devices
 from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
+from resireg_train.report.sections import ENCODER_SWEEPS
 from resireg_train.runs.record import RunRecord
 
 if TYPE_CHECKING:

@@ -36,8 +36,7 @@ try:  # POSIX; where it is missing (Windows) run folders are not locked
 except ImportError:  # pragma: no cover
     fcntl = None
 
-from resireg.errors import ResiregError, WriteError
-from resireg_train.config.checks import ConfigError
+from resireg.errors import ConfigError, ResiregError, WriteError
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
 from resireg_train.config.secrets import MASK, SecretFilter, mask_text
 from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
@@ -140,7 +139,7 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
-    import resireg_train.config.checks  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
+    import resireg_train.config.eval  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
     from resireg_train.sweeps.space import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=

@@ -33,16 +33,12 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.errors import ResiregError, argument_names, rename_arguments
+from resireg.errors import ConfigError, ResiregError, argument_names, rename_arguments
+from resireg.specs.encoders import encoder_kwargs
 from resireg.specs.sources import SOURCE_SPECS, source_errors
 from resireg.specs.tree import MISSING, differences
 from resireg_train.cli.job import hydra_entry_point, run_task
-from resireg_train.config.checks import (
-    ConfigError,
-    config_path,
-    encoder_arguments,
-    encoder_kwargs,
-)
+from resireg_train.config.errors import block_errors, config_path, encoder_arguments
 from resireg_train.runs.record import RunRecord
 
 __all__ = ["SOURCES", "build_source", "make_map", "main"]
@@ -59,7 +55,7 @@ def build_source(spec: dict[str, Any], key: str = "source"):
     then the entry's reader called with the block's keys; it opens the recording, so a missing
     file or topic fails here. Every refusal is a :class:`ConfigError` naming the config path:
     the library's own (``path='x': ...``) as ``source.path='x': ...``."""
-    errors = source_errors(spec, key)
+    errors = block_errors(source_errors(spec), key, spec)
     if errors:
         raise ConfigError("; ".join(errors))
     entry = SOURCE_SPECS.get(spec["kind"])
@@ -149,7 +145,7 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 0:
         raise ConfigError(f"save_every={save_every!r}: expected an integer >= 0")
     spec = OmegaConf.to_container(cfg.source, resolve=True)
-    errors = source_errors(spec)  # before anything is written or loaded
+    errors = block_errors(source_errors(spec), "source", spec)  # before anything is written
     if errors:
         raise ConfigError("; ".join(errors))
     max_depth = spec["max_depth"]

@@ -53,7 +53,7 @@ def _prior(kind: str, model: str | None, device: str):
 
     from resireg.priors import build_prior
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.config.checks import config_path
+    from resireg_train.config.errors import config_path
 
     spec = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "prior" / f"{kind}.yaml"))
     if model:
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
                     'pip install -e ".[playground]"\n')  # fmt: skip
     from resireg.models import WeightsUnavailableError
     from resireg.models.factory import resolve_device
-    from resireg_train.config.checks import error_message
+    from resireg_train.config.errors import error_message
     from resireg_train.playground.app import build_app, launch
     from resireg_train.playground.core import Playground
 

@@ -32,6 +32,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from resireg.errors import ConfigError
 from resireg.specs.tree import differences
 from resireg_train.cli.job import (
     added_keys,
@@ -42,9 +43,10 @@ from resireg_train.cli.job import (
     run_task,
     top_level_keys,
 )
-from resireg_train.config.checks import ConfigError, check_available, check_devices, validate
+from resireg_train.config.machine import check_available, check_devices
 from resireg_train.config.moves import current_targets
 from resireg_train.config.secrets import mask_text
+from resireg_train.config.train import validate
 from resireg_train.runs.record import RunRecord, masked_tree
 
 if TYPE_CHECKING:

@@ -1,1 +1,9 @@
-"""Caption streaming for training and the synthetic scenes used by tests and smoke runs."""
+"""The datasets: caption streaming for training (:mod:`.captions`), the 2D segmentation sets
+(ADE20K, ORAD-3D; :mod:`.segmentation`), ScanNet scenes (:mod:`.scannet`), the generated scenes
+of tests and smoke runs (:mod:`.synthetic`, :mod:`.scannet_room`, :mod:`.room_bag`), and the
+dataset table (:mod:`.specs`, torch-free: every kind, its keys, rules and tasks).
+
+Imports ``resireg`` and the config helpers. May be imported by ``resireg_train.evaluation``,
+the config checks (the table) and the CLIs; the training run builds its data module from
+``conf/data/`` (``_target_``).
+"""

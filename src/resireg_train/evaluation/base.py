@@ -18,8 +18,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from resireg.errors import ResiregError
-from resireg_train.config.checks import ConfigError, config_path
+from resireg.errors import ConfigError, ResiregError
+from resireg_train.config.errors import config_path
 from resireg_train.evaluation.tasks import TaskSpec, find_task, task_names
 from resireg_train.runs.record import RunRecord
 

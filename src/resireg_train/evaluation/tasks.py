@@ -2,7 +2,7 @@
 them (docs/architecture.md#adding-a-task).
 
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
-(:func:`resireg_train.config.checks.validate_eval`) reads the task names and each task's
+(:func:`resireg_train.config.eval.validate_eval`) reads the task names and each task's
 configuration rules from here before anything heavy loads (the dataset kinds a task scores are
 the dataset table's, :data:`resireg_train.data.specs.DATASET_SPECS`, each entry naming its
 tasks); the protocol record (:func:`resireg_train.evaluation.protocol.protocol_record`) and the report
@@ -27,7 +27,21 @@ from typing import Any
 from resireg.specs.table import SpecTable
 from resireg_train.data.specs import DATASET_SPECS, find_dataset
 
-__all__ = ["TASK_SPECS", "TaskSpec", "find_task", "task_config_errors", "task_names"]
+__all__ = [
+    "PRECISIONS",
+    "TASK_SPECS",
+    "TaskSpec",
+    "find_task",
+    "task_config_errors",
+    "task_names",
+]
+
+#: The precisions every task's pass may run in (``precision``) -> the torch dtype name of their
+#: autocast (``None``: fp32, no autocast); the config check reads the names, the engines the
+#: dtypes (:func:`resireg_train.evaluation.engine.inference`).
+PRECISIONS: dict[str, str | None] = {
+    "32": None, "32-true": None, "bf16": "bfloat16", "bf16-mixed": "bfloat16",
+}  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -8,4 +8,7 @@ text queries, with ReSiReg's parameters as sliders.
 
 Importing this package loads nothing heavy; torch and Gradio load with :mod:`.core` and
 :mod:`.app`.
+
+Imports ``resireg`` and the config helpers. May be imported by the CLIs only
+(``resireg-playground``).
 """

@@ -28,7 +28,7 @@ from resireg.method.variants import build_variant
 from resireg.models import DenseEncoder, build_encoder
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.variants import VARIANT_SPECS
-from resireg_train.config.checks import config_path, encoder_arguments
+from resireg_train.config.errors import config_path, encoder_arguments
 from resireg_train.playground.config import (
     SLIDERS,
     encoder_spec,

@@ -16,8 +16,9 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = [
-    "DPI", "agg_figure", "curves_figure", "heatmap_figure", "layer_sweep_figure", "plot_curves",
-    "plot_heatmap", "short_keys", "short_value", "widen_to_fit",
+    "DPI", "agg_figure", "curves_figure", "curves_section", "has_history", "heatmap_figure",
+    "layer_sweep_figure", "plot_curves", "plot_heatmap", "short_keys", "short_value",
+    "widen_to_fit",
 ]  # fmt: skip
 
 DPI = 120
@@ -179,3 +180,20 @@ def layer_sweep_figure(table: pd.DataFrame) -> Figure:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     return fig
+
+
+def has_history(jobs: list[Job]) -> bool:
+    """Some job recorded a per-epoch history (a training sweep): the ``curves`` section."""
+    return any(j.results.get("history") for j in jobs)
+
+
+def curves_section(
+    jobs: list[Job], out: Path, metric: str | None
+) -> tuple[dict[str, Path], list[str]]:
+    """The report section ``curves`` (:mod:`resireg_train.report.sections`): ``curves.png``,
+    ``metric`` per epoch of every run (:func:`plot_curves`), when there is a metric and a run
+    has it."""
+    curves = out / "curves.png"
+    if metric and plot_curves(jobs, metric, curves):
+        return {"curves": curves}, []
+    return {}, []

@@ -22,7 +22,7 @@ from resireg.specs.variants import BASELINE, VARIANTS
 from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.report.jobs import METHOD_NAMES, Job, per_encoder
 
-__all__ = ["OVSS8_FILE", "benchmarks", "is_ovss8_sweep", "ovss8_table", "peer_rows",
+__all__ = ["OVSS8_FILE", "benchmarks", "is_ovss8_sweep", "ovss8_section", "ovss8_table", "peer_rows",
            "write_ovss8_table"]  # fmt: skip
 
 #: The data file: the eight benchmarks and the peers' published figures.
@@ -175,3 +175,11 @@ def write_ovss8_table(jobs: list[Job], out: Path) -> dict[str, Path]:
     lines += ["", *protocol_lines(jobs)]
     files["ovss8_md"].write_text("\n".join(lines) + "\n")
     return files
+
+
+def ovss8_section(jobs: list[Job], out: Path) -> tuple[dict[str, Path], list[str]]:
+    """The report section ``ovss8`` (:mod:`resireg_train.report.sections`):
+    :func:`write_ovss8_table` and the line of ``summary.md`` naming its table."""
+    files = write_ovss8_table(jobs, out)
+    return files, ["", f"The eight OVSS benchmarks, beside the published peers: "
+                       f"`{files['ovss8_md'].name}`."]  # fmt: skip

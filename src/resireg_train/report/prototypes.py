@@ -4,17 +4,20 @@ Full's mIoU and the heuristic ``n(B)`` fitted to the best count of every batch s
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pandas as pd
 
 from resireg.method.heuristic import PrototypeHeuristic
 from resireg.method.variants import parse_variant
 from resireg.specs.variants import takes_prior
+from resireg_train.report.figures import plot_heatmap
 from resireg_train.report.jobs import BATCH_KEY, PROTOTYPES_KEY, Job, job_scores, varying_keys
+from resireg_train.report.tables import markdown, protocol_lines
 
 __all__ = [
     "ELBO", "elbo_table", "fit_heuristic", "grid_statuses", "is_prototype_sweep",
-    "prototype_configs", "prototype_grid",
+    "prototype_configs", "prototype_grid", "prototype_grid_section",
 ]  # fmt: skip
 
 
@@ -45,6 +48,18 @@ def prototype_configs(job: Job) -> dict[int, str]:
     return out
 
 
+def _batched(jobs: list[Job]) -> list[tuple[Job, int]]:
+    """The jobs that set the batch size (``batch_size=<n>`` among their overrides), each with
+    it: the rows of the batch size x prototype grid."""
+    out = []
+    for job in jobs:
+        try:
+            out.append((job, int(job.overrides[BATCH_KEY])))
+        except (KeyError, ValueError):
+            continue
+    return out
+
+
 def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
     """One row per (job, prototype count) of the grid: batch size, prototype count, ``metric``
     (NaN unless the job completed) and status. A job either set ``full.n_prototypes`` (one
@@ -52,11 +67,7 @@ def _grid_cells(jobs: list[Job], metric: str) -> pd.DataFrame:
     ``metric`` names Full's score (``.../miou_full``), each configuration's is
     ``.../miou_full@n_prototypes:<n>``."""
     cells = []
-    for job in jobs:
-        try:
-            batch = int(job.overrides[BATCH_KEY])
-        except (KeyError, ValueError):
-            continue
+    for job, batch in _batched(jobs):
         scores = job_scores(job.results) if job.status == "completed" else {}
         if PROTOTYPES_KEY in job.overrides:
             try:
@@ -118,11 +129,7 @@ def elbo_table(jobs: list[Job], metric: str, grid: pd.DataFrame,
     (``results.json``'s ``elbo_prototypes``, ``count x batches``) and its mIoU. Empty when no
     job ran it."""
     rows = []
-    for job in jobs:
-        try:
-            batch = int(job.overrides[BATCH_KEY])
-        except (KeyError, ValueError):
-            continue
+    for job, batch in _batched(jobs):
         if job.overrides.get(PROTOTYPES_KEY) == ELBO:
             config, score = "full", metric
         elif any(parse_variant(n) == ("full", {"n_prototypes": ELBO})
@@ -145,3 +152,41 @@ def elbo_table(jobs: list[Job], metric: str, grid: pd.DataFrame,
             "status": job.status,
         })  # fmt: skip
     return pd.DataFrame(rows).sort_values(BATCH_KEY) if rows else pd.DataFrame()
+
+
+def prototype_grid_section(
+    jobs: list[Job], out: Path, metric: str | None
+) -> tuple[dict[str, Path], list[str]]:
+    """The report section ``prototype_grid`` (:mod:`resireg_train.report.sections`), for
+    ``metric`` (none: nothing): ``heatmap.png`` and the grid in ``summary.md``, then, where a
+    cell has a value, ``prototype_heuristic.json`` (:func:`fit_heuristic`) and the ELBO's
+    counts beside it (:func:`elbo_table`)."""
+    if not metric:
+        return {}, []
+    files: dict[str, Path] = {}
+    grid = prototype_grid(jobs, metric)
+    files["heatmap"] = out / "heatmap.png"
+    plot_heatmap(grid, metric, files["heatmap"], grid_statuses(jobs, metric, grid))
+    cells = grid.map(lambda v: f"{v:.4f}").where(grid.notna(), grid_statuses(jobs, metric, grid))
+    lines = ["", f"## {metric}: batch size x prototypes", "", "A cell without a value reads "
+             "its job's status.", "", markdown(cells, floatfmt=".4f", index=True),
+             "", *protocol_lines(jobs)]  # fmt: skip
+    if grid.notna().to_numpy().any():
+        heuristic, best = fit_heuristic(grid)
+        files["heuristic"] = out / "prototype_heuristic.json"
+        heuristic.save(files["heuristic"])
+        lines += [
+            "",
+            "## Prototype heuristic",
+            "",
+            f"Best prototype count per batch size: {best}.",
+            f"Fit: n(B) = round({heuristic.intercept:.3f} + {heuristic.slope:.3f} * ln B), "
+            f"clipped to [{heuristic.min_prototypes}, {heuristic.max_prototypes}] "
+            f"(`{files['heuristic'].name}`; use with "
+            '`ReSiRegFull(n_prototypes="auto", heuristic=PATH)`).',
+        ]
+        elbo = elbo_table(jobs, metric, grid, heuristic)
+        if len(elbo):
+            lines += ["", "## ELBO prototype count beside the heuristic (docs/method.md#the-prototype-count-by-the-evidence-lower-bound)", "",
+                      markdown(elbo, floatfmt=".4f")]  # fmt: skip
+    return files, lines

@@ -13,7 +13,6 @@ import pandas as pd
 from resireg.method.variants import parse_variant
 from resireg.specs.metrics import SCORE_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
-from resireg_train.config.checks import ENCODER_SWEEPS as _ENCODER_SWEEPS
 from resireg_train.evaluation.tasks import TASK_SPECS
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
@@ -23,13 +22,15 @@ from resireg_train.report.paper import (
     paper_lines,
     protocol_differences,
 )
+from resireg_train.report.sections import ENCODER_SWEEPS
 from resireg_train.runs.record import flat
 
 __all__ = [
     "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "OVSS_PREFIX",
     "encoder_table", "metric_prefix", "table_tasks",
-    "is_encoder_sweep", "is_layer_sweep", "is_mapping_sweep", "layer_configs", "layer_sweep_table",
-    "mapping_table", "markdown", "method_means", "protocol_lines", "variant_order",
+    "is_encoder_sweep", "is_layer_sweep", "is_mapping_sweep", "is_table1", "is_table2",
+    "layer_configs", "layer_sweep_section", "layer_sweep_table", "mapping_table", "markdown",
+    "method_means", "protocol_lines", "table1_section", "table2_section", "variant_order",
     "write_encoder_table", "write_layer_sweep", "write_mapping_table",
 ]  # fmt: skip
 
@@ -78,9 +79,6 @@ def metric_prefix(table: str) -> str:
 
 #: The prefix of Table 1's scores and the layer sweep's (:func:`metric_prefix`).
 OVSS_PREFIX = metric_prefix("table1")
-#: The sweeps (``conf/sweep/``, also their run ``name``) whose report is an encoder table (one
-#: source with the config check that they list every encoder of resireg.specs.encoders).
-ENCODER_SWEEPS = _ENCODER_SWEEPS
 
 
 def is_encoder_sweep(jobs: list[Job]) -> bool:
@@ -94,6 +92,24 @@ def is_encoder_sweep(jobs: list[Job]) -> bool:
     )
 
 
+def _encoder_row(
+    rows: dict[Any, dict[str, Any]], key: Any, first: dict[str, Any], job: Job,
+    third: bool | None, millions: float | None, dataset: str,
+) -> tuple[dict[str, Any], dict[str, Any] | None]:  # fmt: skip
+    """Row ``key`` of an encoder table (Table 1: one per encoder; Table 2: per encoder and
+    variant), made with the cells ``first`` when new, with the job's encoder facts (its
+    third-party flag where known, its parameters in millions) and its status in
+    ``<dataset> status``; and the job's final scores, ``None`` when it did not complete (its
+    cells stay empty)."""
+    row = rows.setdefault(key, {**first, "third_party": third, "parameters (M)": None})
+    if third is not None:
+        row["third_party"] = third
+    if millions:
+        row["parameters (M)"] = millions
+    row[f"{dataset} status"] = job.status
+    return row, (job.results.get("final", {}) if job.status == "completed" else None)
+
+
 def encoder_table(jobs: list[Job]) -> pd.DataFrame:
     """The paper's Table 1 from an encoder x dataset sweep: one row per encoder (its name,
     third-party flag and parameter count), per dataset the BB mIoU and, per method (Calib,
@@ -103,15 +119,9 @@ def encoder_table(jobs: list[Job]) -> pd.DataFrame:
     rows: dict[str, dict[str, Any]] = {}
     per_job, datasets = per_encoder(jobs)
     for job, name, third, millions, dataset in per_job:
-        row = rows.setdefault(name, {"encoder": name, "third_party": third, "parameters (M)": None})
-        if third is not None:
-            row["third_party"] = third
-        if millions:
-            row["parameters (M)"] = millions
-        row[f"{dataset} status"] = job.status
-        if job.status != "completed":
+        row, final = _encoder_row(rows, name, {"encoder": name}, job, third, millions, dataset)
+        if final is None:
             continue
-        final = job.results.get("final", {})
         bb = final.get(f"{OVSS_PREFIX}{dataset}/miou_{BASELINE}")
         if bb is not None:
             row[f"{dataset} {METHOD_NAMES[BASELINE]}"] = 100 * bb
@@ -216,6 +226,38 @@ def write_encoder_table(
     return files
 
 
+def is_table1(jobs: list[Job]) -> bool:
+    """The 2D encoder sweep (Table 1's report section): an encoder sweep of 2D jobs."""
+    return is_encoder_sweep(jobs) and not is_mapping_sweep(jobs)
+
+
+def is_table2(jobs: list[Job]) -> bool:
+    """The 3D encoder sweep (Table 2's report section): an encoder sweep of 3D mapping jobs."""
+    return is_encoder_sweep(jobs) and is_mapping_sweep(jobs)
+
+
+def _named(files: dict[str, Path], what: str, key: str) -> tuple[dict[str, Path], list[str]]:
+    """A report section's result (:mod:`resireg_train.report.sections`): its ``files`` and the
+    line of ``summary.md`` that names its Markdown file ``files[key]``."""
+    return files, ["", f"{what}: `{files[key].name}`."]
+
+
+def table1_section(
+    jobs: list[Job], out: Path, paper_tolerance: float = DEFAULT_TOLERANCE
+) -> tuple[dict[str, Path], list[str]]:
+    """The report section ``table1``: :func:`write_encoder_table`."""
+    files = write_encoder_table(jobs, out, paper_tolerance)
+    return _named(files, "Encoder table (the paper's Table 1)", "table1_md")
+
+
+def table2_section(
+    jobs: list[Job], out: Path, paper_tolerance: float = DEFAULT_TOLERANCE
+) -> tuple[dict[str, Path], list[str]]:
+    """The report section ``table2``: :func:`write_mapping_table`."""
+    files = write_mapping_table(jobs, out, paper_tolerance)
+    return _named(files, "3D mapping table (the paper's Table 2)", "table2_md")
+
+
 #: The prefix of Table 2's scores (the task table's, :func:`metric_prefix`).
 MAPPING_PREFIX = metric_prefix("table2")
 
@@ -252,15 +294,10 @@ def mapping_table(jobs: list[Job]) -> pd.DataFrame:
         for variant in variants:
             base = variant.split("@")[0]
             label = f"{name} + {METHOD_NAMES.get(base, base)}{variant[len(base) :]}"
-            row = rows.setdefault((name, variant), {"model": label, "encoder": name,
-                                                    "variant": variant, "third_party": third,
-                                                    "parameters (M)": None})  # fmt: skip
-            if millions:
-                row["parameters (M)"] = millions
-            row[f"{dataset} status"] = job.status
-            if job.status != "completed":
+            first = {"model": label, "encoder": name, "variant": variant}
+            row, final = _encoder_row(rows, (name, variant), first, job, third, millions, dataset)
+            if final is None:
                 continue
-            final = job.results.get("final", {})
             for key, column in MAPPING_COLUMNS:
                 value = final.get(f"{MAPPING_PREFIX}{dataset}/{key}_{variant}")
                 if value is not None:
@@ -392,3 +429,9 @@ def write_layer_sweep(jobs: list[Job], out: Path) -> dict[str, Path]:
     files["layer_sweep_md"].write_text("\n".join(lines) + "\n")
     layer_sweep_figure(table).savefig(files["layer_sweep_png"], dpi=DPI)
     return files
+
+
+def layer_sweep_section(jobs: list[Job], out: Path) -> tuple[dict[str, Path], list[str]]:
+    """The report section ``layer_sweep``: :func:`write_layer_sweep`."""
+    files = write_layer_sweep(jobs, out)
+    return _named(files, "CLIP layer sweep (mIoU per intermediate block)", "layer_sweep_md")

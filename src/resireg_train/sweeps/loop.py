@@ -23,8 +23,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from resireg.errors import ResiregError
-from resireg_train.config.checks import ConfigError
+from resireg.errors import ConfigError, ResiregError
 from resireg_train.config.secrets import mask_url
 from resireg_train.sweeps.journal import JournalError
 from resireg_train.sweeps.space import check_metric, distributions, format_value

@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from resireg_train.config.checks import ConfigError
+from resireg.errors import ConfigError
 from resireg_train.config.secrets import mask_text, mask_url
 from resireg_train.sweeps.storage import STORAGE_ENV, storage_url
 from resireg_train.sweeps.workers import (

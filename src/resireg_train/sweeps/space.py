@@ -33,7 +33,7 @@ def distributions(params: dict[str, str]) -> dict[str, Any]:
     from hydra.core.override_parser.types import ChoiceSweep, IntervalSweep, RangeSweep
     from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 
-    from resireg_train.config.checks import ConfigError
+    from resireg.errors import ConfigError
 
     parser = OverridesParser.create()
     out = {}
@@ -78,7 +78,7 @@ def check_metric(cfg: DictConfig) -> None:
     with a configured validation dataset (``resireg-train``: ``val_data=``; ``resireg-eval``:
     ``dataset=``) and variant. Checked before the first trial (a search that would train every
     trial and then find nothing to optimise is refused at once)."""
-    from resireg_train.config.checks import ConfigError
+    from resireg.errors import ConfigError
 
     metric = cfg.get("optimized_metric")
     if not metric:

@@ -77,7 +77,7 @@ def storage_url(storage: str | None) -> str | None:
     given = os.environ.get(STORAGE_ENV)
     if given and mask_url(given) == storage:
         return given
-    from resireg_train.config.checks import ConfigError
+    from resireg.errors import ConfigError
 
     found = f" (it holds another URL: {mask_url(given)!r})" if given else ""
     raise ConfigError(
@@ -100,7 +100,7 @@ def open_storage(storage: str | None, sweep_dir: str | Path) -> Any:
         folder = Path(str(sweep_dir))
         folder.mkdir(parents=True, exist_ok=True)
         return open_journal(folder / STUDY_FILE)
-    from resireg_train.config.checks import ConfigError
+    from resireg.errors import ConfigError
 
     try:
         return optuna.storages.RDBStorage(url)

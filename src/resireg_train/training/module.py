@@ -19,7 +19,7 @@ from timm.optim import param_groups_weight_decay
 from torch import Tensor, nn
 
 from resireg.models import ResiregVLM
-from resireg_train.config.checks import init_from_problem
+from resireg_train.config.machine import init_from_problem
 from resireg_train.training.checkpoints import load_weights_only
 from resireg_train.training.losses import ContrastiveLoss, distill_loss, warmup_factor
 from resireg_train.training.teacher import build_teacher

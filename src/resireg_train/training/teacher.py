@@ -25,7 +25,9 @@ therefore how we call it (read from the repository's ``hubconf.py`` and
   module does it in ``setup``), and inputs are moved to the encoder's device.
 
 The teacher output is resized (bilinear) to the student's patch grid. A learned Linear
-(teacher dim -> 512) in the training module is the distillation head.
+(teacher dim -> 512) in the training module is the distillation head. The kinds
+(``model.teacher.kind``) are the entries of the teacher table,
+:data:`resireg_train.training.specs.TEACHER_SPECS`, which :func:`build_teacher` reads.
 """
 
 from __future__ import annotations
@@ -41,18 +43,14 @@ from torch import Tensor, nn
 
 from resireg.errors import parameters
 from resireg.models.frozen import FrozenModule
-from resireg.models.zoo.radio import (
-    RADSEG_LANG_MODEL,
-    RADSEG_MODEL_VERSION,
-    RADSEG_REPO,
-    load_radseg,
-)
-from resireg_train.config.checks import config_path
+from resireg.models.zoo.radio import load_radseg
+from resireg_train.config.errors import config_path
+from resireg_train.training.specs import TEACHER_SPECS
 
-__all__ = ["RadSegTeacher", "ConvTeacher", "build_teacher"]
+__all__ = ["ConvTeacher", "FrozenTeacher", "RadSegTeacher", "build_teacher"]
 
 
-class _FrozenTeacher(FrozenModule, ABC):
+class FrozenTeacher(FrozenModule, ABC):
     """A frozen teacher: ``dense`` features resized to the student's grid."""
 
     out_dim: int
@@ -68,45 +66,39 @@ class _FrozenTeacher(FrozenModule, ABC):
         return F.interpolate(feats, size=tuple(grid), mode="bilinear", align_corners=False)
 
 
-class RadSegTeacher(_FrozenTeacher):
+class RadSegTeacher(FrozenTeacher):
     """RADSeg (RADIO + SigLIP 2 adaptor) dense features.
 
     Args:
-        repo: ``owner/name`` on GitHub, or a local directory (with ``source="local"``).
-        source: ``"github"`` or ``"local"``.
-        model_version: RADIO version (``c-radio_v3-b``).
-        lang_model: language adaptor (``siglip2``).
         mean, std: normalisation of the student's images, undone before RADIO.
         slide_crop: RADSeg's sliding-window crop (0 = single pass).
         device: where RADSeg builds and runs RADIO (default: CPU); inputs are moved there
             and outputs moved back to the input's device.
         config_key: the config prefix named in errors.
-        **kwargs: passed to ``radseg_encoder`` (through :func:`load_radseg`), and
-            :func:`load_radseg`'s ``ref`` / ``radio_ref``: the pinned commits of RADSeg and of
-            the RADIO it loads itself (conf/model/teacher/radseg.yaml names both; by default
-            :data:`resireg.models.hub.PINNED_REFS`).
+        **radseg: the keywords of the one RADSeg loader, :func:`resireg.models.zoo.radio.
+            load_radseg`, with its defaults (those of conf/encoder/radseg.yaml and
+            conf/model/teacher/radseg.yaml): ``repo`` (``owner/name`` on GitHub, or a local
+            clone with ``source="local"``), ``source``, ``model_version`` (RADIO's),
+            ``lang_model`` (its language adaptor), ``ref`` / ``radio_ref`` (the pinned commits of
+            RADSeg and of the RADIO it loads itself), and ``radseg_encoder``'s own.
     """
 
     def __init__(
         self,
-        repo: str = RADSEG_REPO,
-        source: str = "github",
-        model_version: str = RADSEG_MODEL_VERSION,
-        lang_model: str = RADSEG_LANG_MODEL,
         mean: Sequence[float] = IMAGENET_DEFAULT_MEAN,
         std: Sequence[float] = IMAGENET_DEFAULT_STD,
         slide_crop: int = 0,
         device: str | torch.device | None = None,
         config_key: str = "model.teacher",
-        **kwargs: Any,
+        **radseg: Any,
     ) -> None:
         super().__init__()
         self.encoder_device = torch.device(device if device is not None else "cpu")
         with config_path(config_key, parameters(load_radseg)):  # errors: model.teacher.repo=
             self.encoder = load_radseg(
-                repo, source, model_version, lang_model, self.encoder_device,
+                device=self.encoder_device,
                 hint_extra=", or disable distillation (model.loss.distill.scale=0)",
-                slide_crop=slide_crop, **kwargs,
+                slide_crop=slide_crop, **radseg,
             )  # fmt: skip
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
@@ -127,13 +119,20 @@ class RadSegTeacher(_FrozenTeacher):
         return self.encoder.align_spatial_features_with_language(feat_map)
 
 
-class ConvTeacher(_FrozenTeacher):
+class ConvTeacher(FrozenTeacher):
     """A small random conv net standing in for RADSeg offline (tests, smoke runs).
 
-    Two stride-4 convolutions give a 1/16-resolution map of ``out_dim`` channels.
+    Two stride-4 convolutions give a 1/16-resolution map of ``out_dim`` channels, on
+    ``device`` (default CPU).
     """
 
-    def __init__(self, out_dim: int = 48, hidden: int = 16, seed: int = 0) -> None:
+    def __init__(
+        self,
+        out_dim: int = 48,
+        hidden: int = 16,
+        seed: int = 0,
+        device: str | torch.device | None = None,
+    ) -> None:
         super().__init__()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
@@ -144,6 +143,7 @@ class ConvTeacher(_FrozenTeacher):
             )
         self.out_dim = out_dim
         self.freeze()
+        self.to(device or "cpu")
 
     def dense(self, images: Tensor) -> Tensor:
         return self.net(images)
@@ -151,11 +151,8 @@ class ConvTeacher(_FrozenTeacher):
 
 def build_teacher(
     kind: str, device: str | torch.device | None = None, **kwargs: Any
-) -> _FrozenTeacher:
-    """``kind="radseg"`` -> :class:`RadSegTeacher`, ``kind="conv"`` -> :class:`ConvTeacher`,
-    built on ``device``."""
-    if kind == "radseg":
-        return RadSegTeacher(device=device, **kwargs)
-    if kind == "conv":
-        return ConvTeacher(**kwargs).to(device or "cpu")
-    raise ValueError(f"unknown teacher kind {kind!r} (expected 'radseg' or 'conv')")
+) -> FrozenTeacher:
+    """The teacher of ``kind`` (an entry of :data:`~resireg_train.training.specs.TEACHER_SPECS`:
+    ``radseg`` -> :class:`RadSegTeacher`, ``conv`` -> :class:`ConvTeacher`) built with
+    ``kwargs`` on ``device``; an unknown kind names the closest ones."""
+    return TEACHER_SPECS.load(kind)(device=device, **kwargs)

@@ -1,6 +1,11 @@
 """The 25M dense VLM and its parts: the frozen EUPE ViT-S/16 backbone (``eupe``), the trained
 language head (``head``), the frozen SigLIP 2 text tower and its trained projection (``text``),
-assembled by :class:`ResiregVLM` (``model``)."""
+assembled by :class:`ResiregVLM` (``model``).
+
+May be imported by the rest of :mod:`resireg.models` (the encoder builder, by the encoder
+table's name), ``resireg.deploy`` (export) and ``resireg_train`` (training, the run's model card); the text tower's
+kinds are the table :data:`resireg.specs.text.TEXT_SPECS`.
+"""
 
 from resireg.models.vlm.eupe import EUPE_MODELS, BackboneOutput, EUPEBackbone
 from resireg.models.vlm.head import HeadOutput, LanguageHead

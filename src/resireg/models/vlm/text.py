@@ -1,4 +1,6 @@
 """Frozen SigLIP 2 text tower (open_clip) with a caption cache, and the learned projection.
+The kinds of tower (``pretrained``, ``tiny``) are the entries of the text tower table,
+:data:`resireg.specs.text.TEXT_SPECS`.
 
 The tower is open_clip's ``ViT-B-16-SigLIP2`` (pretrained ``webli``): only its text
 transformer is kept, frozen, pooled output 768-d. The trainable model owns
@@ -25,6 +27,7 @@ from torch import Tensor, nn
 
 from resireg.models.frozen import FrozenModule
 from resireg.models.hub import WeightsUnavailableError, require_hf_files, require_open_clip_tag
+from resireg.specs.text import CACHE_SIZE, TEXT_SPECS
 
 __all__ = ["CAPTION_CACHE_SIZE", "FrozenTextTower", "TextProjection", "dense_text_half"]
 
@@ -145,22 +148,17 @@ class FrozenTextTower(FrozenModule):
 
     @classmethod
     def from_spec(cls, spec: dict) -> FrozenTextTower:
-        """Build from :meth:`spec` output or a config (``model.text``): ``kind`` selects
-        :meth:`tiny` or :meth:`pretrained`; ``cache_size`` (optional) bounds the caption cache."""
+        """Build from :meth:`spec` output or a config (``model.text``): ``kind`` selects the
+        builder of the text tower table (:data:`resireg.specs.text.TEXT_SPECS`: ``pretrained``,
+        :meth:`pretrained`; ``tiny``, :meth:`tiny`), called with the other keys;
+        ``cache_size`` (optional) bounds the caption cache."""
         spec = dict(spec)
-        kind = spec.pop("kind")
+        builder = TEXT_SPECS.load(spec.pop("kind"))
         cache_size = spec.pop("cache_size", CAPTION_CACHE_SIZE)
-        if cache_size is not None and (
-            isinstance(cache_size, bool) or not isinstance(cache_size, int) or cache_size < 0
-        ):
-            raise ValueError(
-                f"model.text.cache_size={cache_size!r}: expected null or an integer >= 0"
-            )
-        if kind == "tiny":
-            return cls.tiny(**spec, cache_size=cache_size)
-        if kind == "pretrained":
-            return cls.pretrained(**spec, cache_size=cache_size)
-        raise ValueError(f"unknown text tower kind {kind!r} (expected 'pretrained' or 'tiny')")
+        check, expected = CACHE_SIZE
+        if not check(cache_size):
+            raise ValueError(f"model.text.cache_size={cache_size!r}: expected {expected}")
+        return builder(**spec, cache_size=cache_size)
 
     def spec(self) -> dict:
         return {**self._spec, "cache_size": self.cache_size}

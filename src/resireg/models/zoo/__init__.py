@@ -1,6 +1,10 @@
 """The encoder zoo: third-party dense encoders behind the :class:`~resireg.models.DenseEncoder`
 interface (CLIP, RADIO / RADSeg, dino.txt, TIPSv2, OTAS), each loaded through its own upstream
-code (open_clip, ``torch.hub``, the release's files)."""
+code (open_clip, ``torch.hub``, the release's files).
+
+May be imported by the encoder builder (:mod:`resireg.models.factory`, through the encoder
+table's names) and, for RADSeg's loader, ``resireg_train.training``; tests and benchmarks.
+"""
 
 from resireg.models.zoo.clip import CLIP_MODELS, ClipEncoder
 from resireg.models.zoo.dinotxt import DinoTxtEncoder

@@ -1,4 +1,6 @@
-"""The 3D semantic-mapping task on ScanNet v2 (paper Table 2, Fig. 4b): the dataset reader
-(:mod:`.scannet`), the task engine (:mod:`.engine`), its metric (:mod:`.metric`) and a synthetic
-ScanNet-format scene (:mod:`.synthetic`). The protocol: docs/protocol.md section 4. The
-method-level geometry lives in :mod:`resireg.mapping`."""
+"""The 3D semantic-mapping task on ScanNet v2 (``task=scannet3d``; paper Table 2, Fig. 4b): its
+protocol (:mod:`.task`) and engine (:mod:`.engine`, ``MappingEngine``: frames fused into
+voxel maps, scored by the metric table's voxel scorer). The dataset reader is
+:mod:`resireg_train.data.scannet`, the geometry :mod:`resireg.mapping`; the protocol:
+docs/protocol.md section 4. May be imported by the task table (by name) and the CLIs.
+"""

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from resireg.method.variants import build_variants
 from resireg.specs.rules import check_batch_size
-from resireg_train.config.checks import config_path
+from resireg_train.config.errors import config_path
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.evaluation.ovss.engine import METRIC_PREFIX, OVSSEngine, OVSSResult
 from resireg_train.evaluation.ovss.settings import VARIANT_PARAM_KEYS, save_settings

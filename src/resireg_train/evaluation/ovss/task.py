@@ -14,7 +14,7 @@ from torch import nn
 
 from resireg.models import DenseEncoder
 from resireg.specs.variants import takes_prior
-from resireg_train.config.checks import config_path
+from resireg_train.config.errors import config_path
 from resireg_train.data.segmentation import build_segmentation_set, check_segmentation_source
 from resireg_train.evaluation.base import TaskProtocol
 from resireg_train.evaluation.engine import StageTimer
