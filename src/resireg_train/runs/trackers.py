@@ -305,10 +305,10 @@ class RunTrackers:
     def lightning_loggers(self, resume_step: int | None) -> list[Any]:
         """A training run's Lightning loggers: ``metrics.csv``'s first (always: it is the
         training's own record), then each tracker's (:meth:`Tracker.lightning_logger`)."""
-        from resireg_train.runs.loggers import CsvTracker
-
-        csv = next((t for t in self.trackers if isinstance(t, CsvTracker)), None)
-        loggers = [(csv or CsvTracker.always(self.cfg, self.record)).lightning_logger(resume_step)]
+        csv_tracker = TRACKER_SPECS.get("csv").load()  # the table's entry, loaded lazily
+        csv = next((t for t in self.trackers if isinstance(t, csv_tracker)), None)
+        csv = csv or csv_tracker.always(self.cfg, self.record)
+        loggers = [csv.lightning_logger(resume_step)]
         for tracker in self.trackers:
             if tracker is not csv and (made := tracker.lightning_logger(resume_step)) is not None:
                 loggers.append(made)
