@@ -509,7 +509,8 @@ def test_resireg_map_resume_inside_a_window_and_another_model(tmp_path, room12, 
                   f"hydra.run.dir={cut}", "resume=true", check=False, threads=2)  # fmt: skip
     assert refused.returncode != 0
     line = next(x for x in refused.stderr.splitlines() if "ConfigError: resume=true" in x)
-    assert "(2 differ): encoder.path:" in line and "; weights: " in line, line
+    # the shallowest key first (resireg.specs.tree.differences): the weights, then encoder.path
+    assert "(2 differ): weights: " in line and "; encoder.path: " in line, line
     assert "source" not in line.split("differ")[1] and len(line) < 600, line
     # the refused run left the map as it was
     assert (tmp_path / "kept" / "map.json").read_text() == (cut / "map" / "map.json").read_text()

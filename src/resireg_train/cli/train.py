@@ -44,7 +44,7 @@ from resireg_train.cli.job import (
     top_level_keys,
 )
 from resireg_train.config.machine import check_available, check_devices
-from resireg_train.config.moves import current_targets
+from resireg_train.config.moves import current_keys, current_targets
 from resireg_train.config.secrets import mask_text
 from resireg_train.config.train import validate
 from resireg_train.runs.record import RunRecord, masked_tree
@@ -158,9 +158,10 @@ def check_resume(out: Path, composed: DictConfig) -> None:
     stored = out / ".hydra" / "config.yaml"
     if not stored.is_file():
         return
-    # a run written before a class moved names its old path: compare with today's; the saved
-    # config has its URL passwords masked (RunRecord.start): compare masked values
-    run = current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False))
+    # a run written before a class moved names its old path, and one written before a key
+    # existed lacks it: compare with today's; the saved config has its URL passwords masked
+    # (RunRecord.start): compare masked values
+    run = current_keys(current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False)))
     this = OmegaConf.to_container(composed, resolve=False)
     this.pop("hydra", None)
     run, this = masked_tree(run), masked_tree(this)

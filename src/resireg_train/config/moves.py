@@ -14,7 +14,11 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["MOVED_TARGETS", "current_targets"]
+import yaml
+
+from resireg_train.config.paths import CONFIG_DIR
+
+__all__ = ["MOVED_TARGETS", "current_keys", "current_targets"]
 
 #: ``_target_`` in an earlier release's conf/ -> today's
 MOVED_TARGETS: dict[str, str] = {
@@ -41,3 +45,33 @@ def current_targets(tree: Any) -> Any:
     if isinstance(tree, list):
         return [current_targets(value) for value in tree]
     return tree
+
+
+#: the config group whose keys an evaluation dataset entry written before the OVSS protocols
+#: (0.1) leaves out: such an entry ran the paper's 2D protocol, which that file spells out
+PROTOCOL_BEFORE_KEYS = "protocol/paper.yaml"
+
+
+def current_keys(tree: Any) -> Any:
+    """A copy of a config tree in which every evaluation dataset entry (a mapping with a
+    ``kind`` under a ``datasets`` key) that lacks a protocol key gets the value the release
+    that wrote it ran with (:data:`PROTOCOL_BEFORE_KEYS`, read from ``conf/``), so a run
+    written before the keys were spelled out compares equal to today's composition of the
+    same command. Keys present are kept as they are."""
+    before = yaml.safe_load((CONFIG_DIR / PROTOCOL_BEFORE_KEYS).read_text())
+
+    def walk(node: Any, under_datasets: bool = False) -> Any:
+        if isinstance(node, list):
+            return [walk(value) for value in node]
+        if not isinstance(node, dict):
+            return node
+        if under_datasets:
+            return {
+                key: {**before, **walk(entry)}
+                if isinstance(entry, dict) and "kind" in entry
+                else walk(entry)
+                for key, entry in node.items()
+            }
+        return {key: walk(value, key == "datasets") for key, value in node.items()}
+
+    return walk(tree)
