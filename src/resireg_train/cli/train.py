@@ -104,8 +104,9 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
 
 
 #: Keys a resume may change: the resume itself, and what is recorded of the run without
-#: changing what it computes (its trackers, what provenance keeps of the code).
-_RESUME_FREE = ("ckpt_path", "logger", "provenance")
+#: changing what it computes (its trackers, what provenance keeps of the code, the system
+#: metrics' interval).
+_RESUME_FREE = ("ckpt_path", "logger", "provenance", "system_metrics")
 #: Overrides a resume command sets itself (or must not repeat: the sweep's own folders).
 _RESUME_SET = ("ckpt_path", "hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir",
                "hydra.mode", "hydra.output_subdir", "hydra.job.name")  # fmt: skip
