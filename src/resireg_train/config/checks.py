@@ -277,7 +277,11 @@ _RULES["callbacks.resireg_eval.every_n_epochs"] = _integer(1)
 # resireg-eval (conf/eval.yaml)
 _EVAL_RULES: dict[str, Rule] = {
     "seed": (_int, "an integer"),
-    "model_path": (_opt_str, "null or an export folder / Hugging Face repo id"),
+    "model_path": (
+        _opt_str,
+        "null, an export folder, a Hugging Face repo id or "
+        "models:/NAME@ALIAS (MLflow's model registry)",
+    ),
     "encoder.kind": (
         lambda v: ENCODER_SPECS.find(v) is not None,
         f"one of {list(ENCODER_SPECS)} (resireg.specs.encoders) or a kind an installed package "

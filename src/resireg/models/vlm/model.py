@@ -43,7 +43,7 @@ from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.models.vlm.eupe import EUPEBackbone
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half
-from resireg.specs.exports import is_repo_id
+from resireg.specs.exports import is_repo_id, registry_model
 
 __all__ = ["ResiregVLM"]
 
@@ -205,8 +205,10 @@ class ResiregVLM(DenseEncoder):
     def from_pretrained(
         cls, source: str | os.PathLike, map_location: str | torch.device = "cpu"
     ) -> ResiregVLM:
-        """Load a bundle from a directory written by :meth:`save_pretrained`, or from a Hugging
-        Face repo id ``owner/name`` (the local cache first; the hub only when online)."""
+        """Load a bundle from a directory written by :meth:`save_pretrained`, from a Hugging
+        Face repo id ``owner/name`` (the local cache first; the hub only when online), or from
+        MLflow's model registry (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``: downloaded
+        once, verified before every use; :mod:`resireg.models.registry`)."""
         path = _export_dir(source)
         cfg = read_config(path)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
@@ -329,7 +331,9 @@ def _check_sizes(
 
 
 def _export_dir(source: str | os.PathLike) -> Path:
-    """The local folder of an export: ``source`` itself, or a Hugging Face snapshot.
+    """The local folder of an export: ``source`` itself, a Hugging Face snapshot, or the
+    verified local copy of an export in MLflow's model registry (``models:/NAME@ALIAS``,
+    :mod:`resireg.models.registry`).
 
     A source that is not an existing folder is a repo id only if it has the form
     ``owner/name`` and names no existing file; the local cache is tried first and only a
@@ -339,6 +343,10 @@ def _export_dir(source: str | os.PathLike) -> Path:
     if path.is_dir():
         return path
     text = os.fspath(source)
+    if registry_model(text) is not None:  # models:/NAME@ALIAS: MLflow's registry, cached
+        from resireg.models.registry import registry_export
+
+        return registry_export(text)
     if path.exists() or not is_repo_id(text):  # (resireg.specs.exports: the checks' rule too)
         raise FileNotFoundError(
             f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"
