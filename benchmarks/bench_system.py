@@ -83,9 +83,11 @@ def main() -> None:
                   f"{100 * r['ratio']:.3f}% |")  # fmt: skip
         if args.mlflow_seconds > 0:
             m = mlflow_monitor(args.mlflow_seconds, folder)
-            print(f"\nMLflow's monitor: {m['samples']} samples in {m['seconds']:g} s, "
-                  f"{1e3 * m['cpu_s']:.0f} ms CPU: {m['per_sample_ms']:.1f} ms per sample "
-                  f"({m['per_sample_ms'] / 100:.3f}% of one core at a 10 s interval)")
+            print(
+                f"\nMLflow's monitor: {m['samples']} samples in {m['seconds']:g} s, "
+                f"{1e3 * m['cpu_s']:.0f} ms CPU: {m['per_sample_ms']:.1f} ms per sample "
+                f"({m['per_sample_ms'] / 100:.3f}% of one core at a 10 s interval)"
+            )
 
 
 if __name__ == "__main__":
