@@ -146,7 +146,7 @@ def test_register_then_evaluate_by_alias(tmp_path, tiny_export, mlflow_server, m
     # downloaded once: a second use reads the cache (no download), verified
     from mlflow import artifacts as mlflow_artifacts
 
-    from resireg.models import ResiregVLM
+    from resireg.models import ResiregVLM, build_encoder
     from resireg.models.registry import resolve
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
@@ -159,6 +159,9 @@ def test_register_then_evaluate_by_alias(tmp_path, tiny_export, mlflow_server, m
         patched.setattr(mlflow_artifacts, "download_artifacts", no_download)
         assert resolve("models:/tiny-vlm/1").folder == copy
         loaded = ResiregVLM.from_pretrained("models:/tiny-vlm@champion")
+        # what resireg-map, the ROS 2 node and resireg-segment build from model_path
+        built = build_encoder(kind="resireg_vlm", path="models:/tiny-vlm/1")
+        assert built.export_source == "models:/tiny-vlm/1"
     reference = ResiregVLM.from_pretrained(export)
     for (name, a), (_, b) in zip(loaded.state_dict().items(), reference.state_dict().items(),
                                  strict=True):  # fmt: skip

@@ -17,11 +17,16 @@ each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it i
   path as a tag; a training run's export folder with its model card under ``export/``); the
   jobs of one multirun or search are children of one parent run named after the sweep
   (MLflow's ``mlflow.parentRunId`` tag). The run ends FINISHED, FAILED or KILLED with the job.
+  While it runs, MLflow's own system-metrics monitor logs ``system/...`` to it every
+  ``system_metrics.interval`` seconds (an evaluation's or a map's run is opened at its start
+  for that: :func:`open_mlflow_run`).
 - **wandb** (``WANDB_MODE=offline`` needs no network): one W&B run per job, named
   ``<name>-<run id>[-<job number>]`` (a multirun's jobs grouped as ``<name>-<run id>``), given
   the resolved config at the start and ``results.json``'s summary at the end, then finished
   (exit code 1 if the job failed): Lightning's ``WandbLogger`` never finishes its run, and a
-  run left open takes the next job's logs in a multirun.
+  run left open takes the next job's logs in a multirun. Its system panel samples the run's
+  process tree every ``system_metrics.interval`` seconds. An offline run is uploaded later with
+  ``wandb sync <run>/wandb/offline-run-*``.
 
 Every value a tracker receives has the passwords of its URLs masked
 (:func:`resireg_train.config.secrets.mask_text`).
