@@ -43,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from resireg.errors import ConfigError
 from resireg.specs.encoders import ENCODER_SPECS, encoder_kwargs
+from resireg.specs.exports import registry_model
 from resireg.specs.tree import flatten
 from resireg_train.cli.job import (
     CONFIG_DIR,
@@ -89,6 +90,10 @@ def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
     if spec is None or not spec.needs_model_path or not cfg.model_path:  # not our VLM's export
         return cfg, []
     export = Path(str(cfg.model_path)).expanduser()
+    if registry_model(str(cfg.model_path)) is not None:  # models:/NAME@ALIAS: its local copy
+        from resireg.models.registry import registry_export
+
+        export = registry_export(str(cfg.model_path))
     if not cfg.get("export_settings", True) or not export.is_dir():
         return cfg, []
     recorded = load_settings(export)

@@ -74,7 +74,9 @@ def _uncached_repo(source: str) -> str | None:
     in the local cache while offline (``HF_HUB_OFFLINE``) or, online, no such repo; ``None``
     when it may load. Checked with huggingface_hub alone, before torch and Gradio load (the
     model loader would find the same after seconds of imports, naming its own config key)."""
-    if os.path.isdir(source):
+    from resireg.specs.exports import registry_model
+
+    if os.path.isdir(source) or registry_model(source) is not None:  # models:/: MLflow's
         return None
     from huggingface_hub import constants, snapshot_download
     from huggingface_hub.errors import LocalEntryNotFoundError, RepositoryNotFoundError

@@ -6,6 +6,10 @@
     resireg-runs diff RUN_A RUN_B [--root ROOT ...]
     resireg-runs lineage RUN_OR_EXPORT [--root ROOT ...]
     resireg-runs card EXPORT [--add EVAL_RUN ...]
+    resireg-runs register EXPORT --name NAME [--alias ALIAS] [--tracking-uri URI]
+    resireg-runs plot RUN... --metric NAME [--metric ...] [--out PNG] [--html PAGE]
+    resireg-runs plot SEARCH_FOLDER [--out FOLDER]
+    resireg-runs gc FOLDER... --keep N --by METRIC [--mode min|max] [--dry-run]
 
 RUN is a run folder or a run id (a unique prefix of ``results.json``'s
 ``provenance.run_id``). ROOT defaults to ``outputs`` (``paths.log_dir``'s default).
@@ -112,6 +116,32 @@ def main(argv: list[str] | None = None) -> None:
     two.add_argument("a", metavar="RUN_A")
     two.add_argument("b", metavar="RUN_B")
     two.add_argument("--root", action="append", metavar="ROOT")
+    # register, plot, gc: their logic in resireg_train.runs.registry, .plots, .gc
+    reg = sub.add_parser("register", help="an export into MLflow's model registry "
+                         "(model_path=models:/NAME@ALIAS loads it)")  # fmt: skip
+    reg.add_argument("export", metavar="EXPORT")
+    reg.add_argument("--name", required=True, help="the registered model's name")
+    reg.add_argument("--alias", help="point this alias at the new version (e.g. champion)")
+    reg.add_argument("--tracking-uri", help="the MLflow server or store (default: "
+                     "MLFLOW_TRACKING_URI, else MLflow's sqlite:///mlflow.db)")  # fmt: skip
+    reg.add_argument("--experiment", default="resireg", help="the registration run's experiment")
+    plot = sub.add_parser("plot", help="curves of runs in one PNG; a search folder: Optuna's "
+                          "plots")  # fmt: skip
+    plot.add_argument("runs", nargs="+", metavar="RUN", help="run folders, run ids or folders "
+                      "holding runs (a sweep), or one search folder")  # fmt: skip
+    plot.add_argument("--metric", action="append", default=[], metavar="NAME", help="a metric "
+                      "(or a pattern: 'val/ovss/*/miou_full'), one panel each (repeatable)")  # fmt: skip
+    plot.add_argument("--out", help="the PNG (default runs.png); a search: the folder "
+                      "(default <search>/plots)")  # fmt: skip
+    plot.add_argument("--html", metavar="PATH", help="also an interactive plotly page")
+    plot.add_argument("--root", action="append", metavar="ROOT")
+    gc = sub.add_parser("gc", help="remove the checkpoints of runs outside the best N")
+    gc.add_argument("folders", nargs="+", metavar="FOLDER", help="sweep folders (ranked together)")
+    gc.add_argument("--keep", type=int, required=True, metavar="N")
+    gc.add_argument("--by", required=True, metavar="METRIC")
+    gc.add_argument("--mode", choices=("min", "max"), help="default: min for losses, max for "
+                    "scores")  # fmt: skip
+    gc.add_argument("--dry-run", action="store_true", help="list, remove nothing")
     args = parser.parse_args(argv)
 
     from resireg.specs.tree import flatten
@@ -147,6 +177,12 @@ def main(argv: list[str] | None = None) -> None:
             if not path.is_file():
                 raise ValueError(f"{args.export}: no {CARD_FILE}")
             print(path.read_text())
+            return
+        if args.command in ("register", "plot", "gc"):
+            from importlib import import_module
+
+            module = {"register": "registry", "plot": "plots", "gc": "gc"}[args.command]
+            import_module(f"resireg_train.runs.{module}").command(args)
             return
         roots = args.root or [DEFAULT_ROOT]
         if args.command == "show":

@@ -106,8 +106,9 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
 
 
 #: Keys a resume may change: the resume itself, and what is recorded of the run without
-#: changing what it computes (its trackers, what provenance keeps of the code).
-_RESUME_FREE = ("ckpt_path", "logger", "provenance")
+#: changing what it computes (its trackers, what provenance keeps of the code, the system
+#: metrics' interval).
+_RESUME_FREE = ("ckpt_path", "logger", "provenance", "system_metrics")
 #: Overrides a resume command sets itself (or must not repeat: the sweep's own folders).
 _RESUME_SET = ("ckpt_path", "hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir",
                "hydra.mode", "hydra.output_subdir", "hydra.job.name")  # fmt: skip
@@ -161,7 +162,9 @@ def check_resume(out: Path, composed: DictConfig) -> None:
     # a run written before a class moved names its old path, and one written before a key
     # existed lacks it: compare with today's; the saved config has its URL passwords masked
     # (RunRecord.start): compare masked values
-    run = current_keys(current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False)))
+    run = current_keys(
+        current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False))
+    )
     this = OmegaConf.to_container(composed, resolve=False)
     this.pop("hydra", None)
     run, this = masked_tree(run), masked_tree(this)

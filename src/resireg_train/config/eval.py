@@ -104,7 +104,11 @@ def pass_rules(prefix: str) -> dict[str, Rule]:
 #: key -> rule of ``conf/eval.yaml`` (a key absent from the config is not checked)
 EVAL_RULES: dict[str, Rule] = {
     "seed": (is_int, "an integer"),
-    "model_path": (optional_str, "null or an export folder / Hugging Face repo id"),
+    "model_path": (
+        optional_str,
+        "null, an export folder, a Hugging Face repo id or "
+        "models:/NAME@ALIAS (MLflow's model registry)",
+    ),
     "encoder.kind": (
         lambda v: ENCODER_SPECS.find(v) is not None,
         f"one of {list(ENCODER_SPECS)} (resireg.specs.encoders) or a kind an installed package "

@@ -8,7 +8,12 @@
   the trackers of one run, driven by its record; :mod:`~resireg_train.runs.loggers`: the four
   trackers' code; :mod:`~resireg_train.runs.epochs`: what training records every epoch;
 - :mod:`~resireg_train.runs.index` (``resireg-runs``) and :mod:`~resireg_train.runs.cards`
-  (model cards of exports).
+  (model cards of exports);
+- :mod:`~resireg_train.runs.system`: the system metrics every run samples (``system.csv``,
+  the peaks in ``results.json``);
+- ``resireg-runs``' commands that act on runs: :mod:`~resireg_train.runs.registry`
+  (``register``: an export into MLflow's model registry), :mod:`~resireg_train.runs.plots`
+  (``plot``) and :mod:`~resireg_train.runs.gc` (``gc``).
 
 Imported by the CLIs, the evaluation, the training and the sweeps; it imports only
 ``resireg``, ``resireg_train.config`` and (inside functions) the trackers' libraries.

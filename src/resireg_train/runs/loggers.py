@@ -17,11 +17,16 @@ each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it i
   path as a tag; a training run's export folder with its model card under ``export/``); the
   jobs of one multirun or search are children of one parent run named after the sweep
   (MLflow's ``mlflow.parentRunId`` tag). The run ends FINISHED, FAILED or KILLED with the job.
+  While it runs, MLflow's own system-metrics monitor logs ``system/...`` to it every
+  ``system_metrics.interval`` seconds (an evaluation's or a map's run is opened at its start
+  for that: :func:`open_mlflow_run`).
 - **wandb** (``WANDB_MODE=offline`` needs no network): one W&B run per job, named
   ``<name>-<run id>[-<job number>]`` (a multirun's jobs grouped as ``<name>-<run id>``), given
   the resolved config at the start and ``results.json``'s summary at the end, then finished
   (exit code 1 if the job failed): Lightning's ``WandbLogger`` never finishes its run, and a
-  run left open takes the next job's logs in a multirun.
+  run left open takes the next job's logs in a multirun. Its system panel samples the run's
+  process tree every ``system_metrics.interval`` seconds. An offline run is uploaded later with
+  ``wandb sync <run>/wandb/offline-run-*``.
 
 Every value a tracker receives has the passwords of its URLs masked
 (:func:`resireg_train.config.secrets.mask_text`).
@@ -54,6 +59,7 @@ __all__ = [
     "MlflowTracker",
     "TensorBoardTracker",
     "WandbTracker",
+    "open_mlflow_run",
     "resolved_config",
     "to_mlflow",
     "wandb_logger",
@@ -154,8 +160,43 @@ class MlflowTracker(Tracker):
         own = self.spec.params
         return {k: v for k, v in self._without_credentials().items() if k not in own}
 
+    _run_id: str | None = None  # an evaluation's or a map's run, opened at its start
+    _monitor: Any = None  # MLflow's SystemMetricsMonitor of the run
+
+    def begin(self) -> None:
+        if not self.training:  # open the run now: it shows the run's system metrics live
+            self._run_id = open_mlflow_run(self._without_credentials(), self.cfg)
+
+    def running(self) -> None:
+        """MLflow's own system-metrics monitor (``mlflow.system_metrics``: ``system/...``
+        metrics, the run's "System metrics" tab) at ``system_metrics.interval``."""
+        from resireg_train.runs.system import system_settings
+
+        enabled, interval = system_settings(self.cfg)
+        run_id = getattr(self._logger, "run_id", None) or self._run_id
+        if not enabled or run_id is None or self._monitor is not None:
+            return
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        uri = str(self._without_credentials().get("tracking_uri"))
+        self._monitor = SystemMetricsMonitor(run_id, sampling_interval=interval, tracking_uri=uri)
+        self._monitor.start()
+
+    def _stop_monitor(self) -> None:
+        """Stop the monitor; the samples it took since it last logged (all of them, for a run
+        shorter than the interval) are logged too."""
+        monitor, self._monitor = self._monitor, None
+        if monitor is None:
+            return
+        monitor.finish()
+        if any(m._metrics for m in monitor.monitors):
+            monitor.publish_metrics(monitor.aggregate_metrics())
+            monitor.mlflow_logger.flush()
+
     def end(self, record: dict[str, Any], failed: bool) -> dict[str, Any]:
-        run_id = getattr(self._logger, "run_id", None)  # the run Lightning logged curves to
+        self._stop_monitor()
+        # the run Lightning logged curves to, or the one opened at the start
+        run_id = getattr(self._logger, "run_id", None) or self._run_id
         if run_id is None:
             run_id = (record.get("tracking") or {}).get("mlflow_run_id")
         settings = self._without_credentials()
@@ -187,32 +228,49 @@ def _parent_run(client: Any, experiment_id: str, sweep: str, name: str) -> str:
     return run.info.run_id
 
 
+def _experiment_id(client: Any, settings: dict[str, Any]) -> str:
+    name = str(settings.get("experiment_name") or "resireg")
+    experiment = client.get_experiment_by_name(name)
+    return experiment.experiment_id if experiment else client.create_experiment(name)
+
+
+def open_mlflow_run(settings: dict[str, Any], cfg: Any) -> str:
+    """A new MLflow run (status RUNNING) for the job of ``cfg``, named after the run (a
+    multirun job: ``<name>-<job>``), with the flattened config as parameters; its id."""
+    from mlflow import MlflowClient
+    from mlflow.entities import Param
+
+    client = MlflowClient(tracking_uri=str(settings.get("tracking_uri")))
+    job, _ = _group()
+    run_name = str(settings.get("run_name") or cfg.name)
+    run_id = client.create_run(_experiment_id(client, settings), run_name=run_name if job is None
+                               else f"{run_name}-{job}").info.run_id  # fmt: skip
+    config = flatten(resolved_config(cfg))
+    params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in config.items()]
+    for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
+        client.log_batch(run_id, params=params[i : i + 100])
+    return run_id
+
+
 def to_mlflow(
     settings: dict[str, Any], cfg: Any, out: Path, record: dict[str, Any], run_id: str | None
 ) -> str:
     """Log the run in ``out`` (its record ``record``) to MLflow (module docstring);
     ``settings``: the ``logger.mlflow`` block (``tracking_uri``, ``experiment_name``,
-    ``run_name``); ``run_id``: the run Lightning logged to, if any. Returns the MLflow run id."""
+    ``run_name``); ``run_id``: the run Lightning logged to or the one opened at the start
+    (:func:`open_mlflow_run`), if any. Returns the MLflow run id."""
     from mlflow import MlflowClient
-    from mlflow.entities import Metric, Param, RunTag
+    from mlflow.entities import Metric, RunTag
 
     client = MlflowClient(tracking_uri=str(settings.get("tracking_uri")))
-    name = str(settings.get("experiment_name") or "resireg")
-    experiment = client.get_experiment_by_name(name)
-    experiment_id = experiment.experiment_id if experiment else client.create_experiment(name)
+    experiment_id = _experiment_id(client, settings)
     job, sweep = _group()
     tags = {"resireg.run_dir": str(out.resolve())}
     if sweep:
         tags["mlflow.parentRunId"] = _parent_run(client, experiment_id, sweep, str(cfg.name))
         tags["resireg.job"] = job
     if run_id is None:
-        run_name = str(settings.get("run_name") or cfg.name)
-        run_id = client.create_run(experiment_id, run_name=run_name if job is None
-                                   else f"{run_name}-{job}").info.run_id  # fmt: skip
-        config = flatten(resolved_config(cfg))
-        params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in config.items()]
-        for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
-            client.log_batch(run_id, params=params[i : i + 100])
+        run_id = open_mlflow_run(settings, cfg)
     provenance = flatten(record.get("provenance") or {}, "provenance")
     tags.update({mlflow_key(k)[:250]: mask_text(str(v))[:5000] for k, v in provenance.items()})
     tags["resireg.status"] = str(record.get("status"))
@@ -259,6 +317,7 @@ class WandbTracker(Tracker):
 
     def begin(self) -> None:
         logger = self.lightning_logger(None)
+        _stats_settings(logger, self.cfg)
         # W&B records the command line (its run metadata's "args"): give it masked URLs
         argv, sys.argv = sys.argv, [mask_text(a) for a in sys.argv]
         try:
@@ -274,6 +333,23 @@ class WandbTracker(Tracker):
             return
         experiment.summary.update(wandb_summary(record))
         experiment.finish(exit_code=1 if failed else 0)
+
+
+def _stats_settings(logger: Any, cfg: Any) -> None:
+    """W&B's own system panel (its ``wandb-core`` process samples the run's process tree) at
+    ``system_metrics.interval``, or off with ``system_metrics.enabled=false``: settings of the
+    ``wandb.init`` the logger's first use calls."""
+    from resireg_train.runs.system import system_settings
+
+    init = getattr(logger, "_wandb_init", None)
+    if not isinstance(init, dict) or "settings" in init:
+        return  # not Lightning's WandbLogger, or settings given in conf/logger/wandb.yaml
+    import wandb
+
+    enabled, interval = system_settings(cfg)
+    init["settings"] = (wandb.Settings(x_stats_sampling_interval=interval,
+                                       x_stats_track_process_tree=True)
+                        if enabled else wandb.Settings(x_disable_stats=True))  # fmt: skip
 
 
 def wandb_run_name(name: str) -> tuple[str, str | None]:

@@ -453,9 +453,29 @@ def _datasets(cfg: Mapping[str, Any]) -> dict[str, Any]:
 # -------------------------------------------------------------------------------- models
 def export_identity(path: str | os.PathLike) -> dict[str, Any]:
     """An export folder's path, each file's SHA-256 and (when the export carries one) the
-    provenance of the training run that wrote it: ``{"path", "files", "training_run"}``."""
+    provenance of the training run that wrote it: ``{"path", "files", "training_run"}``; for
+    an export in MLflow's model registry (``models:/NAME@ALIAS``) those of its local copy
+    (downloaded now, once: :mod:`resireg.models.registry`) with ``uri`` and ``registry``
+    (name, version, MLflow run, source)."""
     from resireg.integrity import sha256_file
+    from resireg.specs.exports import registry_model
 
+    text = os.fspath(path)
+    try:
+        registered = registry_model(text) is not None
+    except ValueError as err:
+        return {"path": text, "files": None, "error": str(err)}
+    if registered:
+        try:
+            from resireg.models.registry import resolve
+
+            found = resolve(text)
+        except Exception as err:  # the run reports it when it loads the model
+            return {"path": text, "uri": text, "files": None,
+                    "error": f"{type(err).__name__}: {err}"}  # fmt: skip
+        registry = {"name": found.name, "version": found.version, "run_id": found.run_id,
+                    "source": found.source, "registry": found.registry}  # fmt: skip
+        return {**export_identity(found.folder), "uri": text, "registry": registry}
     folder = Path(path).expanduser().resolve()
     if not folder.is_dir():
         return {"path": str(path), "files": None}  # a hub id: resolved by the loader

@@ -73,6 +73,7 @@ _FIELDS: dict[str, tuple[type, ...]] = {
     "encoder": (dict,),
     "tracking": (dict,),
     "provenance": (dict,),
+    "system": (dict,),
 }
 _PROVENANCE: dict[str, tuple[type, ...]] = {
     "run_id": (str,),
@@ -202,6 +203,7 @@ class RunRecord:
         self.writer = writer
         self._report = report
         self.trackers: Any = None  # the run's trackers (RunTrackers), once started
+        self.sampler: Any = None  # its system metrics (runs.system.SystemSampler), once started
 
     def __repr__(self) -> str:
         return f"RunRecord({str(self.folder)!r})"
@@ -210,7 +212,13 @@ class RunRecord:
         """A copy sent to another process (a spawned DDP rank: the per-epoch callback holds the
         record) only adds fields; the run's start, end and trackers stay with the job's own
         process."""
-        return {"folder": self.folder, "writer": self.writer, "_report": None, "trackers": None}
+        return {
+            "folder": self.folder,
+            "writer": self.writer,
+            "_report": None,
+            "trackers": None,
+            "sampler": None,
+        }
 
     # -- reading ----------------------------------------------------------------------------
     @property
@@ -286,10 +294,12 @@ class RunRecord:
         the URL passwords in the config files Hydra saved, and starts the trackers: one that
         needs a network is checked first (``logger.<name>.check_timeout``) and refused
         (:class:`~resireg_train.runs.trackers.TrackerUnreachable`) or, with
-        ``logger.<name>.unreachable=warn``, left out with a warning."""
+        ``logger.<name>.unreachable=warn``, left out with a warning. Then the system metrics
+        are sampled until :meth:`finish` (``system_metrics``: :mod:`resireg_train.runs.system`)."""
         import logging
 
         from resireg_train.runs.provenance import start_provenance
+        from resireg_train.runs.system import SystemSampler, system_settings
         from resireg_train.runs.trackers import RunTrackers
 
         self.trackers = RunTrackers(cfg, self)
@@ -304,24 +314,34 @@ class RunRecord:
                     output_dir=str(self.folder),
                     provenance=start_provenance(cfg, self.folder, previous))  # fmt: skip
         mask_saved_configs(self.folder)
+        enabled, interval = system_settings(cfg)  # a bad interval fails before any work
         self.trackers.start()
+        if enabled:  # system.csv and results.json's system block (runs/system.py)
+            self.sampler = SystemSampler(self.folder, interval).start(fresh=fresh)
 
     def finish(self, status: str = "completed", error: str | None = None) -> dict[str, Any]:
         """End the run: write ``status`` (``completed`` when the job body returned: a resumed
-        training run with nothing left to train included), ``error`` and the provenance's end,
-        then hand the record to the trackers (a tracker that fails is a warning, never a lost
+        training run with nothing left to train included), ``error``, the provenance's end and
+        the system metrics' peaks (``system``), then hand the record to the trackers (a tracker that fails is a warning, never a lost
         run). A record that cannot be written (a full disk) never hides the run's own error:
         stderr and the run's log file say which status could not be recorded and which one
         the file still reads. Returns the record."""
         if not self.writer:
             return {}
         from resireg_train.runs.provenance import finish_provenance
+        from resireg_train.runs.system import merge_blocks
 
         fields: dict[str, Any] = {"status": status, "error": error}
         try:
             fields["provenance"] = finish_provenance(self.get("provenance") or {}, self.folder)
         except (OSError, ValueError):
             pass  # the record cannot be read: the status is what matters
+        if self.sampler is not None:  # the peaks (a resumed run: over all its processes)
+            block, self.sampler = self.sampler.stop(), None
+            try:
+                fields["system"] = merge_blocks(self.get("system"), block)
+            except (OSError, ValueError):
+                fields["system"] = block
         try:
             record = self.update(**fields)
         except OSError as err:

@@ -12,6 +12,8 @@ A tracker does up to four things, each a method of its :class:`Tracker` class
   ``tracking.unreachable`` names it);
 - :meth:`Tracker.begin`: at the run's start (W&B: its run, given the resolved config);
 - :meth:`Tracker.lightning_logger`: a training run's Lightning logger (its curves);
+- :meth:`Tracker.running`: once its run exists, what records the run while it runs (MLflow's
+  system-metrics monitor);
 - :meth:`Tracker.end`: at the run's end, after the final status is written, with the record
   (MLflow: parameters, provenance tags, final metrics, artifacts; TensorBoard and CSV: an
   evaluation's or a map's final metrics; W&B: the summary, then the run is finished).
@@ -222,6 +224,11 @@ class Tracker:
     def begin(self) -> None:
         """At the run's start, after the check."""
 
+    def running(self) -> None:
+        """Once the tracker's run exists (after :meth:`begin` for an evaluation or a map, after
+        the Lightning loggers are made for a training run): start what records the run while
+        it runs (MLflow: its system-metrics monitor)."""
+
     def lightning_logger(self, resume_step: int | None) -> Any:
         """A training run's Lightning logger: its block's ``_target_`` instantiated (made
         once); ``None`` without one."""
@@ -301,6 +308,9 @@ class RunTrackers:
         for tracker in self.trackers:
             tracker.begin()
             self._begun.append(tracker)
+        if "trainer" not in self.cfg:  # a training run's trackers run once its loggers exist
+            for tracker in self.trackers:
+                tracker.running()
 
     def lightning_loggers(self, resume_step: int | None) -> list[Any]:
         """A training run's Lightning loggers: ``metrics.csv``'s first (always: it is the
@@ -312,6 +322,8 @@ class RunTrackers:
         for tracker in self.trackers:
             if tracker is not csv and (made := tracker.lightning_logger(resume_step)) is not None:
                 loggers.append(made)
+        for tracker in self.trackers:
+            tracker.running()
         return loggers
 
     def finish(self, record: dict[str, Any], failed: bool) -> None:

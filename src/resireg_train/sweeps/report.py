@@ -19,7 +19,14 @@ from resireg_train.sweeps.workers import SEARCH_FILE, study_location
 if TYPE_CHECKING:  # the report package imports this module: no import back at run time
     from resireg_train.report.jobs import Job
 
-__all__ = ["is_optuna_sweep", "optuna_study", "trials_table", "write_optuna_report"]
+__all__ = [
+    "is_optuna_sweep",
+    "optuna_study",
+    "readable_axes",
+    "short_param",
+    "trials_table",
+    "write_optuna_report",
+]
 
 OPTUNA_FILES = {
     "optuna_csv": "optuna_trials.csv",
@@ -89,12 +96,12 @@ def _save(fig: Any, path: Path) -> Path:
     return path
 
 
-def _short(name: str) -> str:
+def short_param(name: str) -> str:
     """A parameter's label: its last two dotted parts (``distill.scale``)."""
     return ".".join(str(name).split(".")[-2:])
 
 
-def _readable(ax: Any, integer_x: bool = True) -> Any:
+def readable_axes(ax: Any, integer_x: bool = True) -> Any:
     """Integer ticks on the trial / epoch axis (at most ~12 of them), no per-trial legend."""
     from matplotlib.ticker import MaxNLocator
 
@@ -140,23 +147,23 @@ def write_optuna_report(
         if complete:
             ax = ov.plot_optimization_history(study)
             ax.set_title(f"Optimisation history: {study.study_name}")
-            files["optuna_history"] = _save(_readable(ax), out / OPTUNA_FILES["optuna_history"])
+            files["optuna_history"] = _save(readable_axes(ax), out / OPTUNA_FILES["optuna_history"])
         if any(t.intermediate_values for t in trials):
             ax = ov.plot_intermediate_values(study)
             ax.set_xlabel("epoch")
             path = out / OPTUNA_FILES["optuna_intermediate"]
-            files["optuna_intermediate"] = _save(_readable(ax), path)
+            files["optuna_intermediate"] = _save(readable_axes(ax), path)
         if len(complete) >= 2 and complete[0].params:
             try:
                 ax = ov.plot_param_importances(study)
             except (RuntimeError, ValueError) as err:  # every completed trial scored the same
                 lines += ["", f"No parameter importance: {err}"]
             else:
-                ax.set_yticklabels([_short(t.get_text()) for t in ax.get_yticklabels()])
+                ax.set_yticklabels([short_param(t.get_text()) for t in ax.get_yticklabels()])
                 path = out / OPTUNA_FILES["optuna_importance"]
-                files["optuna_importance"] = _save(_readable(ax, integer_x=False), path)
+                files["optuna_importance"] = _save(readable_axes(ax, integer_x=False), path)
     plt.close("all")
-    shown = table.rename(columns={k: _short(k) for k in trials[0].params} if trials else {})
+    shown = table.rename(columns={k: short_param(k) for k in trials[0].params} if trials else {})
     lines += ["", f"Trials (`{files['optuna_csv'].name}`):", "",
               shown.to_markdown(index=False, floatfmt=".4g")]  # fmt: skip
     return files, lines

@@ -15,7 +15,7 @@ from typing import Any
 
 from resireg.integrity import IntegrityError, read_json, resolve_inside, verify_digests
 from resireg.models.hub import require_online
-from resireg.specs.exports import is_repo_id
+from resireg.specs.exports import is_repo_id, registry_model
 
 __all__ = ["EXPORT_FORMAT", "EXPORT_WHAT", "export_dir", "read_config"]
 
@@ -62,7 +62,9 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
 
 
 def export_dir(source: str | os.PathLike) -> Path:
-    """The local folder of an export: ``source`` itself, or a Hugging Face snapshot.
+    """The local folder of an export: ``source`` itself, a Hugging Face snapshot, or the
+    verified local copy of an export in MLflow's model registry (``models:/NAME@ALIAS``,
+    :mod:`resireg.models.registry`).
 
     A source that is not an existing folder is a repo id only if it has the form
     ``owner/name`` and names no existing file; the local cache is tried first and only a
@@ -72,6 +74,10 @@ def export_dir(source: str | os.PathLike) -> Path:
     if path.is_dir():
         return path
     text = os.fspath(source)
+    if registry_model(text) is not None:  # models:/NAME@ALIAS: MLflow's registry, cached
+        from resireg.models.registry import registry_export
+
+        return registry_export(text)
     if path.exists() or not is_repo_id(text):  # (resireg.specs.exports: the checks' rule too)
         raise FileNotFoundError(
             f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"

@@ -195,8 +195,10 @@ class ResiregVLM(DenseEncoder):
     def from_pretrained(
         cls, source: str | os.PathLike, map_location: str | torch.device = "cpu"
     ) -> ResiregVLM:
-        """Load a bundle from a directory written by :meth:`save_pretrained`, or from a Hugging
-        Face repo id ``owner/name`` (the local cache first; the hub only when online)."""
+        """Load a bundle from a directory written by :meth:`save_pretrained`, from a Hugging
+        Face repo id ``owner/name`` (the local cache first; the hub only when online), or from
+        MLflow's model registry (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``: downloaded
+        once, verified before every use; :mod:`resireg.models.registry`)."""
         path = export_dir(source)
         cfg = read_config(path)  # (its file names checked: they stay inside the folder)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))

@@ -1,0 +1,337 @@
+"""``resireg-runs plot``: runs compared in pictures.
+
+- **Runs** (``resireg-runs plot RUN... --metric train/loss --metric 'val/ovss/*/miou_full'``):
+  one PNG with a panel per metric (a pattern, ``*`` and ``?``, is every metric the runs logged
+  that it matches), one curve per run against the global step, read from each run's own
+  files: ``metrics.csv`` (a training run's every step: ``<metric>_step``, else the metric's
+  own column, else its epoch column) or, where it lacks the metric, the record's ``history``
+  (per epoch). A run with no curve for the metric but a final value (an evaluation, a map)
+  shows it as a dashed level. ``--html`` also writes the same curves as an interactive plotly
+  page (plotly: the ``optuna`` extra).
+- **A search folder** (an Optuna search's sweep folder): Optuna's own optimisation history,
+  parameter importances and parallel-coordinate plot, as PNGs
+  (``optuna.visualization.matplotlib``) and together as one HTML page
+  (``optuna.visualization``, plotly; it works offline: plotly's script is inside).
+
+Matplotlib draws without a display (Agg).
+"""
+
+from __future__ import annotations
+
+import csv
+import fnmatch
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from resireg_train.runs.index import Run
+
+__all__ = [
+    "PlotResult",
+    "command",
+    "expand_metrics",
+    "metric_curve",
+    "plot_runs",
+    "plot_search",
+    "run_labels",
+]
+
+METRICS_FILE = "metrics.csv"
+
+
+@dataclass
+class PlotResult:
+    """What a plot command wrote, and the curves as the figure holds them: per metric, per
+    run label, ``(x, y)`` read back from the figure's lines (a level: ``x`` is ``None``)."""
+
+    files: list[Path]
+    curves: dict[str, dict[str, tuple[list[float] | None, list[float]]]] = field(
+        default_factory=dict
+    )
+
+
+def _csv_rows(run: Run) -> tuple[list[str], list[dict[str, str]]]:
+    path = run.path / METRICS_FILE
+    if not path.is_file():
+        return [], []
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            return list(reader.fieldnames or []), list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        run.problems.append(f"{path}: unreadable ({err}); the record's history is used")
+        return [], []
+
+
+def _number(text: Any) -> float | None:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def metric_curve(run: Run, metric: str) -> tuple[list[float], list[float], str] | None:
+    """``(steps, values, source)`` of ``metric`` in ``run`` (module docstring: metrics.csv,
+    else the record's history); ``None`` when neither has it. Non-finite values are left
+    out (a gap)."""
+    columns, rows = _csv_rows(run)
+    for column in (f"{metric}_step", metric, f"{metric}_epoch"):
+        if column not in columns:
+            continue
+        points = [(s, v) for r in rows
+                  if (s := _number(r.get("step"))) is not None
+                  and (v := _number(r.get(column))) is not None]  # fmt: skip
+        if points:
+            return [p[0] for p in points], [p[1] for p in points], f"{METRICS_FILE}:{column}"
+    # a history row's step counts the steps done; Lightning logs an epoch's values at its
+    # last step's index (metrics.csv's step), one less: the same x for both sources
+    history = run.results.get("history") or []
+    points = []
+    for row in history:
+        if not isinstance(row, dict):
+            continue
+        value, step = _number(row.get(metric)), _number(row.get("step"))
+        x = step - 1 if step is not None else _number(row.get("epoch"))
+        if value is not None and x is not None:
+            points.append((x, value))
+    if points:
+        return [p[0] for p in points], [p[1] for p in points], "results.json:history"
+    return None
+
+
+def _names(run: Run) -> set[str]:
+    """Every metric name ``run`` logged: its record's final, best and history, and the
+    columns of its metrics.csv (``_step`` / ``_epoch`` suffixes off)."""
+    names = set(run.results.get("final") or {}) | set(run.results.get("best") or {})
+    for row in run.results.get("history") or []:
+        if isinstance(row, dict):
+            names |= {k for k in row if k not in ("epoch", "step")}
+    columns, _ = _csv_rows(run)
+    for column in columns:
+        if column not in ("epoch", "step"):
+            names.add(column.removesuffix("_step").removesuffix("_epoch"))
+    return names
+
+
+def expand_metrics(runs: list[Run], patterns: list[str]) -> list[str]:
+    """The metric names the patterns name, in the patterns' order (a pattern with ``*``,
+    ``?`` or ``[`` is every logged name it matches, sorted); a name or pattern that no run
+    logged is a :class:`ValueError` listing the names there are."""
+    logged = set().union(*(_names(r) for r in runs)) if runs else set()
+    out: list[str] = []
+    for pattern in patterns:
+        if any(c in pattern for c in "*?["):
+            hits = sorted(n for n in logged if fnmatch.fnmatchcase(n, pattern))
+        else:
+            hits = [pattern] if pattern in logged else []
+        if not hits:
+            shown = ", ".join(sorted(logged)[:40]) or "none"
+            raise ValueError(f"--metric {pattern!r}: no run logged it; logged: {shown}")
+        out += [h for h in hits if h not in out]
+    return out
+
+
+def run_labels(runs: list[Run]) -> list[str]:
+    """A legend label per run: its run id, its name and the overrides that set it apart from
+    the other runs plotted (a sweep's swept values); two runs of one id (copied folders) are
+    numbered."""
+    quiet = ("paths.", "hydra.", "~callbacks.", "device=", "num_workers=")
+    overrides = [[o for o in r.overrides if not o.lstrip("+~").startswith(quiet)] for r in runs]
+    common = set.intersection(*(set(o) for o in overrides)) if len(runs) > 1 else set()
+    labels, seen = [], {}
+    for run, own in zip(runs, overrides, strict=True):
+        label = " ".join([run.run_id, str(run.results.get("name") or ""),
+                          *[o for o in own if o not in common]]).replace("  ", " ").strip()  # fmt: skip
+        seen[label] = seen.get(label, 0) + 1
+        labels.append(label if seen[label] == 1 else f"{label} ({seen[label]})")
+    return labels
+
+
+def _final(run: Run, metric: str) -> float | None:
+    return _number((run.results.get("final") or {}).get(metric))
+
+
+def plot_runs(
+    runs: list[Run], patterns: list[str], out: str | Path, html: str | Path | None = None
+) -> PlotResult:
+    """The curves of ``patterns``' metrics for ``runs`` into the PNG ``out`` (and the plotly
+    page ``html``); see the module docstring."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    if not runs:
+        raise ValueError("no run to plot")
+    metrics = expand_metrics(runs, patterns)
+    out = Path(out)
+    labels = run_labels(runs)
+    fig, axes = plt.subplots(len(metrics), 1, figsize=(9, 3.2 * len(metrics)), squeeze=False)
+    result = PlotResult(files=[out])
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, metric in zip(axes[:, 0], metrics, strict=True):
+        for i, (run, label) in enumerate(zip(runs, labels, strict=True)):
+            colour = colours[i % len(colours)]
+            curve = metric_curve(run, metric)
+            if curve is not None:
+                x, y, _ = curve
+                ax.plot(x, y, label=label, color=colour, marker="o" if len(x) < 30 else None,
+                        markersize=3, linewidth=1.2)  # fmt: skip
+            elif (level := _final(run, metric)) is not None:
+                ax.axhline(level, label=f"{label} (final)", color=colour, linestyle="--",
+                           linewidth=1.2)  # fmt: skip
+        ax.set_title(metric, fontsize=10)
+        ax.set_xlabel("global step")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(True, alpha=0.3)
+        handles = ax.get_legend_handles_labels()[0]
+        if handles:
+            ax.legend(fontsize=8, loc="best", ncol=1 if len(handles) <= 6 else 2)
+        result.curves[metric] = _lines(ax)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    if html is not None:
+        result.files.append(_runs_html(result.curves, Path(html)))
+    return result
+
+
+def _lines(ax: Any) -> dict[str, tuple[list[float] | None, list[float]]]:
+    """The axes' curves as drawn: label -> (x, y); a level (``axhline``) -> (None, [y]); a
+    scatter (Optuna's trials) -> its points."""
+    drawn: dict[str, tuple[list[float] | None, list[float]]] = {}
+    for collection in ax.collections:
+        offsets = collection.get_offsets()
+        if len(offsets) and not str(collection.get_label()).startswith("_"):
+            drawn[str(collection.get_label())] = ([float(p[0]) for p in offsets],
+                                                  [float(p[1]) for p in offsets])  # fmt: skip
+    for line in ax.get_lines():
+        label = str(line.get_label())
+        x = [float(v) for v in line.get_xdata()]
+        y = [float(v) for v in line.get_ydata()]
+        if line.get_linestyle() == "--" and label.endswith(" (final)"):
+            drawn[label.removesuffix(" (final)")] = (None, [y[0]])
+        else:
+            drawn[label] = (x, y)
+    return drawn
+
+
+def _runs_html(curves: dict[str, dict[str, Any]], path: Path) -> Path:
+    """The curves as one interactive plotly page (a panel per metric)."""
+    try:
+        import plotly.graph_objects as go
+        from plotly.subplots import make_subplots
+    except ImportError:
+        raise ValueError("--html needs plotly: pip install 'resireg[optuna]'") from None
+    fig = make_subplots(rows=len(curves), cols=1, subplot_titles=list(curves))
+    for row, runs in enumerate(curves.values(), start=1):
+        for label, (x, y) in runs.items():
+            if x is None:
+                fig.add_hline(y=y[0], line_dash="dash", row=row, col=1,
+                              annotation_text=f"{label} (final)")  # fmt: skip
+            else:
+                fig.add_trace(go.Scatter(x=x, y=y, mode="lines", name=label, legendgroup=label,
+                                         showlegend=row == 1), row=row, col=1)  # fmt: skip
+    fig.update_layout(height=320 * len(curves), width=1000)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.write_html(str(path), include_plotlyjs=True)
+    return path
+
+
+#: The search plots: Optuna's function name -> the file stem.
+SEARCH_PLOTS = {
+    "plot_optimization_history": "optuna_history",
+    "plot_param_importances": "optuna_importance",
+    "plot_parallel_coordinate": "optuna_parallel",
+}
+
+
+def plot_search(folder: str | Path, out: str | Path) -> PlotResult:
+    """Optuna's history, parameter-importance and parallel-coordinate plots of the search in
+    ``folder``: a PNG each and one HTML page (``optuna_plots.html``) in the folder ``out``.
+    A plot Optuna cannot draw (importances need two completed trials that differ) is left
+    out with a warning."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import optuna
+    import optuna.visualization as ovp
+    from optuna.visualization import matplotlib as ovm
+
+    from resireg_train.sweeps.report import optuna_study, readable_axes, short_param
+
+    study = optuna_study(folder)
+    complete = [t for t in study.get_trials(deepcopy=False)
+                if t.state == optuna.trial.TrialState.COMPLETE]  # fmt: skip
+    if not complete:
+        raise ValueError(f"{folder}: its study {study.study_name!r} has no completed trial yet")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    result, pages = PlotResult(files=[]), []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        for function, stem in SEARCH_PLOTS.items():
+            try:
+                ax = getattr(ovm, function)(study)
+                figure = getattr(ovp, function)(study)
+            except (RuntimeError, ValueError) as err:  # e.g. every trial scored the same
+                warnings.warn(f"{stem}: {err}", stacklevel=2)
+                continue
+            if function == "plot_param_importances":
+                ax.set_yticklabels([short_param(t.get_text()) for t in ax.get_yticklabels()])
+            fig = readable_axes(ax, integer_x=function == "plot_optimization_history")
+            result.curves[stem] = _lines(ax)
+            fig.savefig(out / f"{stem}.png", dpi=110, bbox_inches="tight")
+            plt.close(fig)
+            result.files.append(out / f"{stem}.png")
+            pages.append(figure.to_html(full_html=False, include_plotlyjs=not pages))
+    if pages:
+        page = out / "optuna_plots.html"
+        page.write_text(f"<html><head><meta charset='utf-8'><title>{study.study_name}</title>"
+                        "</head><body>" + "\n".join(pages) + "</body></html>")  # fmt: skip
+        result.files.append(page)
+    return result
+
+
+def _runs_of(specs: list[str], roots: list[str]) -> list[Run]:
+    """The runs the command line names: a run folder or run id (:func:`index.find_run`), or a
+    folder holding runs (a sweep: each of its runs, in folder order)."""
+    from resireg_train.runs import index
+    from resireg_train.runs.record import RunRecord
+
+    runs: list[Run] = []
+    for spec in specs:
+        path = Path(spec).expanduser()
+        if path.is_dir() and not RunRecord.exists(path):
+            found = sorted(index.scan([path]), key=lambda r: str(r.path))
+            if not found:
+                raise ValueError(f"{spec}: no run folder under it")
+            runs += found
+        else:
+            runs.append(index.find_run(spec, roots))
+    return runs
+
+
+def command(args: Any) -> None:
+    """``resireg-runs plot`` (module docstring): prints each file written."""
+    from resireg_train.sweeps.report import is_optuna_sweep
+
+    if not args.metric:
+        if len(args.runs) != 1 or not is_optuna_sweep(args.runs[0]):
+            raise ValueError("--metric is required (a search folder alone plots its study)")
+        folder = Path(args.runs[0])
+        result = plot_search(folder, Path(args.out) if args.out else folder / "plots")
+    else:
+        runs = _runs_of(args.runs, args.root or ["outputs"])
+        result = plot_runs(runs, args.metric, args.out or "runs.png", args.html)
+        for run in runs:
+            for problem in run.problems:
+                print(f"resireg-runs: {problem}", file=__import__("sys").stderr)
+    for path in result.files:
+        print(path)
