@@ -147,7 +147,7 @@ def test_register_then_evaluate_by_alias(tmp_path, tiny_export, mlflow_server, m
     from mlflow import artifacts as mlflow_artifacts
 
     from resireg.models import ResiregVLM, build_encoder
-    from resireg.models.registry import resolve
+    from resireg.models.vlm.registry import resolve
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     monkeypatch.setenv("RESIREG_REGISTRY_CACHE", str(cache))
@@ -196,7 +196,7 @@ def test_register_then_evaluate_by_alias(tmp_path, tiny_export, mlflow_server, m
 
 
 def test_a_missing_model_and_a_missing_store_are_named(tmp_path, monkeypatch):
-    from resireg.models.registry import RegistryError, resolve
+    from resireg.models.vlm.registry import RegistryError, resolve
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path}/nothing.db")
     with pytest.raises(RegistryError, match=r"no registry sqlite:///.*nothing\.db"):

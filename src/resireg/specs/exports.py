@@ -1,7 +1,7 @@
 """Where a model comes from, decided without torch: the rule of
 :meth:`resireg.models.ResiregVLM.from_pretrained` for its ``source`` (an export folder, a
 Hugging Face repo id, or an export in MLflow's model registry, ``models:/NAME@ALIAS`` or
-``models:/NAME/VERSION``: :mod:`resireg.models.registry`), shared with the config checks of
+``models:/NAME/VERSION``: :mod:`resireg.models.vlm.registry`), shared with the config checks of
 ``resireg-eval`` and ``resireg-playground``, which run it before torch and the models load.
 (This was ``resireg.sources`` before that name became the map's frame sources.)"""
 

@@ -91,7 +91,7 @@ def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
         return cfg, []
     export = Path(str(cfg.model_path)).expanduser()
     if registry_model(str(cfg.model_path)) is not None:  # models:/NAME@ALIAS: its local copy
-        from resireg.models.registry import registry_export
+        from resireg.models.vlm.registry import registry_export
 
         export = registry_export(str(cfg.model_path))
     if not cfg.get("export_settings", True) or not export.is_dir():

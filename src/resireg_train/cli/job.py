@@ -353,7 +353,7 @@ def _reported_types() -> tuple[type[BaseException], ...]:
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation.base", "NothingScoredError"),
         ("resireg.models.hub", "WeightsUnavailableError"),
-        ("resireg.models.registry", "RegistryError"),
+        ("resireg.models.vlm.registry", "RegistryError"),
     ):
         cls = getattr(sys.modules.get(module), name, None)
         if cls is not None:

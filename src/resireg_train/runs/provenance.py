@@ -455,7 +455,7 @@ def export_identity(path: str | os.PathLike) -> dict[str, Any]:
     """An export folder's path, each file's SHA-256 and (when the export carries one) the
     provenance of the training run that wrote it: ``{"path", "files", "training_run"}``; for
     an export in MLflow's model registry (``models:/NAME@ALIAS``) those of its local copy
-    (downloaded now, once: :mod:`resireg.models.registry`) with ``uri`` and ``registry``
+    (downloaded now, once: :mod:`resireg.models.vlm.registry`) with ``uri`` and ``registry``
     (name, version, MLflow run, source)."""
     from resireg.integrity import sha256_file
     from resireg.specs.exports import registry_model
@@ -467,7 +467,7 @@ def export_identity(path: str | os.PathLike) -> dict[str, Any]:
         return {"path": text, "files": None, "error": str(err)}
     if registered:
         try:
-            from resireg.models.registry import resolve
+            from resireg.models.vlm.registry import resolve
 
             found = resolve(text)
         except Exception as err:  # the run reports it when it loads the model

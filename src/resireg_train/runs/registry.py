@@ -1,6 +1,6 @@
 """``resireg-runs register <export> --name NAME [--alias champion]``: an export into MLflow's
 model registry, loadable afterwards as ``model_path=models:/NAME@champion`` (or
-``models:/NAME/VERSION``) wherever an export folder is taken (:mod:`resireg.models.registry`
+``models:/NAME/VERSION``) wherever an export folder is taken (:mod:`resireg.models.vlm.registry`
 downloads and verifies it).
 
 One registration is one MLflow run, ``register <NAME>``, in the experiment ``--experiment``
@@ -27,7 +27,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from resireg.models.registry import DIGESTS_TAG
+from resireg.models.vlm.registry import DIGESTS_TAG
 from resireg.specs.tree import flatten
 from resireg_train.config.secrets import mask_text, mask_url
 from resireg_train.runs.provenance import EXPORT_PROVENANCE

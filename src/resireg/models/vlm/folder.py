@@ -64,7 +64,7 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
 def export_dir(source: str | os.PathLike) -> Path:
     """The local folder of an export: ``source`` itself, a Hugging Face snapshot, or the
     verified local copy of an export in MLflow's model registry (``models:/NAME@ALIAS``,
-    :mod:`resireg.models.registry`).
+    :mod:`resireg.models.vlm.registry`).
 
     A source that is not an existing folder is a repo id only if it has the form
     ``owner/name`` and names no existing file; the local cache is tried first and only a
@@ -75,7 +75,7 @@ def export_dir(source: str | os.PathLike) -> Path:
         return path
     text = os.fspath(source)
     if registry_model(text) is not None:  # models:/NAME@ALIAS: MLflow's registry, cached
-        from resireg.models.registry import registry_export
+        from resireg.models.vlm.registry import registry_export
 
         return registry_export(text)
     if path.exists() or not is_repo_id(text):  # (resireg.specs.exports: the checks' rule too)

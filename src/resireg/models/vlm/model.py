@@ -198,7 +198,7 @@ class ResiregVLM(DenseEncoder):
         """Load a bundle from a directory written by :meth:`save_pretrained`, from a Hugging
         Face repo id ``owner/name`` (the local cache first; the hub only when online), or from
         MLflow's model registry (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``: downloaded
-        once, verified before every use; :mod:`resireg.models.registry`)."""
+        once, verified before every use; :mod:`resireg.models.vlm.registry`)."""
         path = export_dir(source)
         cfg = read_config(path)  # (its file names checked: they stay inside the folder)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
