@@ -178,7 +178,7 @@ def test_a_search_folder_plots_optunas_own_figures(tmp_path):
     optuna = pytest.importorskip("optuna")
     from PIL import Image
 
-    from resireg_train.runs.plots import plot_search
+    from resireg_train.sweeps.plots import plot_search
     from resireg_train.sweeps.storage import open_storage
 
     study = optuna.create_study(study_name="search", direction="maximize",

@@ -27,6 +27,7 @@ import argparse
 import csv
 import json
 import sys
+from pathlib import Path
 from typing import Any
 
 __all__ = ["main"]
@@ -116,7 +117,8 @@ def main(argv: list[str] | None = None) -> None:
     two.add_argument("a", metavar="RUN_A")
     two.add_argument("b", metavar="RUN_B")
     two.add_argument("--root", action="append", metavar="ROOT")
-    # register, plot, gc: their logic in resireg_train.runs.registry, .plots, .gc
+    # register, plot, gc: their logic in resireg_train.runs.registry, .plots (a search's:
+    # resireg_train.sweeps.plots), .gc
     reg = sub.add_parser("register", help="an export into MLflow's model registry "
                          "(model_path=models:/NAME@ALIAS loads it)")  # fmt: skip
     reg.add_argument("export", metavar="EXPORT")
@@ -178,10 +180,13 @@ def main(argv: list[str] | None = None) -> None:
                 raise ValueError(f"{args.export}: no {CARD_FILE}")
             print(path.read_text())
             return
-        if args.command in ("register", "plot", "gc"):
+        if args.command == "plot":
+            _plot(args)
+            return
+        if args.command in ("register", "gc"):
             from importlib import import_module
 
-            module = {"register": "registry", "plot": "plots", "gc": "gc"}[args.command]
+            module = {"register": "registry", "gc": "gc"}[args.command]
             import_module(f"resireg_train.runs.{module}").command(args)
             return
         roots = args.root or [DEFAULT_ROOT]
@@ -221,3 +226,26 @@ def main(argv: list[str] | None = None) -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def _plot(args: Any) -> None:
+    """``resireg-runs plot``: a search folder alone draws its study's plots
+    (:mod:`resireg_train.sweeps.plots`), else the runs' curves of each ``--metric``
+    (:mod:`resireg_train.runs.plots`); prints each file written."""
+    from resireg_train.runs.plots import plot_runs, runs_of
+    from resireg_train.sweeps.plots import plot_search
+    from resireg_train.sweeps.report import is_optuna_sweep
+
+    if not args.metric:
+        if len(args.runs) != 1 or not is_optuna_sweep(args.runs[0]):
+            raise ValueError("--metric is required (a search folder alone plots its study)")
+        folder = Path(args.runs[0])
+        result = plot_search(folder, Path(args.out) if args.out else folder / "plots")
+    else:
+        runs = runs_of(args.runs, args.root or ["outputs"])
+        result = plot_runs(runs, args.metric, args.out or "runs.png", args.html)
+        for run in runs:
+            for problem in run.problems:
+                print(f"resireg-runs: {problem}", file=sys.stderr)
+    for path in result.files:
+        print(path)

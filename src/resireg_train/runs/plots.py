@@ -8,10 +8,8 @@
   (per epoch). A run with no curve for the metric but a final value (an evaluation, a map)
   shows it as a dashed level. ``--html`` also writes the same curves as an interactive plotly
   page (plotly: the ``optuna`` extra).
-- **A search folder** (an Optuna search's sweep folder): Optuna's own optimisation history,
-  parameter importances and parallel-coordinate plot, as PNGs
-  (``optuna.visualization.matplotlib``) and together as one HTML page
-  (``optuna.visualization``, plotly; it works offline: plotly's script is inside).
+- **A search folder** (an Optuna search's sweep folder): Optuna's own plots,
+  :mod:`resireg_train.sweeps.plots` (the sweeps sit above the runs).
 
 Matplotlib draws without a display (Agg).
 """
@@ -21,7 +19,6 @@ from __future__ import annotations
 import csv
 import fnmatch
 import math
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,11 +27,11 @@ from resireg_train.runs.index import Run
 
 __all__ = [
     "PlotResult",
-    "command",
+    "axes_lines",
+    "runs_of",
     "expand_metrics",
     "metric_curve",
     "plot_runs",
-    "plot_search",
     "run_labels",
 ]
 
@@ -191,7 +188,7 @@ def plot_runs(
         handles = ax.get_legend_handles_labels()[0]
         if handles:
             ax.legend(fontsize=8, loc="best", ncol=1 if len(handles) <= 6 else 2)
-        result.curves[metric] = _lines(ax)
+        result.curves[metric] = axes_lines(ax)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
@@ -201,7 +198,7 @@ def plot_runs(
     return result
 
 
-def _lines(ax: Any) -> dict[str, tuple[list[float] | None, list[float]]]:
+def axes_lines(ax: Any) -> dict[str, tuple[list[float] | None, list[float]]]:
     """The axes' curves as drawn: label -> (x, y); a level (``axhline``) -> (None, [y]); a
     scatter (Optuna's trials) -> its points."""
     drawn: dict[str, tuple[list[float] | None, list[float]]] = {}
@@ -243,63 +240,7 @@ def _runs_html(curves: dict[str, dict[str, Any]], path: Path) -> Path:
     return path
 
 
-#: The search plots: Optuna's function name -> the file stem.
-SEARCH_PLOTS = {
-    "plot_optimization_history": "optuna_history",
-    "plot_param_importances": "optuna_importance",
-    "plot_parallel_coordinate": "optuna_parallel",
-}
-
-
-def plot_search(folder: str | Path, out: str | Path) -> PlotResult:
-    """Optuna's history, parameter-importance and parallel-coordinate plots of the search in
-    ``folder``: a PNG each and one HTML page (``optuna_plots.html``) in the folder ``out``.
-    A plot Optuna cannot draw (importances need two completed trials that differ) is left
-    out with a warning."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import optuna
-    import optuna.visualization as ovp
-    from optuna.visualization import matplotlib as ovm
-
-    from resireg_train.sweeps.report import optuna_study, readable_axes, short_param
-
-    study = optuna_study(folder)
-    complete = [t for t in study.get_trials(deepcopy=False)
-                if t.state == optuna.trial.TrialState.COMPLETE]  # fmt: skip
-    if not complete:
-        raise ValueError(f"{folder}: its study {study.study_name!r} has no completed trial yet")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    result, pages = PlotResult(files=[]), []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        for function, stem in SEARCH_PLOTS.items():
-            try:
-                ax = getattr(ovm, function)(study)
-                figure = getattr(ovp, function)(study)
-            except (RuntimeError, ValueError) as err:  # e.g. every trial scored the same
-                warnings.warn(f"{stem}: {err}", stacklevel=2)
-                continue
-            if function == "plot_param_importances":
-                ax.set_yticklabels([short_param(t.get_text()) for t in ax.get_yticklabels()])
-            fig = readable_axes(ax, integer_x=function == "plot_optimization_history")
-            result.curves[stem] = _lines(ax)
-            fig.savefig(out / f"{stem}.png", dpi=110, bbox_inches="tight")
-            plt.close(fig)
-            result.files.append(out / f"{stem}.png")
-            pages.append(figure.to_html(full_html=False, include_plotlyjs=not pages))
-    if pages:
-        page = out / "optuna_plots.html"
-        page.write_text(f"<html><head><meta charset='utf-8'><title>{study.study_name}</title>"
-                        "</head><body>" + "\n".join(pages) + "</body></html>")  # fmt: skip
-        result.files.append(page)
-    return result
-
-
-def _runs_of(specs: list[str], roots: list[str]) -> list[Run]:
+def runs_of(specs: list[str], roots: list[str]) -> list[Run]:
     """The runs the command line names: a run folder or run id (:func:`index.find_run`), or a
     folder holding runs (a sweep: each of its runs, in folder order)."""
     from resireg_train.runs import index
@@ -316,22 +257,3 @@ def _runs_of(specs: list[str], roots: list[str]) -> list[Run]:
         else:
             runs.append(index.find_run(spec, roots))
     return runs
-
-
-def command(args: Any) -> None:
-    """``resireg-runs plot`` (module docstring): prints each file written."""
-    from resireg_train.sweeps.report import is_optuna_sweep
-
-    if not args.metric:
-        if len(args.runs) != 1 or not is_optuna_sweep(args.runs[0]):
-            raise ValueError("--metric is required (a search folder alone plots its study)")
-        folder = Path(args.runs[0])
-        result = plot_search(folder, Path(args.out) if args.out else folder / "plots")
-    else:
-        runs = _runs_of(args.runs, args.root or ["outputs"])
-        result = plot_runs(runs, args.metric, args.out or "runs.png", args.html)
-        for run in runs:
-            for problem in run.problems:
-                print(f"resireg-runs: {problem}", file=__import__("sys").stderr)
-    for path in result.files:
-        print(path)

@@ -15,7 +15,7 @@ from typing import Any
 
 from resireg.integrity import IntegrityError, read_json, resolve_inside, verify_digests
 from resireg.models.hub import require_online
-from resireg.specs.exports import is_repo_id, registry_model
+from resireg.specs.exports import is_repo_id
 
 __all__ = ["EXPORT_FORMAT", "EXPORT_WHAT", "export_dir", "read_config"]
 
@@ -62,9 +62,9 @@ def read_config(directory: str | os.PathLike) -> dict[str, Any]:
 
 
 def export_dir(source: str | os.PathLike) -> Path:
-    """The local folder of an export: ``source`` itself, a Hugging Face snapshot, or the
-    verified local copy of an export in MLflow's model registry (``models:/NAME@ALIAS``,
-    :mod:`resireg.models.vlm.registry`).
+    """The local folder of an export: ``source`` itself, or a Hugging Face snapshot (a
+    ``models:/`` source of MLflow's registry goes through :func:`local_export` of
+    :mod:`resireg.models.vlm.model`, since the registry reads exports with this module).
 
     A source that is not an existing folder is a repo id only if it has the form
     ``owner/name`` and names no existing file; the local cache is tried first and only a
@@ -74,10 +74,6 @@ def export_dir(source: str | os.PathLike) -> Path:
     if path.is_dir():
         return path
     text = os.fspath(source)
-    if registry_model(text) is not None:  # models:/NAME@ALIAS: MLflow's registry, cached
-        from resireg.models.vlm.registry import registry_export
-
-        return registry_export(text)
     if path.exists() or not is_repo_id(text):  # (resireg.specs.exports: the checks' rule too)
         raise FileNotFoundError(
             f"{text!r} is not an export folder (and not a Hugging Face repo id 'owner/name')"

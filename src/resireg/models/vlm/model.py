@@ -37,6 +37,7 @@ from resireg.models.vlm.eupe import EUPEBackbone
 from resireg.models.vlm.folder import EXPORT_FORMAT, EXPORT_WHAT, export_dir, read_config
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half
+from resireg.specs.exports import registry_model
 
 # read_config: also importable from here, where it was defined before resireg.models.vlm.folder
 __all__ = ["ResiregVLM", "read_config"]
@@ -199,7 +200,7 @@ class ResiregVLM(DenseEncoder):
         Face repo id ``owner/name`` (the local cache first; the hub only when online), or from
         MLflow's model registry (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``: downloaded
         once, verified before every use; :mod:`resireg.models.vlm.registry`)."""
-        path = export_dir(source)
+        path = local_export(source)
         cfg = read_config(path)  # (its file names checked: they stay inside the folder)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
         if "frozen_weights" in cfg:
@@ -258,7 +259,7 @@ class ResiregVLM(DenseEncoder):
 
         with tempfile.TemporaryDirectory(prefix="resireg-push-") as tmp:
             source = export if export is not None else self.save_pretrained(Path(tmp) / "export")
-            folder = hub_folder(export_dir(source), Path(tmp) / "upload", repo_id, card)
+            folder = hub_folder(local_export(source), Path(tmp) / "upload", repo_id, card)
             api = HfApi(token=token)
             api.create_repo(repo_id, private=private, repo_type="model", exist_ok=True)
             return api.upload_folder(
@@ -292,3 +293,15 @@ def _check_sizes(
         )
     if problems:
         raise ValueError("ResiregVLM parts do not fit: " + "; ".join(problems))
+
+
+def local_export(source: str | os.PathLike) -> Path:
+    """The local folder of an export: :func:`~resireg.models.vlm.folder.export_dir` (a folder,
+    a Hugging Face snapshot), or for ``models:/NAME@ALIAS`` / ``models:/NAME/VERSION`` the
+    verified local copy of an export in MLflow's model registry (:mod:`resireg.models.vlm.registry`,
+    which reads exports through the folder module: the dispatch lives here, above both)."""
+    if registry_model(os.fspath(source)) is not None:
+        from resireg.models.vlm.registry import registry_export
+
+        return registry_export(os.fspath(source))
+    return export_dir(source)

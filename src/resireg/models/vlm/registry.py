@@ -37,6 +37,7 @@ from urllib.parse import urlsplit, urlunsplit
 
 from resireg.errors import ResiregError
 from resireg.integrity import IntegrityError, verify_digests
+from resireg.models.vlm.folder import read_config
 from resireg.specs.exports import registry_model
 
 __all__ = [
@@ -108,8 +109,6 @@ def _safe(name: str) -> str:
 def _verify(folder: Path, recorded: dict[str, str]) -> None:
     """The registered files against the digests recorded at registration, then the tensor
     files against the export's own ``config.json`` (IntegrityError naming the file)."""
-    from resireg.models.vlm.model import read_config
-
     if recorded:
         verify_digests(folder, recorded, _WHAT)
     read_config(folder)
