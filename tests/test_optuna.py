@@ -303,6 +303,41 @@ def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_
     assert "died mid-trial" in table.loc[victim.number, "error"]
 
 
+def _trial_processes(sweep, group):
+    """The live processes of process group ``group`` that have run a trial of the search."""
+    study = _study(sweep)
+    found = set()
+    for trial in study.get_trials() if study is not None else ():
+        try:
+            pid = int(trial.user_attrs["worker_pid"])
+            if os.getpgid(pid) == group:
+                found.add(pid)
+        except (KeyError, ProcessLookupError):
+            continue
+    return found
+
+
+@pytest.mark.slow
+def test_sigterm_to_a_search_or_a_worker_ends_the_processes_it_started(tmp_path, tiny_export):
+    """``kill <pid>`` (SIGTERM, not to the group) of a `resireg-search worker` and of a search
+    that started a second worker (hparams_search.workers=2), each once its workers run
+    trials: each exits by the signal at once and leaves none of its processes running
+    (``started`` fails the test naming any still running when its block ends); before, the
+    worker's job and the search's worker went on, orphaned."""
+    sweep = tmp_path / "sweep"
+    command = _eval_search(tiny_export, sweep, 500, "hparams_search.workers=2")
+    with _started(command, tmp_path / "a.log") as search:
+        _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json", alive=[search])
+        with started([shutil.which("resireg-search") or sys.executable, *(
+            [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+            "worker", sweep], stdout=tmp_path / "b.log", threads=1) as worker:  # fmt: skip
+            _wait_for(lambda: _trial_processes(sweep, worker.pid) and _trial_processes(
+                sweep, search.pid) - {search.pid}, what="trials of both workers",
+                alive=[search, worker])  # fmt: skip
+            assert worker.stop(signal.SIGTERM, timeout=30) == -signal.SIGTERM
+        assert search.stop(signal.SIGTERM, timeout=30) == -signal.SIGTERM
+
+
 @pytest.mark.slow
 def test_a_killed_search_run_again_reruns_no_finished_trial(tmp_path, tiny_export):
     """kill -9 of a whole 2-worker search (its process group) once a trial has finished, then

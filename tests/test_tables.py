@@ -39,7 +39,7 @@ def _takes_what_it_is_given(kind, entry, target):
     class it must have, a signature that binds the call's arguments (a TypeError names the
     argument it does not take)."""
     from resireg.models.interface import DenseEncoder
-    from resireg_train.evaluation import TaskProtocol
+    from resireg_train.evaluation.base import TaskProtocol
 
     def takes(*args, **kwargs):
         inspect.signature(target).bind_partial(*args, **kwargs)
