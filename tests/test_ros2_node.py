@@ -364,8 +364,8 @@ def _start_node(tmp_path, export, *extra):
 @pytest.mark.slow
 def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_path):
     """resireg-ros2 in a subprocess maps the first four frames and saves on SIGINT; started again
-    with resume:=true it continues with the last two: the map equals resireg-map's of all six.
-    Neither process opened a UDP socket."""
+    with resume:=true it continues with the last two and saves on SIGTERM (``kill``, a service
+    manager): the map equals resireg-map's of all six. Neither process opened a UDP socket."""
     from std_msgs.msg import String
 
     context, test_node, spinner = ros
@@ -386,7 +386,8 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
                 wait_for(lambda n=stop - start: status and status[-1]["frames"]["used"] == n,
                          timeout=90, what="the frames mapped")  # fmt: skip
                 assert udp_sockets(proc.pid) == set()
-                assert proc.stop(signal.SIGINT, timeout=60) == 0, proc.stderr[-3000:]
+                sig = signal.SIGINT if start == 0 else signal.SIGTERM
+                assert proc.stop(sig, timeout=60) == 0, proc.stderr[-3000:]
             out, err = proc.stdout, proc.stderr
             assert f"map saved to {tmp_path / 'map'}" in out, out + err
             saved = SemanticMap.load(tmp_path / "map", encoder)
