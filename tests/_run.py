@@ -123,6 +123,21 @@ def _group(pgid: int) -> list[psutil.Process]:
     return members
 
 
+def _wait_gone(procs, timeout: float) -> list[psutil.Process]:
+    """Those of ``procs`` still running (zombies count as gone: where no init reaps them, they
+    would stay) after waiting up to ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        alive = []
+        for proc in procs:
+            with contextlib.suppress(psutil.Error):
+                if proc.is_running() and proc.status() != psutil.STATUS_ZOMBIE:
+                    alive.append(proc)
+        if not alive or time.monotonic() >= deadline:
+            return alive
+        time.sleep(0.1)
+
+
 class Child:
     """A process :func:`started` runs: its outputs as they come, waits that time out, and
     signals to it or to its process group (the group a command's own children join)."""
@@ -284,11 +299,12 @@ def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
                 popen.stdin.close()
         left = _group(child.pid)
         if left and ok and exited:
-            _, left = psutil.wait_procs(left, timeout=GRACE)
+            left = _wait_gone(left, GRACE)
         said = _describe(left)
         for proc in left:
             with contextlib.suppress(psutil.Error):
                 proc.kill()
+        _wait_gone(left, 10)  # gone once the block ends
         deadline = time.monotonic() + 10
         for lines in (out, err):
             if lines:
