@@ -31,9 +31,10 @@ GRACE = 10
 
 def _ctrl_c_as_in_a_terminal() -> None:
     """The child takes SIGINT (and SIGTERM) as a terminal's Ctrl-C (or kill) would reach it. A
-    shell that starts the suite in the background (`cmd &`, no job control; `nohup`) makes its
-    children ignore SIGINT, an ignored disposition survives exec, and Python then installs no
-    KeyboardInterrupt handler: a test's SIGINT would vanish and its child outlive it."""
+    shell without job control that starts the suite in the background (`cmd &`, `nohup cmd &`,
+    some CI runners) makes it ignore SIGINT, an ignored disposition survives fork and exec, and
+    Python then installs no KeyboardInterrupt handler: a test's SIGINT would vanish and its
+    child outlive it."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
@@ -58,7 +59,10 @@ def _checked(proc, check):
 
 class _Lines:
     """The lines of one output of a child, read by a thread as they come (a child never
-    stalls on a full pipe; a test waits for a line with a timeout, never on a blocking read)."""
+    stalls on a full pipe; a test waits for a line with a timeout, never on a blocking read).
+    By hand: subprocess reads a pipe only to its end (communicate) or without a timeout
+    (readline); a reader thread per pipe is its documented way round (pexpect's spawn would
+    need a terminal, which changes what a command prints)."""
 
     def __init__(self, file):
         self._lines: list[str] = []
@@ -269,12 +273,14 @@ def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
 
         master, slave = pty.openpty()
         stdin = stdout = stderr = slave
-    popen = subprocess.Popen(
-        [str(c) for c in cmd], stdin=stdin, stdout=target(stdout), stderr=target(stderr),
-        env=_env(env, threads), cwd=cwd, start_new_session=True, preexec_fn=before_exec,
-    )  # fmt: skip
-    for file in opened:  # the child holds its own descriptor
-        file.close()
+    try:
+        popen = subprocess.Popen(
+            [str(c) for c in cmd], stdin=stdin, stdout=target(stdout), stderr=target(stderr),
+            env=_env(env, threads), cwd=cwd, start_new_session=True, preexec_fn=before_exec,
+        )  # fmt: skip
+    finally:
+        for file in opened:  # the child holds its own descriptor
+            file.close()
     if terminal:
         os.close(slave)
         out = _Lines(io.TextIOWrapper(os.fdopen(master, "rb"), errors="replace"))
