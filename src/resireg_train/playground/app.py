@@ -156,18 +156,20 @@ def launch(demo: gr.Blocks, host: str = "127.0.0.1", port: int | None = None) ->
     machine)."""
     theme = gr.themes.Default(font=["ui-sans-serif", "system-ui", "sans-serif"],
                               font_mono=["ui-monospace", "monospace"])  # fmt: skip
-    # quiet: Gradio would also print "To create a public link, set `share=True`", advice this
-    # page (127.0.0.1 by default, no request leaving the machine) must not follow; the one line
-    # a user needs, the address, is printed here.
-    demo.queue(default_concurrency_limit=1).launch(
-        server_name=host, server_port=port, share=False, ssr_mode=False, show_error=True,
-        theme=theme, max_file_size="50mb", footer_links=[], quiet=True, prevent_thread_lock=True,
-    )  # fmt: skip
     # SIGTERM (kill, a service manager, a container's stop) closes the server as Ctrl-C does:
-    # Gradio's block_thread closes it on KeyboardInterrupt and returns (exit 0).
+    # Gradio's block_thread closes it on KeyboardInterrupt and returns (exit 0). Set before the
+    # server starts: one that comes as soon as the page answers is handled too.
     main = threading.current_thread() is threading.main_thread()  # where handlers may be set
     previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
     try:
+        # quiet: Gradio would also print "To create a public link, set `share=True`", advice
+        # this page (127.0.0.1 by default, no request leaving the machine) must not follow; the
+        # one line a user needs, the address, is printed here.
+        demo.queue(default_concurrency_limit=1).launch(
+            server_name=host, server_port=port, share=False, ssr_mode=False, show_error=True,
+            theme=theme, max_file_size="50mb", footer_links=[], quiet=True,
+            prevent_thread_lock=True,
+        )  # fmt: skip
         print(f"* Running on local URL:  {demo.local_url}", flush=True)
         demo.block_thread()  # until Ctrl-C or SIGTERM
     except KeyboardInterrupt:  # one that came before block_thread took over
