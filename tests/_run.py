@@ -1,14 +1,21 @@
-"""Run the console scripts in a fresh process, as a user would (shared by several tests)."""
+"""Run the console scripts in a fresh process, as a user would (shared by several tests), and
+start every long-lived subprocess of a test (:func:`started`): SIGINT at its default, its own
+process group, output read with timeouts, the whole group killed whatever happens."""
 
 import contextlib
 import io
 import json
 import os
+import shlex
 import shutil
 import signal
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+import threading
+import time
+from pathlib import Path
+
+import psutil
 
 _MODULES = {
     "resireg-train": "resireg_train.cli.train",
@@ -20,13 +27,19 @@ _MODULES = {
     "resireg-segment": "resireg.deploy.cli segment",
 }
 
+#: Seconds a command that exited may take for the rest of its process group (data loader
+#: workers, a tracker's service) to exit before they count as left behind.
+GRACE = 10
+
 
 def _ctrl_c_as_in_a_terminal() -> None:
-    """The child takes SIGINT as a terminal's Ctrl-C would reach it. A shell that starts the
-    suite in the background (`cmd &`, no job control) makes its children ignore SIGINT, an
-    ignored disposition survives exec, and Python then installs no KeyboardInterrupt handler:
-    the Ctrl-C test would see its signal vanish."""
+    """The child takes SIGINT (and SIGTERM) as a terminal's Ctrl-C (or kill) would reach it. A
+    shell without job control that starts the suite in the background (`cmd &`, `nohup cmd &`,
+    some CI runners) makes it ignore SIGINT, an ignored disposition survives fork and exec, and
+    Python then installs no KeyboardInterrupt handler: a test's SIGINT would vanish and its
+    child outlive it."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _command(script, args):
@@ -47,46 +60,299 @@ def _checked(proc, check):
     return proc
 
 
-def run(script, *args, timeout=600, check=True, env=None, threads=None):
+class _Lines:
+    """The lines of one output of a child, read by a thread as they come (a child never
+    stalls on a full pipe; a test waits for a line with a timeout, never on a blocking read).
+    By hand: subprocess reads a pipe only to its end (communicate) or without a timeout
+    (readline); a reader thread per pipe is its documented way round (pexpect's spawn would
+    need a terminal, which changes what a command prints)."""
+
+    def __init__(self, file):
+        self._lines: list[str] = []
+        self._ended = False
+        self._changed = threading.Condition()
+        self._thread = threading.Thread(target=self._read, args=(file,), daemon=True)
+        self._thread.start()
+
+    def _read(self, file):
+        try:
+            for line in file:
+                with self._changed:
+                    self._lines.append(line)
+                    self._changed.notify_all()
+        except OSError:  # a terminal's master side reads EIO once the child's side is closed
+            pass
+        finally:
+            file.close()
+            with self._changed:
+                self._ended = True
+                self._changed.notify_all()
+
+    def text(self) -> str:
+        with self._changed:
+            return "".join(self._lines)
+
+    def line(self, index: int, deadline: float) -> str | None:
+        """Line ``index`` ('' once the output ended before it), ``None`` at the deadline."""
+        with self._changed:
+            while len(self._lines) <= index and not self._ended:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._changed.wait(left)
+            return self._lines[index] if index < len(self._lines) else ""
+
+    def join(self, deadline: float) -> bool:
+        """Whether the output ended (every writer closed it) by ``deadline``."""
+        self._thread.join(max(0.0, deadline - time.monotonic()))
+        return not self._thread.is_alive()
+
+
+def _describe(procs) -> str:
+    said = []
+    for p in procs:
+        try:
+            said.append(f"PID {p.pid} {shlex.join(p.cmdline())[:200]!r}")
+        except psutil.Error:
+            said.append(f"PID {p.pid}")
+    return "; ".join(said)
+
+
+def _group(pgid: int) -> list[psutil.Process]:
+    """The live (not zombie) processes of process group ``pgid``."""
+    members = []
+    for proc in psutil.process_iter():
+        try:
+            if os.getpgid(proc.pid) == pgid and proc.status() != psutil.STATUS_ZOMBIE:
+                members.append(proc)
+        except (OSError, psutil.Error):
+            continue
+    return members
+
+
+def _wait_gone(procs, timeout: float) -> list[psutil.Process]:
+    """Those of ``procs`` still running (zombies count as gone: where no init reaps them, they
+    would stay) after waiting up to ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        alive = []
+        for proc in procs:
+            with contextlib.suppress(psutil.Error):
+                if proc.is_running() and proc.status() != psutil.STATUS_ZOMBIE:
+                    alive.append(proc)
+        if not alive or time.monotonic() >= deadline:
+            return alive
+        time.sleep(0.1)
+
+
+class Child:
+    """A process :func:`started` runs: its outputs as they come, waits that time out, and
+    signals to it or to its process group (the group a command's own children join)."""
+
+    def __init__(self, popen: subprocess.Popen, out: _Lines | None, err: _Lines | None):
+        self.popen, self._out, self._err = popen, out, err
+        self.args, self.pid = popen.args, popen.pid
+        self._next = 0  # the next stdout line readline() gives
+
+    def __str__(self) -> str:
+        return f"{shlex.join(map(str, self.args))[:300]!r} (PID {self.pid})"
+
+    @property
+    def returncode(self) -> int | None:
+        return self.popen.returncode
+
+    def poll(self) -> int | None:
+        return self.popen.poll()
+
+    @property
+    def stdout(self) -> str:
+        """What it printed so far on stdout (with ``stderr=STDOUT``: on both; a terminal's
+        screen with ``terminal=True``); '' when stdout is not a pipe."""
+        return self._out.text() if self._out else ""
+
+    @property
+    def stderr(self) -> str:
+        return self._err.text() if self._err else ""
+
+    def _tail(self) -> str:
+        return (self.stdout[-3000:] + self.stderr[-3000:]) or "(nothing printed)"
+
+    def readline(self, timeout: float) -> str:
+        """Its next stdout line ('' once stdout ended); an AssertionError naming it and what it
+        printed if none comes within ``timeout`` seconds."""
+        line = self._out.line(self._next, time.monotonic() + timeout)
+        if line is None:
+            raise AssertionError(f"{self}: no line in {timeout} s; it printed:\n{self._tail()}")
+        self._next += bool(line)
+        return line
+
+    def expect(self, match, timeout: float, what: str) -> str:
+        """Its stdout lines until one for which ``match(line)`` holds (a str: the line's text
+        without its newline); an AssertionError if the output ends or ``timeout`` passes."""
+        if isinstance(match, str):
+            text, match = match, lambda line: line.rstrip("\r\n") == text
+        deadline = time.monotonic() + timeout
+        while True:
+            line = self.readline(max(0.0, deadline - time.monotonic()))
+            if not line:
+                raise AssertionError(f"{self} ended (exit {self.popen.wait()}) before {what}:"
+                                     f"\n{self._tail()}")  # fmt: skip
+            if match(line):
+                return line
+
+    def send(self, sig: int, group: bool = False) -> None:
+        """``sig`` to the process (``group``: to its whole process group)."""
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.pid, sig) if group else self.popen.send_signal(sig)
+
+    def wait(self, timeout: float) -> int:
+        """Its exit code once it exited and its outputs ended; ``subprocess.TimeoutExpired``
+        after ``timeout`` seconds (the ``with`` block then kills its group)."""
+        self.popen.wait(timeout)
+        deadline = time.monotonic() + GRACE
+        for lines in (self._out, self._err):
+            if lines and not lines.join(deadline):  # a process it started holds the pipe open
+                left = _group(self.pid)
+                raise AssertionError(f"{self} exited ({self.returncode}) but left running, "
+                                     f"holding its output: {_describe(left) or '?'}")  # fmt: skip
+        return self.popen.returncode
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 60, group: bool = False) -> int:
+        """Send ``sig`` (to the group with ``group``) and wait for the exit; an AssertionError
+        if it does not stop within ``timeout`` seconds (and the group is killed)."""
+        self.send(sig, group)
+        try:
+            return self.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            name = signal.Signals(sig).name
+            raise AssertionError(f"{self} did not stop within {timeout} s of {name}; it "
+                                 f"printed:\n{self._tail()}") from None  # fmt: skip
+
+    def kill(self) -> None:
+        """SIGKILL to its process group and to every process it started that left the group;
+        reaped."""
+        try:
+            stray = psutil.Process(self.pid).children(recursive=True)
+        except psutil.Error:
+            stray = []
+        self.send(signal.SIGKILL, group=True)
+        for proc in stray:
+            with contextlib.suppress(psutil.Error):
+                proc.kill()
+        self.popen.wait()
+
+
+@contextlib.contextmanager
+def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, terminal=False,
+            preexec=None):  # fmt: skip
+    """``cmd`` (a list) started for the ``with`` block, as every long-lived subprocess of a test
+    is: SIGINT and SIGTERM at their default (whatever this process ignores), its own process
+    group (session), offline (``env``, ``threads`` as :func:`run`'s), stdin from /dev/null
+    unless given. ``stdout`` / ``stderr``: ``subprocess.PIPE`` (read by a thread: see
+    :class:`Child`), ``subprocess.STDOUT`` (stderr into stdout), ``DEVNULL`` or a path (a log
+    file). ``terminal``: a pseudo-terminal for stdin, stdout and stderr (what it shows is
+    :attr:`Child.stdout`). ``preexec``: run in the child before the command.
+
+    Leaving the block kills whatever of its process group still runs. When the block ends
+    without an error and the command had exited, processes of its group still running
+    ``GRACE`` seconds later fail the test, named (a command must not leave processes behind)."""
+    opened, out, err = [], None, None
+
+    def target(where):
+        if isinstance(where, (str, Path)):
+            opened.append(open(where, "w"))
+            return opened[-1]
+        return where
+
+    def before_exec():
+        _ctrl_c_as_in_a_terminal()
+        if preexec is not None:
+            preexec()
+
+    if terminal:
+        import pty
+
+        master, slave = pty.openpty()
+        stdin = stdout = stderr = slave
+    try:
+        popen = subprocess.Popen(
+            [str(c) for c in cmd], stdin=stdin, stdout=target(stdout), stderr=target(stderr),
+            env=_env(env, threads), cwd=cwd, start_new_session=True, preexec_fn=before_exec,
+        )  # fmt: skip
+    finally:
+        for file in opened:  # the child holds its own descriptor
+            file.close()
+    if terminal:
+        os.close(slave)
+        out = _Lines(io.TextIOWrapper(os.fdopen(master, "rb"), errors="replace"))
+    else:
+        if popen.stdout is not None:
+            out = _Lines(io.TextIOWrapper(popen.stdout, errors="replace"))
+        if popen.stderr is not None:
+            err = _Lines(io.TextIOWrapper(popen.stderr, errors="replace"))
+    if popen.stdin is not None:
+        popen.stdin = io.TextIOWrapper(popen.stdin, write_through=True)
+    child = Child(popen, out, err)
+    ok = False
+    try:
+        yield child
+        ok = True
+    finally:
+        exited = child.poll() is not None
+        if not exited:
+            child.kill()
+        if popen.stdin is not None:
+            with contextlib.suppress(OSError):
+                popen.stdin.close()
+        left = _group(child.pid)
+        if left and ok and exited:
+            left = _wait_gone(left, GRACE)
+        said = _describe(left)
+        for proc in left:
+            with contextlib.suppress(psutil.Error):
+                proc.kill()
+        _wait_gone(left, 10)  # gone once the block ends
+        deadline = time.monotonic() + 10
+        for lines in (out, err):
+            if lines:
+                lines.join(deadline)
+        if left and ok and exited:
+            raise AssertionError(f"{child} exited ({child.returncode}) but left running (now "
+                                 f"killed): {said}")  # fmt: skip
+
+
+def run(script, *args, timeout=600, check=True, env=None, threads=None, preexec=None):
     """``script args...`` offline (in ``env``, default this process's environment; ``threads``:
-    its OMP_NUM_THREADS); returns the CompletedProcess (asserts success if ``check``)."""
-    proc = subprocess.run(
-        _command(script, args), capture_output=True, text=True, timeout=timeout,
-        env=_env(env, threads), preexec_fn=_ctrl_c_as_in_a_terminal,
-    )  # fmt: skip
-    return _checked(proc, check)
+    its OMP_NUM_THREADS; ``preexec``: see :func:`started`); returns the CompletedProcess
+    (asserts success if ``check``). Past ``timeout`` seconds: ``subprocess.TimeoutExpired``,
+    its process group killed."""
+    return run_side_by_side((script, *args), timeout=timeout, check=check, env=env,
+                            threads=threads, preexec=preexec)[0]  # fmt: skip
 
 
-def run_side_by_side(*commands, timeout=600, check=True, env=None, threads=1):
+def run_side_by_side(*commands, timeout=600, check=True, env=None, threads=1, preexec=None):
     """Independent ``(script, *args)`` commands as :func:`run` runs them, but started together
     (their start-up, mostly single-threaded imports, overlaps on the cores), each with
     ``threads`` torch threads; returns their CompletedProcesses in order, each checked as
     :func:`run` checks it (``check``: one flag for all, or one per command). A test whose
     point is the order of runs keeps :func:`run`."""
-    procs = [
-        subprocess.Popen(
-            _command(script, args),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=_env(env, threads),
-            preexec_fn=_ctrl_c_as_in_a_terminal,
-        )
-        for script, *args in commands
-    ]
-
-    def finish(proc):  # read every pipe at once: no child waits on a full one
-        out, err = proc.communicate(timeout=timeout)
-        return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
-
-    try:
-        with ThreadPoolExecutor(len(procs)) as pool:
-            done = list(pool.map(finish, procs))
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+    deadline = time.monotonic() + timeout
+    with contextlib.ExitStack() as stack:
+        children = [
+            stack.enter_context(started(_command(script, args), env=env, threads=threads,
+                                        stderr=subprocess.PIPE, preexec=preexec))
+            for script, *args in commands
+        ]  # fmt: skip
+        for child in children:
+            try:
+                child.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                raise subprocess.TimeoutExpired(child.args, timeout, child.stdout,
+                                                child.stderr) from None  # fmt: skip
+    done = [subprocess.CompletedProcess(c.args, c.returncode, c.stdout, c.stderr)
+            for c in children]  # fmt: skip
     checks = [check] * len(done) if isinstance(check, bool) else list(check)
     assert len(checks) == len(done), (checks, commands)
     return [_checked(proc, c) for proc, c in zip(done, checks, strict=True)]

@@ -1,5 +1,7 @@
 """Test-session settings: never touch the network, keep runs deterministic."""
 
+import contextlib
+import glob
 import os
 import sys
 from pathlib import Path
@@ -19,6 +21,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 # helpers, found next to the script when run as `python benchmarks/x.py`).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
+import psutil  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
@@ -27,6 +30,76 @@ import torch  # noqa: E402
 def _seed():
     torch.manual_seed(0)
     yield
+
+
+#: Python's shared helper processes, started once and kept for the life of this process: not
+#: a test's to stop (matched in their command lines).
+_SHARED_HELPERS = ("multiprocessing.resource_tracker", "multiprocessing.forkserver",
+                   "_inductor/compile_worker", "_inductor.compile_worker")  # fmt: skip
+
+
+def _descendants() -> set[int]:
+    """The PIDs of this process's descendants. Linux lists each thread's children in
+    /proc/<pid>/task/<tid>/children (microseconds; psutil's scan of every process takes
+    milliseconds, twice per test); psutil where that file is missing."""
+    me = os.getpid()
+    if not os.path.exists(f"/proc/{me}/task/{me}/children"):
+        return {p.pid for p in psutil.Process().children(recursive=True)}
+    found, todo = set(), [me]
+    while todo:
+        for path in glob.glob(f"/proc/{todo.pop()}/task/*/children"):
+            try:
+                pids = {int(x) for x in Path(path).read_text().split()}
+            except OSError:  # the process has gone
+                continue
+            todo += pids - found
+            found |= pids
+    return found
+
+
+def _kill_left_behind(pids, what: str) -> None:
+    """Fail ``what`` naming the processes of ``pids`` still running (not zombies, not shared
+    helpers) after a grace period, once killed."""
+    from _run import GRACE
+
+    left = []
+    for pid in pids:
+        try:
+            proc = psutil.Process(pid)
+            cmdline = " ".join(proc.cmdline())
+            if proc.status() != psutil.STATUS_ZOMBIE and not any(
+                h in cmdline for h in _SHARED_HELPERS
+            ):
+                left.append((proc, cmdline))
+        except psutil.Error:
+            continue
+    if not left:
+        return
+    _, alive = psutil.wait_procs([p for p, _ in left], timeout=GRACE)
+    named = [f"PID {p.pid} {c[:200]!r}" for p, c in left if p in alive]
+    for proc in alive:
+        with contextlib.suppress(psutil.Error):
+            proc.kill()
+    if named:
+        pytest.fail(f"{what} left running (now killed): {'; '.join(named)}", pytrace=False)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _no_process_left_by_the_session():
+    """At the end of the session (of each xdist worker): no process started by a session
+    fixture or a test is still running."""
+    before = _descendants()
+    yield
+    _kill_left_behind(_descendants() - before, "the test session")
+
+
+@pytest.fixture(autouse=True)
+def _no_process_left_behind(request):
+    """A test (with its function-scoped fixtures, torn down before this one) leaves no process
+    running: one still running GRACE seconds after the test fails it, named, and is killed."""
+    before = _descendants()
+    yield
+    _kill_left_behind(_descendants() - before, request.node.nodeid)
 
 
 @pytest.fixture(scope="session")

@@ -2,6 +2,7 @@
 what they print (each line once, no colour codes in a redirected log), how they fail fast
 with the option's own name, and the files they leave (git-ignored folders, the umask)."""
 
+import contextlib
 import fcntl
 import json
 import os
@@ -13,14 +14,15 @@ from pathlib import Path
 
 import pytest
 
-from _run import run, run_side_by_side
+from _run import _command, run, run_side_by_side, started
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@contextlib.contextmanager
 def _hold(folder):
-    """A separate process that locks ``folder`` as a job does and waits; returns it once the
-    lock is held."""
+    """A separate process that locks ``folder`` as a job does and waits, for the ``with``
+    block; given once the lock is held."""
     code = textwrap.dedent(f"""
         import sys
         from pathlib import Path
@@ -29,10 +31,9 @@ def _hold(folder):
         print("held", flush=True)
         sys.stdin.read()
     """)
-    proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)  # fmt: skip
-    assert proc.stdout.readline().strip() == "held"
-    return proc
+    with started([sys.executable, "-c", code], stdin=subprocess.PIPE) as proc:
+        proc.expect("held", timeout=120, what="the lock held")
+        yield proc
 
 
 def _files(folder):
@@ -51,16 +52,13 @@ def test_second_job_on_a_locked_folder_is_refused_and_a_killed_holder_frees_it(
     (out / "map.log").write_text("the first job's log\n")
     (out / ".hydra").mkdir()
     (out / ".hydra" / "overrides.yaml").write_text("- window=4\n")
-    holder = _hold(out)
-    try:
+    with _hold(out) as holder:
         before = _files(out)
         proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
                    f"hydra.run.dir={out}", check=False, timeout=300)  # fmt: skip
         _assert_refused(proc, out, holder.pid)
         assert _files(out) == before  # nothing written: no log, no .hydra, no record
-    finally:
         holder.kill()  # SIGKILL: no clean-up code runs in the holder
-        holder.wait()
     assert holder.returncode == -signal.SIGKILL
     _assert_free(out)
 
@@ -82,26 +80,16 @@ def test_a_running_training_job_keeps_its_folder_until_killed(tmp_path, tiny_exp
     """A real resireg-train job, paused once training started: resireg-map and resireg-eval
     (resume=true, the same hydra.run.dir) are refused naming its PID and change none of its
     files; after kill -9 the lock is free."""
-    import shutil
-
     out = tmp_path / "run"
-    exe = shutil.which("resireg-train")
-    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
     tests = str(Path(__file__).parent)
-    env = {**os.environ, "HF_HUB_OFFLINE": "1",
+    env = {**os.environ,
            "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}  # fmt: skip
-    job = subprocess.Popen(
-        [*cmd, "experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",
-         "+callbacks.hold._target_=_hold.WaitFor", f"+callbacks.hold.path={tmp_path / 'go'}",
-         f"hydra.run.dir={out}"],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
-    )  # fmt: skip
-    try:
-        for line in job.stdout:  # until training has started (the folder written, locked)
-            if line.strip() == "holding":
-                break
-        else:
-            pytest.fail(f"the training job ended ({job.wait()}) before training")
+    with started(_command("resireg-train", [
+        "experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",
+        "+callbacks.hold._target_=_hold.WaitFor", f"+callbacks.hold.path={tmp_path / 'go'}",
+        f"hydra.run.dir={out}"]), env=env) as job:  # fmt: skip
+        # until training has started (the folder written, locked)
+        job.expect("holding", timeout=300, what="training")
         before = _files(out)
         assert (out / ".hydra" / "overrides.yaml").is_file() and (out / "train.log").is_file()
         refused = run_side_by_side(
@@ -114,9 +102,7 @@ def test_a_running_training_job_keeps_its_folder_until_killed(tmp_path, tiny_exp
         for proc in refused:
             _assert_refused(proc, out, job.pid)
         assert _files(out) == before
-    finally:
         job.kill()
-        job.wait()
     assert job.returncode == -signal.SIGKILL
     _assert_free(out)
 
@@ -222,39 +208,6 @@ def test_playground_names_model_path_before_loading_torch(tmp_path):
         assert "encoder.path" not in proc.stderr and "model_path=" not in proc.stderr
 
 
-def _on_a_terminal(cmd, env):
-    """Start ``cmd`` with a pseudo-terminal as its stdin, stdout and stderr (as a user's shell
-    runs it); returns the process and a function that waits and returns what it printed."""
-    import pty
-    import threading
-
-    master, slave = pty.openpty()
-    proc = subprocess.Popen(cmd, stdin=slave, stdout=slave, stderr=slave, env=env)
-    os.close(slave)
-    chunks = []
-
-    def read():  # drained all along: a full pty would stall the child
-        while True:
-            try:
-                data = os.read(master, 65536)
-            except OSError:  # the child closed its end
-                return
-            if not data:
-                return
-            chunks.append(data)
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-
-    def finish(timeout=600):
-        proc.wait(timeout=timeout)
-        reader.join(timeout=30)
-        os.close(master)
-        return b"".join(chunks).decode(errors="replace")
-
-    return proc, finish
-
-
 @pytest.mark.slow
 def test_training_prints_each_line_once_and_the_bar_shows_the_epoch_values(tmp_path):
     """resireg-train experiment=smoke, redirected: each Lightning line once (Hydra's format),
@@ -262,14 +215,13 @@ def test_training_prints_each_line_once_and_the_bar_shows_the_epoch_values(tmp_p
     terminal: the progress bar shows every value of the logged epoch line (losses, learning
     rate, evaluation mIoU, skip counts) and the running step loss."""
     import re
-    import shutil
 
-    exe = shutil.which("resireg-train")
-    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
     args = ["experiment=smoke", "trainer.max_epochs=2", "data.steps_per_epoch=2", "export=false"]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "COLUMNS": "2000", "TERM": "xterm"}
-    tty, finish = _on_a_terminal([*cmd, *args, f"hydra.run.dir={tmp_path / 'tty'}"], env)
-    piped = run("resireg-train", *args, f"hydra.run.dir={tmp_path / 'piped'}", timeout=600)
+    env = {**os.environ, "COLUMNS": "2000", "TERM": "xterm"}
+    with started(_command("resireg-train", [*args, f"hydra.run.dir={tmp_path / 'tty'}"]),
+                 env=env, terminal=True) as tty:  # fmt: skip
+        piped = run("resireg-train", *args, f"hydra.run.dir={tmp_path / 'piped'}", timeout=600)
+        tty.wait(timeout=600)
     printed = piped.stdout + piped.stderr
     assert "\x1b[" not in printed
     for message in ("Seed set to 0", "GPU available: False", "`Trainer.fit` stopped"):
@@ -280,7 +232,7 @@ def test_training_prints_each_line_once_and_the_bar_shows_the_epoch_values(tmp_p
     log = (tmp_path / "piped" / "train.log").read_text()
     assert log.count("Trainable params") == 1 and log.count("Seed set to 0") == 1
 
-    screen = finish()
+    screen = tty.stdout
     assert tty.returncode == 0, screen[-3000:]
     screen = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", screen)  # the terminal's control codes
     (last,) = [x for x in (tmp_path / "tty" / "train.log").read_text().splitlines()
@@ -353,12 +305,8 @@ def test_playground_launch_prints_its_address_and_no_share_hint(tmp_path):
         launch(demo, "127.0.0.1", {port})
     """)
     env = {**os.environ, "GRADIO_ANALYTICS_ENABLED": "False"}
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env=env)  # fmt: skip
-    try:
-        first = proc.stdout.readline()
+    with started([sys.executable, "-c", code], env=env) as proc:
+        first = proc.readline(timeout=180)
         assert first == f"* Running on local URL:  http://127.0.0.1:{port}/\n", first
-    finally:
-        proc.send_signal(signal.SIGINT)
-        rest, _ = proc.communicate(timeout=60)
-    assert "share=True" not in first + rest, rest
+        assert proc.stop(signal.SIGINT, timeout=60) == 0, proc.stdout  # Ctrl-C: a clean exit
+    assert "share=True" not in proc.stdout, proc.stdout

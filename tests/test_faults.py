@@ -149,9 +149,7 @@ def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tm
         else:  # the default config: the smoke experiment's values are named
             assert "name='train' (the run: 'smoke')" in line and "and " in line, line
 
-    proc = subprocess.run(command, capture_output=True, text=True, timeout=600,
-                          env={**env, "HF_HUB_OFFLINE": "1"})  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    run(*command, env=env)  # the printed command, verbatim (asserts it succeeds)
     results = _results(out)
     assert results["status"] == "completed" and results["error"] is None
     assert [h["epoch"] for h in results["history"]] == [0, 1, 2]
@@ -197,12 +195,8 @@ def test_a_checkpoint_that_cannot_be_written_fails_in_one_line_and_leaves_nothin
     """A real write failure: the process may not write files over 512 KB (RLIMIT_FSIZE, as
     a full disk or a quota would refuse), and a smoke checkpoint is ~1.4 MB."""
     out = tmp_path / "run"
-    exe = Path(sys.executable).parent / "resireg-train"
-    proc = subprocess.run(
-        [str(exe), *SMOKE, "trainer.max_epochs=1", f"hydra.run.dir={out}"],
-        capture_output=True, text=True, timeout=600, preexec_fn=_file_size_limit(512 * 1024),
-        env={**NO_CHECKOUT, "HF_HUB_OFFLINE": "1"},
-    )  # fmt: skip
+    proc = run("resireg-train", *SMOKE, "trainer.max_epochs=1", f"hydra.run.dir={out}",
+               check=False, preexec=_file_size_limit(512 * 1024), env=NO_CHECKOUT)  # fmt: skip
     assert proc.returncode != 0
     target = out / "checkpoints" / "epoch000.ckpt"
     expected = f"could not write the checkpoint {target}: File too large"

@@ -23,7 +23,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from _run import _command, _env, report, run, run_side_by_side
+from _run import _command, report, run, run_side_by_side, started
 
 optuna = pytest.importorskip("optuna")
 
@@ -80,19 +80,23 @@ def _check_total(sweep, n_trials, storage=None):
     return study
 
 
-def _popen(command, log):
-    """``command`` in its own process group (session), output to ``log``."""
+def _started(command, log):
+    """``command`` (``(script, *args)``) started in its own process group, output to the file
+    ``log`` (see :func:`_run.started`)."""
     script, *args = command
-    return subprocess.Popen(_command(script, args), stdout=log, stderr=subprocess.STDOUT,
-                            env=_env(None, threads=1), start_new_session=True)  # fmt: skip
+    return started(_command(script, args), stdout=log, threads=1)
 
 
-def _wait_for(predicate, timeout=300, what="condition"):
+def _wait_for(predicate, timeout=300, what="condition", alive=()):
+    """``predicate()``'s first true value, polled; an AssertionError after ``timeout`` seconds,
+    or as soon as a process of ``alive`` (the ones that could bring the state about) exited."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         value = predicate()
         if value:
             return value
+        for proc in alive:
+            assert proc.poll() is None, f"{proc} exited ({proc.returncode}) before {what}"
         time.sleep(0.2)
     raise AssertionError(f"timed out waiting for {what}")
 
@@ -278,33 +282,60 @@ def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_
     trial becomes FAIL (its process is gone), and the search still ends with n_trials
     finished trials."""
     sweep = tmp_path / "sweep"
-    log_a, log_b = open(tmp_path / "a.log", "w"), open(tmp_path / "b.log", "w")
-    search = _popen(_eval_search(tiny_export, sweep, 5), log_a)
-    _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json")
-    worker = subprocess.Popen([shutil.which("resireg-search") or sys.executable, *(
-        [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
-        "worker", str(sweep)], stdout=log_b, stderr=subprocess.STDOUT, env=_env(None, 1),
-        start_new_session=True)  # fmt: skip
-    try:
+    with _started(_eval_search(tiny_export, sweep, 5), tmp_path / "a.log") as search:
+        _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json", alive=[search])
+        with started([shutil.which("resireg-search") or sys.executable, *(
+            [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+            "worker", sweep], stdout=tmp_path / "b.log", threads=1) as worker:  # fmt: skip
 
-        def victim_trial():
-            assert worker.poll() is None, (tmp_path / "b.log").read_text()[-3000:]
-            return _running_trial_of(sweep, worker.pid)
+            def victim_trial():
+                assert worker.poll() is None, (tmp_path / "b.log").read_text()[-3000:]
+                return _running_trial_of(sweep, worker.pid)
 
-        victim = _wait_for(victim_trial, what="a trial of the worker")
-        os.killpg(worker.pid, signal.SIGKILL)
-        worker.wait()
+            victim = _wait_for(victim_trial, what="a trial of the worker")
+            worker.kill()  # kill -9 of its process group
         assert search.wait(timeout=600) == 0, (tmp_path / "a.log").read_text()[-3000:]
-    finally:
-        for proc in (search, worker):
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)
     dead = _study(sweep).trials[victim.number]
     assert dead.state == TrialState.FAIL and dead.system_attrs.get("resireg:stale") is True
     _check_total(sweep, 5)
     report(sweep)
     table = pd.read_csv(sweep / "optuna_trials.csv").set_index("trial")
     assert "died mid-trial" in table.loc[victim.number, "error"]
+
+
+def _trial_processes(sweep, group):
+    """The live processes of process group ``group`` that have run a trial of the search."""
+    study = _study(sweep)
+    found = set()
+    for trial in study.get_trials() if study is not None else ():
+        try:
+            pid = int(trial.user_attrs["worker_pid"])
+            if os.getpgid(pid) == group:
+                found.add(pid)
+        except (KeyError, ProcessLookupError):
+            continue
+    return found
+
+
+@pytest.mark.slow
+def test_sigterm_to_a_search_or_a_worker_ends_the_processes_it_started(tmp_path, tiny_export):
+    """``kill <pid>`` (SIGTERM, not to the group) of a `resireg-search worker` and of a search
+    that started a second worker (hparams_search.workers=2), each once its workers run
+    trials: each exits by the signal at once and leaves none of its processes running
+    (``started`` fails the test naming any still running when its block ends); before, the
+    worker's job and the search's worker went on, orphaned."""
+    sweep = tmp_path / "sweep"
+    command = _eval_search(tiny_export, sweep, 500, "hparams_search.workers=2")
+    with _started(command, tmp_path / "a.log") as search:
+        _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json", alive=[search])
+        with started([shutil.which("resireg-search") or sys.executable, *(
+            [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+            "worker", sweep], stdout=tmp_path / "b.log", threads=1) as worker:  # fmt: skip
+            _wait_for(lambda: _trial_processes(sweep, worker.pid) and _trial_processes(
+                sweep, search.pid) - {search.pid}, what="trials of both workers",
+                alive=[search, worker])  # fmt: skip
+            assert worker.stop(signal.SIGTERM, timeout=30) == -signal.SIGTERM
+        assert search.stop(signal.SIGTERM, timeout=30) == -signal.SIGTERM
 
 
 @pytest.mark.slow
@@ -314,15 +345,12 @@ def test_a_killed_search_run_again_reruns_no_finished_trial(tmp_path, tiny_expor
     the kill interrupted are FAIL, and the study reaches its total of finished trials."""
     sweep = tmp_path / "sweep"
     command = _eval_search(tiny_export, sweep, 5, "hparams_search.workers=2")
-    with open(tmp_path / "first.log", "w") as log:
-        first = _popen(command, log)
-        try:
-            _wait_for(lambda: (s := _study(sweep)) is not None and any(
-                t.state == TrialState.COMPLETE for t in s.get_trials())
-                and s.get_trials(states=(TrialState.RUNNING,)), what="a finished and a running trial")  # fmt: skip
-        finally:
-            os.killpg(first.pid, signal.SIGKILL)
-            first.wait()
+    with _started(command, tmp_path / "first.log") as first:
+        _wait_for(lambda: (s := _study(sweep)) is not None and any(
+            t.state == TrialState.COMPLETE for t in s.get_trials())
+            and s.get_trials(states=(TrialState.RUNNING,)), what="a finished and a running "
+            "trial", alive=[first])  # fmt: skip
+        first.kill()  # kill -9 of its process group
     before = {t.number: t for t in _study(sweep).get_trials() if t.state == TrialState.COMPLETE}
     interrupted = [t.number for t in _study(sweep).get_trials(states=(TrialState.RUNNING,))]
     assert before and interrupted
@@ -409,9 +437,8 @@ def test_optuna_dashboard_lists_the_trials_of_a_search(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen([exe, "--host", "127.0.0.1", "--port", str(port), "--storage-class",
-                             "JournalFileStorage", str(tmp_path / "optuna.journal")],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)  # fmt: skip
+    dashboard = started([exe, "--host", "127.0.0.1", "--port", port, "--storage-class",
+                         "JournalFileStorage", tmp_path / "optuna.journal"])  # fmt: skip
     opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # no proxy
     base = f"http://127.0.0.1:{port}"
 
@@ -425,13 +452,11 @@ def test_optuna_dashboard_lists_the_trials_of_a_search(tmp_path):
         except OSError:
             return None
 
-    try:
-        listed = _wait_for(studies, timeout=60, what="optuna-dashboard")["study_summaries"]
-        assert [s["study_name"] for s in listed] == ["made"]
-        detail = get(f"/api/studies/{listed[0]['study_id']}")
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
+    with dashboard as proc:
+        listed = _wait_for(studies, timeout=60, what="optuna-dashboard", alive=[proc])
+        assert [s["study_name"] for s in listed["study_summaries"]] == ["made"]
+        detail = get(f"/api/studies/{listed['study_summaries'][0]['study_id']}")
+        proc.stop(signal.SIGTERM, timeout=30)
     trials = {t["number"]: t for t in detail["trials"]}
     assert sorted(trials) == [0, 1, 2, 3]
     for trial in study.get_trials():

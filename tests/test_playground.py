@@ -4,11 +4,12 @@ error handling, and the real page in a real headless browser (Chromium + Seleniu
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
 import os
 import shutil
+import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -21,6 +22,7 @@ import torch
 import yaml
 from PIL import Image
 
+from _run import Child, started
 from resireg import ReSiRegFull, ReSiRegLite
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -227,7 +229,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _wait_until_serving(url: str, proc: subprocess.Popen, log: Path, timeout: float = 120):
+def _wait_until_serving(url: str, proc: Child, log: Path, timeout: float = 120):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -239,6 +241,34 @@ def _wait_until_serving(url: str, proc: subprocess.Popen, log: Path, timeout: fl
         except OSError:
             time.sleep(0.5)
     pytest.fail(f"the playground did not serve {url} in {timeout} s:\n{log.read_text()[-3000:]}")
+
+
+@contextlib.contextmanager
+def _serving(export: Path, port: int, log: Path):
+    """``resireg-playground`` on the tiny VLM export at 127.0.0.1:``port`` for the ``with``
+    block (output to ``log``; see :func:`_run.started`)."""
+    cmd = [sys.executable, "-m", "resireg_train.cli.playground", "--encoder", TINY_VLM,
+           "--model-path", export, "--host", "127.0.0.1", "--port", port, "--device", "cpu",
+           "--short-side", "96"]  # fmt: skip
+    with started(cmd, stdout=log, env={**os.environ, "GRADIO_ANALYTICS_ENABLED": "False"}) as proc:
+        yield proc
+
+
+@pytest.mark.slow
+def test_the_playground_stops_on_sigterm_as_on_ctrl_c(tiny_export, tmp_path):
+    """``kill <pid>`` (what a service manager, a container's stop or a job's end sends) closes
+    the serving playground as Ctrl-C does: it exits 0 at once (not killed by the signal) and
+    frees its port."""
+    pytest.importorskip("gradio", reason='the playground extra: pip install -e ".[dev]"')
+    port = _free_port()
+    log = tmp_path / "playground.log"
+    with _serving(tiny_export, port, log) as proc:
+        _wait_until_serving(f"http://127.0.0.1:{port}/", proc, log)
+        assert proc.stop(signal.SIGTERM, timeout=30) == 0, log.read_text()[-3000:]
+    with socket.socket() as s:  # no one listens on the port any more
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # past closed connections
+        s.bind(("127.0.0.1", port))
+        s.listen()
 
 
 _PIXELS = """
@@ -264,96 +294,88 @@ def test_playground_in_a_real_browser(tiny_export, tmp_path):
     port = _free_port()
     url = f"http://127.0.0.1:{port}/"
     log = tmp_path / "playground.log"
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "GRADIO_ANALYTICS_ENABLED": "False"}
-    cmd = [sys.executable, "-m", "resireg_train.cli.playground", "--encoder", str(TINY_VLM),
-           "--model-path", str(tiny_export), "--host", "127.0.0.1", "--port", str(port),
-           "--device", "cpu", "--short-side", "96"]  # fmt: skip
-    with open(log, "w") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
     options = webdriver.ChromeOptions()
     options.binary_location = str(CHROMIUM)
     profile = tempfile.mkdtemp(prefix="chromium-", dir=tmp_path)
     for flag in [*BROWSER_FLAGS, f"--user-data-dir={profile}"]:
         options.add_argument(flag)
     driver = None
-    try:
-        _wait_until_serving(url, proc, log)
-        driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
-        wait = WebDriverWait(driver, 90)
-        driver.get(url)
-        status = lambda: driver.find_element(By.ID, "status").text  # noqa: E731
-
-        def upload(path: Path) -> None:
-            wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, "#upload input[type=file]"))
-            driver.find_element(By.CSS_SELECTOR, "#upload input[type=file]").send_keys(str(path))
-
-        def pick_example(name: str) -> None:  # also clears the upload
-            driver.find_element(
-                By.XPATH, f"//*[@id='example']//label[contains(., '{name}')]"
-            ).click()
-
-        def run(query: str, expect: str) -> str:
-            box = driver.find_element(By.CSS_SELECTOR, "#queries textarea")
-            box.clear()
-            box.send_keys(query)
-            driver.find_element(By.ID, "run").click()
-            wait.until(lambda d: expect in status())
-            return status()
-
-        # 1. A good upload and two queries: the three panels appear, BB and Full differ.
-        from resireg_train.playground.examples import example_image
-
-        photo = tmp_path / "coffee.png"
-        example_image("coffee").save(photo)
-        upload(photo)
-        wait.until(lambda d: "Loaded the upload (600 x 400 px)" in status())
-        assert run("cup, table", "Done:") == "Done: upload coffee.png, queries 'cup', 'table'."
-        shown = {}
-        for key in ("map-bb", "map-lite", "map-full", "canvas"):
-            src, data = wait.until(lambda d, key=key: d.execute_script(_PIXELS, f"#{key}"))
-            png = base64.b64decode(data.split(",", 1)[1])
-            shown[key] = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
-        assert shown["canvas"].shape == (96, 144, 3)  # 400 x 600 at short side 96
-        assert shown["map-bb"].shape == shown["map-full"].shape == (2 * (213 + 18), 320, 3)
-        assert np.abs(shown["map-bb"] - shown["map-full"]).mean() > 5
-        assert np.abs(shown["map-lite"] - shown["map-full"]).mean() > 1
-        timings = driver.find_element(By.ID, "timings").text
-        assert "ReSiReg Full" in timings and "encoder pass" in timings
-        driver.save_screenshot(str(tmp_path / "playground.png"))
-        if os.environ.get("RESIREG_ARTIFACTS"):
-            artefacts = Path(os.environ["RESIREG_ARTIFACTS"])
-            artefacts.mkdir(parents=True, exist_ok=True)
-            shutil.copy(tmp_path / "playground.png", artefacts / "playground.png")
-
-        # 2. Bad uploads: the page says why, the server goes on serving.
-        empty = tmp_path / "empty.png"
-        empty.write_bytes(b"")
-        pick_example("chelsea")
-        wait.until(lambda d: "Upload removed" in status())
-        upload(empty)
-        wait.until(lambda d: "Error:" in status())
-        assert "empty.png is empty (0 bytes)" in status()
-        text = tmp_path / "notes.txt"
-        text.write_text("this is not an image\n")
-        pick_example("astronaut")
-        wait.until(lambda d: "Upload removed" in status())
-        upload(text)
-        wait.until(lambda d: "notes.txt" in status())
-        assert "Error:" in status() and "is not an image" in status()
-        assert "notes.txt" in run("cat", "Error:")  # Run with the bad upload: the same error
-        assert proc.poll() is None
-
-        # 3. A good query afterwards still works.
-        pick_example("chelsea")
-        wait.until(lambda d: "Upload removed" in status())
-        assert run("cat, wall", "Done:") == "Done: example 'chelsea', queries 'cat', 'wall'."
-        wait.until(lambda d: d.execute_script(_PIXELS, "#map-full"))
-        driver.save_screenshot(str(tmp_path / "playground_after_errors.png"))
-    finally:
-        if driver is not None:
-            driver.quit()
-        proc.terminate()
+    with _serving(tiny_export, port, log) as proc:
         try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+            _wait_until_serving(url, proc, log)
+            driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
+            wait = WebDriverWait(driver, 90)
+            driver.get(url)
+            status = lambda: driver.find_element(By.ID, "status").text  # noqa: E731
+
+            def upload(path: Path) -> None:
+                box = "#upload input[type=file]"
+                wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, box))
+                driver.find_element(By.CSS_SELECTOR, box).send_keys(str(path))
+
+            def pick_example(name: str) -> None:  # also clears the upload
+                driver.find_element(
+                    By.XPATH, f"//*[@id='example']//label[contains(., '{name}')]"
+                ).click()
+
+            def run(query: str, expect: str) -> str:
+                box = driver.find_element(By.CSS_SELECTOR, "#queries textarea")
+                box.clear()
+                box.send_keys(query)
+                driver.find_element(By.ID, "run").click()
+                wait.until(lambda d: expect in status())
+                return status()
+
+            # 1. A good upload and two queries: the three panels appear, BB and Full differ.
+            from resireg_train.playground.examples import example_image
+
+            photo = tmp_path / "coffee.png"
+            example_image("coffee").save(photo)
+            upload(photo)
+            wait.until(lambda d: "Loaded the upload (600 x 400 px)" in status())
+            assert run("cup, table", "Done:") == "Done: upload coffee.png, queries 'cup', 'table'."
+            shown = {}
+            for key in ("map-bb", "map-lite", "map-full", "canvas"):
+                src, data = wait.until(lambda d, key=key: d.execute_script(_PIXELS, f"#{key}"))
+                png = base64.b64decode(data.split(",", 1)[1])
+                shown[key] = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(int)
+            assert shown["canvas"].shape == (96, 144, 3)  # 400 x 600 at short side 96
+            assert shown["map-bb"].shape == shown["map-full"].shape == (2 * (213 + 18), 320, 3)
+            assert np.abs(shown["map-bb"] - shown["map-full"]).mean() > 5
+            assert np.abs(shown["map-lite"] - shown["map-full"]).mean() > 1
+            timings = driver.find_element(By.ID, "timings").text
+            assert "ReSiReg Full" in timings and "encoder pass" in timings
+            driver.save_screenshot(str(tmp_path / "playground.png"))
+            if os.environ.get("RESIREG_ARTIFACTS"):
+                artefacts = Path(os.environ["RESIREG_ARTIFACTS"])
+                artefacts.mkdir(parents=True, exist_ok=True)
+                shutil.copy(tmp_path / "playground.png", artefacts / "playground.png")
+
+            # 2. Bad uploads: the page says why, the server goes on serving.
+            empty = tmp_path / "empty.png"
+            empty.write_bytes(b"")
+            pick_example("chelsea")
+            wait.until(lambda d: "Upload removed" in status())
+            upload(empty)
+            wait.until(lambda d: "Error:" in status())
+            assert "empty.png is empty (0 bytes)" in status()
+            text = tmp_path / "notes.txt"
+            text.write_text("this is not an image\n")
+            pick_example("astronaut")
+            wait.until(lambda d: "Upload removed" in status())
+            upload(text)
+            wait.until(lambda d: "notes.txt" in status())
+            assert "Error:" in status() and "is not an image" in status()
+            assert "notes.txt" in run("cat", "Error:")  # Run with the bad upload: the same error
+            assert proc.poll() is None
+
+            # 3. A good query afterwards still works.
+            pick_example("chelsea")
+            wait.until(lambda d: "Upload removed" in status())
+            assert run("cat, wall", "Done:") == "Done: example 'chelsea', queries 'cat', 'wall'."
+            wait.until(lambda d: d.execute_script(_PIXELS, "#map-full"))
+            driver.save_screenshot(str(tmp_path / "playground_after_errors.png"))
+        finally:
+            if driver is not None:
+                driver.quit()
+        assert proc.stop(signal.SIGTERM, timeout=30) == 0, log.read_text()[-3000:]

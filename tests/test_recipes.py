@@ -101,9 +101,20 @@ class Sharp(nn.Module):
     args = ["resireg-eval", "encoder=tiny_vlm", f"model_path={tiny_export}", "dataset=synthetic",
             "dataset.size=4", "num_workers=0", "batch_size=2", "variants=[bb,sharp]",
             f"hydra.searchpath=[file://{TEST_CONF}]"]  # fmt: skip
-    run(*args, f"hydra.run.dir={tmp_path / 'out'}", env=_env(copy))
-    final = json.loads((tmp_path / "out" / "results.json").read_text())["final"]
-    assert {"val/ovss/synthetic/miou_bb", "val/ovss/synthetic/miou_sharp"} <= set(final)
+    scores = {}
+    for gain in (2.0, 1.0):
+        out = tmp_path / f"gain{gain}"
+        run(*args, f"sharp.gain={gain}", f"hydra.run.dir={out}", env=_env(copy))
+        final = json.loads((out / "results.json").read_text())["final"]
+        scores[gain] = {k.rsplit("_", 1)[0]: (final[k], final.get(k[: -len("bb")] + "sharp"))
+                        for k in final if k.endswith("_bb")}  # fmt: skip
+    # gain 1 keeps the language tokens as they are (sign(x) |x| = x): Sharp's scores are then
+    # bb's, each one, computed through its own entry; gain 2 changes the ranking of classes.
+    assert "val/ovss/synthetic/miou" in scores[1.0], scores
+    for key, (bb, sharp) in scores[1.0].items():
+        assert sharp == pytest.approx(bb, rel=1e-6, nan_ok=True), key
+    bb, sharp = scores[2.0]["val/ovss/synthetic/miou"]
+    assert sharp != pytest.approx(bb, rel=1e-6), scores[2.0]
     bad = run(*args, "sharp.gain=-1", f"hydra.run.dir={tmp_path / 'bad'}", env=_env(copy),
               check=False)  # fmt: skip
     assert bad.returncode != 0

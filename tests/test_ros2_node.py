@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from _ros2 import Spinner, ros_env, udp_sockets, wait_for  # sets the DDS environment first
+from _run import started
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
@@ -357,15 +358,14 @@ def _start_node(tmp_path, export, *extra):
         args += ["-p", f"{p.name}:={text}"]
     args += [x for kv in extra for x in ("-p", kv)]
     args += ["-r", "__node:=resireg_sigint"]  # apart from the module's in-process node
-    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**ros_env(), "OMP_NUM_THREADS": "1"})  # fmt: skip
+    return started(args, env=ros_env(), threads=1, stderr=subprocess.PIPE)
 
 
 @pytest.mark.slow
 def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_path):
     """resireg-ros2 in a subprocess maps the first four frames and saves on SIGINT; started again
-    with resume:=true it continues with the last two: the map equals resireg-map's of all six.
-    Neither process opened a UDP socket."""
+    with resume:=true it continues with the last two and saves on SIGTERM (``kill``, a service
+    manager): the map equals resireg-map's of all six. Neither process opened a UDP socket."""
     from std_msgs.msg import String
 
     context, test_node, spinner = ros
@@ -376,8 +376,7 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
                                         lambda m: status.append(json.loads(m.data)), 10)  # fmt: skip
     try:
         for start, stop, extra in ((0, 4, ()), (4, FRAMES, ("resume:=true",))):
-            proc = _start_node(tmp_path, tiny_export, *extra)
-            try:
+            with _start_node(tmp_path, tiny_export, *extra) as proc:
                 status.clear()
                 wait_for(lambda: status and len(status[-1]["subscribed"]) == 3, timeout=120,
                          what="the node's subscriptions")  # fmt: skip
@@ -387,14 +386,9 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
                 wait_for(lambda n=stop - start: status and status[-1]["frames"]["used"] == n,
                          timeout=90, what="the frames mapped")  # fmt: skip
                 assert udp_sockets(proc.pid) == set()
-            finally:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    out, err = proc.communicate(timeout=60)
-                except subprocess.TimeoutExpired:  # never left running for the next test
-                    proc.kill()
-                    out, err = proc.communicate()
-            assert proc.returncode == 0, err[-3000:]
+                sig = signal.SIGINT if start == 0 else signal.SIGTERM
+                assert proc.stop(sig, timeout=60) == 0, proc.stderr[-3000:]
+            out, err = proc.stdout, proc.stderr
             assert f"map saved to {tmp_path / 'map'}" in out, out + err
             saved = SemanticMap.load(tmp_path / "map", encoder)
             assert saved.frames == stop
@@ -413,7 +407,7 @@ def test_imports_carry_no_lightning_or_hydra():
     code = ("import json, sys, resireg.ros2.node, resireg.ros2.cli, resireg.ros2.pipeline, "
             "resireg.sources; print(json.dumps(sorted(sys.modules)))")  # fmt: skip
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env=ros_env(), check=True).stdout  # fmt: skip
+                         env=ros_env(), check=True, timeout=300).stdout  # fmt: skip
     roots = {m.split(".")[0] for m in json.loads(out)}
     assert "rclpy" in roots and "resireg" in roots
     assert not roots & {"lightning", "pytorch_lightning", "hydra", "omegaconf", "datasets",

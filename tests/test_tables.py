@@ -40,14 +40,52 @@ except ImportError:
     pass
 
 
+def _takes_what_it_is_given(kind, entry, target):
+    """``target``, the loaded code of a ``kind`` entry, is what its call site needs: the base
+    class it must have, a signature that binds the call's arguments (a TypeError names the
+    argument it does not take)."""
+    from resireg.models.interface import DenseEncoder
+    from resireg_train.evaluation.base import TaskProtocol
+
+    def takes(*args, **kwargs):
+        inspect.signature(target).bind_partial(*args, **kwargs)
+
+    if kind == "variants":  # resireg.specs.variants.build_variant: load()(**rule keywords)
+        assert inspect.isclass(target) and issubclass(target, torch.nn.Module), target
+        takes(**dict.fromkeys(entry.params))
+    elif kind == "encoders":  # resireg.models.factory.build_encoder: load()(device=, **keys)
+        assert not inspect.isclass(target) or issubclass(target, DenseEncoder), target
+        takes(device="cpu")
+    elif kind == "priors":  # resireg.priors.sam.build_prior: model, device, rule keywords
+        takes(**dict.fromkeys(["model", "device", *entry.params]))
+    elif kind == "metrics":  # a torchmetrics-style class; (matrix, metric) in the mapping engine
+        if entry.unit == "pixel":
+            takes(num_classes=2, ignore_index=255)
+        else:
+            takes(None, entry.name)
+    elif kind == "datasets":  # segmentation: load()(name, spec, key, common); ScanNet's
+        if "ovss" in entry.tasks:  # builder: build_scannet(spec, patch_size, key)
+            takes(entry.kind, {}, "dataset", {})
+        else:
+            takes({}, 16, "dataset")
+    elif kind == "tasks":  # resireg_train.cli.eval: load()(spec, cfg, params, out)
+        assert inspect.isclass(target) and issubclass(target, TaskProtocol), target
+        takes(entry, None, {}, None)
+    elif kind == "sources":  # resireg_train.cli.map: load()(**entry.arguments(block))
+        takes(**dict.fromkeys([*entry.common, *entry.keys]))
+    else:
+        raise AssertionError(f"{kind}: no call site known to this test")
+
+
 @pytest.mark.parametrize("kind", sorted(TABLES))
 def test_every_entry_loads_and_its_conf_files_hold_its_kind(kind):
+    """Every entry's code loads and takes what the project passes it (its base class where
+    the project needs one; a signature that binds the call's arguments)."""
     table = TABLES[kind]
     assert isinstance(table, SpecTable) and len(table) > 0
     for name, entry in table.items():
         assert table.get(name) is entry and table.find(name) is entry
-        target = entry.load()
-        assert callable(target), (kind, name)
+        _takes_what_it_is_given(kind, entry, entry.load())
         if table.conf is None:
             continue
         configs = table.configs(name)
@@ -90,13 +128,25 @@ _BAD = {  # one value each rule must refuse, by (table, entry, key)
 }
 
 
+def _shipped(kind, name, key):
+    """The value ``conf/`` ships for ``key`` of entry ``name`` (read here with PyYAML)."""
+    if kind == "variants":
+        return yaml.safe_load((conf_dir() / "resireg" / "default.yaml").read_text())[name][key]
+    folder = {"priors": "prior", "datasets": "dataset"}[kind]
+    return yaml.safe_load((conf_dir() / folder / f"{name}.yaml").read_text())[key]
+
+
 @pytest.mark.parametrize("where", sorted(_BAD))
 def test_the_rules_refuse_what_they_should(where):
+    """Each rule refuses its bad value and takes the value conf/ ships (so a rule that
+    refuses everything fails here too)."""
     kind, name, key = where
     entry = TABLES[kind][name]
     rules = entry.params if hasattr(entry, "params") else entry.rules
     check, expected = rules[key]
-    assert not check(_BAD[where]) and expected
+    assert isinstance(expected, str) and expected
+    assert check(_shipped(kind, name, key)), (where, _shipped(kind, name, key), expected)
+    assert not check(_BAD[where]), (where, _BAD[where], expected)
 
 
 def test_every_scorer_returns_exactly_its_keys():

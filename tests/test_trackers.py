@@ -6,10 +6,8 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import shutil
 import socket
-import subprocess
 import sys
 import time
 import urllib.request
@@ -17,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from _run import evaluate_export, run
+from _run import evaluate_export, run, started
 from resireg_train.runs.trackers import mlflow_key, run_metrics
 
 pytest.importorskip("mlflow")
@@ -34,15 +32,11 @@ def mlflow_server(tmp_path):
     """``mlflow server`` on 127.0.0.1 with a SQLite backend in ``tmp_path``; its URI."""
     port = _free_port()
     exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
-    proc = subprocess.Popen(
-        [exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
-         "--artifacts-destination", str(tmp_path / "artifacts"), "--host", "127.0.0.1",
-         "--port", str(port), "--workers", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
-    )  # fmt: skip
-    uri = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 180
-    try:
+    with started([exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
+                  "--artifacts-destination", tmp_path / "artifacts", "--host", "127.0.0.1",
+                  "--port", port, "--workers", "1"]) as proc:  # fmt: skip
+        uri = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 180
         while True:
             try:
                 with urllib.request.urlopen(f"{uri}/health", timeout=5) as response:
@@ -51,12 +45,11 @@ def mlflow_server(tmp_path):
             except OSError:
                 pass
             if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"mlflow server did not start: {proc.stderr.read().decode()[-2000:]}")
+                pytest.fail(f"mlflow server did not start: {proc.stdout[-2000:]}")
             time.sleep(0.5)
         yield uri
-    finally:
-        os.killpg(proc.pid, 15)
-        proc.wait(timeout=30)
+    # leaving the block killed the server's process group (its uvicorn and job workers): a
+    # graceful stop is not this fixture's subject, and took over 30 s on a loaded machine
 
 
 def _room_bag(tmp_path):

@@ -3,11 +3,8 @@
 import csv
 import json
 import math
-import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import lightning as L
@@ -18,7 +15,7 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import _MODULES, evaluate_export, run
+from _run import evaluate_export, run, run_side_by_side
 from resireg.errors import ConfigError
 from resireg.models import ResiregVLM
 from resireg_train.cli.job import CONFIG_DIR, optimized_value
@@ -165,14 +162,9 @@ def _read_csv(path):
 
 def test_smoke_experiment_through_the_entry_point(tmp_path):
     """`resireg-train experiment=smoke` end to end in a fresh process."""
-    exe = shutil.which("resireg-train")
-    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
     out = tmp_path / "run"
-    proc = subprocess.run(
-        [*cmd, "experiment=smoke", f"hydra.run.dir={out}", "~callbacks.progress_bar"],
-        capture_output=True, text=True, timeout=300, env={**os.environ, "HF_HUB_OFFLINE": "1"},
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    run("resireg-train", "experiment=smoke", f"hydra.run.dir={out}", "~callbacks.progress_bar",
+        timeout=300)  # fmt: skip
     results = json.loads((out / "results.json").read_text())
     assert results["status"] == "completed" and results["error"] is None
     history = results["history"]
@@ -369,16 +361,11 @@ def test_eval_prompts_run_through_the_text_tower_once_per_run_at_the_interval(tm
 
 def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path):
     """Three runs started together (a shell loop, a job array) never share a run folder."""
-    exe = shutil.which("resireg-train")
-    cmd = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.train"]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    procs = [
-        subprocess.Popen([*cmd, "experiment=smoke", f"paths.log_dir={tmp_path}",
-                          f"model.optimizer.lr=-{lr}"],  # fails at the config check, quickly
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
-        for lr in (1, 2, 3)
-    ]  # fmt: skip
-    assert all(p.wait(timeout=300) != 0 for p in procs)
+    procs = run_side_by_side(*[
+        ("resireg-train", "experiment=smoke", f"paths.log_dir={tmp_path}",
+         f"model.optimizer.lr=-{lr}")  # fails at the config check, quickly
+        for lr in (1, 2, 3)], check=False, timeout=300, threads=None)  # fmt: skip
+    assert [p.returncode != 0 for p in procs] == [True] * 3, [p.stderr[-500:] for p in procs]
     folders = sorted((tmp_path / "smoke").iterdir())
     assert len(folders) == 3, folders
     errors = {json.loads((f / "results.json").read_text())["error"] for f in folders}
@@ -391,20 +378,16 @@ def test_sweeps_started_in_the_same_second_get_their_own_sweep_folders(tmp_path,
     results.json and eval.log, and no training job is refused a folder another sweep took
     (each records its own config error, not a FileExistsError)."""
 
-    def start(script, *args):
-        exe = shutil.which(script)
-        cmd = [exe] if exe else [sys.executable, "-m", _MODULES[script]]
-        return subprocess.Popen([*cmd, "-m", *args, f"paths.log_dir={tmp_path}"],
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                env={**os.environ, "HF_HUB_OFFLINE": "1"})  # fmt: skip
+    def command(script, *args):
+        return (script, "-m", *args, f"paths.log_dir={tmp_path}")
 
-    evals = [start("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
-                   "dataset.size=4", "num_workers=0", "variants=[bb]", f"seed={i}",
-                   "batch_size=2,4") for i in (1, 2)]  # fmt: skip
-    trains = [start("resireg-train", "experiment=smoke", f"model.optimizer.lr=-{i},-{i}.5")
+    evals = [command("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",
+                     "dataset.size=4", "num_workers=0", "variants=[bb]", f"seed={i}",
+                     "batch_size=2,4") for i in (1, 2)]  # fmt: skip
+    trains = [command("resireg-train", "experiment=smoke", f"model.optimizer.lr=-{i},-{i}.5")
               for i in (1, 2)]  # fmt: skip
-    outputs = [p.communicate(timeout=600)[0] for p in evals + trains]
-    assert [p.returncode for p in evals] == [0, 0], outputs[0][-2000:] + outputs[1][-2000:]
+    procs = run_side_by_side(*evals, *trains, check=False, timeout=600, threads=None)
+    assert [p.returncode for p in procs[:2]] == [0, 0], [p.stderr[-2000:] for p in procs[:2]]
     for name, seeds in (("eval", {1, 2}), ("smoke", None)):
         sweeps = sorted((tmp_path / name / "multirun").iterdir())
         assert len(sweeps) == 2 and all(re.search(r"_[0-9a-f]{6}$", s.name) for s in sweeps), sweeps

@@ -11,6 +11,8 @@ prior when a prior is loaded) and the seconds each took. Element ids (``status``
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -148,18 +150,34 @@ def build_app(playground: Playground, title: str = "ReSiReg playground") -> gr.B
 
 
 def launch(demo: gr.Blocks, host: str = "127.0.0.1", port: int | None = None) -> None:
-    """Serve ``demo`` until interrupted (``port=None``: Gradio's first free port from 7860).
+    """Serve ``demo`` until Ctrl-C or SIGTERM (``port=None``: Gradio's first free port from 7860).
 
     No share link, no server-side rendering, system fonts only (no request leaves the
     machine)."""
     theme = gr.themes.Default(font=["ui-sans-serif", "system-ui", "sans-serif"],
                               font_mono=["ui-monospace", "monospace"])  # fmt: skip
-    # quiet: Gradio would also print "To create a public link, set `share=True`", advice this
-    # page (127.0.0.1 by default, no request leaving the machine) must not follow; the one line
-    # a user needs, the address, is printed here.
-    demo.queue(default_concurrency_limit=1).launch(
-        server_name=host, server_port=port, share=False, ssr_mode=False, show_error=True,
-        theme=theme, max_file_size="50mb", footer_links=[], quiet=True, prevent_thread_lock=True,
-    )  # fmt: skip
-    print(f"* Running on local URL:  {demo.local_url}", flush=True)
-    demo.block_thread()  # until Ctrl-C
+    # SIGTERM (kill, a service manager, a container's stop) closes the server as Ctrl-C does:
+    # Gradio's block_thread closes it on KeyboardInterrupt and returns (exit 0). Set before the
+    # server starts: one that comes as soon as the page answers is handled too.
+    main = threading.current_thread() is threading.main_thread()  # where handlers may be set
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main else None
+    try:
+        # quiet: Gradio would also print "To create a public link, set `share=True`", advice
+        # this page (127.0.0.1 by default, no request leaving the machine) must not follow; the
+        # one line a user needs, the address, is printed here.
+        demo.queue(default_concurrency_limit=1).launch(
+            server_name=host, server_port=port, share=False, ssr_mode=False, show_error=True,
+            theme=theme, max_file_size="50mb", footer_links=[], quiet=True,
+            prevent_thread_lock=True,
+        )  # fmt: skip
+        print(f"* Running on local URL:  {demo.local_url}", flush=True)
+        demo.block_thread()  # until Ctrl-C or SIGTERM
+    except KeyboardInterrupt:  # one that came before block_thread took over
+        demo.close()
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")

@@ -48,6 +48,7 @@ from resireg_train.sweeps.workers import (
     SearchRecordError,
     read_record,
     recorded_overrides,
+    sigterm_ends,
     start_workers,
     write_record,
 )
@@ -245,7 +246,8 @@ def run_search(config: DictConfig, settings: DictConfig, arguments: list[str], r
             except SearchRecordError as err:
                 log.warning("resireg-search worker would refuse this search: %s", err)
     try:
-        ran = OptunaSearch(config, sweep_dir, settings).run(fixed, space, run_job)
+        with sigterm_ends(procs):  # kill <pid> of the search ends the workers it started too
+            ran = OptunaSearch(config, sweep_dir, settings).run(fixed, space, run_job)
     except BaseException:
         for proc in procs:
             proc.terminate()

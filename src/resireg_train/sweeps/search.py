@@ -22,6 +22,7 @@ from resireg_train.sweeps.storage import STORAGE_ENV, storage_url
 from resireg_train.sweeps.workers import (
     SearchRecordError,
     read_record,
+    sigterm_ends,
     worker_command,
     worker_env,
 )
@@ -73,7 +74,14 @@ def worker_main(argv: Sequence[str] | None = None) -> int:
         parser.exit(2, f"resireg-search: {err}\n")
     cmd = worker_command(args.sweep, record) + overrides
     log.info("%s", mask_text(" ".join(cmd)))
-    return subprocess.call(cmd, env=worker_env(whole))
+    proc = subprocess.Popen(cmd, env=worker_env(whole))
+    with sigterm_ends([proc]):  # kill <pid> of the worker ends its job too
+        try:
+            return proc.wait()
+        except BaseException:  # Ctrl-C: as subprocess.call, the job is killed after its grace
+            proc.kill()
+            proc.wait()
+            raise
 
 
 def main() -> None:

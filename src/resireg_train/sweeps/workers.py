@@ -23,11 +23,15 @@ location as ``hydra.sweep.dir``. Every refusal names ``search.json`` and the ent
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import signal
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,6 +51,7 @@ __all__ = [
     "SearchRecordError",
     "read_record",
     "recorded_overrides",
+    "sigterm_ends",
     "start_workers",
     "study_location",
     "worker_command",
@@ -345,3 +350,27 @@ def start_workers(sweep_dir: Path, count: int) -> list[subprocess.Popen]:
             env["CUDA_VISIBLE_DEVICES"] = devices[(i + 1) % len(devices)]
         procs.append(subprocess.Popen(worker_command(sweep_dir, record), env=env))
     return procs
+
+
+@contextlib.contextmanager
+def sigterm_ends(procs: Sequence[subprocess.Popen]) -> Iterator[None]:
+    """For the block: SIGTERM to this process (``kill <pid>``, a service manager, a job's end)
+    is passed on to ``procs`` (the processes it started, which would otherwise go on running,
+    orphaned) before it ends this process as SIGTERM does. Ctrl-C reaches them from the
+    terminal already. Outside the main thread (no signal handler there): nothing is set."""
+
+    def handler(signum: int, frame: Any) -> None:
+        for proc in procs:
+            with contextlib.suppress(OSError):
+                proc.send_signal(signum)
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
