@@ -408,8 +408,10 @@ class _SparseVoxels:
         acc = {}
         for name, old in self._acc.items():
             value = values[name]
-            if value.dtype != old.dtype or tuple(value.shape[1:]) != old.shape or (
-                value.shape[0] != m
+            if (
+                value.dtype != old.dtype
+                or tuple(value.shape[1:]) != old.shape
+                or (value.shape[0] != m)
             ):
                 raise ValueError(
                     f"state[{name!r}] of shape {tuple(value.shape)} and dtype {value.dtype}: "
