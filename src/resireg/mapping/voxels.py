@@ -36,16 +36,20 @@ from torch import Tensor
 
 from resireg.mapping.keys import KEY_BITS, MAX_INDEX, KeyIndex, pack_keys, unpack_keys
 from resireg.specs.mapping import LATTICES
+from resireg.specs.mapping import SUM_DTYPES as SUM_DTYPE_NAMES
 
 __all__ = [
     "BLOCK_ROWS",
     "LATTICES",
     "RowBlocks",
     "SUM_DTYPES",
+    "SparseVoxels",
     "VoxelMap",
     "LabelVoxelMap",
     "check_lattice",
     "check_voxel_size",
+    "lattice_transform",
+    "transform_keys",
     "voxel_centres",
     "voxel_indices",
 ]
@@ -60,7 +64,7 @@ _PAIR_CHUNK_ELEMENTS = 1 << 18
 
 
 #: The dtypes of :class:`VoxelMap`'s feature sums, by name.
-SUM_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+SUM_DTYPES = {name: getattr(torch, name) for name in SUM_DTYPE_NAMES}
 
 
 def check_lattice(lattice: str) -> str:
@@ -103,6 +107,43 @@ def voxel_centres(index: Tensor, voxel_size: float, lattice: str = "round") -> T
     if check_lattice(lattice) == "round":
         return index.to(torch.float32) * voxel_size
     return ((index.to(torch.float64) + 0.5) * voxel_size).to(torch.float32)
+
+
+def lattice_transform(transform, voxel_size: float) -> tuple[Tensor, Tensor] | None:
+    """``(R, t)`` (int64 ``[3, 3]``, ``[3]``) when the rigid ``transform`` ``[4, 4]`` keeps the
+    voxel lattice: its rotation a signed permutation (multiples of 90 degrees about the axes,
+    determinant +1) and its translation whole voxels (within 1e-6 of a voxel); else ``None``."""
+    t = torch.as_tensor(transform, dtype=torch.float64)
+    if t.shape != (4, 4) or not bool(torch.isfinite(t).all()):
+        raise ValueError(f"transform of shape {tuple(t.shape)}: expected a finite [4, 4] matrix")
+    rot, shift = t[:3, :3], t[:3, 3] / voxel_size
+    r = rot.round()
+    perm = (r.abs().sum(0) == 1).all() and (r.abs().sum(1) == 1).all()
+    whole = (shift - shift.round()).abs().max() <= 1e-6
+    if not (perm and whole and (rot - r).abs().max() <= 1e-9 and torch.det(r) > 0):
+        return None
+    return r.to(torch.int64), shift.round().to(torch.int64)
+
+
+def transform_keys(keys: Tensor, transform, voxel_size: float, lattice: str = "round") -> Tensor:
+    """The key of each voxel (``[M]`` packed keys) after the rigid ``transform`` ``[4, 4]``.
+
+    A transform that keeps the lattice (:func:`lattice_transform`) maps each voxel onto one
+    voxel, computed on the integers: ``R i + t`` (``round`` lattice), ``R i + t + (R 1 - 1) /
+    2`` (``floor``: the centre ``i + 1/2`` turned). Any other moves the voxel's centre (float64)
+    and takes the voxel it falls in (an approximation of transforming the points themselves)."""
+    index = unpack_keys(keys)
+    exact = lattice_transform(transform, voxel_size)
+    if exact is not None:
+        r, t = (x.to(keys.device) for x in exact)
+        moved = index @ r.T + t
+        if check_lattice(lattice) == "floor":
+            moved = moved + (r.sum(dim=1) - 1) // 2
+        return pack_keys(moved)
+    m = torch.as_tensor(transform, dtype=torch.float64, device=keys.device)
+    shift = 0.0 if check_lattice(lattice) == "round" else 0.5
+    centres = (index.to(torch.float64) + shift) * voxel_size
+    return pack_keys(voxel_indices(centres @ m[:3, :3].T + m[:3, 3], voxel_size, lattice))
 
 
 def check_voxel_size(voxel_size: float) -> float:
@@ -254,10 +295,10 @@ class RowBlocks:
         return views[0] if len(views) == 1 else torch.cat(views)
 
 
-_Map = TypeVar("_Map", bound="_SparseVoxels")
+_Map = TypeVar("_Map", bound="SparseVoxels")
 
 
-class _SparseVoxels:
+class SparseVoxels:
     """The occupied voxels' keys, a :class:`~resireg.mapping.keys.KeyIndex` to their rows, and
     the accumulators (:class:`RowBlocks`, named in ``_acc``, given by the subclass); rows are
     numbered in order of first occupation."""
@@ -377,6 +418,12 @@ class _SparseVoxels:
         """``[M]`` the row of each voxel, in :attr:`indices` order."""
         return self._order()[1]
 
+    @property
+    def sorted_rows(self) -> Tensor:
+        """``[M]`` the row of each voxel, in :attr:`indices` order (sorted once after the map
+        gained a voxel)."""
+        return self._order()[1]
+
     def state(self) -> dict[str, Tensor]:
         """The map's content in :attr:`indices` order: ``indices`` ``[M, 3]`` int64 and each
         accumulator's rows (``sums``, ``counts``; ``votes``), on the host: what
@@ -460,8 +507,56 @@ class _SparseVoxels:
         rank[self._rows] = torch.arange(len(self), device=self.device)
         return torch.where(rows >= 0, rank[rows.clamp_min(0)], -1)
 
+    def rows_in_box(self, lo: Tensor, hi: Tensor) -> Tensor:
+        """Rows (sorted) of the occupied voxels with indices in ``[lo, hi]`` per axis
+        (``[3]`` int64 each). A box of at most four times as many cells as the map holds
+        voxels is enumerated and looked up (the map itself is not read); a larger one is
+        answered from the keys."""
+        lo = lo.to(device=self.device, dtype=torch.int64).clamp(-MAX_INDEX, MAX_INDEX)
+        hi = hi.to(device=self.device, dtype=torch.int64).clamp(-MAX_INDEX, MAX_INDEX)
+        empty = torch.empty(0, dtype=torch.int64, device=self.device)
+        if not len(self) or bool((hi < lo).any()):
+            return empty
+        sizes = (hi - lo + 1).tolist()
+        cells = sizes[0] * sizes[1] * sizes[2]
+        if cells > 4 * len(self):
+            index = unpack_keys(self.keys)
+            inside = ((index >= lo) & (index <= hi)).all(dim=1)
+            return inside.nonzero().squeeze(1)
+        found = []
+        plane = sizes[1] * sizes[2]
+        step = max(1, (1 << 20) // plane)  # whole planes of the first axis per lookup
+        for start in range(0, sizes[0], step):
+            axes = [torch.arange(int(lo[0]) + start, int(lo[0]) + min(sizes[0], start + step),
+                                 device=self.device)]  # fmt: skip
+            axes += [torch.arange(int(lo[i]), int(hi[i]) + 1, device=self.device) for i in (1, 2)]
+            grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+            rows = self._index.lookup(pack_keys(grid))
+            found.append(rows[rows >= 0])
+        return torch.sort(torch.cat(found)).values if found else empty
 
-class VoxelMap(_SparseVoxels):
+    def tensors(self) -> dict[str, list[Tensor]]:
+        """The map's tensors in row order, each as the list of its blocks' used rows (views,
+        no copy): ``keys``, ``slots`` (the key index) and the accumulators; what
+        :meth:`load_tensors` takes back."""
+        m = len(self)
+        out: dict[str, list[Tensor]] = {
+            "keys": [self.keys],
+            "slots": [self._index.state()["slots"]],
+        }
+        for name, acc in self._acc.items():
+            out[name] = [v for _, v in acc.spans(m)] or [acc.rows(0)]
+        return out
+
+    def load_tensors(self, tensors: dict[str, Tensor]) -> None:
+        """Replace the content with :meth:`tensors` read back (used in place)."""
+        keys = tensors["keys"].to(device=self.device, dtype=torch.int64)
+        if keys.numel() and torch.unique(keys).numel() != keys.numel():
+            raise ValueError("keys are not distinct")
+        self._load_rows(keys, {k: tensors[k] for k in self._acc}, tensors.get("slots"))
+
+
+class VoxelMap(SparseVoxels):
     """A sparse voxel map of running feature sums (a map that grows frame by frame).
 
     Per occupied voxel it keeps the float64 sum of the features of every point ever added and
@@ -628,8 +723,39 @@ class VoxelMap(_SparseVoxels):
             unit[start : start + step] = mean / mean.norm(dim=1, keepdim=True).clamp_min(1e-12)
         return self.centres(), unit
 
+    def unit_rows(self, rows: Tensor) -> Tensor:
+        """``[R, D]`` float32 unit mean features of ``rows``, computed as :meth:`features`
+        computes them (the same values, bit for bit)."""
+        mean = self._sums.gather(rows).double() / self._counts.gather(rows)[:, None]
+        return (mean / mean.norm(dim=1, keepdim=True).clamp_min(1e-12)).to(torch.float32)
 
-class LabelVoxelMap(_SparseVoxels):
+    def exact_scores(self, rows: Tensor, queries: Tensor) -> Tensor:
+        """``[R, T]`` float64 dot products of the unit features of ``rows`` (as
+        :meth:`features` gives them) with ``queries`` ``[T, D]``."""
+        return self.unit_rows(rows).double() @ queries.to(self.device).double().T
+
+    def merge_from(self, other: VoxelMap, keys: Tensor | None = None) -> None:
+        """Add ``other``'s sums and counts to this map, in place, block by block of
+        ``other`` (no copy of either map); ``keys``: the key here of each of ``other``'s rows
+        (``None``: its own; re-keyed voxels that meet in one voxel add up)."""
+        if other.dim != self.dim or other.dtype != self.dtype:
+            raise ValueError(f"merge: a map of dim {other.dim} {other.dtype} into one of dim "
+                             f"{self.dim} {self.dtype}")  # fmt: skip
+        m = len(other)
+        keys = other.keys if keys is None else keys.to(self.device)
+        counts = list(other._counts.spans(m))
+        for (start, sums), (_, n) in zip(other._sums.spans(m), counts, strict=True):
+            k = keys[start : start + sums.shape[0]]
+            uniq, inv = torch.unique(k, return_inverse=True)
+            rows = self._rows_of_keys(uniq)[inv]
+            self._counts.index_add_(rows, n.to(self.device))
+            step = max(1, _CHUNK_ELEMENTS // self.dim)
+            for s in range(0, rows.numel(), step):
+                chunk = sums[s : s + step].to(device=self.device, dtype=self.dtype)
+                self._sums.index_add_(rows[s : s + step], chunk)
+
+
+class LabelVoxelMap(SparseVoxels):
     """Ground-truth class votes per voxel.
 
     Every point with a label in ``0 .. num_classes - 1`` adds one vote for its class to its voxel;
