@@ -15,6 +15,7 @@ _MODULES = {
     "resireg-eval": "resireg_train.cli.eval",
     "resireg-report": "resireg_train.cli.report",
     "resireg-map": "resireg_train.cli.map",
+    "resireg-map-merge": "resireg_train.cli.map_merge",
 }
 
 

@@ -123,6 +123,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
                 "points",
                 "lattice",
                 "voxel_size",
+                "storage",
                 "knn",
                 "prediction_threshold",
                 "prompt_denoising",

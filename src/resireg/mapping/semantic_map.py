@@ -764,6 +764,22 @@ class SemanticMap:
         out[at >= 0] = mean[at[at >= 0]]
         return (out.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
 
+    def subsample(self, stride: int = 1) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Every ``stride``-th voxel in :attr:`indices` order: centres ``[m, 3]``, features
+        ``[m, D]`` (as :meth:`features`) and mean colours ``[m, 3]`` (``None`` without colour),
+        computed for those voxels only (a cloud of a large map)."""
+        if self.voxels is None:
+            raise ValueError("the map is empty: add frames first")
+        if stride == 1 and isinstance(self.voxels, VoxelMap):
+            centres, feats = self.voxels.features()
+        else:
+            rows = self.voxels.sorted_rows[::stride]
+            centres = voxel_centres(unpack_keys(self.voxels.keys[rows]), self.voxel_size,
+                                    self.lattice)  # fmt: skip
+            feats = self.voxels.unit_rows(rows)
+        colours = self.mean_colours()[::stride] if self.keeps_colour else None
+        return centres, feats, colours
+
     @torch.no_grad()
     def text_queries(self, texts: Sequence[str]) -> Tensor:
         """``[K, D]`` unit-norm queries of the raw texts (the encoder's text path, no template),

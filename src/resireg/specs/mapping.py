@@ -20,6 +20,7 @@ __all__ = [
     "POINTS",
     "STORAGES",
     "SUM_DTYPES",
+    "compact_defaults",
     "map_errors",
 ]
 
@@ -64,6 +65,21 @@ MAP_RULES: dict[str, Rule] = {
     "compact.basis_rows": integer(1),
     "compact.hot_voxels": integer(0),
 }
+
+
+def compact_defaults(conf: Any = None) -> dict[str, Any]:
+    """The ``compact`` block of ``conf/map.yaml`` (``conf``: the folder; default the project's
+    :func:`resireg.specs.table.conf_dir`): the compact storage's settings wherever a map is made
+    outside ``resireg-map`` (the 3D task), read from their one source."""
+    from pathlib import Path
+
+    from resireg.specs.table import compose_conf, conf_dir
+
+    folder = Path(conf_dir() if conf is None else conf)
+    block = compose_conf(folder, "map").get("compact")
+    if block is None or not isinstance(block[0], Mapping):
+        raise ValueError(f"{folder / 'map.yaml'}: no compact block")
+    return dict(block[0])
 
 
 def _lookup(values: Mapping[str, Any], key: str) -> tuple[bool, Any]:
