@@ -503,3 +503,42 @@ def test_map_settings_are_one_table_and_conf_holds_the_defaults():
     assert "window=0: expected an integer >= 1" in text
     assert "compact.dim=0: expected null or an integer >= 1" in text
     assert "compact.oops: no such setting" in text
+
+
+@pytest.mark.slow
+def test_resireg_map_merge_writes_a_run_record_and_refuses_other_maps(tmp_path):
+    """resireg-map-merge A B --out C (A a map folder, B a resireg-map run folder): C/map equals
+    SemanticMap.merge of the two, C/results.json is the run's record (completed, the inputs,
+    the result); maps of another voxel size: exit 1, one line naming voxel_size, the record
+    failed, no map written."""
+    from _run import run
+
+    windows = frames(2, 7)
+    for name, part in (("a", windows[:1]), ("b/map", windows[1:])):
+        m = SemanticMap(None, "bb", 0.1)
+        for f in part:
+            m.fuse(*f)
+        m.save(tmp_path / name)
+    odd = SemanticMap(None, "bb", 0.2)
+    odd.fuse(*windows[0])
+    odd.save(tmp_path / "odd")
+    run("resireg-map-merge", tmp_path / "a", tmp_path / "b", "--out", tmp_path / "c")
+    record = json.loads((tmp_path / "c" / "results.json").read_text())
+    merged = SemanticMap.load(tmp_path / "c" / "map")
+    want = SemanticMap.load(tmp_path / "a").merge(SemanticMap.load(tmp_path / "b" / "map"))
+    assert torch.equal(merged.indices, want.indices)
+    assert torch.equal(merged.voxels.state()["sums"], want.voxels.state()["sums"])
+    assert record["status"] == "completed" and record["map"]["voxels"] == len(want)
+    assert [i["folder"] for i in record["inputs"]] == [
+        str(tmp_path / "a"),
+        str(tmp_path / "b" / "map"),
+    ]
+    assert record["provenance"]  # the job wrapper's record
+    proc = run("resireg-map-merge", tmp_path / "a", tmp_path / "odd", "--out", tmp_path / "d",
+               check=False)  # fmt: skip
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    lines = [x for x in proc.stderr.splitlines() if "voxel_size: 0.1 here, 0.2" in x]
+    assert len(lines) == 1, proc.stderr[-2000:]
+    failed = json.loads((tmp_path / "d" / "results.json").read_text())
+    assert failed["status"] == "failed" and "voxel_size" in failed["error"]
+    assert not (tmp_path / "d" / "map").exists()
