@@ -835,13 +835,26 @@ class SemanticMap:
             self._prototypes.popitem(last=False)
         return protos
 
-    @torch.no_grad()
-    def query(self, texts: str | Sequence[str]) -> Tensor:
-        """Cosine similarity of every voxel's feature to text queries: ``[M, K]`` float32 for a
-        list of ``K`` texts, ``[M]`` for one string; rows in :attr:`indices` order (a compact
-        map's scores are accumulated in float32 from its stored features)."""
+    def _queries(self, texts: str | Sequence[str] | Tensor) -> tuple[bool, Tensor]:
+        """(one text?, ``[K, D]`` unit queries) of a text, texts, or query embeddings."""
+        if isinstance(texts, Tensor):
+            q = texts.float()
+            single = q.ndim == 1
+            q = q[None] if single else q
+            if q.ndim != 2 or (self._dim is not None and q.shape[1] != self._dim):
+                raise ValueError(f"queries of shape {tuple(texts.shape)}: expected [D] or "
+                                 f"[K, D] with D = {self._dim}")  # fmt: skip
+            return single, F.normalize(q, dim=-1)
         single = isinstance(texts, str)
-        queries = self.text_queries([texts] if single else list(texts))
+        return single, self.text_queries([texts] if single else list(texts))
+
+    @torch.no_grad()
+    def query(self, texts: str | Sequence[str] | Tensor) -> Tensor:
+        """Cosine similarity of every voxel's feature to text queries: ``[M, K]`` float32 for a
+        list of ``K`` texts (or query embeddings ``[K, D]`` in the encoder's text space), ``[M]``
+        for one string (or ``[D]``); rows in :attr:`indices` order (a compact map's scores are
+        accumulated in float32 from its stored features)."""
+        single, queries = self._queries(texts)
         if isinstance(self.voxels, CompactVoxelMap):
             scores, _ = self.voxels.approx_scores(self.project(queries), fast=False)
             sim = scores[self.voxels.sorted_rows]
@@ -890,15 +903,15 @@ class SemanticMap:
     @torch.no_grad()
     def top_k(
         self,
-        texts: str | Sequence[str],
+        texts: str | Sequence[str] | Tensor,
         k: int = 10,
         *,
         box: Any = None,
         centre: Any = None,
         radius: float | None = None,
     ) -> TopK | list[TopK]:
-        """The ``k`` voxels most similar to a text (a list of texts: one :class:`TopK` each),
-        optionally among those in a ``box`` (``[[x0, y0, z0], [x1, y1, z1]]`` metres) or a ball
+        """The ``k`` voxels most similar to a text (a list of texts, or query embeddings ``[K,
+        D]``: one :class:`TopK` each), optionally among those in a ``box`` (``[[x0, y0, z0], [x1, y1, z1]]`` metres) or a ball
         (``centre``, ``radius``) (:meth:`region`).
 
         Exact: equal to sorting every voxel's float64 score (its :meth:`features` row with the
@@ -908,8 +921,8 @@ class SemanticMap:
         outside can be among the best. An exact map scores in float64 in chunks."""
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k={k!r}: expected an integer >= 1")
-        single = isinstance(texts, str)
-        queries = self.project(self.text_queries([texts] if single else list(texts)))
+        single, queries = self._queries(texts)
+        queries = self.project(queries)
         out = [self._top_k(q, k, box, centre, radius) for q in queries]
         return out[0] if single else out
 
@@ -929,7 +942,7 @@ class SemanticMap:
             scores = vmap.exact_scores(rows, q)[:, 0]
         else:
             rows = torch.arange(len(vmap), device=self.device)
-            scores = torch.cat([vmap.exact_scores(r, q)[:, 0] for r in rows.split(1 << 14)])
+            scores = vmap.all_scores(q)[:, 0]
         keys = vmap.keys[rows]
         by_key = torch.argsort(keys)
         best = by_key[torch.argsort(-scores[by_key], stable=True)[:k]]

@@ -734,6 +734,20 @@ class VoxelMap(SparseVoxels):
         :meth:`features` gives them) with ``queries`` ``[T, D]``."""
         return self.unit_rows(rows).double() @ queries.to(self.device).double().T
 
+    def all_scores(self, queries: Tensor) -> Tensor:
+        """``[M, T]`` float64 scores of every voxel in row order: :meth:`exact_scores` of all
+        rows, computed block by block (no gather)."""
+        q = queries.to(self.device).double().T
+        out = torch.empty(len(self), q.shape[1], dtype=torch.float64, device=self.device)
+        spans = zip(self._sums.spans(len(self)), self._counts.spans(len(self)), strict=True)
+        for (start, sums), (_, counts) in spans:
+            step = max(1, _CHUNK_ELEMENTS // self.dim)
+            for s in range(0, sums.shape[0], step):
+                mean = sums[s : s + step].double() / counts[s : s + step, None]
+                unit = (mean / mean.norm(dim=1, keepdim=True).clamp_min(1e-12)).float()
+                out[start + s : start + s + unit.shape[0]] = unit.double() @ q
+        return out
+
     def merge_from(self, other: VoxelMap, keys: Tensor | None = None) -> None:
         """Add ``other``'s sums and counts to this map, in place, block by block of
         ``other`` (no copy of either map); ``keys``: the key here of each of ``other``'s rows

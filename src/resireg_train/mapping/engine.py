@@ -472,6 +472,7 @@ class MappingEngine(EvalEngine):
             gt = ground_truth_labels(state["gt"], p.gt_unlabelled, k, ignore)
             result.voxels[state["name"]] = int((gt != ignore).sum())
             for name, vmap in state["maps"].items():
+                vmap.fit_pending()  # a compact map of a short scene: its basis on what it saw
                 scored = int((gt != ignore).sum())
                 if not len(vmap):
                     if scored:  # no valid feature point at all: nothing predicted
