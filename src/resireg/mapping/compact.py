@@ -30,7 +30,6 @@ they are) and :meth:`from_tensors`.
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -156,23 +155,41 @@ class CompactVoxelMap(SparseVoxels):
     def __repr__(self) -> str:
         return (
             f"CompactVoxelMap(voxel_size={self.voxel_size}, dim={self.dim}, dtype={self.dtype}, "
-            f"lattice={self.lattice!r}, voxels={len(self)}, hot={self._hot_rows.numel()})"
+            f"lattice={self.lattice!r}, voxels={len(self)}, hot={self.hot_rows.numel()})"
         )
 
     # ------------------------------------------------------------------ the hot blocks
-    def _clear_hot(self) -> None:
+    # The blocks live in slots of fixed arrays (a slot per hot voxel, -1 in _hot_row when
+    # free), so a call touches its own voxels' slots and never copies the buffer; a sorted
+    # (row, slot) index, rebuilt when voxels enter or leave, finds a row's slot.
+    def _clear_hot(self, capacity: int = 0) -> None:
         d = self.device
-        self._hot_rows = torch.empty(0, dtype=torch.int64, device=d)  # sorted
-        self._hot_sums = torch.empty(0, self.dim, dtype=torch.float32, device=d)
-        self._hot_counts = torch.empty(0, dtype=torch.int64, device=d)
-        self._hot_colour = torch.empty(0, 3, dtype=torch.float32, device=d)
-        self._hot_colour_counts = torch.empty(0, dtype=torch.int64, device=d)
+        self._hot_row = torch.full((capacity,), -1, dtype=torch.int64, device=d)
+        self._hot_n = torch.zeros(capacity, dtype=torch.int64, device=d)  # its stored count
+        self._hot_sums = torch.zeros(capacity, self.dim, dtype=torch.float32, device=d)
+        self._hot_counts = torch.zeros(capacity, dtype=torch.int64, device=d)
+        self._hot_colour = torch.zeros(capacity, 3, dtype=torch.float32, device=d)
+        self._hot_colour_counts = torch.zeros(capacity, dtype=torch.int64, device=d)
+        self._hot_index: tuple[Tensor, Tensor] | None = None
+
+    def _hot_lookup(self) -> tuple[Tensor, Tensor]:
+        """(the hot voxels' rows, sorted; their slots)."""
+        if self._hot_index is None:
+            used = (self._hot_row >= 0).nonzero().squeeze(1)
+            rows, order = torch.sort(self._hot_row[used])
+            self._hot_index = (rows, used[order])
+        return self._hot_index
+
+    @property
+    def hot_rows(self) -> Tensor:
+        """``[H]`` the rows of the voxels with a hot block, sorted."""
+        return self._hot_lookup()[0]
 
     @property
     def nbytes(self) -> int:
         """Bytes held: the stored rows (spare rows of the last block included), the key
-        index and the hot blocks."""
-        hot = (self._hot_rows, self._hot_sums, self._hot_counts, self._hot_colour,
+        index and the hot blocks' slots."""
+        hot = (self._hot_row, self._hot_n, self._hot_sums, self._hot_counts, self._hot_colour,
                self._hot_colour_counts)  # fmt: skip
         return super().nbytes + sum(t.numel() * t.element_size() for t in hot)
 
@@ -237,50 +254,61 @@ class CompactVoxelMap(SparseVoxels):
 
     def _to_hot(self, rows: Tensor, sums: Tensor, counts: Tensor, csums: Tensor | None,
                 ccounts: Tensor | None) -> None:  # fmt: skip
-        """Add per-voxel sums of distinct sorted ``rows`` to their hot blocks (new ones made)."""
-        present = self._hot_at(rows) >= 0
-        if not bool(present.all()):
-            hot = self._hot_rows
-            merged, order = torch.sort(torch.cat([hot, rows[~present]]))
-            extra = int((~present).sum())
+        """Add per-voxel sums of distinct ``rows`` to their hot blocks (new blocks made)."""
+        slot = self._hot_at(rows)
+        missing = slot < 0
+        if bool(missing.any()):
+            free = (self._hot_row < 0).nonzero().squeeze(1)
+            need = int(missing.sum()) - free.numel()
+            if need > 0:  # more slots (x1.5): the arrays grow, their slots stay
+                grow = max(need, self._hot_row.numel() // 2, 16)
+                old = self._hot_row.numel()
 
-            def grow(t: Tensor) -> Tensor:
-                return torch.cat([t, t.new_zeros((extra, *t.shape[1:]))])[order]
+                def more(t: Tensor, fill: int = 0) -> Tensor:
+                    return torch.cat([t, t.new_full((grow, *t.shape[1:]), fill)])
 
-            self._hot_rows = merged
-            self._hot_sums, self._hot_counts = grow(self._hot_sums), grow(self._hot_counts)
-            self._hot_colour = grow(self._hot_colour)
-            self._hot_colour_counts = grow(self._hot_colour_counts)
-        pos = torch.searchsorted(self._hot_rows, rows)
-        self._hot_sums.index_add_(0, pos, sums.to(torch.float32))
-        self._hot_counts.index_add_(0, pos, counts)
+                self._hot_row, self._hot_n = more(self._hot_row, -1), more(self._hot_n)
+                self._hot_sums, self._hot_counts = more(self._hot_sums), more(self._hot_counts)
+                self._hot_colour = more(self._hot_colour)
+                self._hot_colour_counts = more(self._hot_colour_counts)
+                free = torch.cat([free, torch.arange(old, old + grow, device=self.device)])
+            new = free[: int(missing.sum())]
+            self._hot_row[new] = rows[missing]
+            self._hot_n[new] = self._acc["counts"].gather(rows[missing]).to(torch.int64)
+            slot[missing] = new
+            self._hot_index = None
+        self._hot_sums.index_add_(0, slot, sums.to(torch.float32))
+        self._hot_counts.index_add_(0, slot, counts)
         if csums is not None:
-            self._hot_colour.index_add_(0, pos, csums.to(torch.float32))
-            self._hot_colour_counts.index_add_(0, pos, ccounts)
+            self._hot_colour.index_add_(0, slot, csums.to(torch.float32))
+            self._hot_colour_counts.index_add_(0, slot, ccounts)
 
     def _fold_due(self) -> None:
         """Fold the hot blocks that hold at least what their voxel holds (new voxels
-        included), then, past ``hot_voxels``, those largest relative to their voxel."""
-        if not self._hot_rows.numel():
+        included), then, past ``hot_voxels``, those largest relative to their voxel (ties: the
+        higher row first)."""
+        used = self._hot_row >= 0
+        if not bool(used.any()):
             return
-        n = self._acc["counts"].gather(self._hot_rows).to(torch.int64)
-        b = self._hot_counts
-        due = b >= n
-        keep = int((~due).sum())
+        n, b = self._hot_n, self._hot_counts
+        due = used & (b >= n)
+        waiting = used & ~due
+        keep = int(waiting.sum())
         if keep > self.hot_voxels:
-            ratio = b.double() / n.clamp_min(1).double()
-            ratio[due] = math.inf
-            # the kept blocks: the hot_voxels smallest relative to their voxel
-            order = torch.argsort(ratio, stable=True)
-            due = torch.ones_like(due)
-            due[order[: self.hot_voxels]] = False
+            slots = waiting.nonzero().squeeze(1)
+            by_row = slots[torch.argsort(self._hot_row[slots])]
+            ratio = b[by_row].double() / n[by_row].clamp_min(1).double()
+            kept = by_row[torch.argsort(ratio, stable=True)[: self.hot_voxels]]
+            due = used.clone()
+            due[kept] = False
         if bool(due.any()):
             self._fold(due)
 
     def flush(self) -> None:
         """Fold every hot block (e.g. before a merge)."""
-        if self._hot_rows.numel():
-            self._fold(torch.ones_like(self._hot_rows, dtype=torch.bool))
+        used = self._hot_row >= 0
+        if bool(used.any()):
+            self._fold(used)
 
     def _combined(self, rows: Tensor, at: Tensor | None) -> tuple[Tensor, Tensor]:
         """float64 mean features ``[R, k]`` and counts ``[R]`` of ``rows``, their hot blocks
@@ -301,9 +329,10 @@ class CompactVoxelMap(SparseVoxels):
         return mean, n
 
     def _fold(self, mask: Tensor) -> None:
-        """Fold the hot blocks at ``mask`` into their voxels' stored values; drop them."""
+        """Fold the hot blocks of the slots at ``mask`` into their voxels' stored values and
+        free the slots."""
         at = mask.nonzero().squeeze(1)
-        rows = self._hot_rows[at]
+        rows = self._hot_row[at]
         mean, n = self._combined(rows, at)
         norm = mean.norm(dim=1)
         unit = mean / norm.clamp_min(1e-300)[:, None]
@@ -320,18 +349,21 @@ class CompactVoxelMap(SparseVoxels):
                               / total.clamp_min(1)[:, None], c)  # fmt: skip
             self._acc["colour"].put(rows, (new.clamp(0, 1) * 255).round().to(torch.uint8))
             self._acc["colour_counts"].put(rows, total.to(torch.int32))
-        keep = ~mask
-        self._hot_rows, self._hot_sums = self._hot_rows[keep], self._hot_sums[keep]
-        self._hot_counts, self._hot_colour = self._hot_counts[keep], self._hot_colour[keep]
-        self._hot_colour_counts = self._hot_colour_counts[keep]
+        self._hot_row[at] = -1
+        self._hot_n[at] = 0
+        self._hot_sums[at] = 0
+        self._hot_counts[at] = 0
+        self._hot_colour[at] = 0
+        self._hot_colour_counts[at] = 0
+        self._hot_index = None
 
     def _hot_at(self, rows: Tensor) -> Tensor:
-        """Position of each row in the hot buffer, ``-1`` where it has no block."""
-        hot = self._hot_rows
+        """The hot slot of each row, ``-1`` where it has no block."""
+        hot, slots = self._hot_lookup()
         if not hot.numel():
             return torch.full_like(rows, -1)
         pos = torch.searchsorted(hot, rows).clamp_max(hot.numel() - 1)
-        return torch.where(hot[pos] == rows, pos, -1)
+        return torch.where(hot[pos] == rows, slots[pos], -1)
 
     # ------------------------------------------------------------------ reading
     @property
@@ -364,10 +396,11 @@ class CompactVoxelMap(SparseVoxels):
         for start in range(0, order.numel(), _CHUNK_ROWS):
             rows = order[start : start + _CHUNK_ROWS]
             out[start : start + _CHUNK_ROWS] = self._acc["unit"].gather(rows)
-        if self._hot_rows.numel():
+        hot = self.hot_rows
+        if hot.numel():
             rank = torch.empty(len(self), dtype=torch.int64, device=self.device)
             rank[order] = torch.arange(len(self), device=self.device)
-            out[rank[self._hot_rows]] = self.unit_rows(self._hot_rows)
+            out[rank[hot]] = self.unit_rows(hot)
         return self.centres(), out
 
     def mean_colours(self) -> Tensor:
@@ -416,8 +449,9 @@ class CompactVoxelMap(SparseVoxels):
                 for s in range(0, block.shape[0], _CHUNK_ROWS):
                     chunk = block[s : s + _CHUNK_ROWS].to(torch.float32)
                     torch.mm(chunk, q.T, out=out[start + s : start + s + chunk.shape[0]])
-        if self._hot_rows.numel():
-            out[self._hot_rows] = self.exact_scores(self._hot_rows, q).to(torch.float32)
+        hot = self.hot_rows
+        if hot.numel():
+            out[hot] = self.exact_scores(hot, q).to(torch.float32)
         return out, bound
 
     def exact_scores(self, rows: Tensor, queries: Tensor) -> Tensor:
@@ -489,10 +523,12 @@ class CompactVoxelMap(SparseVoxels):
         }
         for name, acc in self._acc.items():
             out[name] = [v for _, v in acc.spans(m)]
-        out.update(hot_rows=[self._hot_rows], hot_sums=[self._hot_sums],
-                   hot_counts=[self._hot_counts])  # fmt: skip
+        rows, slots = self._hot_lookup()
+        out.update(hot_rows=[rows], hot_sums=[self._hot_sums[slots]],
+                   hot_counts=[self._hot_counts[slots]])  # fmt: skip
         if self.colour:
-            out.update(hot_colour=[self._hot_colour], hot_colour_counts=[self._hot_colour_counts])
+            out.update(hot_colour=[self._hot_colour[slots]],
+                       hot_colour_counts=[self._hot_colour_counts[slots]])  # fmt: skip
         return out
 
     def load_tensors(self, tensors: Mapping[str, Tensor]) -> None:
@@ -500,19 +536,21 @@ class CompactVoxelMap(SparseVoxels):
         tensors stay mapped)."""
         hot = {k: tensors[k] for k in tensors if k.startswith("hot_")}
         self._load_rows(tensors["keys"], {k: tensors[k] for k in self._acc}, tensors.get("slots"))
-        self._clear_hot()
-        if "hot_rows" in hot:
-            self._hot_rows = hot["hot_rows"].to(self.device, torch.int64).clone()
-            self._hot_sums = hot["hot_sums"].to(self.device, torch.float32).clone()
-            self._hot_counts = hot["hot_counts"].to(self.device, torch.int64).clone()
-            if self.colour:
-                self._hot_colour = hot["hot_colour"].to(self.device, torch.float32).clone()
-                self._hot_colour_counts = hot["hot_colour_counts"].to(self.device,
-                                                                      torch.int64).clone()  # fmt: skip
-            n = self._hot_rows.numel()
-            ok = (self._hot_sums.shape == (n, self.dim) and self._hot_counts.shape == (n,)
-                  and (not n or (int(self._hot_rows.min()) >= 0
-                                 and int(self._hot_rows.max()) < len(self)
-                                 and bool((self._hot_rows[1:] > self._hot_rows[:-1]).all()))))  # fmt: skip
-            if not ok:
-                raise ValueError("hot blocks: rows not distinct, sorted and held by the map")
+        rows = hot.get("hot_rows", torch.empty(0, dtype=torch.int64)).to(self.device, torch.int64)
+        n = rows.numel()
+        self._clear_hot(n)
+        if not n:
+            return
+        sums = hot["hot_sums"].to(self.device, torch.float32)
+        counts = hot["hot_counts"].to(self.device, torch.int64)
+        ok = (sums.shape == (n, self.dim) and counts.shape == (n,) and int(rows.min()) >= 0
+              and int(rows.max()) < len(self) and bool((rows[1:] > rows[:-1]).all()))  # fmt: skip
+        if not ok:
+            raise ValueError("hot blocks: rows not distinct, sorted and held by the map")
+        self._hot_row[:] = rows
+        self._hot_n[:] = self._acc["counts"].gather(rows).to(torch.int64)
+        self._hot_sums[:] = sums
+        self._hot_counts[:] = counts
+        if self.colour:
+            self._hot_colour[:] = hot["hot_colour"].to(self.device, torch.float32)
+            self._hot_colour_counts[:] = hot["hot_colour_counts"].to(self.device, torch.int64)

@@ -648,12 +648,14 @@ class SemanticMap:
             if kind == "patch":
                 pts, valid = geometry
                 payload = ("patch", pts[valid], feats[valid], None if rgb is None else rgb[valid])
-                probe = voxel_indices(payload[1], self.voxel_size, self.lattice)
             else:
                 index, patch, count = geometry
                 payload = ("pixel", index, count, patch, feats.reshape(-1, feats.shape[-1]),
                            None if rgb is None else rgb.reshape(-1, 3))  # fmt: skip
-                probe = index
+            probe = None
+            if self.max_voxels is not None or self._needs_basis():  # (the voxels' indices)
+                probe = (voxel_indices(payload[1], self.voxel_size, self.lattice)
+                         if kind == "patch" else payload[1])  # fmt: skip
             before = len(self)
             if self.max_voxels is not None:
                 new = self._count_new(probe)
