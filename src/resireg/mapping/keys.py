@@ -178,6 +178,29 @@ class KeyIndex:
                 won[winners] = True
             todo, pos = todo[~won], (pos[~won] + 1) & mask
 
+    def _valid_table(self) -> bool:
+        """Whether the table holds every row once, each in a slot its key's probe sequence
+        reaches (no empty slot between the key's hash and it): a table read from a file is
+        checked, not trusted (a slot off the sequence would let its key be added twice).
+        ``O(M + S)``: one prefix count of the empty slots, no lookup."""
+        slots, n = self._slots, self.size
+        if bool((slots < -1).any()) or bool((slots >= n).any()):
+            return False
+        at = (slots >= 0).nonzero().squeeze(1)
+        rows = slots[at].long()
+        if rows.numel() != n or not bool((torch.bincount(rows, minlength=n) == 1).all()):
+            return False
+        where = torch.empty(n, dtype=torch.int64, device=self.device)
+        where[rows] = at
+        size = slots.numel()
+        empty = torch.zeros(size + 1, dtype=torch.int64, device=self.device)
+        empty[1:] = torch.cumsum(slots < 0, 0)  # empty[i]: empty slots before slot i
+        start = hash_keys(self.keys) & (size - 1)
+        wraps = start > where
+        gaps = torch.where(wraps, empty[size] - empty[start] + empty[where + 1],
+                           empty[where + 1] - empty[start])  # fmt: skip
+        return not bool((gaps > 0).any())
+
     def state(self) -> dict[str, Tensor]:
         """``keys`` (by row) and ``slots`` (the table): what :meth:`from_state` takes back
         without placing any key again."""
@@ -197,4 +220,6 @@ class KeyIndex:
                              f"{index._slots.numel()} for {index.size} keys")  # fmt: skip
         else:
             index._slots = slots.to(device=index.device, dtype=torch.int32)
+            if not index._valid_table():
+                raise ValueError("slots: the hash table does not hold each key at its row")
         return index
