@@ -249,7 +249,34 @@ class CompactVoxelMap(SparseVoxels):
             csums = torch.zeros(r, 3, dtype=torch.float64, device=self.device)
             csums.index_add_(0, inv, rgb.to(torch.float64).mul_(w))
             ccounts = counts
-        self._to_hot(uniq, sums, counts, csums, ccounts)
+        self._add(uniq, sums, counts, csums, ccounts)
+
+    def _add(self, rows: Tensor, sums: Tensor, counts: Tensor, csums: Tensor | None,
+             ccounts: Tensor | None) -> None:  # fmt: skip
+        """Add per-voxel float64 sums of distinct ``rows``: to their hot blocks, or, for a
+        voxel without one whose new points are at least what it holds (a new voxel among
+        them), straight into its stored values (the fold a fresh block would make, without a
+        slot); the others get a block. Then the due blocks fold."""
+        slot = self._hot_at(rows)
+        cold = slot < 0
+        if bool(cold.any()):
+            r = rows[cold]
+            n = self._acc["counts"].gather(r).to(torch.int64)
+            now = counts[cold] >= n
+            if bool(now.any()):
+                pick = cold.nonzero().squeeze(1)[now]
+                mean, held = self._combined(rows[pick], None)
+                total = held + counts[pick]
+                mean = (mean * held[:, None] + sums[pick]) / total[:, None]
+                self._store(rows[pick], mean, total, None if csums is None else csums[pick],
+                            None if ccounts is None else ccounts[pick])  # fmt: skip
+                keep = torch.ones_like(cold)
+                keep[pick] = False
+                rows, sums, counts = rows[keep], sums[keep], counts[keep]
+                csums = None if csums is None else csums[keep]
+                ccounts = None if ccounts is None else ccounts[keep]
+        if rows.numel():
+            self._to_hot(rows, sums, counts, csums, ccounts)
         self._fold_due()
 
     def _to_hot(self, rows: Tensor, sums: Tensor, counts: Tensor, csums: Tensor | None,
@@ -328,27 +355,31 @@ class CompactVoxelMap(SparseVoxels):
             n[hot] = total
         return mean, n
 
+    def _store(self, rows: Tensor, mean: Tensor, total: Tensor, csums: Tensor | None,
+               ccounts: Tensor | None) -> None:  # fmt: skip
+        """Write float64 means ``[R, k]`` and point counts of ``rows`` (one rounding to the
+        stored dtype), and add colour sums and counts to their mean colours."""
+        norm = mean.norm(dim=1)
+        unit = mean / norm.clamp_min(1e-300)[:, None]
+        self._acc["unit"].put(rows, unit.to(self.dtype))
+        self._acc["norm"].put(rows, norm.to(torch.float32))
+        self._acc["counts"].put(rows, total.to(torch.int32))
+        if self.colour and csums is not None:
+            cn = self._acc["colour_counts"].gather(rows).to(torch.int64)
+            c = self._acc["colour"].gather(rows).to(torch.float64) / 255
+            both = cn + ccounts
+            new = torch.where((both > 0)[:, None], (c * cn[:, None] + csums.double())
+                              / both.clamp_min(1)[:, None], c)  # fmt: skip
+            self._acc["colour"].put(rows, (new.clamp(0, 1) * 255).round().to(torch.uint8))
+            self._acc["colour_counts"].put(rows, both.to(torch.int32))
+
     def _fold(self, mask: Tensor) -> None:
         """Fold the hot blocks of the slots at ``mask`` into their voxels' stored values and
         free the slots."""
         at = mask.nonzero().squeeze(1)
         rows = self._hot_row[at]
         mean, n = self._combined(rows, at)
-        norm = mean.norm(dim=1)
-        unit = mean / norm.clamp_min(1e-300)[:, None]
-        self._acc["unit"].put(rows, unit.to(self.dtype))
-        self._acc["norm"].put(rows, norm.to(torch.float32))
-        self._acc["counts"].put(rows, n.to(torch.int32))
-        if self.colour:
-            cn = self._acc["colour_counts"].gather(rows).to(torch.int64)
-            c = self._acc["colour"].gather(rows).to(torch.float64) / 255
-            cb = self._hot_colour_counts[at]
-            total = cn + cb
-            got = total > 0
-            new = torch.where(got[:, None], (c * cn[:, None] + self._hot_colour[at].double())
-                              / total.clamp_min(1)[:, None], c)  # fmt: skip
-            self._acc["colour"].put(rows, (new.clamp(0, 1) * 255).round().to(torch.uint8))
-            self._acc["colour_counts"].put(rows, total.to(torch.int32))
+        self._store(rows, mean, n, self._hot_colour[at], self._hot_colour_counts[at])
         self._hot_row[at] = -1
         self._hot_n[at] = 0
         self._hot_sums[at] = 0
@@ -506,9 +537,9 @@ class CompactVoxelMap(SparseVoxels):
                     csums.index_add_(0, u, c * cn[:, None])
                     ccnt = torch.zeros_like(cnt).index_add_(0, u, cn)
                 touched = torch.unique(u)
-                self._to_hot(rows[touched], sums[touched], cnt[touched],
-                             None if csums is None else csums[touched],
-                             None if ccnt is None else ccnt[touched])  # fmt: skip
+                self._add(rows[touched], sums[touched], cnt[touched],
+                          None if csums is None else csums[touched],
+                          None if ccnt is None else ccnt[touched])  # fmt: skip
                 self.flush()
 
     # ------------------------------------------------------------------ files
