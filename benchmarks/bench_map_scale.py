@@ -24,6 +24,9 @@ at its size:
   lock (``snapshot(copy=True)``);
 - **merge** (its own process): two maps of N / 2 voxels each (10% shared) merged in place.
 
+``--transform``: an off-lattice merge (10 degrees, a third of a voxel) against mapping the
+transformed frames: the share of points in matching voxels, the features' cosine.
+
 ``--table2``: the Table 2 delta on the synthetic ScanNet-format room
 (``conf/dataset/scannet_synthetic.yaml``, written by ``python -m
 resireg_train.data.scannet_room``): ``resireg-eval task=scannet3d`` with
@@ -33,6 +36,7 @@ downloaded), mIoU and f-mIoU of each.
     python benchmarks/bench_map_scale.py                      # all sizes (1M: minutes, ~6 GB)
     python benchmarks/bench_map_scale.py --sizes 10000 100000 --threads 1
     python benchmarks/bench_map_scale.py --table2
+    python benchmarks/bench_map_scale.py --transform
 
 Figures: docs/benchmarks.md (one run, ratios against ``exact``).
 """
@@ -386,12 +390,79 @@ def table2(threads: int) -> dict:
         shutil.rmtree(work, ignore_errors=True)
 
 
+def transform_error(threads: int) -> dict:
+    """An off-lattice merge against re-mapping: a second run's map (40 frames of random depth)
+    merged through a 10-degree turn about the vertical and a third of a voxel, against the map
+    of its frames with the transformed poses: the share of points whose voxel matches, and the
+    features' cosine on the voxels both hold."""
+    import torch
+
+    from resireg.mapping import SemanticMap
+
+    torch.set_num_threads(threads)
+    g = torch.Generator().manual_seed(5)
+    h, w = 48, 64
+    k = torch.tensor([[40.0, 0, (w - 1) / 2], [0, 40.0, (h - 1) / 2], [0, 0, 1]])
+    frames = []
+    for _ in range(20):
+        depth = 1.0 + 3 * torch.rand(2, h, w, generator=g)
+        pose = torch.eye(4).repeat(2, 1, 1)
+        pose[:, :3, 3] = torch.rand(2, 3, generator=g) * 2
+        frames.append((torch.randn(2, 32, 12, 16, generator=g), depth, k, pose))
+    angle = math.radians(10)
+    t = torch.eye(4, dtype=torch.float64)
+    t[:2, :2] = torch.tensor(
+        [[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]]
+    )
+    t[0, 3] = VOXEL / 3
+    out = {}
+    for storage in ("exact", "compact"):
+        merged = SemanticMap(
+            None, "bb", VOXEL, storage=storage, compact={"dim": 16, "basis_rows": 500}
+        )
+        truth = SemanticMap(
+            None, "bb", VOXEL, storage=storage, compact={"dim": 16, "basis_rows": 500}
+        )
+        run = SemanticMap(
+            None, "bb", VOXEL, storage=storage, compact={"dim": 16, "basis_rows": 500}
+        )
+        for f in frames:
+            run.fuse(*f)
+            truth.fuse(f[0], f[1], f[2], t.float() @ f[3])
+        if storage == "compact":
+            merged.set_basis(run.basis)
+            truth = SemanticMap(None, "bb", VOXEL, storage=storage, compact={"dim": 16})
+            truth.set_basis(run.basis)
+            for f in frames:
+                truth.fuse(f[0], f[1], f[2], t.float() @ f[3])
+        merged.merge(run, t)
+        a = {
+            tuple(i): n
+            for i, n in zip(merged.indices.tolist(), merged.voxels.counts.tolist(), strict=True)
+        }
+        b = {
+            tuple(i): n
+            for i, n in zip(truth.indices.tolist(), truth.voxels.counts.tolist(), strict=True)
+        }
+        common = set(a) & set(b)
+        same_points = sum(min(a[v], b[v]) for v in common) / sum(b.values())
+        fa = dict(zip(map(tuple, merged.indices.tolist()), merged.features()[1], strict=True))
+        fb = dict(zip(map(tuple, truth.indices.tolist()), truth.features()[1], strict=True))
+        cos = [float(torch.dot(fa[v], fb[v]) / (fa[v].norm() * fb[v].norm())) for v in common]
+        out[storage] = {"voxels_merged": len(a), "voxels_remapped": len(b),
+                        "voxels_in_both": len(common), "points_in_matching_voxels": same_points,
+                        "cosine_median": float(np.median(cos)), "cosine_p5": float(np.percentile(cos, 5))}  # fmt: skip
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
     parser.add_argument("--storages", nargs="+", default=["exact", "compact"])
     parser.add_argument("--threads", type=int, default=1, help="torch threads per process")
     parser.add_argument("--table2", action="store_true", help="the Table 2 delta only")
+    parser.add_argument("--transform", action="store_true",
+                        help="an off-lattice merge against re-mapping the frames, only")  # fmt: skip
     parser.add_argument(
         "--child", nargs=3, metavar=("KIND", "SIZE", "STORAGE"), help=argparse.SUPPRESS
     )
@@ -402,8 +473,8 @@ def main() -> None:
         fn = one if kind == "one" else merge
         print(json.dumps(fn(int(size), storage, args.threads)))
         return
-    if args.table2:
-        result = table2(args.threads)
+    if args.table2 or args.transform:
+        result = table2(args.threads) if args.table2 else transform_error(args.threads)
         print(json.dumps(result, indent=2))
         if args.json:
             args.json.write_text(json.dumps(result, indent=2))
