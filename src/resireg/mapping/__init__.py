@@ -23,6 +23,7 @@ or, with the encoding and the text path included::
     smap.save("map/"); smap.to_ply("map.ply", colour_by="query", text="a red chair")
 """
 
+from resireg.mapping.compact import CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import (
     nearest_downsample,
     nearest_indices,
@@ -32,7 +33,6 @@ from resireg.mapping.geometry import (
 )
 from resireg.mapping.lifting import pixel_pairs, pixel_points
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
-from resireg.mapping.compact import CompactSettings, CompactVoxelMap
 from resireg.mapping.semantic_map import (
     MapFormatWarning,
     MapFullError,
