@@ -25,6 +25,7 @@ _MODULES = {
     # one module, two commands: its __main__ takes the command's name first
     "resireg-export": "resireg.deploy.cli export",
     "resireg-segment": "resireg.deploy.cli segment",
+    "resireg-map-merge": "resireg_train.cli.map_merge",
 }
 
 #: Seconds a command that exited may take for the rest of its process group (data loader

@@ -739,8 +739,8 @@ def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
     # docs/protocol.md section 4's settings (the task table's protocol_keys of scannet3d)
     mapping_keys = {
         "frame_skip", "image_size", "short_side", "resize", "intrinsics", "gt_resolution",
-        "gt_unlabelled", "points", "lattice", "voxel_size", "knn", "prediction_threshold",
-        "prompt_denoising", "metric", "class_names", "classes_to_ignore",
+        "gt_unlabelled", "points", "lattice", "voxel_size", "storage", "knn",
+        "prediction_threshold", "prompt_denoising", "metric", "class_names", "classes_to_ignore",
     }  # fmt: skip
     assert set(record["settings"]) == mapping_keys and record["settings"]["knn"] == 1
     ade = {"name": "ade20k", "kind": "ade20k", "short_side": 576, "path": "x"}

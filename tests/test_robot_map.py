@@ -587,25 +587,25 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
     failed status name the file; no temporary or orphan file is left; the first save loads."""
     import errno
 
-    import safetensors.torch
     from hydra import compose, initialize_config_dir
 
+    from resireg.mapping import semantic_map
     from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.cli.map import run_map
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
-    real = safetensors.torch.save_file
+    real = semantic_map.write_tensors  # the map's tensor-file writer (resireg.mapping.store)
     calls = []
 
-    def full_disk(tensors, filename, metadata=None):
+    def full_disk(filename, tensors):
         calls.append(filename)
         if len(calls) < 2:
-            return real(tensors, filename, metadata)
+            return real(filename, tensors)
         with open(filename, "wb") as f:
             f.write(b"\0" * 100)
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(safetensors.torch, "save_file", full_disk)
+    monkeypatch.setattr(semantic_map, "write_tensors", full_disk)
     out = tmp_path / "run"
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"model_path={tiny_export}", "device=cpu",

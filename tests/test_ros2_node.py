@@ -94,9 +94,9 @@ def replay(pub, room, decoys=True, start=0, stop=None, pause=0.01):
         pub.send({"pose": late["pose"], "depth": late["depth"]})
 
 
-def reference_map(bag, encoder, frames_window=WINDOW):
+def reference_map(bag, encoder, frames_window=WINDOW, extra=()):
     """resireg-map's path on the bag: its source, windows and make_map (conf/map.yaml composed
-    with the same overrides), SemanticMap.add per window as its _map does."""
+    with the same overrides and ``extra``), SemanticMap.add per window as its _map does."""
     from hydra import compose, initialize_config_dir
 
     from resireg.sources.frames import FrameCounts, windows
@@ -108,7 +108,8 @@ def reference_map(bag, encoder, frames_window=WINDOW):
                                         f"voxel_size={VOXEL}", f"source.path={bag}",
                                         f"source.colour_topic={TOPICS['colour']}",
                                         f"source.depth_topic={TOPICS['depth']}",
-                                        f"source.camera_info_topic={TOPICS['info']}"])  # fmt: skip
+                                        f"source.camera_info_topic={TOPICS['info']}",
+                                        *extra])  # fmt: skip
     from omegaconf import OmegaConf
 
     source = build_source(OmegaConf.to_container(cfg.source, resolve=True))
@@ -241,12 +242,15 @@ def test_live_rerun_stream_logs_resireg_map_entities(mapped):
 def test_query_save_and_clear_through_ros(mapped, ros, encoder):
     """A query on ~/query: the similarity cloud a subscriber decodes equals SemanticMap.query
     on the node's map (its points the voxel centres, its colours the blue..red ramp), the top-k
-    PoseArray the k best centres; ~/save_map writes what SemanticMap.load reads back equal;
-    ~/clear_map empties the map (and the status says so)."""
+    PoseArray the k best centres; a map of more than max_points voxels is published as every
+    n-th voxel in index order; ~/save_map writes what SemanticMap.load reads back equal;
+    ~/clear_map empties the map (and the status says so) and every latched output: a
+    subscriber joining after the clear gets empty clouds, no pose and the markers deleted."""
     from geometry_msgs.msg import PoseArray
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
+    from visualization_msgs.msg import Marker, MarkerArray
 
     node, folder, _ = mapped
     _, test_node, _ = ros
@@ -272,6 +276,17 @@ def test_query_save_and_clear_through_ros(mapped, ros, encoder):
 
     last = read_cloud(pca.messages[-1])
     np.testing.assert_array_equal(last["rgb"], pca_colours(smap.features()[1]).numpy())
+    stride = -(-len(smap) // 7)  # ceil: at most 7 points
+    node.values["max_points"] = 7
+    try:
+        before = len(pca.messages)
+        node.publish_map()
+        wait_for(lambda: len(pca.messages) > before, what="the downsampled cloud")
+    finally:
+        node.values["max_points"] = 200_000
+    small = read_cloud(pca.messages[-1])
+    np.testing.assert_array_equal(small["points"], smap.centres().numpy()[::stride])
+    assert len(small["points"]) <= 7
 
     reply = call(test_node, Trigger, "/resireg_map/save_map")
     assert reply.success, reply.message
@@ -281,6 +296,16 @@ def test_query_save_and_clear_through_ros(mapped, ros, encoder):
     reply = call(test_node, Trigger, "/resireg_map/clear_map")
     assert reply.success and reply.message == f"cleared {len(loaded)} voxels"
     assert len(node.worker.smap) == 0 and node.status()["map"]["voxels"] == 0
+    late = {name: Inbox(test_node, kind, f"/resireg_map/{name}") for name, kind in (
+        ("query/cloud", PointCloud2), ("query/top_k", PoseArray), ("map/rgb", PointCloud2),
+        ("map/pca", PointCloud2), ("query/markers", MarkerArray))}  # fmt: skip
+    wait_for(lambda: all(box.messages for box in late.values()), what="the latched outputs")
+    for name in ("query/cloud", "map/rgb", "map/pca"):
+        assert late[name].messages[-1].width == 0, name
+    assert late["query/top_k"].messages[-1].poses == []
+    assert [m.action for m in late["query/markers"].messages[-1].markers] == [Marker.DELETEALL]
+    for box in late.values():
+        test_node.destroy_subscription(box.sub)
     test_node.destroy_publisher(query)
 
 
@@ -363,9 +388,13 @@ def _start_node(tmp_path, export, *extra):
 
 @pytest.mark.slow
 def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_path):
-    """resireg-ros2 in a subprocess maps the first four frames and saves on SIGINT; started again
-    with resume:=true it continues with the last two and saves on SIGTERM (``kill``, a service
-    manager): the map equals resireg-map's of all six. Neither process opened a UDP socket."""
+    """resireg-ros2 in a subprocess maps the first four frames and, on SIGINT, saves the map and
+    then publishes it once more (the last ~/map/rgb a subscriber gets holds the saved map's
+    voxels), without the "publisher's context is invalid" of a context ended first; started
+    again with resume:=true it continues with the last two and stops the same way on SIGTERM
+    (``kill``, a service manager): the map equals resireg-map's of all six. Neither process
+    opened a UDP socket."""
+    from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
 
     context, test_node, spinner = ros
@@ -374,6 +403,7 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
     status = []
     sub = test_node.create_subscription(String, "/resireg_sigint/status",
                                         lambda m: status.append(json.loads(m.data)), 10)  # fmt: skip
+    clouds = Inbox(test_node, PointCloud2, "/resireg_sigint/map/rgb")
     try:
         for start, stop, extra in ((0, 4, ()), (4, FRAMES, ("resume:=true",))):
             with _start_node(tmp_path, tiny_export, *extra) as proc:
@@ -390,15 +420,61 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
                 assert proc.stop(sig, timeout=60) == 0, proc.stderr[-3000:]
             out, err = proc.stdout, proc.stderr
             assert f"map saved to {tmp_path / 'map'}" in out, out + err
+            assert "context is invalid" not in err and "Traceback" not in err, err[-3000:]
+            assert err.index("map saved to") < err.index("published the final map"), err[-3000:]
             saved = SemanticMap.load(tmp_path / "map", encoder)
             assert saved.frames == stop
+            voxels = len(saved)
+            wait_for(lambda n=voxels: clouds.messages and clouds.messages[-1].width == n,
+                     what="the final map's cloud")  # fmt: skip
+            np.testing.assert_array_equal(read_cloud(clouds.messages[-1])["points"],
+                                          saved.centres().numpy())  # fmt: skip
     finally:
+        test_node.destroy_subscription(clouds.sub)
         test_node.destroy_subscription(sub)
         spinner.remove(pub)
         pub.destroy_node()
     bag = write_bag(tmp_path / "room", room, decoys=False)
     ref, _, _ = reference_map(bag, encoder)
     assert_same_map(saved, ref)
+
+
+def test_a_compact_live_map_equals_resireg_map_compact(ros, room, encoder, tmp_path):
+    """-p storage:=compact (a basis fitted on the first frames, a small hot buffer): the node's
+    map equals resireg-map's with storage=compact on a bag of the same frames, bit for bit
+    (the same code, fed the same windows), its basis the same by SHA-256."""
+    from resireg.ros2.node import ResiregMapNode
+
+    context, _, spinner = ros
+    compact = {"compact.dim": 8, "compact.basis_rows": 40, "compact.hot_voxels": 16}
+    node = ResiregMapNode(encoder, "resireg_compact", context=context,
+                          parameter_overrides=node_parameters(tmp_path, "/compact",
+                                                              storage="compact", **compact))  # fmt: skip
+    pub = Replayer(replay_topics("/compact"), context=context, name="replay_compact")
+    spinner.add(node)
+    spinner.add(pub)
+    try:
+        wait_for(lambda: len(node.subscribed) == 3, what="the node's subscriptions")
+        wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
+                 what="the replay's subscribers")  # fmt: skip
+        replay(pub, room, decoys=False)
+        wait_for(lambda: node.status()["frames"]["used"] == FRAMES, timeout=60,
+                 what="every frame used")  # fmt: skip
+        assert node.worker.drain()
+        live = node.worker.smap
+        bag = write_bag(tmp_path / "room", room, decoys=False)
+        ref, _, _ = reference_map(bag, encoder, extra=("storage=compact",
+                                  *(f"{k}={v}" for k, v in compact.items())))  # fmt: skip
+        assert live.storage == ref.storage == "compact" and live.basis_sha256 == ref.basis_sha256
+        assert len(live) > 20 and torch.equal(live.indices, ref.indices)
+        assert torch.equal(live.features()[1], ref.features()[1])
+        assert torch.equal(live.mean_colours(), ref.mean_colours())
+    finally:
+        spinner.remove(pub)
+        pub.destroy_node()
+        spinner.remove(node)
+        node.close(save=False)
+        node.destroy_node()
 
 
 def test_imports_carry_no_lightning_or_hydra():

@@ -19,6 +19,7 @@ or, with the encoding and the text path included::
     smap = SemanticMap(encoder, "full", voxel_size=0.05)
     smap.add(images, depth, K_depth, cam_to_world)   # a window of consecutive frames
     similarity = smap.query("a red chair")           # [M] per voxel
+    best = smap.top_k("a red chair", k=10)           # exact: indices, centres, scores
     smap.save("map/"); smap.to_ply("map.ply", colour_by="query", text="a red chair")
 
 May be imported by ``resireg.deploy``, ``resireg.ros2`` and ``resireg_train`` (``resireg-map``,
@@ -26,6 +27,7 @@ the 3D task); it imports the method, ``resireg.ovss``, ``resireg.specs`` and
 ``resireg.integrity`` (the encoder and the prior it is given are built by its callers).
 """
 
+from resireg.mapping.compact import CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import (
     nearest_downsample,
     nearest_indices,
@@ -35,7 +37,14 @@ from resireg.mapping.geometry import (
 )
 from resireg.mapping.lifting import pixel_pairs, pixel_points
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
-from resireg.mapping.semantic_map import MapFullError, SemanticMap, pca_colours, write_ply
+from resireg.mapping.semantic_map import (
+    MapFormatWarning,
+    MapFullError,
+    SemanticMap,
+    TopK,
+    pca_colours,
+    write_ply,
+)
 from resireg.mapping.voxels import (
     LATTICES,
     LabelVoxelMap,
@@ -63,6 +72,10 @@ __all__ = [
     "transfer_labels_by_voxel",
     "SemanticMap",
     "MapFullError",
+    "MapFormatWarning",
+    "TopK",
+    "CompactSettings",
+    "CompactVoxelMap",
     "pca_colours",
     "write_ply",
 ]

@@ -1,40 +1,62 @@
 """A language-queryable 3D map a robot feeds with posed RGB-D windows (docs/method.md#robot-maps-semanticmap).
 
 :class:`SemanticMap` holds one dense encoder, one ReSiReg configuration (``bb``, ``lite``,
-``full``, ``full@n_prototypes:24``, ``lite+prior``...) and one sparse :class:`VoxelMap` of
-running feature sums. :meth:`SemanticMap.add` encodes a window of consecutive frames in one
-encoder pass, applies the configuration to the window (ReSiReg Full takes the window as one
-scene: its prototypes are shared by the window's frames, as in the 3D task), lifts the features
-to 3D (:func:`patch_points` or :func:`pixel_pairs`) and fuses them. :meth:`SemanticMap.fuse` is
-the lift-and-fuse step alone, for features computed elsewhere: the 3D task's engine
-(``resireg_train.evaluation.mapping.engine``) encodes a batch once, applies every configuration to it and
-fuses each into its own ``SemanticMap``, so the benchmark and a robot run the same code.
+``full``, ``full@n_prototypes:24``, ``lite+prior``...) and one sparse voxel map. :meth:`SemanticMap.add`
+encodes a window of consecutive frames in one encoder pass, applies the configuration to the
+window (ReSiReg Full takes the window as one scene: its prototypes are shared by the window's
+frames, as in the 3D task), lifts the features to 3D (:func:`patch_points` or
+:func:`pixel_pairs`) and fuses them. :meth:`SemanticMap.fuse` is the lift-and-fuse step alone,
+for features computed elsewhere: the 3D task's engine (``resireg_train.evaluation.mapping.engine``) encodes
+a batch once, applies every configuration to it and fuses each into its own ``SemanticMap``, so
+the benchmark and a robot run the same code.
+
+Storage (``storage``, :data:`~resireg.specs.mapping.STORAGES`): ``exact`` keeps running feature
+sums (:class:`VoxelMap`, ``sum_dtype`` float64 or float32) and a mean colour map; ``compact``
+keeps low-precision unit features, optionally projected to ``compact.dim`` channels by a basis
+fitted once on the first ``compact.basis_rows`` features (an uncentred PCA, :mod:`resireg.method.pca`)
+or given (``compact.basis``: a map folder or a ``.safetensors`` file), recorded by its SHA-256
+(:class:`~resireg.mapping.compact.CompactVoxelMap`: ~290 bytes per voxel at 128 channels,
+against ~4,170 for float64 sums of 512). Until a compact map's basis is fitted its frames wait
+(the map reads as empty); a save fits it on what it has.
 
 Queries: :meth:`~SemanticMap.query` (cosine similarity of every voxel to text queries),
+:meth:`~SemanticMap.top_k` (the best voxels of a text, exact: scored fast in low precision,
+the candidates within the error bound re-scored in float64; optionally in a box or a ball,
+looked up without reading the map), :meth:`~SemanticMap.region`,
 :meth:`~SemanticMap.classify` (the protocol's class prototypes: 80 templates averaged, cosine
-argmax or RayFronts' thresholded rule). Persistence: :meth:`~SemanticMap.save` /
-:meth:`SemanticMap.load` (safetensors + JSON, atomic: a crash mid-save leaves the previous save
-loadable; the JSON records the tensor file's SHA-256 and its own digest, verified on load),
-:meth:`~SemanticMap.to_ply`. :meth:`~SemanticMap.fuse` refuses non-finite or non-floating
-features, intrinsics and poses (:func:`resireg.method.checks.check_features`).
+argmax or RayFronts' thresholded rule); text embeddings are cached per text, prototypes per class
+list. A compact map with a basis scores in the basis's space (the texts projected and
+normalised: RayFronts' compressed query). :meth:`~SemanticMap.merge` adds another mapping run's
+map (the same encoder and settings; refused naming what differs), optionally through a rigid
+transform. Persistence: :meth:`~SemanticMap.save` / :meth:`SemanticMap.load` (a safetensors file
+written from the map's blocks, and ``map.json``, atomic: a crash mid-save leaves the previous save
+loadable; the JSON records the tensor file's SHA-256 and its own digest, verified on load; the
+tensors are memory-mapped), :meth:`~SemanticMap.to_ply`. Maps of the earlier formats load
+(:data:`FORMATS`). :meth:`~SemanticMap.fuse` refuses non-finite or non-floating features,
+intrinsics and poses (:func:`resireg.method.checks.check_features`).
 
-Memory bound: the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators (``s`` = 8
-for float64 sums, 4 for ``sum_dtype="float32"``), 16 bytes of key and row, and, with
-``colour=True``, ``8 x 3 + 8 + 16`` bytes of mean colour; the accumulators keep up to 1.5x
-their rows in reserve (:attr:`SemanticMap.nbytes` counts it). ``max_voxels`` caps the occupied
-voxels: a window that would exceed it raises :class:`MapFullError` *before* anything of it is
-added, so the map stays as it was and can be saved. At 5 cm and D = 512 one million voxels
-(a large building floor) take ~4.1 GB with float64 sums and ~2.1 GB with float32 ones.
+Memory bound (``exact``): the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators
+(``s`` = 8 for float64 sums, 4 for ``sum_dtype="float32"``), 8 bytes of key and 5.7 to 11.4 of
+hash slot, and, with ``colour=True``, ``8 x 3 + 8`` bytes of colour sums and their own key and
+slot; the accumulators' last block holds fewer than :data:`~resireg.mapping.voxels.BLOCK_ROWS`
+spare rows (:attr:`SemanticMap.nbytes` counts them). ``max_voxels`` caps the occupied voxels:
+a window that would exceed it raises :class:`MapFullError` *before* anything of it is added, so
+the map stays as it was and can be saved. At 5 cm and D = 512 one million voxels (a large
+building floor) take ~4.2 GB with float64 sums, ~2.1 GB with float32 ones and ~0.3 GB
+``compact`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import uuid
+import warnings
+from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -42,29 +64,37 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.errors import MapError
-from resireg.integrity import (
-    IntegrityError,
-    atomic_write,
-    digests,
-    load_safetensors,
-    read_json,
-    verify_digests,
-)
+from resireg.integrity import IntegrityError, atomic_write, read_json, verify_digests
+from resireg.mapping.compact import STORED_DTYPES, CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import patch_points
+from resireg.mapping.keys import pack_keys, unpack_keys
 from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
-from resireg.mapping.voxels import SUM_DTYPES, VoxelMap, check_lattice, voxel_indices
+from resireg.mapping.store import read_tensors, write_tensors
+from resireg.mapping.voxels import (
+    SUM_DTYPES,
+    VoxelMap,
+    check_lattice,
+    transform_keys,
+    voxel_centres,
+    voxel_indices,
+)
 from resireg.method.checks import check_features
 from resireg.method.variants import apply_variant, build_variants
-from resireg.specs.mapping import POINTS
+from resireg.specs.mapping import POINTS, STORAGES, map_errors
 from resireg.specs.variants import takes_prior, variant_layer
 
 __all__ = [
     "COLOUR_BY",
     "ENCODER_OUTPUT",
+    "FORMAT",
+    "FORMATS",
     "POINTS",
     "MapFullError",
+    "MapFormatWarning",
     "SemanticMap",
+    "TopK",
+    "load_basis",
     "pca_colours",
     "write_ply",
 ]
@@ -73,7 +103,14 @@ __all__ = [
 COLOUR_BY = ("rgb", "pca", "query", "class")
 #: The files of a saved map: the JSON (written last: the commit point) names its tensor file.
 MAP_JSON = "map.json"
-_FORMAT = "resireg.semantic_map/1"
+#: The format :meth:`SemanticMap.save` writes. It changes whenever what a reader needs changes:
+#: ``/2`` holds each map's keys in row order with its hash table, its storage and basis.
+FORMAT = "resireg.semantic_map/2"
+#: The formats :meth:`SemanticMap.load` reads: ``/1`` (indices in lexicographic order; maps
+#: saved before the digests were recorded load with a :class:`MapFormatWarning`) and ``/2``.
+FORMATS = ("resireg.semantic_map/1", FORMAT)
+#: Texts (and class lists) whose embeddings a map keeps.
+_TEXT_CACHE = 1024
 #: The name :meth:`SemanticMap.add` gives its encoder's output in a
 #: :class:`resireg.method.checks.NonFiniteError` (``resireg-map`` skips such a window and counts it).
 ENCODER_OUTPUT = "encoder output"
@@ -81,6 +118,63 @@ ENCODER_OUTPUT = "encoder output"
 
 class MapFullError(MapError):
     """A window would take the map past its ``max_voxels`` budget (nothing of it was added)."""
+
+
+class MapFormatWarning(UserWarning):
+    """A saved map of an earlier format was loaded without what the current one proves."""
+
+
+class TopK(NamedTuple):
+    """The best voxels of a text (:meth:`SemanticMap.top_k`), best first (ties: the lower
+    voxel index, in lexicographic order)."""
+
+    indices: Tensor  #: ``[k, 3]`` int64 voxel indices
+    centres: Tensor  #: ``[k, 3]`` float32 voxel centres
+    scores: Tensor  #: ``[k]`` float64 cosine scores (the voxels' features as :meth:`features` gives them)
+
+
+def _sha256(t: Tensor) -> str:
+    return hashlib.sha256(t.detach().cpu().contiguous().numpy().tobytes()).hexdigest()
+
+
+def _inside(folder: Path, name: Any, field: str, record: Path) -> Path:
+    """``folder / name`` when ``name`` (read from ``record``'s ``field``) is a file name that
+    stays inside ``folder``; else an :class:`IntegrityError` naming the field and the path
+    (a record names its own files; it never points elsewhere)."""
+    if not isinstance(name, str) or not name:
+        raise IntegrityError(f"{record}: {field}={name!r}: expected a file name")
+    path = folder / name
+    inside = Path(name).name == name and not Path(name).is_absolute() and name not in (".", "..")
+    if not inside or path.resolve().parent != folder.resolve():
+        raise IntegrityError(
+            f"{record}: {field}={name!r} names a file outside the map folder {folder} "
+            "(a map's files stay in its folder)"
+        )
+    return path
+
+
+def load_basis(path: str | Path) -> Tensor:
+    """A projection basis ``[D, k]`` float32: the ``basis`` of a saved map folder (verified as
+    :meth:`SemanticMap.load` verifies it) or the tensor ``basis`` of a ``.safetensors`` file."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        record = read_json(path / MAP_JSON, "saved map record")
+        if not isinstance(record, dict) or not record.get("basis_sha256"):
+            raise ValueError(f"compact.basis={str(path)!r}: the map records no basis")
+        name = _inside(path, record.get("tensors"), "tensors", path / MAP_JSON)
+        verify_digests(path, {name.name: (record.get("sha256") or {}).get(name.name, "")},
+                       "saved map")  # fmt: skip
+        tensors = read_tensors(name, "saved map")
+        basis = tensors.get("basis")
+        if basis is None or _sha256(basis) != record["basis_sha256"]:
+            raise IntegrityError(f"{name}: no basis of the recorded SHA-256")
+    elif path.is_file():
+        basis = read_tensors(path, "basis file").get("basis")
+    else:
+        raise ValueError(f"compact.basis={str(path)!r}: no such map folder or file")
+    if basis is None or basis.ndim != 2 or not basis.is_floating_point():
+        raise ValueError(f"compact.basis={str(path)!r}: expected a [D, k] float tensor 'basis'")
+    return basis.to(torch.float32).clone()
 
 
 def _record_digest(record: Mapping[str, Any]) -> str:
@@ -185,6 +279,37 @@ def _encoder_dim(encoder: Any) -> int | None:
         return None
 
 
+class MapSnapshot:
+    """A map's tensors (lists of blocks, by file name) and record, as :meth:`SemanticMap.save`
+    writes them (:meth:`SemanticMap.snapshot`)."""
+
+    def __init__(self, tensors: dict[str, list[Tensor]], record: dict[str, Any]) -> None:
+        self.tensors, self.record = tensors, record
+
+    def write(self, folder: str | Path) -> Path:
+        """Write the tensor file, then ``map.json`` (the commit point), then remove older
+        tensor files (:meth:`SemanticMap.save`)."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        name = f"map-{uuid.uuid4().hex[:12]}.safetensors"
+        digest: dict[str, str] = {}
+        try:
+            atomic_write(
+                folder / name, lambda tmp: digest.update({name: write_tensors(tmp, self.tensors)})
+            )
+            record = {**self.record, "tensors": name, "sha256": digest}
+            record["record_sha256"] = _record_digest(record)
+            text = json.dumps(record, indent=2, sort_keys=True)
+            atomic_write(folder / MAP_JSON, lambda tmp: tmp.write_text(text))
+        except BaseException:
+            (folder / name).unlink(missing_ok=True)  # not committed: map.json names the old one
+            raise
+        for old in folder.glob("map-*.safetensors"):
+            if old.name != name:
+                old.unlink(missing_ok=True)
+        return folder
+
+
 class SemanticMap:
     """A voxel map of one encoder's features under one ReSiReg configuration (module docstring).
 
@@ -200,12 +325,15 @@ class SemanticMap:
             configuration: called on each window's resized images (float ``[B, 3, H, W]``).
         points: :data:`POINTS`.
         lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.voxels`).
-        sum_dtype: ``"float64"`` or ``"float32"``: the feature sums (module docstring).
+        sum_dtype: ``"float64"`` or ``"float32"``: an ``exact`` map's feature sums.
         max_voxels: ``None`` (no bound) or the most voxels the map may hold.
         short_side: the encoder's input rule on the images (``None``: keep the size, sides
             rounded to the patch size).
         colour: also keep each voxel's mean colour (for ``to_ply(colour_by="rgb")``, Rerun).
         device: where the map lives (default: the encoder's device, else the CPU).
+        storage: ``"exact"`` or ``"compact"`` (module docstring).
+        compact: a ``compact`` map's settings (:class:`~resireg.mapping.compact.CompactSettings`
+            or the ``compact`` block of ``conf/map.yaml``; ``None``: its defaults).
     """
 
     def __init__(
@@ -224,6 +352,8 @@ class SemanticMap:
         short_side: int | None = None,
         colour: bool = True,
         device: torch.device | str | None = None,
+        storage: str = "exact",
+        compact: CompactSettings | Mapping[str, Any] | None = None,
     ) -> None:
         if points not in POINTS:
             raise ValueError(f"points={points!r}: expected one of {POINTS}")
@@ -233,6 +363,14 @@ class SemanticMap:
             isinstance(max_voxels, bool) or not isinstance(max_voxels, int) or max_voxels < 1
         ):
             raise ValueError(f"max_voxels={max_voxels!r}: expected null or an integer >= 1")
+        if storage not in STORAGES:
+            raise ValueError(f"storage={storage!r}: expected one of {list(STORAGES)}")
+        self.storage = storage
+        self.compact = CompactSettings.of(compact) if storage == "compact" else None
+        if self.compact is not None:
+            errors = map_errors({"compact": self.compact.as_dict()})
+            if errors:
+                raise ValueError("; ".join(errors))
         self.encoder = encoder
         if isinstance(configuration, nn.Module):
             self.configuration = type(configuration).__name__
@@ -266,9 +404,22 @@ class SemanticMap:
         if device is None:
             device = encoder.device if encoder is not None else "cpu"
         self.device = torch.device(device)
-        self.voxels: VoxelMap | None = None  # made at the first fuse (the dimension is known)
-        self.colours = VoxelMap(self.voxel_size, 3, self.device, self.lattice) if colour else None
+        self.keeps_colour = bool(colour)
+        self.voxels: VoxelMap | CompactVoxelMap | None = None  # made when the dimension is known
+        exact = storage == "exact"
+        self.colours = (VoxelMap(self.voxel_size, 3, self.device, self.lattice)
+                        if colour and exact else None)  # fmt: skip
         VoxelMap(self.voxel_size, 1, self.device, self.lattice)  # checks voxel_size now
+        self._dim: int | None = None
+        self.basis: Tensor | None = None  # [D, k]: a compact map's projection
+        self.basis_sha256: str | None = None
+        if self.compact is not None and self.compact.dim is not None and self.compact.basis:
+            self.set_basis(load_basis(self.compact.basis))
+        self._pending: list[tuple] = []  # windows waiting for the basis
+        self._pending_rows: list[Tensor] = []
+        self._pending_keys: Tensor | None = None
+        self._texts: OrderedDict[str, Tensor] = OrderedDict()
+        self._prototypes: OrderedDict[Any, Tensor] = OrderedDict()
         self.frames = 0  # frames fused
         self.windows = 0  # add / fuse calls that fused frames
         self.meta: dict[str, Any] = {}  # the caller's record, saved with the map (e.g. the source)
@@ -280,25 +431,90 @@ class SemanticMap:
     def __repr__(self) -> str:
         return (
             f"SemanticMap(configuration={self.configuration!r}, voxel_size={self.voxel_size}, "
-            f"points={self.points!r}, voxels={len(self)}, frames={self.frames})"
+            f"points={self.points!r}, storage={self.storage!r}, voxels={len(self)}, "
+            f"frames={self.frames})"
         )
 
     # ------------------------------------------------------------------ building
     @property
     def dim(self) -> int | None:
-        """The feature dimension (``None`` before the first window)."""
-        return None if self.voxels is None else self.voxels.dim
+        """The dimension of the features fused (``None`` before the first window)."""
+        return self._dim
+
+    @property
+    def stored_dim(self) -> int | None:
+        """The dimension of the stored features: ``compact.dim`` for a compact map with a
+        basis, else :attr:`dim`."""
+        if self.basis is not None:
+            return int(self.basis.shape[1])
+        if self.compact is not None and self.compact.dim is not None and self._dim is not None:
+            return min(self.compact.dim, self._dim)
+        return self._dim
+
+    def set_basis(self, basis: Tensor) -> None:
+        """Project this compact map's features with ``basis`` ``[D, k]`` (before any voxel)."""
+        if self.compact is None or self.compact.dim is None:
+            raise ValueError("a basis is for a compact map with compact.dim set")
+        if len(self) or self._pending:
+            raise ValueError("set_basis(): the map already holds features")
+        if basis.ndim != 2 or basis.shape[1] != self.compact.dim:
+            raise ValueError(f"basis of shape {tuple(basis.shape)}: expected [D, "
+                             f"compact.dim={self.compact.dim}]")  # fmt: skip
+        if self._dim is not None and basis.shape[0] != self._dim:
+            raise ValueError(f"basis of shape {tuple(basis.shape)}: the map's features are "
+                             f"{self._dim}-d")  # fmt: skip
+        self.basis = basis.to(device=self.device, dtype=torch.float32).contiguous()
+        self.basis_sha256 = _sha256(self.basis)
+
+    def _needs_basis(self) -> bool:
+        return (self.compact is not None and self.compact.dim is not None
+                and self.basis is None and self._dim is not None and self.compact.dim < self._dim)  # fmt: skip
+
+    def _fit_basis(self) -> None:
+        """The basis of the pending features: the top ``compact.dim`` eigenvectors of their
+        uncentred second moment (float64, :func:`resireg.method.pca.pca_from_moments` with a zero
+        first moment: the mean direction is kept, as every cosine needs it); then the pending
+        windows are fused."""
+        from resireg.method.pca import gram, pca_from_moments
+
+        rows = torch.cat(self._pending_rows).to(torch.float64)
+        if rows.shape[0] < 2:
+            raise ValueError(f"a compact map fits its basis on >= 2 features; it has "
+                             f"{rows.shape[0]}: map more frames first")  # fmt: skip
+        fit = pca_from_moments(gram(rows), rows.new_zeros(rows.shape[1]), rows.shape[0],
+                               self.compact.dim)  # fmt: skip
+        pending = self._pending
+        self._pending, self._pending_rows, self._pending_keys = [], [], None
+        self.set_basis(fit.components.T)
+        self.voxels = self._make_voxels()
+        for payload in pending:
+            self._apply(payload)
+
+    def _make_voxels(self) -> VoxelMap | CompactVoxelMap:
+        if self.compact is None:
+            return VoxelMap(self.voxel_size, self._dim, self.device, self.lattice,
+                            SUM_DTYPES[self.sum_dtype])  # fmt: skip
+        c = self.compact
+        return CompactVoxelMap(self.voxel_size, self.stored_dim, self.device, self.lattice,
+                               STORED_DTYPES[c.dtype], self.keeps_colour, c.hot_voxels)  # fmt: skip
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the map's tensors (reserve included)."""
-        return sum(m.nbytes for m in (self.voxels, self.colours) if m is not None)
+        """Bytes held by the map's tensors (spare rows and the basis included)."""
+        held = sum(m.nbytes for m in (self.voxels, self.colours) if m is not None)
+        return held + (0 if self.basis is None else self.basis.numel() * 4)
 
     def bytes_per_voxel(self, dim: int | None = None) -> int:
-        """Bytes per occupied voxel without the reserve (module docstring)."""
-        d = dim or self.dim or 0
-        size = 16 + 8 + d * SUM_DTYPES[self.sum_dtype].itemsize
-        return size + (16 + 8 + 3 * 8 if self.colours is not None else 0)
+        """Bytes per occupied voxel without the spare rows (module docstring; 8 for a hash
+        slot, its middle)."""
+        d = dim or self.stored_dim or 0
+        if self.compact is not None:
+            if self.basis is None and self.compact.dim is not None:
+                d = min(d, self.compact.dim)
+            size = 8 + 8 + d * STORED_DTYPES[self.compact.dtype].itemsize + 4 + 4
+            return size + (3 + 4 if self.keeps_colour else 0)
+        size = 8 + 8 + d * SUM_DTYPES[self.sum_dtype].itemsize + 8
+        return size + (8 + 8 + 3 * 8 + 8 if self.colours is not None else 0)
 
     @torch.no_grad()
     def encode(self, images: Tensor) -> Tensor:
@@ -362,7 +578,7 @@ class SemanticMap:
         raw = self.resized(images)
         dense = self._encode_resized(raw)
         return self._fuse(dense, depth, intrinsics, cam_to_world,
-                          raw if self.colours is not None else None, None, ENCODER_OUTPUT)  # fmt: skip
+                          raw if self.keeps_colour else None, None, ENCODER_OUTPUT)  # fmt: skip
 
     @torch.no_grad()
     def fuse(
@@ -400,6 +616,9 @@ class SemanticMap:
                             f"{depth.dtype if isinstance(depth, Tensor) else type(depth).__name__}")  # fmt: skip
         if colour is not None:
             check_features("colour", colour)
+        if self._dim is not None and features.shape[1] != self._dim:
+            raise ValueError(f"features of shape {tuple(features.shape)}: the map has "
+                             f"dim={self._dim}")  # fmt: skip
         with torch.autocast(self.device.type, enabled=False):
             grid = tuple(features.shape[-2:])
             depth = depth.to(self.device)
@@ -414,44 +633,103 @@ class SemanticMap:
                                                           self.lattice))  # fmt: skip
             kind, *geometry = cache[grid]
             feats = features.permute(0, 2, 3, 1).float().to(self.device)
-            if self.voxels is None:
-                self.voxels = VoxelMap(self.voxel_size, feats.shape[-1], self.device,
-                                       self.lattice, SUM_DTYPES[self.sum_dtype])  # fmt: skip
-            vmap = self.voxels
-            if kind == "patch":
-                pts, valid = geometry
-                index = None
-                pts = pts[valid]
-            else:
-                index, patch, count = geometry
-            before = len(vmap)
-            if self.max_voxels is not None:
-                probe = index if index is not None else voxel_indices(pts, self.voxel_size,
-                                                                      self.lattice)  # fmt: skip
-                new = vmap.count_new(probe)
-                if before + new > self.max_voxels:
-                    raise MapFullError(
-                        f"max_voxels={self.max_voxels}: this window of {features.shape[0]} "
-                        f"frames adds {new} voxels to the map's {before}; raise max_voxels "
-                        f"(each voxel holds ~{self.bytes_per_voxel(feats.shape[-1])} bytes), "
-                        "use a coarser voxel_size or sum_dtype=float32, or save this map and "
-                        "start a new one"
-                    )
+            if self._dim is None:
+                self._dim = int(feats.shape[-1])
+                if self.basis is not None and self.basis.shape[0] != self._dim:
+                    self._dim = None
+                    raise ValueError(f"features of {feats.shape[-1]} channels: the basis "
+                                     f"projects {self.basis.shape[0]}")  # fmt: skip
+            if self.voxels is None and not self._needs_basis():
+                self.voxels = self._make_voxels()
             rgb = None
-            if self.colours is not None and colour is not None:
+            if self.keeps_colour and colour is not None:
                 rgb = F.adaptive_avg_pool2d(colour.float().to(self.device), grid)
                 rgb = rgb.permute(0, 2, 3, 1)
             if kind == "patch":
-                vmap.add(pts, feats[valid])
-                if rgb is not None:
-                    self.colours.add(pts, rgb[valid])
+                pts, valid = geometry
+                payload = ("patch", pts[valid], feats[valid], None if rgb is None else rgb[valid])
             else:
-                vmap.add_pairs(index, count, feats.reshape(-1, feats.shape[-1]), patch)
-                if rgb is not None:
-                    self.colours.add_pairs(index, count, rgb.reshape(-1, 3), patch)
+                index, patch, count = geometry
+                payload = ("pixel", index, count, patch, feats.reshape(-1, feats.shape[-1]),
+                           None if rgb is None else rgb.reshape(-1, 3))  # fmt: skip
+            probe = None
+            if self.max_voxels is not None or self._needs_basis():  # (the voxels' indices)
+                probe = (voxel_indices(payload[1], self.voxel_size, self.lattice)
+                         if kind == "patch" else payload[1])  # fmt: skip
+            before = len(self)
+            if self.max_voxels is not None:
+                new = self._count_new(probe)
+                held = before + (0 if self._pending_keys is None else self._pending_keys.numel())
+                if held + new > self.max_voxels:
+                    raise MapFullError(
+                        f"max_voxels={self.max_voxels}: this window of {features.shape[0]} "
+                        f"frames adds {new} voxels to the map's {held}; raise max_voxels "
+                        f"(each voxel holds ~{self.bytes_per_voxel(feats.shape[-1])} bytes), "
+                        "use a coarser voxel_size, sum_dtype=float32 or storage=compact, or "
+                        "save this map and start a new one"
+                    )
+            if self._needs_basis():
+                self._pend(payload, probe)
+            else:
+                self._apply(payload)
         self.frames += int(features.shape[0])
         self.windows += 1
-        return len(vmap) - before
+        return len(self) - before
+
+    def _count_new(self, probe: Tensor) -> int:
+        """Distinct voxels of indices ``probe`` that neither the map nor its pending windows hold."""
+        if self.voxels is not None:
+            return self.voxels.count_new(probe)
+        keys = torch.unique(pack_keys(probe.to(torch.int64)))
+        held = self._pending_keys
+        if held is None or not held.numel():
+            return int(keys.numel())
+        pos = torch.searchsorted(held, keys).clamp_max(held.numel() - 1)
+        return int((held[pos] != keys).sum())
+
+    def _pend(self, payload: tuple, probe: Tensor) -> None:
+        """Keep a window until the basis is fitted (fitted now if the pending windows hold
+        ``compact.basis_rows`` features)."""
+        self._pending.append(payload)
+        if payload[0] == "patch":
+            self._pending_rows.append(payload[2])
+        else:  # the lifted patches' features, once each
+            self._pending_rows.append(payload[4][torch.unique(payload[3])])
+        keys = torch.unique(pack_keys(probe.to(torch.int64)))
+        held = self._pending_keys
+        self._pending_keys = keys if held is None else torch.unique(torch.cat([held, keys]))
+        if sum(r.shape[0] for r in self._pending_rows) >= self.compact.basis_rows:
+            self._fit_basis()
+
+    def _apply(self, payload: tuple) -> None:
+        """Add one lifted window to the voxels (projected by the basis, if any)."""
+        vmap = self.voxels
+        if payload[0] == "patch":
+            _, pts, feats, rgb = payload
+        else:
+            _, index, count, patch, feats, rgb = payload
+        if self.basis is not None:
+            feats = feats @ self.basis
+        if isinstance(vmap, CompactVoxelMap):
+            if payload[0] == "patch":
+                vmap.add(pts, feats, rgb)
+            else:
+                vmap.add_pairs(index, count, feats, patch, rgb)
+            return
+        if payload[0] == "patch":
+            vmap.add(pts, feats)
+            if rgb is not None and self.colours is not None:
+                self.colours.add(pts, rgb)
+        else:
+            vmap.add_pairs(index, count, feats, patch)
+            if rgb is not None and self.colours is not None:
+                self.colours.add_pairs(index, count, rgb, patch)
+
+    def fit_pending(self) -> None:
+        """Fit a compact map's basis now on the features its pending windows hold (a save
+        does), and fuse them."""
+        if self._pending:
+            self._fit_basis()
 
     # ------------------------------------------------------------------ reading
     @property
@@ -468,15 +746,18 @@ class SemanticMap:
         return self.voxels.centres()
 
     def features(self) -> tuple[Tensor, Tensor]:
-        """Voxel centres ``[M, 3]`` and unit mean features ``[M, D]`` (:meth:`VoxelMap.features`)."""
+        """Voxel centres ``[M, 3]`` and unit mean features ``[M, D]`` (:meth:`VoxelMap.features`;
+        a compact map's ``[M, k]`` stored directions, :meth:`CompactVoxelMap.features`)."""
         if self.voxels is None:
             raise ValueError("the map is empty: add frames first")
         return self.voxels.features()
 
     def mean_colours(self) -> Tensor:
         """``[M, 3]`` uint8 mean colour per voxel, in :attr:`indices` order."""
-        if self.colours is None:
+        if not self.keeps_colour:
             raise ValueError("this map keeps no colour (colour=False)")
+        if isinstance(self.voxels, CompactVoxelMap):
+            return self.voxels.mean_colours()
         if self.voxels is None or not len(self.colours):
             return torch.zeros(len(self), 3, dtype=torch.uint8)
         at = self.colours.find(self.indices)
@@ -485,13 +766,48 @@ class SemanticMap:
         out[at >= 0] = mean[at[at >= 0]]
         return (out.clamp(0, 1) * 255).round().to(torch.uint8).cpu()
 
+    def subsample(self, stride: int = 1) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Every ``stride``-th voxel in :attr:`indices` order: centres ``[m, 3]``, features
+        ``[m, D]`` (as :meth:`features`) and mean colours ``[m, 3]`` (``None`` without colour),
+        computed for those voxels only (a cloud of a large map)."""
+        if self.voxels is None:
+            raise ValueError("the map is empty: add frames first")
+        if stride == 1 and isinstance(self.voxels, VoxelMap):
+            centres, feats = self.voxels.features()
+        else:
+            rows = self.voxels.sorted_rows[::stride]
+            centres = voxel_centres(unpack_keys(self.voxels.keys[rows]), self.voxel_size,
+                                    self.lattice)  # fmt: skip
+            feats = self.voxels.unit_rows(rows)
+        colours = self.mean_colours()[::stride] if self.keeps_colour else None
+        return centres, feats, colours
+
     @torch.no_grad()
     def text_queries(self, texts: Sequence[str]) -> Tensor:
-        """``[K, D]`` unit-norm queries of the raw texts (the encoder's text path, no template)."""
+        """``[K, D]`` unit-norm queries of the raw texts (the encoder's text path, no template),
+        each text embedded once per map (the last 1,024 kept)."""
         if self.encoder is None:
             raise ValueError("this map has no encoder to embed text: pass one to load()")
-        feats = self.encoder.text_features(list(texts))
-        return F.normalize(self.encoder.dense_text(feats).float(), dim=-1)
+        texts = [str(t) for t in texts]
+        missing = [t for t in dict.fromkeys(texts) if t not in self._texts]
+        if missing:
+            feats = self.encoder.text_features(missing)
+            queries = F.normalize(self.encoder.dense_text(feats).float(), dim=-1)
+            for text, q in zip(missing, queries, strict=True):
+                self._texts[text] = q
+        for text in texts:
+            self._texts.move_to_end(text)
+        while len(self._texts) > _TEXT_CACHE:
+            self._texts.popitem(last=False)
+        return torch.stack([self._texts[t] for t in texts]) if texts else torch.empty(0, 0)
+
+    def project(self, queries: Tensor) -> Tensor:
+        """Queries ``[K, D]`` in the stored features' space: a compact map's basis applied and
+        each renormalised (the cosine in the basis's space, as RayFronts queries its
+        compressed map); unchanged for a map without basis."""
+        if self.basis is None:
+            return queries
+        return F.normalize(queries.to(self.basis.device).float() @ self.basis, dim=-1)
 
     @torch.no_grad()
     def prototypes(
@@ -499,27 +815,54 @@ class SemanticMap:
     ) -> Tensor:
         """``[K, D]`` class prototypes as the protocol builds them: every template (default:
         the 80 OpenAI ImageNet templates) per class through ``text_features`` then
-        ``dense_text``, averaged (:func:`resireg.ovss.text_prototypes`)."""
+        ``dense_text``, averaged (:func:`resireg.ovss.text_prototypes`); kept per class list
+        and templates."""
         from resireg.ovss import TEMPLATES, text_prototypes
 
         if self.encoder is None:
             raise ValueError("this map has no encoder to embed text: pass one to load()")
+        key = (tuple(classes), None if templates is None else tuple(map(id, templates)))
+        if key in self._prototypes:
+            self._prototypes.move_to_end(key)
+            return self._prototypes[key]
         enc = self.encoder
 
         def embed(texts: list[str]) -> Tensor:
             return enc.dense_text(enc.text_features(texts))
 
         with torch.autocast(self.device.type, enabled=False):
-            return text_prototypes(embed, list(classes), templates or TEMPLATES)
+            protos = text_prototypes(embed, list(classes), templates or TEMPLATES)
+        self._prototypes[key] = protos
+        while len(self._prototypes) > 64:
+            self._prototypes.popitem(last=False)
+        return protos
+
+    def _queries(self, texts: str | Sequence[str] | Tensor) -> tuple[bool, Tensor]:
+        """(one text?, ``[K, D]`` unit queries) of a text, texts, or query embeddings."""
+        if isinstance(texts, Tensor):
+            q = texts.float()
+            single = q.ndim == 1
+            q = q[None] if single else q
+            if q.ndim != 2 or (self._dim is not None and q.shape[1] != self._dim):
+                raise ValueError(f"queries of shape {tuple(texts.shape)}: expected [D] or "
+                                 f"[K, D] with D = {self._dim}")  # fmt: skip
+            return single, F.normalize(q, dim=-1)
+        single = isinstance(texts, str)
+        return single, self.text_queries([texts] if single else list(texts))
 
     @torch.no_grad()
-    def query(self, texts: str | Sequence[str]) -> Tensor:
+    def query(self, texts: str | Sequence[str] | Tensor) -> Tensor:
         """Cosine similarity of every voxel's feature to text queries: ``[M, K]`` float32 for a
-        list of ``K`` texts, ``[M]`` for one string; rows in :attr:`indices` order."""
-        single = isinstance(texts, str)
-        queries = self.text_queries([texts] if single else list(texts))
-        _, feats = self.features()
-        sim = feats @ queries.to(feats.device).T
+        list of ``K`` texts (or query embeddings ``[K, D]`` in the encoder's text space), ``[M]``
+        for one string (or ``[D]``); rows in :attr:`indices` order (a compact map's scores are
+        accumulated in float32 from its stored features)."""
+        single, queries = self._queries(texts)
+        if isinstance(self.voxels, CompactVoxelMap):
+            scores, _ = self.voxels.approx_scores(self.project(queries), fast=False)
+            sim = scores[self.voxels.sorted_rows]
+        else:
+            _, feats = self.features()
+            sim = feats @ queries.to(feats.device).T
         return sim[:, 0] if single else sim
 
     @torch.no_grad()
@@ -531,10 +874,189 @@ class SemanticMap:
         templates: Sequence[Callable[[str], str]] | None = None,
     ) -> Tensor:
         """``[M]`` class id per voxel (``-1``: no prediction under ``threshold``) against
-        :meth:`prototypes`: :func:`resireg.mapping.classify` (the 3D task's rule)."""
+        :meth:`prototypes`: :func:`resireg.mapping.classify` (the 3D task's rule), on a
+        compact map in chunks of its features (the prompt-denoising chunks kept)."""
         protos = self.prototypes(classes, templates)
-        _, feats = self.features()
-        return classify_features(feats, protos.to(feats.device), threshold, denoise, none=-1)
+        if not isinstance(self.voxels, CompactVoxelMap):
+            _, feats = self.features()
+            return classify_features(feats, protos.to(feats.device), threshold, denoise, none=-1)
+        return self.classify_features(self.project(protos), threshold, denoise)
+
+    def classify_features(self, prototypes: Tensor, threshold: float | None = None,
+                          denoise: float | None = None, none: int = -1) -> Tensor:  # fmt: skip
+        """:func:`resireg.mapping.classify` of the map's features against ``prototypes`` in
+        the stored space (:meth:`project`), chunk by chunk of :attr:`indices` order: no
+        float32 copy of the whole map."""
+        if self.voxels is None:
+            raise ValueError("the map is empty: add frames first")
+        if not isinstance(self.voxels, CompactVoxelMap):
+            _, feats = self.features()
+            return classify_features(feats, prototypes.to(feats.device), threshold, denoise,
+                                     none=none)  # fmt: skip
+        order = self.voxels.sorted_rows
+        step = 10_000 if denoise is not None else 1 << 16  # classify's denoising chunks
+        out = torch.empty(order.numel(), dtype=torch.int64, device=self.device)
+        for start in range(0, order.numel(), step):
+            feats = self.voxels.unit_rows(order[start : start + step])
+            out[start : start + step] = classify_features(feats, prototypes, threshold, denoise,
+                                                          none=none)  # fmt: skip
+        return out
+
+    @torch.no_grad()
+    def top_k(
+        self,
+        texts: str | Sequence[str] | Tensor,
+        k: int = 10,
+        *,
+        box: Any = None,
+        centre: Any = None,
+        radius: float | None = None,
+    ) -> TopK | list[TopK]:
+        """The ``k`` voxels most similar to a text (a list of texts, or query embeddings ``[K,
+        D]``: one :class:`TopK` each), optionally among those in a ``box`` (``[[x0, y0, z0], [x1, y1, z1]]`` metres) or a ball
+        (``centre``, ``radius``) (:meth:`region`).
+
+        Exact: equal to sorting every voxel's float64 score (its :meth:`features` row with the
+        text's query) with ties to the lower voxel index. A compact map scores every voxel in
+        low precision first (:meth:`CompactVoxelMap.approx_scores`, with its error bound ``e``)
+        and re-scores in float64 the voxels within ``2 e`` of the ``k``-th best: no voxel
+        outside can be among the best. An exact map scores in float64 in chunks."""
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ValueError(f"k={k!r}: expected an integer >= 1")
+        single, queries = self._queries(texts)
+        queries = self.project(queries)
+        out = [self._top_k(q, k, box, centre, radius) for q in queries]
+        return out[0] if single else out
+
+    def _top_k(self, q: Tensor, k: int, box, centre, radius) -> TopK:
+        vmap = self.voxels
+        if vmap is None or not len(vmap):
+            empty = torch.empty(0, 3, dtype=torch.int64)
+            return TopK(empty, empty.float(), torch.empty(0, dtype=torch.float64))
+        q = q[None].to(self.device)
+        if box is not None or centre is not None or radius is not None:
+            rows = self._region_rows(box, centre, radius)
+            scores = vmap.exact_scores(rows, q)[:, 0] if rows.numel() else q.new_zeros(0).double()
+        elif isinstance(vmap, CompactVoxelMap):
+            approx, bound = vmap.approx_scores(q)
+            kth = torch.topk(approx[:, 0], min(k, approx.shape[0])).values[-1].double()
+            rows = (approx[:, 0].double() >= kth - 2 * bound[0].double()).nonzero().squeeze(1)
+            scores = vmap.exact_scores(rows, q)[:, 0]
+        else:
+            rows = torch.arange(len(vmap), device=self.device)
+            scores = vmap.all_scores(q)[:, 0]
+        keys = vmap.keys[rows]
+        by_key = torch.argsort(keys)
+        best = by_key[torch.argsort(-scores[by_key], stable=True)[:k]]
+        index = unpack_keys(keys[best])
+        return TopK(index.cpu(), voxel_centres(index, self.voxel_size, self.lattice).cpu(),
+                    scores[best].cpu())  # fmt: skip
+
+    def _region_rows(self, box: Any, centre: Any, radius: float | None) -> Tensor:
+        """Rows of the voxels whose centre lies in ``box`` or within ``radius`` of ``centre``."""
+        if box is not None and (centre is not None or radius is not None):
+            raise ValueError("region: give box= or centre= and radius=, not both")
+        if box is not None:
+            b = torch.as_tensor(box, dtype=torch.float64).reshape(-1)
+            if b.numel() != 6 or not bool(torch.isfinite(b).all()) or bool((b[3:] < b[:3]).any()):
+                raise ValueError(f"box={box!r}: expected [[x0, y0, z0], [x1, y1, z1]] with x0 "
+                                 "<= x1 ... (metres)")  # fmt: skip
+            lo, hi = b[:3], b[3:]
+        else:
+            c = torch.as_tensor(centre if centre is not None else [], dtype=torch.float64)
+            r = float("nan") if radius is None else float(radius)
+            if c.numel() != 3 or not bool(torch.isfinite(c).all()) or not (r >= 0) or math.isinf(r):
+                raise ValueError(f"centre={centre!r}, radius={radius!r}: expected a point "
+                                 "[x, y, z] and a finite radius >= 0 (metres)")  # fmt: skip
+            lo, hi = c - r, c + r
+        shift = 0.0 if self.lattice == "round" else 0.5
+        first = torch.floor(lo / self.voxel_size - shift).to(torch.int64)
+        last = torch.ceil(hi / self.voxel_size - shift).to(torch.int64)
+        rows = self.voxels.rows_in_box(first, last)
+        if not rows.numel():
+            return rows
+        at = voxel_centres(unpack_keys(self.voxels.keys[rows]), self.voxel_size, self.lattice)
+        at = at.double()
+        if box is not None:
+            keep = ((at >= lo.to(at.device)) & (at <= hi.to(at.device))).all(dim=1)
+        else:
+            keep = (at - c.to(at.device)).norm(dim=1) <= r
+        return rows[keep]
+
+    def region(self, box: Any = None, centre: Any = None, radius: float | None = None) -> Tensor:
+        """``[R, 3]`` int64 indices (lexicographic order) of the voxels whose centre lies in
+        ``box`` (``[[x0, y0, z0], [x1, y1, z1]]`` metres, inclusive) or within ``radius`` of
+        ``centre``. A region of at most four times as many cells as the map holds voxels is
+        looked up cell by cell in the key index, without reading the map."""
+        if self.voxels is None:
+            return torch.empty(0, 3, dtype=torch.int64)
+        rows = self._region_rows(box, centre, radius)
+        return unpack_keys(torch.sort(self.voxels.keys[rows]).values).cpu()
+
+    # ------------------------------------------------------------------ merging
+    def merge_differences(self, other: SemanticMap) -> list[str]:
+        """What keeps ``other`` from merging into this map: settings (but ``max_voxels``),
+        the feature dimension, the basis (by SHA-256) and the encoder's weights (by the
+        digest ``resireg-map`` and the live node record in ``meta["identity"]["weights"]``)."""
+        mine = {k: v for k, v in self.settings().items() if k != "max_voxels"}
+        theirs = {k: v for k, v in other.settings().items() if k != "max_voxels"}
+        out = [f"{k}: {mine.get(k)!r} here, {theirs.get(k)!r} in the other map"
+               for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]  # fmt: skip
+        if self.dim is not None and other.dim is not None and self.dim != other.dim:
+            out.append(f"dim: {self.dim} here, {other.dim} in the other map")
+        if (self.basis_sha256 or other.basis_sha256) and self.basis_sha256 != other.basis_sha256:
+            out.append(f"basis_sha256: {self.basis_sha256} here, {other.basis_sha256} in the "
+                       "other map (map the second run with compact.basis=<the first map>)")  # fmt: skip
+        a = (self.meta.get("identity") or {}).get("weights")
+        b = (other.meta.get("identity") or {}).get("weights")
+        if a is not None and b is not None and a != b:
+            out.append(f"encoder weights: {a} here, {b} in the other map")
+        return out
+
+    @torch.no_grad()
+    def merge(self, other: SemanticMap, transform: Any = None) -> SemanticMap:
+        """Add another map of the same encoder and settings (another mapping run) to this one,
+        in place; returns ``self``.
+
+        ``transform``: ``None`` (the same world frame) or the ``[4, 4]`` rigid transform from
+        ``other``'s world to this one's. One that keeps the lattice (a rotation by multiples
+        of 90 degrees about the axes, e.g. about the vertical, and a translation by whole
+        voxels) re-keys the voxels exactly: the result equals mapping the transformed frames
+        (keys and counts exactly, means to float64 / the storage's rounding). Any other
+        transform moves each voxel centre and takes the voxel it falls in: an approximation
+        of re-mapping the frames (points near a voxel face change voxels; docs/benchmarks.md
+        gives its measured error). A map that differs (:meth:`merge_differences`) is refused,
+        naming what differs."""
+        if not isinstance(other, SemanticMap):
+            raise TypeError(f"merge(): expected a SemanticMap, got {type(other).__name__}")
+        if other is self:
+            raise ValueError("merge(): a map cannot merge itself")
+        self.fit_pending()
+        other.fit_pending()
+        if self.voxels is None and other.voxels is not None and self.compact is not None:
+            if self.basis is None and other.basis is not None:
+                self.set_basis(other.basis)
+        differ = self.merge_differences(other)
+        if differ:
+            raise MapError(f"merge: the maps differ ({len(differ)}): " + "; ".join(differ))
+        if other.voxels is not None and len(other.voxels):
+            if self.voxels is None:
+                self._dim = other.dim
+                self.voxels = self._make_voxels()
+            keys = None if transform is None else transform_keys(
+                other.voxels.keys, transform, self.voxel_size, self.lattice)  # fmt: skip
+            self.voxels.merge_from(other.voxels, keys)
+            if self.colours is not None and other.colours is not None and len(other.colours):
+                keys = None if transform is None else transform_keys(
+                    other.colours.keys, transform, self.voxel_size, self.lattice)  # fmt: skip
+                self.colours.merge_from(other.colours, keys)
+        self.frames += other.frames
+        self.windows += other.windows
+        step = None if transform is None else torch.as_tensor(transform).double().tolist()
+        self.meta.setdefault("merged", []).append(
+            {"frames": other.frames, "voxels": len(other), "transform": step,
+             "identity": (other.meta or {}).get("identity")})  # fmt: skip
+        return self
 
     # ------------------------------------------------------------------ files
     def settings(self) -> dict[str, Any]:
@@ -548,51 +1070,49 @@ class SemanticMap:
             "sum_dtype": self.sum_dtype,
             "max_voxels": self.max_voxels,
             "short_side": self.short_side,
-            "colour": self.colours is not None,
+            "colour": self.keeps_colour,
+            "storage": self.storage,
+            "compact": None if self.compact is None else self.compact.as_dict(),
         }
 
+    def snapshot(self, copy: bool = True) -> MapSnapshot:
+        """What :meth:`save` writes, taken now: with ``copy`` the map's tensors are copied
+        (one copy of the map), so the snapshot is written while the map goes on changing
+        (the live node copies under its lock and writes outside it)."""
+        self.fit_pending()
+        tensors: dict[str, list[Tensor]] = {}
+        for prefix, vmap in (("features", self.voxels), ("colour", self.colours)):
+            if vmap is not None:
+                for name, blocks in vmap.tensors().items():
+                    tensors[f"{prefix}.{name}"] = blocks
+        if self.basis is not None:
+            tensors["basis"] = [self.basis]
+        if copy:
+            tensors = {k: [b.clone() for b in v] for k, v in tensors.items()}
+        record = {
+            "format": FORMAT,
+            "settings": self.settings(),
+            "dim": self.dim,
+            "stored_dim": self.stored_dim,
+            "basis_sha256": self.basis_sha256,
+            "voxels": len(self),
+            "frames": self.frames,
+            "windows": self.windows,
+            "meta": json.loads(json.dumps(self.meta)),
+        }
+        return MapSnapshot(tensors, record)
+
     def save(self, folder: str | Path) -> Path:
-        """Write the map to ``folder`` (created): ``map-<id>.safetensors`` (every accumulator in
-        :attr:`indices` order) and then ``map.json`` (settings, counts, ``meta``, the name and
-        SHA-256 of that tensor file, and ``record_sha256``, the digest of the record itself),
-        each through :func:`resireg.integrity.atomic_write` (a temporary file, fsync, the
-        umask's mode, ``os.replace``). ``map.json`` is the commit point: a crash before it
+        """Write the map to ``folder`` (created): ``map-<id>.safetensors`` (every tensor in row
+        order, written from the map's blocks without a copy, :mod:`resireg.mapping.store`)
+        and then ``map.json`` (format, settings, counts, ``meta``, the name and SHA-256 of that
+        tensor file, the basis's SHA-256, and ``record_sha256``, the digest of the record
+        itself), each through :func:`resireg.integrity.atomic_write` (a temporary file, fsync,
+        the umask's mode, ``os.replace``). ``map.json`` is the commit point: a crash before it
         leaves the previous save in force; older tensor files are removed after it, and a save
         that fails (a full disk) removes its own new tensor file and raises an ``OSError``
         naming the file it could not write. Returns ``folder``."""
-        from safetensors.torch import save_file
-
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        tensors: dict[str, Tensor] = {}
-        for prefix, vmap in (("features", self.voxels), ("colour", self.colours)):
-            if vmap is not None:
-                for name, value in vmap.state().items():
-                    tensors[f"{prefix}.{name}"] = value.contiguous()
-        name = f"map-{uuid.uuid4().hex[:12]}.safetensors"
-        try:
-            atomic_write(folder / name, lambda tmp: save_file(tensors, str(tmp)))
-            record = {
-                "format": _FORMAT,
-                "tensors": name,
-                "sha256": digests(folder, [name]),
-                "settings": self.settings(),
-                "dim": self.dim,
-                "voxels": len(self),
-                "frames": self.frames,
-                "windows": self.windows,
-                "meta": self.meta,
-            }
-            record["record_sha256"] = _record_digest(record)
-            text = json.dumps(record, indent=2, sort_keys=True)
-            atomic_write(folder / MAP_JSON, lambda tmp: tmp.write_text(text))
-        except BaseException:
-            (folder / name).unlink(missing_ok=True)  # not committed: map.json names the old one
-            raise
-        for old in folder.glob("map-*.safetensors"):
-            if old.name != name:
-                old.unlink(missing_ok=True)
-        return folder
+        return self.snapshot(copy=False).write(folder)
 
     @classmethod
     def load(
@@ -603,34 +1123,51 @@ class SemanticMap:
         device: torch.device | str | None = None,
         **overrides: Any,
     ) -> SemanticMap:
-        """A map saved by :meth:`save`, with ``encoder`` for queries and further windows.
+        """A map saved by :meth:`save` (or by an earlier version: :data:`FORMATS`), with
+        ``encoder`` for queries and further windows.
 
         Before any tensor is read, ``map.json``'s own digest and its tensor file's SHA-256 are
         verified: a truncated, edited or damaged file is an
-        :class:`~resireg.integrity.IntegrityError` naming it. An ``encoder`` whose text
-        features have another dimension than the map's is refused here, not at the first
-        query (the weights themselves are the caller's to check: ``resireg-map`` records a
-        digest of them in ``meta``). ``overrides`` replace saved settings that do not change
-        the content (``max_voxels``)."""
+        :class:`~resireg.integrity.IntegrityError` naming it, and so is a record that names a
+        file outside ``folder``. A map saved before maps recorded their digests loads with a
+        :class:`MapFormatWarning`. The tensors are memory-mapped (copy-on-write: the file
+        never changes). An ``encoder`` whose text features have another dimension than the
+        map's is refused here, not at the first query (the weights themselves are the
+        caller's to check: ``resireg-map`` records a digest of them in ``meta``).
+        ``overrides`` replace saved settings that do not change the content
+        (``max_voxels``)."""
         folder = Path(folder)
         path = folder / MAP_JSON
         if not path.is_file():
             raise FileNotFoundError(f"{folder}: no {MAP_JSON} (not a saved SemanticMap)")
         record = read_json(path, "saved map record")
-        if not isinstance(record, dict) or record.get("format") != _FORMAT:
-            found = record.get("format") if isinstance(record, dict) else type(record).__name__
-            raise IntegrityError(f"{path}: format {found!r}, expected {_FORMAT!r}")
-        if "record_sha256" not in record or "sha256" not in record:
-            raise IntegrityError(
-                f"{path}: no record_sha256 / sha256 (a map saved before maps recorded their "
-                "digests, or an edited record): make the map again"
+        fmt = record.get("format") if isinstance(record, dict) else type(record).__name__
+        if not isinstance(record, dict) or fmt not in FORMATS:
+            raise IntegrityError(f"{path}: format {fmt!r}, expected one of {list(FORMATS)}")
+        tensor_file = _inside(folder, record.get("tensors"), "tensors", path)
+        if "record_sha256" not in record and "sha256" not in record and fmt == FORMATS[0]:
+            warnings.warn(
+                f"{path}: a map saved before maps recorded their digests (format {fmt} without "
+                "sha256): loaded unverified; save it again to record them",
+                MapFormatWarning,
+                stacklevel=2,
             )
-        if record["record_sha256"] != _record_digest(record):
-            raise IntegrityError(
-                f"{path}: its content does not match the record_sha256 written with it (the "
-                "file was edited or damaged; a map's settings cannot change after it is made)"
-            )
-        verify_digests(folder, record["sha256"], "saved map")
+        else:
+            if "record_sha256" not in record or "sha256" not in record:
+                raise IntegrityError(f"{path}: no record_sha256 / sha256 (an edited record): "
+                                     "make the map again")  # fmt: skip
+            if record["record_sha256"] != _record_digest(record):
+                raise IntegrityError(
+                    f"{path}: its content does not match the record_sha256 written with it (the "
+                    "file was edited or damaged; a map's settings cannot change after it is made)"
+                )
+            if not isinstance(record["sha256"], dict):
+                raise IntegrityError(f"{path}: sha256={record['sha256']!r}: expected a mapping")
+            for name in record["sha256"]:
+                _inside(folder, name, "sha256", path)
+            if tensor_file.name not in record["sha256"]:
+                raise IntegrityError(f"{path}: records no SHA-256 of {tensor_file.name}")
+            verify_digests(folder, record["sha256"], "saved map")
         settings = dict(record["settings"])
         bad = set(overrides) - {"max_voxels"}
         if bad:
@@ -647,21 +1184,57 @@ class SemanticMap:
                     f"load() makes {enc_dim}-d ones (another model: load the map with the "
                     "encoder it was built with)"
                 )
+        compact = settings.get("compact")
+        if compact is not None:  # the basis comes from the file, not from where it came from
+            settings["compact"] = {**compact, "basis": None}
         smap = cls(encoder if encoder is not None else None, config, voxel_size, params=params,
                    prior=prior, device=device or (encoder.device if encoder is not None else "cpu"),
                    **settings)  # fmt: skip
-        tensors = load_safetensors(folder / record["tensors"], "saved map")
-        if record["dim"] is not None:
-            smap.voxels = VoxelMap(smap.voxel_size, int(record["dim"]), smap.device,
-                                   smap.lattice, SUM_DTYPES[smap.sum_dtype])  # fmt: skip
-            smap.voxels.load_state({k.split(".", 1)[1]: v for k, v in tensors.items()
-                                    if k.startswith("features.")})  # fmt: skip
-        if smap.colours is not None:
-            smap.colours.load_state({k.split(".", 1)[1]: v for k, v in tensors.items()
-                                     if k.startswith("colour.")} or smap.colours.state())  # fmt: skip
+        if smap.compact is not None and compact is not None:
+            smap.compact = CompactSettings.of(compact)
+        tensors = read_tensors(tensor_file, "saved map")
+        try:
+            smap._restore(record, tensors)
+        except (KeyError, ValueError, RuntimeError) as err:
+            raise IntegrityError(f"{tensor_file}: does not hold the map its record describes "
+                                 f"({err})") from err  # fmt: skip
         smap.frames, smap.windows = int(record["frames"]), int(record["windows"])
         smap.meta = dict(record.get("meta") or {})
         return smap
+
+    def _restore(self, record: Mapping[str, Any], tensors: Mapping[str, Tensor]) -> None:
+        """Fill a freshly built map from the tensors of its file (used in place)."""
+        old = record["format"] == FORMATS[0]
+
+        def part(prefix: str) -> dict[str, Tensor]:
+            return {k.split(".", 1)[1]: v.to(self.device) for k, v in tensors.items()
+                    if k.startswith(f"{prefix}.")}  # fmt: skip
+
+        if record["dim"] is not None:
+            self._dim = int(record["dim"])
+            if "basis" in tensors:
+                basis = tensors["basis"].to(self.device, torch.float32)
+                if _sha256(basis) != record.get("basis_sha256"):
+                    raise ValueError("its basis does not match basis_sha256")
+                self.basis, self.basis_sha256 = basis, record["basis_sha256"]
+            elif record.get("basis_sha256"):
+                raise ValueError("no basis")
+            self.voxels = self._make_voxels()
+            state = part("features")
+            if old:
+                self.voxels.load_state(state)
+            elif isinstance(self.voxels, CompactVoxelMap):
+                self.voxels.load_tensors(state)
+            else:
+                self.voxels.load_tensors(state)
+            if len(self.voxels) != int(record["voxels"]):
+                raise ValueError(f"{len(self.voxels)} voxels, the record says {record['voxels']}")
+        if self.colours is not None:
+            state = part("colour")
+            if old:
+                self.colours.load_state(state or self.colours.state())
+            elif state:
+                self.colours.load_tensors(state)
 
     def colours_by(
         self,

@@ -5,7 +5,9 @@ rclpy's argument handling::
         -r __node:=resireg_map -p source.colour_topic:=/camera/camera/color/image_raw
 
 Every parameter, its default and where the default is read: ``resireg-ros2 --parameters``
-(docs/robot.md). Ctrl-C (SIGINT) maps the queued keyframes and saves the map. Exit status: 0,
+(docs/robot.md). Ctrl-C (SIGINT) or SIGTERM maps the queued keyframes, saves the map and
+publishes it once more, then ends the ROS context (rclpy's own signal handlers, which end the
+context first, are not installed: the final publish needs it). Exit status: 0,
 2 for a bad parameter or a missing ``robot`` extra (one line on stderr), 1 for a failure of
 the mapping thread.
 """
@@ -45,12 +47,21 @@ def main(argv: list[str] | None = None) -> int:
               '"resireg[robot]" (in a clone: pip install -e ".[robot]" -c constraints.txt), '
               "or source a ROS 2 Jazzy install", file=sys.stderr)  # fmt: skip
         return 2
+    import signal
+
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     from resireg.ros2.settings import SettingsError
 
-    rclpy.init(args=argv)
+    def stop(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    # SIGINT and SIGTERM end the spin in this thread; the node then closes in order (save,
+    # publish) while the context is valid, and only then is the context shut down.
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    previous = signal.signal(signal.SIGTERM, stop)
     node = None
     try:
         from resireg.ros2.node import ResiregMapNode
@@ -67,13 +78,16 @@ def main(argv: list[str] | None = None) -> int:
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
     finally:
-        if node is not None:
-            folder = node.close()
-            if folder is not None:
-                print(f"{PROG}: map saved to {folder} ({len(node.worker.smap)} voxels, "
-                      f"{node.worker.smap.frames} frames)", flush=True)  # fmt: skip
-            node.destroy_node()
-        rclpy.try_shutdown()
+        try:
+            if node is not None:
+                folder = node.close()
+                if folder is not None:
+                    print(f"{PROG}: map saved to {folder} ({len(node.worker.smap)} voxels, "
+                          f"{node.worker.smap.frames} frames)", flush=True)  # fmt: skip
+                node.destroy_node()
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+            rclpy.try_shutdown()
     return 1 if node is not None and node.worker.error is not None else 0
 
 

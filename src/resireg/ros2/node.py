@@ -16,7 +16,8 @@ Outputs, in ``source.world_frame``:
 
 - ``~/map/rgb``, ``~/map/pca`` (``PointCloud2``: voxel centres, mean colour / the PCA of the
   features as ``rgb``), at most ``publish_rate`` Hz when the map changed (transient local: a
-  late RViz gets the last one);
+  late RViz gets the last one); a map of more than ``max_points`` voxels is published
+  downsampled (every n-th voxel in index order), as is the query cloud;
 - ``~/query`` (``std_msgs/String``) in: ``~/query/cloud`` (``PointCloud2`` with ``rgb`` from
   blue to red and the ``similarity`` field, :meth:`SemanticMap.query`), ``~/query/top_k``
   (``PoseArray``: the ``top_k`` best voxel centres, best first) and ``~/query/markers``
@@ -25,9 +26,13 @@ Outputs, in ``source.world_frame``:
   reason, the queue, the map's voxels and bytes, the last window's seconds and latency;
 - services ``~/save_map`` and ``~/clear_map`` (``std_srvs/Trigger``).
 
-The map is saved to ``<output_dir>/map`` every ``save_every`` windows, on ``~/save_map`` and
-when the node closes (SIGINT); ``resume:=true`` continues a saved map (refused, naming the
-settings, if they differ: the map's, the source's, the encoder entry or its weights' digest).
+The map (``storage``: ``exact`` or ``compact``, as ``resireg-map``'s) is saved to
+``<output_dir>/map`` every ``save_every`` windows, on ``~/save_map`` and when the node closes
+(SIGINT or SIGTERM: the queued keyframes are mapped, the map saved, then published once more,
+before the ROS context ends); a save copies the map under its lock and writes it outside, so
+mapping waits only for the copy. ``~/clear_map`` empties the map and republishes every latched
+output empty. ``resume:=true`` continues a saved map (refused, naming the settings, if they
+differ: the map's, the source's, the encoder entry or its weights' digest).
 ``rerun.*``: the live Rerun stream (:class:`RerunView`), the same entities as ``resireg-map``'s
 recording.
 """
@@ -53,12 +58,14 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
+from resireg.errors import ResiregError
 from resireg.ros2.clouds import cloud_message
 from resireg.ros2.pipeline import FramePairer, KeyframeFilter, MapWorker, PoseBuffer
 from resireg.ros2.settings import (
     SOURCE_KEYS,
     SettingsError,
     check,
+    compact_settings,
     encoder_entry,
     parameters,
     variant_params,
@@ -211,6 +218,8 @@ class ResiregMapNode(Node):
         self.timing: dict[str, float] = {"ros_seconds": 0.0, "cloud_seconds": 0.0}
         self._closing = False
         self._saved_windows = 0
+        self._save_lock = threading.Lock()  # one write of the map folder at a time
+        self._publish_lock = threading.Lock()  # the output thread's and the services' publishes
         self._make_io()
         self.worker.start()
         self._output = threading.Thread(target=self._output_loop, name="resireg-output",
@@ -248,8 +257,9 @@ class ResiregMapNode(Node):
             return SemanticMap(self.encoder, v["configuration"], float(v["voxel_size"]),
                                params=variant_params(v), points=v["points"],
                                lattice=v["lattice"], sum_dtype=v["sum_dtype"],
-                               max_voxels=v["max_voxels"], short_side=v["short_side"])  # fmt: skip
-        except ValueError as err:
+                               max_voxels=v["max_voxels"], short_side=v["short_side"],
+                               storage=v["storage"], compact=compact_settings(v))  # fmt: skip
+        except (ValueError, OSError, ResiregError) as err:
             raise SettingsError(str(err)) from err
 
     def _identity(self) -> dict[str, Any]:
@@ -410,10 +420,30 @@ class ResiregMapNode(Node):
     def _on_clear(self, request: Any, response: Any) -> Any:
         removed = self.worker.clear()
         self.keyframes.reset()
-        self.changed.set()
-        self.wake.set()
+        self.clear_outputs()
         response.success, response.message = True, f"cleared {removed} voxels"
         return response
+
+    def clear_outputs(self) -> None:
+        """Republish every latched output for the empty map: the map clouds and the query
+        cloud without points, no top-k pose, the markers deleted (a late subscriber no
+        longer gets the cleared map's answer)."""
+        from geometry_msgs.msg import PoseArray
+        from visualization_msgs.msg import Marker, MarkerArray
+
+        with self._publish_lock:
+            header = self._header()
+            empty = cloud_message(header, np.zeros((0, 3), np.float32), np.zeros((0, 3)))
+            self.pub["rgb"].publish(empty)
+            self.pub["pca"].publish(empty)
+            self.pub["query"].publish(cloud_message(header, np.zeros((0, 3), np.float32),
+                                                    np.zeros((0, 3)),
+                                                    similarity=np.zeros(0, np.float32)))  # fmt: skip
+            self.pub["top_k"].publish(PoseArray(header=header))
+            self.pub["markers"].publish(MarkerArray(markers=[Marker(
+                header=header, ns="query", id=0, action=Marker.DELETEALL)]))  # fmt: skip
+            self.published["map"] = time.monotonic()
+        self.changed.clear()
 
     # ------------------------------------------------------------------ mapping thread
     def _on_window(self, batch: dict, record: dict) -> None:
@@ -424,16 +454,20 @@ class ResiregMapNode(Node):
                 self.view.log_window(batch, self.worker.smap.frames - len(batch["name"]))
                 if self.worker.windows % v["rerun.map_every"] == 0:
                     self.view.log_map(self.worker.smap)
-            if v["save_every"] and self.worker.windows % v["save_every"] == 0:
-                self.worker.smap.save(self.folder)
+            due = v["save_every"] and self.worker.windows % v["save_every"] == 0
+        if due:
+            self.save()
         self.changed.set()
         self.wake.set()
 
     def save(self) -> Path:
-        """Save the map to ``<output_dir>/map`` (under the map's lock)."""
-        with self.worker.lock:
-            self.worker.smap.meta["kept_frames"] = self.worker.smap.frames
-            return self.worker.smap.save(self.folder)
+        """Save the map to ``<output_dir>/map``: a copy of it taken under the map's lock
+        (:meth:`SemanticMap.snapshot`), written outside it, one save at a time."""
+        with self._save_lock:
+            with self.worker.lock:
+                self.worker.smap.meta["kept_frames"] = self.worker.smap.frames
+                snapshot = self.worker.smap.snapshot(copy=True)
+            return snapshot.write(self.folder)
 
     # ------------------------------------------------------------------ outputs
     def _header(self) -> Any:
@@ -457,8 +491,13 @@ class ResiregMapNode(Node):
                 if not self._closing:
                     self.get_logger().error(f"publishing failed: {err}")
 
+    def _stride(self, voxels: int) -> int:
+        """Every how many voxels a cloud takes one: at most ``max_points`` points."""
+        return max(1, math.ceil(voxels / self.values["max_points"]))
+
     def publish_map(self) -> None:
-        """``~/map/rgb`` and ``~/map/pca`` of the map as it is."""
+        """``~/map/rgb`` and ``~/map/pca`` of the map as it is (every n-th voxel past
+        ``max_points``)."""
         from resireg.mapping import pca_colours
 
         t0 = time.perf_counter()
@@ -467,14 +506,17 @@ class ResiregMapNode(Node):
             if not len(smap):
                 centres, feats, rgb = np.zeros((0, 3), np.float32), None, np.zeros((0, 3))
             else:
-                centres = smap.centres().cpu().numpy()
-                feats = smap.features()[1]
-                rgb = smap.mean_colours().numpy()
+                centres, feats, colours = smap.subsample(self._stride(len(smap)))
+                centres = centres.cpu().numpy()
+                rgb = colours.numpy() if colours is not None else np.zeros((len(centres), 3))
         pca = pca_colours(feats).numpy() if feats is not None else np.zeros((0, 3))
-        header = self._header()
-        self.pub["rgb"].publish(cloud_message(header, centres, rgb))
-        self.pub["pca"].publish(cloud_message(header, centres, pca))
-        self.published["map"] = time.monotonic()
+        with self._publish_lock:
+            if self.worker.smap is not smap:  # cleared meanwhile: clear_outputs published
+                return
+            header = self._header()
+            self.pub["rgb"].publish(cloud_message(header, centres, rgb))
+            self.pub["pca"].publish(cloud_message(header, centres, pca))
+            self.published["map"] = time.monotonic()
         self.timing["cloud_seconds"] += time.perf_counter() - t0
 
     def answer(self, text: str) -> None:
@@ -493,9 +535,10 @@ class ResiregMapNode(Node):
             centres = smap.centres().cpu().numpy()
             voxel = smap.voxel_size
         t0 = time.perf_counter()
+        take = slice(None, None, self._stride(sim.shape[0]))
         header = self._header()
-        self.pub["query"].publish(cloud_message(header, centres, diverging_ramp(sim).numpy(),
-                                                similarity=sim.cpu().numpy()))  # fmt: skip
+        cloud = cloud_message(header, centres[take], diverging_ramp(sim[take]).numpy(),
+                              similarity=sim[take].cpu().numpy())  # fmt: skip
         k = min(self.values["top_k"], sim.shape[0])
         best = np.argsort(-sim.cpu().numpy(), kind="stable")[:k]
         poses = PoseArray(header=header)
@@ -512,8 +555,12 @@ class ResiregMapNode(Node):
             poses.poses.append(p)
             cubes.points.append(p.position)
         markers.markers.append(cubes)
-        self.pub["top_k"].publish(poses)
-        self.pub["markers"].publish(markers)
+        with self._publish_lock:
+            if self.worker.smap is not smap:  # cleared meanwhile: clear_outputs published
+                return
+            self.pub["query"].publish(cloud)
+            self.pub["top_k"].publish(poses)
+            self.pub["markers"].publish(markers)
         self.timing["cloud_seconds"] += time.perf_counter() - t0
 
     def status(self) -> dict[str, Any]:
@@ -559,8 +606,9 @@ class ResiregMapNode(Node):
 
     # ------------------------------------------------------------------ end
     def close(self, save: bool = True) -> Path | None:
-        """Pair what is pending, map every queued keyframe, save the map (``save``) and stop
-        the threads. Safe after rclpy's shutdown (SIGINT)."""
+        """Pair what is pending, map every queued keyframe, stop the output thread, save the
+        map (``save``) and publish it once more (while the ROS context is valid: resireg-ros2
+        ends the context after this), in that order. Safe after rclpy's shutdown."""
         if self._closing:
             return None
         self._drain(math.inf, time.perf_counter())
@@ -571,6 +619,10 @@ class ResiregMapNode(Node):
         folder = None
         if save and (self.worker.smap.frames or (self.folder / "map.json").is_file()):
             folder = self.save()
+            self.get_logger().info(f"map saved to {folder}")
+        if self.context.ok() and self.worker.smap.frames:
+            self.publish_map()
+            self.get_logger().info(f"published the final map ({len(self.worker.smap)} voxels)")
         if self.view is not None:
             with self.worker.lock:
                 self.view.log_map(self.worker.smap)

@@ -5,9 +5,11 @@ One source per default. ``resireg-ros2`` takes the names and defaults of ``resir
 (``conf/map.yaml``) for what the two share, and adds its own in ``conf/ros2.yaml``:
 
 - the map's keys (``configuration``, ``window``, ``voxel_size``, ``points``, ``lattice``,
-  ``sum_dtype``, ``max_voxels``, ``short_side``, ``model_path``, ``device``, ``seed``,
-  ``save_every``, ``resume``) and ``encoder`` (a ``conf/encoder/<name>.yaml`` file, the
-  ``encoder`` entry of map.yaml's defaults list): ``conf/map.yaml``;
+  ``sum_dtype``, ``storage`` and the ``compact.*`` block, ``max_voxels``, ``short_side``,
+  ``model_path``, ``device``, ``seed``, ``save_every``, ``resume``) and ``encoder`` (a
+  ``conf/encoder/<name>.yaml`` file, the ``encoder`` entry of map.yaml's defaults list):
+  ``conf/map.yaml``, checked by the map's rules (:data:`resireg.specs.mapping.MAP_RULES`, which
+  ``resireg-map`` checks too);
 - the ReSiReg variants' parameters (``full.n_prototypes``, ``lite.alpha``, ...):
   ``conf/resireg/default.yaml``, checked by the variant table's rules
   (:data:`resireg.specs.variants.VARIANT_SPECS`);
@@ -37,8 +39,8 @@ from typing import Any
 
 from resireg.errors import ConfigError
 from resireg.specs.encoders import ENCODER_REPORT_KEYS
-from resireg.specs.mapping import LATTICES, POINTS
-from resireg.specs.rules import DEVICE, Rule, integer, is_int, is_num, number, one_of, optional_int
+from resireg.specs.mapping import MAP_RULES
+from resireg.specs.rules import DEVICE, Rule, integer, is_int, is_num, number
 from resireg.specs.sources import LIVE_RULES
 from resireg.specs.table import compose_conf, conf_dir
 from resireg.specs.tree import flatten
@@ -46,6 +48,7 @@ from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS
 
 __all__ = [
     "LIVE_KEYS",
+    "MAP_BLOCKS",
     "MAP_KEYS",
     "NODE_FILE",
     "SOURCE_FILE",
@@ -53,6 +56,7 @@ __all__ = [
     "Parameter",
     "SettingsError",
     "check",
+    "compact_settings",
     "config_dir",
     "encoder_entry",
     "parameter_table",
@@ -63,8 +67,10 @@ __all__ = [
 NODE_FILE = "ros2.yaml"
 #: The map keys of ``conf/map.yaml`` the node takes (with ``encoder``, the defaults list's).
 MAP_KEYS = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
-            "max_voxels", "short_side", "model_path", "device", "seed", "save_every",
+            "storage", "max_voxels", "short_side", "model_path", "device", "seed", "save_every",
             "resume")  # fmt: skip
+#: The block of ``conf/map.yaml`` the node takes key by key (``-p compact.dim:=64``).
+MAP_BLOCKS = ("compact",)
 #: The source keys that apply to live topics (a bag's path, limit, frame_skip and its tf topic
 #: names do not: tf2_ros subscribes to /tf and /tf_static, remapped with ``-r``).
 SOURCE_KEYS = ("tolerance", "max_pose_gap", "max_depth", "colour_topic", "depth_topic",
@@ -151,17 +157,10 @@ _MAP_RULES: dict[str, Rule] = {
         f"one of {list(VARIANT_SPECS)}, optionally with parameter overrides "
         "(full@n_prototypes:24); +prior and @layer: are not run by the live node",
     ),
-    "window": integer(1),
-    "voxel_size": number(0, strict=True, finite=True),
-    "points": one_of(POINTS),
-    "lattice": one_of(LATTICES),
-    "sum_dtype": one_of(("float64", "float32")),  # resireg.mapping.voxels.SUM_DTYPES
-    "max_voxels": optional_int(1),
-    "short_side": optional_int(1),
+    **MAP_RULES,  # window, voxel_size, points, lattice, sum_dtype, storage, compact.*, ...
     "model_path": (_optional_text, "null or an export folder / Hugging Face repo id"),
     "device": DEVICE,
     "seed": (is_int, "an integer"),
-    "save_every": integer(0),
     "resume": (lambda v: isinstance(v, bool), "true or false"),
     "encoder": (_text, "a conf/encoder/<name>.yaml name"),
 }
@@ -197,6 +196,7 @@ _NODE_RULES: dict[str, Rule] = {
     "publish_rate": number(0, strict=True, finite=True),
     "status_rate": number(0, strict=True, finite=True),
     "top_k": integer(1),
+    "max_points": integer(1),
 }
 
 
@@ -222,6 +222,12 @@ def parameters(conf: Path | None = None) -> dict[str, Parameter]:
         if key not in map_cfg:
             raise SettingsError(f"{conf / 'map.yaml'}: no {key!r} key")
         out[key] = Parameter(key, map_cfg[key], f"map.yaml:{key}", _MAP_RULES[key])
+    for block in MAP_BLOCKS:
+        for key, value in (map_cfg.get(block) or {}).items():
+            name = f"{block}.{key}"
+            if name not in _MAP_RULES:
+                raise SettingsError(f"{conf / 'map.yaml'}: {name!r} is no map setting")
+            out[name] = Parameter(name, value, f"map.yaml:{name}", _MAP_RULES[name])
     out["encoder"] = Parameter("encoder", _defaults_entry(map_cfg, "encoder"),
                                "map.yaml:defaults.encoder", _MAP_RULES["encoder"])  # fmt: skip
     variants = _yaml(conf / "resireg" / "default.yaml")
@@ -282,6 +288,18 @@ def variant_params(values: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
         name, _, rest = key.partition(".")
         if name in out and rest:
             out[name][rest] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def compact_settings(values: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The ``compact`` block of checked values (SemanticMap's ``compact``) for
+    ``storage=compact``, else ``None``; a ``compact.basis`` path expanded and resolved."""
+    if values["storage"] != "compact":
+        return None
+    out = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("compact.")}
+    basis = out.get("basis")
+    if isinstance(basis, str) and Path(basis).expanduser().exists():
+        out["basis"] = str(Path(basis).expanduser().resolve())
     return out
 
 

@@ -41,7 +41,7 @@ from resireg_train.cli.job import hydra_entry_point, run_task
 from resireg_train.config.errors import block_errors, config_path, encoder_arguments
 from resireg_train.runs.record import RunRecord
 
-__all__ = ["SOURCES", "build_source", "make_map", "main"]
+__all__ = ["SOURCES", "build_source", "check_map_config", "make_map", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -78,13 +78,36 @@ def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
     from resireg.specs.variants import PARAM_VARIANTS  # the variant table's, with parameters
 
     params = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in PARAM_VARIANTS}
+    storage = str(cfg.get("storage", "exact"))
+    compact = _compact(cfg) if storage == "compact" else None
     try:
         return SemanticMap(encoder, str(cfg.configuration), float(cfg.voxel_size), params=params,
                            prior=prior, points=str(cfg.points), lattice=str(cfg.lattice),
                            sum_dtype=str(cfg.sum_dtype), max_voxels=cfg.max_voxels,
-                           short_side=cfg.short_side)  # fmt: skip
-    except ValueError as err:
+                           short_side=cfg.short_side, storage=storage, compact=compact)  # fmt: skip
+    except (ValueError, ResiregError) as err:
         raise ConfigError(str(err)) from err
+
+
+def _compact(cfg: DictConfig) -> dict[str, Any]:
+    """The ``compact`` block, its ``basis`` path resolved (recorded absolute)."""
+    block = OmegaConf.to_container(cfg.compact, resolve=True)
+    block["basis"] = _resolved(block.get("basis"))
+    return block
+
+
+def check_map_config(cfg: DictConfig) -> None:
+    """The map's settings by their rules (:data:`resireg.specs.mapping.MAP_RULES`, the live
+    node's too), every violation in one :class:`ConfigError`, before anything is loaded."""
+    from resireg.specs.mapping import MAP_RULES, map_errors
+
+    every = OmegaConf.to_container(cfg, resolve=True)
+    values = {k: every[k] for k in MAP_RULES if "." not in k and k in every}
+    if "compact" in every:
+        values["compact"] = every["compact"]
+    errors = map_errors(values)
+    if errors:
+        raise ConfigError("; ".join(errors))
 
 
 def _resolved(value: Any) -> Any:
@@ -113,6 +136,9 @@ def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
     out = {"source": source, **{k: every[k] for k in keep}, "encoder": encoder,
            "resireg": {k: every[k] for k in PARAM_VARIANTS if k in every},
            "prior": every.get("prior")}  # fmt: skip
+    if every.get("storage", "exact") != "exact":  # (an exact map's identity is as before)
+        out["storage"] = every["storage"]
+        out["compact"] = _compact(cfg)
     if weights is not None:
         out["weights"] = weights
     return out
@@ -138,12 +164,8 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     from resireg.sources.frames import FrameCounts, SkippedFrame, windows
 
     out = record.folder
-    window = cfg.window
-    if isinstance(window, bool) or not isinstance(window, int) or window < 1:
-        raise ConfigError(f"window={window!r}: expected an integer >= 1")
-    save_every = cfg.save_every
-    if isinstance(save_every, bool) or not isinstance(save_every, int) or save_every < 0:
-        raise ConfigError(f"save_every={save_every!r}: expected an integer >= 0")
+    check_map_config(cfg)
+    window, save_every = cfg.window, cfg.save_every
     spec = OmegaConf.to_container(cfg.source, resolve=True)
     errors = block_errors(source_errors(spec), "source", spec)  # before anything is written
     if errors:
@@ -286,6 +308,8 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
             "folder": str(folder),
             "voxels": len(smap),
             "bytes": smap.nbytes,
+            "storage": smap.storage,
+            "basis_sha256": smap.basis_sha256,
             "frames": smap.frames,
             "windows": smap.windows,
             "ply": str(ply),

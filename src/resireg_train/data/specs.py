@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from resireg.specs.mapping import LATTICES, POINTS
+from resireg.specs.mapping import MAP_RULES
 from resireg.specs.metrics import VOXEL_METRICS
 from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of
 from resireg.specs.table import SpecTable
@@ -104,13 +104,14 @@ _SCANNET_RULES: dict[str, Rule] = {
     ),
     "frame_skip": integer(0),
     "image_size": _IMAGE_SIZE,
-    "voxel_size": number(0, strict=True, finite=True),
+    "voxel_size": MAP_RULES["voxel_size"],
     "gt_resolution": (lambda v: v in GT_RESOLUTIONS or _size(v), "image, label or [height, width]"),
     "gt_unlabelled": one_of(GT_RULES),
     "resize": one_of(RESIZES),
     "intrinsics": one_of(INTRINSICS),
-    "lattice": one_of(LATTICES),
-    "points": one_of(POINTS),
+    "lattice": MAP_RULES["lattice"],
+    "points": MAP_RULES["points"],
+    "storage": MAP_RULES["storage"],
     "knn": integer(0),
     "prediction_threshold": (_open_unit, "null or a number in (0, 1)"),
     "prompt_denoising": (_open_unit, "null or a number in (0, 1)"),
@@ -321,6 +322,7 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
                 "lattice",
                 "gt_unlabelled",
                 "points",
+                "storage",
                 "knn",
                 "prediction_threshold",
                 "prompt_denoising",

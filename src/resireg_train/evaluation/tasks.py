@@ -145,6 +145,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
                 "points",
                 "lattice",
                 "voxel_size",
+                "storage",
                 "knn",
                 "prediction_threshold",
                 "prompt_denoising",

@@ -62,7 +62,7 @@ from resireg.mapping import (
 from resireg.mapping import metric as metrics
 from resireg.method.variants import apply_variant
 from resireg.models import DenseEncoder
-from resireg.specs.mapping import POINTS
+from resireg.specs.mapping import POINTS, compact_defaults
 from resireg.specs.metrics import METRIC_SPECS
 from resireg_train.data.scannet import ScanNetFrames, collate_frames
 from resireg_train.data.segmentation import SkippedSample
@@ -106,6 +106,8 @@ class MappingSettings:
         lattice: ``round`` or ``floor`` (:mod:`resireg.mapping.voxels`).
         gt_unlabelled: :data:`GT_RULES`.
         points: :data:`POINTS`.
+        storage: the feature maps' storage (:data:`resireg.specs.mapping.STORAGES`;
+            ``compact`` takes ``conf/map.yaml``'s ``compact`` block).
         knn: neighbours of the label transfer (0: same voxel only).
         prediction_threshold: ``None`` or RayFronts' "no prediction" probability.
         prompt_denoising: ``None`` or RayFronts' prompt-denoising probability.
@@ -116,6 +118,7 @@ class MappingSettings:
     lattice: str
     gt_unlabelled: str
     points: str
+    storage: str
     knn: int
     prediction_threshold: float | None
     prompt_denoising: float | None
@@ -420,6 +423,8 @@ class MappingEngine(EvalEngine):
                     lattice=p.lattice,
                     colour=False,
                     device=device,
+                    storage=p.storage,
+                    compact=compact_defaults() if p.storage == "compact" else None,
                 )
                 for name, variant in variants.items()
             },  # fmt: skip
@@ -472,6 +477,7 @@ class MappingEngine(EvalEngine):
             gt = ground_truth_labels(state["gt"], p.gt_unlabelled, k, ignore)
             result.voxels[state["name"]] = int((gt != ignore).sum())
             for name, vmap in state["maps"].items():
+                vmap.fit_pending()  # a compact map of a short scene: its basis on what it saw
                 scored = int((gt != ignore).sum())
                 if not len(vmap):
                     if scored:  # no valid feature point at all: nothing predicted
@@ -481,9 +487,11 @@ class MappingEngine(EvalEngine):
                         )
                     at_gt = torch.full_like(gt, k)
                 else:
-                    centres, feats = vmap.features()
-                    pred = classify(feats, protos.to(feats.device), p.prediction_threshold,
-                                    p.prompt_denoising, none=k)  # fmt: skip
+                    centres = vmap.centres()
+                    # the map's own features: a compact map's in its basis's space
+                    pred = vmap.classify_features(vmap.project(protos.to(centres.device)),
+                                                  p.prediction_threshold, p.prompt_denoising,
+                                                  none=k)  # fmt: skip
                     if p.knn == 0:
                         at_gt = transfer_labels_by_voxel(vmap.indices, pred, state["gt"].indices, k)
                     else:  # the mode's ties go to the smaller label: in RayFronts' numbering
