@@ -408,18 +408,23 @@ def test_the_report_of_a_large_search_is_readable(tmp_path):
     matplotlib.use("Agg")
     from optuna.visualization import matplotlib as ov
 
-    from resireg_train.sweeps.report import _readable, write_optuna_report
+    from resireg_train.sweeps.report import readable_axes, write_optuna_report
 
     warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
     study = _made_study(tmp_path, 120)
-    ax = ov.plot_optimization_history(study)
-    _readable(ax)
-    ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
-    assert 2 <= len(ticks) <= 13 and all(float(t).is_integer() for t in ticks)
-    ax = ov.plot_intermediate_values(study)
-    _readable(ax)
-    assert ax.get_legend() is None
+    with matplotlib.rc_context():  # Optuna's plots set the ggplot style for the process
+        ax = ov.plot_optimization_history(study)
+        readable_axes(ax)
+        ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
+        assert 2 <= len(ticks) <= 13 and all(float(t).is_integer() for t in ticks)
+        ax = ov.plot_intermediate_values(study)
+        readable_axes(ax)
+        assert ax.get_legend() is None
+    before = dict(matplotlib.rcParams)
     files, lines = write_optuna_report(tmp_path, [], tmp_path)
+    # the report keeps Optuna's style to itself: later figures of the process (the report's
+    # heatmaps, a user's own) are drawn with the settings they had
+    assert {k: v for k, v in matplotlib.rcParams.items() if before[k] != v} == {}
     best = max(study.get_trials(), key=lambda t: t.value)
     assert any(f"Best trial: {best.number}, value {best.value:.4f}" in line for line in lines)
     for key in ("optuna_history", "optuna_intermediate", "optuna_importance"):

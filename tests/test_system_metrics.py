@@ -263,9 +263,14 @@ def test_an_evaluation_records_its_system_metrics_in_csv_mlflow_and_wandb(
         monkeypatch.setenv(key, value)
     store = f"sqlite:///{tmp_path}/mlflow.db"
     out = tmp_path / "eval"
-    evaluate_export(tiny_export, out, "logger=[csv,mlflow,wandb]", "dataset.size=4",
-                    f"logger.mlflow.tracking_uri={store}", "system_metrics.interval=0.2",
-                    f"logger.wandb.save_dir={out}")  # fmt: skip
+    import wandb
+
+    try:
+        evaluate_export(tiny_export, out, "logger=[csv,mlflow,wandb]", "dataset.size=4",
+                        f"logger.mlflow.tracking_uri={store}", "system_metrics.interval=0.2",
+                        f"logger.wandb.save_dir={out}")  # fmt: skip
+    finally:  # the W&B service this process started stops, and WANDB_SERVICE (which the
+        wandb.teardown()  # later tests' subprocesses would inherit) leaves the environment
     record = json.loads((out / "results.json").read_text())
     rows = read_system_csv(out)
     block = record["system"]

@@ -73,6 +73,22 @@ def _takes_what_it_is_given(kind, entry, target):
         takes(entry, None, {}, None)
     elif kind == "sources":  # resireg_train.cli.map: load()(**entry.arguments(block))
         takes(**dict.fromkeys([*entry.common, *entry.keys]))
+    elif kind in ("text towers", "teachers"):  # the keys of each of its conf/ files:
+        for stem in TABLES[kind].configs(entry.kind):  # FrozenTextTower.from_spec: the builder
+            path = conf_dir() / TABLES[kind].conf / f"{stem}.yaml"  # (**keys, cache_size=);
+            keys = {k: v for k, v in yaml.safe_load(path.read_text()).items()  # build_teacher:
+                    if k not in ("kind", "defaults", "cache_size")}  # fmt: skip
+            if kind == "text towers":  # load()(device=, **keys)
+                takes(**keys, cache_size=None)
+            else:
+                takes(device="cpu", **keys)
+    elif kind == "report sections":  # report.writer: writer(**the inputs it names), detector
+        from resireg_train.report.sections import SECTION_INPUTS  # (the same)
+
+        for function in (target, entry.detector()):
+            if function is not None:
+                takes(**dict.fromkeys(inspect.signature(function).parameters))
+                assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS)
     else:
         raise AssertionError(f"{kind}: no call site known to this test")
 

@@ -10,8 +10,8 @@ other settings or another basis are refused, naming what differs, before anythin
 written. The result is saved to ``<out>/map`` (``--out``: the run folder, Hydra's
 ``hydra.run.dir``; a ``resireg-map ... resume=true`` of the same folder continues it), with
 ``map.ply``; ``results.json`` records the maps merged (folder, voxels, frames, their files'
-SHA-256), the result and the seconds per stage, through the job wrapper of every command
-(status, provenance, trackers).
+SHA-256), the result and the seconds per stage, through the run's record of every command
+(:class:`~resireg_train.runs.record.RunRecord`: status, provenance, trackers).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, DataError, MapError
 from resireg_train.cli.job import hydra_entry_point, run_task
-from resireg_train.runs.record import update_results
+from resireg_train.runs.record import RunRecord
 
 __all__ = ["PROG", "hydra_arguments", "main", "map_folder"]
 
@@ -45,9 +45,10 @@ def map_folder(path: str | Path) -> Path:
                       "resireg-map run folder (no map/map.json)")  # fmt: skip
 
 
-def _merge(cfg: DictConfig, out: Path) -> dict[str, Any]:
+def _merge(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     from resireg.mapping import SemanticMap
 
+    out = record.folder
     names = OmegaConf.to_container(cfg.maps, resolve=True)
     if not isinstance(names, list) or len(names) < 2:
         raise ConfigError(f"maps={names!r}: expected two or more map folders")
@@ -71,7 +72,7 @@ def _merge(cfg: DictConfig, out: Path) -> dict[str, Any]:
     timer["load"] = time.perf_counter() - t0
     inputs = [{"folder": str(f), "voxels": len(m), "frames": m.frames, "storage": m.storage,
                "sha256": _record(f).get("sha256")} for f, m in zip(folders, maps, strict=True)]  # fmt: skip
-    update_results(out, params={"maps": [str(f) for f in folders], "transform": transform},
+    record.update(params={"maps": [str(f) for f in folders], "transform": transform},
                    inputs=inputs)  # fmt: skip
     merged, t0 = maps[0], time.perf_counter()
     for folder, other in zip(folders[1:], maps[1:], strict=True):
@@ -90,9 +91,7 @@ def _merge(cfg: DictConfig, out: Path) -> dict[str, Any]:
         timer["ply"] = time.perf_counter() - t0
     log.info("merged %d maps: %d voxels, %.1f MiB, %d frames in all -> %s", len(maps),
              len(merged), merged.nbytes / 2**20, merged.frames, target)  # fmt: skip
-    return update_results(
-        out,
-        status="completed",
+    return record.update(
         map={
             "folder": str(target),
             "voxels": len(merged),

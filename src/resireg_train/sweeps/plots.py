@@ -45,7 +45,9 @@ def plot_search(folder: str | Path, out: str | Path) -> PlotResult:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     result, pages = PlotResult(files=[]), []
-    with warnings.catch_warnings():
+    # Optuna's matplotlib plots switch the process's style (plt.style.use('ggplot')): kept
+    # inside this block, so the figures drawn after it keep matplotlib's defaults
+    with warnings.catch_warnings(), matplotlib.rc_context():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         for function, stem in SEARCH_PLOTS.items():
             try:

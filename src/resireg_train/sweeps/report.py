@@ -142,7 +142,9 @@ def write_optuna_report(
         folder = table.loc[table["trial"] == best.number, "run folder"].iloc[0]
         lines += ["", f"Best trial: {best.number}, value {best.value:.4f}: {params} "
                   f"(run folder `{folder}`)"]  # fmt: skip
-    with warnings.catch_warnings():
+    # Optuna's matplotlib plots switch the process's style (plt.style.use('ggplot')): kept
+    # inside this block, so the figures drawn after it keep matplotlib's defaults
+    with warnings.catch_warnings(), matplotlib.rc_context():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         if complete:
             ax = ov.plot_optimization_history(study)
