@@ -8,8 +8,13 @@
   the trackers of one run, driven by its record; :mod:`~resireg_train.runs.loggers`: the four
   trackers' code; :mod:`~resireg_train.runs.epochs`: what training records every epoch;
 - :mod:`~resireg_train.runs.index` (``resireg-runs``) and :mod:`~resireg_train.runs.cards`
-  (model cards of exports).
+  (model cards of exports);
+- :mod:`~resireg_train.runs.rerun` and :mod:`~resireg_train.runs.reproduce`: ``resireg-runs
+  rerun`` (a run again from its record, one verdict) and ``resireg-runs reproduce`` (a paper
+  row's jobs, the figures beside the paper's).
 
 Imported by the CLIs, the evaluation, the training and the sweeps; it imports only
-``resireg``, ``resireg_train.config`` and (inside functions) the trackers' libraries.
+``resireg``, ``resireg_train.config`` and (inside functions) the trackers' libraries, but for
+the two commands above, which (inside functions) use the search's override check, the dataset
+table and the report, as a CLI does.
 """
