@@ -10,6 +10,8 @@
     resireg-runs plot RUN... --metric NAME [--metric ...] [--out PNG] [--html PAGE]
     resireg-runs plot SEARCH_FOLDER [--out FOLDER]
     resireg-runs gc FOLDER... --keep N --by METRIC [--mode min|max] [--dry-run]
+    resireg-runs rerun RUN [--out DIR] [--allow-drift] [--rtol X] [--root ROOT] [OVERRIDE ...]
+    resireg-runs reproduce table1/<encoder> [--paper FILE] [--out DIR] [OVERRIDE ...]
 
 RUN is a run folder or a run id (a unique prefix of ``results.json``'s
 ``provenance.run_id``). ROOT defaults to ``outputs`` (``paths.log_dir``'s default).
@@ -145,6 +147,41 @@ def main(argv: list[str] | None = None) -> None:
                     "scores")  # fmt: skip
     gc.add_argument("--dry-run", action="store_true", help="list, remove nothing")
     args = parser.parse_args(argv)
+    again = sub.add_parser("rerun", help="a run again from its record, in a new folder, and "
+                           "one verdict: identical, within tolerance or differs")  # fmt: skip
+    again.add_argument("run", metavar="RUN")
+    again.add_argument("overrides", nargs="*", metavar="OVERRIDE",
+                       help="key=value: replaces the run's own override of that key")  # fmt: skip
+    again.add_argument("--out", metavar="DIR", help="the new run's folder (default: "
+                       "outputs/rerun/<run id>_<time>)")  # fmt: skip
+    again.add_argument("--allow-drift", action="store_true", help="run even though the code, "
+                       "data, models or config differ from the run's (recorded in the new run)")  # fmt: skip
+    again.add_argument("--rtol", type=float, metavar="X", help="relative tolerance of 'within "
+                       "tolerance' (default: provenance.rerun_rtol)")  # fmt: skip
+    again.add_argument("--root", action="append", metavar="ROOT")
+    paper = sub.add_parser("reproduce", help="the jobs behind one row of the paper's Table 1 "
+                           "or 2, your figures beside the paper's")  # fmt: skip
+    paper.add_argument("row", metavar="TABLE/ROW", help="e.g. table1/radseg, table2/otas")
+    paper.add_argument("overrides", nargs="*", metavar="OVERRIDE",
+                       help="key=value for every job (model_path=..., paths.data_dir=...)")  # fmt: skip
+    paper.add_argument("--paper", metavar="FILE", help="the paper's figures (default: "
+                       "conf/paper/results.yaml)")  # fmt: skip
+    paper.add_argument("--out", metavar="DIR", help="the jobs' sweep folder (default: "
+                       "outputs/reproduce/<table>_<row>/<time>)")  # fmt: skip
+    # (overrides may follow the options: argparse leaves those after an option unparsed)
+    args, extra = parser.parse_known_args(argv)
+    if extra and (args.command not in ("rerun", "reproduce") or any(e[:1] == "-" for e in extra)):
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    if args.command in ("rerun", "reproduce"):  # their own modules (runs/rerun.py, reproduce.py)
+        from resireg_train.runs import reproduce, rerun
+
+        args.overrides += extra
+        args.root = getattr(args, "root", None) or [DEFAULT_ROOT]
+        try:
+            code = (rerun.main if args.command == "rerun" else reproduce.main)(args)
+        except ValueError as err:  # refused before any job started
+            parser.exit(2, f"resireg-runs {args.command}: refused: {err}\n")
+        sys.exit(code)
 
     from resireg.specs.tree import flatten
     from resireg_train.config.secrets import mask_text

@@ -42,18 +42,24 @@ def paper_results(path: str | Path = PAPER_FILE) -> dict[str, Any]:
 
 
 def paper_cell(
-    table: str, encoder: str, dataset: str | None, variant: str, metric: str = "miou"
+    table: str,
+    encoder: str,
+    dataset: str | None,
+    variant: str,
+    metric: str = "miou",
+    path: str | Path = PAPER_FILE,
 ) -> float | None:
     """The paper's value (points) of one cell: Table 1 by ``(encoder, dataset, variant)``
     (``metric`` is mIoU there), Table 2 by ``(encoder, variant, metric)`` (``miou`` /
     ``fmiou``; the paper's Table 2 has one variant per encoder, on ScanNet alone: the data
-    file's ``table2.dataset``). ``None`` where the paper reports no such cell."""
-    row = paper_results()[table]["rows"].get(encoder)
+    file's ``table2.dataset``). ``None`` where the paper reports no such cell. ``path``: the
+    data file (``resireg-runs reproduce --paper``)."""
+    row = paper_results(path)[table]["rows"].get(encoder)
     if row is None:
         return None
     if table == "table1":
         value = (row.get(dataset) or {}).get(variant) if metric == "miou" else None
-    elif dataset == paper_results()[table]["dataset"] and row.get("variant") == variant:
+    elif dataset == paper_results(path)[table]["dataset"] and row.get("variant") == variant:
         value = row.get(metric)
     else:
         value = None
@@ -100,12 +106,12 @@ def add_paper_columns(
     return out[order], flags
 
 
-def protocol_differences(jobs: list[Any], table: str) -> list[str]:
+def protocol_differences(jobs: list[Any], table: str, path: str | Path = PAPER_FILE) -> list[str]:
     """One line per protocol setting (``results.json`` ``protocol.settings``) that a job ran
-    with a value other than the paper's (``conf/paper/results.yaml`` ``protocol.<table>``):
-    ``"short_side=448 (paper: 576): jobs 0, 3"``. Jobs that recorded no protocol, and
-    settings the paper does not state, are not compared."""
-    stated = (paper_results().get("protocol") or {}).get(table) or {}
+    with a value other than the paper's (``conf/paper/results.yaml`` ``protocol.<table>``;
+    ``path``: another data file): ``"short_side=448 (paper: 576): jobs 0, 3"``. Jobs that
+    recorded no protocol, and settings the paper does not state, are not compared."""
+    stated = (paper_results(path).get("protocol") or {}).get(table) or {}
     differ: dict[tuple[str, str, str], list[int]] = {}
     for job in jobs:
         settings = (job.results.get("protocol") or {}).get("settings") or {}

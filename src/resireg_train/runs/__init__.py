@@ -14,7 +14,12 @@
 - ``resireg-runs``' commands that act on runs: :mod:`~resireg_train.runs.registry`
   (``register``: an export into MLflow's model registry), :mod:`~resireg_train.runs.plots`
   (``plot``) and :mod:`~resireg_train.runs.gc` (``gc``).
+- :mod:`~resireg_train.runs.rerun` and :mod:`~resireg_train.runs.reproduce`: ``resireg-runs
+  rerun`` (a run again from its record, one verdict) and ``resireg-runs reproduce`` (a paper
+  row's jobs, the figures beside the paper's).
 
 Imported by the CLIs, the evaluation, the training and the sweeps; it imports only
-``resireg``, ``resireg_train.config`` and (inside functions) the trackers' libraries.
+``resireg``, ``resireg_train.config`` and (inside functions) the trackers' libraries, but for
+the two commands above, which (inside functions) use the search's override check, the dataset
+table and the report, as a CLI does.
 """

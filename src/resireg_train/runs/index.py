@@ -6,7 +6,9 @@ A row reads only the run's ``results.json`` (:meth:`RunRecord.read
 <resireg_train.runs.record.RunRecord.read>`) and ``.hydra/overrides.yaml`` (the resolved
 ``.hydra/config.yaml`` only when a filter or a column names a config key), so a thousand runs
 list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
-whose process is gone (same host, PID not alive) is shown as ``died``. A file that is not what
+whose process is gone is shown as ``died``: on this host, its PID is not alive; on another
+host (a shared file system), its heartbeat is stale (:func:`~resireg_train.runs.record.
+heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A file that is not what
 it should be (a record that is not a run record, an overrides file that is not a YAML list) is
 named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other
 runs are listed.
@@ -21,7 +23,7 @@ import re
 import socket
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cache, cached_property
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +31,7 @@ import yaml
 
 from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import RESULTS_FILE, RecordError, RunRecord
+from resireg_train.runs.record import RESULTS_FILE, RecordError, RunRecord, heartbeat_stale
 
 __all__ = [
     "COLUMNS",
@@ -50,6 +52,15 @@ _SKIP = {"checkpoints", ".hydra", "export", "map", "csv", "wandb", "mlruns", "__
 #: ``resireg-runs ls``'s default columns.
 COLUMNS = ("run_id", "cli", "name", "status", "start", "duration", "overrides", "metric", "value")
 _HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
+
+
+@cache
+def _stale_after() -> float:
+    """``provenance.heartbeat_stale`` (conf/provenance/default.yaml): for a record whose
+    heartbeat does not say its own."""
+    from resireg_train.runs.provenance import provenance_settings
+
+    return float(provenance_settings()["heartbeat_stale"])
 
 
 def _pid_alive(pid: int) -> bool:
@@ -85,14 +96,19 @@ class Run:
 
     @property
     def status(self) -> str:
-        """The recorded status, ``died`` for a ``running`` run whose process is gone (same
-        host; a run on another host keeps ``running``)."""
+        """The recorded status, ``died`` for a ``running`` run whose process is gone: on this
+        host, its PID is not alive; on another, its heartbeat is stale (a record written
+        before heartbeats keeps ``running``)."""
         status = self.results.get("status", "missing")
+        if status != "running":
+            return status
         machine = self.provenance.get("machine") or {}
-        if status == "running" and machine.get("host") == socket.gethostname():
+        if machine.get("host") == socket.gethostname():
             pid = machine.get("pid")
             if isinstance(pid, int) and not _pid_alive(pid):
                 return "died"
+        elif heartbeat_stale(self.results, _stale_after()):
+            return "died"
         return status
 
     def _yaml(self, name: str, kind: type, what: str) -> Any:

@@ -20,6 +20,9 @@ each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it i
   While it runs, MLflow's own system-metrics monitor logs ``system/...`` to it every
   ``system_metrics.interval`` seconds (an evaluation's or a map's run is opened at its start
   for that: :func:`open_mlflow_run`).
+  A training run's MLflow run id is recorded (``tracking.mlflow_run_id``) as soon as the run
+  exists; a resume (``ckpt_path``) logs into that run again, its curves going on from the
+  resumed step.
 - **wandb** (``WANDB_MODE=offline`` needs no network): one W&B run per job, named
   ``<name>-<run id>[-<job number>]`` (a multirun's jobs grouped as ``<name>-<run id>``), given
   the resolved config at the start and ``results.json``'s summary at the end, then finished
@@ -27,6 +30,8 @@ each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it i
   run left open takes the next job's logs in a multirun. Its system panel samples the run's
   process tree every ``system_metrics.interval`` seconds. An offline run is uploaded later with
   ``wandb sync <run>/wandb/offline-run-*``.
+  run left open takes the next job's logs in a multirun. The W&B run id is recorded
+  (``tracking.wandb_run_id``); a resumed training run continues that W&B run.
 
 Every value a tracker receives has the passwords of its URLs masked
 (:func:`resireg_train.config.secrets.mask_text`).
@@ -36,6 +41,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import os
 import sys
 from pathlib import Path
@@ -67,6 +73,8 @@ __all__ = [
     "wandb_summary",
 ]
 
+log = logging.getLogger(__name__)
+
 #: Files larger than this are recorded by path (a tag), not uploaded.
 MLFLOW_ARTIFACT_MAX_BYTES = 64 << 20
 _STATUS = {"completed": "FINISHED", "failed": "FAILED", "interrupted": "KILLED", "pruned": "KILLED"}
@@ -84,6 +92,20 @@ def resolved_config(cfg: Any) -> dict[str, Any]:
     except Exception:  # an interpolation only Hydra's runtime resolves
         config = OmegaConf.to_container(cfg, resolve=False)
     return masked_tree(config)
+
+
+def _note(record: Any, key: str, value: Any) -> None:
+    """Add ``key: value`` to the record's ``tracking`` (the job's writer only)."""
+    if record.writer and value is not None:
+        tracking = record.get("tracking") or {}
+        if tracking.get(key) != value:
+            record.update(tracking={**tracking, key: value})
+
+
+def _recorded(record: Any, key: str) -> str | None:
+    """``tracking.<key>`` of the run's record, the id a resumed run continues."""
+    value = (record.get("tracking") or {}).get(key) if record.writer else None
+    return value if isinstance(value, str) and value else None
 
 
 # ------------------------------------------------------------------------------------ CSV
@@ -192,6 +214,33 @@ class MlflowTracker(Tracker):
         if any(m._metrics for m in monitor.monitors):
             monitor.publish_metrics(monitor.aggregate_metrics())
             monitor.mlflow_logger.flush()
+
+    def lightning_logger(self, resume_step: int | None) -> Any:
+        """Lightning's ``MLFlowLogger``. A resumed training run (``resume_step`` set) logs into
+        the MLflow run its record names (``tracking.mlflow_run_id``), set back to RUNNING;
+        one the store no longer has is a warning and a new run. The run id is recorded as
+        soon as the run exists: a run killed before its end resumes into it too."""
+        if self._logger is not None:
+            return self._logger
+        recorded = _recorded(self.record, "mlflow_run_id") if resume_step is not None else None
+        if recorded is not None:
+            self._logger = self._continued(recorded)
+        logger = super().lightning_logger(resume_step)  # a new run unless continued
+        if logger is not None and self.record.writer:
+            _note(self.record, "mlflow_run_id", logger.run_id)
+        return logger
+
+    def _continued(self, run_id: str) -> Any:
+        import hydra
+
+        logger = hydra.utils.instantiate(self.logger_settings(), run_id=run_id)
+        try:
+            logger.experiment.update_run(logger.run_id, status="RUNNING")
+        except Exception as err:  # deleted, or another store: a new run, said once
+            log.warning("logger.mlflow: cannot continue MLflow run %s (%s); this resume "
+                        "logs to a new run", run_id, mask_text(str(err)).splitlines()[0])  # fmt: skip
+            return None
+        return logger
 
     def end(self, record: dict[str, Any], failed: bool) -> dict[str, Any]:
         self._stop_monitor()
@@ -316,6 +365,13 @@ class WandbTracker(Tracker):
         return os.environ.get("WANDB_BASE_URL") or "https://api.wandb.ai"
 
     def begin(self) -> None:
+        recorded = _recorded(self.record, "wandb_run_id")
+        if self.training and self.cfg.get("ckpt_path") is not None and recorded is not None:
+            # a resumed training run continues its W&B run (WandbLogger resumes an id it is
+            # given: wandb.init(id=..., resume="allow")); Lightning logs trainer/global_step
+            import hydra
+
+            self._logger = hydra.utils.instantiate(self.logger_settings(), id=recorded)
         logger = self.lightning_logger(None)
         _stats_settings(logger, self.cfg)
         # W&B records the command line (its run metadata's "args"): give it masked URLs
@@ -324,6 +380,7 @@ class WandbTracker(Tracker):
             experiment = logger.experiment  # rank 0: the wandb run (created here)
         finally:
             sys.argv = argv
+        _note(self.record, "wandb_run_id", getattr(experiment, "id", None))
         if hasattr(experiment, "config"):
             experiment.config.update(resolved_config(self.cfg), allow_val_change=True)
 

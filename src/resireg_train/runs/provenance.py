@@ -10,7 +10,10 @@
   content unless ``provenance.untracked_content`` opts in); tracked files' text changes (and
   the opted-in files) saved as ``code.diff`` (mode 0600) in the run folder, at most
   ``provenance.diff_max_bytes``, so ``git apply code.diff`` on that commit gives the code that
-  ran; what was left out named with its size, SHA-256 and reason (:func:`code_provenance`).
+  ran; what was left out named with its size, SHA-256 and reason (:func:`code_provenance`);
+  each tracked file that differs from the commit by path and SHA-256 of its content
+  (``changes``) and one digest over them (``diff_sha256``), which ``resireg-runs rerun``
+  compares whatever ``code.diff`` could hold.
   Outside a checkout (an installed wheel) only the version is recorded; nothing fails;
 - ``environment``: Python, the command line (URL passwords masked), the digest of the
   resolved config, and the versions of the packages that change numbers (read with
@@ -19,13 +22,14 @@
 - ``seeds``: every config key named ``seed`` or ``*_seed``;
 - ``data``: the identity of every dataset the config names (:func:`data_identity`);
 - ``models``: the export a run reads (``model_path``: its files' SHA-256), the checkpoint a
-  run starts from (``model.init_from``: its SHA-256) and the encoder's config entry (hub repo,
-  ref, weights path).
+  run starts from (``model.init_from``, or a ``ckpt_path`` file: its SHA-256) and the encoder's
+  config entry (hub repo, ref, weights path) (:func:`input_provenance`, with ``data``).
 
 :func:`finish_provenance` completes it at the end (success or failure): end time, wall seconds,
 CPU-hours (this process and its children, from ``getrusage``), GPU-hours where CUDA ran (wall
-time x the GPUs the run's processes used), torch's CUDA / cuDNN versions and each GPU's name
-and memory. Nothing here is typed twice: exports copy their run's block (``provenance.json``
+time x the GPUs the run's processes used), torch's CUDA / cuDNN versions, each GPU's name
+and memory, and torch's intra-op thread count (``machine.torch_threads``: a CPU result can
+change with it, so ``resireg-runs rerun`` runs with the same). Nothing here is typed twice: exports copy their run's block (``provenance.json``
 in the export folder, :func:`write_export_provenance`), evaluations and maps read it from there.
 """
 
@@ -61,8 +65,10 @@ __all__ = [
     "export_identity",
     "file_list_fingerprint",
     "finish_provenance",
+    "input_provenance",
     "machine_provenance",
     "package_versions",
+    "provenance_settings",
     "start_provenance",
     "write_export_provenance",
 ]
@@ -107,17 +113,18 @@ def _checkout_root(package_dir: Path) -> Path | None:
 
 
 def provenance_settings(cfg: Any = None) -> dict[str, Any]:
-    """The ``provenance`` block of ``cfg`` (``conf/provenance/default.yaml``), or that file's
-    values when ``cfg`` has none (a config composed without it, a call from Python)."""
+    """The ``provenance`` block of ``cfg`` over ``conf/provenance/default.yaml``'s values (all
+    of them when ``cfg`` has none: a config composed without it, a call from Python)."""
+    from resireg.specs.table import compose_conf, conf_dir
+
+    settings = {k: v for k, (v, _) in compose_conf(conf_dir() / "provenance", "default").items()}
     block = cfg.get("provenance") if isinstance(cfg, Mapping) or hasattr(cfg, "get") else None
     if block:
         from omegaconf import OmegaConf
 
-        return dict(OmegaConf.to_container(block, resolve=True) if OmegaConf.is_config(block)
-                    else block)  # fmt: skip
-    from resireg.specs.table import compose_conf, conf_dir
-
-    return {k: v for k, (v, _) in compose_conf(conf_dir() / "provenance", "default").items()}
+        settings.update(OmegaConf.to_container(block, resolve=True) if OmegaConf.is_config(block)
+                        else block)  # fmt: skip
+    return settings
 
 
 def _sha256(path: Path) -> str:
@@ -175,6 +182,14 @@ def _tracked_changes(root: Path) -> list[tuple[str, bool, str]]:
     return [(path, binary, chunk) for (path, binary), chunk in zip(entries, chunks, strict=True)]
 
 
+def _changes_digest(changes: list[dict[str, Any]]) -> str:
+    """SHA-256 over the tracked changes (each file's path, size and content digest, sorted;
+    a deleted file by its path): with the commit, it names the tracked code exactly. Content,
+    not ``git diff``'s text: a binary change is one line there."""
+    lines = sorted(f"{c['path']}\t{c.get('size')}\t{c.get('sha256')}\n" for c in changes)
+    return hashlib.sha256("".join(lines).encode()).hexdigest()
+
+
 def _write_private(path: Path, text: str) -> Path:
     """``path`` written atomically and created 0600 (it can hold uncommitted edits)."""
     from resireg.integrity import atomic_write
@@ -206,7 +221,10 @@ def code_provenance(
       secret, :func:`resireg_train.config.secrets.looks_secret`), at most ``diff_max_bytes`` in
       all, so ``git apply code.diff`` on the commit gives the code that ran;
     - ``left_out``: each change not inlined, by path, size, SHA-256 and reason (binary, a
-      secret-looking name, over ``diff_max_bytes``), and ``diff_bytes``.
+      secret-looking name, over ``diff_max_bytes``), and ``diff_bytes``;
+    - ``changes``: every tracked file that differs from the commit, by path, size and SHA-256
+      of its content now (a deleted one by path and error), and ``diff_sha256``, one digest
+      over them: what ``resireg-runs rerun`` compares.
 
     Nothing here fails a run: a git error is recorded as ``git.error``."""
     try:
@@ -275,9 +293,12 @@ def _git_record(root: Path, out: Path | None, settings: Mapping[str, Any]) -> di
             continue
         # its diff against /dev/null: `git apply` creates it (exit code 1: they differ)
         take(name, _git(root, "diff", "--no-index", "--", os.devnull, name).stdout, False)
+    changes = [_identity(root, name, hash_max) for name, _, _ in tracked]
     record: dict[str, Any] = {"commit": commit, "branch": branch,
                               "dirty": bool(tracked or names), "diff": None,
-                              "root": str(root), "untracked": listed}  # fmt: skip
+                              "root": str(root), "changes": changes,
+                              "diff_sha256": _changes_digest(changes),
+                              "untracked": listed}  # fmt: skip
     if len(names) > len(listed):
         record["untracked_files"] = len(names)
     if left_out:
@@ -504,6 +525,11 @@ def _models(cfg: Mapping[str, Any]) -> dict[str, Any]:
         path = Path(str(init_from)).expanduser()
         models["init_from"] = {"path": str(path.resolve()),
                                "sha256": sha256_file(path) if path.is_file() else None}  # fmt: skip
+    ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path not in (None, "last"):  # a checkpoint file another run wrote
+        path = Path(str(ckpt_path)).expanduser()
+        models["ckpt_path"] = {"path": str(path.resolve()),
+                               "sha256": sha256_file(path) if path.is_file() else None}  # fmt: skip
     encoder = cfg.get("encoder")
     if isinstance(encoder, Mapping):
         models["encoder"] = {k: v for k, v in encoder.items()
@@ -528,6 +554,18 @@ def _guarded(what: Callable[[], Any]) -> Any:
         return what()
     except Exception as err:
         return {"error": f"{type(err).__name__}: {err}"}
+
+
+def input_provenance(plain: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"data", "models"}`` of a resolved config (plain values): what a run reads, as its
+    record holds it. ``resireg-runs rerun`` computes it again to find what changed."""
+    return {
+        "data": {
+            key: _guarded(lambda e=entry: data_identity(e))
+            for key, entry in _datasets(plain).items()
+        },  # fmt: skip
+        "models": _guarded(lambda: _models(plain)),
+    }
 
 
 def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = None) -> dict:
@@ -556,11 +594,7 @@ def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = N
         "machine": machine_provenance(),
         "time": {"start": _now(), "end": None, "wall_seconds": None},
         "seeds": _seeds(plain),
-        "data": {
-            key: _guarded(lambda e=entry: data_identity(e))
-            for key, entry in _datasets(plain).items()
-        },  # fmt: skip
-        "models": _guarded(lambda: _models(plain)),
+        **input_provenance(plain),
     }
 
 
@@ -607,6 +641,9 @@ def finish_provenance(block: Mapping[str, Any], out: Path | None = None) -> dict
         gpu_hours=round(wall * world / 3600, 6) if gpus and wall is not None else None,
     )
     done.setdefault("machine", {})["gpus"] = gpus
+    torch = sys.modules.get("torch")  # only if the run imported it
+    if torch is not None:
+        done["machine"]["torch_threads"] = torch.get_num_threads()
     done.setdefault("environment", {}).update({f"torch_{k}": v for k, v in versions.items()})
     return done
 

@@ -20,14 +20,23 @@ key). :meth:`RunRecord.read` puts the numbers back, so Python readers see what w
 Every string is written with the password of any URL in it masked
 (:func:`resireg_train.config.secrets.mask_text`): a command line or a config value holding
 ``http://user:pass@host`` is recorded as ``http://user:***@host``.
+
+While the run runs, a background thread of the job (:class:`Heartbeat`) rewrites the record's
+``heartbeat`` (``{"time": <UTC>, "host", "interval", "stale_after"}``) every
+``provenance.heartbeat_interval`` seconds, so a reader on another host (a run index on a
+cluster's shared file system) can tell a running job from one that died:
+:func:`heartbeat_stale`. Writes from the job's threads are serialised (one lock per folder).
 """
 
 from __future__ import annotations
 
+import datetime as _dt
 import json
 import math
 import os
+import socket
 import sys
+import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -37,16 +46,21 @@ from resireg.integrity import atomic_write
 from resireg_train.config.secrets import mask_text
 
 __all__ = [
+    "HEARTBEAT",
     "NON_FINITE",
     "RESULTS_FILE",
     "RecordError",
+    "Heartbeat",
     "RunRecord",
     "flat",
+    "heartbeat_stale",
     "metric_mode",
     "strict_json",
 ]
 
 RESULTS_FILE = "results.json"
+#: The record's field a running job refreshes (:class:`Heartbeat`).
+HEARTBEAT = "heartbeat"
 #: The record's field that lists the non-finite values written as ``null``.
 NON_FINITE = "non_finite"
 _REASON = (
@@ -74,6 +88,7 @@ _FIELDS: dict[str, tuple[type, ...]] = {
     "tracking": (dict,),
     "provenance": (dict,),
     "system": (dict,),
+    HEARTBEAT: (dict,),
 }
 _PROVENANCE: dict[str, tuple[type, ...]] = {
     "run_id": (str,),
@@ -181,6 +196,78 @@ def _check_shape(record: Any, path: Path) -> dict[str, Any]:
     return record
 
 
+#: One lock per record file of this process: the job's threads (its body, the per-epoch
+#: callback, the heartbeat) read, merge and write the file one at a time.
+_LOCKS: dict[str, threading.Lock] = {}
+_LOCKS_GUARD = threading.Lock()
+
+
+def _lock(path: Path) -> threading.Lock:
+    with _LOCKS_GUARD:
+        return _LOCKS.setdefault(str(path.resolve()), threading.Lock())
+
+
+def _utc_now() -> _dt.datetime:
+    return _dt.datetime.now(_dt.timezone.utc)
+
+
+def heartbeat_stale(
+    record: Mapping[str, Any], stale_after: float, now: _dt.datetime | None = None
+) -> bool | None:
+    """Whether the running job of ``record`` has stopped beating: its ``heartbeat.time`` is
+    more than ``heartbeat.stale_after`` seconds old (the job's own setting; ``stale_after``
+    when it recorded none). ``None`` when the record has no heartbeat (a release before it).
+    Compared with this machine's clock: hosts of one cluster agree to far less than the
+    minutes a heartbeat may age."""
+    beat = record.get(HEARTBEAT)
+    if not isinstance(beat, Mapping) or not isinstance(beat.get("time"), str):
+        return None
+    try:
+        when = _dt.datetime.fromisoformat(beat["time"])
+    except ValueError:
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=_dt.timezone.utc)
+    limit = beat.get("stale_after")
+    limit = limit if isinstance(limit, (int, float)) and not isinstance(limit, bool) else None
+    age = ((now or _utc_now()) - when).total_seconds()
+    return age > float(limit if limit is not None else stale_after)
+
+
+class Heartbeat:
+    """A daemon thread that writes ``heartbeat.time`` into a running job's record every
+    ``interval`` seconds until :meth:`stop` (module docstring). A write that fails (a full
+    disk, a file system gone) is skipped: the next one tries again, the run goes on."""
+
+    def __init__(self, record: RunRecord, interval: float, stale_after: float) -> None:
+        self.record = record
+        self.interval = float(interval)
+        self.fields = {"host": socket.gethostname(), "interval": self.interval,
+                       "stale_after": float(stale_after)}  # fmt: skip
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="resireg-heartbeat", daemon=True)
+
+    def beat(self) -> dict[str, Any]:
+        """The heartbeat field as of now."""
+        return {"time": _utc_now().isoformat(timespec="milliseconds"), **self.fields}
+
+    def start(self) -> Heartbeat:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                self.record.update(**{HEARTBEAT: self.beat()})
+            except (OSError, ValueError):
+                continue
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join()
+
+
 class RunRecord:
     """The record of the run in ``folder`` (its ``results.json``), for the run's whole life.
 
@@ -204,6 +291,7 @@ class RunRecord:
         self._report = report
         self.trackers: Any = None  # the run's trackers (RunTrackers), once started
         self.sampler: Any = None  # its system metrics (runs.system.SystemSampler), once started
+        self._heartbeat: Heartbeat | None = None
 
     def __repr__(self) -> str:
         return f"RunRecord({str(self.folder)!r})"
@@ -218,6 +306,7 @@ class RunRecord:
             "_report": None,
             "trackers": None,
             "sampler": None,
+            "_heartbeat": None,
         }
 
     # -- reading ----------------------------------------------------------------------------
@@ -263,14 +352,15 @@ class RunRecord:
         the module docstring); returns the merged record as Python values (NaN included)."""
         if not self.writer:
             return {}
-        results = {**self.fields(), **fields}
-        results.pop(NON_FINITE, None)
-        written, found = strict_json(results)
-        if found:
-            written[NON_FINITE] = {"reason": _REASON, **found}
-        self.folder.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(written, indent=2, allow_nan=False)
-        atomic_write(self.path, text, what="run record")
+        with _lock(self.path):  # the heartbeat thread writes too
+            results = {**self.fields(), **fields}
+            results.pop(NON_FINITE, None)
+            written, found = strict_json(results)
+            if found:
+                written[NON_FINITE] = {"reason": _REASON, **found}
+            self.folder.mkdir(parents=True, exist_ok=True)
+            text = json.dumps(written, indent=2, allow_nan=False)
+            atomic_write(self.path, text, what="run record")
         return results
 
     def set_aside(self) -> Path | None:
@@ -298,7 +388,7 @@ class RunRecord:
         are sampled until :meth:`finish` (``system_metrics``: :mod:`resireg_train.runs.system`)."""
         import logging
 
-        from resireg_train.runs.provenance import start_provenance
+        from resireg_train.runs.provenance import provenance_settings, start_provenance
         from resireg_train.runs.system import SystemSampler, system_settings
         from resireg_train.runs.trackers import RunTrackers
 
@@ -310,9 +400,13 @@ class RunRecord:
                 "%s held an earlier run's record: kept as %s", self.folder, kept.name
             )
         previous = self.get("provenance")  # a resumed run keeps its run id
+        settings = provenance_settings(cfg)
+        heartbeat = Heartbeat(self, settings["heartbeat_interval"], settings["heartbeat_stale"])
         self.update(name=cfg.get("name"), status="running", error=None,
                     output_dir=str(self.folder),
-                    provenance=start_provenance(cfg, self.folder, previous))  # fmt: skip
+                    provenance=start_provenance(cfg, self.folder, previous),
+                    **{HEARTBEAT: heartbeat.beat()})  # fmt: skip
+        self._heartbeat = heartbeat.start()
         mask_saved_configs(self.folder)
         enabled, interval = system_settings(cfg)  # a bad interval fails before any work
         self.trackers.start()
@@ -328,6 +422,9 @@ class RunRecord:
         the file still reads. Returns the record."""
         if not self.writer:
             return {}
+        if self._heartbeat is not None:  # before the final status: no beat after it
+            self._heartbeat.stop()
+            self._heartbeat = None
         from resireg_train.runs.provenance import finish_provenance
         from resireg_train.runs.system import merge_blocks
 

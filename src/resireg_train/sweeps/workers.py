@@ -49,6 +49,7 @@ __all__ = [
     "WORKER_ENV",
     "SearchRecord",
     "SearchRecordError",
+    "check_overrides",
     "read_record",
     "recorded_overrides",
     "sigterm_ends",
@@ -220,8 +221,11 @@ def _options(value: Any) -> list[Any]:
     return list(choices) if choices is not None else [value]
 
 
-def _refusal(override: Any, groups: Any, composed: Any, job: str) -> str | None:
-    """Why a recorded override is refused (module docstring), or ``None``."""
+def _refusal(
+    override: Any, groups: Any, composed: Any, job: str, addable: frozenset[str] = frozenset()
+) -> str | None:
+    """Why a recorded override is refused (module docstring), or ``None``. ``addable``: keys
+    a ``+key=value`` override may add (none for a search's record)."""
     from omegaconf import OmegaConf
 
     key = override.key_or_group
@@ -249,18 +253,53 @@ def _refusal(override: Any, groups: Any, composed: Any, job: str) -> str | None:
     if options:
         missing = [o for o in _options(value) if o not in options]
         return f"{missing[0]!r} is not an option of config group {key!r}" if missing else None
-    if override.is_add():
+    if override.is_add() and key not in addable:
         return "it adds a key absent from the composed config"
+    if override.is_add():
+        return None
     found = OmegaConf.select(composed, key, default=_ABSENT, throw_on_resolution_failure=False)
-    if found is _ABSENT:
+    if found is _ABSENT and not _required(composed, key):
         return f"resireg-{job}'s config has no such key"
     return None
+
+
+def _required(composed: Any, key: str) -> bool:
+    """Whether ``key`` is a key of ``composed`` whose value is required (``???``: select
+    answers it as absent), e.g. ``source.path`` of resireg-map."""
+    from omegaconf import OmegaConf
+
+    parent, _, last = key.rpartition(".")
+    node = OmegaConf.select(composed, parent, default=None) if parent else composed
+    return OmegaConf.is_dict(node) and last in node.keys() and OmegaConf.is_missing(node, last)
 
 
 _ABSENT: Any = object()
 
 
-def _check_overrides(path: Path, job: str, overrides: list[str]) -> None:
+def check_overrides(
+    path: Path,
+    job: str,
+    overrides: list[str],
+    addable: frozenset[str] = frozenset(),
+    skip: frozenset[int] = frozenset(),
+) -> None:
+    """Refuse any recorded override of a ``resireg-<job>`` job (the config name: ``train``,
+    ``eval``, ``map``) that a worker would refuse (module docstring), raising
+    :class:`SearchRecordError` naming ``path`` and the entry; ``addable``: keys a ``+``
+    override may add all the same (``resireg-runs rerun``: a run's ``+model.init_from``);
+    ``skip``: the indices of entries not run (given again by the user). The rule every run
+    rebuilt from a file follows: a search's workers, ``resireg-runs rerun`` (a run's
+    ``.hydra/overrides.yaml``)."""
+    _check_overrides(path, job, overrides, addable, skip)
+
+
+def _check_overrides(
+    path: Path,
+    job: str,
+    overrides: list[str],
+    addable: frozenset[str] = frozenset(),
+    skip: frozenset[int] = frozenset(),
+) -> None:
     """Refuse any recorded override a worker must not pass on (module docstring). The job's
     config is composed with Hydra's compose API from the recorded group choices."""
     from hydra import compose, initialize_config_dir
@@ -303,7 +342,9 @@ def _check_overrides(path: Path, job: str, overrides: list[str]) -> None:
                 f"config: {first}"
             ) from None
         for index, override in enumerate(parsed):
-            reason = _refusal(override, groups, composed, job)
+            if index in skip:
+                continue
+            reason = _refusal(override, groups, composed, job, frozenset(addable))
             if reason is not None:
                 raise SearchRecordError(
                     f"{path}: overrides[{index}]={override.input_line!r} is refused: {reason}"
