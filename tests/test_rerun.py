@@ -234,8 +234,8 @@ def test_a_recorded_override_is_checked_as_a_search_worker_checks_it(tmp_path, c
 def test_a_masked_secret_is_never_rebuilt_from_the_record(tmp_path):
     """The record masks a URL's password; the rerun drops the mask (the tracker takes the
     password from the environment) and refuses any other masked value."""
+    from resireg_train.replay.rerun import RerunRefused, _recorded_overrides
     from resireg_train.runs.index import read_run
-    from resireg_train.runs.rerun import RerunRefused, _recorded_overrides
 
     uri = "logger.mlflow.tracking_uri=http://ana:***@mlflow.lab:5000"
     run = read_run(_fake_eval_run(tmp_path / "a", ["dataset=synthetic", "logger=mlflow", uri]))

@@ -172,8 +172,8 @@ def main(argv: list[str] | None = None) -> None:
     args, extra = parser.parse_known_args(argv)
     if extra and (args.command not in ("rerun", "reproduce") or any(e[:1] == "-" for e in extra)):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    if args.command in ("rerun", "reproduce"):  # their own modules (runs/rerun.py, reproduce.py)
-        from resireg_train.runs import reproduce, rerun
+    if args.command in ("rerun", "reproduce"):  # their own modules (replay/rerun.py, reproduce.py)
+        from resireg_train.replay import reproduce, rerun
 
         args.overrides += extra
         args.root = getattr(args, "root", None) or [DEFAULT_ROOT]

@@ -13,13 +13,11 @@
   the peaks in ``results.json``);
 - ``resireg-runs``' commands that act on runs: :mod:`~resireg_train.runs.registry`
   (``register``: an export into MLflow's model registry), :mod:`~resireg_train.runs.plots`
-  (``plot``) and :mod:`~resireg_train.runs.gc` (``gc``).
-- :mod:`~resireg_train.runs.rerun` and :mod:`~resireg_train.runs.reproduce`: ``resireg-runs
-  rerun`` (a run again from its record, one verdict) and ``resireg-runs reproduce`` (a paper
-  row's jobs, the figures beside the paper's).
+  (``plot``; a search folder's plots: :mod:`resireg_train.sweeps.plots`) and
+  :mod:`~resireg_train.runs.gc` (``gc``). ``rerun`` and ``reproduce`` run other commands:
+  :mod:`resireg_train.replay`, above the layers they use.
 
-Imported by the CLIs, the evaluation, the training and the sweeps; it imports only
-``resireg``, ``resireg_train.config`` and (inside functions) the trackers' libraries, but for
-the two commands above, which (inside functions) use the search's override check, the dataset
-table and the report, as a CLI does.
+Imported by the CLIs, the evaluation, the training, the sweeps and the replay; it imports only
+``resireg``, ``resireg_train.config``'s lower modules, ``resireg_train.data`` and (inside
+functions) the trackers' libraries.
 """
