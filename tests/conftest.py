@@ -102,6 +102,21 @@ def _no_process_left_behind(request):
     _kill_left_behind(_descendants() - before, request.node.nodeid)
 
 
+@pytest.fixture(autouse=True)
+def _mlflow_tracking_uri_kept():
+    """A training run in the test's own process sets MLflow's process-wide tracking URI
+    (Lightning's ``MLFlowLogger`` calls ``mlflow.set_tracking_uri``), which then wins over
+    ``MLFLOW_TRACKING_URI`` for every later test of the worker: it is put back after each test.
+    (MLflow offers no public getter of the set value: its module attribute is read, as
+    MLflow's own ``_use_tracking_uri`` does.)"""
+    name = "mlflow.tracking._tracking_service.utils"
+    before = getattr(sys.modules.get(name), "_tracking_uri", None)
+    yield
+    utils = sys.modules.get(name)
+    if utils is not None and utils._tracking_uri != before:
+        utils.set_tracking_uri(before)
+
+
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory):
     """An exported tiny ResiregVLM (random init: same architectures, no training)."""

@@ -146,7 +146,6 @@ def main(argv: list[str] | None = None) -> None:
     gc.add_argument("--mode", choices=("min", "max"), help="default: min for losses, max for "
                     "scores")  # fmt: skip
     gc.add_argument("--dry-run", action="store_true", help="list, remove nothing")
-    args = parser.parse_args(argv)
     again = sub.add_parser("rerun", help="a run again from its record, in a new folder, and "
                            "one verdict: identical, within tolerance or differs")  # fmt: skip
     again.add_argument("run", metavar="RUN")
