@@ -1,11 +1,11 @@
-"""resireg_train.config.secrets: URL passwords masked, URLs found in free text, secret files
+"""resireg.secrets: URL passwords masked, URLs found in free text, secret files
 named, against hand-written expectations."""
 
 import logging
 
 import pytest
 
-from resireg_train.config.secrets import SecretFilter, looks_secret, mask_text, mask_url
+from resireg.secrets import SecretFilter, looks_secret, mask_text, mask_url
 
 
 @pytest.mark.parametrize(

@@ -37,8 +37,8 @@ except ImportError:  # pragma: no cover
     fcntl = None
 
 from resireg.errors import ConfigError, ResiregError, WriteError
+from resireg.secrets import MASK, SecretFilter, mask_text
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
-from resireg_train.config.secrets import MASK, SecretFilter, mask_text
 from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
 
 __all__ = [
@@ -450,7 +450,7 @@ def masked_console() -> Iterator[None]:
 
 def mask_log_handlers() -> None:
     """Give every handler of the root logger (Hydra's console and the run's log file) the
-    filter that masks URL passwords (:class:`~resireg_train.config.secrets.SecretFilter`),
+    filter that masks URL passwords (:class:`~resireg.secrets.SecretFilter`),
     once."""
     for handler in logging.getLogger().handlers:
         if not any(isinstance(f, SecretFilter) for f in handler.filters):

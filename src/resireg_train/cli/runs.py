@@ -78,7 +78,7 @@ class _Parser(argparse.ArgumentParser):
 
 def _say(lines: list[str], said: set[str], prefix: str = "") -> None:
     """Each line on stderr once, URL passwords masked."""
-    from resireg_train.config.secrets import mask_text
+    from resireg.secrets import mask_text
 
     for line in lines:
         if line not in said:
@@ -182,8 +182,8 @@ def main(argv: list[str] | None = None) -> None:
             parser.exit(2, f"resireg-runs {args.command}: refused: {err}\n")
         sys.exit(code)
 
+    from resireg.secrets import mask_text
     from resireg.specs.tree import flatten
-    from resireg_train.config.secrets import mask_text
     from resireg_train.runs import index
 
     said: set[str] = set()

@@ -33,6 +33,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError
+from resireg.secrets import mask_text
 from resireg.specs.tree import differences
 from resireg_train.cli.job import (
     added_keys,
@@ -45,7 +46,6 @@ from resireg_train.cli.job import (
 )
 from resireg_train.config.machine import check_available, check_devices
 from resireg_train.config.moves import current_keys, current_targets
-from resireg_train.config.secrets import mask_text
 from resireg_train.config.train import validate
 from resireg_train.runs.record import RunRecord, masked_tree
 

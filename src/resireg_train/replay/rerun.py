@@ -55,8 +55,8 @@ from typing import Any, TextIO
 import yaml
 
 from resireg.errors import ResiregError
+from resireg.secrets import MASK, mask_text
 from resireg.specs.tree import MISSING, differences, flatten
-from resireg_train.config.secrets import MASK, mask_text
 from resireg_train.runs.index import Run, diff_runs, find_run
 from resireg_train.runs.record import RunRecord
 

@@ -179,7 +179,7 @@ def command(args: Any) -> None:
     freed."""
     import sys
 
-    from resireg_train.config.secrets import mask_text
+    from resireg.secrets import mask_text
 
     bad: list[str] = []
     decisions = collect(args.folders, args.keep, args.by, args.mode, args.dry_run, bad)

@@ -34,7 +34,7 @@ each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it i
   (``tracking.wandb_run_id``); a resumed training run continues that W&B run.
 
 Every value a tracker receives has the passwords of its URLs masked
-(:func:`resireg_train.config.secrets.mask_text`).
+(:func:`resireg.secrets.mask_text`).
 """
 
 from __future__ import annotations
@@ -48,8 +48,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import unquote, urlsplit, urlunsplit
 
+from resireg.secrets import mask_text
 from resireg.specs.tree import flatten
-from resireg_train.config.secrets import mask_text
 from resireg_train.runs.record import masked_tree
 from resireg_train.runs.trackers import (
     TRACKER_SPECS,

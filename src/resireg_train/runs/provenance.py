@@ -53,7 +53,7 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from resireg_train.config.secrets import mask_text
+from resireg.secrets import mask_text
 
 __all__ = [
     "CODE_DIFF",
@@ -218,7 +218,7 @@ def code_provenance(
     - ``diff``: ``code.diff`` (written 0600 into ``out``) when some change was inlined:
       tracked files' text changes, and the content of untracked files matching
       ``untracked_content`` (an explicit opt-in; never a binary file or one whose name looks
-      secret, :func:`resireg_train.config.secrets.looks_secret`), at most ``diff_max_bytes`` in
+      secret, :func:`resireg.secrets.looks_secret`), at most ``diff_max_bytes`` in
       all, so ``git apply code.diff`` on the commit gives the code that ran;
     - ``left_out``: each change not inlined, by path, size, SHA-256 and reason (binary, a
       secret-looking name, over ``diff_max_bytes``), and ``diff_bytes``;
@@ -246,7 +246,7 @@ def code_provenance(
 
 
 def _git_record(root: Path, out: Path | None, settings: Mapping[str, Any]) -> dict[str, Any]:
-    from resireg_train.config.secrets import looks_secret
+    from resireg.secrets import looks_secret
 
     cap = int(settings["diff_max_bytes"])
     hash_max = int(settings["hash_max_bytes"])

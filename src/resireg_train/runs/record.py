@@ -18,7 +18,7 @@ says why in the record: ``non_finite`` holds the reason and, per kind (``NaN``,
 ``/per_class_iou/bb/wall`` or ``/final/val~1ovss~1ade20k~1miou_bb`` (``~1`` is a ``/`` inside a
 key). :meth:`RunRecord.read` puts the numbers back, so Python readers see what was recorded.
 Every string is written with the password of any URL in it masked
-(:func:`resireg_train.config.secrets.mask_text`): a command line or a config value holding
+(:func:`resireg.secrets.mask_text`): a command line or a config value holding
 ``http://user:pass@host`` is recorded as ``http://user:***@host``.
 
 While the run runs, a background thread of the job (:class:`Heartbeat`) rewrites the record's
@@ -43,7 +43,7 @@ from typing import Any
 
 from resireg.errors import ResiregError
 from resireg.integrity import atomic_write
-from resireg_train.config.secrets import mask_text
+from resireg.secrets import mask_text
 
 __all__ = [
     "HEARTBEAT",

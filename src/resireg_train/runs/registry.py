@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from resireg.models.vlm.registry import DIGESTS_TAG
+from resireg.secrets import mask_text, mask_url
 from resireg.specs.tree import flatten
-from resireg_train.config.secrets import mask_text, mask_url
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
 from resireg_train.runs.record import RecordError, RunRecord
 

@@ -46,9 +46,9 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from resireg.errors import ConfigError, ResiregError
+from resireg.secrets import mask_text, mask_url
 from resireg.specs.rules import Rule, number, one_of
 from resireg.specs.table import SpecTable
-from resireg_train.config.secrets import mask_text, mask_url
 
 __all__ = [
     "TRACKER_SPECS",

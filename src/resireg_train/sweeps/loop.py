@@ -24,7 +24,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, ResiregError
-from resireg_train.config.secrets import mask_url
+from resireg.secrets import mask_url
 from resireg_train.sweeps.journal import JournalError
 from resireg_train.sweeps.space import check_metric, distributions, format_value
 from resireg_train.sweeps.storage import (

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from resireg.errors import ConfigError
-from resireg_train.config.secrets import mask_text, mask_url
+from resireg.secrets import mask_text, mask_url
 from resireg_train.sweeps.storage import STORAGE_ENV, storage_url
 from resireg_train.sweeps.workers import (
     SearchRecordError,

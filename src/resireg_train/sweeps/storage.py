@@ -3,7 +3,7 @@ database named by ``hparams_search.storage``; and how a database URL's password 
 processes that connect without ever being written down.
 
 The password of a storage URL (``postgresql+psycopg://user:pass@host/db``) is masked
-(``user:***@host``, :func:`resireg_train.config.secrets.mask_url`) in everything a search
+(``user:***@host``, :func:`resireg.secrets.mask_url`) in everything a search
 writes or prints: ``search.json``, each trial's config and ``results.json``, the console. The
 processes that connect get the whole URL from the environment variable :data:`STORAGE_ENV`:
 the search sets it for its own jobs and the workers it starts; ``resireg-search worker`` takes
@@ -17,7 +17,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from resireg_train.config.secrets import MASK, mask_text, mask_url
+from resireg.secrets import MASK, mask_text, mask_url
 
 __all__ = [
     "STORAGE_ENV",

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from resireg.errors import ResiregError
-from resireg_train.config.secrets import mask_text
+from resireg.secrets import mask_text
 from resireg_train.sweeps.storage import STORAGE_ENV, recorded_storage, storage_override
 
 __all__ = [
