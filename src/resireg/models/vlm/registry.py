@@ -33,11 +33,11 @@ import shutil
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from urllib.parse import urlsplit, urlunsplit
 
 from resireg.errors import ResiregError
 from resireg.integrity import IntegrityError, verify_digests
 from resireg.models.vlm.folder import read_config
+from resireg.secrets import mask_url
 from resireg.specs.exports import registry_model
 
 __all__ = [
@@ -84,15 +84,6 @@ def cache_root() -> Path:
     return Path(base) / "resireg" / "registry"
 
 
-def _masked(uri: str) -> str:
-    """``uri`` with a password in it replaced by ``***`` (errors name the registry)."""
-    parts = urlsplit(uri)
-    if parts.password is None:
-        return uri
-    host = parts.netloc.rpartition("@")[2]
-    return urlunsplit(parts._replace(netloc=f"{parts.username}:***@{host}"))
-
-
 def _uris() -> tuple[str, str]:
     """MLflow's ``(tracking URI, registry URI)`` from its own settings."""
     import mlflow
@@ -128,7 +119,7 @@ def resolve(uri: str) -> RegistryExport:
         raise RegistryError(f"{uri!r} is in MLflow's model registry, and MLflow is not "
                             "installed: pip install 'resireg[tracking]'") from None  # fmt: skip
     tracking, registry = _uris()
-    where = f"registry {_masked(registry)} (MLFLOW_TRACKING_URI / MLFLOW_REGISTRY_URI)"
+    where = f"registry {mask_url(registry)} (MLFLOW_TRACKING_URI / MLFLOW_REGISTRY_URI)"
     if registry.startswith("sqlite:///") and not Path(registry[len("sqlite:///") :]).is_file():
         raise RegistryError(f"{uri!r}: no {where}: set MLFLOW_TRACKING_URI to the store the "
                             "export was registered in")  # fmt: skip
@@ -155,7 +146,7 @@ def resolve(uri: str) -> RegistryExport:
         _download(name, str(found.version), folder, recorded, uri, where)
     return RegistryExport(uri=uri, name=name, version=str(found.version), folder=folder,
                           run_id=found.run_id, source=str(found.source),
-                          registry=_masked(registry))  # fmt: skip
+                          registry=mask_url(registry))  # fmt: skip
 
 
 def _download(name: str, version: str, folder: Path, recorded: dict[str, str], uri: str,
