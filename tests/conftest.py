@@ -117,6 +117,45 @@ def _mlflow_tracking_uri_kept():
         utils.set_tracking_uri(before)
 
 
+@pytest.fixture
+def mlflow_server(tmp_path):
+    """``mlflow server`` on 127.0.0.1 (a SQLite store and the artifacts in ``tmp_path/store``),
+    started through ``tests/_run.started`` as every long-lived process of a test; its
+    ``uri``, ``port`` and ``store`` (``server.db``, ``artifacts/``, ``server.log``). Leaving
+    the test kills the server's process group (its uvicorn and job workers): a graceful stop is
+    not what the tests using it are about, and took over 30 s on a loaded machine."""
+    import shutil
+    import socket
+    import time
+    import urllib.request
+    from types import SimpleNamespace
+
+    from _run import started
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    store = tmp_path / "store"
+    store.mkdir()
+    exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
+    with started([exe, "server", "--backend-store-uri", f"sqlite:///{store}/server.db",
+                  "--artifacts-destination", store / "artifacts", "--host", "127.0.0.1",
+                  "--port", port, "--workers", "1"], stdout=store / "server.log") as proc:  # fmt: skip
+        uri = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 180
+        while True:
+            try:
+                with urllib.request.urlopen(f"{uri}/health", timeout=5) as response:
+                    if response.status == 200:
+                        break
+            except OSError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"mlflow server did not start: {(store / 'server.log').read_text()}")
+            time.sleep(0.5)
+        yield SimpleNamespace(uri=uri, port=port, store=store)
+
+
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory):
     """An exported tiny ResiregVLM (random init: same architectures, no training)."""

@@ -19,14 +19,12 @@ import hashlib
 import json
 import os
 import shutil
-import signal
 import socket
 import stat
 import subprocess
 import sys
 import textwrap
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -78,47 +76,6 @@ def _sha(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-@pytest.fixture
-def mlflow_server(tmp_path):
-    """``mlflow server`` on 127.0.0.1 (SQLite store and artifacts in ``tmp_path/store``); its
-    port. Stopped with its process group (SIGTERM, then SIGKILL)."""
-    port = _free_port()
-    store = tmp_path / "store"
-    store.mkdir()
-    exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
-    with open(store / "server.log", "wb") as log:
-        proc = subprocess.Popen(
-            [exe, "server", "--backend-store-uri", f"sqlite:///{store}/server.db",
-             "--artifacts-destination", str(store / "artifacts"), "--host", "127.0.0.1",
-             "--port", str(port), "--workers", "1"],
-            stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True,
-        )  # fmt: skip
-    try:
-        deadline = time.monotonic() + 180
-        while True:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=5) as r:
-                    if r.status == 200:
-                        break
-            except OSError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"mlflow server did not start: {(store / 'server.log').read_text()}")
-            time.sleep(0.5)
-        yield port, store
-    finally:
-        for sig, wait in ((signal.SIGTERM, 30), (signal.SIGKILL, 30)):
-            try:
-                os.killpg(proc.pid, sig)
-                proc.wait(timeout=wait)
-                break
-            except ProcessLookupError:
-                break
-            except subprocess.TimeoutExpired:
-                continue
-
-
 def _room_bag(tmp_path):
     from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
 
@@ -144,7 +101,7 @@ def test_a_dirty_checkout_with_secrets_leaves_none_in_any_record(
 ):
     """Issue 44 cases 1-4: train, eval and map from a dirty checkout holding secrets, under
     umask 077, tracked by an MLflow server given a password in its URI."""
-    port, store = mlflow_server
+    port, store = mlflow_server.port, mlflow_server.store
     repo = _checkout(tmp_path / "repo")
     (repo / ".env").write_text(f"AWS_SECRET_ACCESS_KEY={SECRETS['key']}\n")
     (repo / "notes").mkdir()

@@ -10,11 +10,6 @@ import hashlib
 import json
 import os
 import shutil
-import socket
-import subprocess
-import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -25,44 +20,6 @@ from resireg.specs.exports import export_source_problem, registry_model
 from resireg_train.cli.runs import main as runs_main
 
 pytest.importorskip("mlflow")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture
-def mlflow_server(tmp_path):
-    """``mlflow server`` on 127.0.0.1 (SQLite backend, artifacts in ``tmp_path``), as
-    tests/test_trackers.py starts it; ``(URI, artifact folder)``."""
-    port = _free_port()
-    exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
-    artifacts = tmp_path / "server-artifacts"
-    proc = subprocess.Popen(
-        [exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
-         "--artifacts-destination", str(artifacts), "--host", "127.0.0.1",
-         "--port", str(port), "--workers", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
-    )  # fmt: skip
-    uri = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 180
-    try:
-        while True:
-            try:
-                with urllib.request.urlopen(f"{uri}/health", timeout=5) as response:
-                    if response.status == 200:
-                        break
-            except OSError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"mlflow server did not start: {proc.stderr.read().decode()[-2000:]}")
-            time.sleep(0.5)
-        yield uri, artifacts
-    finally:
-        os.killpg(proc.pid, 15)
-        proc.wait(timeout=30)
 
 
 def _sha256(path: Path) -> str:
@@ -102,7 +59,7 @@ def test_the_model_uri_forms_are_checked_before_anything_loads():
 def test_register_then_evaluate_by_alias(tmp_path, tiny_export, mlflow_server, monkeypatch):
     from mlflow import MlflowClient
 
-    uri, artifacts = mlflow_server
+    uri, artifacts = mlflow_server.uri, mlflow_server.store / "artifacts"
     export = _export_with_lineage(tiny_export, tmp_path, commit="c0ffee" * 6 + "abcd")
     runs_main(["register", str(export), "--name", "tiny-vlm", "--alias", "champion",
                "--tracking-uri", uri])  # fmt: skip

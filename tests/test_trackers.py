@@ -6,50 +6,14 @@ from __future__ import annotations
 
 import csv
 import json
-import shutil
-import socket
-import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 
-from _run import evaluate_export, run, started
+from _run import evaluate_export, run
 from resireg_train.runs.trackers import mlflow_key, run_metrics
 
 pytest.importorskip("mlflow")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture
-def mlflow_server(tmp_path):
-    """``mlflow server`` on 127.0.0.1 with a SQLite backend in ``tmp_path``; its URI."""
-    port = _free_port()
-    exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
-    with started([exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
-                  "--artifacts-destination", tmp_path / "artifacts", "--host", "127.0.0.1",
-                  "--port", port, "--workers", "1"]) as proc:  # fmt: skip
-        uri = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 180
-        while True:
-            try:
-                with urllib.request.urlopen(f"{uri}/health", timeout=5) as response:
-                    if response.status == 200:
-                        break
-            except OSError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"mlflow server did not start: {proc.stdout[-2000:]}")
-            time.sleep(0.5)
-        yield uri
-    # leaving the block killed the server's process group (its uvicorn and job workers): a
-    # graceful stop is not this fixture's subject, and took over 30 s on a loaded machine
 
 
 def _room_bag(tmp_path):
@@ -67,9 +31,10 @@ def _finite(record):
 
 @pytest.mark.slow
 def test_mlflow_server_gets_train_eval_multirun_and_map(tmp_path, tiny_export, mlflow_server):
+    uri = mlflow_server.uri
     from mlflow import MlflowClient
 
-    track = ["logger=mlflow", f"logger.mlflow.tracking_uri={mlflow_server}"]
+    track = ["logger=mlflow", f"logger.mlflow.tracking_uri={uri}"]
     train = tmp_path / "train"
     evals = tmp_path / "evals"
     mapped = tmp_path / "map"
@@ -81,7 +46,7 @@ def test_mlflow_server_gets_train_eval_multirun_and_map(tmp_path, tiny_export, m
     run("resireg-map", f"model_path={tiny_export}", "device=cpu", *_room_bag(tmp_path),
         "configuration=bb", "window=2", f"hydra.run.dir={mapped}", *track, threads=1)  # fmt: skip
 
-    client = MlflowClient(tracking_uri=mlflow_server)
+    client = MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("resireg")
     runs = {r.data.tags.get("resireg.run_dir"): r for r in client.search_runs(
         [experiment.experiment_id], max_results=100)}  # fmt: skip
