@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import shutil
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -305,3 +307,54 @@ def test_reproduce_refuses_a_missing_dataset_and_model_before_any_job(tmp_path):
     with pytest.raises(SystemExit) as exit_:  # a row the paper file does not hold
         main(["reproduce", "table1/radseg", "--paper", str(paper)])
     assert exit_.value.code == 2
+
+
+def _scored_run(folder, final, status="completed"):
+    """A finished evaluation run folder whose record holds the scores ``final``."""
+    _fake_eval_run(folder, ["dataset=synthetic"])
+    record = json.loads((folder / "results.json").read_text())
+    (folder / "results.json").write_text(json.dumps({**record, "final": final, "status": status}))
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("then", "now", "rtol"),
+    [
+        (0.5, 0.5, 1e-6),  # bitwise equal
+        (0.5, 0.5 + 3e-8, 1e-6),  # within rtol: a GPU's non-deterministic kernels
+        (0.5, 0.5 + 3e-8, 1e-9),  # the same change, beyond a tighter rtol
+        (0.5, 0.6, 1e-6),
+        (0.5, float("nan"), 1e-6),  # NaN on one side: never within tolerance
+    ],
+)
+def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, then, now, rtol):
+    """compare() on two records that differ in one score by a chosen amount: the verdict is
+    the one math.isclose (relative to the larger magnitude, no absolute floor) gives, the
+    unchanged score is not listed, and the moved score's printed change is the difference."""
+    from resireg_train.replay.rerun import compare
+    from resireg_train.runs.index import read_run
+
+    a = read_run(_scored_run(tmp_path / "a", {"ovss/synthetic/miou_bb": then, "loss": 1.25}))
+    b = read_run(_scored_run(tmp_path / "b", {"ovss/synthetic/miou_bb": now, "loss": 1.25}))
+    verdict = compare(a, b, rtol)
+    equal = struct.pack("<d", then) == struct.pack("<d", now)
+    close = not math.isnan(now) and math.isclose(then, now, rel_tol=rtol, abs_tol=0.0)
+    expected = "identical" if equal else "within tolerance" if close else "differs"
+    assert verdict.kind == expected
+    assert verdict.compared == 2
+    listed = [row[0] for row in (*verdict.moved, *verdict.nudged)]
+    assert listed == ([] if equal else ["final/ovss/synthetic/miou_bb"])
+    assert verdict.lines()[0].startswith(f"verdict: {expected}")
+    if expected == "differs" and not math.isnan(now):
+        ((key, x, y, change),) = verdict.moved
+        assert (x, y) == (then, now) and change.startswith(f"{now - then:+.6g}")
+
+
+def test_a_failed_rerun_differs_whatever_its_scores(tmp_path):
+    from resireg_train.replay.rerun import compare
+    from resireg_train.runs.index import read_run
+
+    a = read_run(_scored_run(tmp_path / "a", {"loss": 1.0}))
+    b = read_run(_scored_run(tmp_path / "b", {"loss": 1.0}, status="failed"))
+    verdict = compare(a, b, 1e-6)
+    assert verdict.kind == "differs" and "status completed -> failed" in verdict.lines()[0]
