@@ -925,10 +925,23 @@ class SemanticMap:
             raise ValueError(f"k={k!r}: expected an integer >= 1")
         single, queries = self._queries(texts)
         queries = self.project(queries)
-        out = [self._top_k(q, k, box, centre, radius) for q in queries]
+        vmap = self.voxels
+        whole = box is None and centre is None and radius is None
+        if isinstance(vmap, CompactVoxelMap) and len(vmap) and whole and len(queries) > 1:
+            # several texts: one pass over the stored features scores them all (a matrix
+            # product instead of one memory-bound matrix-vector product per text)
+            approx, bound = vmap.approx_scores(queries.to(self.device))
+            out = [self._top_k(q, k, None, None, None, (approx[:, i], bound[i]))
+                   for i, q in enumerate(queries)]  # fmt: skip
+        else:
+            out = [self._top_k(q, k, box, centre, radius) for q in queries]
         return out[0] if single else out
 
-    def _top_k(self, q: Tensor, k: int, box, centre, radius) -> TopK:
+    def _top_k(
+        self, q: Tensor, k: int, box, centre, radius, approx: tuple[Tensor, Tensor] | None = None
+    ) -> TopK:
+        """One text's :meth:`top_k`; ``approx``: its low-precision scores and their bound,
+        when :meth:`top_k` scored several texts in one pass (compact maps)."""
         vmap = self.voxels
         if vmap is None or not len(vmap):
             empty = torch.empty(0, 3, dtype=torch.int64)
@@ -938,9 +951,12 @@ class SemanticMap:
             rows = self._region_rows(box, centre, radius)
             scores = vmap.exact_scores(rows, q)[:, 0] if rows.numel() else q.new_zeros(0).double()
         elif isinstance(vmap, CompactVoxelMap):
-            approx, bound = vmap.approx_scores(q)
-            kth = torch.topk(approx[:, 0], min(k, approx.shape[0])).values[-1].double()
-            rows = (approx[:, 0].double() >= kth - 2 * bound[0].double()).nonzero().squeeze(1)
+            if approx is None:
+                scored, bounds = vmap.approx_scores(q)
+                approx = (scored[:, 0], bounds[0])
+            low, bound = approx
+            kth = torch.topk(low, min(k, low.shape[0])).values[-1].double()
+            rows = (low.double() >= kth - 2 * bound.double()).nonzero().squeeze(1)
             scores = vmap.exact_scores(rows, q)[:, 0]
         else:
             rows = torch.arange(len(vmap), device=self.device)
