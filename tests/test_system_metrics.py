@@ -327,3 +327,27 @@ def test_a_training_run_sends_system_metrics_to_its_mlflow_run(tmp_path):
     trained = client.get_run(record["tracking"]["mlflow_run_id"])
     assert "train/loss" in trained.data.metrics  # Lightning's run ...
     assert client.get_metric_history(trained.info.run_id, "system/cpu_utilization_percentage")
+
+
+@pytest.mark.slow
+def test_a_map_run_records_its_system_metrics(tmp_path, tiny_export):
+    """resireg-map (a 4-frame room bag) samples its system metrics as training and evaluation
+    do: system.csv's rows, and results.json's system block with as many samples and, for each
+    column, the rows' maximum as its peak."""
+    from _run import run
+    from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
+
+    bag = write_bag(tmp_path / "room", room_frames(4))
+    out = tmp_path / "map"
+    run("resireg-map", f"model_path={tiny_export}", "device=cpu", f"source.path={bag}",
+        "source=rosbag", f"source.colour_topic={TOPICS['colour']}",
+        f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
+        "configuration=bb", "window=2", "system_metrics.interval=0.1", f"hydra.run.dir={out}",
+        threads=1)  # fmt: skip
+    record = json.loads((out / "results.json").read_text())
+    rows = read_system_csv(out)
+    block = record["system"]
+    assert record["status"] == "completed" and block["interval_s"] == 0.1
+    assert block["samples"] == len(rows) >= 1
+    for column in ("cpu_percent", "rss_bytes"):
+        assert block["peak"][column] == max(r[column] for r in rows), column
