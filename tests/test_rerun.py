@@ -358,3 +358,32 @@ def test_a_failed_rerun_differs_whatever_its_scores(tmp_path):
     b = read_run(_scored_run(tmp_path / "b", {"loss": 1.0}, status="failed"))
     verdict = compare(a, b, 1e-6)
     assert verdict.kind == "differs" and "status completed -> failed" in verdict.lines()[0]
+
+
+@pytest.mark.slow
+def test_a_rerun_after_the_model_changed_is_refused_then_allowed(project, tmp_path, tiny_export):
+    """The export an evaluation ran with is replaced by another model at the same path: the
+    rerun is refused before any job, naming the input whose digest moved; --allow-drift runs
+    it and records the drift in the new run."""
+    import torch
+
+    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from resireg.models import ResiregVLM
+
+    _, env = project
+    export = tmp_path / "export"
+    shutil.copytree(tiny_export, export)
+    evaluation = tmp_path / "eval"
+    _run(env, "resireg_train.cli.eval", f"model_path={export}", "dataset=synthetic",
+         "dataset.size=4", "num_workers=0", "variants=[bb]", f"hydra.run.dir={evaluation}",
+         threads=1)  # fmt: skip
+    shutil.rmtree(export)
+    torch.manual_seed(7)
+    ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).save_pretrained(export)
+    refused = _rerun(env, evaluation, "--out", tmp_path / "again", check=2)
+    assert "models." in refused.stderr and "Traceback" not in refused.stderr, refused.stderr
+    assert not (tmp_path / "again").exists()
+    allowed = _rerun(env, evaluation, "--out", tmp_path / "again", "--allow-drift")
+    assert allowed.returncode in (0, 1), allowed.stderr[-3000:]  # ran: identical or differs
+    drift = _record(tmp_path / "again")["rerun"]["drift"]
+    assert any(line.startswith("models.") for line in drift), drift
