@@ -36,8 +36,7 @@ import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
+from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -55,6 +54,7 @@ from resireg_train.cli.job import (
 from resireg_train.config.errors import config_path, encoder_arguments
 from resireg_train.config.eval import sweep_config_errors, validate_eval
 from resireg_train.config.machine import check_available, check_devices
+from resireg_train.config.paths import composing
 from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
 from resireg_train.report.sections import ENCODER_SWEEPS
@@ -77,9 +77,7 @@ def _command_line_keys() -> list[str]:
 
 def _defaults() -> DictConfig:
     """``conf/eval.yaml`` as composed without any override."""
-    if GlobalHydra.instance().is_initialized():
-        return compose("eval")
-    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+    with composing():
         return compose("eval")
 
 

@@ -4,11 +4,13 @@ and the playground, so that none of them reaches up into ``cli/``."""
 
 from __future__ import annotations
 
+import contextlib
 import secrets
+from collections.abc import Iterator
 
 from resireg.specs.table import conf_dir
 
-__all__ = ["CONFIG_DIR", "RUN_ID"]
+__all__ = ["CONFIG_DIR", "RUN_ID", "composing"]
 
 #: The project's ``conf/`` folder (``$RESIREG_CONFIG_DIR`` overrides it; the spec tables scan
 #: the same folder, :func:`resireg.specs.table.conf_dir`).
@@ -17,3 +19,17 @@ CONFIG_DIR = conf_dir()
 #: A short random token drawn once per process: two runs started in the same second (a job
 #: array, a shell loop) still get two run folders.
 RUN_ID = secrets.token_hex(3)
+
+
+@contextlib.contextmanager
+def composing() -> Iterator[None]:
+    """Hydra's compose API ready for the block: inside a Hydra app, its own config search path;
+    elsewhere (a search worker's check, ``resireg-runs rerun``), :data:`CONFIG_DIR`."""
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        yield
+    else:
+        with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+            yield

@@ -178,17 +178,14 @@ def _composed(job: str, overrides: Sequence[str]) -> Any:
 
 def compose_job(job: str, overrides: Sequence[str]) -> Any:
     """``conf/<job>.yaml`` composed with ``overrides`` (Hydra's compose API)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
+    from hydra import compose
 
     import resireg_train.config.eval  # noqa: F401  the resireg_encoders resolver
-    from resireg_train.config.paths import CONFIG_DIR
+    from resireg_train.config.paths import composing
     from resireg_train.sweeps.space import register_search_resolvers
 
     register_search_resolvers()
-    if GlobalHydra.instance().is_initialized():
-        return compose(job, overrides=list(overrides))
-    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+    with composing():
         return compose(job, overrides=list(overrides))
 
 

@@ -191,7 +191,7 @@ def read_record(sweep_dir: str | Path) -> SearchRecord:
         raise SearchRecordError(f"{path}: storage={storage!r} is not a URL or null")
     if not isinstance(name, str) or not name:
         raise SearchRecordError(f"{path}: study_name={name!r} is not a name")
-    _check_overrides(path, job, overrides)
+    check_overrides(path, job, overrides)
     return SearchRecord(job, tuple(overrides), storage, name)
 
 
@@ -289,24 +289,13 @@ def check_overrides(
     override may add all the same (``resireg-runs rerun``: a run's ``+model.init_from``);
     ``skip``: the indices of entries not run (given again by the user). The rule every run
     rebuilt from a file follows: a search's workers, ``resireg-runs rerun`` (a run's
-    ``.hydra/overrides.yaml``)."""
-    _check_overrides(path, job, overrides, addable, skip)
-
-
-def _check_overrides(
-    path: Path,
-    job: str,
-    overrides: list[str],
-    addable: frozenset[str] = frozenset(),
-    skip: frozenset[int] = frozenset(),
-) -> None:
-    """Refuse any recorded override a worker must not pass on (module docstring). The job's
-    config is composed with Hydra's compose API from the recorded group choices."""
-    from hydra import compose, initialize_config_dir
+    ``.hydra/overrides.yaml``). The job's config is composed with
+    Hydra's compose API from the recorded group choices."""
+    from hydra import compose
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from resireg_train.config.paths import CONFIG_DIR
+    from resireg_train.config.paths import composing
 
     parser = OverridesParser.create()
     parsed = []
@@ -350,11 +339,8 @@ def _check_overrides(
                     f"{path}: overrides[{index}]={override.input_line!r} is refused: {reason}"
                 )
 
-    if GlobalHydra.instance().is_initialized():  # inside a Hydra app: its config search path
+    with composing():  # inside a Hydra app: its config search path; else conf/
         compose_and_check()
-    else:
-        with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-            compose_and_check()
 
 
 # --------------------------------------------------------------------------- workers
