@@ -14,7 +14,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 import urllib.request
 import warnings
@@ -23,6 +22,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from _postgres import postgres_server
 from _run import _command, report, run, run_side_by_side, started
 
 optuna = pytest.importorskip("optuna")
@@ -218,45 +218,12 @@ def test_two_workers_share_one_journal_study(tmp_path, tiny_export):
     assert (sweep / "optuna_importance.png").stat().st_size > 10_000
 
 
-def _postgres_bin():
-    found = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
-    return found[-1].parent if found else None
-
-
 @pytest.fixture
 def postgres():
-    """A PostgreSQL server of its own (Debian's postgresql package), as the package's
-    postgres user (initdb refuses root), on a Unix socket in a temporary folder; yields the
-    environment (PGHOST / PGPORT) that reaches it."""
-    bindir = _postgres_bin()
-    if bindir is None:
-        pytest.skip("PostgreSQL's initdb is not installed (Debian: apt-get install postgresql)")
-    as_postgres: list[str] = []
-    if os.geteuid() == 0:
-        if shutil.which("runuser") is None:
-            pytest.skip("running as root without runuser: cannot start PostgreSQL as postgres")
-        as_postgres = ["runuser", "-u", "postgres", "--"]
-    folder = Path(tempfile.mkdtemp(prefix="resireg-pg-"))
-    if as_postgres:
-        shutil.chown(folder, "postgres", "postgres")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    data = folder / "data"
-    pg = [*as_postgres]
-    subprocess.run([*pg, bindir / "initdb", "-D", data, "-U", "postgres", "--auth=trust"],
-                   check=True, capture_output=True)  # fmt: skip
-    subprocess.run([*pg, bindir / "pg_ctl", "-D", data, "-w", "-l", folder / "log", "-o",
-                    f"-k {folder} -p {port} -c listen_addresses=''", "start"],
-                   check=True, capture_output=True)  # fmt: skip
-    try:
-        subprocess.run([*pg, bindir / "createdb", "-h", folder, "-p", str(port), "optuna"],
-                       check=True, capture_output=True)  # fmt: skip
-        yield {"PGHOST": str(folder), "PGPORT": str(port), "PGUSER": "postgres"}
-    finally:
-        subprocess.run([*pg, bindir / "pg_ctl", "-D", data, "-m", "immediate", "stop"],
-                       capture_output=True)  # fmt: skip
-        shutil.rmtree(folder, ignore_errors=True)
+    """A PostgreSQL server of its own (tests/_postgres.py); yields the environment (PGHOST /
+    PGPORT / PGUSER) that reaches it."""
+    with postgres_server() as env:
+        yield env
 
 
 @pytest.mark.slow

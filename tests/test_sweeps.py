@@ -11,15 +11,14 @@ import logging
 import os
 import secrets
 import shutil
-import socket
 import stat
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import pytest
 
+from _postgres import postgres_server
 from _run import _command, _env, report
 
 optuna = pytest.importorskip("optuna")
@@ -295,50 +294,13 @@ def test_a_search_and_a_worker_moved_with_its_folder_write_only_private_files(tm
 
 
 # ----------------------------------------------------------------------------- the password
-def _postgres_bin():
-    found = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
-    return found[-1].parent if found else None
-
-
 @pytest.fixture
 def postgres_with_password():
-    """A PostgreSQL server of its own that asks for a password (scram-sha-256; Debian's
-    postgresql package, as its postgres user, on a Unix socket in a temporary folder);
-    yields the environment (PGHOST / PGPORT / PGUSER) that reaches it, without the password
+    """A PostgreSQL server of its own that asks for a password (tests/_postgres.py); yields
+    the environment (PGHOST / PGPORT / PGUSER) that reaches it, without the password
     (:data:`PASSWORD`)."""
-    bindir = _postgres_bin()
-    if bindir is None:
-        pytest.skip("PostgreSQL's initdb is not installed (Debian: apt-get install postgresql)")
-    as_postgres: list[str] = []
-    if os.geteuid() == 0:
-        if shutil.which("runuser") is None:
-            pytest.skip("running as root without runuser: cannot start PostgreSQL as postgres")
-        as_postgres = ["runuser", "-u", "postgres", "--"]
-    folder = Path(tempfile.mkdtemp(prefix="resireg-pg-"))
-    (folder / "pw").write_text(PASSWORD + "\n")
-    if as_postgres:
-        for path in (folder, folder / "pw"):
-            shutil.chown(path, "postgres", "postgres")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    data, pg = folder / "data", [*as_postgres]
-    subprocess.run([*pg, bindir / "initdb", "-D", data, "-U", "postgres", "--auth=scram-sha-256",
-                    f"--pwfile={folder / 'pw'}"], check=True, capture_output=True)  # fmt: skip
-    (folder / "pw").unlink()
-    subprocess.run([*pg, bindir / "pg_ctl", "-D", data, "-w", "-l", folder / "log", "-o",
-                    f"-k {folder} -p {port} -c listen_addresses=''", "start"],
-                   check=True, capture_output=True)  # fmt: skip
-    env = {"PGHOST": str(folder), "PGPORT": str(port), "PGUSER": "postgres"}
-    try:
-        subprocess.run([*pg, bindir / "createdb", "-h", folder, "-p", str(port), "optuna"],
-                       check=True, capture_output=True,
-                       env={**os.environ, **env, "PGPASSWORD": PASSWORD})  # fmt: skip
+    with postgres_server(PASSWORD) as env:
         yield env
-    finally:
-        subprocess.run([*pg, bindir / "pg_ctl", "-D", data, "-m", "immediate", "stop"],
-                       capture_output=True)  # fmt: skip
-        shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.mark.slow
