@@ -133,7 +133,7 @@ def test_resireg_eval_on_a_damaged_export_fails_naming_the_file(export_copy, tmp
     _overwrite_4k(export_copy / "model.safetensors")
     out = tmp_path / "eval"
     proc = run("resireg-eval", f"model_path={export_copy}", "dataset=synthetic", "num_workers=0",
-               f"paths.output_dir={out}", check=False)  # fmt: skip
+               f"hydra.run.dir={out}", check=False)  # fmt: skip
     assert proc.returncode != 0
     assert f"{export_copy / 'model.safetensors'}: SHA-256" in proc.stderr + proc.stdout
     results = out / "results.json"
