@@ -103,6 +103,15 @@ def _no_process_left_behind(request):
 
 
 @pytest.fixture(autouse=True)
+def _run_in_the_tests_own_folder(tmp_path, monkeypatch):
+    """Each test runs in its own temporary folder, so that what a command writes relative to
+    its working folder (Hydra's default ``outputs/``, MLflow's default artifact root
+    ``./mlruns`` next to a database store) never lands in the checkout. A test that needs the
+    checkout names it (``cwd=ROOT``)."""
+    monkeypatch.chdir(tmp_path)
+
+
+@pytest.fixture(autouse=True)
 def _mlflow_tracking_uri_kept():
     """A training run in the test's own process sets MLflow's process-wide tracking URI
     (Lightning's ``MLFlowLogger`` calls ``mlflow.set_tracking_uri``), which then wins over
