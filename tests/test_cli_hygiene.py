@@ -87,6 +87,10 @@ def test_a_running_training_job_keeps_its_folder_until_killed(tmp_path, tiny_exp
     with started(_command("resireg-train", [
         "experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",
         "+callbacks.hold._target_=_hold.WaitFor", f"+callbacks.hold.path={tmp_path / 'go'}",
+        # the job's own writers that keep running while it is held (the system-metrics rows
+        # every 10 s, the heartbeat every 30 s) are off: the files compared are the refused
+        # commands' doing only
+        "system_metrics.enabled=false", "provenance.heartbeat_interval=3600",
         f"hydra.run.dir={out}"]), env=env) as job:  # fmt: skip
         # until training has started (the folder written, locked)
         job.expect("holding", timeout=300, what="training")
