@@ -52,7 +52,7 @@ OURS = "this run"
 #: the nine printed figures is rounded to 0.05 at most.
 AVERAGE_TOLERANCE = 0.1
 _PEER_KEYS = {"method", "backbone", "variant", "group", "tier", "source", "miou", "printed_avg",
-              "confirmed_by", "differs"}  # fmt: skip
+              "confirmed_by", "differs", "note"}  # fmt: skip
 _SOURCE_KEYS = {"repository", "path", "commit", "branch", "document", "table", "row"}
 _COMMIT = re.compile(r"[0-9a-f]{7,40}")
 
@@ -133,6 +133,8 @@ def _peer_errors(peer: Any, marks: Mapping[str, Any]) -> list[str]:
             if abs(mean - printed) > AVERAGE_TOLERANCE:
                 errors.append(f"printed_avg={printed}: the row's figures average {mean:.3f} "
                               "(a figure misread?)")  # fmt: skip
+    if peer.get("note") is not None and not _text(peer["note"]):
+        errors.append(f"note={peer['note']!r}: expected text")
     for key in ("confirmed_by", "differs"):
         notes = peer.get(key)
         if notes is not None and not (isinstance(notes, list) and all(map(_text, notes))):
@@ -225,7 +227,8 @@ def peer_rows() -> list[dict[str, Any]]:
         row = {"model": f"{peer['method']} ({peer['backbone']})", "variant": peer.get("variant"),
                "group": peer["group"], "tier": peer["tier"],
                "source": f"{PUBLISHED}: {_where(peer['source'])}",
-               "notes": [*(f"also printed by {s}" for s in peer.get("confirmed_by") or []),
+               "notes": [*([f"note: {peer['note']}"] if peer.get("note") else []),
+                         *(f"also printed by {s}" for s in peer.get("confirmed_by") or []),
                          *(f"differs: {s}" for s in peer.get("differs") or [])]}  # fmt: skip
         for name, value in peer["miou"].items():
             row[marks[name]["label"]] = float(value)
