@@ -146,3 +146,18 @@ def test_a_wrong_peer_row_is_refused_on_one_line_naming_it_and_nothing_is_lost(
         rf"ViT-B/16 \+ DINO ViT-B/16 \+ SAM ViT-B\): .*{message}.*\n", err
     ), err  # fmt: skip
     assert _digests(sweep) == before  # the previous report's files as they were
+
+
+def test_a_data_file_cut_short_is_one_line_naming_it(sweep, tmp_path, monkeypatch, capsys):
+    text = (CONFIG_DIR / "paper" / "ovss8.yaml").read_text()
+    cut = tmp_path / "ovss8_cut.yaml"
+    cut.write_text(text[: text.index("miou: {voc21: 67.1") + 25])  # inside Trident's figures
+    monkeypatch.setattr(ovss8, "OVSS8_FILE", cut)
+    with pytest.raises(SystemExit) as exit_:
+        report_cli.main([str(sweep)])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.count("\n") == 1, err
+    assert re.fullmatch(
+        rf"resireg-report: error: {re.escape(str(cut))} line \d+: not YAML .*\n", err
+    )
+    assert not (sweep / "ovss8.csv").exists()

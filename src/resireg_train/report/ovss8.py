@@ -60,7 +60,12 @@ _COMMIT = re.compile(r"[0-9a-f]{7,40}")
 @functools.cache
 def _read(path: str) -> dict[str, Any]:
     with open(path) as f:
-        data = yaml.safe_load(f)
+        try:
+            data = yaml.safe_load(f)
+        except yaml.YAMLError as err:  # its message spans lines: the first names the place
+            mark = getattr(err, "problem_mark", None)
+            where = f" line {mark.line + 1}" if mark else ""
+            raise ConfigError(f"{path}{where}: not YAML ({getattr(err, 'problem', err)})") from None
     if not isinstance(data, dict) or not isinstance(data.get("benchmarks"), dict):
         raise ConfigError(f"{path}: expected a mapping with benchmarks: and peers:")
     return data
