@@ -5,7 +5,6 @@ ovss8 table, beside the published peers of conf/paper/ovss8.yaml."""
 
 import csv
 import json
-import math
 import re
 
 import pandas as pd
@@ -24,12 +23,16 @@ def test_the_sweep_lists_the_data_files_benchmarks():
     axis = sweep["hydra"]["sweeper"]["params"]["dataset"].split(",")
     assert axis == [b["config"] for b in data["benchmarks"].values()] and len(axis) == 8
     assert sweep["report"] == ["ovss8"] and sweep["variants"] == ["bb", "calib", "lite", "full"]
-    for peer in data["peers"]:  # a figure only with its source; none where not transcribed
-        assert peer["source"]["document"]
-        if peer["status"] == "transcribed":
-            assert set(peer["miou"]) == set(data["benchmarks"]) and peer["source"]["table"]
-        else:
-            assert peer["status"] == "not transcribed" and "miou" not in peer
+    for peer in data["peers"]:  # a figure only with its source, tier and group
+        source = peer["source"]
+        assert peer["tier"] in ("primary", "peer") and peer["group"] in (
+            "training-free", "text projection")  # fmt: skip
+        assert source["row"] and (
+            (source["repository"] and source["path"] and len(source["commit"]) == 40)
+            if "repository" in source else (source["document"] and source["table"])
+        )  # fmt: skip
+        assert set(peer["miou"]) <= set(data["benchmarks"]) and peer["miou"]
+    assert all(row["reason"] for row in data["unconfirmed"])
 
 
 @pytest.mark.slow
@@ -80,7 +83,8 @@ def test_ovss8_sweep_scores_eight_benchmarks_and_reports_them_beside_the_peers(
         "cityscapes": "City",
         "ade20k": "ADE",
     }
-    assert list(table.columns) == ["model", "variant", *labels.values(), "Avg", "source"]
+    assert list(table.columns) == ["model", "variant", *labels.values(), "Avg", "benchmarks",
+                                   "group", "tier", "source"]  # fmt: skip
     ours = table[table["model"] == model].set_index("variant")
     assert list(ours.index) == ["BB", "Calib", "Lite", "Full"]
     for variant, short in (("BB", "bb"), ("Calib", "calib"), ("Lite", "lite"), ("Full", "full")):
@@ -88,13 +92,12 @@ def test_ovss8_sweep_scores_eight_benchmarks_and_reports_them_beside_the_peers(
         assert [ours.loc[variant, c] for c in labels.values()] == pytest.approx(cells)
         assert ours.loc[variant, "Avg"] == pytest.approx(sum(cells) / 8)
         assert ours.loc[variant, "source"] == "this run, protocol ovss8"
-    naclip = table[table["model"] == "NACLIP (CLIP ViT-B/16)"].iloc[0]
+    naclip = table[table["variant"] == "official repository, default setup (PAMR on)"].iloc[0]
+    assert naclip["model"] == "NACLIP (CLIP ViT-B/16)" and naclip["tier"] == "primary"
     assert naclip["VOC21"] == 64.07 and naclip["Avg"] == pytest.approx(42.455)
     assert naclip["source"].startswith("published, not rerun: sinahmr/NACLIP README.md")
-    proxy = table[table["model"].str.startswith("ProxyCLIP")].iloc[0]
-    assert proxy["source"].startswith("not transcribed") and math.isnan(proxy["VOC21"])
     text = (sweep / "ovss8.md").read_text()
     assert re.search(rf"\| {model}\s+\| Full\s+\|", text)
-    assert "published, not rerun [2]" in text and "## Sources" in text
-    assert "2. sinahmr/NACLIP README.md at 0cac3a6" in text
+    assert "published, not rerun [4]" in text and "## Sources" in text
+    assert "4. (primary) sinahmr/NACLIP README.md at 0cac3a6" in text
     assert "Protocol (jobs" in text and "ovss8: short_side=48" in text
