@@ -57,7 +57,8 @@ class CompactSettings:
         dim: ``None`` (keep the encoder's dimension) or the ``k`` dimensions features are
             projected to by a basis (an uncentred PCA, :func:`fit_basis`).
         basis: ``None`` (fitted on the first ``basis_rows`` features the map is given) or a
-            file: a map folder (its basis) or a ``.safetensors`` file holding ``basis``
+            file: a saved map (a map folder or a run folder, :func:`resireg.mapping.map_folder`;
+            its basis) or a ``.safetensors`` file holding ``basis``
             ``[D, k]``; maps that merge must share one.
         basis_rows: features the basis is fitted on (the first frames' points).
         hot_voxels: voxels whose recent points wait in ``float32`` blocks (module docstring).

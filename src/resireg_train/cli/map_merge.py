@@ -44,6 +44,14 @@ log = logging.getLogger(__name__)
 PROG = "resireg-map-merge"
 
 
+def _names(cfg: DictConfig) -> Any:
+    """The ``maps`` of the config (the command's positional arguments); a
+    :class:`ConfigError` when none were given."""
+    if OmegaConf.is_missing(cfg, "maps"):
+        raise ConfigError(f"maps: none given (usage: {PROG} A B [...] --out C)")
+    return OmegaConf.to_container(cfg.maps, resolve=True)
+
+
 def _folders(names: Any) -> list[Path]:
     """The saved maps of the ``maps`` arguments, resolved (:func:`resireg.mapping.map_folder`:
     a map folder or a run folder); a :class:`ConfigError` naming one that is neither."""
@@ -97,7 +105,7 @@ class MergeFolderCheck(Callback):
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         out = Path(str(config.hydra.run.dir))
         try:
-            check_out(out, OmegaConf.to_container(config.maps, resolve=True))
+            check_out(out, _names(config))
         except ConfigError as err:
             # Hydra turns a callback's exception into a warning and runs the job anyway: exit.
             sys.stderr.write(f"{PROG}: refused: {error_text(err)}\n")
@@ -109,7 +117,7 @@ def _merge(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     from resireg.mapping.semantic_map import remove_partial_saves
 
     out = record.folder
-    names = OmegaConf.to_container(cfg.maps, resolve=True)
+    names = _names(cfg)
     folders = _folders(names)
     for i, folder in enumerate(folders):  # merged with itself, every point would count twice
         if folder in folders[:i]:
@@ -193,7 +201,7 @@ def run_merge(cfg: DictConfig) -> dict[str, Any]:
     """Merge from a composed ``map_merge.yaml`` config; returns the ``results.json`` content.
     ``--out`` is checked first (:func:`check_out`; from the command line, before Hydra wrote
     into it)."""
-    check_out(Path(cfg.paths.output_dir), OmegaConf.to_container(cfg.maps, resolve=True))
+    check_out(Path(cfg.paths.output_dir), _names(cfg))
     return run_task(cfg, _merge, fresh=True)
 
 
