@@ -250,7 +250,7 @@ def other_runs(tmp_path):
 @pytest.mark.slow
 def test_merge_out_onto_another_run_is_refused_before_anything_is_written(tmp_path):
     """resireg-map-merge A B --out <an evaluation's run folder>, --out <a resireg-map run
-    folder> and --out <a map folder>: each refused in one line naming the folder, every
+    folder>, --out <a map folder> and --out <a file>: each refused in one line naming it, every
     file of those folders (their .hydra files, results.json, log, map) and of the inputs
     keeps its bytes and no file is added (not even the lock file). A merge of A B that did
     not complete (killed: its record 'running') is taken again in its own folder."""
@@ -261,18 +261,22 @@ def test_merge_out_onto_another_run_is_refused_before_anything_is_written(tmp_pa
     runs = other_runs(tmp_path)
     own = tmp_path / "own"
     RunRecord(own).update(name="map_merge", status="running", params={"maps": [str(a), str(b)]})
+    afile = tmp_path / "afile"
+    afile.write_text("not a folder\n")
     before = digests(tmp_path)
     procs = run_side_by_side(
         ("resireg-map-merge", a, b, "--out", runs["eval"]),
         ("resireg-map-merge", a, b, "--out", runs["map"]),
         ("resireg-map-merge", a, b, "--out", b),
+        ("resireg-map-merge", a, b, "--out", afile),
         ("resireg-map-merge", a, b, "--out", own),
-        check=(False, False, False, True),
+        check=(False, False, False, False, True),
     )  # fmt: skip
     one_line_refusal(procs[0], f"--out {runs['eval']} holds the record of another run",
                      "'eval', status 'completed'")  # fmt: skip
     one_line_refusal(procs[1], f"--out {runs['map']} holds a map")
     one_line_refusal(procs[2], f"--out {b} holds a map")
+    one_line_refusal(procs[3], f"--out {afile}: not a folder")
     after = digests(tmp_path)
     assert {k: v for k, v in after.items() if not k.startswith(str(own))} == {
         k: v for k, v in before.items() if not k.startswith(str(own))}  # fmt: skip

@@ -70,6 +70,8 @@ def check_out(out: Path, names: Any) -> None:
     :class:`ConfigError` when it holds a map, or the record (``results.json``) of any run but
     this merge's own that did not complete (a merge of the same maps ``names``, or one that
     failed before it recorded them)."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: not a folder: give another --out")
     target = out / "map"
     for held in (out, target):
         if (held / "map.json").is_file():
