@@ -130,9 +130,9 @@ def test_a_hostile_map_is_refused_in_one_line_before_it_allocates(tmp_path):
     proc = subprocess.run([sys.executable, "-c", PEAK, str(hostile)], capture_output=True,
                           text=True, timeout=300, check=True)  # fmt: skip
     got = json.loads(proc.stdout.splitlines()[-1])
+    assert got["kib"] <= 256 * 1024, got
     assert got["error"].startswith("IntegrityError: ") and "\n" not in got["error"]
     assert str(hostile) in got["error"] and "hot_sums of shape [512, 0]" in got["error"]
-    assert got["kib"] <= 256 * 1024, got
     assert digests(hostile) == kept
     good = saved(tmp_path / "good", storage="compact", compact=COMPACT)
     for field, (edit, says) in BAD_FIELDS.items():
