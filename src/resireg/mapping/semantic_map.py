@@ -1269,13 +1269,18 @@ class SemanticMap:
         **overrides: Any,
     ) -> SemanticMap:
         """A map saved by :meth:`save` (or by an earlier version: :data:`FORMATS`), with
-        ``encoder`` for queries and further windows.
+        ``encoder`` for queries and further windows; ``folder``: the map folder or a run
+        folder holding it in ``map/`` (:func:`map_folder`).
 
         Before any tensor is read, ``map.json``'s own digest and its tensor file's SHA-256 are
         verified: a truncated, edited or damaged file is an
         :class:`~resireg.integrity.IntegrityError` naming it, and so is a record that names a
-        file outside ``folder``. A map saved before maps recorded their digests loads with a
-        :class:`MapFormatWarning`. The tensors are memory-mapped (copy-on-write: the file
+        file outside ``folder``. Then every field of the record is checked (its type and
+        range, the settings by their rules) and every size it gives against the tensors'
+        shapes, before anything is allocated by it: a record edited with its digests
+        recomputed is refused in one line naming the file and the field, and a load allocates
+        no more than its file holds. A map saved before maps recorded their digests loads with
+        a :class:`MapFormatWarning`. The tensors are memory-mapped (copy-on-write: the file
         never changes). An ``encoder`` whose text features have another dimension than the
         map's is refused here, not at the first query (the weights themselves are the
         caller's to check: ``resireg-map`` records a digest of them in ``meta``).
