@@ -14,7 +14,7 @@ Storage (``storage``, :data:`~resireg.specs.mapping.STORAGES`): ``exact`` keeps 
 sums (:class:`VoxelMap`, ``sum_dtype`` float64 or float32) and a mean colour map; ``compact``
 keeps low-precision unit features, optionally projected to ``compact.dim`` channels by a basis
 fitted once on the first ``compact.basis_rows`` features (an uncentred PCA, :mod:`resireg.method.pca`)
-or given (``compact.basis``: a map folder or a ``.safetensors`` file), recorded by its SHA-256
+or given (``compact.basis``: a map or run folder, or a ``.safetensors`` file), recorded by its SHA-256
 (:class:`~resireg.mapping.compact.CompactVoxelMap`: ~290 bytes per voxel at 128 channels,
 against ~4,170 for float64 sums of 512). Until a compact map's basis is fitted its frames wait
 (the map reads as empty); a save fits it on what it has.
