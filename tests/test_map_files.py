@@ -116,6 +116,7 @@ BAD_FIELDS = {  # field edited -> what the one line says
 }  # fmt: skip
 
 
+@pytest.mark.slow
 def test_a_hostile_map_is_refused_in_one_line_before_it_allocates(tmp_path):
     """SemanticMap.load of the issue's 13 KB map: refused naming its tensor file and the hot
     blocks, its peak memory (ru_maxrss, in a process that imported resireg.mapping first)
