@@ -42,6 +42,7 @@ from resireg.mapping.semantic_map import (
     MapFullError,
     SemanticMap,
     TopK,
+    map_folder,
     pca_colours,
     write_ply,
 )
@@ -74,6 +75,7 @@ __all__ = [
     "MapFullError",
     "MapFormatWarning",
     "TopK",
+    "map_folder",
     "CompactSettings",
     "CompactVoxelMap",
     "pca_colours",

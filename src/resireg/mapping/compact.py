@@ -57,7 +57,8 @@ class CompactSettings:
         dim: ``None`` (keep the encoder's dimension) or the ``k`` dimensions features are
             projected to by a basis (an uncentred PCA, :func:`fit_basis`).
         basis: ``None`` (fitted on the first ``basis_rows`` features the map is given) or a
-            file: a map folder (its basis) or a ``.safetensors`` file holding ``basis``
+            file: a saved map (a map folder or a run folder, :func:`resireg.mapping.map_folder`;
+            its basis) or a ``.safetensors`` file holding ``basis``
             ``[D, k]``; maps that merge must share one.
         basis_rows: features the basis is fitted on (the first frames' points).
         hot_voxels: voxels whose recent points wait in ``float32`` blocks (module docstring).
@@ -564,24 +565,36 @@ class CompactVoxelMap(SparseVoxels):
 
     def load_tensors(self, tensors: Mapping[str, Tensor]) -> None:
         """Replace the content with :meth:`tensors` read back (used in place: memory-mapped
-        tensors stay mapped)."""
-        hot = {k: tensors[k] for k in tensors if k.startswith("hot_")}
+        tensors stay mapped). The hot blocks are checked against the map (their shapes, rows
+        distinct, sorted and held) before their slots are allocated: a file's row count
+        never sizes an allocation its own bytes do not hold."""
         self._load_rows(tensors["keys"], {k: tensors[k] for k in self._acc}, tensors.get("slots"))
-        rows = hot.get("hot_rows", torch.empty(0, dtype=torch.int64)).to(self.device, torch.int64)
-        n = rows.numel()
+        names = ["hot_rows", "hot_sums", "hot_counts"]
+        if self.colour:
+            names += ["hot_colour", "hot_colour_counts"]
+        if "hot_rows" not in tensors:  # (a map saved without blocks)
+            self._clear_hot(0)
+            return
+        hot = {k: tensors[k] for k in names}
+        n = int(hot["hot_rows"].shape[0]) if hot["hot_rows"].ndim == 1 else -1
+        shapes = {"hot_rows": (n,), "hot_sums": (n, self.dim), "hot_counts": (n,),
+                  "hot_colour": (n, 3), "hot_colour_counts": (n,)}  # fmt: skip
+        for name, t in hot.items():
+            if tuple(t.shape) != shapes[name]:
+                raise ValueError(f"{name} of shape {list(t.shape)}: expected "
+                                 f"{list(shapes[name])} (hot_rows [H], dim={self.dim})")  # fmt: skip
+        rows = hot["hot_rows"].to(self.device, torch.int64)
+        if n and not (n <= len(self) and int(rows.min()) >= 0 and int(rows.max()) < len(self)
+                      and bool((rows[1:] > rows[:-1]).all())):  # fmt: skip
+            raise ValueError(f"hot_rows: {n} rows not distinct, sorted and held by the map's "
+                             f"{len(self)} voxels")  # fmt: skip
         self._clear_hot(n)
         if not n:
             return
-        sums = hot["hot_sums"].to(self.device, torch.float32)
-        counts = hot["hot_counts"].to(self.device, torch.int64)
-        ok = (sums.shape == (n, self.dim) and counts.shape == (n,) and int(rows.min()) >= 0
-              and int(rows.max()) < len(self) and bool((rows[1:] > rows[:-1]).all()))  # fmt: skip
-        if not ok:
-            raise ValueError("hot blocks: rows not distinct, sorted and held by the map")
         self._hot_row[:] = rows
         self._hot_n[:] = self._acc["counts"].gather(rows).to(torch.int64)
-        self._hot_sums[:] = sums
-        self._hot_counts[:] = counts
+        self._hot_sums[:] = hot["hot_sums"].to(self.device, torch.float32)
+        self._hot_counts[:] = hot["hot_counts"].to(self.device, torch.int64)
         if self.colour:
             self._hot_colour[:] = hot["hot_colour"].to(self.device, torch.float32)
             self._hot_colour_counts[:] = hot["hot_colour_counts"].to(self.device, torch.int64)

@@ -14,7 +14,7 @@ Storage (``storage``, :data:`~resireg.specs.mapping.STORAGES`): ``exact`` keeps 
 sums (:class:`VoxelMap`, ``sum_dtype`` float64 or float32) and a mean colour map; ``compact``
 keeps low-precision unit features, optionally projected to ``compact.dim`` channels by a basis
 fitted once on the first ``compact.basis_rows`` features (an uncentred PCA, :mod:`resireg.method.pca`)
-or given (``compact.basis``: a map folder or a ``.safetensors`` file), recorded by its SHA-256
+or given (``compact.basis``: a map or run folder, or a ``.safetensors`` file), recorded by its SHA-256
 (:class:`~resireg.mapping.compact.CompactVoxelMap`: ~290 bytes per voxel at 128 channels,
 against ~4,170 for float64 sums of 512). Until a compact map's basis is fitted its frames wait
 (the map reads as empty); a save fits it on what it has.
@@ -51,6 +51,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import uuid
 import warnings
 from collections import OrderedDict
@@ -63,7 +64,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.errors import MapError
+from resireg.errors import MapError, parameters
 from resireg.integrity import IntegrityError, atomic_write, read_json, verify_digests
 from resireg.mapping.compact import STORED_DTYPES, CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import patch_points
@@ -95,7 +96,9 @@ __all__ = [
     "SemanticMap",
     "TopK",
     "load_basis",
+    "map_folder",
     "pca_colours",
+    "remove_partial_saves",
     "write_ply",
 ]
 
@@ -153,11 +156,30 @@ def _inside(folder: Path, name: Any, field: str, record: Path) -> Path:
     return path
 
 
+def map_folder(path: str | Path) -> Path:
+    """The saved map a "map" argument names: ``path`` itself when it holds ``map.json`` (a map
+    folder), else its ``map`` folder (a ``resireg-map`` or ``resireg-map-merge`` run folder).
+    The one rule for every argument that names a map (:meth:`SemanticMap.load`,
+    ``compact.basis``, ``resireg-map-merge``'s maps); a :class:`FileNotFoundError` naming
+    ``path`` when it is neither."""
+    path = Path(path).expanduser()
+    for folder in (path, path / "map"):
+        if (folder / MAP_JSON).is_file():
+            return folder
+    raise FileNotFoundError(f"{str(path)!r} is neither a saved map (no {MAP_JSON}) nor a run "
+                            f"folder holding one (no map/{MAP_JSON})")  # fmt: skip
+
+
 def load_basis(path: str | Path) -> Tensor:
-    """A projection basis ``[D, k]`` float32: the ``basis`` of a saved map folder (verified as
-    :meth:`SemanticMap.load` verifies it) or the tensor ``basis`` of a ``.safetensors`` file."""
+    """A projection basis ``[D, k]`` float32: the ``basis`` of a saved map (a map folder or a
+    run folder, :func:`map_folder`; verified as :meth:`SemanticMap.load` verifies it) or the
+    tensor ``basis`` of a ``.safetensors`` file."""
     path = Path(path).expanduser()
     if path.is_dir():
+        try:
+            path = map_folder(path)
+        except FileNotFoundError as err:
+            raise ValueError(f"compact.basis={err}") from None
         record = read_json(path / MAP_JSON, "saved map record")
         if not isinstance(record, dict) or not record.get("basis_sha256"):
             raise ValueError(f"compact.basis={str(path)!r}: the map records no basis")
@@ -175,6 +197,77 @@ def load_basis(path: str | Path) -> Tensor:
     if basis is None or basis.ndim != 2 or not basis.is_floating_point():
         raise ValueError(f"compact.basis={str(path)!r}: expected a [D, k] float tensor 'basis'")
     return basis.to(torch.float32).clone()
+
+
+def _integer(value: Any, least: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+
+def _sha256_text(value: Any) -> bool:
+    """``None`` or a SHA-256 as ``hexdigest`` writes it."""
+    hexdigits = "0123456789abcdef"
+    return value is None or (isinstance(value, str) and len(value) == 64
+                             and all(c in hexdigits for c in value))  # fmt: skip
+
+
+def _params_ok(value: Any) -> bool:
+    """A map's ``params``: variant name -> ``None`` or its keyword arguments."""
+    return isinstance(value, dict) and all(
+        isinstance(k, str) and (x is None or isinstance(x, dict)) for k, x in value.items()
+    )
+
+
+#: The fields of ``map.json`` that :meth:`SemanticMap.load` reads beside the digests and the
+#: tensor file's name: (required, rule, what the rule expects).
+_RECORD_FIELDS: dict[str, tuple[bool, Callable[[Any], bool], str]] = {
+    "settings": (True, lambda v: isinstance(v, dict), "a mapping of the map's settings"),
+    "dim": (True, lambda v: v is None or _integer(v, 1), "null or an integer >= 1"),
+    "stored_dim": (False, lambda v: v is None or _integer(v, 1), "null or an integer >= 1"),
+    "basis_sha256": (False, _sha256_text, "null or a SHA-256 (64 lowercase hex digits)"),
+    "voxels": (True, lambda v: _integer(v, 0), "an integer >= 0"),
+    "frames": (True, lambda v: _integer(v, 0), "an integer >= 0"),
+    "windows": (True, lambda v: _integer(v, 0), "an integer >= 0"),
+    "meta": (False, lambda v: v is None or isinstance(v, dict), "null or a mapping"),
+}
+#: The keys of a record's ``settings`` that are not rules of MAP_RULES: their rule here.
+_SETTING_TYPES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "configuration": (lambda v: isinstance(v, str) and bool(v), "a configuration name"),
+    "params": (_params_ok, "a mapping of variant name -> null or a mapping of its arguments"),
+    "colour": (lambda v: isinstance(v, bool), "true or false"),
+    "compact": (lambda v: v is None or isinstance(v, dict), "null or a mapping"),
+}
+
+
+def _record_errors(record: Mapping[str, Any], names: Sequence[str]) -> list[str]:
+    """``field=value: expected ...`` for each field of a map record that :meth:`SemanticMap.load`
+    cannot take (:data:`_RECORD_FIELDS`; ``settings.<key>`` by the map settings' own rules,
+    :data:`~resireg.specs.mapping.MAP_RULES`, and :data:`_SETTING_TYPES`; ``names``: the
+    setting keys a map has), so a record is refused whole before anything is built from it."""
+    errors = []
+    for name, (required, ok, expected) in _RECORD_FIELDS.items():
+        if name not in record:
+            if required:
+                errors.append(f"{name}: missing")
+        elif not ok(record[name]):
+            errors.append(f"{name}={_shown(record[name])}: expected {expected}")
+    settings = record.get("settings")
+    if not isinstance(settings, dict):
+        return errors
+    errors += [f"settings.{k}: no such setting (expected one of {sorted(names)})"
+               for k in settings if k not in names]  # fmt: skip
+    errors += [f"settings.{k}: missing" for k in ("configuration", "params", "voxel_size")
+               if k not in settings]  # fmt: skip
+    for key, (ok, expected) in _SETTING_TYPES.items():
+        if key in settings and not ok(settings[key]):
+            errors.append(f"settings.{key}={_shown(settings[key])}: expected {expected}")
+    ruled = {k: v for k, v in settings.items() if k != "compact" or isinstance(v, dict)}
+    return errors + map_errors(ruled, prefix="settings.")
+
+
+def _shown(value: Any) -> str:
+    """A value as an error names it: its repr, cut to 80 characters."""
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _record_digest(record: Mapping[str, Any]) -> str:
@@ -279,6 +372,33 @@ def _encoder_dim(encoder: Any) -> int | None:
         return None
 
 
+def _running(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this machine (signal 0 probes it)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True  # another user's (or an id no process can have: kept, to be safe)
+    return True
+
+
+def remove_partial_saves(folder: str | Path) -> list[Path]:
+    """Remove from a map folder the temporary files of saves whose process no longer runs:
+    :func:`~resireg.integrity.atomic_write` names them ``.<file>.<pid>.<id>.tmp``, and one
+    killed mid-save (SIGKILL, a power cut) leaves its file behind (the committed map is
+    untouched). A save of this or another running process is left alone. Returns the files
+    removed; :meth:`SemanticMap.save` calls it, and the commands that write a map folder at
+    their start."""
+    removed = []
+    for tmp in Path(folder).glob(".map*.tmp"):
+        parts = tmp.name.split(".")
+        if len(parts) >= 5 and parts[-3].isdigit() and not _running(int(parts[-3])):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    return removed
+
+
 class MapSnapshot:
     """A map's tensors (lists of blocks, by file name) and record, as :meth:`SemanticMap.save`
     writes them (:meth:`SemanticMap.snapshot`)."""
@@ -291,6 +411,7 @@ class MapSnapshot:
         tensor files (:meth:`SemanticMap.save`)."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
+        remove_partial_saves(folder)
         name = f"map-{uuid.uuid4().hex[:12]}.safetensors"
         digest: dict[str, str] = {}
         try:
@@ -413,11 +534,11 @@ class SemanticMap:
         self._dim: int | None = None
         self.basis: Tensor | None = None  # [D, k]: a compact map's projection
         self.basis_sha256: str | None = None
-        if self.compact is not None and self.compact.dim is not None and self.compact.basis:
-            self.set_basis(load_basis(self.compact.basis))
         self._pending: list[tuple] = []  # windows waiting for the basis
         self._pending_rows: list[Tensor] = []
         self._pending_keys: Tensor | None = None
+        if self.compact is not None and self.compact.dim is not None and self.compact.basis:
+            self.set_basis(load_basis(self.compact.basis))
         self._texts: OrderedDict[str, Tensor] = OrderedDict()
         self._prototypes: OrderedDict[Any, Tensor] = OrderedDict()
         self.frames = 0  # frames fused
@@ -1012,10 +1133,18 @@ class SemanticMap:
     # ------------------------------------------------------------------ merging
     def merge_differences(self, other: SemanticMap) -> list[str]:
         """What keeps ``other`` from merging into this map: settings (but ``max_voxels``),
-        the feature dimension, the basis (by SHA-256) and the encoder's weights (by the
-        digest ``resireg-map`` and the live node record in ``meta["identity"]["weights"]``)."""
-        mine = {k: v for k, v in self.settings().items() if k != "max_voxels"}
-        theirs = {k: v for k, v in other.settings().items() if k != "max_voxels"}
+        the feature dimension, the basis (by SHA-256, not by where it was read from: a map
+        fitted its own, the next run read it from that map's folder) and the encoder's weights
+        (by the digest ``resireg-map`` and the live node record in
+        ``meta["identity"]["weights"]``)."""
+
+        def compared(smap: SemanticMap) -> dict[str, Any]:
+            out = {k: v for k, v in smap.settings().items() if k != "max_voxels"}
+            if out.get("compact") is not None:
+                out["compact"] = {k: v for k, v in out["compact"].items() if k != "basis"}
+            return out
+
+        mine, theirs = compared(self), compared(other)
         out = [f"{k}: {mine.get(k)!r} here, {theirs.get(k)!r} in the other map"
                for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]  # fmt: skip
         if self.dim is not None and other.dim is not None and self.dim != other.dim:
@@ -1140,26 +1269,29 @@ class SemanticMap:
         **overrides: Any,
     ) -> SemanticMap:
         """A map saved by :meth:`save` (or by an earlier version: :data:`FORMATS`), with
-        ``encoder`` for queries and further windows.
+        ``encoder`` for queries and further windows; ``folder``: the map folder or a run
+        folder holding it in ``map/`` (:func:`map_folder`).
 
         Before any tensor is read, ``map.json``'s own digest and its tensor file's SHA-256 are
         verified: a truncated, edited or damaged file is an
         :class:`~resireg.integrity.IntegrityError` naming it, and so is a record that names a
-        file outside ``folder``. A map saved before maps recorded their digests loads with a
-        :class:`MapFormatWarning`. The tensors are memory-mapped (copy-on-write: the file
+        file outside ``folder``. Then every field of the record is checked (its type and
+        range, the settings by their rules) and every size it gives against the tensors'
+        shapes, before anything is allocated by it: a record edited with its digests
+        recomputed is refused in one line naming the file and the field, and a load allocates
+        no more than its file holds. A map saved before maps recorded their digests loads with
+        a :class:`MapFormatWarning`. The tensors are memory-mapped (copy-on-write: the file
         never changes). An ``encoder`` whose text features have another dimension than the
         map's is refused here, not at the first query (the weights themselves are the
         caller's to check: ``resireg-map`` records a digest of them in ``meta``).
         ``overrides`` replace saved settings that do not change the content
         (``max_voxels``)."""
-        folder = Path(folder)
+        folder = map_folder(folder)
         path = folder / MAP_JSON
-        if not path.is_file():
-            raise FileNotFoundError(f"{folder}: no {MAP_JSON} (not a saved SemanticMap)")
         record = read_json(path, "saved map record")
         fmt = record.get("format") if isinstance(record, dict) else type(record).__name__
         if not isinstance(record, dict) or fmt not in FORMATS:
-            raise IntegrityError(f"{path}: format {fmt!r}, expected one of {list(FORMATS)}")
+            raise IntegrityError(f"{path}: format {_shown(fmt)}, expected one of {list(FORMATS)}")
         tensor_file = _inside(folder, record.get("tensors"), "tensors", path)
         if "record_sha256" not in record and "sha256" not in record and fmt == FORMATS[0]:
             warnings.warn(
@@ -1178,17 +1310,26 @@ class SemanticMap:
                     "file was edited or damaged; a map's settings cannot change after it is made)"
                 )
             if not isinstance(record["sha256"], dict):
-                raise IntegrityError(f"{path}: sha256={record['sha256']!r}: expected a mapping")
+                raise IntegrityError(f"{path}: sha256={_shown(record['sha256'])}: expected a "
+                                     "mapping")  # fmt: skip
             for name in record["sha256"]:
                 _inside(folder, name, "sha256", path)
             if tensor_file.name not in record["sha256"]:
                 raise IntegrityError(f"{path}: records no SHA-256 of {tensor_file.name}")
             verify_digests(folder, record["sha256"], "saved map")
-        settings = dict(record["settings"])
+        # Every field is checked before anything is built from it: a record whose digests were
+        # recomputed after an edit is refused here, naming the field, not deep in the code.
+        names = set(parameters(cls)) - {"encoder", "prior", "prior_input", "device"}
+        errors = _record_errors(record, sorted(names))
+        if errors:
+            raise IntegrityError(f"{path}: " + "; ".join(errors))
         bad = set(overrides) - {"max_voxels"}
         if bad:
             raise ValueError(f"load(): {sorted(bad)} cannot change on a saved map")
-        settings.update(overrides)
+        errors = map_errors(overrides, keys=list(overrides))
+        if errors:
+            raise ValueError("load(): " + "; ".join(errors))
+        settings = {**record["settings"], **overrides}
         config = settings.pop("configuration")
         params = settings.pop("params")
         voxel_size = settings.pop("voxel_size")
@@ -1203,18 +1344,24 @@ class SemanticMap:
         compact = settings.get("compact")
         if compact is not None:  # the basis comes from the file, not from where it came from
             settings["compact"] = {**compact, "basis": None}
-        smap = cls(encoder if encoder is not None else None, config, voxel_size, params=params,
-                   prior=prior, device=device or (encoder.device if encoder is not None else "cpu"),
-                   **settings)  # fmt: skip
-        if smap.compact is not None and compact is not None:
-            smap.compact = CompactSettings.of(compact)
+        try:
+            smap = cls(encoder if encoder is not None else None, config, voxel_size,
+                       params=params, prior=prior,
+                       device=device or (encoder.device if encoder is not None else "cpu"),
+                       **settings)  # fmt: skip
+            if smap.compact is not None and compact is not None:
+                smap.compact = CompactSettings.of(compact)
+        except (TypeError, ValueError) as err:
+            if encoder is not None and prior is None and takes_prior(config):
+                raise  # the caller's: a +prior configuration loaded without prior=
+            raise IntegrityError(f"{path}: settings: {err}") from err
         tensors = read_tensors(tensor_file, "saved map")
         try:
             smap._restore(record, tensors)
         except (KeyError, ValueError, RuntimeError) as err:
-            raise IntegrityError(f"{tensor_file}: does not hold the map its record describes "
-                                 f"({err})") from err  # fmt: skip
-        smap.frames, smap.windows = int(record["frames"]), int(record["windows"])
+            raise IntegrityError(f"{tensor_file}: does not hold the map its record {path} "
+                                 f"describes ({err})") from err  # fmt: skip
+        smap.frames, smap.windows = record["frames"], record["windows"]
         smap.meta = dict(record.get("meta") or {})
         return smap
 
@@ -1226,15 +1373,30 @@ class SemanticMap:
             return {k.split(".", 1)[1]: v.to(self.device) for k, v in tensors.items()
                     if k.startswith(f"{prefix}.")}  # fmt: skip
 
-        if record["dim"] is not None:
-            self._dim = int(record["dim"])
+        # The record's sizes are checked against the tensors before anything is allocated by
+        # them (the file's tensors are mapped, not read: only what a size names is allocated).
+        if record["dim"] is None:
+            held = sorted(k for k in tensors if k.startswith("features.") or k == "basis")
+            if record["voxels"] or held:
+                raise ValueError(f"dim=null (no feature yet), but voxels={record['voxels']} "
+                                 f"and tensors {held}")  # fmt: skip
+        else:
+            self._dim = record["dim"]
             if "basis" in tensors:
-                basis = tensors["basis"].to(self.device, torch.float32)
+                basis = tensors["basis"]
+                k = self.compact.dim if self.compact is not None else None
+                if basis.ndim != 2 or tuple(basis.shape) != (self._dim, k):
+                    raise ValueError(f"basis of shape {list(basis.shape)}: expected [dim="
+                                     f"{self._dim}, settings.compact.dim={k}]")  # fmt: skip
+                basis = basis.to(self.device, torch.float32)
                 if _sha256(basis) != record.get("basis_sha256"):
                     raise ValueError("its basis does not match basis_sha256")
                 self.basis, self.basis_sha256 = basis, record["basis_sha256"]
             elif record.get("basis_sha256"):
                 raise ValueError("no basis")
+            if record.get("stored_dim", self.stored_dim) != self.stored_dim:
+                raise ValueError(f"stored_dim={record['stored_dim']}: the map's settings and "
+                                 f"basis store {self.stored_dim}-d features")  # fmt: skip
             self.voxels = self._make_voxels()
             state = part("features")
             if old:

@@ -60,7 +60,8 @@ MAP_RULES: dict[str, Rule] = {
     "compact.dim": optional_int(1),
     "compact.basis": (
         _basis_ok,
-        "null (fitted on the first frames) or a map folder / .safetensors file holding its basis",
+        "null (fitted on the first frames) or a map folder, run folder or .safetensors file "
+        "holding its basis",
     ),
     "compact.basis_rows": integer(1),
     "compact.hot_voxels": integer(0),
