@@ -70,6 +70,8 @@ __all__ = [
     "hydra_value",
     "job_command",
     "main",
+    "missing_models",
+    "out_problem",
     "outputs",
     "plan",
     "rerun",
@@ -230,6 +232,8 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
     if seeds:
         overrides += seeds
         cfg = _composed(job, overrides)
+    if gone := missing_models(run, cfg, given_keys):  # one line each, before any drift
+        raise RerunRefused(f"{run.path}: " + "\n".join(gone))
     threads = (run.provenance.get("machine") or {}).get("torch_threads")
     result = Plan(run, job, module, overrides, out, threads if isinstance(threads, int) else None)
     result.drift = drift(run, cfg, out, given_keys)
@@ -389,11 +393,56 @@ def drift(run: Run, cfg: Any, out: Path, given: set[str] = frozenset()) -> list[
             continue
         lines += _tree_lines(f"data.{key}", data_then.get(key), data_now.get(key))
     models_then, models_now = then.get("models") or {}, now["models"]
+    gone = _gone(models_then, models_now)
     for key in sorted(set(models_then) | set(models_now)):
-        if key == "encoder" or _given(_MODEL_KEYS.get(key, key), given):
-            continue  # the encoder's entry: compared with the config
+        if key == "encoder" or key in gone or _given(_MODEL_KEYS.get(key, key), given):
+            continue  # the encoder's entry: compared with the config; a gone one: one line
         lines += _tree_lines(f"models.{key}", models_then.get(key), models_now.get(key))
     return lines + config_drift(run, cfg, given)
+
+
+def _gone(then: Any, now: Any) -> dict[str, str]:
+    """``{provenance.models key: its path}`` of each input model the run read (its files'
+    digests recorded) that is no longer there (the export folder or checkpoint file gone)."""
+    then = then if isinstance(then, Mapping) else {}
+    now = now if isinstance(now, Mapping) else {}
+    found = {}
+    for key, entry in then.items():
+        if (key == "encoder" or not isinstance(entry, Mapping) or not entry.get("path")
+                or entry.get("uri")):  # fmt: skip
+            continue  # (a registry model: its local copy is downloaded again)
+        read = entry.get("files") if key == "export" else entry.get("sha256")
+        current = now.get(key) if isinstance(now.get(key), Mapping) else {}
+        if read and not current.get("uri") and not Path(str(current.get("path") or
+                                                              entry["path"])).exists():  # fmt: skip
+            found[key] = str(current.get("path") or entry["path"])
+    return found
+
+
+def missing_models(run: Run, cfg: Any, given: set[str] = frozenset()) -> list[str]:
+    """One line per input model of ``run`` (``provenance.models``: its export, ``init_from``
+    or ``ckpt_path``) that is gone from where the rerun (config ``cfg``; ``given``: the keys
+    the command line sets) would read it, naming the config key and the path."""
+    from omegaconf import OmegaConf
+
+    from resireg.specs.exports import REGISTRY_PREFIX
+
+    now: dict[str, Any] = {}
+    for key, setting in _MODEL_KEYS.items():
+        try:
+            value = OmegaConf.select(cfg, setting, default=None)
+        except Exception:  # a value only Hydra's runtime resolves
+            continue
+        if isinstance(value, str) and value and not value.startswith(REGISTRY_PREFIX):
+            now[key] = {"path": str(Path(value).expanduser().resolve())}
+    lines = []
+    for key, path in _gone(run.provenance.get("models"), now).items():
+        setting = _MODEL_KEYS.get(key, key)
+        what = "export folder" if key == "export" else "checkpoint"
+        if not _given(setting, given):
+            lines.append(f"{setting}={path}: no such {what} (the run read its model there); "
+                         f"restore it, or give {setting}=... on the command line")  # fmt: skip
+    return lines
 
 
 # -------------------------------------------------------------------------------- running
@@ -576,6 +625,19 @@ def compare(a: Run, b: Run, rtol: float) -> Verdict:
 
 
 # ---------------------------------------------------------------------------------- main
+def out_problem(folder: Path) -> str | None:
+    """Why ``folder`` cannot be a new run's folder (``None`` when it can): a file, a folder
+    that is not empty (another run's), or a path under a file."""
+    if folder.is_dir():
+        return "not empty" if any(folder.iterdir()) else None
+    if folder.exists() or folder.is_symlink():
+        return "not a folder"
+    for parent in folder.absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else f"{parent} is not a folder"
+    return None
+
+
 def default_out(run: Run) -> Path:
     """``outputs/rerun/<run id>_<date>_<time>`` under the working folder."""
     stamp = _dt.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
@@ -600,8 +662,8 @@ def rerun(
 
     run = find_run(spec, roots)
     folder = Path(out) if out else default_out(run)
-    if folder.exists() and any(folder.iterdir()):
-        raise RerunRefused(f"--out {folder}: not empty; give the rerun a new folder")
+    if problem := out_problem(folder):
+        raise RerunRefused(f"--out {folder}: {problem}; give the rerun a new folder")
     tolerance = float(provenance_settings()["rerun_rtol"] if rtol is None else rtol)
     if not tolerance >= 0:
         raise RerunRefused(f"--rtol {rtol}: expected a number >= 0")

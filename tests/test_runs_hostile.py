@@ -1,0 +1,91 @@
+"""`resireg-runs` under hostile input (issue 51, items 5, 6, 7, 9 and 10): each bad input is
+handed to the real command (``resireg_train.cli.runs.main``, or the command in a process where
+the error must reach the console) and refused in one line, without a traceback, and every
+file of the inputs and of the other runs keeps its SHA-256."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from resireg_train.cli.runs import main
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def _digests(*roots: Path) -> dict[str, str]:
+    """SHA-256 of every file under ``roots`` (what must not change)."""
+    found = {}
+    for root in roots:
+        paths = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
+        for path in paths:
+            found[str(path)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return found
+
+
+def _refused(argv: list[str], capsys) -> str:
+    """``resireg-runs argv``: exit status 2 and one line on stderr (returned)."""
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def _eval_run(folder: Path, overrides: list[str], **provenance) -> Path:
+    """A finished resireg-eval run folder with these recorded overrides."""
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    record = {"name": "eval", "status": "completed", "final": {"loss": 1.0},
+              "provenance": {"run_id": "f" * 12, "cli": "resireg-eval", **provenance}}  # fmt: skip
+    (folder / "results.json").write_text(json.dumps(record))
+    return folder
+
+
+# ------------------------------------------------------------------------------ item 5
+def test_a_rerun_refuses_a_bad_out_a_gone_export_and_the_run_folder_override(
+    tmp_path, tiny_export, capsys
+):
+    other = _eval_run(tmp_path / "other", ["dataset=synthetic"])  # another run: never touched
+    run = _eval_run(tmp_path / "run", ["dataset=synthetic", f"model_path={tiny_export}"])
+    a_file = tmp_path / "afile"
+    a_file.write_text("not a folder\n")
+    before = _digests(tmp_path, tiny_export)
+
+    err = _refused(["rerun", str(run), "--out", str(a_file)], capsys)
+    assert f"--out {a_file}: not a folder" in err
+    err = _refused(["rerun", str(run), "--out", str(a_file / "x")], capsys)
+    assert f"--out {a_file / 'x'}: {a_file} is not a folder" in err
+    err = _refused(["rerun", str(run), "--out", str(other)], capsys)
+    assert "not empty" in err
+
+    # the export it evaluated is gone: one line naming model_path and the folder, no drift list
+    gone = tmp_path / "gone-export"
+    files = {"model.safetensors": "a" * 64, "config.json": "b" * 64}
+    files.update({f"extra{i}.json": "c" * 64 for i in range(90)})
+    evaluation = _eval_run(tmp_path / "eval", ["dataset=synthetic", f"model_path={gone}"],
+                           models={"export": {"path": str(gone), "files": files}})  # fmt: skip
+    before.update(_digests(evaluation))
+    err = _refused(["rerun", str(evaluation), "--out", str(tmp_path / "new")], capsys)
+    assert f"model_path={gone}: no such export folder" in err and "<absent>" not in err
+    err = _refused(["rerun", str(evaluation), "--out", str(tmp_path / "new"), "--allow-drift"],
+                   capsys)  # fmt: skip
+    assert f"model_path={gone}: no such export folder" in err  # a job could not start either
+
+    # paths.output_dir recorded: refused for what it is, not as an unknown key
+    moved = _eval_run(tmp_path / "moved", ["dataset=synthetic", "paths.output_dir=/tmp/x"])
+    before.update(_digests(moved))
+    err = _refused(["rerun", str(moved), "--out", str(tmp_path / "new")], capsys)
+    assert "overrides[1]='paths.output_dir=/tmp/x' is refused" in err
+    assert "${hydra:runtime.output_dir}" in err and "no such key" not in err
+    assert not (tmp_path / "new").exists()
+    assert _digests(tmp_path, tiny_export) == before
