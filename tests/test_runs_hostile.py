@@ -89,3 +89,54 @@ def test_a_rerun_refuses_a_bad_out_a_gone_export_and_the_run_folder_override(
     assert "${hydra:runtime.output_dir}" in err and "no such key" not in err
     assert not (tmp_path / "new").exists()
     assert _digests(tmp_path, tiny_export) == before
+
+
+# ----------------------------------------------------------------------------- item 10
+def _remote(root: Path, name: str, ahead_s: float, stale_after) -> Path:
+    """A ``running`` record of another host, its heartbeat ``ahead_s`` seconds in the future
+    (negative: in the past), its ``stale_after`` as given (JSON's NaN allowed)."""
+    import datetime as dt
+
+    folder = root / name
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+    beat = dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=ahead_s)
+    record = {"name": name, "status": "running", "final": {"loss": 1.0},
+              "provenance": {"run_id": name, "cli": "resireg-train",
+                             "machine": {"host": "node-17.cluster", "pid": 1}},
+              "heartbeat": {"time": beat.isoformat(), "host": "node-17.cluster",
+                            "interval": 30.0, "stale_after": stale_after}}  # fmt: skip
+    (folder / "results.json").write_text(json.dumps(record))
+    return folder
+
+
+def test_ls_reports_a_heartbeat_from_the_future_or_never_stale_as_unknown(tmp_path, capsys):
+    from resireg_train.runs.provenance import provenance_settings
+
+    skew = float(provenance_settings()["heartbeat_skew"])
+    assert 0 < skew <= 300  # conf/provenance/default.yaml: five minutes at most
+    root = tmp_path / "outputs"
+    _remote(root, "future", 30 * 86400, 300.0)  # another host's clock 30 days ahead
+    _remote(root, "nan", -10, float("nan"))  # never stale: NaN compares False
+    _remote(root, "negative", -10, -5.0)
+    _remote(root, "zero", -10, 0)
+    _remote(root, "a_bit_ahead", skew - 60, 300.0)  # within the skew: a running job's beat
+    _remote(root, "fresh", -10, 300.0)
+    before = _digests(root)
+    main(["ls", str(root), "--format", "json", "--columns", "run_id,status"])
+    captured = capsys.readouterr()
+    statuses = {r["run_id"]: r["status"] for r in json.loads(captured.out)}
+    assert statuses == {"future": "unknown", "nan": "unknown", "negative": "unknown",
+                        "zero": "unknown", "a_bit_ahead": "running", "fresh": "running"}  # fmt: skip
+    err = captured.err.splitlines()
+    (future,) = [line for line in err if "/future/" in line]
+    assert "days ahead of this machine's clock" in future and "heartbeat_skew=300" in future
+    (nan,) = [line for line in err if "/nan/" in line]
+    assert "heartbeat.stale_after=nan is not a number of seconds > 0" in nan
+    assert len(err) == 4 and "Traceback" not in captured.err
+    # gc never removes the checkpoints of a run that may still be running
+    main(["gc", str(root), "--keep", "0", "--by", "loss"])
+    capsys.readouterr()
+    kept = {p.parent.parent.name for p in root.glob("*/checkpoints/last.ckpt")}
+    assert kept == set(statuses)
+    assert _digests(root) == before

@@ -215,8 +215,9 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
     if cli not in JOBS:
         raise RerunRefused(f"{run.path}: provenance.cli={cli!r} is not a command a rerun starts "
                            f"(one of: {', '.join(JOBS)})")  # fmt: skip
-    if run.status == "running":
-        raise RerunRefused(f"{run.path}: still running; rerun it once it has ended")
+    if run.may_be_running:
+        raise RerunRefused(f"{run.path}: still running ({run.status}); rerun it once it has "
+                           "ended")  # fmt: skip
     job, module = JOBS[cli]
     for override in given:
         if not _parses(override):
