@@ -140,3 +140,52 @@ def test_ls_reports_a_heartbeat_from_the_future_or_never_stale_as_unknown(tmp_pa
     kept = {p.parent.parent.name for p in root.glob("*/checkpoints/last.ckpt")}
     assert kept == set(statuses)
     assert _digests(root) == before
+
+
+# ------------------------------------------------------------------------------ item 9
+def _train_run(folder: Path, csv_text: str) -> Path:
+    folder.mkdir(parents=True)
+    record = {"name": "t", "status": "completed", "final": {"train/loss": 0.25},
+              "provenance": {"run_id": folder.name, "cli": "resireg-train"}}  # fmt: skip
+    (folder / "results.json").write_text(json.dumps(record))
+    (folder / "metrics.csv").write_text(csv_text)
+    return folder
+
+
+def test_plot_leaves_out_points_it_cannot_draw_and_refuses_a_bad_out(tmp_path, capsys):
+    from resireg_train.runs.index import read_run
+    from resireg_train.runs.plots import plot_runs
+
+    steps = _train_run(tmp_path / "steps", "step,train/loss\n0,1.0\n1e308,0.5\n-1e308,0.4\n"
+                       "2,0.3\n")  # fmt: skip
+    values = _train_run(tmp_path / "values", "step,train/loss\n0,1.7e308\n1,-1.7e308\n2,0.2\n"
+                        "3,nan\n4,\n")  # fmt: skip
+    a_file = tmp_path / "afile"
+    a_file.write_text("not a folder\n")
+    before = _digests(tmp_path)
+    out = tmp_path / "curves.png"
+    main(["plot", str(steps), str(values), "--metric", "train/loss", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert captured.out.strip() == str(out) and out.stat().st_size > 0
+    warned = captured.err.strip().splitlines()
+    assert len(warned) == 2 and "Traceback" not in captured.err, captured.err
+    assert "run steps (" in warned[0] and "train/loss: 2 point(s)" in warned[0]
+    assert "step=1e308 value=0.5" in warned[0] and "step=-1e308 value=0.4" in warned[0]
+    assert "run values (" in warned[1] and "train/loss: 3 point(s)" in warned[1]  # +-1.7e308, nan
+    # what is drawn: the finite points within float32's range, read back from the figure
+    drawn = plot_runs([read_run(steps), read_run(values)], ["train/loss"], tmp_path / "b.png")
+    curves = list(drawn.curves["train/loss"].values())
+    assert curves == [([0.0, 2.0], [1.0, 0.3]), ([2.0], [0.2])]
+    (tmp_path / "b.png").unlink()
+
+    for option, target, expected in (("--out", a_file / "x.png", f"{a_file} is not a folder"),
+                                     ("--out", tmp_path, "a folder, not a file"),
+                                     ("--html", a_file / "x.html", f"{a_file} is not a folder")):  # fmt: skip
+        argv = ["plot", str(steps), "--metric", "train/loss", option, str(target)]
+        if option == "--html":
+            argv += ["--out", str(tmp_path / "c.png")]
+        err = _refused(argv, capsys)
+        assert f"{option} {target}: {expected}" in err
+        assert not (tmp_path / "c.png").exists()  # refused before drawing
+    out.unlink()
+    assert _digests(tmp_path) == before

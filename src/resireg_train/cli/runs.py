@@ -260,9 +260,6 @@ def main(argv: list[str] | None = None) -> None:
         parser.exit(2, f"resireg-runs: error: {err}\n")
 
 
-if __name__ == "__main__":
-    main()
-
 
 def _plot(args: Any) -> None:
     """``resireg-runs plot``: a search folder alone draws its study's plots
@@ -285,3 +282,7 @@ def _plot(args: Any) -> None:
                 print(f"resireg-runs: {problem}", file=sys.stderr)
     for path in result.files:
         print(path)
+
+
+if __name__ == "__main__":
+    main()

@@ -58,7 +58,7 @@ from resireg.errors import ResiregError
 from resireg.secrets import MASK, mask_text
 from resireg.specs.tree import MISSING, differences, flatten
 from resireg_train.runs.index import Run, diff_runs, find_run
-from resireg_train.runs.record import RunRecord
+from resireg_train.runs.record import RunRecord, target_problem
 
 __all__ = [
     "JOBS",
@@ -71,7 +71,6 @@ __all__ = [
     "job_command",
     "main",
     "missing_models",
-    "out_problem",
     "outputs",
     "plan",
     "rerun",
@@ -626,19 +625,6 @@ def compare(a: Run, b: Run, rtol: float) -> Verdict:
 
 
 # ---------------------------------------------------------------------------------- main
-def out_problem(folder: Path) -> str | None:
-    """Why ``folder`` cannot be a new run's folder (``None`` when it can): a file, a folder
-    that is not empty (another run's), or a path under a file."""
-    if folder.is_dir():
-        return "not empty" if any(folder.iterdir()) else None
-    if folder.exists() or folder.is_symlink():
-        return "not a folder"
-    for parent in folder.absolute().parents:
-        if parent.exists():
-            return None if parent.is_dir() else f"{parent} is not a folder"
-    return None
-
-
 def default_out(run: Run) -> Path:
     """``outputs/rerun/<run id>_<date>_<time>`` under the working folder."""
     stamp = _dt.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
@@ -663,7 +649,7 @@ def rerun(
 
     run = find_run(spec, roots)
     folder = Path(out) if out else default_out(run)
-    if problem := out_problem(folder):
+    if problem := target_problem(folder, folder=True):
         raise RerunRefused(f"--out {folder}: {problem}; give the rerun a new folder")
     tolerance = float(provenance_settings()["rerun_rtol"] if rtol is None else rtol)
     if not tolerance >= 0:

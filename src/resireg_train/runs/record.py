@@ -57,6 +57,7 @@ __all__ = [
     "heartbeat_stale",
     "metric_mode",
     "strict_json",
+    "target_problem",
 ]
 
 RESULTS_FILE = "results.json"
@@ -233,6 +234,23 @@ def heartbeat_stale(
     limit = limit if isinstance(limit, (int, float)) and not isinstance(limit, bool) else None
     age = ((now or _utc_now()) - when).total_seconds()
     return age > float(limit if limit is not None else stale_after)
+
+
+def target_problem(path: Path, folder: bool) -> str | None:
+    """Why a command cannot write its output at ``path`` (``None`` when it can), checked
+    before any work: a new run's folder (``folder``) must be absent or empty (another run's
+    otherwise), a file must not be a folder, and no folder above it may be a file."""
+    path = Path(path)
+    if path.is_dir():
+        if not folder:
+            return "a folder, not a file"
+        return "not empty" if any(path.iterdir()) else None
+    if folder and (path.exists() or path.is_symlink()):
+        return "not a folder"
+    for parent in path.absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else f"{parent} is not a folder"
+    return None
 
 
 def heartbeat_doubt(
