@@ -189,3 +189,45 @@ def test_plot_leaves_out_points_it_cannot_draw_and_refuses_a_bad_out(tmp_path, c
         assert not (tmp_path / "c.png").exists()  # refused before drawing
     out.unlink()
     assert _digests(tmp_path) == before
+
+
+# ------------------------------------------------------------------------------ item 7
+_ROW = "resireg_vlm: {params_m: 25, ade20k: {bb: 12.5}}"
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "held"),
+    [
+        (f"j: &j {{a: 1}}\ntable1:\n  datasets: *j\n  rows: {{{_ROW}}}\n",
+         "table1.datasets: expected a list of dataset names", "a mapping"),
+        ("j: &j [ade20k]\ntable1:\n  datasets: *j\n  rows: {resireg_vlm: *j}\n",
+         "table1.rows.resireg_vlm: expected a mapping", "a list"),
+        ("j: &j [1, 2]\ntable1:\n  datasets: [ade20k]\n  rows:\n"
+         "    resireg_vlm: {ade20k: {bb: *j}}\n",
+         "table1.rows.resireg_vlm.ade20k.bb: expected a number or null", "a list"),
+        ("j: &j {x: 1}\ntable1:\n  datasets: [ade20k]\n  rows: *j\n",
+         "table1.rows.x: expected a mapping", "int"),
+        ("j: &j [ade20k]\ntable1: *j\n", "table1: expected a mapping", "a list"),
+        (f"j: &j {{a: 1}}\ntable1:\n  datasets: [ade20k]\n  rows: {{{_ROW}}}\n"
+         "protocol: {table1: {short_side: *j}}\n",
+         "protocol.table1.short_side: expected a value or a list of values", "a mapping"),
+    ],
+)  # fmt: skip
+def test_reproduce_refuses_a_paper_file_off_its_schema_naming_the_key(
+    tmp_path, capsys, text, key, held
+):
+    paper = tmp_path / "paper.yaml"
+    paper.write_text(text)
+    before = _digests(tmp_path)
+    out = tmp_path / "sweep"
+    err = _refused(["reproduce", "table1/resireg_vlm", "--paper", str(paper), "--out", str(out)],
+                   capsys)  # fmt: skip
+    assert f"--paper {paper}: {key}, got {held}" in err, err
+    assert not out.exists() and _digests(tmp_path) == before
+
+
+def test_the_papers_own_figures_file_fits_the_schema():
+    from resireg_train.replay.reproduce import paper_problems
+    from resireg_train.report.paper import paper_results
+
+    assert paper_problems(paper_results()) == []
