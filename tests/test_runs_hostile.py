@@ -8,9 +8,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -231,3 +230,110 @@ def test_the_papers_own_figures_file_fits_the_schema():
     from resireg_train.report.paper import paper_results
 
     assert paper_problems(paper_results()) == []
+
+
+# ------------------------------------------------------------------------------ item 6
+def _closed_port() -> int:
+    """A port of 127.0.0.1 nothing listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_register_checks_the_name_and_the_registry_before_writing(tmp_path, tiny_export, capsys):
+    pytest.importorskip("mlflow")
+    store = tmp_path / "registry.db"
+    before = _digests(tiny_export)
+    for argv, expected in (
+        (["--name", "../x"], "--name '../x': Invalid model name '../x'"),
+        (["--name", ".."], "--name '..': not a registered model's name"),
+        (["--name", "a@b"], "--name 'a@b': not a registered model's name"),
+        (["--name", "ok", "--alias", "../a"], "--alias '../a': Invalid alias name"),
+        (["--name", "ok", "--alias", "latest"], "--alias 'latest'"),  # MLflow's reserved alias
+    ):  # fmt: skip
+        err = _refused(["register", str(tiny_export), *argv, "--tracking-uri",
+                        f"sqlite:///{store}"], capsys)  # fmt: skip
+        assert expected in err, err
+        assert not store.exists()  # nothing written, not even an empty store
+    # a registry that does not answer: one line (the trackers' check), not minutes of retries
+    port = _closed_port()
+    err = _refused(["register", str(tiny_export), "--name", "ok", "--tracking-uri",
+                    f"http://127.0.0.1:{port}"], capsys)  # fmt: skip
+    assert f"cannot reach the model registry http://127.0.0.1:{port}" in err
+    assert "logger.mlflow.check_timeout" in err
+    assert _digests(tiny_export) == before
+
+
+def test_a_registration_that_fails_midway_is_marked_failed(tmp_path, tiny_export, capsys):
+    """The artifact store cannot be written (a file where its folder should be): the
+    registration's MLflow run is marked FAILED, no model version is left, one line says so."""
+    pytest.importorskip("mlflow")
+    from mlflow import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'registry.db'}"
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file\n")
+    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+    experiment = client.create_experiment("broken", artifact_location=str(blocker / "artifacts"))
+    capsys.readouterr()  # MLflow's own log of the store it created
+    before = _digests(tiny_export, blocker)
+    err = _refused(["register", str(tiny_export), "--name", "tiny", "--experiment", "broken",
+                    "--tracking-uri", uri], capsys)  # fmt: skip
+    (run,) = client.search_runs([experiment])
+    assert f"--name tiny: the registration failed and its MLflow run {run.info.run_id} is " \
+           "marked FAILED" in err  # fmt: skip
+    assert run.info.status == "FAILED" and run.data.tags["resireg.registration"] == "failed"
+    assert client.search_model_versions("name='tiny'") == []
+    assert _digests(tiny_export, blocker) == before
+
+
+@pytest.mark.slow
+def test_a_registered_model_path_fails_in_one_line(tmp_path, tiny_export, capsys):
+    """resireg-eval model_path=models:/...: a URI of neither form, a registry on a closed port
+    and a registered model.safetensors altered in the artifact store each end the command in
+    one line naming it; an earlier record in the run folder is not touched."""
+    pytest.importorskip("mlflow")
+    from mlflow import MlflowClient
+
+    from _run import run_side_by_side
+
+    uri = f"sqlite:///{tmp_path / 'registry.db'}"
+    client = MlflowClient(tracking_uri=uri, registry_uri=uri)
+    client.create_experiment("resireg", artifact_location=str(tmp_path / "artifacts"))
+    main(["register", str(tiny_export), "--name", "tiny", "--alias", "champion",
+          "--tracking-uri", uri])  # fmt: skip
+    capsys.readouterr()
+    (stored,) = (tmp_path / "artifacts").rglob("model.safetensors")
+    stored.write_bytes(stored.read_bytes()[:-8] + b"\1" * 8)
+    earlier = {"status": "completed", "final": {"loss": 1.0}}
+    folders = [tmp_path / f"eval{i}" for i in range(3)]
+    for folder in folders:
+        folder.mkdir()
+        (folder / "results.json").write_text(json.dumps(earlier))
+    before = _digests(tiny_export, tmp_path / "registry.db")
+    common = ["dataset=synthetic", "dataset.size=2", "num_workers=0"]
+    env = {**os.environ, "PYTHONPATH": f"{SRC}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+           "RESIREG_REGISTRY_CACHE": str(tmp_path / "cache"), "MLFLOW_TRACKING_URI": uri}  # fmt: skip
+    closed = {**env, "MLFLOW_TRACKING_URI": f"http://127.0.0.1:{_closed_port()}"}
+    procs = [
+        run_side_by_side(("resireg-eval", "model_path=models:/../x@a", *common,
+                          f"hydra.run.dir={folders[0]}"), check=False, env=env)[0],
+        run_side_by_side(("resireg-eval", "model_path=models:/tiny@champion", *common,
+                          f"hydra.run.dir={folders[1]}"), check=False, env=closed)[0],
+        run_side_by_side(("resireg-eval", "model_path=models:/tiny@champion", *common,
+                          f"hydra.run.dir={folders[2]}"), check=False, env=env)[0],
+    ]  # fmt: skip
+    expected = [
+        "ConfigError: model_path: 'models:/../x@a' is not a model registry URI",
+        "RegistryError: model_path='models:/tiny@champion': cannot reach the model registry",
+        "model.safetensors",
+    ]
+    for proc, text in zip(procs, expected, strict=True):
+        assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+        errors = [line for line in proc.stderr.splitlines() if re.match(r"[\w.]+Error: ", line)]
+        assert len(errors) == 1 and text in errors[0], proc.stderr[-3000:]
+    assert "IntegrityError" in procs[2].stderr
+    for folder in folders[:2]:  # refused before the run started: the earlier record as it was
+        assert json.loads((folder / "results.json").read_text()) == earlier
+    assert _digests(tiny_export, tmp_path / "registry.db") == before
+    assert not any((tmp_path / "cache").rglob("model.safetensors"))  # no altered copy kept

@@ -234,6 +234,11 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
         cfg = _composed(job, overrides)
     if gone := missing_models(run, cfg, given_keys):  # one line each, before any drift
         raise RerunRefused(f"{run.path}: " + "\n".join(gone))
+    registered = OmegaConf.select(cfg, "model_path", default=None)
+    if isinstance(registered, str) and registered.startswith("models:/"):  # not minutes of retries
+        from resireg_train.runs.registry import check_registry, registry_timeout
+
+        check_registry(timeout=registry_timeout(cfg), what=f"model_path={registered!r}")
     threads = (run.provenance.get("machine") or {}).get("torch_threads")
     result = Plan(run, job, module, overrides, out, threads if isinstance(threads, int) else None)
     result.drift = drift(run, cfg, out, given_keys)

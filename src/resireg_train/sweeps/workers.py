@@ -259,8 +259,10 @@ def _refusal(
         return None
     found = OmegaConf.select(composed, key, default=_ABSENT, throw_on_resolution_failure=False)
     if found is _ABSENT and (raw := _unresolved(composed, key)) is not None:
-        return (f"{key} is {raw}, which Hydra sets when the job starts (the run's own folder: "
-                "a rerun's is --out, a search's job's is under its sweep folder)")
+        return (
+            f"{key} is {raw}, which Hydra sets when the job starts (the run's own folder: "
+            "a rerun's is --out, a search's job's is under its sweep folder)"
+        )
     if found is _ABSENT and not _required(composed, key):
         return f"resireg-{job}'s config has no such key"
     return None
