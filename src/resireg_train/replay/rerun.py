@@ -56,6 +56,7 @@ import yaml
 
 from resireg.errors import ResiregError
 from resireg.secrets import MASK, mask_text
+from resireg.specs.exports import REGISTRY_PREFIX
 from resireg.specs.tree import MISSING, differences, flatten
 from resireg_train.runs.index import Run, diff_runs, find_run
 from resireg_train.runs.record import RunRecord, target_problem
@@ -235,7 +236,7 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
     if gone := missing_models(run, cfg, given_keys):  # one line each, before any drift
         raise RerunRefused(f"{run.path}: " + "\n".join(gone))
     registered = OmegaConf.select(cfg, "model_path", default=None)
-    if isinstance(registered, str) and registered.startswith("models:/"):  # not minutes of retries
+    if isinstance(registered, str) and registered.startswith(REGISTRY_PREFIX):  # no long retries
         from resireg_train.runs.registry import check_registry, registry_timeout
 
         check_registry(timeout=registry_timeout(cfg), what=f"model_path={registered!r}")
@@ -430,8 +431,6 @@ def missing_models(run: Run, cfg: Any, given: set[str] = frozenset()) -> list[st
     the command line sets) would read it, naming the config key and the path."""
     from omegaconf import OmegaConf
 
-    from resireg.specs.exports import REGISTRY_PREFIX
-
     now: dict[str, Any] = {}
     for key, setting in _MODEL_KEYS.items():
         try:
@@ -443,7 +442,7 @@ def missing_models(run: Run, cfg: Any, given: set[str] = frozenset()) -> list[st
     lines = []
     for key, path in _gone(run.provenance.get("models"), now).items():
         setting = _MODEL_KEYS.get(key, key)
-        what = "export folder" if key == "export" else "checkpoint"
+        what = "export folder" if key == "export" else "file or folder"
         if not _given(setting, given):
             lines.append(f"{setting}={path}: no such {what} (the run read its model there); "
                          f"restore it, or give {setting}=... on the command line")  # fmt: skip

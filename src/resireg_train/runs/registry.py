@@ -107,18 +107,18 @@ def check_name(name: str, alias: str | None = None) -> None:
     ``models:/NAME/VERSION``) reads back as the same model; else a :class:`ValueError`
     naming the option. Checked before anything is written."""
     from mlflow.exceptions import MlflowException
-    from mlflow.utils.validation import _validate_model_alias_name, _validate_model_name
+    from mlflow.utils import validation  # the rules MLflow's server applies
 
     from resireg.specs.exports import registry_model
 
     if name in (".", "..") or "@" in name:
         raise ValueError(f"--name {name!r}: not a registered model's name ('.', '..' and '@' "
                          "cannot be read back from models:/NAME@ALIAS)")  # fmt: skip
-    from mlflow.utils import validation
-
     reserved = getattr(validation, "_validate_model_alias_name_reserved", lambda _: None)
-    for option, value, checks in (("--name", name, (_validate_model_name,)),
-                                  ("--alias", alias, (_validate_model_alias_name, reserved))):  # fmt: skip
+    for option, value, checks in (
+        ("--name", name, (validation._validate_model_name,)),
+        ("--alias", alias, (validation._validate_model_alias_name, reserved)),
+    ):
         if value is None:
             continue
         try:
@@ -171,7 +171,7 @@ def register(
     card = (folder / CARD_FILE).read_text() if (folder / CARD_FILE).is_file() else ""
     lineage = _lineage(folder)
 
-    check_registry(tracking_uri or mlflow.get_registry_uri(), what=f"--name {name}")
+    check_registry(tracking_uri, what=f"--name {name}")
     client = MlflowClient(tracking_uri=tracking_uri, registry_uri=tracking_uri)
     try:
         found = client.get_experiment_by_name(experiment)
