@@ -36,7 +36,7 @@ try:  # POSIX; where it is missing (Windows) run folders are not locked
 except ImportError:  # pragma: no cover
     fcntl = None
 
-from resireg.errors import ConfigError, ResiregError, WriteError
+from resireg.errors import ConfigError, IntegrityError, ResiregError, WriteError
 from resireg.secrets import MASK, SecretFilter, mask_text
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
 from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
@@ -251,6 +251,7 @@ def run_task(
     it is re-raised, so a sweep report lists the job with its reason. Only rank 0
     (``rank_zero``) writes.
     """
+    check_model_registry(cfg)  # before anything is written, as a busy folder below
     out = Path(cfg.paths.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     # Before anything is written: a folder another job writes is refused (its PID named). A
@@ -263,6 +264,29 @@ def run_task(
     finally:
         if took:
             release_run_folder(out)
+
+
+def check_model_registry(cfg: DictConfig) -> None:
+    """A ``model_path`` in MLflow's model registry (``models:/NAME@ALIAS``), checked before
+    the run starts: one that is not of the registry's two forms is a :class:`ConfigError`,
+    a registry that does not answer within ``logger.mlflow.check_timeout`` seconds a
+    :class:`~resireg.models.vlm.registry.RegistryError` (:func:`resireg_train.runs.registry.
+    check_registry`): one line each, instead of a traceback or minutes of MLflow's retries."""
+    from resireg.specs.exports import REGISTRY_PREFIX, registry_model
+
+    try:
+        model_path = OmegaConf.select(cfg, "model_path", default=None)
+    except Exception:  # an interpolation only the job resolves: its own check names it
+        return
+    if not isinstance(model_path, str) or not model_path.startswith(REGISTRY_PREFIX):
+        return
+    try:
+        registry_model(model_path)
+    except ValueError as err:
+        raise ConfigError(f"model_path: {err}") from None
+    from resireg_train.runs.registry import check_registry, registry_timeout
+
+    check_registry(timeout=registry_timeout(cfg), what=f"model_path={model_path!r}")
 
 
 def _run_recorded(
@@ -347,7 +371,8 @@ class JobFailed(ResiregError, CompactHydraException):
 def _reported_types() -> tuple[type[BaseException], ...]:
     """The errors whose message is the whole report (see the module docstring). The classes
     of modules not loaded yet cannot have been raised, so nothing heavy is imported here."""
-    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy]
+    types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy,
+                                        IntegrityError]  # fmt: skip
     for module, name in (
         ("resireg_train.runs.trackers", "TrackerUnreachable"),
         ("resireg_train.training.checkpoints", "CheckpointError"),

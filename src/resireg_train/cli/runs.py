@@ -176,12 +176,15 @@ def main(argv: list[str] | None = None) -> None:
 
         args.overrides += extra
         args.root = getattr(args, "root", None) or [DEFAULT_ROOT]
+        from resireg.errors import ResiregError
+
         try:
             code = (rerun.main if args.command == "rerun" else reproduce.main)(args)
-        except ValueError as err:  # refused before any job started
+        except (ValueError, ResiregError) as err:  # refused before any job started
             parser.exit(2, f"resireg-runs {args.command}: refused: {err}\n")
         sys.exit(code)
 
+    from resireg.errors import ResiregError
     from resireg.secrets import mask_text
     from resireg.specs.tree import flatten
     from resireg_train.runs import index
@@ -256,12 +259,8 @@ def main(argv: list[str] | None = None) -> None:
         else:
             for line in index.lineage(args.run, roots):
                 print(mask_text(line))
-    except ValueError as err:
-        parser.exit(2, f"resireg-runs: error: {err}\n")
-
-
-if __name__ == "__main__":
-    main()
+    except (ValueError, ResiregError) as err:  # bad input, refused (resireg.errors)
+        parser.exit(2, f"resireg-runs: error: {mask_text(str(err))}\n")
 
 
 def _plot(args: Any) -> None:
@@ -285,3 +284,7 @@ def _plot(args: Any) -> None:
                 print(f"resireg-runs: {problem}", file=sys.stderr)
     for path in result.files:
         print(path)
+
+
+if __name__ == "__main__":
+    main()

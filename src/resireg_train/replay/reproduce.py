@@ -23,6 +23,7 @@ as ``resireg-report``'s paper columns list them).
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import subprocess
 import sys
 from collections.abc import Mapping, Sequence
@@ -31,8 +32,18 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from resireg.errors import ResiregError
+from resireg.specs.rules import is_num
 
-__all__ = ["Cell", "ReproduceRefused", "cells", "main", "preflight", "reproduce", "row_jobs"]
+__all__ = [
+    "Cell",
+    "ReproduceRefused",
+    "cells",
+    "main",
+    "paper_problems",
+    "preflight",
+    "reproduce",
+    "row_jobs",
+]
 
 #: The tables a row can come from.
 TABLES = ("table1", "table2")
@@ -75,7 +86,92 @@ def _paper(path: str | Path) -> dict[str, Any]:
         raise ReproduceRefused(f"--paper {path}: not a paper file ({err})") from None
     if not isinstance(paper, dict):
         raise ReproduceRefused(f"--paper {path}: not a paper file (a YAML mapping)")
+    if problems := paper_problems(paper):
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise ReproduceRefused(f"--paper {path}: {problems[0]}{more}")
     return paper
+
+
+def _kind(value: Any) -> str:
+    return {dict: "a mapping", list: "a list", str: "a string", bool: "a boolean",
+            type(None): "null"}.get(type(value), type(value).__name__)  # fmt: skip
+
+
+def _figure(value: Any) -> bool:
+    """A figure of the paper: a finite number (not a boolean), or null (not reported)."""
+    return value is None or (is_num(value) and math.isfinite(value))
+
+
+def paper_problems(paper: Mapping[str, Any]) -> list[str]:
+    """Where the paper's figures file (``conf/paper/results.yaml``'s schema) holds what
+    reproduce cannot read, one line each naming the key and what it holds: ``table1``'s
+    ``datasets`` (a list of names) and ``rows`` (name -> dataset -> variant -> figure),
+    ``table2``'s ``dataset`` and ``rows`` (name -> ``variant``, ``miou``, ``fmiou``) and
+    ``protocol`` (table -> setting -> value). A YAML alias (``*anchor``) is read as what it
+    stands for, so one put where a list or a figure belongs is named here."""
+    problems: list[str] = []
+
+    def expect(key: str, value: Any, ok: bool, what: str) -> bool:
+        if not ok:
+            problems.append(f"{key}: expected {what}, got {_kind(value)} {_short(value)}")
+        return ok
+
+    scalar = (str, int, float, bool, type(None))
+    for table in TABLES:
+        if table not in paper:
+            continue
+        block = paper[table]
+        if not expect(table, block, isinstance(block, Mapping), "a mapping"):
+            continue
+        rows = block.get("rows")
+        if not expect(f"{table}.rows", rows, isinstance(rows, Mapping) and all(
+                isinstance(k, str) for k in rows), "a mapping of row names"):  # fmt: skip
+            continue
+        if table == "table1":
+            datasets = block.get("datasets")
+            expect(f"{table}.datasets", datasets, isinstance(datasets, list) and all(
+                isinstance(d, str) for d in datasets), "a list of dataset names")  # fmt: skip
+            datasets = datasets if isinstance(datasets, list) else []
+        else:
+            expect(f"{table}.dataset", block.get("dataset"), isinstance(block.get("dataset"), str),
+                   "a dataset name")  # fmt: skip
+        for name, row in rows.items():
+            key = f"{table}.rows.{name}"
+            if not expect(key, row, isinstance(row, Mapping), "a mapping"):
+                continue
+            if "params_m" in row:
+                expect(f"{key}.params_m", row["params_m"], _figure(row["params_m"]), "a number")
+            if table == "table2":
+                expect(f"{key}.variant", row.get("variant"), isinstance(row.get("variant"), str),
+                       "a variant name")  # fmt: skip
+                for metric in ("miou", "fmiou"):
+                    expect(f"{key}.{metric}", row.get(metric), _figure(row.get(metric)),
+                           "a number or null")  # fmt: skip
+                continue
+            for dataset in (d for d in datasets if isinstance(d, str) and d in row):
+                cells = row[dataset]
+                if expect(f"{key}.{dataset}", cells, isinstance(cells, Mapping),
+                          "a mapping of variant -> figure"):  # fmt: skip
+                    for variant, value in cells.items():
+                        expect(f"{key}.{dataset}.{variant}", value, _figure(value),
+                               "a number or null")  # fmt: skip
+    protocol = paper.get("protocol")
+    if protocol is not None and expect("protocol", protocol, isinstance(protocol, Mapping),
+                                       "a mapping of table -> settings"):  # fmt: skip
+        for table, settings in protocol.items():
+            if not expect(f"protocol.{table}", settings, isinstance(settings, Mapping),
+                          "a mapping of setting -> value"):  # fmt: skip
+                continue
+            for name, value in settings.items():
+                expect(f"protocol.{table}.{name}", value, isinstance(value, scalar) or (
+                    isinstance(value, list) and all(isinstance(v, scalar) for v in value)),
+                    "a value or a list of values")  # fmt: skip
+    return problems
+
+
+def _short(value: Any, width: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= width else f"{text[: width - 1]}…"
 
 
 def row_jobs(spec: str, path: str | Path) -> RowJobs:

@@ -56,9 +56,10 @@ import yaml
 
 from resireg.errors import ResiregError
 from resireg.secrets import MASK, mask_text
+from resireg.specs.exports import REGISTRY_PREFIX
 from resireg.specs.tree import MISSING, differences, flatten
 from resireg_train.runs.index import Run, diff_runs, find_run
-from resireg_train.runs.record import RunRecord
+from resireg_train.runs.record import RunRecord, target_problem
 
 __all__ = [
     "JOBS",
@@ -70,6 +71,7 @@ __all__ = [
     "hydra_value",
     "job_command",
     "main",
+    "missing_models",
     "outputs",
     "plan",
     "rerun",
@@ -213,8 +215,9 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
     if cli not in JOBS:
         raise RerunRefused(f"{run.path}: provenance.cli={cli!r} is not a command a rerun starts "
                            f"(one of: {', '.join(JOBS)})")  # fmt: skip
-    if run.status == "running":
-        raise RerunRefused(f"{run.path}: still running; rerun it once it has ended")
+    if run.may_be_running:
+        raise RerunRefused(f"{run.path}: still running ({run.status}); rerun it once it has "
+                           "ended")  # fmt: skip
     job, module = JOBS[cli]
     for override in given:
         if not _parses(override):
@@ -230,6 +233,13 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
     if seeds:
         overrides += seeds
         cfg = _composed(job, overrides)
+    if gone := missing_models(run, cfg, given_keys):  # one line each, before any drift
+        raise RerunRefused(f"{run.path}: " + "\n".join(gone))
+    registered = OmegaConf.select(cfg, "model_path", default=None)
+    if isinstance(registered, str) and registered.startswith(REGISTRY_PREFIX):  # no long retries
+        from resireg_train.runs.registry import check_registry, registry_timeout
+
+        check_registry(timeout=registry_timeout(cfg), what=f"model_path={registered!r}")
     threads = (run.provenance.get("machine") or {}).get("torch_threads")
     result = Plan(run, job, module, overrides, out, threads if isinstance(threads, int) else None)
     result.drift = drift(run, cfg, out, given_keys)
@@ -389,11 +399,54 @@ def drift(run: Run, cfg: Any, out: Path, given: set[str] = frozenset()) -> list[
             continue
         lines += _tree_lines(f"data.{key}", data_then.get(key), data_now.get(key))
     models_then, models_now = then.get("models") or {}, now["models"]
+    gone = _gone(models_then, models_now)
     for key in sorted(set(models_then) | set(models_now)):
-        if key == "encoder" or _given(_MODEL_KEYS.get(key, key), given):
-            continue  # the encoder's entry: compared with the config
+        if key == "encoder" or key in gone or _given(_MODEL_KEYS.get(key, key), given):
+            continue  # the encoder's entry: compared with the config; a gone one: one line
         lines += _tree_lines(f"models.{key}", models_then.get(key), models_now.get(key))
     return lines + config_drift(run, cfg, given)
+
+
+def _gone(then: Any, now: Any) -> dict[str, str]:
+    """``{provenance.models key: its path}`` of each input model the run read (its files'
+    digests recorded) that is no longer there (the export folder or checkpoint file gone)."""
+    then = then if isinstance(then, Mapping) else {}
+    now = now if isinstance(now, Mapping) else {}
+    found = {}
+    for key, entry in then.items():
+        if (key == "encoder" or not isinstance(entry, Mapping) or not entry.get("path")
+                or entry.get("uri")):  # fmt: skip
+            continue  # (a registry model: its local copy is downloaded again)
+        read = entry.get("files") if key == "export" else entry.get("sha256")
+        current = now.get(key) if isinstance(now.get(key), Mapping) else {}
+        if read and not current.get("uri") and not Path(str(current.get("path") or
+                                                              entry["path"])).exists():  # fmt: skip
+            found[key] = str(current.get("path") or entry["path"])
+    return found
+
+
+def missing_models(run: Run, cfg: Any, given: set[str] = frozenset()) -> list[str]:
+    """One line per input model of ``run`` (``provenance.models``: its export, ``init_from``
+    or ``ckpt_path``) that is gone from where the rerun (config ``cfg``; ``given``: the keys
+    the command line sets) would read it, naming the config key and the path."""
+    from omegaconf import OmegaConf
+
+    now: dict[str, Any] = {}
+    for key, setting in _MODEL_KEYS.items():
+        try:
+            value = OmegaConf.select(cfg, setting, default=None)
+        except Exception:  # a value only Hydra's runtime resolves
+            continue
+        if isinstance(value, str) and value and not value.startswith(REGISTRY_PREFIX):
+            now[key] = {"path": str(Path(value).expanduser().resolve())}
+    lines = []
+    for key, path in _gone(run.provenance.get("models"), now).items():
+        setting = _MODEL_KEYS.get(key, key)
+        what = "export folder" if key == "export" else "file or folder"
+        if not _given(setting, given):
+            lines.append(f"{setting}={path}: no such {what} (the run read its model there); "
+                         f"restore it, or give {setting}=... on the command line")  # fmt: skip
+    return lines
 
 
 # -------------------------------------------------------------------------------- running
@@ -600,8 +653,8 @@ def rerun(
 
     run = find_run(spec, roots)
     folder = Path(out) if out else default_out(run)
-    if folder.exists() and any(folder.iterdir()):
-        raise RerunRefused(f"--out {folder}: not empty; give the rerun a new folder")
+    if problem := target_problem(folder, folder=True):
+        raise RerunRefused(f"--out {folder}: {problem}; give the rerun a new folder")
     tolerance = float(provenance_settings()["rerun_rtol"] if rtol is None else rtol)
     if not tolerance >= 0:
         raise RerunRefused(f"--rtol {rtol}: expected a number >= 0")

@@ -150,8 +150,8 @@ def collect(
         exists = os.path.lexists(checkpoints)
         if value is not None and rank <= keep:
             decisions.append(Decision(run, "keep", value, rank, size))
-        elif run.status == "running":
-            decisions.append(Decision(run, "skip", value, rank, size, "running"))
+        elif run.may_be_running:  # running, or a heartbeat that cannot tell
+            decisions.append(Decision(run, "skip", value, rank, size, run.status))
         elif not exists:
             decisions.append(Decision(run, "nothing", value, rank, 0, "no checkpoints"))
         else:

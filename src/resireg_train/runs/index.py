@@ -8,7 +8,10 @@ A row reads only the run's ``results.json`` (:meth:`RunRecord.read
 list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
 whose process is gone is shown as ``died``: on this host, its PID is not alive; on another
 host (a shared file system), its heartbeat is stale (:func:`~resireg_train.runs.record.
-heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A file that is not what
+heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A heartbeat that
+cannot tell (more than ``provenance.heartbeat_skew`` seconds ahead of this machine's clock, or
+a ``stale_after`` that is not a number > 0) is shown as ``unknown``, named once in the run's
+problems (:func:`~resireg_train.runs.record.heartbeat_doubt`). A file that is not what
 it should be (a record that is not a run record, an overrides file that is not a YAML list) is
 named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other
 runs are listed.
@@ -31,7 +34,13 @@ import yaml
 
 from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import RESULTS_FILE, RecordError, RunRecord, heartbeat_stale
+from resireg_train.runs.record import (
+    RESULTS_FILE,
+    RecordError,
+    RunRecord,
+    heartbeat_doubt,
+    heartbeat_stale,
+)
 
 __all__ = [
     "COLUMNS",
@@ -44,6 +53,7 @@ __all__ = [
     "read_run",
     "scan",
     "sort_runs",
+    "UNKNOWN",
 ]
 
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
@@ -54,13 +64,18 @@ COLUMNS = ("run_id", "cli", "name", "status", "start", "duration", "overrides", 
 _HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
 
 
+#: The status of a ``running`` record of another host whose heartbeat cannot tell whether its
+#: job still runs (:func:`~resireg_train.runs.record.heartbeat_doubt`).
+UNKNOWN = "unknown"
+
+
 @cache
-def _stale_after() -> float:
-    """``provenance.heartbeat_stale`` (conf/provenance/default.yaml): for a record whose
-    heartbeat does not say its own."""
+def _settings(key: str) -> float:
+    """``provenance.heartbeat_stale`` (for a record whose heartbeat does not say its own) or
+    ``provenance.heartbeat_skew`` (conf/provenance/default.yaml)."""
     from resireg_train.runs.provenance import provenance_settings
 
-    return float(provenance_settings()["heartbeat_stale"])
+    return float(provenance_settings()[key])
 
 
 def _pid_alive(pid: int) -> bool:
@@ -107,9 +122,20 @@ class Run:
             pid = machine.get("pid")
             if isinstance(pid, int) and not _pid_alive(pid):
                 return "died"
-        elif heartbeat_stale(self.results, _stale_after()):
+        elif doubt := heartbeat_doubt(self.results, _settings("heartbeat_skew")):
+            problem = f"{self.path / RESULTS_FILE}: {doubt}: listed as {UNKNOWN!r}, not running"
+            if problem not in self.problems:
+                self.problems.append(problem)
+            return UNKNOWN
+        elif heartbeat_stale(self.results, _settings("heartbeat_stale")):
             return "died"
         return status
+
+    @property
+    def may_be_running(self) -> bool:
+        """Whether its job may still run (``running``, or ``unknown``: a heartbeat that cannot
+        tell): what ``gc`` and ``rerun`` leave alone."""
+        return self.status in ("running", UNKNOWN)
 
     def _yaml(self, name: str, kind: type, what: str) -> Any:
         """``.hydra/<name>`` parsed (safe YAML), ``None`` when absent; one that cannot be read

@@ -23,9 +23,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from resireg_train.runs.index import Run
+from resireg_train.runs.record import target_problem
 
 __all__ = [
+    "LIMIT",
     "PlotResult",
     "axes_lines",
     "runs_of",
@@ -62,40 +66,80 @@ def _csv_rows(run: Run) -> tuple[list[str], list[dict[str, str]]]:
         return [], []
 
 
+#: The largest magnitude drawn, a step's or a value's: float32's (every metric a run logs
+#: passes through a float32 tensor or fits one; beyond it, matplotlib's axis arithmetic
+#: overflows and the figure cannot be drawn).
+LIMIT = float(np.finfo(np.float32).max)
+
+
 def _number(text: Any) -> float | None:
+    """``text`` as a number that can be drawn, else ``None`` (not a number, not finite, or
+    beyond :data:`LIMIT`)."""
     try:
         value = float(text)
     except (TypeError, ValueError):
         return None
-    return value if math.isfinite(value) else None
+    return value if math.isfinite(value) and abs(value) <= LIMIT else None
+
+
+def _out_of_range(text: Any) -> bool:
+    """Whether ``text`` is a number that cannot be drawn (not finite, or beyond :data:`LIMIT`),
+    as opposed to an empty cell or a word."""
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        return False
+    return _number(value) is None
+
+
+def _points(
+    run: Run, metric: str, source: str, pairs: list[tuple[Any, Any]]
+) -> tuple[list[float], list[float]]:
+    """The ``(x, y)`` pairs that can be drawn; the others (a NaN, an infinity or a number
+    beyond :data:`LIMIT`, in x or y) left out and named once in ``run.problems``."""
+    xs, ys, dropped = [], [], []
+    for x, y in pairs:
+        fx, fy = _number(x), _number(y)
+        if fx is not None and fy is not None:
+            xs.append(fx)
+            ys.append(fy)
+        elif (fx is not None or _out_of_range(x)) and (fy is not None or _out_of_range(y)):
+            dropped.append(f"step={x} value={y}")
+    if dropped:
+        shown = ", ".join(dropped[:3]) + (f" and {len(dropped) - 3} more" if len(dropped) > 3
+                                           else "")  # fmt: skip
+        problem = (f"run {run.run_id} ({run.path}): {metric}: {len(dropped)} point(s) of {source} "
+                   f"left out, not finite or beyond +-{LIMIT:.3g}: {shown}")  # fmt: skip
+        if problem not in run.problems:
+            run.problems.append(problem)
+    return xs, ys
 
 
 def metric_curve(run: Run, metric: str) -> tuple[list[float], list[float], str] | None:
     """``(steps, values, source)`` of ``metric`` in ``run`` (module docstring: metrics.csv,
-    else the record's history); ``None`` when neither has it. Non-finite values are left
-    out (a gap)."""
+    else the record's history); ``None`` when neither has it. A point whose step or value
+    is not finite or beyond :data:`LIMIT` is left out (a gap), named in ``run.problems``."""
     columns, rows = _csv_rows(run)
     for column in (f"{metric}_step", metric, f"{metric}_epoch"):
         if column not in columns:
             continue
-        points = [(s, v) for r in rows
-                  if (s := _number(r.get("step"))) is not None
-                  and (v := _number(r.get(column))) is not None]  # fmt: skip
-        if points:
-            return [p[0] for p in points], [p[1] for p in points], f"{METRICS_FILE}:{column}"
+        source = f"{METRICS_FILE}:{column}"
+        xs, ys = _points(run, metric, source, [(r.get("step"), r.get(column)) for r in rows])
+        if xs:
+            return xs, ys, source
     # a history row's step counts the steps done; Lightning logs an epoch's values at its
     # last step's index (metrics.csv's step), one less: the same x for both sources
     history = run.results.get("history") or []
-    points = []
+    pairs = []
     for row in history:
         if not isinstance(row, dict):
             continue
-        value, step = _number(row.get(metric)), _number(row.get("step"))
-        x = step - 1 if step is not None else _number(row.get("epoch"))
-        if value is not None and x is not None:
-            points.append((x, value))
-    if points:
-        return [p[0] for p in points], [p[1] for p in points], "results.json:history"
+        step = _number(row.get("step"))
+        x = step - 1 if step is not None else row.get("step", row.get("epoch"))
+        pairs.append((x, row.get(metric)))
+    xs, ys = _points(run, metric, "results.json:history", pairs)
+    if xs:
+        return xs, ys, "results.json:history"
     return None
 
 
@@ -148,7 +192,13 @@ def run_labels(runs: list[Run]) -> list[str]:
 
 
 def _final(run: Run, metric: str) -> float | None:
-    return _number((run.results.get("final") or {}).get(metric))
+    value = (run.results.get("final") or {}).get(metric)
+    if _out_of_range(value):
+        problem = (f"run {run.run_id} ({run.path}): {metric}: the final value {value} left out, "
+                   f"not finite or beyond +-{LIMIT:.3g}")  # fmt: skip
+        if problem not in run.problems:
+            run.problems.append(problem)
+    return _number(value)
 
 
 def plot_runs(
@@ -164,8 +214,11 @@ def plot_runs(
 
     if not runs:
         raise ValueError("no run to plot")
-    metrics = expand_metrics(runs, patterns)
     out = Path(out)
+    for option, path in (("--out", out), ("--html", html)):
+        if path is not None and (problem := target_problem(Path(path), folder=False)):
+            raise ValueError(f"{option} {path}: {problem}")
+    metrics = expand_metrics(runs, patterns)
     labels = run_labels(runs)
     fig, axes = plt.subplots(len(metrics), 1, figsize=(9, 3.2 * len(metrics)), squeeze=False)
     result = PlotResult(files=[out])

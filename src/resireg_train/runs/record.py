@@ -53,9 +53,11 @@ __all__ = [
     "Heartbeat",
     "RunRecord",
     "flat",
+    "heartbeat_doubt",
     "heartbeat_stale",
     "metric_mode",
     "strict_json",
+    "target_problem",
 ]
 
 RESULTS_FILE = "results.json"
@@ -232,6 +234,57 @@ def heartbeat_stale(
     limit = limit if isinstance(limit, (int, float)) and not isinstance(limit, bool) else None
     age = ((now or _utc_now()) - when).total_seconds()
     return age > float(limit if limit is not None else stale_after)
+
+
+def target_problem(path: Path, folder: bool) -> str | None:
+    """Why a command cannot write its output at ``path`` (``None`` when it can), checked
+    before any work: a new run's folder (``folder``) must be absent or empty (another run's
+    otherwise), a file must not be a folder, and no folder above it may be a file."""
+    path = Path(path)
+    if path.is_dir():
+        if not folder:
+            return "a folder, not a file"
+        return "not empty" if any(path.iterdir()) else None
+    if folder and (path.exists() or path.is_symlink()):
+        return "not a folder"
+    for parent in path.absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else f"{parent} is not a folder"
+    return None
+
+
+def heartbeat_doubt(
+    record: Mapping[str, Any], skew: float, now: _dt.datetime | None = None
+) -> str | None:
+    """Why the heartbeat of ``record`` cannot tell whether its job still runs, or ``None``:
+    a ``heartbeat.time`` more than ``skew`` seconds ahead of this machine's clock (another
+    host's clock is wrong: the beat would look fresh for as long), or a
+    ``heartbeat.stale_after`` that is not a finite number > 0 (never stale)."""
+    beat = record.get(HEARTBEAT)
+    if not isinstance(beat, Mapping):
+        return None
+    limit = beat.get("stale_after")
+    if limit is not None and not (isinstance(limit, (int, float)) and not isinstance(limit, bool)
+                                  and math.isfinite(limit) and limit > 0):  # fmt: skip
+        return f"heartbeat.stale_after={limit!r} is not a number of seconds > 0"
+    try:
+        when = _dt.datetime.fromisoformat(str(beat.get("time")))
+    except ValueError:
+        return None
+    if when.tzinfo is None:
+        when = when.replace(tzinfo=_dt.timezone.utc)
+    ahead = (when - (now or _utc_now())).total_seconds()
+    if ahead > skew:
+        return (f"heartbeat.time={beat['time']} is {_span(ahead)} ahead of this machine's clock "
+                f"(more than provenance.heartbeat_skew={skew:g} s)")  # fmt: skip
+    return None
+
+
+def _span(seconds: float) -> str:
+    for unit, size in (("days", 86400), ("hours", 3600), ("minutes", 60)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.1f} {unit}"
+    return f"{seconds:.0f} s"
 
 
 class Heartbeat:

@@ -33,7 +33,7 @@ from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
 from resireg_train.runs.record import RecordError, RunRecord
 
-__all__ = ["command", "register"]
+__all__ = ["check_name", "check_registry", "command", "register", "registry_timeout"]
 
 #: MLflow's limits: a tag value's length, a version description's.
 _TAG_MAX, _DESCRIPTION_MAX = 5000, 5000
@@ -65,6 +65,76 @@ def _lineage(folder: Path) -> dict[str, str]:
     return {k: mask_text(str(v))[:_TAG_MAX] for k, v in tags.items() if v is not None}
 
 
+def registry_timeout(cfg: Any = None) -> float:
+    """How long to wait for the model registry's server: ``logger.mlflow.check_timeout``
+    (``cfg``'s when it has one, else ``conf/logger/mlflow.yaml``'s): the one setting of how long
+    resireg waits for an MLflow server, its tracker's and its registry's."""
+    from resireg.specs.table import compose_conf, conf_dir
+
+    own = None
+    if cfg is not None and hasattr(cfg, "get"):
+        own = ((cfg.get("logger") or {}).get("mlflow") or {}).get("check_timeout")
+    if own is None:
+        own = compose_conf(conf_dir() / "logger", "mlflow")["mlflow"][0]["check_timeout"]
+    return float(own)
+
+
+def check_registry(uri: str | None = None, timeout: float | None = None, what: str = "") -> None:
+    """Refuse at once a model registry that cannot be reached: the server of ``uri`` (else the
+    one MLflow's settings name: ``MLFLOW_REGISTRY_URI``, ``MLFLOW_TRACKING_URI``) must accept a
+    connection within ``timeout`` seconds (:func:`registry_timeout`), the check the trackers
+    make (:func:`resireg_train.runs.trackers.reach`), not MLflow's minutes of retries. A
+    :class:`~resireg.models.vlm.registry.RegistryError` (one line) names it; ``what``: whose
+    registry (``model_path='models:/...'``)."""
+    from resireg.models.vlm.registry import RegistryError
+    from resireg_train.runs.trackers import reach
+
+    if uri is None:
+        import mlflow
+
+        uri = str(mlflow.get_registry_uri() or mlflow.get_tracking_uri())
+    timeout = registry_timeout() if timeout is None else float(timeout)
+    if (why := reach(uri, timeout)) is not None:
+        raise RegistryError(
+            f"{what + ': ' if what else ''}cannot reach the model registry {mask_url(uri)} "
+            f"({why}); start it or set MLFLOW_TRACKING_URI (MLFLOW_REGISTRY_URI) to the one "
+            f"that holds the model (the wait, {timeout:g} s: logger.mlflow.check_timeout)"
+        )
+
+
+def check_name(name: str, alias: str | None = None) -> None:
+    """A registered model's name and alias that MLflow keeps and ``models:/NAME@ALIAS`` (or
+    ``models:/NAME/VERSION``) reads back as the same model; else a :class:`ValueError`
+    naming the option. Checked before anything is written."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.utils import validation  # the rules MLflow's server applies
+
+    from resireg.specs.exports import registry_model
+
+    if name in (".", "..") or "@" in name:
+        raise ValueError(f"--name {name!r}: not a registered model's name ('.', '..' and '@' "
+                         "cannot be read back from models:/NAME@ALIAS)")  # fmt: skip
+    reserved = getattr(validation, "_validate_model_alias_name_reserved", lambda _: None)
+    for option, value, checks in (
+        ("--name", name, (validation._validate_model_name,)),
+        ("--alias", alias, (validation._validate_model_alias_name, reserved)),
+    ):
+        if value is None:
+            continue
+        try:
+            for validate in checks:
+                validate(value)
+        except MlflowException as err:
+            raise ValueError(f"{option} {value!r}: {err.message}") from None
+    uri = f"models:/{name}@{alias}" if alias else f"models:/{name}/1"
+    try:
+        parsed = registry_model(uri)
+    except ValueError as err:
+        raise ValueError(f"--name {name!r}: {err}") from None
+    if parsed is None or parsed[0] != name or parsed[1] != alias:
+        raise ValueError(f"--name {name!r}: {uri} would not read back as this model")
+
+
 def register(
     export: str | Path,
     name: str,
@@ -86,6 +156,7 @@ def register(
     from resireg_train.runs.cards import CARD_FILE
     from resireg_train.runs.trackers import mlflow_key
 
+    check_name(name, alias)  # nothing is written for a name the registry refuses
     folder = Path(export).expanduser().resolve()
     if not folder.is_dir():
         raise ValueError(f"{export}: no such folder (an export: <training run>/export)")
@@ -100,33 +171,43 @@ def register(
     card = (folder / CARD_FILE).read_text() if (folder / CARD_FILE).is_file() else ""
     lineage = _lineage(folder)
 
+    check_registry(tracking_uri, what=f"--name {name}")
     client = MlflowClient(tracking_uri=tracking_uri, registry_uri=tracking_uri)
-    found = client.get_experiment_by_name(experiment)
-    experiment_id = found.experiment_id if found else client.create_experiment(experiment)
+    try:
+        found = client.get_experiment_by_name(experiment)
+        experiment_id = found.experiment_id if found else client.create_experiment(experiment)
+    except MlflowException as err:
+        raise ValueError(f"--experiment {experiment!r}: {err.message}") from None
     tags = {"resireg.export": str(folder), "resireg.registered_as": name, **lineage}
     run_id = client.create_run(experiment_id, run_name=f"register {name}",
                                tags={mlflow_key(k)[:250]: v for k, v in tags.items()}).info.run_id  # fmt: skip
+    # from here on, a failure leaves the registration's run marked FAILED (and says so)
     try:
         for path in files:
             client.log_artifact(run_id, str(path), artifact_path="export")
-    except BaseException:
+        try:
+            client.create_registered_model(name, description=f"ResiregVLM exports ({experiment})")
+        except MlflowException as err:
+            if err.error_code != ErrorCode.Name(RESOURCE_ALREADY_EXISTS):
+                raise
+        version_tags = {DIGESTS_TAG: json.dumps(digests, sort_keys=True),
+                        **{mlflow_key(k)[:250]: v for k, v in lineage.items()
+                           if k.startswith("resireg.")}}  # fmt: skip
+        version = client.create_model_version(
+            name, f"runs:/{run_id}/export", run_id=run_id, tags=version_tags,
+            description=card[:_DESCRIPTION_MAX] or None,
+        )  # fmt: skip
+        if alias:
+            client.set_registered_model_alias(name, alias, version.version)
+    except BaseException as err:
+        client.set_tag(run_id, "resireg.registration", "failed")
         client.set_terminated(run_id, "FAILED")
-        raise
-    client.set_terminated(run_id, "FINISHED")
-    try:
-        client.create_registered_model(name, description=f"ResiregVLM exports ({experiment})")
-    except MlflowException as err:
-        if err.error_code != ErrorCode.Name(RESOURCE_ALREADY_EXISTS):
+        if not isinstance(err, Exception):  # Ctrl-C: marked, then as it came
             raise
-    version_tags = {DIGESTS_TAG: json.dumps(digests, sort_keys=True),
-                    **{mlflow_key(k)[:250]: v for k, v in lineage.items()
-                       if k.startswith("resireg.")}}  # fmt: skip
-    version = client.create_model_version(
-        name, f"runs:/{run_id}/export", run_id=run_id, tags=version_tags,
-        description=card[:_DESCRIPTION_MAX] or None,
-    )  # fmt: skip
-    if alias:
-        client.set_registered_model_alias(name, alias, version.version)
+        why = err.message if isinstance(err, MlflowException) else f"{type(err).__name__}: {err}"
+        raise ValueError(f"--name {name}: the registration failed and its MLflow run {run_id} "
+                         f"is marked FAILED: {' '.join(str(why).split())}") from None  # fmt: skip
+    client.set_terminated(run_id, "FINISHED")
     registry = tracking_uri or mlflow.get_registry_uri()
     return {"name": name, "version": str(version.version), "alias": alias,
             "uri": f"models:/{name}@{alias}" if alias else f"models:/{name}/{version.version}",

@@ -258,9 +258,27 @@ def _refusal(
     if override.is_add():
         return None
     found = OmegaConf.select(composed, key, default=_ABSENT, throw_on_resolution_failure=False)
+    if found is _ABSENT and (raw := _unresolved(composed, key)) is not None:
+        return (
+            f"{key} is {raw}, which Hydra sets when the job starts (the run's own folder: "
+            "a rerun's is --out, a search's job's is under its sweep folder)"
+        )
     if found is _ABSENT and not _required(composed, key):
         return f"resireg-{job}'s config has no such key"
     return None
+
+
+def _unresolved(composed: Any, key: str) -> str | None:
+    """The raw value of ``key`` where it is an interpolation of Hydra's runtime
+    (``${hydra:...}``, e.g. ``paths.output_dir``), which a composed config cannot resolve."""
+    from omegaconf import OmegaConf
+
+    parent, _, last = key.rpartition(".")
+    node = OmegaConf.select(composed, parent, default=None) if parent else composed
+    if not OmegaConf.is_dict(node) or last not in node.keys():
+        return None
+    raw = OmegaConf.to_container(node, resolve=False).get(last)
+    return raw if isinstance(raw, str) and raw.startswith("${hydra:") else None
 
 
 def _required(composed: Any, key: str) -> bool:
