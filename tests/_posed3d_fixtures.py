@@ -123,7 +123,7 @@ def write_nice_replica(root: Path, scene: Scene, name: str = "office0") -> None:
     write_info_semantic(root / "semantic_info" / (name[:-1] + "_" + name[-1]) / "info_semantic.json")
 
 
-def write_hovsg_gt(path: Path, scene: Scene, step: float = 0.05) -> None:
+def write_hovsg_gt(path: Path, scene: Scene, step: float = 0.1) -> None:
     """HOV-SG's labelled points of the room as RayFronts reads them: ``semseg_gt_xyz``
     ``[N, 3]`` float64 and ``semseg_gt_label`` ``[N]`` float64 Replica class ids (0: no
     class), points on a grid over every box face (as HOV-SG repeats the mesh's face

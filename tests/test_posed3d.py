@@ -111,16 +111,22 @@ def _assert_on_boxes(frames, scene, tol=2e-3):
     assert checked > 0.9 * len(frames) * SIZE[0] * SIZE[1]
 
 
+def _vote(keys, columns, width):
+    """{voxel index tuple: votes per column} of integer voxel indices ``[N, 3]``."""
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    votes = np.zeros((len(unique), width), np.int64)
+    np.add.at(votes, (inverse.ravel(), columns), 1)
+    return unique, votes
+
+
 def _reference_voxels(points, labels, voxel, k):
     """{voxel index: class or 255} of labelled points: votes per voxel (255 voting as
     "no label", column 0), argmax, ties to "no label" then the smaller class (RayFronts'
     external rule); ``labels`` int class indices or 255."""
-    votes: dict[tuple, np.ndarray] = {}
-    idx = np.rint(points / voxel).astype(np.int64)
-    col = np.where(labels == 255, 0, labels + 1)
-    for key, c in zip(map(tuple, idx), col, strict=True):
-        votes.setdefault(key, np.zeros(k + 1, np.int64))[c] += 1
-    return {key: (int(np.argmax(n)) - 1 if np.argmax(n) else 255) for key, n in votes.items()}
+    unique, votes = _vote(np.rint(points / voxel).astype(np.int64),
+                          np.where(labels == 255, 0, labels + 1), k + 1)  # fmt: skip
+    best = np.argmax(votes, axis=1)
+    return {tuple(i): (int(b) - 1 if b else 255) for i, b in zip(unique.tolist(), best, strict=True)}
 
 
 def _replica_index(cid):
@@ -133,17 +139,17 @@ def _frame_voxels(files, poses, k_matrix, voxel, k, depth_of, label_of):
     """{voxel index: class} of every frame's labelled pixels, ignored pixels casting no vote
     (``gt_unlabelled=drop``), ties to the smaller class; points cast to float32 as the engine
     holds them."""
-    votes: dict[tuple, np.ndarray] = {}
+    keys, classes = [], []
     k_inv = np.linalg.inv(k_matrix)
     for (depth_file, label_file), pose in zip(files, poses, strict=True):
         depth, label = depth_of(depth_file), label_of(label_file)
         v, u = np.nonzero((depth > 0) & (label != 255))
         cam = (np.stack([u, v, np.ones_like(u)], 1) @ k_inv.T) * depth[v, u][:, None]
         world = (cam @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
-        for key, c in zip(map(tuple, np.rint(world / np.float32(voxel)).astype(np.int64)),
-                          label[v, u], strict=True):  # fmt: skip
-            votes.setdefault(key, np.zeros(k, np.int64))[c] += 1
-    return {key: int(np.argmax(n)) for key, n in votes.items()}
+        keys.append(np.rint(world / np.float32(voxel)).astype(np.int64))
+        classes.append(label[v, u])
+    unique, votes = _vote(np.concatenate(keys), np.concatenate(classes), k)
+    return {tuple(i): int(c) for i, c in zip(unique.tolist(), np.argmax(votes, 1), strict=True)}
 
 
 def _engine_voxels(frames, engine, external=False):
@@ -155,7 +161,7 @@ def _engine_voxels(frames, engine, external=False):
         labels = external_labels(state["gt"].votes, k, 255)
     else:
         labels = torch.argmax(state["gt"].votes, dim=1)
-    return {tuple(i): int(c) for i, c in zip(state["gt"].indices.tolist(), labels, strict=True)}
+    return dict(zip(map(tuple, state["gt"].indices.tolist()), labels.tolist(), strict=True))
 
 
 class _null:
