@@ -318,6 +318,39 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
             rules={**SEGMENTATION_RULES, **_LABELS},
         ),
         DatasetSpec(
+            "replica",
+            "resireg_train.data.replica:build_replica",
+            (*_POSED_OWN, "semantic_info", "gt_path", "classes_to_ignore", *_POSED_READER,
+             *_MAPPING_TASK),
+            ("scannet3d",),
+            "Replica as NICE-SLAM renders it, scored against HOV-SG's ground-truth points "
+            "(RayFronts' NiceReplicaDataset and semseg configs; sweep=replica3d)",
+            check="resireg_train.data.replica:check_replica_spec",
+            rules={**_POSED_RULES, "semantic_info": _OPTIONAL_PATH, "gt_path": _PATH},
+        ),
+        DatasetSpec(
+            "replica_semnerf",
+            "resireg_train.data.replica:build_replica_semnerf",
+            (*_POSED_OWN, "classes_to_ignore", *_POSED_READER, *_MAPPING_TASK),
+            ("scannet3d",),
+            "Replica as Semantic-NeRF renders it, per-frame labels (RayFronts' "
+            "SemanticNerfReplicaDataset)",
+            check="resireg_train.data.replica:check_replica_semnerf_spec",
+            rules=_POSED_RULES,
+        ),
+        DatasetSpec(
+            "tartanair",
+            "resireg_train.data.tartanair:build_tartanair",
+            (*_POSED_OWN, "data_partition", "sequence", "label_file", "depth_cutoff",
+             *_POSED_READER, *_MAPPING_TASK),
+            ("scannet3d",),
+            "TartanAir v2 / TartanGround front camera, per-frame labels (RayFronts' "
+            "TartanAirDataset and semseg configs; sweep=tartanair3d)",
+            check="resireg_train.data.tartanair:check_tartanair_spec",
+            rules={**_POSED_RULES, "data_partition": _NAME, "sequence": _NAME,
+                   "label_file": _NAME, "depth_cutoff": number(0, strict=True, finite=True)},
+        ),
+        DatasetSpec(
             "scannet",
             "resireg_train.data.scannet:build_scannet",
             (
@@ -353,39 +386,6 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
             "ScanNet v2 scenes exported by SensReader (posed RGB-D frames; Table 2)",
             check="resireg_train.data.scannet:check_scannet_spec",
             rules=_SCANNET_RULES,
-        ),
-        DatasetSpec(
-            "replica",
-            "resireg_train.data.replica:build_replica",
-            (*_POSED_OWN, "semantic_info", "gt_path", "classes_to_ignore", *_POSED_READER,
-             *_MAPPING_TASK),
-            ("scannet3d",),
-            "Replica as NICE-SLAM renders it, scored against HOV-SG's ground-truth points "
-            "(RayFronts' NiceReplicaDataset and semseg configs; sweep=replica3d)",
-            check="resireg_train.data.replica:check_replica_spec",
-            rules={**_POSED_RULES, "semantic_info": _OPTIONAL_PATH, "gt_path": _PATH},
-        ),
-        DatasetSpec(
-            "replica_semnerf",
-            "resireg_train.data.replica:build_replica_semnerf",
-            (*_POSED_OWN, "classes_to_ignore", *_POSED_READER, *_MAPPING_TASK),
-            ("scannet3d",),
-            "Replica as Semantic-NeRF renders it, per-frame labels (RayFronts' "
-            "SemanticNerfReplicaDataset)",
-            check="resireg_train.data.replica:check_replica_semnerf_spec",
-            rules=_POSED_RULES,
-        ),
-        DatasetSpec(
-            "tartanair",
-            "resireg_train.data.tartanair:build_tartanair",
-            (*_POSED_OWN, "data_partition", "sequence", "label_file", "depth_cutoff",
-             *_POSED_READER, *_MAPPING_TASK),
-            ("scannet3d",),
-            "TartanAir v2 / TartanGround front camera, per-frame labels (RayFronts' "
-            "TartanAirDataset and semseg configs; sweep=tartanair3d)",
-            check="resireg_train.data.tartanair:check_tartanair_spec",
-            rules={**_POSED_RULES, "data_partition": _NAME, "sequence": _NAME,
-                   "label_file": _NAME, "depth_cutoff": number(0, strict=True, finite=True)},
         ),
     ),
     name="kind",
