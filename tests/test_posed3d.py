@@ -484,3 +484,72 @@ def test_empty_or_missing_folders_name_the_file_the_download_and_the_key(nice, n
     with pytest.raises(FileNotFoundError, match=r"^dataset\.label_file: no label file"):
         TartanAirFrames(troot / "tartan", ["Factory"], "Data_ground", "P0000",
                         "seg_label.json", 100.0, **COMMON)  # fmt: skip
+
+
+# ------------------------------------------------------------------ published figures, report
+def test_published_rows_are_refused_without_source_out_of_range_or_unknown_benchmark(tmp_path):
+    """conf/paper/rayfronts3d.yaml reads (its unconfirmed table named with the reason); a row
+    without a source, with a figure outside 0-100 or a benchmark the file lacks is refused,
+    naming the row."""
+    from resireg_train.report.mapping3d import PUBLISHED_FILE, published_figures
+
+    shipped = published_figures(PUBLISHED_FILE)
+    assert shipped["benchmarks"] == ["replica", "scannet", "tartanair"]
+    assert shipped["rows"] == {} and "could not be opened" in shipped["unconfirmed"][0]["reason"]
+    good = {"source": "Doc, Table 1", "tier": "primary", "replica": {"miou": 30.1, "fmiou": 50}}
+    cases = {
+        "no source": ({**good, "source": ""}, "row 'm': no source"),
+        "out of range": ({**good, "replica": {"miou": 130.0}},
+                         "row 'm': replica.miou=130.0, expected mIoU / f-mIoU points in 0-100"),
+        "unknown benchmark": ({**good, "kitti": {"miou": 3.0}},
+                              "row 'm': benchmark 'kitti' is not in the table's benchmarks"),
+        "tier": ({**good, "tier": "blog"}, "row 'm': tier='blog', expected one of"),
+    }
+    import yaml
+
+    for name, (row, message) in cases.items():
+        path = tmp_path / f"{name.replace(' ', '_')}.yaml"
+        path.write_text(yaml.safe_dump({"benchmarks": ["replica"], "rows": {"m": row}}))
+        with pytest.raises(ValueError) as err:
+            published_figures(path)
+        assert str(err.value).startswith(f"{path.name}: {message}"), name
+    path = tmp_path / "ok.yaml"
+    path.write_text(yaml.safe_dump({"benchmarks": ["replica"], "rows": {"m": good}}))
+    assert published_figures(path)["rows"]["m"]["replica"]["miou"] == 30.1
+
+
+@pytest.mark.slow
+def test_replica3d_sweep_runs_through_resireg_eval_and_the_report_shows_it(nice, tiny_export,
+                                                                          tmp_path):  # fmt: skip
+    """`resireg-eval sweep=replica3d` (the console script, one scene of the fixture, a tiny
+    export), then `resireg-report`: results.json holds the scores under val/scannet3d/replica/
+    and RayFronts' protocol; table3d.md shows them x100 and names the published table it
+    could not transcribe."""
+    import json
+
+    from _run import run
+    from resireg_train.report import report
+
+    root, _ = nice
+    logs = tmp_path / "logs"
+    conf = Path(__file__).parent / "conf"
+    run("resireg-eval", "sweep=replica3d", "encoder=tiny_vlm", f"model_path={tiny_export}",
+        f"dataset.path={root / 'nice'}", f"dataset.gt_path={root / 'gt'}",
+        "dataset.scenes=[office0]", "dataset.frame_skip=1", f"dataset.image_size=[{SIZE[0]},{SIZE[1]}]",
+        "batch_size=3", "full.n_prototypes=4", "num_workers=0", f"paths.log_dir={logs}",
+        f"hydra.searchpath=[file://{conf}]")  # fmt: skip
+    (sweep,) = (logs / "replica3d" / "multirun").iterdir()
+    (results,) = [json.loads(p.read_text()) for p in sweep.glob("*/results.json")]
+    assert results["status"] == "completed" and results["frames"] == {"office0": 3}
+    settings = results["protocol"]["settings"]
+    assert (settings["voxel_size"], settings["knn"], settings["prompt_denoising"]) == (0.05, 5, 0.5)
+    miou = results["final"]["val/scannet3d/replica/miou_full"]
+    files = report(sweep)
+    import pandas as pd
+
+    row = pd.read_csv(files["table3d_csv"]).iloc[0]
+    assert row["model"] == "tiny_vlm + Full"
+    assert row["replica mIoU"] == pytest.approx(100 * miou, abs=1e-9)
+    text = files["table3d_md"].read_text()
+    assert text.startswith("# 3D semantic mapping on replica ")
+    assert "not transcribed: RayFronts' zero-shot 3D semantic segmentation table" in text
