@@ -27,6 +27,11 @@ a :class:`~resireg.mapping.LabelVoxelMap` of the same lattice. ``gt_unlabelled``
 - ``vote``: ignored pixels vote as one more class; a voxel they win (argmax) is not scored;
 - ``drop``: ignored pixels cast no vote.
 
+A dataset whose ground truth is labelled points rather than frames (``ground_truth =
+"external"``: Replica's HOV-SG points, :mod:`resireg_train.data.replica`) gives them per scene
+(``scene_ground_truth``); they vote in the same lattice and are labelled by RayFronts'
+``load_externel_semseg_gt`` rule (:func:`external_labels`), and its frames carry no labels.
+
 At scene end each variant's voxel features are classified against the class text prototypes
 (the OVSS task's text path: 80 templates, ``text_features`` once, ``dense_text``, averaged;
 cosine argmax, or RayFronts' rule with ``prediction_threshold`` / ``prompt_denoising``), the
