@@ -297,6 +297,9 @@ def test_semnerf_replica_reads_labels_and_lifts_them_like_numpy(ninety):
     root, scene = ninety
     frames = _semnerf(root)
     assert frames.classes == REPLICA_SCORED and len(frames) == 6
+    whole = SemanticNerfReplicaFrames(root / "semnerf", ["office_0"], list(REPLICA_IGNORED),
+                                      **COMMON)  # a scene without a sequence: all of them
+    assert [f.color for f in whole.frames] == [f.color for f in frames.frames]
     _assert_on_boxes(frames, scene)
     engine = MappingEngine(frames, batch_size=3, **_protocol(gt_unlabelled="drop", knn=0,
                            voxel_size=0.1, prediction_threshold=None, prompt_denoising=None))  # fmt: skip
