@@ -243,6 +243,12 @@ def test_many_configurations_in_one_pass_equal_separate_runs(vlm):
     [
         (["task=scannet3d", "dataset=scannet", "dataset.path=/nonexistent/scannet"],
          FileNotFoundError, r"dataset\.path='/nonexistent/scannet': no such folder"),
+        (["task=scannet3d", "dataset=replica", "dataset.path=/nonexistent/replica"],
+         FileNotFoundError, r"dataset\.path: no folder '/nonexistent/replica' \(download: "
+         r"NICE-SLAM's Replica, .*\); set dataset\.path$"),
+        (["task=scannet3d", "dataset=tartanair", "dataset.path=/nonexistent/tartanair"],
+         FileNotFoundError, r"dataset\.path: no folder '/nonexistent/tartanair' \(download: "
+         r"TartanGround"),
         (["dataset=orad3d", "dataset.path=/nonexistent/orad"],
          FileNotFoundError, r"dataset\.path='/nonexistent/orad': no /nonexistent/orad/"),
         (["dataset=ade20k", "dataset.path=./no/such/ade"],

@@ -538,7 +538,8 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
             if function is not None:
                 assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS), name
         assert spec.summary and (spec.detect or not spec.always), name
-    assert section_names() == ("table1", "table2", "prototype_grid", "layer_sweep", "ovss8")
+    assert section_names() == ("table1", "table2", "table3d", "prototype_grid", "layer_sweep",
+                               "ovss8")
     assert ENCODER_SWEEPS == ("table1", "table2")
 
 

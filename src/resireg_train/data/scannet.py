@@ -437,11 +437,13 @@ class ScanNetFrames(torch.utils.data.Dataset):
 
 def collate_frames(items: list[dict[str, Any] | SkippedSample]) -> dict[str, Any]:
     """Stack the frames of a batch (all of one scene and size); ``skipped`` lists the
-    batch's :class:`SkippedSample` records; tensors are ``None`` when all were skipped."""
+    batch's :class:`SkippedSample` records; tensors are ``None`` when all were skipped (and
+    ``gt_label`` when the frames carry none)."""
     kept = [item for item in items if not isinstance(item, SkippedSample)]
     out: dict[str, Any] = {"skipped": [i for i in items if isinstance(i, SkippedSample)]}
     for name in ("image", "depth", "intrinsics", "gt_label", "gt_depth", "gt_intrinsics", "pose"):
-        out[name] = torch.stack([item[name] for item in kept]) if kept else None
+        # gt_label is absent where the ground truth is not lifted from frames (Replica's)
+        out[name] = torch.stack([item[name] for item in kept]) if kept and name in kept[0] else None
     for name in ("scene", "frame", "index"):
         out[name] = [item[name] for item in kept]
     return out

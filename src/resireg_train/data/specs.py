@@ -124,6 +124,27 @@ _SCANNET_RULES: dict[str, Rule] = {
     "protocol": (lambda v: isinstance(v, str) and bool(v), "a name for the protocol"),
 }  # fmt: skip
 
+#: The keys the posed RGB-D benchmarks beside ScanNet share (Replica, TartanAir:
+#: resireg_train.data.posed3d): the entry's own, the frame reader's and the 3D task's
+#: (resireg_train.evaluation.mapping.engine.TASK_KEYS).
+_POSED_OWN = ("name", "kind", "path", "scenes", "protocol")
+_POSED_READER = ("frame_skip", "image_size", "short_side", "resize", "intrinsics", "limit")
+_MAPPING_TASK = ("voxel_size", "lattice", "gt_unlabelled", "points", "storage", "knn",
+                 "prediction_threshold", "prompt_denoising", "metric")  # fmt: skip
+_NAME: Rule = (lambda v: isinstance(v, str) and bool(v), "a non-empty name")
+_PATH: Rule = (lambda v: isinstance(v, str) and bool(v), "a folder path")
+_OPTIONAL_PATH: Rule = (lambda v: v is None or (isinstance(v, str) and bool(v)),
+                        "null or a folder path")  # fmt: skip
+#: The value rules of those keys (ScanNet's rules of the same keys; scene names are free).
+_POSED_RULES: dict[str, Rule] = {
+    k: v for k, v in _SCANNET_RULES.items()
+    if k in {*_POSED_OWN, *_POSED_READER, *_MAPPING_TASK, "classes_to_ignore"}
+}  # fmt: skip
+_POSED_RULES["scenes"] = (
+    lambda v: isinstance(v, list) and len(v) > 0 and all(isinstance(x, str) and x for x in v),
+    "a non-empty list of scene names",
+)
+
 #: How predictions reach a label's resolution (``upsample``): ``nearest``, the argmax at the
 #: feature grid brought to the label by nearest upsampling (the paper's); ``bilinear``, the logits
 #: resized bilinearly (``align_corners=False``) to the input, then to the label, before the argmax
@@ -295,6 +316,39 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
             "Cityscapes val, 19 classes (leftImg8bit/, gtFine/ train ids or label ids)",
             check="resireg_train.data.cityscapes:check_cityscapes_source",
             rules={**SEGMENTATION_RULES, **_LABELS},
+        ),
+        DatasetSpec(
+            "replica",
+            "resireg_train.data.replica:build_replica",
+            (*_POSED_OWN, "semantic_info", "gt_path", "classes_to_ignore", *_POSED_READER,
+             *_MAPPING_TASK),
+            ("scannet3d",),
+            "Replica as NICE-SLAM renders it, scored against HOV-SG's ground-truth points "
+            "(RayFronts' NiceReplicaDataset and semseg configs; sweep=replica3d)",
+            check="resireg_train.data.replica:check_replica_spec",
+            rules={**_POSED_RULES, "semantic_info": _OPTIONAL_PATH, "gt_path": _PATH},
+        ),
+        DatasetSpec(
+            "replica_semnerf",
+            "resireg_train.data.replica:build_replica_semnerf",
+            (*_POSED_OWN, "classes_to_ignore", *_POSED_READER, *_MAPPING_TASK),
+            ("scannet3d",),
+            "Replica as Semantic-NeRF renders it, per-frame labels (RayFronts' "
+            "SemanticNerfReplicaDataset)",
+            check="resireg_train.data.replica:check_replica_semnerf_spec",
+            rules=_POSED_RULES,
+        ),
+        DatasetSpec(
+            "tartanair",
+            "resireg_train.data.tartanair:build_tartanair",
+            (*_POSED_OWN, "data_partition", "sequence", "label_file", "depth_cutoff",
+             *_POSED_READER, *_MAPPING_TASK),
+            ("scannet3d",),
+            "TartanAir v2 / TartanGround front camera, per-frame labels (RayFronts' "
+            "TartanAirDataset and semseg configs; sweep=tartanair3d)",
+            check="resireg_train.data.tartanair:check_tartanair_spec",
+            rules={**_POSED_RULES, "data_partition": _NAME, "sequence": _NAME,
+                   "label_file": _NAME, "depth_cutoff": number(0, strict=True, finite=True)},
         ),
         DatasetSpec(
             "scannet",

@@ -132,7 +132,8 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
             "frame",
             prior=False,
             layers=False,
-            summary="3D semantic mapping of ScanNet scenes (dataset=scannet; Table 2)",
+            summary="3D semantic mapping of ScanNet scenes (dataset=scannet; Table 2), Replica "
+            "and TartanAir (sweep=replica3d, sweep=tartanair3d)",
             # docs/protocol.md section 4 (conf/dataset/scannet.yaml)
             protocol_keys=(
                 "frame_skip",
@@ -152,6 +153,11 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
                 "metric",
                 "class_names",
                 "classes_to_ignore",
+                # TartanAir's (conf/dataset/tartanair.yaml)
+                "data_partition",
+                "sequence",
+                "label_file",
+                "depth_cutoff",
             ),  # fmt: skip
             report="table2",
         ),

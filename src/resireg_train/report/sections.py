@@ -94,6 +94,12 @@ REPORT_SECTIONS: SpecTable[SectionSpec] = SpecTable(
             detect=f"{_TABLES}:is_table2", encoders=True,
         ),
         SectionSpec(
+            "table3d", "resireg_train.report.mapping3d:table3d_section",
+            "3D mapping on Replica / TartanAir (encoder x variant) beside RayFronts' published "
+            "figures (conf/paper/rayfronts3d.yaml): table3d.csv / .md",
+            detect="resireg_train.report.mapping3d:is_table3d",
+        ),
+        SectionSpec(
             "prototype_grid", "resireg_train.report.prototypes:prototype_grid_section",
             "batch size x prototype count of ReSiReg Full (heatmap.png) and the fitted "
             "prototype heuristic (prototype_heuristic.json)",

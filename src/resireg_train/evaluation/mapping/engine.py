@@ -27,6 +27,11 @@ a :class:`~resireg.mapping.LabelVoxelMap` of the same lattice. ``gt_unlabelled``
 - ``vote``: ignored pixels vote as one more class; a voxel they win (argmax) is not scored;
 - ``drop``: ignored pixels cast no vote.
 
+A dataset whose ground truth is labelled points rather than frames (``ground_truth =
+"external"``: Replica's HOV-SG points, :mod:`resireg_train.data.replica`) gives them per scene
+(``scene_ground_truth``); they vote in the same lattice and are labelled by RayFronts'
+``load_externel_semseg_gt`` rule (:func:`external_labels`), and its frames carry no labels.
+
 At scene end each variant's voxel features are classified against the class text prototypes
 (the OVSS task's text path: 80 templates, ``text_features`` once, ``dense_text``, averaged;
 cosine argmax, or RayFronts' rule with ``prediction_threshold`` / ``prompt_denoising``), the
@@ -310,6 +315,17 @@ def ground_truth_labels(gt: LabelVoxelMap, rule: str, num_classes: int, ignore: 
     return torch.where(votes[:, :k].sum(1) == 0, ignore, label)
 
 
+def external_labels(votes: Tensor, num_classes: int, ignore: int) -> Tensor:
+    """The labels of ground-truth voxels read from labelled points (Replica's HOV-SG file,
+    :meth:`resireg_train.data.posed3d.PosedFrames.scene_ground_truth`): RayFronts'
+    ``load_externel_semseg_gt``: the one-hot votes summed per voxel, "no label" (the last of
+    ``votes``' ``K + 1`` columns here, RayFronts' index 0) put first, argmax: ties go to "no
+    label", then to the smaller class; ``ignore`` where "no label" wins."""
+    k = num_classes
+    label = torch.argmax(torch.cat([votes[:, k:], votes[:, :k]], dim=1), dim=1) - 1
+    return torch.where(label < 0, ignore, label)
+
+
 class MappingEngine(EvalEngine):
     """3D semantic mapping of a :class:`ScanNetFrames` set (module docstring).
 
@@ -409,9 +425,10 @@ class MappingEngine(EvalEngine):
 
     def _start_scene(self, scene: int, variants, device: torch.device) -> dict[str, Any]:
         k = len(self.dataset.classes)
-        with_ignored = self.protocol.gt_unlabelled in ("rayfronts", "vote")
+        external = getattr(self.dataset, "ground_truth", "frames") == "external"
+        with_ignored = external or self.protocol.gt_unlabelled in ("rayfronts", "vote")
         p = self.protocol
-        return {
+        state = {
             "scene": scene,
             "name": self.dataset.scenes[scene],
             "maps": {  # one map per variant: the fusion a robot's SemanticMap.add runs
@@ -436,6 +453,11 @@ class MappingEngine(EvalEngine):
                 lattice=self.protocol.lattice,
             ),  # fmt: skip
         }
+        if external:  # the scene's labelled points, "no label" voting as class K
+            points, labels = self.dataset.scene_ground_truth(scene)
+            labels = torch.where(labels == self.dataset.ignore_index, k, labels)
+            state["gt"].add(points.to(device), labels.to(device))
+        return state
 
     def _map_batch(self, encoder, batch, variants, state, timed) -> str | None:
         """Fuse one batch into every variant's map and its labels into the ground truth;
@@ -458,6 +480,8 @@ class MappingEngine(EvalEngine):
                 dense = apply_variant(variant, out.intermediates, out.language, shared=shared)
             with timed("fusion"), _fp32(device):
                 state["maps"][name].fuse(dense, depth, k_img, pose, lifted=lifted)
+        if batch["gt_label"] is None:  # the ground truth is the dataset's own (external)
+            return None
         with timed("ground_truth"), _fp32(device):
             label = batch["gt_label"].to(device)
             points, valid = unproject(
@@ -474,7 +498,10 @@ class MappingEngine(EvalEngine):
         ignore = self.dataset.ignore_index
         p = self.protocol
         with timed("metric"), _fp32(torch.device(state["gt"].device)):
-            gt = ground_truth_labels(state["gt"], p.gt_unlabelled, k, ignore)
+            if getattr(self.dataset, "ground_truth", "frames") == "external":
+                gt = external_labels(state["gt"].votes, k, ignore)
+            else:
+                gt = ground_truth_labels(state["gt"], p.gt_unlabelled, k, ignore)
             result.voxels[state["name"]] = int((gt != ignore).sum())
             for name, vmap in state["maps"].items():
                 vmap.fit_pending()  # a compact map of a short scene: its basis on what it saw

@@ -1,4 +1,5 @@
-"""``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet scenes as a task protocol
+"""``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet, Replica or TartanAir scenes
+(the dataset table's kinds scored by ``scannet3d``, each read by its own builder) as a task protocol
 (:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``scannet3d`` of
 :data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine
 :class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
@@ -15,7 +16,7 @@ from typing import Any
 from torch import nn
 
 from resireg.models import DenseEncoder
-from resireg_train.data.scannet import build_scannet, check_scannet_spec
+from resireg_train.data.specs import check_dataset_keys
 from resireg_train.evaluation.base import TaskProtocol
 from resireg_train.evaluation.engine import StageTimer
 from resireg_train.evaluation.mapping.engine import MappingEngine, MappingResult, MappingSettings
@@ -30,12 +31,18 @@ class ScanNet3DProtocol(TaskProtocol):
     """3D semantic mapping of the configured ScanNet scenes (module docstring)."""
 
     def check(self, variants: Mapping[str, nn.Module]) -> None:
-        check_scannet_spec(self.params["dataset"], "dataset")
+        """The dataset kind's own source check (the dataset table's ``check``: ScanNet,
+        Replica, TartanAir), before the encoder loads."""
+        entry = check_dataset_keys(self.params["dataset"], "dataset")
+        source_check = entry.load_check()
+        if source_check is not None:
+            source_check(self.params["dataset"], "dataset")
         super().check(variants)
 
     def build(self, encoder: DenseEncoder, variants: Mapping[str, nn.Module]) -> dict[str, Any]:
         spec = self.params["dataset"]
-        self.dataset = build_scannet(spec, encoder.input_rule.patch_size, key="dataset")
+        builder = check_dataset_keys(spec, "dataset").load()  # the kind's (the dataset table)
+        self.dataset = builder(spec, encoder.input_rule.patch_size, key="dataset")
         self.classes = self.dataset.classes
         self.engine = MappingEngine(self.dataset, int(self.cfg.batch_size),
                                   MappingSettings.from_spec(spec),
