@@ -40,11 +40,15 @@ from resireg_train.cli.job import (
     error_text,
     hydra_entry_point,
     instantiate_group,
-    process_rank,
     run_task,
     top_level_keys,
 )
-from resireg_train.config.machine import check_available, check_devices
+from resireg_train.config.machine import (
+    check_available,
+    check_cluster,
+    check_devices,
+    config_rank,
+)
 from resireg_train.config.moves import current_keys, current_targets
 from resireg_train.config.train import validate
 from resireg_train.runs.record import RunRecord, masked_tree
@@ -60,9 +64,9 @@ log = logging.getLogger(__name__)
 # --cfg job and a bad value answer without them (README, "Start-up").
 
 
-def _process_rank() -> int:
-    """This process's global rank (:func:`~resireg_train.cli.job.process_rank`)."""
-    return process_rank()
+def _process_rank(cfg: DictConfig) -> int:
+    """This process's global rank (:func:`~resireg_train.config.machine.config_rank`)."""
+    return config_rank(cfg)
 
 
 def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
@@ -93,7 +97,7 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     """
     body = functools.partial(_fit, callbacks=callbacks)
     out = Path(cfg.paths.output_dir)
-    rank_zero = _process_rank() == 0
+    rank_zero = _process_rank(cfg) == 0
     if rank_zero and cfg.ckpt_path is None:
         _refuse_occupied(out)  # (a single run's folder was checked before Hydra wrote to it)
     if HydraConfig.initialized():
@@ -200,7 +204,7 @@ class RunFolderCheck(Callback):
     and run id); ranks > 0 of a DDP run re-launched by Lightning skip the check."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        if _process_rank() != 0:
+        if _process_rank(config) != 0:
             return
         out = Path(str(config.hydra.run.dir))
         try:
@@ -240,6 +244,7 @@ def _fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) ->
     validate(cfg, added_keys(), top_level_keys("train") if HydraConfig.initialized() else None)
     check_available(cfg)
     check_devices(cfg)
+    check_cluster(cfg)
     import hydra
     import lightning as L
     from lightning.pytorch.callbacks import ProgressBar

@@ -1,0 +1,38 @@
+"""Callbacks that DDP tests load into real runs (``+callbacks.<name>._target_=_ddp.<Class>``,
+tests/ on PYTHONPATH): what each rank read, and a rank that dies."""
+
+import json
+import os
+from pathlib import Path
+
+import lightning as L
+
+
+class SeenCaptions(L.Callback):
+    """Writes ``<folder>/seen-<global rank>.json``: per epoch, the captions of every sample
+    this rank trained on (in order), so a test counts them across ranks."""
+
+    def __init__(self, folder: str) -> None:
+        self.folder, self.seen = Path(folder), {}
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        self.seen.setdefault(str(trainer.current_epoch), []).extend(batch["caption"])
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / f"seen-{trainer.global_rank}.json"
+        path.write_text(json.dumps({"world_size": trainer.world_size, "seen": self.seen}))
+
+
+class DieAt(L.Callback):
+    """Global rank ``rank`` ends its process at once (``os._exit``, no clean-up: a crash, an
+    out-of-memory kill) at training batch ``batch`` of trial ``trial`` of a search (any run
+    when ``trial`` is None)."""
+
+    def __init__(self, rank: int, batch: int = 1, trial: int | None = None, number=None) -> None:
+        self.rank, self.batch, self.trial, self.number = rank, batch, trial, number
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if (trainer.global_rank == self.rank and batch_idx == self.batch
+                and (self.trial is None or self.trial == self.number)):  # fmt: skip
+            os._exit(3)
