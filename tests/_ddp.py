@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import lightning as L
+import optuna
 
 
 class SeenCaptions(L.Callback):
@@ -36,3 +37,14 @@ class DieAt(L.Callback):
         if (trainer.global_rank == self.rank and batch_idx == self.batch
                 and (self.trial is None or self.trial == self.number)):  # fmt: skip
             os._exit(3)
+
+
+class PruneNumber(optuna.pruners.BasePruner):
+    """Prunes trial ``number`` at its first report, and no other: a pruned trial that does
+    not depend on the scores."""
+
+    def __init__(self, number: int) -> None:
+        self.number = number
+
+    def prune(self, study, trial) -> bool:
+        return trial.number == self.number

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -540,3 +541,121 @@ def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path)
     assert sorted(t.params["x"] for t in waiting) == sorted(
         trials[numbers[n]].params["x"] for n in ("silent", "exited")
     )
+
+
+# ----------------------------------------------------------------------------- DDP trials
+TESTS = Path(__file__).parent
+
+
+def _with_tests(env=None):
+    """This environment with tests/ importable (_ddp.py: a pruner and a dying rank)."""
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS), env.get("PYTHONPATH", "")])
+    return env
+
+
+def _ddp_search(sweep, strategy, *extra):
+    """A 3-trial stage-1 search on the smoke experiment, 2 epochs of 2 steps, each trial on 2
+    CPU processes over gloo with ``strategy``; the pruner prunes trial 2 at its first report
+    (_ddp.PruneNumber: whatever the scores)."""
+    return ("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+            "hparams_search.n_trials=3", "trainer.max_epochs=2", "data.steps_per_epoch=2",
+            "callbacks.resireg_eval.batch_size=3", f"+trainer.strategy={strategy}",
+            "trainer.devices=2", "hydra.sweeper.pruner._target_=_ddp.PruneNumber",
+            "+hydra.sweeper.pruner.number=2", "~hydra.sweeper.pruner.n_startup_trials",
+            "~hydra.sweeper.pruner.n_warmup_steps", f"hydra.sweep.dir={sweep}", *extra)  # fmt: skip
+
+
+def _processes_of(sweep):
+    """The live processes whose command line names ``sweep`` (a trial's ranks do)."""
+    import psutil
+
+    found = []
+    for proc in psutil.process_iter(["cmdline", "status"]):
+        if proc.info["status"] != psutil.STATUS_ZOMBIE and str(sweep) in " ".join(
+            proc.info["cmdline"] or ()
+        ):
+            found.append(proc)
+    return found
+
+
+def _check_ddp_search(sweep, states):
+    """The trials' states; COMPLETE ones reported both epochs, the PRUNED one its first only
+    (every rank stopped after it: its record has one epoch), folders recording the same."""
+    study = _study(sweep, "stage1_optuna")
+    trials = study.get_trials()
+    assert [t.state.name for t in trials] == states
+    records = {t.number: json.loads((Path(t.user_attrs["run_dir"]) / "results.json").read_text())
+               for t in trials}  # fmt: skip
+    for trial in trials:
+        record = records[trial.number]
+        if trial.state == TrialState.COMPLETE:
+            assert list(trial.intermediate_values) == [0, 1]
+            assert record["status"] == "completed" and record["history"][-1]["step"] == 4
+            assert record["best"][METRIC]["value"] == pytest.approx(trial.value)
+        elif trial.state == TrialState.PRUNED:
+            assert list(trial.intermediate_values) == [0]
+            assert record["status"] == "pruned" and "pruned by PruneNumber after epoch 0" in (
+                record["error"])  # fmt: skip
+            assert [row["epoch"] for row in record["history"]] == [0]
+            assert record["history"][0]["step"] == 2  # both ranks stopped after epoch 0
+    return trials, records
+
+
+@pytest.mark.slow
+def test_a_search_of_ddp_trials_prunes_on_every_rank_and_survives_a_dead_rank(tmp_path):
+    """trainer=ddp (Lightning's re-launching strategy) under a search, 2 ranks per trial: the
+    worker starts each trial's ranks (the search's command line is never re-launched). Trial
+    1's rank 1 dies mid-epoch (os._exit): the trial is FAIL with one line naming rank 1, the
+    search goes on; trial 2 is pruned after epoch 0 on both ranks; trial 0 completes. No
+    rank of any trial is left running."""
+    sweep = tmp_path / "sweep"
+    die = ("+callbacks.die._target_=_ddp.DieAt", "+callbacks.die.rank=1",
+           "+callbacks.die.trial=1", "+callbacks.die.number=${hparams_search.trial}")  # fmt: skip
+    proc = run(*_ddp_search(sweep, "ddp", *die), env=_with_tests(), threads=1, timeout=1500)
+    assert not _processes_of(sweep)
+    trials, records = _check_ddp_search(sweep, ["COMPLETE", "FAIL", "PRUNED"])
+    error = records[1]["error"]
+    assert records[1]["status"] == "failed" and "\n" not in error
+    assert re.search(r"TrialRankFailed: trial 1: rank 1 \(PID \d+\) of its DDP run exited "
+                     r"with code 3; the other ranks were stopped", error), error  # fmt: skip
+    # the search's last lines: one per failed job, this one naming the rank
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("  job 1 (")]
+    assert len(lines) == 1 and "rank 1 (PID" in lines[0], proc.stderr[-3000:]
+    assert "1 of 3 jobs failed" in proc.stderr
+
+
+@pytest.mark.slow
+def test_a_search_of_ddp_spawn_trials_prunes_on_every_rank(tmp_path):
+    """The same search with ddp_spawn (Lightning spawns the ranks in the trial's job): the
+    pruned trial is PRUNED (rank 0's decision reaches the spawning process through the
+    trial), the others complete; nothing is left running."""
+    sweep = tmp_path / "sweep"
+    run(*_ddp_search(sweep, "ddp_spawn"), env=_with_tests(), threads=1, timeout=1500)
+    assert not _processes_of(sweep)
+    _check_ddp_search(sweep, ["COMPLETE", "COMPLETE", "PRUNED"])
+
+
+def test_a_worker_whose_trainer_differs_from_the_study_is_refused(tmp_path):
+    """A search's first process notes its trainer in the study; a worker started on the same
+    study with another trainer setting is refused in one line naming the key and both values,
+    before it asks a trial (no trial asked: n_trials=0 runs none)."""
+    sweep = tmp_path / "sweep"
+    run("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+        "hparams_search.n_trials=0", f"hydra.sweep.dir={sweep}", threads=1)  # fmt: skip
+    proc = subprocess.run(
+        [shutil.which("resireg-search") or sys.executable,
+         *([] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+         "worker", str(sweep), "trainer.max_epochs=3", "trainer.devices=2"],
+        capture_output=True, text=True, timeout=300,
+        env={**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    refusal = [line for line in proc.stderr.splitlines() if "differs from the one study" in line]
+    assert refusal == [
+        "this worker's trainer differs from the one study 'stage1_optuna' trains its trials "
+        "with: trainer.devices=2 (the study's: 1); trainer.max_epochs=3 (the study's: 6); every "
+        "worker of a search trains alike: start it with the search's trainer settings, or start "
+        "a new search (another hydra.sweep.dir or study)"
+    ], proc.stderr
+    assert _study(sweep, "stage1_optuna").get_trials() == []

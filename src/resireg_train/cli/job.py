@@ -358,6 +358,7 @@ def _reported_types() -> tuple[type[BaseException], ...]:
         ("resireg_train.runs.trackers", "TrackerUnreachable"),
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation.base", "NothingScoredError"),
+        ("resireg_train.sweeps.ranks", "TrialRankFailed"),
         ("resireg.models.hub", "WeightsUnavailableError"),
         ("resireg.models.vlm.registry", "RegistryError"),
     ):
