@@ -174,3 +174,29 @@ def test_a_node_rank_beyond_the_node_count_is_refused_before_any_work(tmp_path):
         "count"
     ], proc.stderr
     assert not out.exists()
+
+
+_RANK_VARIABLES = ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "LOCAL_WORLD_SIZE",
+                   "SLURM_PROCID", "JSM_NAMESPACE_RANK")  # fmt: skip
+
+
+@pytest.mark.parametrize(("env", "per_node", "rank"), [
+    ({}, None, 0),
+    ({"NODE_RANK": "1", "LOCAL_RANK": "0"}, None, 1),  # node 1 of 2 one-process nodes
+    ({"NODE_RANK": "1", "LOCAL_RANK": "1"}, 4, 5),  # trainer.devices=4
+    ({"GROUP_RANK": "2", "LOCAL_RANK": "1", "LOCAL_WORLD_SIZE": "2"}, None, 5),
+    ({"RANK": "6", "LOCAL_RANK": "0", "NODE_RANK": "3"}, 2, 6),  # torchrun's RANK first
+    ({"SLURM_PROCID": "3"}, None, 3),  # srun's task
+    ({"SLURM_PROCID": "0", "LOCAL_RANK": "1"}, 2, 1),  # Lightning re-launched it in a SLURM step
+    ({"JSM_NAMESPACE_RANK": "2"}, None, 2),
+])  # fmt: skip
+def test_the_global_rank_comes_from_the_cluster_environment(monkeypatch, env, per_node, rank):
+    """Every launcher's variables give the global rank (by hand: node rank * processes per
+    node + local rank); LOCAL_RANK alone no longer makes every node's first process rank 0."""
+    from resireg_train.config.machine import process_rank
+
+    for name in _RANK_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    assert process_rank(per_node) == rank

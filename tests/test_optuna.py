@@ -659,3 +659,27 @@ def test_a_worker_whose_trainer_differs_from_the_study_is_refused(tmp_path):
         "a new search (another hydra.sweep.dir or study)"
     ], proc.stderr
     assert _study(sweep, "stage1_optuna").get_trials() == []
+
+
+@pytest.mark.slow
+def test_a_search_of_trials_on_two_nodes_through_a_launcher(tmp_path):
+    """trainer.num_nodes=2 under a search: refused before the first trial without a launcher;
+    with one (RESIREG_SEARCH_TRIAL_LAUNCHER: here _fake_srun.py, which starts each trial's 2
+    tasks with SLURM's variables as srun starts one task per node) each trial runs on its 2
+    "nodes" (Lightning's SLURM environment), trial 1 is pruned on both, trial 0 completes."""
+    sweep = tmp_path / "sweep"
+    search = [*_ddp_search(sweep, "ddp"), "trainer.devices=1", "+trainer.num_nodes=2",
+              "hparams_search.n_trials=2", "+hydra.sweeper.pruner.number=1"]  # fmt: skip
+    search = [a for a in search if a not in ("trainer.devices=2", "+hydra.sweeper.pruner.number=2",
+                                             "hparams_search.n_trials=3")]  # fmt: skip
+    refused = run(*search, check=False, env=_with_tests(), threads=1, timeout=300)
+    assert refused.returncode != 0 and "Traceback" not in refused.stderr
+    assert ("refused before the first trial: trainer.num_nodes=2: a trial on several nodes "
+            "needs a launcher") in refused.stderr  # fmt: skip
+    launcher = f"{sys.executable} {TESTS / '_fake_srun.py'} 2"
+    env = _with_tests({**os.environ, "RESIREG_SEARCH_TRIAL_LAUNCHER": launcher})
+    run(*search, env=env, threads=1, timeout=1500)
+    assert not _processes_of(sweep)
+    trials, records = _check_ddp_search(sweep, ["COMPLETE", "PRUNED"])
+    for record in records.values():
+        assert record["history"][0]["step"] == 2  # 2 steps per epoch on each node

@@ -145,28 +145,34 @@ def _run_trial_ranks(cfg: DictConfig, out: Path) -> dict[str, Any]:
     an error naming the first rank that failed (recorded as the run's error) or the record's
     own error."""
     from resireg_train.sweeps.pruning import TrialPrunedStop
-    from resireg_train.sweeps.ranks import TrialRankFailed, local_processes, run_ranks
+    from resireg_train.sweeps.ranks import (
+        TRIAL_LAUNCHER_ENV,
+        TrialRankFailed,
+        local_processes,
+        run_ranks,
+        trial_nodes_problem,
+    )
 
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
     number = cfg.hparams_search.trial
-    nodes = int(trainer.get("num_nodes") or 1)
-    if nodes > 1:
-        raise ConfigError(
-            f"trainer.num_nodes={nodes}: a search trial runs on its worker's machine (its "
-            "ranks started by the worker); run one worker per node group instead, e.g. one "
-            "resireg-search worker per SLURM job, each with trainer.num_nodes=1"
-        )
+    if problem := trial_nodes_problem(trainer):
+        raise ConfigError(problem)  # (the search refuses it before its first trial)
     runtime = HydraConfig.get()
     sweeper = [o for o in runtime.overrides.hydra if o.lstrip("+~").startswith("hydra.sweeper.")]
     common = [sys.executable, "-m", "resireg_train.cli.train", *runtime.overrides.task, *sweeper,
               f"hydra.sweep.dir={_hydra_quoted(Path(runtime.sweep.dir).resolve())}",
               f"hydra.run.dir={_hydra_quoted(out.resolve())}", "hydra.mode=RUN",
               "hydra.output_subdir=null"]  # fmt: skip
-    ranks = local_processes(trainer)
-    commands = [common + ([f"hydra.job.name=train_ddp_process_{k}"] if k else [])
-                for k in range(ranks)]  # fmt: skip
-    log.info("trial %s: %d ranks of its DDP run started by this worker", number, ranks)
-    failure = run_ranks(commands, os.environ)
+    launcher = os.environ.get(TRIAL_LAUNCHER_ENV)
+    if launcher:  # it starts every rank, on every node
+        log.info("trial %s: its DDP run started by %s", number, launcher)
+        failure = run_ranks([shlex.split(launcher) + common], os.environ, ranks=False)
+    else:
+        ranks = local_processes(trainer)
+        commands = [common + ([f"hydra.job.name=train_ddp_process_{k}"] if k else [])
+                    for k in range(ranks)]  # fmt: skip
+        log.info("trial %s: %d ranks of its DDP run started by this worker", number, ranks)
+        failure = run_ranks(commands, os.environ)
     record = RunRecord.read(out)
     status = record.get("status")
     if failure is not None and not (failure.rank == 0 and status == "failed"):

@@ -257,6 +257,12 @@ def run_search(config: DictConfig, settings: DictConfig, arguments: list[str], r
                 raise ConfigError(f"hparams_search.{key}={value!r}: expected an integer >= {least}")
         space = distributions(params)
         check_metric(config)
+        if "trainer" in config:
+            from resireg_train.sweeps.ranks import trial_nodes_problem
+
+            problem = trial_nodes_problem(OmegaConf.to_container(config.trainer, resolve=True))
+            if problem:
+                raise ConfigError(problem)
         url = storage_url(settings.get("storage"))
     except ConfigError as err:
         raise ConfigError(f"refused before the first trial: {err}") from None

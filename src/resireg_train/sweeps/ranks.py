@@ -13,7 +13,16 @@ own; the worker watches them: the first rank that exits with an error stops the 
 running :data:`GRACE` seconds after rank 0 ended are stopped, and whatever happens (Ctrl-C,
 SIGTERM to the worker) no rank outlives the trial. Global rank 0 alone asks the study,
 reports and decides pruning (:class:`~resireg_train.sweeps.pruning.OptunaPruning`, which
-broadcasts its decision to every rank)."""
+broadcasts its decision to every rank).
+
+A trial on several nodes (``trainer.num_nodes`` > 1) needs a launcher that starts the ranks
+on the other nodes: the command prefix in the environment variable :data:`TRIAL_LAUNCHER_ENV`
+(e.g. ``srun --nodes=2 --ntasks-per-node=4`` inside the worker's SLURM allocation; never
+recorded in ``search.json``, which holds no command). The worker then runs
+``<prefix> python -m resireg_train.cli.train <the trial's overrides>`` once, in a process group
+of its own, with ``MASTER_PORT`` on a port free on its machine; the launcher's ranks read
+their ranks from its environment (SLURM's: Lightning's SLURM environment), and a failed trial
+names the launcher's exit code (which rank failed is the launcher's to say)."""
 
 from __future__ import annotations
 
@@ -32,12 +41,14 @@ from resireg_train.sweeps.workers import sigterm_ends
 
 __all__ = [
     "GRACE",
+    "TRIAL_LAUNCHER_ENV",
     "TRIAL_RANK_ENV",
     "RankFailure",
     "TrialRankFailed",
     "local_processes",
     "relaunches",
     "run_ranks",
+    "trial_nodes_problem",
 ]
 
 #: Seconds the other ranks get to end after one failed or rank 0 ended, before SIGKILL.
@@ -45,6 +56,8 @@ GRACE = 10.0
 #: Set in the processes of a trial's ranks: they report a pruned trial through its record and
 #: exit 0 (the worker tells the study).
 TRIAL_RANK_ENV = "RESIREG_SEARCH_TRIAL_RANK"
+#: The command prefix that starts a trial's ranks on several nodes (``srun ...``).
+TRIAL_LAUNCHER_ENV = "RESIREG_SEARCH_TRIAL_LAUNCHER"
 #: Strategies whose processes Lightning starts without re-running the command line.
 _IN_PROCESS = ("spawn", "fork", "notebook", "single_device", "deepspeed_stage_0_spawn")
 
@@ -59,14 +72,28 @@ class RankFailure:
     """The first rank of a trial that failed: its global rank, PID and exit code (a negative
     code: the signal that ended it)."""
 
-    rank: int
+    rank: int | None  # None: the launcher of TRIAL_LAUNCHER_ENV (its ranks are its own)
     pid: int
     code: int
 
     def describe(self) -> str:
         how = (f"was killed by {signal.Signals(-self.code).name}" if self.code < 0
                else f"exited with code {self.code}")  # fmt: skip
+        if self.rank is None:
+            return f"its launcher ({TRIAL_LAUNCHER_ENV}, PID {self.pid}) {how}"
         return f"rank {self.rank} (PID {self.pid}) of its DDP run {how}; the other ranks were stopped"
+
+
+def trial_nodes_problem(trainer: Mapping[str, Any]) -> str | None:
+    """Why a search cannot run trials of ``trainer`` (several nodes and no launcher of
+    :data:`TRIAL_LAUNCHER_ENV`), or ``None``."""
+    nodes = trainer.get("num_nodes") or 1
+    if int(nodes) > 1 and not os.environ.get(TRIAL_LAUNCHER_ENV):
+        return (f"trainer.num_nodes={nodes}: a trial on several nodes needs a launcher that "
+                f"starts its ranks there: set {TRIAL_LAUNCHER_ENV} (e.g. 'srun "
+                f"--nodes={nodes} --ntasks-per-node=<devices>' in the worker's allocation), or "
+                "run each trial on one node (trainer.num_nodes=1) with one worker per node")  # fmt: skip
+    return None
 
 
 def local_processes(trainer: Mapping[str, Any]) -> int:
@@ -121,20 +148,27 @@ def _stop(procs: Sequence[subprocess.Popen], group: int) -> None:
         proc.wait()
 
 
-def run_ranks(commands: Sequence[Sequence[str]], env: Mapping[str, str]) -> RankFailure | None:
+def run_ranks(
+    commands: Sequence[Sequence[str]], env: Mapping[str, str], ranks: bool = True
+) -> RankFailure | None:
     """Run a trial's ranks, ``commands[k]`` as local (and global) rank ``k``, in ``env`` with
     each rank's variables, in one process group of their own; returns the first rank that
-    failed (``None`` when all ended with 0). Every rank has ended when this returns or
-    raises."""
+    failed (``None`` when all ended with 0). ``ranks=False``: one command, a launcher that
+    starts the ranks itself (:data:`TRIAL_LAUNCHER_ENV`; only ``MASTER_PORT`` is set). Every
+    process has ended when this returns or raises."""
     port, world = _free_port(), len(commands)
     procs: list[subprocess.Popen] = []
     group = 0
     try:
         for rank, command in enumerate(commands):
-            rank_env = {**env, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
-                        "WORLD_SIZE": str(world), "NODE_RANK": "0", "LOCAL_RANK": str(rank),
-                        "RANK": str(rank), TRIAL_RANK_ENV: "1"}  # fmt: skip
-            rank_env.pop("GROUP_RANK", None)
+            if ranks:
+                rank_env = {**env, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
+                            "WORLD_SIZE": str(world), "NODE_RANK": "0",
+                            "LOCAL_RANK": str(rank), "RANK": str(rank),
+                            TRIAL_RANK_ENV: "1"}  # fmt: skip
+                rank_env.pop("GROUP_RANK", None)
+            else:
+                rank_env = {**env, "MASTER_PORT": str(port), TRIAL_RANK_ENV: "1"}
             procs.append(subprocess.Popen(list(command), env=rank_env, process_group=group))
             group = group or procs[0].pid
         with sigterm_ends(procs):  # kill <pid> of the worker ends the trial's ranks too
@@ -144,7 +178,7 @@ def run_ranks(commands: Sequence[Sequence[str]], env: Mapping[str, str]) -> Rank
                 bad = [(k, c) for k, c in enumerate(codes) if c not in (None, 0)]
                 if bad:
                     rank, code = bad[0]
-                    failure = RankFailure(rank, procs[rank].pid, code)
+                    failure = RankFailure(rank if ranks else None, procs[rank].pid, code)
                     break
                 if all(c == 0 for c in codes):
                     break
