@@ -28,10 +28,15 @@ class SeenCaptions(L.Callback):
 class DieAt(L.Callback):
     """Global rank ``rank`` ends its process at once (``os._exit``, no clean-up: a crash, an
     out-of-memory kill) at training batch ``batch`` of trial ``trial`` of a search (any run
-    when ``trial`` is None)."""
+    when ``trial`` is None); ``batch=None``: when the callback is built, before the ranks meet
+    (the other ranks then cannot reach their master), the rank read from ``RANK``."""
 
-    def __init__(self, rank: int, batch: int = 1, trial: int | None = None, number=None) -> None:
+    def __init__(self, rank: int, batch: int | None = 1, trial: int | None = None,
+                 number=None) -> None:  # fmt: skip
         self.rank, self.batch, self.trial, self.number = rank, batch, trial, number
+        if (batch is None and int(os.environ.get("RANK", "0")) == rank
+                and (trial is None or trial == number)):  # fmt: skip
+            os._exit(3)
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         if (trainer.global_rank == self.rank and batch_idx == self.batch

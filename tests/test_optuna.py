@@ -554,12 +554,12 @@ def _with_tests(env=None):
     return env
 
 
-def _ddp_search(sweep, strategy, *extra):
-    """A 3-trial stage-1 search on the smoke experiment, 2 epochs of 2 steps, each trial on 2
-    CPU processes over gloo with ``strategy``; the pruner prunes trial 2 at its first report
-    (_ddp.PruneNumber: whatever the scores)."""
+def _ddp_search(sweep, strategy, *extra, n_trials=3):
+    """A stage-1 search of ``n_trials`` on the smoke experiment, 2 epochs of 2 steps, each
+    trial on 2 CPU processes over gloo with ``strategy``; the pruner prunes trial 2 at its
+    first report (_ddp.PruneNumber: whatever the scores)."""
     return ("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
-            "hparams_search.n_trials=3", "trainer.max_epochs=2", "data.steps_per_epoch=2",
+            f"hparams_search.n_trials={n_trials}", "trainer.max_epochs=2", "data.steps_per_epoch=2",
             "callbacks.resireg_eval.batch_size=3", f"+trainer.strategy={strategy}",
             "trainer.devices=2", "hydra.sweeper.pruner._target_=_ddp.PruneNumber",
             "+hydra.sweeper.pruner.number=2", "~hydra.sweeper.pruner.n_startup_trials",
@@ -607,22 +607,29 @@ def test_a_search_of_ddp_trials_prunes_on_every_rank_and_survives_a_dead_rank(tm
     """trainer=ddp (Lightning's re-launching strategy) under a search, 2 ranks per trial: the
     worker starts each trial's ranks (the search's command line is never re-launched). Trial
     1's rank 1 dies mid-epoch (os._exit): the trial is FAIL with one line naming rank 1, the
-    search goes on; trial 2 is pruned after epoch 0 on both ranks; trial 0 completes. No
-    rank of any trial is left running."""
+    search goes on; trial 2 is pruned after epoch 0 on both ranks; trial 0 completes; trial
+    3's rank 0 dies before the ranks meet, so its rank 1 cannot reach the master: FAIL naming
+    rank 0, rank 1 stopped (not left waiting for the rendezvous). No rank of any trial is
+    left running."""
     sweep = tmp_path / "sweep"
     die = ("+callbacks.die._target_=_ddp.DieAt", "+callbacks.die.rank=1",
-           "+callbacks.die.trial=1", "+callbacks.die.number=${hparams_search.trial}")  # fmt: skip
-    proc = run(*_ddp_search(sweep, "ddp", *die), env=_with_tests(), threads=1, timeout=1500)
+           "+callbacks.die.trial=1", "+callbacks.die.number=${hparams_search.trial}",
+           "+callbacks.lost._target_=_ddp.DieAt", "+callbacks.lost.rank=0",
+           "+callbacks.lost.batch=null", "+callbacks.lost.trial=3",
+           "+callbacks.lost.number=${hparams_search.trial}")  # fmt: skip
+    proc = run(*_ddp_search(sweep, "ddp", *die, n_trials=4), env=_with_tests(), threads=1,
+               timeout=1800)  # fmt: skip
     assert not _processes_of(sweep)
-    trials, records = _check_ddp_search(sweep, ["COMPLETE", "FAIL", "PRUNED"])
-    error = records[1]["error"]
-    assert records[1]["status"] == "failed" and "\n" not in error
-    assert re.search(r"TrialRankFailed: trial 1: rank 1 \(PID \d+\) of its DDP run exited "
-                     r"with code 3; the other ranks were stopped", error), error  # fmt: skip
-    # the search's last lines: one per failed job, this one naming the rank
-    lines = [line for line in proc.stderr.splitlines() if line.startswith("  job 1 (")]
-    assert len(lines) == 1 and "rank 1 (PID" in lines[0], proc.stderr[-3000:]
-    assert "1 of 3 jobs failed" in proc.stderr
+    trials, records = _check_ddp_search(sweep, ["COMPLETE", "FAIL", "PRUNED", "FAIL"])
+    for number, rank in ((1, 1), (3, 0)):
+        error = records[number]["error"]
+        assert records[number]["status"] == "failed" and "\n" not in error
+        assert re.search(rf"TrialRankFailed: trial {number}: rank {rank} \(PID \d+\) of its DDP "
+                         r"run exited with code 3; the other ranks were stopped", error), error  # fmt: skip
+        # the search's last lines: one per failed job, naming the rank
+        lines = [line for line in proc.stderr.splitlines() if line.startswith(f"  job {number} (")]
+        assert len(lines) == 1 and f"rank {rank} (PID" in lines[0], proc.stderr[-3000:]
+    assert "2 of 4 jobs failed" in proc.stderr
 
 
 @pytest.mark.slow

@@ -81,7 +81,9 @@ class RankFailure:
                else f"exited with code {self.code}")  # fmt: skip
         if self.rank is None:
             return f"its launcher ({TRIAL_LAUNCHER_ENV}, PID {self.pid}) {how}"
-        return f"rank {self.rank} (PID {self.pid}) of its DDP run {how}; the other ranks were stopped"
+        return (
+            f"rank {self.rank} (PID {self.pid}) of its DDP run {how}; the other ranks were stopped"
+        )
 
 
 def trial_nodes_problem(trainer: Mapping[str, Any]) -> str | None:
