@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -540,3 +541,152 @@ def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path)
     assert sorted(t.params["x"] for t in waiting) == sorted(
         trials[numbers[n]].params["x"] for n in ("silent", "exited")
     )
+
+
+# ----------------------------------------------------------------------------- DDP trials
+TESTS = Path(__file__).parent
+
+
+def _with_tests(env=None):
+    """This environment with tests/ importable (_ddp.py: a pruner and a dying rank)."""
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join([str(TESTS), env.get("PYTHONPATH", "")])
+    return env
+
+
+def _ddp_search(sweep, strategy, *extra, n_trials=3):
+    """A stage-1 search of ``n_trials`` on the smoke experiment, 2 epochs of 2 steps, each
+    trial on 2 CPU processes over gloo with ``strategy``; the pruner prunes trial 2 at its
+    first report (_ddp.PruneNumber: whatever the scores)."""
+    return ("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+            f"hparams_search.n_trials={n_trials}", "trainer.max_epochs=2", "data.steps_per_epoch=2",
+            "callbacks.resireg_eval.batch_size=3", f"+trainer.strategy={strategy}",
+            "trainer.devices=2", "hydra.sweeper.pruner._target_=_ddp.PruneNumber",
+            "+hydra.sweeper.pruner.number=2", "~hydra.sweeper.pruner.n_startup_trials",
+            "~hydra.sweeper.pruner.n_warmup_steps", f"hydra.sweep.dir={sweep}", *extra)  # fmt: skip
+
+
+def _processes_of(sweep):
+    """The live processes whose command line names ``sweep`` (a trial's ranks do)."""
+    import psutil
+
+    found = []
+    for proc in psutil.process_iter(["cmdline", "status"]):
+        if proc.info["status"] != psutil.STATUS_ZOMBIE and str(sweep) in " ".join(
+            proc.info["cmdline"] or ()
+        ):
+            found.append(proc)
+    return found
+
+
+def _check_ddp_search(sweep, states):
+    """The trials' states; COMPLETE ones reported both epochs, the PRUNED one its first only
+    (every rank stopped after it: its record has one epoch), folders recording the same."""
+    study = _study(sweep, "stage1_optuna")
+    trials = study.get_trials()
+    assert [t.state.name for t in trials] == states
+    records = {t.number: json.loads((Path(t.user_attrs["run_dir"]) / "results.json").read_text())
+               for t in trials}  # fmt: skip
+    for trial in trials:
+        record = records[trial.number]
+        if trial.state == TrialState.COMPLETE:
+            assert list(trial.intermediate_values) == [0, 1]
+            assert record["status"] == "completed" and record["history"][-1]["step"] == 4
+            assert record["best"][METRIC]["value"] == pytest.approx(trial.value)
+        elif trial.state == TrialState.PRUNED:
+            assert list(trial.intermediate_values) == [0]
+            assert record["status"] == "pruned" and "pruned by PruneNumber after epoch 0" in (
+                record["error"])  # fmt: skip
+            assert [row["epoch"] for row in record["history"]] == [0]
+            assert record["history"][0]["step"] == 2  # both ranks stopped after epoch 0
+    return trials, records
+
+
+@pytest.mark.slow
+def test_a_search_of_ddp_trials_prunes_on_every_rank_and_survives_a_dead_rank(tmp_path):
+    """trainer=ddp (Lightning's re-launching strategy) under a search, 2 ranks per trial: the
+    worker starts each trial's ranks (the search's command line is never re-launched). Trial
+    1's rank 1 dies mid-epoch (os._exit): the trial is FAIL with one line naming rank 1, the
+    search goes on; trial 2 is pruned after epoch 0 on both ranks; trial 0 completes; trial
+    3's rank 0 dies before the ranks meet, so its rank 1 cannot reach the master: FAIL naming
+    rank 0, rank 1 stopped (not left waiting for the rendezvous). No rank of any trial is
+    left running."""
+    sweep = tmp_path / "sweep"
+    die = ("+callbacks.die._target_=_ddp.DieAt", "+callbacks.die.rank=1",
+           "+callbacks.die.trial=1", "+callbacks.die.number=${hparams_search.trial}",
+           "+callbacks.lost._target_=_ddp.DieAt", "+callbacks.lost.rank=0",
+           "+callbacks.lost.batch=null", "+callbacks.lost.trial=3",
+           "+callbacks.lost.number=${hparams_search.trial}")  # fmt: skip
+    proc = run(*_ddp_search(sweep, "ddp", *die, n_trials=4), env=_with_tests(), threads=1,
+               timeout=1800)  # fmt: skip
+    assert not _processes_of(sweep)
+    trials, records = _check_ddp_search(sweep, ["COMPLETE", "FAIL", "PRUNED", "FAIL"])
+    for number, rank in ((1, 1), (3, 0)):
+        error = records[number]["error"]
+        assert records[number]["status"] == "failed" and "\n" not in error
+        assert re.search(rf"TrialRankFailed: trial {number}: rank {rank} \(PID \d+\) of its DDP "
+                         r"run exited with code 3; the other ranks were stopped", error), error  # fmt: skip
+        # the search's last lines: one per failed job, naming the rank
+        lines = [line for line in proc.stderr.splitlines() if line.startswith(f"  job {number} (")]
+        assert len(lines) == 1 and f"rank {rank} (PID" in lines[0], proc.stderr[-3000:]
+    assert "2 of 4 jobs failed" in proc.stderr
+
+
+@pytest.mark.slow
+def test_a_search_of_ddp_spawn_trials_prunes_on_every_rank(tmp_path):
+    """The same search with ddp_spawn (Lightning spawns the ranks in the trial's job): the
+    pruned trial is PRUNED (rank 0's decision reaches the spawning process through the
+    trial), the others complete; nothing is left running."""
+    sweep = tmp_path / "sweep"
+    run(*_ddp_search(sweep, "ddp_spawn"), env=_with_tests(), threads=1, timeout=1500)
+    assert not _processes_of(sweep)
+    _check_ddp_search(sweep, ["COMPLETE", "COMPLETE", "PRUNED"])
+
+
+def test_a_worker_whose_trainer_differs_from_the_study_is_refused(tmp_path):
+    """A search's first process notes its trainer in the study; a worker started on the same
+    study with another trainer setting is refused in one line naming the key and both values,
+    before it asks a trial (no trial asked: n_trials=0 runs none)."""
+    sweep = tmp_path / "sweep"
+    run("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
+        "hparams_search.n_trials=0", f"hydra.sweep.dir={sweep}", threads=1)  # fmt: skip
+    proc = subprocess.run(
+        [shutil.which("resireg-search") or sys.executable,
+         *([] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+         "worker", str(sweep), "trainer.max_epochs=3", "trainer.devices=2"],
+        capture_output=True, text=True, timeout=300,
+        env={**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    refusal = [line for line in proc.stderr.splitlines() if "differs from the one study" in line]
+    assert refusal == [
+        "this worker's trainer differs from the one study 'stage1_optuna' trains its trials "
+        "with: trainer.devices=2 (the study's: 1); trainer.max_epochs=3 (the study's: 6); every "
+        "worker of a search trains alike: start it with the search's trainer settings, or start "
+        "a new search (another hydra.sweep.dir or study)"
+    ], proc.stderr
+    assert _study(sweep, "stage1_optuna").get_trials() == []
+
+
+@pytest.mark.slow
+def test_a_search_of_trials_on_two_nodes_through_a_launcher(tmp_path):
+    """trainer.num_nodes=2 under a search: refused before the first trial without a launcher;
+    with one (RESIREG_SEARCH_TRIAL_LAUNCHER: here _fake_srun.py, which starts each trial's 2
+    tasks with SLURM's variables as srun starts one task per node) each trial runs on its 2
+    "nodes" (Lightning's SLURM environment), trial 1 is pruned on both, trial 0 completes."""
+    sweep = tmp_path / "sweep"
+    search = [*_ddp_search(sweep, "ddp"), "trainer.devices=1", "+trainer.num_nodes=2",
+              "hparams_search.n_trials=2", "+hydra.sweeper.pruner.number=1"]  # fmt: skip
+    search = [a for a in search if a not in ("trainer.devices=2", "+hydra.sweeper.pruner.number=2",
+                                             "hparams_search.n_trials=3")]  # fmt: skip
+    refused = run(*search, check=False, env=_with_tests(), threads=1, timeout=300)
+    assert refused.returncode != 0 and "Traceback" not in refused.stderr
+    assert ("refused before the first trial: trainer.num_nodes=2: a trial on several nodes "
+            "needs a launcher") in refused.stderr  # fmt: skip
+    launcher = f"{sys.executable} {TESTS / '_fake_srun.py'} 2"
+    env = _with_tests({**os.environ, "RESIREG_SEARCH_TRIAL_LAUNCHER": launcher})
+    run(*search, env=env, threads=1, timeout=1500)
+    assert not _processes_of(sweep)
+    trials, records = _check_ddp_search(sweep, ["COMPLETE", "PRUNED"])
+    for record in records.values():
+        assert record["history"][0]["step"] == 2  # 2 steps per epoch on each node

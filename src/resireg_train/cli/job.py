@@ -38,6 +38,7 @@ except ImportError:  # pragma: no cover
 
 from resireg.errors import ConfigError, IntegrityError, ResiregError, WriteError
 from resireg.secrets import MASK, SecretFilter, mask_text
+from resireg_train.config.machine import check_cluster, config_rank, process_rank
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
 from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
 
@@ -133,12 +134,21 @@ def instantiate_group(group: DictConfig | None) -> list[Any]:
 
 def register_resolvers() -> None:
     """The OmegaConf resolvers ``conf/`` uses (``safe_dirname`` and ``run_id`` in ``conf/hydra``,
+    ``if_rank_zero`` in ``conf/train.yaml``,
     ``first_key`` in ``conf/hparams_search``, ``resireg_encoders`` in the sweeps over every
     encoder)."""
     if not OmegaConf.has_resolver("safe_dirname"):
         OmegaConf.register_new_resolver("safe_dirname", safe_dirname)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", lambda: RUN_ID, use_cache=True)
+    if not OmegaConf.has_resolver("if_rank_zero"):
+        # conf/train.yaml: .hydra/ is written by the global rank 0 alone (the nodes of a
+        # multi-node run share its folder)
+        OmegaConf.register_new_resolver(
+            "if_rank_zero",
+            lambda value, devices=None: value if config_rank({"trainer": {"devices": devices}})
+            == 0 else None,
+        )  # fmt: skip
     import resireg_train.config.eval  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
     from resireg_train.sweeps.space import register_search_resolvers
 
@@ -154,15 +164,6 @@ _HELD: dict[Path, Any] = {}
 
 class RunFolderBusy(ResiregError, RuntimeError):
     """Another running job holds the run folder (its PID is named)."""
-
-
-def process_rank() -> int:
-    """This process's global rank from the launcher's environment (the variables Lightning's
-    ``rank_zero_only`` reads), without importing Lightning; 0 for a single process."""
-    for name in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK"):
-        if os.environ.get(name, "").isdigit():
-            return int(os.environ[name])
-    return 0
 
 
 def hold_run_folder(out: Path) -> bool:
@@ -216,14 +217,19 @@ class RunFolderLock(Callback):
     the log file), so a second job given the same ``hydra.run.dir`` (or a ``resume=true`` while the
     first still runs) is refused and leaves the first one's files as they were. Sweep jobs are
     locked by :func:`run_task`; ranks > 0 of a DDP run (re-launched by Lightning into rank 0's
-    folder) take no lock."""
+    folder) take no lock, nor do the processes of other nodes, even given the same folder
+    (every process knows its global rank from its cluster's environment,
+    :func:`~resireg_train.config.machine.process_rank`). A process whose environment
+    contradicts its trainer (a node rank not below ``trainer.num_nodes``) is refused first,
+    before anything is written (:func:`~resireg_train.config.machine.check_cluster`)."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        if process_rank() != 0:
-            return
         try:
+            check_cluster(config)
+            if config_rank(config) != 0:
+                return
             hold_run_folder(Path(str(config.hydra.run.dir)))
-        except RunFolderBusy as err:
+        except (RunFolderBusy, ConfigError) as err:
             # Hydra turns a callback's exception into a warning and runs the job anyway: exit.
             sys.stderr.write(f"resireg-{config.hydra.job.name}: refused: {err}\n")
             raise SystemExit(1) from None
@@ -377,6 +383,7 @@ def _reported_types() -> tuple[type[BaseException], ...]:
         ("resireg_train.runs.trackers", "TrackerUnreachable"),
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation.base", "NothingScoredError"),
+        ("resireg_train.sweeps.ranks", "TrialRankFailed"),
         ("resireg.models.hub", "WeightsUnavailableError"),
         ("resireg.models.vlm.registry", "RegistryError"),
     ):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import re
 import shlex
 import sys
@@ -38,16 +39,23 @@ from resireg.specs.tree import differences
 from resireg_train.cli.job import (
     added_keys,
     error_text,
+    hold_run_folder,
     hydra_entry_point,
     instantiate_group,
-    process_rank,
+    release_run_folder,
     run_task,
     top_level_keys,
 )
-from resireg_train.config.machine import check_available, check_devices
+from resireg_train.config.machine import (
+    check_available,
+    check_cluster,
+    check_devices,
+    config_rank,
+)
 from resireg_train.config.moves import current_keys, current_targets
 from resireg_train.config.train import validate
-from resireg_train.runs.record import RunRecord, masked_tree
+from resireg_train.runs.record import RunRecord, flat, masked_tree
+from resireg_train.sweeps.ranks import TRIAL_RANK_ENV
 
 if TYPE_CHECKING:
     import lightning as L
@@ -60,9 +68,9 @@ log = logging.getLogger(__name__)
 # --cfg job and a bad value answer without them (README, "Start-up").
 
 
-def _process_rank() -> int:
-    """This process's global rank (:func:`~resireg_train.cli.job.process_rank`)."""
-    return process_rank()
+def _process_rank(cfg: DictConfig) -> int:
+    """This process's global rank (:func:`~resireg_train.config.machine.config_rank`)."""
+    return config_rank(cfg)
 
 
 def build(cfg: DictConfig) -> tuple[L.LightningModule, L.LightningDataModule]:
@@ -93,7 +101,9 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     """
     body = functools.partial(_fit, callbacks=callbacks)
     out = Path(cfg.paths.output_dir)
-    rank_zero = _process_rank() == 0
+    if _trial_ranks_needed(cfg):
+        return _run_trial_ranks(cfg, out)
+    rank_zero = _process_rank(cfg) == 0
     if rank_zero and cfg.ckpt_path is None:
         _refuse_occupied(out)  # (a single run's folder was checked before Hydra wrote to it)
     if HydraConfig.initialized():
@@ -102,7 +112,97 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
         command = resume_command(runtime.overrides.task, runtime.overrides.hydra, out, multirun)
     else:  # called from Python: the caller knows its config
         command = f"ckpt_path=last and paths.output_dir={out} (with this run's config)"
-    return run_task(cfg, body, rank_zero=rank_zero, resume_hint=f"resume with {command}")
+    try:
+        return run_task(cfg, body, rank_zero=rank_zero, resume_hint=f"resume with {command}")
+    except Exception as exc:
+        # A rank of a search trial started by its worker (resireg_train.sweeps.ranks): a
+        # pruned trial is recorded (run_task) and the worker tells the study; exit 0
+        if getattr(exc, "run_status", None) == "pruned" and os.environ.get(TRIAL_RANK_ENV):
+            log.info("%s", exc)
+            return {}
+        raise
+
+
+def _trial_ranks_needed(cfg: DictConfig) -> bool:
+    """Whether this job is a search trial (in the search's process) whose trainer
+    re-launches the command line: its ranks are started by :func:`_run_trial_ranks`."""
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return False
+    if OmegaConf.select(cfg, "hparams_search.trial", default=None) is None:
+        return False
+    if os.environ.get(TRIAL_RANK_ENV):
+        return False
+    from resireg_train.sweeps.ranks import relaunches
+
+    return relaunches(OmegaConf.to_container(cfg.trainer, resolve=True))
+
+
+def _run_trial_ranks(cfg: DictConfig, out: Path) -> dict[str, Any]:
+    """Run this search trial's ranks (:func:`resireg_train.sweeps.ranks.run_ranks`): each
+    one ``resireg-train`` alone (``hydra.mode=RUN``) in the trial's folder with the trial's
+    overrides, the search's ``hydra.sweeper`` settings and its sweep folder; then the trial's
+    outcome from its record: its results (completed), :class:`TrialPrunedStop` (pruned), or
+    an error naming the first rank that failed (recorded as the run's error) or the record's
+    own error."""
+    from resireg_train.sweeps.pruning import TrialPrunedStop
+    from resireg_train.sweeps.ranks import (
+        TRIAL_LAUNCHER_ENV,
+        TrialRankFailed,
+        local_processes,
+        run_ranks,
+        trial_nodes_problem,
+    )
+
+    trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
+    number = cfg.hparams_search.trial
+    if problem := trial_nodes_problem(trainer):
+        raise ConfigError(problem)  # (the search refuses it before its first trial)
+    runtime = HydraConfig.get()
+    sweeper = [o for o in runtime.overrides.hydra if o.lstrip("+~").startswith("hydra.sweeper.")]
+    common = [sys.executable, "-m", "resireg_train.cli.train", *runtime.overrides.task, *sweeper,
+              f"hydra.sweep.dir={_hydra_quoted(Path(runtime.sweep.dir).resolve())}",
+              f"hydra.run.dir={_hydra_quoted(out.resolve())}", "hydra.mode=RUN",
+              "hydra.output_subdir=null"]  # fmt: skip
+    launcher = os.environ.get(TRIAL_LAUNCHER_ENV)
+    if launcher:  # it starts every rank, on every node
+        log.info("trial %s: its DDP run started by %s", number, launcher)
+        failure = run_ranks([shlex.split(launcher) + common], os.environ, ranks=False)
+    else:
+        ranks = local_processes(trainer)
+        commands = [common + ([f"hydra.job.name=train_ddp_process_{k}"] if k else [])
+                    for k in range(ranks)]  # fmt: skip
+        log.info("trial %s: %d ranks of its DDP run started by this worker", number, ranks)
+        failure = run_ranks(commands, os.environ)
+    record = RunRecord.read(out)
+    status = record.get("status")
+    if failure is not None and not (failure.rank == 0 and status == "failed"):
+        error = f"trial {number}: {failure.describe()}"
+        if status == "failed" and record.get("error"):  # what rank 0 met meanwhile
+            error += f"; rank 0: {flat(str(record['error']))}"
+        took = hold_run_folder(out)
+        try:
+            RunRecord(out).finish("failed", f"{TrialRankFailed.__module__}.TrialRankFailed: "
+                                            f"{error}")  # fmt: skip
+        finally:
+            if took:
+                release_run_folder(out)
+        raise TrialRankFailed(error)
+    if status == "completed":
+        return record
+    if status == "pruned":
+        raise TrialPrunedStop(str(record.get("error") or f"trial {number} pruned"))
+    raise TrialRankFailed(
+        f"trial {number}: {flat(str(record.get('error') or f'its run ended {status!r}'))}"
+    )
+
+
+def _hydra_quoted(folder: Path | str) -> str:
+    """A folder as a Hydra override's value: double-quoted where it holds what Hydra parses
+    (a sweep job's folder holds ``=`` and ``,``)."""
+    folder = str(folder)
+    if re.fullmatch(r"[\w/.\-:~+@%]+", folder):
+        return folder
+    return '"' + folder.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 #: Keys a resume may change: the resume itself, and what is recorded of the run without
@@ -126,9 +226,7 @@ def resume_command(
     def kept(items: Sequence[str]) -> list[str]:
         return [o for o in items if o.split("=", 1)[0].lstrip("+~") not in _RESUME_SET]
 
-    folder = str(out)
-    if not re.fullmatch(r"[\w/.\-:~+@%]+", folder):  # a sweep job's folder: "=" and ","
-        folder = '"' + folder.replace("\\", "\\\\").replace('"', '\\"') + '"'  # Hydra's quoting
+    folder = _hydra_quoted(out)  # a sweep job's folder: "=" and ","
     words = [
         "resireg-train",
         *kept(task),
@@ -200,7 +298,7 @@ class RunFolderCheck(Callback):
     and run id); ranks > 0 of a DDP run re-launched by Lightning skip the check."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        if _process_rank() != 0:
+        if _process_rank(config) != 0:
             return
         out = Path(str(config.hydra.run.dir))
         try:
@@ -240,6 +338,7 @@ def _fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) ->
     validate(cfg, added_keys(), top_level_keys("train") if HydraConfig.initialized() else None)
     check_available(cfg)
     check_devices(cfg)
+    check_cluster(cfg)
     import hydra
     import lightning as L
     from lightning.pytorch.callbacks import ProgressBar
@@ -300,6 +399,9 @@ def _fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) ->
         if trainer.interrupted:
             raise KeyboardInterrupt from None
         raise
+    for callback in trainer.callbacks:  # a search's pruning (sweeps.pruning.OptunaPruning)
+        if hasattr(callback, "check_pruned"):
+            callback.check_pruned(trainer)
     if not trainer.is_global_zero:
         return {}
     if not cfg.export:

@@ -22,10 +22,13 @@ from resireg_train.config.keys import value_at
 __all__ = [
     "ENCODER_IMPORTS",
     "check_available",
+    "check_cluster",
     "check_devices",
+    "config_rank",
     "encoder_import_errors",
     "init_from_problem",
     "needs_model_path",
+    "process_rank",
 ]
 
 #: ``kind -> modules its code imports`` beyond the core install (``Needs``; the encoder table,
@@ -142,3 +145,77 @@ def check_devices(cfg: DictConfig | dict) -> None:
         errors += _device_errors("trainer.accelerator", accelerator, fix)
     if errors:
         raise ConfigError("this machine cannot run the config:\n  " + "\n  ".join(errors))
+
+
+def _env_int(name: str) -> int | None:
+    value = os.environ.get(name, "")
+    return int(value) if value.isdigit() else None
+
+
+def config_rank(cfg: Any) -> int:
+    """:func:`process_rank` with the processes per node from a config's ``trainer.devices``
+    (when a count)."""
+    if cfg is not None and not OmegaConf.is_config(cfg):
+        cfg = OmegaConf.create(cfg)
+    devices = value_at(cfg, "trainer.devices") if cfg is not None else None
+    per_node = devices if isinstance(devices, int) and devices > 0 else None
+    return process_rank(per_node)
+
+
+def process_rank(per_node: int | None = None) -> int:
+    """This process's global rank from the environment its launcher or cluster set, before
+    Lightning (not imported) is: torchrun's ``RANK``; Lightning's own variables
+    (``NODE_RANK`` or ``GROUP_RANK``, and ``LOCAL_RANK``: a node started by hand or by a
+    script, and the processes Lightning re-launches for ranks > 0), as ``node rank * processes
+    per node + local rank``; SLURM's ``SLURM_PROCID`` (``srun``); LSF's
+    ``JSM_NAMESPACE_RANK``; else 0 (a single process). The processes per node are
+    ``per_node`` (the trainer's ``devices``) or ``LOCAL_WORLD_SIZE``; without either the
+    number is exact on node 0 and non-zero on every other node, which is all the run folder's
+    lock and record ask (global rank 0 alone writes them)."""
+    rank = _env_int("RANK")
+    if rank is not None:
+        return rank
+    node = _env_int("NODE_RANK")
+    node = _env_int("GROUP_RANK") if node is None else node
+    local = _env_int("LOCAL_RANK")
+    if node is not None or local is not None:
+        local = local or 0
+        per = per_node or _env_int("LOCAL_WORLD_SIZE") or local + 1
+        return (node or 0) * max(per, local + 1) + local
+    for name in ("SLURM_PROCID", "JSM_NAMESPACE_RANK"):
+        rank = _env_int(name)
+        if rank is not None:
+            return rank
+    return 0
+
+
+def check_cluster(cfg: DictConfig | dict) -> None:
+    """Refuse, before any work, a process whose cluster environment contradicts the trainer
+    it runs (``trainer.num_nodes``, ``trainer.devices``): a node rank (``NODE_RANK``,
+    ``GROUP_RANK``, ``SLURM_NODEID``) not below the node count, a global rank (``RANK``,
+    ``SLURM_PROCID``) not below ``WORLD_SIZE`` / ``SLURM_NTASKS``. Such a process would wait
+    in the rendezvous for peers that never come, or join another run's; :class:`ConfigError`
+    names the variable, its value and the setting it contradicts."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    trainer = value_at(cfg, "trainer")
+    if not isinstance(trainer, (dict, DictConfig)):
+        return
+    nodes = value_at(cfg, "trainer.num_nodes")
+    nodes = nodes if isinstance(nodes, int) and not isinstance(nodes, bool) else 1
+    errors = []
+    for name in ("NODE_RANK", "GROUP_RANK", "SLURM_NODEID"):
+        value = _env_int(name)
+        if value is not None and value >= nodes:
+            errors.append(
+                f"{name}={value}: this node's rank is not below trainer.num_nodes={nodes} "
+                f"(node ranks run 0..{nodes - 1}); start it with a rank the job has, or set "
+                "trainer.num_nodes to the job's node count"
+            )
+    for rank_name, size_name in (("RANK", "WORLD_SIZE"), ("SLURM_PROCID", "SLURM_NTASKS")):
+        rank, size = _env_int(rank_name), _env_int(size_name)
+        if rank is not None and size is not None and rank >= size:
+            errors.append(f"{rank_name}={rank}: not below {size_name}={size}")
+    if errors:
+        raise ConfigError("this process's cluster environment contradicts the trainer: "
+                          + "; ".join(errors))  # fmt: skip

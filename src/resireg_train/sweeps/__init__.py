@@ -10,7 +10,9 @@ its report. The Hydra sweeper plugin (``hydra_plugins.resireg_sweeper``) is only
   never written down; :mod:`.journal`: the journal file, repaired or refused after a crash;
 - :mod:`.workers`: ``search.json`` (checked data, never a command) and the workers started
   from it; :mod:`.search`: the ``resireg-search`` command;
-- :mod:`.pruning`: the Lightning callback a training trial reports to its study with;
+- :mod:`.pruning`: the Lightning callback a training trial reports to its study with (rank 0
+  decides, every rank learns it);
+- :mod:`.ranks`: the ranks of a DDP trial (``trainer=ddp``), started and watched by its worker;
 - :mod:`.report`: the search's part of ``resireg-report`` (trials table, plots).
 
 May import :mod:`resireg`, :mod:`resireg_train.config` and :mod:`resireg_train.runs` (and the

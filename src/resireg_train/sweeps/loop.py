@@ -53,12 +53,14 @@ from resireg_train.sweeps.workers import (
     write_record,
 )
 
-__all__ = ["LOCK_FILE", "REFUSALS", "OptunaSearch", "SearchError", "run_search"]
+__all__ = ["ATTR_TRAINER", "LOCK_FILE", "REFUSALS", "OptunaSearch", "SearchError", "run_search"]
 
 log = logging.getLogger(__name__)
 
 #: The lock the workers take to count trials and ask one (so the total is never exceeded).
 LOCK_FILE = ".search.lock"
+#: The study's user attribute holding the ``trainer`` config every worker trains with.
+ATTR_TRAINER = "resireg:trainer"
 
 
 class SearchError(ResiregError, RuntimeError):
@@ -130,6 +132,38 @@ class OptunaSearch:
             trial.set_user_attr(ATTR_PID, os.getpid())
             return trial
 
+    def _check_trainer(self, study: Any) -> None:
+        """Every worker of a training search trains its trials alike: the first to run notes
+        its resolved ``trainer`` config in the study (user attribute :data:`ATTR_TRAINER`);
+        a worker whose ``trainer`` differs (another machine's ``trainer.devices``, another
+        strategy) is refused naming each differing key, before it asks a trial (its scores
+        would not be comparable with the study's)."""
+        from filelock import FileLock
+
+        from resireg.specs.tree import MISSING, differences
+
+        if "trainer" not in self.cfg:
+            return  # an evaluation's search
+        mine = OmegaConf.to_container(self.cfg.trainer, resolve=True)
+        with FileLock(str(self.sweep_dir / LOCK_FILE)):
+            noted = study.user_attrs.get(ATTR_TRAINER)
+            if noted is None:
+                study.set_user_attr(ATTR_TRAINER, mine)
+                return
+        found = differences({"trainer": noted}, {"trainer": mine})
+        if found:
+            shown = "; ".join(
+                f"{key}={'(unset)' if now is MISSING else repr(now)} (the study's: "
+                f"{'(unset)' if then is MISSING else repr(then)})"
+                for key, then, now in found
+            )
+            raise ConfigError(
+                f"this worker's trainer differs from the one study {study.study_name!r} "
+                f"trains its trials with: {shown}; every worker of a search trains alike: "
+                "start it with the search's trainer settings, or start a new search "
+                "(another hydra.sweep.dir or study)"
+            )
+
     def _check_failures(self, counted: list[Any]) -> None:
         from optuna.trial import TrialState
 
@@ -149,6 +183,7 @@ class OptunaSearch:
         from optuna.trial import TrialState
 
         study = self.study()
+        self._check_trainer(study)
         enqueue = self.s.get("enqueue") or []
         if enqueue:
             from filelock import FileLock
@@ -222,6 +257,12 @@ def run_search(config: DictConfig, settings: DictConfig, arguments: list[str], r
                 raise ConfigError(f"hparams_search.{key}={value!r}: expected an integer >= {least}")
         space = distributions(params)
         check_metric(config)
+        if "trainer" in config:
+            from resireg_train.sweeps.ranks import trial_nodes_problem
+
+            problem = trial_nodes_problem(OmegaConf.to_container(config.trainer, resolve=True))
+            if problem:
+                raise ConfigError(problem)
         url = storage_url(settings.get("storage"))
     except ConfigError as err:
         raise ConfigError(f"refused before the first trial: {err}") from None

@@ -402,18 +402,22 @@ def sigterm_ends(procs: Sequence[subprocess.Popen]) -> Iterator[None]:
     """For the block: SIGTERM to this process (``kill <pid>``, a service manager, a job's end)
     is passed on to ``procs`` (the processes it started, which would otherwise go on running,
     orphaned) before it ends this process as SIGTERM does. Ctrl-C reaches them from the
-    terminal already. Outside the main thread (no signal handler there): nothing is set."""
+    terminal already. Blocks nest: the enclosing block's processes get it too. Outside the main
+    thread (no signal handler there): nothing is set."""
 
     def handler(signum: int, frame: Any) -> None:
         for proc in procs:
             with contextlib.suppress(OSError):
                 proc.send_signal(signum)
+        if callable(previous):  # an enclosing block's (a search's workers, then a trial's ranks)
+            previous(signum, frame)
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    previous: Any = None
     previous = signal.signal(signal.SIGTERM, handler)
     try:
         yield
