@@ -240,3 +240,23 @@ def test_an_mlflow_store_that_cannot_be_made_is_refused_in_one_line(tmp_path, ti
         assert "final" not in record  # stopped before any work
     after = {p: d for p, d in _digests(tmp_path).items() if p.parts[0] != "runs"}
     assert (after, _digests(tiny_export)) == before
+
+
+def test_the_artifact_location_of_each_kind_of_store(tmp_path, monkeypatch):
+    """Issue 51, item 13, the rule itself: given, it is kept; a SQLite store's is mlartifacts/
+    next to the database (a relative database path: from the current folder, as SQLite reads
+    it); a server chooses its own; another database store needs one given, refused naming the
+    key with its password masked."""
+    from resireg.errors import ConfigError
+    from resireg_train.runs.loggers import artifact_location
+
+    monkeypatch.chdir(tmp_path)
+    assert artifact_location("sqlite:///db/m.db", "s3://bucket/x") == "s3://bucket/x"
+    assert artifact_location("sqlite:///db/m.db") == (tmp_path / "db" / "mlartifacts").as_uri()
+    assert artifact_location(f"sqlite:///{tmp_path}/a/m.db") == (
+        tmp_path / "a" / "mlartifacts").as_uri()  # fmt: skip
+    assert artifact_location("http://user:pw@host:5000") is None
+    with pytest.raises(ConfigError, match=r"^logger\.mlflow\.artifact_location: required with the "
+                       r"database store 'postgresql://u:\*\*\*@db/mlflow'") as err:  # fmt: skip
+        artifact_location("postgresql://u:pw@db/mlflow")
+    assert "pw" not in str(err.value).replace("postgresql", "")
