@@ -18,6 +18,10 @@ A tracker does up to four things, each a method of its :class:`Tracker` class
   (MLflow: parameters, provenance tags, final metrics, artifacts; TensorBoard and CSV: an
   evaluation's or a map's final metrics; W&B: the summary, then the run is finished).
 
+What the trackers change in the process that runs them (its environment, MLflow's tracking URI
+and active run, W&B's service) is put back when they finish (:class:`ProcessState`): a run
+called from Python leaves its caller's process as it found it.
+
 Adding a tracker:
 
 1. a :class:`Tracker` subclass (its ``address``, ``begin``, ``lightning_logger``, ``end``:
@@ -37,8 +41,10 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 import socket
+import sys
 import tempfile
 import urllib.request
 from collections.abc import Mapping
@@ -293,9 +299,6 @@ _WANDB_SETUP = "wandb.sdk.wandb_setup"  # holds W&B's singleton (its service con
 def _wandb_service() -> bool:
     """Whether this process holds a W&B service connection (``wandb.setup``'s singleton, made
     by this process, connected); W&B not imported: ``False``."""
-    import os
-    import sys
-
     setup = getattr(sys.modules.get(_WANDB_SETUP), "_singleton", None)
     return bool(setup is not None and getattr(setup, "_pid", None) == os.getpid()
                 and getattr(setup, "_connection", None) is not None)  # fmt: skip
@@ -318,9 +321,6 @@ class ProcessState:
 
     @classmethod
     def now(cls) -> ProcessState:
-        import os
-        import sys
-
         utils = sys.modules.get(_MLFLOW_URI)
         run = None
         if "mlflow" in sys.modules:
@@ -334,9 +334,6 @@ class ProcessState:
         ends them), its tracking URI set back, a W&B service started since torn down
         (``wandb.teardown``), then every environment variable as it was (set, changed or
         removed since). A step that fails is a warning naming it; the others still run."""
-        import os
-        import sys
-
         steps = []
         if "mlflow" in sys.modules:
             steps.append(("MLflow's active run", self._end_mlflow_runs))
@@ -365,8 +362,6 @@ class ProcessState:
             mlflow.end_run()
 
     def _mlflow_uri_back(self) -> None:
-        import sys
-
         utils = sys.modules[_MLFLOW_URI]
         if utils._tracking_uri != self.mlflow_uri:
             utils.set_tracking_uri(self.mlflow_uri)
