@@ -551,3 +551,88 @@ def test_torch_hub_load_of_the_checkout_equals_from_pretrained(tiny_export):
     from resireg.deploy.segment import segment
 
     np.testing.assert_array_equal(result.label_map, segment(image, "floor,chair", ref).label_map)
+
+
+# ------------------------------------- a backbone file outside the export (issue 51, item 12)
+def _backbone_outside(export, tmp_path):
+    """An export as one trained from a local backbone checkpoint was written before such
+    exports embedded it: config.json names the checkpoint by its absolute path (outside the
+    export, covered by no digest), frozen.safetensors holds the text tower only (its digest
+    recomputed). The checkpoint's values differ from the export's random init."""
+    from safetensors.torch import load_file, save_file
+
+    frozen = load_file(export / "frozen.safetensors")
+    backbone = {k[len("backbone.model."):]: v + 0.5 for k, v in frozen.items()
+                if k.startswith("backbone.model.")}  # fmt: skip
+    outside = tmp_path / "ckpt" / "eupe.safetensors"
+    outside.parent.mkdir()
+    save_file(backbone, str(outside))
+    save_file({k: v for k, v in frozen.items() if k.startswith("text.")},
+              str(export / "frozen.safetensors"))  # fmt: skip
+    cfg_file = export / "config.json"
+    cfg = json.loads(cfg_file.read_text())
+    cfg["backbone"]["weights"] = str(outside)
+    cfg["digests"]["frozen.safetensors"] = _sha256(export / "frozen.safetensors")
+    cfg_file.write_text(json.dumps(cfg))
+    return outside, backbone
+
+
+def test_a_backbone_file_outside_the_export_is_taken_only_as_an_argument(export_copy, tmp_path):
+    """config.json naming an absolute backbone.weights outside the export: from_pretrained and
+    resireg-export refuse it in one line naming the field, reading nothing; passed by the user
+    (external=), the file is what the backbone holds, and a re-save embeds it (no outside path,
+    its digest recorded); a name inside the export that the digests do not cover is refused."""
+    from _run import run
+
+    outside, backbone = _backbone_outside(export_copy, tmp_path)
+    before = {p.name: _sha256(p) for p in [*export_copy.iterdir(), outside]}
+    field = f"{export_copy / 'config.json'}: backbone.weights={str(outside)!r}: an absolute path"
+    with pytest.raises(IntegrityError) as err:
+        ResiregVLM.from_pretrained(export_copy)
+    assert str(err.value).startswith(field) and "\n" not in str(err.value)
+    assert "external={'backbone': {'weights': <path>}}" in str(err.value)
+    out = tmp_path / "graphs" / "model.onnx"
+    proc = run("resireg-export", "onnx", export_copy, "--out", out, "--no-validate", check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.splitlines() == [proc.stderr.strip()]  # one line, no traceback
+    assert field in proc.stderr and not (tmp_path / "graphs").exists()
+    assert {p.name: _sha256(p) for p in [*export_copy.iterdir(), outside]} == before
+
+    model = ResiregVLM.from_pretrained(export_copy, external={"backbone": {"weights": outside}})
+    held = model.backbone.model.state_dict()
+    assert backbone.keys() == held.keys()
+    assert all(torch.equal(held[k], v) for k, v in backbone.items())
+    assert model.spec()["external"] == {"backbone": {"weights": outside}}
+    saved = model.save_pretrained(tmp_path / "resaved")
+    cfg = json.loads((saved / "config.json").read_text())
+    assert cfg["backbone"]["weights"] is None and "frozen.safetensors" in cfg["digests"]
+    assert _same_weights(model, ResiregVLM.from_pretrained(saved))
+
+    # a file inside the export that no digest covers is refused too
+    shutil.copy(outside, export_copy / "eupe.safetensors")
+    cfg = json.loads((export_copy / "config.json").read_text())
+    cfg["backbone"]["weights"] = "eupe.safetensors"
+    (export_copy / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(IntegrityError, match=r"backbone\.weights='eupe\.safetensors': not covered "
+                       r"by the export's digests"):  # fmt: skip
+        ResiregVLM.from_pretrained(export_copy)
+
+
+def test_a_backbone_file_given_to_resireg_eval_is_in_the_provenance_with_its_digest(
+    export_copy, tmp_path
+):
+    """resireg-eval's encoder.external.backbone.weights (the user's argument) loads the export
+    whose config.json names a file outside it; the run's provenance records that file with
+    its SHA-256, beside the export's own files."""
+    from _run import evaluate
+
+    outside, _ = _backbone_outside(export_copy, tmp_path)
+    out = tmp_path / "eval"
+    record = evaluate(f"model_path={export_copy}", "dataset=synthetic", "dataset.size=2",
+                      "num_workers=0", "variants=[bb]", f"paths.output_dir={out}",
+                      f"encoder.external.backbone.weights={outside}")  # fmt: skip
+    assert record["status"] == "completed"
+    models = record["provenance"]["models"]
+    assert models["external"] == {"backbone.weights": {"path": str(outside.resolve()),
+                                                       "sha256": _sha256(outside)}}  # fmt: skip
+    assert models["export"]["files"]["config.json"] == _sha256(export_copy / "config.json")

@@ -4,6 +4,8 @@ label encoding (tests/_ovss8_fixtures.py), read back to the exact labels it wrot
 conversion from trainval_merged.json; the class-name files; the errors naming the folder and what
 it lacks."""
 
+import json
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -187,3 +189,48 @@ def test_class_files_synonyms_counts_and_their_errors(tmp_path):
     with pytest.raises(ValueError, match=r"dataset\.classes='.*mine\.txt' names 2 classes; VOC "
                        r"labels with reduce_zero_label=False need 21"):  # fmt: skip
         build_segmentation_set(dataset_conf("voc21", path=str(root), classes=str(mine)), 16)
+
+
+def _digests(folder):
+    """``{path: sha256}`` of every file under ``folder``."""
+    import hashlib
+
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+def test_a_split_list_naming_a_missing_image_or_listing_none_is_one_line_at_resireg_eval(tmp_path):
+    """Issue 51, item 8: resireg-eval over a VOC folder whose split list names an image that is
+    not there, or lists none, ends in the reader's one line (no traceback), before any model
+    loads; the dataset's files and another run's folder are as they were."""
+    from _run import run_side_by_side
+
+    roots = {}
+    for case in ("missing", "empty"):
+        roots[case] = tmp_path / case / "VOC2012"
+        write_voc(roots[case])
+    (roots["missing"] / "JPEGImages" / "2007_000039.jpg").unlink()
+    (roots["empty"] / "ImageSets" / "Segmentation" / "val.txt").write_text("\n \n")
+    other = tmp_path / "other_run"
+    other.mkdir()
+    (other / "results.json").write_text('{"status": "completed"}')
+    before = _digests(tmp_path)
+    procs = run_side_by_side(*(
+        ("resireg-eval", "encoder=clip_vit_b16", "dataset=voc21", f"dataset.path={root}",
+         f"hydra.run.dir={tmp_path / 'runs' / case}")
+        for case, root in roots.items()
+    ), check=False)  # fmt: skip
+    expected = {
+        "missing": (f"FileNotFoundError: dataset.path='{roots['missing']}': 1 of 2 images listed "
+                    f"in val.txt missing: {roots['missing']}/JPEGImages/2007_000039.jpg"),
+        "empty": (f"resireg.errors.ConfigError: dataset.split='val': {roots['empty']}/ImageSets/"
+                  "Segmentation/val.txt lists no image"),
+    }  # fmt: skip
+    for (case, line), proc in zip(expected.items(), procs, strict=True):
+        assert proc.returncode == 1, proc.stderr[-2000:]
+        assert "Traceback" not in proc.stderr + proc.stdout, case
+        assert line in proc.stderr.splitlines(), (case, proc.stderr[-2000:])
+        record = json.loads((tmp_path / "runs" / case / "results.json").read_text())
+        assert record["status"] == "failed" and record["error"] == line
+    after = _digests(tmp_path)
+    assert {p: d for p, d in after.items() if p.parts[0] != "runs"} == before

@@ -347,3 +347,30 @@ def test_the_storage_password_is_in_no_file_and_on_no_console(tmp_path, tiny_exp
     assert leaks == [], leaks
     assert not any(PASSWORD in text for text in said)
     assert any(masked in p.read_text() for p in sweep.glob("*/.hydra/overrides.yaml"))
+
+
+def test_a_lost_trial_result_is_named_on_the_console_when_the_search_resumes(tmp_path,
+                                                                             tiny_export):  # fmt: skip
+    """Issue 51, item 15: a journal whose last line, a trial's completion, was cut mid-write:
+    resuming the search with resireg-eval says on its console which journal and which trial
+    lost its result (by the trial's number, although the cut came before the entry named it);
+    every complete entry of the journal is kept byte for byte, and the finished trials too."""
+    sweep = tmp_path / "sweep"
+    before = _made_journal(sweep, 3)
+    journal = sweep / "optuna.journal"
+    lines = _lines(journal)
+    assert json.loads(lines[-1])["op_code"] == 6  # trial 2's state and value
+    kept = b"".join(lines[:-1])
+    journal.write_bytes(kept + lines[-1][:40])  # cut inside its worker id: no trial_id
+    # 2 trials asked for: 2 finished already, so the resumed search runs none
+    proc = _run(_command("resireg-eval", _eval_search(tiny_export, sweep, 2)[1:]))
+    said = proc.stdout + proc.stderr
+    assert proc.returncode == 0, said[-3000:]
+    assert (f"{journal}: its last line was cut mid-write (a process stopped while writing): "
+            "removed (40 bytes), which held trial 2's result (its state and value), now lost: "
+            "trial 2 reads RUNNING until the search marks it failed") in said, said[-3000:]
+    assert journal.read_bytes().startswith(kept)
+    study = _study(sweep)
+    assert {t.number: (t.value, t.params) for t in study.get_trials()
+            if t.number < 2} == {n: before[n] for n in (0, 1)}  # fmt: skip
+    assert study.trials[2].state != TrialState.COMPLETE  # its result is not made up

@@ -39,6 +39,7 @@ __all__ = [
     "add_note",
     "argument_names",
     "arguments_under",
+    "config_error_like",
     "parameters",
     "raised_by",
     "rename_arguments",
@@ -147,7 +148,7 @@ def raised_by(err: BaseException, package: str) -> bool:
 
 
 @functools.cache
-def _config_error_like(cls: type[BaseException]) -> type[BaseException]:
+def config_error_like(cls: type[BaseException]) -> type[BaseException]:
     """A :class:`ConfigError` that is also a ``cls`` (so ``except cls`` still catches it), shown
     and pickled as ``cls``; ``cls`` itself if it is one, :class:`ConfigError` for a plain
     ``ValueError`` or a class that cannot be combined with it."""
@@ -186,7 +187,7 @@ def renamed(err: BaseException, names: Mapping[str, str]) -> BaseException | Non
     if message == err.args[0]:
         return None
     try:
-        new = (_config_error_like(type(err)) if starts else type(err))(message)
+        new = (config_error_like(type(err)) if starts else type(err))(message)
     except Exception:  # a constructor that takes other arguments
         if not starts:
             return None

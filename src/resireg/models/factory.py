@@ -53,12 +53,16 @@ def resolve_device(device: torch.device | str) -> torch.device:
     return torch.device(device)
 
 
-def load_resireg_vlm(path: str, device: torch.device | str | None = None) -> ResiregVLM:
-    """The ``resireg_vlm`` kind: our VLM from an export folder or a hub repo id."""
+def load_resireg_vlm(
+    path: str, device: torch.device | str | None = None, external: Mapping | None = None
+) -> ResiregVLM:
+    """The ``resireg_vlm`` kind: our VLM from an export folder or a hub repo id; ``external``:
+    a frozen part's file outside the export, given by the user (``{"backbone": {"weights":
+    path}}``; :meth:`ResiregVLM.from_pretrained`)."""
     if not path:
         raise ConfigError("path is required: an export folder or a hub repo id")
     try:
-        return ResiregVLM.from_pretrained(path, map_location=device or "cpu")
+        return ResiregVLM.from_pretrained(path, map_location=device or "cpu", external=external)
     except WeightsUnavailableError as err:  # name the argument, as every other kind does
         raise WeightsUnavailableError(f"path={path!r}: {err}") from err
 

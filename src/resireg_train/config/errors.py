@@ -3,7 +3,8 @@
 ``resireg``'s messages name the function's own argument (``path='x': ...``); ``resireg_train``
 names the config key to change (``source.path='x': ...``), here, at its boundary
 (docs/architecture.md, "Errors"): :func:`config_path` around a library call,
-:func:`block_errors` for the messages of a library check of a config block.
+:func:`block_errors` for the messages of a library check of a config block, :func:`key_errors`
+around ``resireg_train``'s own checks of a config block whose messages name its keys.
 """
 
 from __future__ import annotations
@@ -14,14 +15,16 @@ from typing import Any
 
 from resireg.errors import (
     Arguments,
+    ConfigError,
     add_note,
     argument_names,
+    config_error_like,
     raised_by,
     rename_arguments,
     renamed,
 )
 
-__all__ = ["block_errors", "config_path", "encoder_arguments", "error_message"]
+__all__ = ["block_errors", "config_path", "encoder_arguments", "error_message", "key_errors"]
 
 
 @contextmanager
@@ -49,6 +52,31 @@ def config_path(prefix: str, arguments: Arguments = ()) -> Iterator[None]:
             raise new from err
         add_note(err, f"config: {prefix}")
         raise
+
+
+@contextmanager
+def key_errors(key: str) -> Iterator[None]:
+    """The errors raised inside whose message starts with the config block ``key``
+    (``dataset.path='x': no folder ...``, ``dataset.split='val': ... lists no image``,
+    ``dataset: the dataset is empty``) come back :class:`ConfigError` s, still of their own type
+    (a ``FileNotFoundError`` stays one): their message names the setting to change, so the
+    commands report them in one line, as a bad value. Other errors pass untouched.
+
+    Used around the checks and builds of a dataset entry (``resireg_train.data``), whose
+    messages name ``<key>.<field>`` as the project's messages do."""
+    try:
+        yield
+    except (OSError, ValueError) as err:
+        message = str(err)
+        if isinstance(err, ConfigError) or not message.startswith((f"{key}.", f"{key}:")):
+            raise
+        try:
+            new = config_error_like(type(err))(message)
+        except Exception:  # a constructor that takes other arguments
+            new = ConfigError(message)
+        for note in getattr(err, "__notes__", ()):
+            add_note(new, note)
+        raise new from err
 
 
 def block_errors(messages: Iterable[str], key: str, names: Iterable[str]) -> list[str]:

@@ -52,6 +52,7 @@ from resireg.models.images import pil_to_tensor, resize_to_patch_grid
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
+from resireg_train.config.errors import key_errors
 from resireg_train.data.seg_protocol import SegmentationProtocol, protocol_conf
 from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
@@ -280,6 +281,11 @@ def build_segmentation_set(
         key: the config key of ``spec``, for error messages.
         name: dataset name in metric names when ``spec`` has none.
     """
+    with key_errors(key):  # the errors name the entry's keys: one line at the commands
+        return _build(spec, patch_size, key, name)
+
+
+def _build(spec: Mapping[str, Any], patch_size: int, key: str, name: str | None) -> SegmentationSet:
     entry = check_dataset_keys(spec, key)
     name = str(spec.get("name") or name or spec["kind"])
     short_side = spec["short_side"]
@@ -427,10 +433,14 @@ def check_segmentation_source(spec: Mapping[str, Any], key: str = "dataset") -> 
     against the dataset table, then its kind's source check (the table's ``check``: a missing
     ORAD-3D folder, an ADE20K ``path`` that is neither a folder nor a hub id), raising the
     error the build would. ``resireg-eval`` calls it before loading the encoder (whose patch
-    size the build needs), so a wrong path costs no model load."""
-    check = check_dataset_keys(spec, key).load_check()
-    if check is not None:
-        check(spec, key)
+    size the build needs), so a wrong path costs no model load. The errors that name the
+    entry's keys (a missing folder, a split list that is empty or names a missing file) are
+    :class:`~resireg.errors.ConfigError` s of their own type
+    (:func:`~resireg_train.config.errors.key_errors`): one line at the commands."""
+    with key_errors(key):
+        check = check_dataset_keys(spec, key).load_check()
+        if check is not None:
+            check(spec, key)
 
 
 def _load_hub_table(path: str, spec: Mapping[str, Any], split: str, key: str, local: bool):

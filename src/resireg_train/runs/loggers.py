@@ -60,7 +60,9 @@ from resireg_train.runs.trackers import (
 )
 
 __all__ = [
+    "ARTIFACTS_FOLDER",
     "MLFLOW_ARTIFACT_MAX_BYTES",
+    "artifact_location",
     "CsvTracker",
     "MlflowTracker",
     "TensorBoardTracker",
@@ -158,15 +160,25 @@ class MlflowTracker(Tracker):
 
     A ``tracking_uri`` with a user part (``http://user:pass@host:5000``) is given to MLflow
     without it, the user and password through MLflow's own ``MLFLOW_TRACKING_USERNAME`` /
-    ``MLFLOW_TRACKING_PASSWORD`` (unless the environment sets them already): MLflow then never
-    prints, stores or logs the password (it prints each run's URL, from its tracking URI)."""
+    ``MLFLOW_TRACKING_PASSWORD`` (unless the environment sets them already) while the run
+    lasts (:class:`~resireg_train.runs.trackers.RunTrackers` puts the process's environment
+    back at its end): MLflow then never prints, stores or logs the password (it prints each
+    run's URL, from its tracking URI).
+
+    Where the run's files go (``artifact_location``, MLflow's experiment setting, used when the
+    experiment is created): as given, else, for a SQLite store, ``mlartifacts/`` next to the
+    database (:func:`artifact_location`), never MLflow's ``./mlruns`` of the folder the command
+    started from; a server store keeps its own (its ``--artifacts-destination``)."""
 
     def address(self) -> str | None:
         return str(self.settings.get("tracking_uri") or "") or None
 
     def _without_credentials(self) -> dict[str, Any]:
+        """Its block as MLflow is given it: the tracking URI without its user part (moved to
+        the environment), the artifact location (:func:`artifact_location`)."""
         settings = dict(self.settings)
         uri = str(settings.get("tracking_uri") or "")
+        settings["artifact_location"] = artifact_location(uri, settings.get("artifact_location"))
         parts = urlsplit(uri)
         if parts.username is None and parts.password is None:
             return settings
@@ -186,8 +198,9 @@ class MlflowTracker(Tracker):
     _monitor: Any = None  # MLflow's SystemMetricsMonitor of the run
 
     def begin(self) -> None:
+        settings = self._without_credentials()  # a store without an artifact location: refused
         if not self.training:  # open the run now: it shows the run's system metrics live
-            self._run_id = open_mlflow_run(self._without_credentials(), self.cfg)
+            self._run_id = open_mlflow_run(settings, self.cfg)
 
     def running(self) -> None:
         """MLflow's own system-metrics monitor (``mlflow.system_metrics``: ``system/...``
@@ -277,10 +290,43 @@ def _parent_run(client: Any, experiment_id: str, sweep: str, name: str) -> str:
     return run.info.run_id
 
 
+#: The folder of a SQLite store's artifacts, next to its database (MLflow server's own
+#: default name for its ``--artifacts-destination``).
+ARTIFACTS_FOLDER = "mlartifacts"
+
+
+def artifact_location(tracking_uri: str, given: Any = None) -> str | None:
+    """Where a new experiment of the store ``tracking_uri`` keeps its runs' files: ``given``
+    (``logger.mlflow.artifact_location``) when set; for a SQLite store, the folder
+    :data:`ARTIFACTS_FOLDER` next to its database (a ``file:`` URI); else ``None``: a server
+    store (``http(s)://``) chooses its own. Another database store (``postgresql://``,
+    ``mysql://``...) needs one given: MLflow would write into ``./mlruns`` of whatever folder
+    the command started from (a :class:`~resireg.errors.ConfigError` naming the key)."""
+    if given:
+        return str(given)
+    from resireg_train.runs.trackers import local_store
+
+    scheme = urlsplit(tracking_uri).scheme.lower().split("+")[0]
+    if scheme == "sqlite":
+        folder = local_store(tracking_uri)
+        return None if folder is None else (folder / ARTIFACTS_FOLDER).resolve().as_uri()
+    if scheme in ("postgresql", "mysql", "mssql", "oracle"):
+        from resireg.errors import ConfigError
+
+        raise ConfigError(
+            f"logger.mlflow.artifact_location: required with the database store "
+            f"{mask_text(tracking_uri)!r} (where the runs' files go: a folder, or an s3:// ... "
+            "URI); MLflow would otherwise write them into ./mlruns of the current folder"
+        )
+    return None
+
+
 def _experiment_id(client: Any, settings: dict[str, Any]) -> str:
     name = str(settings.get("experiment_name") or "resireg")
     experiment = client.get_experiment_by_name(name)
-    return experiment.experiment_id if experiment else client.create_experiment(name)
+    if experiment:
+        return experiment.experiment_id
+    return client.create_experiment(name, artifact_location=settings.get("artifact_location"))
 
 
 def open_mlflow_run(settings: dict[str, Any], cfg: Any) -> str:

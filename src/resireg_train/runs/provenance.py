@@ -21,7 +21,8 @@
 - ``machine``: host, CPU model, cores, memory, PID and world size;
 - ``seeds``: every config key named ``seed`` or ``*_seed``;
 - ``data``: the identity of every dataset the config names (:func:`data_identity`);
-- ``models``: the export a run reads (``model_path``: its files' SHA-256), the checkpoint a
+- ``models``: the export a run reads (``model_path``: its files' SHA-256; a frozen part's file
+  given outside it, ``encoder.external``: its SHA-256 under ``external``), the checkpoint a
   run starts from (``model.init_from``, or a ``ckpt_path`` file: its SHA-256) and the encoder's
   config entry (hub repo, ref, weights path) (:func:`input_provenance`, with ``data``).
 
@@ -534,7 +535,25 @@ def _models(cfg: Mapping[str, Any]) -> dict[str, Any]:
     if isinstance(encoder, Mapping):
         models["encoder"] = {k: v for k, v in encoder.items()
                              if isinstance(v, (str, int, float, bool)) or v is None}  # fmt: skip
+        external = encoder.get("external")
+        given = {f"{part}.{key}": value for part, keys in (external or {}).items()
+                 if isinstance(keys, Mapping) for key, value in keys.items() if value}  # fmt: skip
+        if given:  # a frozen part's file outside the export, given by the user
+            models["external"] = {name: _file_identity(value) for name, value in given.items()}
     return models
+
+
+def _file_identity(value: Any) -> dict[str, Any]:
+    """``{"path", "sha256"}`` of a file the user named (a folder: ``files``, each file's
+    SHA-256 by its path inside it; ``None`` where it is missing)."""
+    from resireg.integrity import sha256_file
+
+    path = Path(str(value)).expanduser()
+    if path.is_dir():
+        files = {str(p.relative_to(path)): sha256_file(p) for p in sorted(path.rglob("*"))
+                 if p.is_file()}  # fmt: skip
+        return {"path": str(path.resolve()), "files": files}
+    return {"path": str(path.resolve()), "sha256": sha256_file(path) if path.is_file() else None}
 
 
 # ------------------------------------------------------------------------------- records

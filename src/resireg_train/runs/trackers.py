@@ -18,6 +18,10 @@ A tracker does up to four things, each a method of its :class:`Tracker` class
   (MLflow: parameters, provenance tags, final metrics, artifacts; TensorBoard and CSV: an
   evaluation's or a map's final metrics; W&B: the summary, then the run is finished).
 
+What the trackers change in the process that runs them (its environment, MLflow's tracking URI
+and active run, W&B's service) is put back when they finish (:class:`ProcessState`): a run
+called from Python leaves its caller's process as it found it.
+
 Adding a tracker:
 
 1. a :class:`Tracker` subclass (its ``address``, ``begin``, ``lightning_logger``, ``end``:
@@ -37,13 +41,17 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 import socket
+import sys
+import tempfile
 import urllib.request
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit
 
 from resireg.errors import ConfigError, ResiregError
 from resireg.secrets import mask_text, mask_url
@@ -52,14 +60,17 @@ from resireg.specs.table import SpecTable
 
 __all__ = [
     "TRACKER_SPECS",
+    "ProcessState",
     "RunTrackers",
     "Tracker",
     "TrackerSpec",
     "TrackerUnreachable",
+    "local_store",
     "map_counts",
     "mlflow_key",
     "reach",
     "run_metrics",
+    "writable",
 ]
 
 log = logging.getLogger(__name__)
@@ -154,14 +165,47 @@ def run_metrics(record: Mapping[str, Any]) -> dict[str, float]:
 _PORTS = {"http": 80, "https": 443, "postgresql": 5432, "mysql": 3306, "mssql": 1433}
 
 
+def local_store(url: str) -> Path | None:
+    """The folder a local store URL writes into: a SQLite database's folder
+    (``sqlite:///<file>``; ``sqlite://`` alone is in memory: ``None``), a ``file:`` URL's or a
+    plain path's folder; ``None`` for a URL with a host (a server, another database)."""
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
+    if parts.hostname:
+        return None
+    if scheme.split("+")[0] == "sqlite":
+        name = url.split(":///", 1)[1] if ":///" in url else ""
+        name = name.split("?", 1)[0]
+        return Path(name).expanduser().parent if name and name != ":memory:" else None
+    if scheme == "file":
+        return Path(unquote(parts.path)).expanduser()
+    return Path(url).expanduser() if not scheme and url else None
+
+
+def writable(folder: Path) -> str | None:
+    """``None`` if ``folder`` exists or can be made (it is made now, as the store would make
+    it) and a file can be written in it, else why not (the folder and the system's reason)."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except FileExistsError as err:  # the folder's name is taken by a file
+        return f"{err.filename or folder} is a file, not a folder"
+    except OSError as err:
+        return f"cannot write in {err.filename or folder}: {err.strerror or err}"
+    return None
+
+
 def reach(url: str, timeout: float) -> str | None:
     """``None`` if a TCP connection to ``url``'s host and port (or to the proxy the
     environment names for it, ``https_proxy`` / ``no_proxy``) opens within ``timeout``
-    seconds, else why not. A URL without a host (``sqlite:///...``, ``file:``, a path) needs no
-    network: ``None``. Only the connection is tried (no request, no credential sent)."""
+    seconds, else why not. A local store (``sqlite:///<file>``, ``file:``, a path) needs no
+    network: ``None`` if its folder can be made and written (:func:`writable`), else why not.
+    Only the connection is tried (no request, no credential sent)."""
     parts = urlsplit(url)
     if not parts.hostname:
-        return None
+        folder = local_store(url)
+        return None if folder is None else writable(folder)
     scheme = parts.scheme.split("+")[0].lower()
     try:
         port = parts.port or _PORTS.get(scheme)
@@ -248,10 +292,92 @@ class Tracker:
         return None
 
 
+_MLFLOW_URI = "mlflow.tracking._tracking_service.utils"  # holds the URI set_tracking_uri set
+_WANDB_SETUP = "wandb.sdk.wandb_setup"  # holds W&B's singleton (its service connection)
+
+
+def _wandb_service() -> bool:
+    """Whether this process holds a W&B service connection (``wandb.setup``'s singleton, made
+    by this process, connected); W&B not imported: ``False``."""
+    setup = getattr(sys.modules.get(_WANDB_SETUP), "_singleton", None)
+    return bool(setup is not None and getattr(setup, "_pid", None) == os.getpid()
+                and getattr(setup, "_connection", None) is not None)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ProcessState:
+    """What a run's trackers change in the process that runs them, as it was: the
+    environment (MLflow's credentials from a ``tracking_uri``, the variables W&B and
+    Lightning set), MLflow's process-wide tracking URI (Lightning's ``MLFlowLogger`` sets it)
+    and active run, and whether a W&B service runs (W&B starts one and keeps it). Read
+    (:meth:`now`) before the trackers start, put back (:meth:`restore`) once they ended, so a
+    run called from Python (a notebook, a search's trials) leaves the caller's process as it
+    found it. Only libraries already imported are read (nothing heavy is imported here)."""
+
+    environ: dict[str, str]
+    mlflow_uri: str | None
+    mlflow_run: str | None
+    wandb_service: bool
+
+    @classmethod
+    def now(cls) -> ProcessState:
+        utils = sys.modules.get(_MLFLOW_URI)
+        run = None
+        if "mlflow" in sys.modules:
+            active = sys.modules["mlflow"].active_run()
+            run = active.info.run_id if active is not None else None
+        return cls(dict(os.environ), getattr(utils, "_tracking_uri", None), run,
+                   _wandb_service())  # fmt: skip
+
+    def restore(self) -> None:
+        """Put the state back: MLflow's runs started since ended (as MLflow's ``end_run``
+        ends them), its tracking URI set back, a W&B service started since torn down
+        (``wandb.teardown``), then every environment variable as it was (set, changed or
+        removed since). A step that fails is a warning naming it; the others still run."""
+        steps = []
+        if "mlflow" in sys.modules:
+            steps.append(("MLflow's active run", self._end_mlflow_runs))
+        if sys.modules.get(_MLFLOW_URI) is not None:
+            steps.append(("MLflow's tracking URI", self._mlflow_uri_back))
+        if not self.wandb_service and _wandb_service():
+            steps.append(("W&B's service", self._wandb_down))
+        for what, step in steps:
+            try:
+                step()
+            except (Exception, SystemExit) as err:  # (wandb.teardown may sys.exit)
+                log.warning("could not put back %s: %s", what, mask_text(str(err)))
+        for key in set(os.environ) - set(self.environ):
+            del os.environ[key]
+        for key, value in self.environ.items():
+            if os.environ.get(key) != value:
+                os.environ[key] = value
+
+    def _end_mlflow_runs(self) -> None:
+        import mlflow
+
+        for _ in range(100):  # (a stack of nested runs; never a loop without end)
+            active = mlflow.active_run()
+            if active is None or active.info.run_id == self.mlflow_run:
+                return
+            mlflow.end_run()
+
+    def _mlflow_uri_back(self) -> None:
+        utils = sys.modules[_MLFLOW_URI]
+        if utils._tracking_uri != self.mlflow_uri:
+            utils.set_tracking_uri(self.mlflow_uri)
+
+    @staticmethod
+    def _wandb_down() -> None:
+        import wandb
+
+        wandb.teardown()
+
+
 class RunTrackers:
     """The trackers of one run: those ``cfg.logger`` names, in its order, built from
     :data:`TRACKER_SPECS` (an unknown name is a :class:`ConfigError` naming the closest),
-    their own keys checked by the entry's rules. Driven by the run's record."""
+    their own keys checked by the entry's rules. Driven by the run's record. What they change
+    in the process (:class:`ProcessState`) is put back when they finish."""
 
     def __init__(self, cfg: Any, record: Any) -> None:
         from omegaconf import OmegaConf
@@ -261,6 +387,7 @@ class RunTrackers:
         self.trackers: list[Tracker] = []
         self.unreachable: dict[str, str] = {}
         self._begun: list[Tracker] = []
+        self._before: ProcessState | None = None  # read at start, put back at finish
         loggers = cfg.get("logger") or {}
         for name, settings in loggers.items():
             if not settings:
@@ -283,7 +410,10 @@ class RunTrackers:
     def start(self) -> None:
         """Check every tracker that needs a network (:func:`reach`), then begin each. An
         unreachable one raises :class:`TrackerUnreachable` (``unreachable: refuse``) or is
-        left out with a warning (``warn``), named in ``results.json``'s ``tracking``."""
+        left out with a warning (``warn``), named in ``results.json``'s ``tracking``. The
+        process's state is read first (:class:`ProcessState`): :meth:`finish` puts it back."""
+        if self._before is None:
+            self._before = ProcessState.now()
         kept = []
         for tracker in self.trackers:
             url = tracker.address()
@@ -292,7 +422,8 @@ class RunTrackers:
                 why = reach(url, timeout)
                 if why is not None:
                     name = tracker.spec.name
-                    line = (f"logger.{name}: cannot reach {mask_url(url)} ({why}); start it, "
+                    start = "" if urlsplit(url).hostname is None else "start it, "
+                    line = (f"logger.{name}: cannot reach {mask_url(url)} ({why}); {start}"
                             f"fix its address, or set logger.{name}.unreachable=warn to run "
                             "with local records only")  # fmt: skip
                     if tracker.own("unreachable") != "warn":
@@ -328,15 +459,22 @@ class RunTrackers:
 
     def finish(self, record: dict[str, Any], failed: bool) -> None:
         """Each started tracker records the finished run (:meth:`Tracker.end`); a tracker that
-        fails is a warning naming it, never a lost run (``results.json`` keeps everything)."""
+        fails is a warning naming it, never a lost run (``results.json`` keeps everything).
+        Then the process's state read at :meth:`start` is put back (:class:`ProcessState`)."""
         added: dict[str, Any] = {}
-        for tracker in self._begun:
-            try:
-                added.update(tracker.end(record, failed) or {})
-            except Exception as err:  # a tracker down must not fail a finished run
-                log.warning("logger.%s: could not record the run in %s: %s", tracker.spec.name,
-                            self.record.folder, mask_text(str(err)))  # fmt: skip
-        self._begun = []
+        try:
+            for tracker in self._begun:
+                try:
+                    added.update(tracker.end(record, failed) or {})
+                except Exception as err:  # a tracker down must not fail a finished run
+                    log.warning("logger.%s: could not record the run in %s: %s",
+                                tracker.spec.name, self.record.folder,
+                                mask_text(str(err)))  # fmt: skip
+        finally:
+            self._begun = []
+            before, self._before = self._before, None
+            if before is not None:
+                before.restore()
         if added:
             try:
                 tracking = self.record.get("tracking") or {}

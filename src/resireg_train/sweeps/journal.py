@@ -12,7 +12,9 @@ fails with a bare ``JSONDecodeError`` (or, while it is the last line, silently d
 - a torn last line is cut off (or, if it is a whole entry that lost only its newline, given
   it back), with a warning naming the journal: every complete entry, so every finished trial,
   is kept; a trial whose last entry was lost stays RUNNING and the search marks it failed
-  (its worker is gone) and runs a new one in its place;
+  (its worker is gone) and runs a new one in its place. The warning, on the console whatever
+  the logging setup (:func:`_say`), names what the cut line held as far as its bytes tell
+  (:func:`_lost`): the trial by its number, and whether it was the trial's result;
 - a last complete line that is not a journal entry is refused, as Optuna would skip it;
 - then Optuna replays the file; a damaged line inside makes that fail, and the error names the
   journal and the line (:class:`JournalError`).
@@ -26,6 +28,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -92,8 +96,96 @@ def _damaged(path: Path, number: int | None, why: str = "") -> JournalError:
     )
 
 
-def _repair(path: Path) -> None:
-    """Under the journal's lock: cut a torn last line, refuse a damaged last complete one."""
+def _say(message: str) -> None:
+    """``message`` as a warning of this module's logger and, when none of the handlers of the
+    logger's chain writes to a console (a search's logging set up for its log file only), on
+    stderr too: what a repair lost must be seen where the search was started."""
+    enabled = log.isEnabledFor(logging.WARNING)
+    log.warning("%s", message)
+    logger: logging.Logger | None = log
+    handlers: list[logging.Handler] = []
+    while logger is not None:
+        handlers += logger.handlers
+        logger = logger.parent if logger.propagate else None
+    console = not handlers or any(  # (no handler at all: logging's last resort, on stderr)
+        isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler)
+        and h.level <= logging.WARNING for h in handlers)  # fmt: skip
+    if not (enabled and console):
+        sys.stderr.write(f"{message}\n")
+        sys.stderr.flush()
+
+
+#: Optuna's journal operations that concern one trial (``JournalOperation``), what each held.
+_TRIAL_OPS = {
+    5: "a parameter of {trial}",
+    6: "{trial}'s result (its state and value), now lost: {trial} reads RUNNING until the "
+       "search marks it failed",
+    7: "a value {trial} reported",
+    8: "an attribute of {trial}",
+    9: "an attribute of {trial}",
+}  # fmt: skip
+
+
+def _field(tail: bytes, name: str, pattern: bytes = rb"(\d+)") -> bytes | None:
+    found = re.search(rb'"' + name.encode() + rb'"\s*:\s*' + pattern, tail)
+    return found.group(1) if found else None
+
+
+def _owned(path: Path, worker: str) -> int | None:
+    """The trial id the last complete entry of a worker whose id starts with ``worker`` names
+    (a worker writes for one trial at a time), ``None`` if none does."""
+    trial = None
+    with open(path, "rb") as f:
+        for line in f:
+            try:
+                entry = json.loads(line)
+            except ValueError:
+                continue
+            if (isinstance(entry, dict) and str(entry.get("worker_id", "")).startswith(worker)
+                    and isinstance(entry.get("trial_id"), int)):  # fmt: skip
+                trial = entry["trial_id"]
+    return trial
+
+
+def _lost(storage: Any, path: Path, tail: bytes) -> str:
+    """What the cut-off ``tail`` of the journal ``path`` held, as far as its bytes tell: the
+    trial (by its number, found by its ``trial_id``, else by its worker's last trial, else
+    among the trials still RUNNING) and, by its operation code, what of it; ``""`` when it
+    names no trial."""
+    from optuna.trial import TrialState
+
+    code = _field(tail, "op_code")
+    op = int(code) if code is not None else None
+    if op == 4:
+        return ", which held a new trial's start (no trial had it yet)"
+    if op is not None and op not in _TRIAL_OPS:
+        return ""
+    trial_id = _field(tail, "trial_id")
+    worker = _field(tail, "worker_id", rb'"([^"]*)')
+    if trial_id is None and worker:
+        found = _owned(path, worker.decode("utf-8", "replace"))
+        trial_id = None if found is None else str(found).encode()
+    held = _TRIAL_OPS.get(op, "an entry of {trial}") if op is not None else "an entry of {trial}"
+    try:
+        if trial_id is not None:
+            number = storage.get_trial(int(trial_id)).number
+            return ", which held " + held.format(trial=f"trial {number}")
+        running = sorted(t.number for study in storage.get_all_studies()
+                         for t in storage.get_all_trials(study._study_id, deepcopy=False,
+                                                         states=(TrialState.RUNNING,)))  # fmt: skip
+    except Exception:  # (a trial id the study does not hold: the bytes tell no more)
+        return ""
+    if not running:
+        return ""
+    which = f"trial {running[0]}" if len(running) == 1 else (
+        "one of trials " + ", ".join(map(str, running)))  # fmt: skip
+    return (", which held " + held.format(trial=which) + " (told from the trials still "
+            "RUNNING: the cut came before the entry named its trial)")
+
+
+def _repair(path: Path) -> bytes | None:
+    """Under the journal's lock: cut a torn last line, refuse a damaged last complete one.
+    Returns the bytes cut off (``None`` when nothing was)."""
     from optuna.storages.journal import JournalFileSymlinkLock
 
     lock = JournalFileSymlinkLock(str(path))
@@ -101,25 +193,25 @@ def _repair(path: Path) -> None:
     try:
         size = path.stat().st_size
         if size == 0:
-            return
+            return None
+        cut = None
         with open(path, "rb+") as f:
             tail_at, tail, line_at, line = _last_lines(f, size)
             if tail:
                 if _entry(tail):  # a whole entry that lost only its newline
                     f.seek(size)
                     f.write(b"\n")
-                    kept = "completed with its newline"
                 else:
                     f.truncate(tail_at)
-                    kept = f"removed ({len(tail)} bytes)"
+                    cut = tail
                 f.flush()
                 os.fsync(f.fileno())
-                log.warning(
-                    "%s: its last line was cut mid-write (a process stopped while writing): "
-                    "%s; every complete entry is kept", path, kept,
-                )  # fmt: skip
+                if cut is None:
+                    _say(f"{path}: its last line was cut mid-write (a process stopped while "
+                         "writing): completed with its newline; every complete entry is kept")  # fmt: skip
             if line and not _entry(line):
                 raise _damaged(path, _line_number(path, line_at))
+        return cut
     finally:
         lock.release()
 
@@ -143,14 +235,20 @@ def open_journal(path: str | os.PathLike) -> Any:
     from optuna.storages.journal import JournalFileBackend
 
     path = Path(path)
+    cut = None
     if path.is_file() and _needs_repair(path):
         try:
-            _repair(path)
+            cut = _repair(path)
         except PermissionError as err:  # a folder the reader may not write: read what is whole
             log.warning("%s: its last line is damaged and cannot be repaired here: %s", path, err)
     backend = JournalFileBackend(str(path))
     try:
-        return optuna.storages.JournalStorage(backend)
+        storage = optuna.storages.JournalStorage(backend)
     except (ValueError, KeyError, TypeError, AssertionError) as err:  # Optuna's replay
         why = f"Optuna cannot replay it ({type(err).__name__}: {err})"
         raise _damaged(path, _first_damaged_line(path), why) from None
+    if cut is not None:
+        _say(f"{path}: its last line was cut mid-write (a process stopped while writing): "
+             f"removed ({len(cut)} bytes){_lost(storage, path, cut)}; every complete entry is "
+             "kept")  # fmt: skip
+    return storage

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,13 +34,25 @@ from resireg.integrity import atomic_write, digests, load_safetensors, resolve_i
 from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.models.vlm.card import hub_folder
 from resireg.models.vlm.eupe import EUPEBackbone
-from resireg.models.vlm.folder import EXPORT_FORMAT, EXPORT_WHAT, export_dir, read_config
+from resireg.models.vlm.folder import (
+    EXPORT_FORMAT,
+    EXPORT_WHAT,
+    export_dir,
+    frozen_sources,
+    read_config,
+)
 from resireg.models.vlm.head import LanguageHead
 from resireg.models.vlm.text import FrozenTextTower, TextProjection, dense_text_half
 from resireg.specs.exports import registry_model
 
 # read_config: also importable from here, where it was defined before resireg.models.vlm.folder
 __all__ = ["ResiregVLM", "read_config"]
+
+
+def _local_file(weights: Any) -> tuple[str, ...]:
+    """``(weights,)`` when it names an existing local file (a checkpoint, not a tag, ``"hub"``
+    or ``None``), else ``()``."""
+    return (weights,) if isinstance(weights, str) and os.path.isfile(weights) else ()
 
 
 def _prefixed(parts: dict[str, nn.Module]) -> dict[str, Tensor]:
@@ -90,6 +102,7 @@ class ResiregVLM(DenseEncoder):
         self.intermediate_layer = backbone.check_layer(intermediate_layer)
         self._input_rule = InputRule(backbone.patch_size, backbone.mean, backbone.std)
         self.export_source: str | None = None  # set by from_pretrained (spec)
+        self.export_external: dict[str, dict[str, Any]] | None = None  # its files given outside
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -150,7 +163,10 @@ class ResiregVLM(DenseEncoder):
                 "this ResiregVLM was not loaded from an export: save_pretrained(directory), then "
                 "from_pretrained(directory) gives one with an encoder config (kind resireg_vlm)"
             )
-        return {"kind": "resireg_vlm", "path": self.export_source}
+        spec: dict[str, Any] = {"kind": "resireg_vlm", "path": self.export_source}
+        if self.export_external:
+            spec["external"] = self.export_external
+        return spec
 
     # ---------------------------------------------------------------- save / load
     def config(self) -> dict[str, Any]:
@@ -177,7 +193,9 @@ class ResiregVLM(DenseEncoder):
         atomic_write(out / "model.safetensors", lambda tmp: save_file(trained, tmp))
         files = ["model.safetensors"]
         frozen: dict[str, nn.Module] = {}
-        if include_frozen or self.backbone.weights is None:
+        # A backbone from a local file is embedded: an export names no file outside itself
+        # (from_pretrained refuses one: frozen_sources), and its digests cover what it loads.
+        if include_frozen or self.backbone.weights in (None, *_local_file(self.backbone.weights)):
             frozen["backbone"] = self.backbone
             cfg["backbone"]["weights"] = None
         if include_frozen or cfg["text"]["kind"] == "tiny":
@@ -194,14 +212,23 @@ class ResiregVLM(DenseEncoder):
 
     @classmethod
     def from_pretrained(
-        cls, source: str | os.PathLike, map_location: str | torch.device = "cpu"
+        cls,
+        source: str | os.PathLike,
+        map_location: str | torch.device = "cpu",
+        external: Mapping[str, Mapping[str, Any]] | None = None,
     ) -> ResiregVLM:
         """Load a bundle from a directory written by :meth:`save_pretrained`, from a Hugging
         Face repo id ``owner/name`` (the local cache first; the hub only when online), or from
         MLflow's model registry (``models:/NAME@ALIAS``, ``models:/NAME/VERSION``: downloaded
-        once, verified before every use; :mod:`resireg.models.vlm.registry`)."""
+        once, verified before every use; :mod:`resireg.models.vlm.registry`).
+
+        Every file the export's ``config.json`` names stays inside the export and is covered
+        by its digests (:func:`~resireg.models.vlm.folder.frozen_sources`); a frozen part's
+        file outside it is taken only from ``external`` (``{"backbone": {"weights": path}}``,
+        ``{"text": {"weights": ..., "tokenizer": ...}}``), given by the caller."""
         path = local_export(source)
         cfg = read_config(path)  # (its file names checked: they stay inside the folder)
+        cfg = frozen_sources(path, cfg, external)
         model = cls.build(cfg["backbone"], cfg["head"], cfg["text"], cfg.get("intermediate_layer"))
         if "frozen_weights" in cfg:
             frozen = resolve_inside(
@@ -213,6 +240,7 @@ class ResiregVLM(DenseEncoder):
             )
         model.load_trained(path, verified=True)
         model.export_source = os.fspath(source)
+        model.export_external = {p: dict(k) for p, k in external.items()} if external else None
         return model.to(map_location).eval()
 
     def load_trained(self, directory: str | os.PathLike, verified: bool = False) -> list[str]:
