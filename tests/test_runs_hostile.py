@@ -287,6 +287,40 @@ def test_a_registration_that_fails_midway_is_marked_failed(tmp_path, tiny_export
     assert _digests(tiny_export, blocker) == before
 
 
+def test_a_library_load_from_an_unreachable_registry_fails_at_once(tmp_path, monkeypatch):
+    """``ResiregVLM.from_pretrained("models:/NAME@ALIAS")`` (resireg-segment's and the ROS 2
+    node's path, without resireg_train) with MLFLOW_TRACKING_URI on a closed port: refused by
+    the trackers' connection check within ``logger.mlflow.check_timeout`` (2 s here), one
+    error naming the URI (password masked) and the settings to change, instead of minutes of
+    MLflow's retries. The bound on the time is a bound on a hang, not a speed test."""
+    pytest.importorskip("mlflow")
+    import time
+
+    from resireg.models.vlm.model import ResiregVLM
+    from resireg.models.vlm.registry import RegistryError
+
+    conf = tmp_path / "conf"
+    (conf / "logger").mkdir(parents=True)
+    (conf / "logger" / "mlflow.yaml").write_text("mlflow:\n  check_timeout: 2\n")
+    monkeypatch.setenv("RESIREG_CONFIG_DIR", str(conf))
+    port = _closed_port()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://someone:hunter2@127.0.0.1:{port}")
+    monkeypatch.delenv("MLFLOW_REGISTRY_URI", raising=False)
+    monkeypatch.setenv("RESIREG_REGISTRY_CACHE", str(tmp_path / "cache"))
+    started = time.monotonic()
+    with pytest.raises(RegistryError) as caught:
+        ResiregVLM.from_pretrained("models:/x@a")
+    assert time.monotonic() - started < 30
+    message = str(caught.value)
+    assert len(message.splitlines()) == 1, message
+    assert "hunter2" not in message
+    assert f"'models:/x@a': cannot reach the model registry http://someone:***@127.0.0.1:{port}" \
+        in message  # fmt: skip
+    assert "MLFLOW_TRACKING_URI" in message and "(the wait, 2 s: logger.mlflow.check_timeout)" \
+        in message  # fmt: skip
+    assert not (tmp_path / "cache").exists()  # nothing downloaded, no folder made
+
+
 @pytest.mark.slow
 def test_a_registered_model_path_fails_in_one_line(tmp_path, tiny_export, capsys):
     """resireg-eval model_path=models:/...: a URI of neither form, a registry on a closed port

@@ -27,13 +27,13 @@ import json
 from pathlib import Path
 from typing import Any
 
-from resireg.models.vlm.registry import DIGESTS_TAG
+from resireg.models.vlm.registry import DIGESTS_TAG, check_registry
 from resireg.secrets import mask_text, mask_url
 from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
 from resireg_train.runs.record import RecordError, RunRecord
 
-__all__ = ["check_name", "check_registry", "command", "register", "registry_timeout"]
+__all__ = ["check_name", "command", "register"]
 
 #: MLflow's limits: a tag value's length, a version description's.
 _TAG_MAX, _DESCRIPTION_MAX = 5000, 5000
@@ -63,43 +63,6 @@ def _lineage(folder: Path) -> dict[str, str]:
             pass
     tags.update(flatten(made.get("provenance") or {}, "provenance"))
     return {k: mask_text(str(v))[:_TAG_MAX] for k, v in tags.items() if v is not None}
-
-
-def registry_timeout(cfg: Any = None) -> float:
-    """How long to wait for the model registry's server: ``logger.mlflow.check_timeout``
-    (``cfg``'s when it has one, else ``conf/logger/mlflow.yaml``'s): the one setting of how long
-    resireg waits for an MLflow server, its tracker's and its registry's."""
-    from resireg.specs.table import compose_conf, conf_dir
-
-    own = None
-    if cfg is not None and hasattr(cfg, "get"):
-        own = ((cfg.get("logger") or {}).get("mlflow") or {}).get("check_timeout")
-    if own is None:
-        own = compose_conf(conf_dir() / "logger", "mlflow")["mlflow"][0]["check_timeout"]
-    return float(own)
-
-
-def check_registry(uri: str | None = None, timeout: float | None = None, what: str = "") -> None:
-    """Refuse at once a model registry that cannot be reached: the server of ``uri`` (else the
-    one MLflow's settings name: ``MLFLOW_REGISTRY_URI``, ``MLFLOW_TRACKING_URI``) must accept a
-    connection within ``timeout`` seconds (:func:`registry_timeout`), the check the trackers
-    make (:func:`resireg_train.runs.trackers.reach`), not MLflow's minutes of retries. A
-    :class:`~resireg.models.vlm.registry.RegistryError` (one line) names it; ``what``: whose
-    registry (``model_path='models:/...'``)."""
-    from resireg.models.vlm.registry import RegistryError
-    from resireg_train.runs.trackers import reach
-
-    if uri is None:
-        import mlflow
-
-        uri = str(mlflow.get_registry_uri() or mlflow.get_tracking_uri())
-    timeout = registry_timeout() if timeout is None else float(timeout)
-    if (why := reach(uri, timeout)) is not None:
-        raise RegistryError(
-            f"{what + ': ' if what else ''}cannot reach the model registry {mask_url(uri)} "
-            f"({why}); start it or set MLFLOW_TRACKING_URI (MLFLOW_REGISTRY_URI) to the one "
-            f"that holds the model (the wait, {timeout:g} s: logger.mlflow.check_timeout)"
-        )
 
 
 def check_name(name: str, alias: str | None = None) -> None:
