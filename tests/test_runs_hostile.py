@@ -264,6 +264,30 @@ def test_register_checks_the_name_and_the_registry_before_writing(tmp_path, tiny
     assert _digests(tiny_export) == before
 
 
+def test_register_keeps_its_files_beside_a_sqlite_store(tmp_path, tiny_export, monkeypatch,
+                                                      capsys):  # fmt: skip
+    """``resireg-runs register`` into ``sqlite:///<folder>/registry.db`` started from another
+    folder: the registration's files go to ``<folder>/mlartifacts`` (the trackers' rule,
+    ``resireg_train.runs.loggers.artifact_location``), nothing into the current folder."""
+    pytest.importorskip("mlflow")
+    from mlflow import MlflowClient
+
+    store = tmp_path / "store"
+    store.mkdir()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    uri = f"sqlite:///{store / 'registry.db'}"
+    main(["register", str(tiny_export), "--name", "tiny", "--tracking-uri", uri])
+    assert "registered" in capsys.readouterr().out
+    assert list(elsewhere.iterdir()) == []
+    (run,) = MlflowClient(tracking_uri=uri).search_runs(
+        [MlflowClient(tracking_uri=uri).get_experiment_by_name("resireg").experiment_id])
+    assert run.info.artifact_uri.startswith((store / "mlartifacts").as_uri())
+    stored = {p.name for p in (store / "mlartifacts").rglob("*") if p.is_file()}
+    assert {"config.json", "model.safetensors"} <= stored
+
+
 def test_a_registration_that_fails_midway_is_marked_failed(tmp_path, tiny_export, capsys):
     """The artifact store cannot be written (a file where its folder should be): the
     registration's MLflow run is marked FAILED, no model version is left, one line says so."""

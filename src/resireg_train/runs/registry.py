@@ -18,7 +18,10 @@ lineage, its description the card's text; ``--alias`` points the alias at it.
 
 The registry is ``--tracking-uri`` when given, else the one MLflow's own settings name
 (``MLFLOW_TRACKING_URI``, ``MLFLOW_REGISTRY_URI``; default ``sqlite:///mlflow.db``), the same
-rule the loader follows, so ``models:/`` finds what was registered.
+rule the loader follows, so ``models:/`` finds what was registered. A new experiment keeps the
+registrations' files where the trackers' runs keep theirs
+(:func:`resireg_train.runs.loggers.artifact_location`: beside a SQLite database, in
+``mlartifacts/``), never in ``./mlruns`` of the current folder.
 """
 
 from __future__ import annotations
@@ -113,10 +116,12 @@ def register(
     from mlflow.exceptions import MlflowException
     from mlflow.protos.databricks_pb2 import RESOURCE_ALREADY_EXISTS, ErrorCode
 
+    from resireg.errors import ConfigError
     from resireg.integrity import IntegrityError, sha256_file
     from resireg.models.vlm.model import read_config
     from resireg.specs.exports import export_source_problem
     from resireg_train.runs.cards import CARD_FILE
+    from resireg_train.runs.loggers import artifact_location
     from resireg_train.runs.trackers import mlflow_key
 
     check_name(name, alias)  # nothing is written for a name the registry refuses
@@ -138,7 +143,14 @@ def register(
     client = MlflowClient(tracking_uri=tracking_uri, registry_uri=tracking_uri)
     try:
         found = client.get_experiment_by_name(experiment)
-        experiment_id = found.experiment_id if found else client.create_experiment(experiment)
+        if found is None:  # a new one keeps its files where the trackers' runs would
+            try:
+                where = artifact_location(str(tracking_uri or mlflow.get_tracking_uri()))
+            except ConfigError as err:
+                raise ValueError(f"--experiment {experiment!r} is new: {err}; or create it "
+                                 "first with its artifact location") from None  # fmt: skip
+        experiment_id = (found.experiment_id if found
+                         else client.create_experiment(experiment, artifact_location=where))  # fmt: skip
     except MlflowException as err:
         raise ValueError(f"--experiment {experiment!r}: {err.message}") from None
     tags = {"resireg.export": str(folder), "resireg.registered_as": name, **lineage}
