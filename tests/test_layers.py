@@ -55,7 +55,7 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
     assert "resireg.method.checks -> resireg_train.runs.record" in out.stdout
 
 
-@pytest.mark.parametrize("module", ["resireg.specs", "resireg.errors"])
+@pytest.mark.parametrize("module", ["resireg.specs", "resireg.errors", "resireg.network"])
 def test_the_ground_floor_loads_without_torch(module):
     code = f"import sys, {module}; print(sorted(m for m in ('torch', 'numpy') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

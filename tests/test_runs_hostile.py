@@ -264,6 +264,30 @@ def test_register_checks_the_name_and_the_registry_before_writing(tmp_path, tiny
     assert _digests(tiny_export) == before
 
 
+def test_register_keeps_its_files_beside_a_sqlite_store(tmp_path, tiny_export, monkeypatch,
+                                                      capsys):  # fmt: skip
+    """``resireg-runs register`` into ``sqlite:///<folder>/registry.db`` started from another
+    folder: the registration's files go to ``<folder>/mlartifacts`` (the trackers' rule,
+    ``resireg_train.runs.loggers.artifact_location``), nothing into the current folder."""
+    pytest.importorskip("mlflow")
+    from mlflow import MlflowClient
+
+    store = tmp_path / "store"
+    store.mkdir()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    uri = f"sqlite:///{store / 'registry.db'}"
+    main(["register", str(tiny_export), "--name", "tiny", "--tracking-uri", uri])
+    assert "registered" in capsys.readouterr().out
+    assert list(elsewhere.iterdir()) == []
+    (run,) = MlflowClient(tracking_uri=uri).search_runs(
+        [MlflowClient(tracking_uri=uri).get_experiment_by_name("resireg").experiment_id])
+    assert run.info.artifact_uri.startswith((store / "mlartifacts").as_uri())
+    stored = {p.name for p in (store / "mlartifacts").rglob("*") if p.is_file()}
+    assert {"config.json", "model.safetensors"} <= stored
+
+
 def test_a_registration_that_fails_midway_is_marked_failed(tmp_path, tiny_export, capsys):
     """The artifact store cannot be written (a file where its folder should be): the
     registration's MLflow run is marked FAILED, no model version is left, one line says so."""
@@ -285,6 +309,40 @@ def test_a_registration_that_fails_midway_is_marked_failed(tmp_path, tiny_export
     assert run.info.status == "FAILED" and run.data.tags["resireg.registration"] == "failed"
     assert client.search_model_versions("name='tiny'") == []
     assert _digests(tiny_export, blocker) == before
+
+
+def test_a_library_load_from_an_unreachable_registry_fails_at_once(tmp_path, monkeypatch):
+    """``ResiregVLM.from_pretrained("models:/NAME@ALIAS")`` (resireg-segment's and the ROS 2
+    node's path, without resireg_train) with MLFLOW_TRACKING_URI on a closed port: refused by
+    the trackers' connection check within ``logger.mlflow.check_timeout`` (2 s here), one
+    error naming the URI (password masked) and the settings to change, instead of minutes of
+    MLflow's retries. The bound on the time is a bound on a hang, not a speed test."""
+    pytest.importorskip("mlflow")
+    import time
+
+    from resireg.models.vlm.model import ResiregVLM
+    from resireg.models.vlm.registry import RegistryError
+
+    conf = tmp_path / "conf"
+    (conf / "logger").mkdir(parents=True)
+    (conf / "logger" / "mlflow.yaml").write_text("mlflow:\n  check_timeout: 2\n")
+    monkeypatch.setenv("RESIREG_CONFIG_DIR", str(conf))
+    port = _closed_port()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://someone:hunter2@127.0.0.1:{port}")
+    monkeypatch.delenv("MLFLOW_REGISTRY_URI", raising=False)
+    monkeypatch.setenv("RESIREG_REGISTRY_CACHE", str(tmp_path / "cache"))
+    started = time.monotonic()
+    with pytest.raises(RegistryError) as caught:
+        ResiregVLM.from_pretrained("models:/x@a")
+    assert time.monotonic() - started < 30
+    message = str(caught.value)
+    assert len(message.splitlines()) == 1, message
+    assert "hunter2" not in message
+    assert f"'models:/x@a': cannot reach the model registry http://someone:***@127.0.0.1:{port}" \
+        in message  # fmt: skip
+    assert "MLFLOW_TRACKING_URI" in message and "(the wait, 2 s: logger.mlflow.check_timeout)" \
+        in message  # fmt: skip
+    assert not (tmp_path / "cache").exists()  # nothing downloaded, no folder made
 
 
 @pytest.mark.slow

@@ -179,14 +179,17 @@ def test_a_record_other_than_a_search_of_train_or_eval_is_refused(tmp_path, caps
 
 
 # ----------------------------------------------------------------------------- the journal
-def _made_journal(folder, n):
-    """A journal study named like the eval search's, of ``n`` told trials (Optuna's API)."""
+def _made_journal(folder, n, worker=None):
+    """A journal study named like the eval search's, of ``n`` told trials (Optuna's API);
+    ``worker``: the ``{worker_host, worker_pid}`` a search's worker marks its trials with."""
     from resireg_train.sweeps.storage import open_storage
 
     study = optuna.create_study(storage=open_storage(None, folder), study_name="resireg_optuna",
                                 direction="maximize", sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
     for _ in range(n):
         trial = study.ask()
+        for key, value in (worker or {}).items():
+            trial.set_user_attr(key, value)
         study.tell(trial, trial.suggest_float("full.alpha", 1.0, 20.0))
     return {t.number: (t.value, t.params) for t in study.get_trials()}
 
@@ -353,10 +356,17 @@ def test_a_lost_trial_result_is_named_on_the_console_when_the_search_resumes(tmp
                                                                              tiny_export):  # fmt: skip
     """Issue 51, item 15: a journal whose last line, a trial's completion, was cut mid-write:
     resuming the search with resireg-eval says on its console which journal and which trial
-    lost its result (by the trial's number, although the cut came before the entry named it);
+    lost its result (by the trial's number, although the cut came before the entry named it),
+    and failing that trial it says its result was lost, not that its worker died mid-trial;
     every complete entry of the journal is kept byte for byte, and the finished trials too."""
+    import socket
+
+    from resireg_train.sweeps.trials import ATTR_HOST, ATTR_PID
+
+    gone = subprocess.Popen([sys.executable, "-c", ""])  # the worker, ended since
+    gone.wait()
     sweep = tmp_path / "sweep"
-    before = _made_journal(sweep, 3)
+    before = _made_journal(sweep, 3, {ATTR_HOST: socket.gethostname(), ATTR_PID: gone.pid})
     journal = sweep / "optuna.journal"
     lines = _lines(journal)
     assert json.loads(lines[-1])["op_code"] == 6  # trial 2's state and value
@@ -369,8 +379,16 @@ def test_a_lost_trial_result_is_named_on_the_console_when_the_search_resumes(tmp
     assert (f"{journal}: its last line was cut mid-write (a process stopped while writing): "
             "removed (40 bytes), which held trial 2's result (its state and value), now lost: "
             "trial 2 reads RUNNING until the search marks it failed") in said, said[-3000:]
+    assert (f"trial 2: its result was lost: the last line of {journal}, which held it, was cut "
+            "mid-write: marked FAIL") in said, said[-3000:]
+    assert "died mid-trial" not in said, said[-3000:]
     assert journal.read_bytes().startswith(kept)
     study = _study(sweep)
     assert {t.number: (t.value, t.params) for t in study.get_trials()
             if t.number < 2} == {n: before[n] for n in (0, 1)}  # fmt: skip
     assert study.trials[2].state != TrialState.COMPLETE  # its result is not made up
+    from resireg_train.sweeps.report import trials_table
+
+    table = trials_table(study, []).set_index("trial")  # the search report says it the same
+    assert table.loc[2, "error"] == (f"its result was lost: the last line of {journal}, which "
+                                     "held it, was cut mid-write")  # fmt: skip

@@ -89,9 +89,9 @@ def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
         return cfg, []
     export = Path(str(cfg.model_path)).expanduser()
     if registry_model(str(cfg.model_path)) is not None:  # models:/NAME@ALIAS: its local copy
-        from resireg.models.vlm.registry import registry_export
+        from resireg.models.vlm.registry import registry_export, registry_timeout
 
-        export = registry_export(str(cfg.model_path))
+        export = registry_export(str(cfg.model_path), registry_timeout(cfg))
     if not cfg.get("export_settings", True) or not export.is_dir():
         return cfg, []
     recorded = load_settings(export)

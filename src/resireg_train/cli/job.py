@@ -276,7 +276,7 @@ def check_model_registry(cfg: DictConfig) -> None:
     """A ``model_path`` in MLflow's model registry (``models:/NAME@ALIAS``), checked before
     the run starts: one that is not of the registry's two forms is a :class:`ConfigError`,
     a registry that does not answer within ``logger.mlflow.check_timeout`` seconds a
-    :class:`~resireg.models.vlm.registry.RegistryError` (:func:`resireg_train.runs.registry.
+    :class:`~resireg.models.vlm.registry.RegistryError` (:func:`resireg.models.vlm.registry.
     check_registry`): one line each, instead of a traceback or minutes of MLflow's retries."""
     from resireg.specs.exports import REGISTRY_PREFIX, registry_model
 
@@ -290,7 +290,7 @@ def check_model_registry(cfg: DictConfig) -> None:
         registry_model(model_path)
     except ValueError as err:
         raise ConfigError(f"model_path: {err}") from None
-    from resireg_train.runs.registry import check_registry, registry_timeout
+    from resireg.models.vlm.registry import check_registry, registry_timeout
 
     check_registry(timeout=registry_timeout(cfg), what=f"model_path={model_path!r}")
 

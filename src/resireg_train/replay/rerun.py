@@ -237,7 +237,7 @@ def plan(run: Run, out: Path, given: Sequence[str] = (), allow_drift: bool = Fal
         raise RerunRefused(f"{run.path}: " + "\n".join(gone))
     registered = OmegaConf.select(cfg, "model_path", default=None)
     if isinstance(registered, str) and registered.startswith(REGISTRY_PREFIX):  # no long retries
-        from resireg_train.runs.registry import check_registry, registry_timeout
+        from resireg.models.vlm.registry import check_registry, registry_timeout
 
         check_registry(timeout=registry_timeout(cfg), what=f"model_path={registered!r}")
     threads = (run.provenance.get("machine") or {}).get("torch_threads")

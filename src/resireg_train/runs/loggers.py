@@ -304,7 +304,7 @@ def artifact_location(tracking_uri: str, given: Any = None) -> str | None:
     the command started from (a :class:`~resireg.errors.ConfigError` naming the key)."""
     if given:
         return str(given)
-    from resireg_train.runs.trackers import local_store
+    from resireg.network import local_store
 
     scheme = urlsplit(tracking_uri).scheme.lower().split("+")[0]
     if scheme == "sqlite":

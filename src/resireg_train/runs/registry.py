@@ -18,7 +18,10 @@ lineage, its description the card's text; ``--alias`` points the alias at it.
 
 The registry is ``--tracking-uri`` when given, else the one MLflow's own settings name
 (``MLFLOW_TRACKING_URI``, ``MLFLOW_REGISTRY_URI``; default ``sqlite:///mlflow.db``), the same
-rule the loader follows, so ``models:/`` finds what was registered.
+rule the loader follows, so ``models:/`` finds what was registered. A new experiment keeps the
+registrations' files where the trackers' runs keep theirs
+(:func:`resireg_train.runs.loggers.artifact_location`: beside a SQLite database, in
+``mlartifacts/``), never in ``./mlruns`` of the current folder.
 """
 
 from __future__ import annotations
@@ -27,13 +30,13 @@ import json
 from pathlib import Path
 from typing import Any
 
-from resireg.models.vlm.registry import DIGESTS_TAG
+from resireg.models.vlm.registry import DIGESTS_TAG, check_registry
 from resireg.secrets import mask_text, mask_url
 from resireg.specs.tree import flatten
 from resireg_train.runs.provenance import EXPORT_PROVENANCE
 from resireg_train.runs.record import RecordError, RunRecord
 
-__all__ = ["check_name", "check_registry", "command", "register", "registry_timeout"]
+__all__ = ["check_name", "command", "register"]
 
 #: MLflow's limits: a tag value's length, a version description's.
 _TAG_MAX, _DESCRIPTION_MAX = 5000, 5000
@@ -63,43 +66,6 @@ def _lineage(folder: Path) -> dict[str, str]:
             pass
     tags.update(flatten(made.get("provenance") or {}, "provenance"))
     return {k: mask_text(str(v))[:_TAG_MAX] for k, v in tags.items() if v is not None}
-
-
-def registry_timeout(cfg: Any = None) -> float:
-    """How long to wait for the model registry's server: ``logger.mlflow.check_timeout``
-    (``cfg``'s when it has one, else ``conf/logger/mlflow.yaml``'s): the one setting of how long
-    resireg waits for an MLflow server, its tracker's and its registry's."""
-    from resireg.specs.table import compose_conf, conf_dir
-
-    own = None
-    if cfg is not None and hasattr(cfg, "get"):
-        own = ((cfg.get("logger") or {}).get("mlflow") or {}).get("check_timeout")
-    if own is None:
-        own = compose_conf(conf_dir() / "logger", "mlflow")["mlflow"][0]["check_timeout"]
-    return float(own)
-
-
-def check_registry(uri: str | None = None, timeout: float | None = None, what: str = "") -> None:
-    """Refuse at once a model registry that cannot be reached: the server of ``uri`` (else the
-    one MLflow's settings name: ``MLFLOW_REGISTRY_URI``, ``MLFLOW_TRACKING_URI``) must accept a
-    connection within ``timeout`` seconds (:func:`registry_timeout`), the check the trackers
-    make (:func:`resireg_train.runs.trackers.reach`), not MLflow's minutes of retries. A
-    :class:`~resireg.models.vlm.registry.RegistryError` (one line) names it; ``what``: whose
-    registry (``model_path='models:/...'``)."""
-    from resireg.models.vlm.registry import RegistryError
-    from resireg_train.runs.trackers import reach
-
-    if uri is None:
-        import mlflow
-
-        uri = str(mlflow.get_registry_uri() or mlflow.get_tracking_uri())
-    timeout = registry_timeout() if timeout is None else float(timeout)
-    if (why := reach(uri, timeout)) is not None:
-        raise RegistryError(
-            f"{what + ': ' if what else ''}cannot reach the model registry {mask_url(uri)} "
-            f"({why}); start it or set MLFLOW_TRACKING_URI (MLFLOW_REGISTRY_URI) to the one "
-            f"that holds the model (the wait, {timeout:g} s: logger.mlflow.check_timeout)"
-        )
 
 
 def check_name(name: str, alias: str | None = None) -> None:
@@ -150,10 +116,12 @@ def register(
     from mlflow.exceptions import MlflowException
     from mlflow.protos.databricks_pb2 import RESOURCE_ALREADY_EXISTS, ErrorCode
 
+    from resireg.errors import ConfigError
     from resireg.integrity import IntegrityError, sha256_file
     from resireg.models.vlm.model import read_config
     from resireg.specs.exports import export_source_problem
     from resireg_train.runs.cards import CARD_FILE
+    from resireg_train.runs.loggers import artifact_location
     from resireg_train.runs.trackers import mlflow_key
 
     check_name(name, alias)  # nothing is written for a name the registry refuses
@@ -175,7 +143,14 @@ def register(
     client = MlflowClient(tracking_uri=tracking_uri, registry_uri=tracking_uri)
     try:
         found = client.get_experiment_by_name(experiment)
-        experiment_id = found.experiment_id if found else client.create_experiment(experiment)
+        if found is None:  # a new one keeps its files where the trackers' runs would
+            try:
+                where = artifact_location(str(tracking_uri or mlflow.get_tracking_uri()))
+            except ConfigError as err:
+                raise ValueError(f"--experiment {experiment!r} is new: {err}; or create it "
+                                 "first with its artifact location") from None  # fmt: skip
+        experiment_id = (found.experiment_id if found
+                         else client.create_experiment(experiment, artifact_location=where))  # fmt: skip
     except MlflowException as err:
         raise ValueError(f"--experiment {experiment!r}: {err.message}") from None
     tags = {"resireg.export": str(folder), "resireg.registered_as": name, **lineage}

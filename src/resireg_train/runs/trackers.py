@@ -6,7 +6,7 @@ A tracker does up to four things, each a method of its :class:`Tracker` class
 (:mod:`resireg_train.runs.loggers` holds the four built in):
 
 - :meth:`Tracker.address`: the network address it needs, checked before any work
-  (:func:`reach`, ``logger.<name>.check_timeout`` seconds): an unreachable tracker refuses
+  (:func:`resireg.network.reach`, ``logger.<name>.check_timeout`` seconds): an unreachable tracker refuses
   the run in one line (:class:`TrackerUnreachable`) or, with ``logger.<name>.unreachable=warn``,
   is left out with a warning and the run completes with its local records (``results.json``'s
   ``tracking.unreachable`` names it);
@@ -43,17 +43,14 @@ import logging
 import math
 import os
 import re
-import socket
 import sys
-import tempfile
-import urllib.request
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
-from urllib.parse import unquote, urlsplit
+from urllib.parse import urlsplit
 
 from resireg.errors import ConfigError, ResiregError
+from resireg.network import reach
 from resireg.secrets import mask_text, mask_url
 from resireg.specs.rules import Rule, number, one_of
 from resireg.specs.table import SpecTable
@@ -65,12 +62,9 @@ __all__ = [
     "Tracker",
     "TrackerSpec",
     "TrackerUnreachable",
-    "local_store",
     "map_counts",
     "mlflow_key",
-    "reach",
     "run_metrics",
-    "writable",
 ]
 
 log = logging.getLogger(__name__)
@@ -159,72 +153,6 @@ def run_metrics(record: Mapping[str, Any]) -> dict[str, float]:
     map, its counts (:func:`map_counts`)."""
     metrics = {k: float(v) for k, v in (record.get("final") or {}).items() if _number(v)}
     return {**metrics, **map_counts(record)}
-
-
-# --------------------------------------------------------------------------- reachability
-_PORTS = {"http": 80, "https": 443, "postgresql": 5432, "mysql": 3306, "mssql": 1433}
-
-
-def local_store(url: str) -> Path | None:
-    """The folder a local store URL writes into: a SQLite database's folder
-    (``sqlite:///<file>``; ``sqlite://`` alone is in memory: ``None``), a ``file:`` URL's or a
-    plain path's folder; ``None`` for a URL with a host (a server, another database)."""
-    parts = urlsplit(url)
-    scheme = parts.scheme.lower()
-    if parts.hostname:
-        return None
-    if scheme.split("+")[0] == "sqlite":
-        name = url.split(":///", 1)[1] if ":///" in url else ""
-        name = name.split("?", 1)[0]
-        return Path(name).expanduser().parent if name and name != ":memory:" else None
-    if scheme == "file":
-        return Path(unquote(parts.path)).expanduser()
-    return Path(url).expanduser() if not scheme and url else None
-
-
-def writable(folder: Path) -> str | None:
-    """``None`` if ``folder`` exists or can be made (it is made now, as the store would make
-    it) and a file can be written in it, else why not (the folder and the system's reason)."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except FileExistsError as err:  # the folder's name is taken by a file
-        return f"{err.filename or folder} is a file, not a folder"
-    except OSError as err:
-        return f"cannot write in {err.filename or folder}: {err.strerror or err}"
-    return None
-
-
-def reach(url: str, timeout: float) -> str | None:
-    """``None`` if a TCP connection to ``url``'s host and port (or to the proxy the
-    environment names for it, ``https_proxy`` / ``no_proxy``) opens within ``timeout``
-    seconds, else why not. A local store (``sqlite:///<file>``, ``file:``, a path) needs no
-    network: ``None`` if its folder can be made and written (:func:`writable`), else why not.
-    Only the connection is tried (no request, no credential sent)."""
-    parts = urlsplit(url)
-    if not parts.hostname:
-        folder = local_store(url)
-        return None if folder is None else writable(folder)
-    scheme = parts.scheme.split("+")[0].lower()
-    try:
-        port = parts.port or _PORTS.get(scheme)
-    except ValueError as err:  # a port that is not a number
-        return str(err)
-    if port is None:
-        return None
-    host = parts.hostname
-    proxy = urllib.request.getproxies().get(scheme)
-    if proxy and not urllib.request.proxy_bypass(host):
-        via = urlsplit(proxy if "://" in proxy else f"http://{proxy}")
-        host, port = via.hostname or host, via.port or 8080
-    try:
-        with socket.create_connection((host, port), timeout=timeout):
-            return None
-    except TimeoutError:
-        return f"no answer within {timeout:g} s"
-    except OSError as err:
-        return str(err.strerror or err)
 
 
 # ------------------------------------------------------------------------------- trackers
@@ -408,7 +336,7 @@ class RunTrackers:
         return [t.spec.name for t in self.trackers]
 
     def start(self) -> None:
-        """Check every tracker that needs a network (:func:`reach`), then begin each. An
+        """Check every tracker that needs a network (:func:`resireg.network.reach`), then begin each. An
         unreachable one raises :class:`TrackerUnreachable` (``unreachable: refuse``) or is
         left out with a warning (``warn``), named in ``results.json``'s ``tracking``. The
         process's state is read first (:class:`ProcessState`): :meth:`finish` puts it back."""

@@ -14,7 +14,9 @@ fails with a bare ``JSONDecodeError`` (or, while it is the last line, silently d
   is kept; a trial whose last entry was lost stays RUNNING and the search marks it failed
   (its worker is gone) and runs a new one in its place. The warning, on the console whatever
   the logging setup (:func:`_say`), names what the cut line held as far as its bytes tell
-  (:func:`_lost`): the trial by its number, and whether it was the trial's result;
+  (:func:`_lost`): the trial by its number, and whether it was the trial's result; a trial
+  whose result was lost is marked so (:data:`ATTR_LOST`, the journal's path), and the search,
+  failing it, says that its result was lost, not that its worker died mid-trial;
 - a last complete line that is not a journal entry is refused, as Optuna would skip it;
 - then Optuna replays the file; a damaged line inside makes that fail, and the error names the
   journal and the line (:class:`JournalError`).
@@ -35,9 +37,13 @@ from typing import Any
 
 from resireg.errors import DataError
 
-__all__ = ["JournalError", "open_journal"]
+__all__ = ["ATTR_LOST", "JournalError", "open_journal"]
 
 log = logging.getLogger(__name__)
+
+#: The system attribute of a trial whose result was in a journal line cut mid-write: the
+#: journal's path.
+ATTR_LOST = "resireg:lost_result"
 
 #: Bytes read at a time when looking for the last newline from the end.
 _CHUNK = 1 << 16
@@ -147,19 +153,19 @@ def _owned(path: Path, worker: str) -> int | None:
     return trial
 
 
-def _lost(storage: Any, path: Path, tail: bytes) -> str:
+def _lost(storage: Any, path: Path, tail: bytes) -> tuple[str, int | None]:
     """What the cut-off ``tail`` of the journal ``path`` held, as far as its bytes tell: the
     trial (by its number, found by its ``trial_id``, else by its worker's last trial, else
     among the trials still RUNNING) and, by its operation code, what of it; ``""`` when it
-    names no trial."""
+    names no trial. Second: the id of the one trial whose result it held, else ``None``."""
     from optuna.trial import TrialState
 
     code = _field(tail, "op_code")
     op = int(code) if code is not None else None
     if op == 4:
-        return ", which held a new trial's start (no trial had it yet)"
+        return ", which held a new trial's start (no trial had it yet)", None
     if op is not None and op not in _TRIAL_OPS:
-        return ""
+        return "", None
     trial_id = _field(tail, "trial_id")
     worker = _field(tail, "worker_id", rb'"([^"]*)')
     if trial_id is None and worker:
@@ -169,18 +175,20 @@ def _lost(storage: Any, path: Path, tail: bytes) -> str:
     try:
         if trial_id is not None:
             number = storage.get_trial(int(trial_id)).number
-            return ", which held " + held.format(trial=f"trial {number}")
-        running = sorted(t.number for study in storage.get_all_studies()
+            return (", which held " + held.format(trial=f"trial {number}"),
+                    int(trial_id) if op == 6 else None)  # fmt: skip
+        running = sorted((t.number, t._trial_id) for study in storage.get_all_studies()
                          for t in storage.get_all_trials(study._study_id, deepcopy=False,
                                                          states=(TrialState.RUNNING,)))  # fmt: skip
     except Exception:  # (a trial id the study does not hold: the bytes tell no more)
-        return ""
+        return "", None
     if not running:
-        return ""
-    which = f"trial {running[0]}" if len(running) == 1 else (
-        "one of trials " + ", ".join(map(str, running)))  # fmt: skip
+        return "", None
+    which = f"trial {running[0][0]}" if len(running) == 1 else (
+        "one of trials " + ", ".join(str(number) for number, _ in running))  # fmt: skip
     return (", which held " + held.format(trial=which) + " (told from the trials still "
-            "RUNNING: the cut came before the entry named its trial)")
+            "RUNNING: the cut came before the entry named its trial)",
+            running[0][1] if op == 6 and len(running) == 1 else None)  # fmt: skip
 
 
 def _repair(path: Path) -> bytes | None:
@@ -248,7 +256,12 @@ def open_journal(path: str | os.PathLike) -> Any:
         why = f"Optuna cannot replay it ({type(err).__name__}: {err})"
         raise _damaged(path, _first_damaged_line(path), why) from None
     if cut is not None:
+        held, result_of = _lost(storage, path, cut)
         _say(f"{path}: its last line was cut mid-write (a process stopped while writing): "
-             f"removed ({len(cut)} bytes){_lost(storage, path, cut)}; every complete entry is "
-             "kept")  # fmt: skip
+             f"removed ({len(cut)} bytes){held}; every complete entry is kept")  # fmt: skip
+        if result_of is not None:  # so that failing it says why (resireg_train.sweeps.trials)
+            try:
+                storage.set_trial_system_attr(result_of, ATTR_LOST, str(path))
+            except Exception as err:  # (finished meanwhile by another process: nothing to say)
+                log.debug("trial id %d: %s", result_of, err)
     return storage

@@ -14,6 +14,7 @@ import pandas as pd
 
 from resireg_train.runs.record import flat
 from resireg_train.sweeps.storage import STUDY_FILE, load_study
+from resireg_train.sweeps.trials import ATTR_STALE, stale_reason
 from resireg_train.sweeps.workers import SEARCH_FILE, study_location
 
 if TYPE_CHECKING:  # the report package imports this module: no import back at run time
@@ -78,9 +79,8 @@ def trials_table(study: Any, jobs: list[Job]) -> pd.DataFrame:
         row["run folder"] = job.path.name if job else trial.user_attrs.get("run_dir")
         row["job status"] = job.status if job else "no run folder"
         error = job.error if job and job.status not in ("completed", "pruned") else None
-        if trial.system_attrs.get("resireg:stale"):
-            error = (f"its worker (host {trial.user_attrs.get('worker_host')}, PID "
-                     f"{trial.user_attrs.get('worker_pid')}) died mid-trial")  # fmt: skip
+        if trial.system_attrs.get(ATTR_STALE):
+            error = stale_reason(trial)
         elif error is None and trial.state.name == "FAIL" and job is not None:
             error = "the job completed but its optimized_metric is not finite (NaN)"
         row["error"] = flat(error) if error else None

@@ -19,6 +19,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
+from resireg_train.sweeps.journal import ATTR_LOST
 from resireg_train.sweeps.storage import quiet_optuna
 
 __all__ = [
@@ -31,6 +32,7 @@ __all__ = [
     "fail_stale_trials",
     "outcome",
     "output_dir",
+    "stale_reason",
 ]
 
 log = logging.getLogger(__name__)
@@ -77,17 +79,25 @@ def fail_stale_trials(study: Any, grace_period: float, retries: int = 0) -> list
         except optuna.exceptions.UpdateFinishedTrialError:
             continue  # another worker got there first
         failed.append(trial.number)
-        log.warning(
-            "trial %d: its worker (host %s, PID %s) died mid-trial: marked FAIL%s", trial.number,
-            trial.user_attrs.get(ATTR_HOST), trial.user_attrs.get(ATTR_PID),
-            "; enqueued again" if retries else "",
-        )  # fmt: skip
+        log.warning("trial %d: %s: marked FAIL%s", trial.number, stale_reason(trial),
+                    "; enqueued again" if retries else "")  # fmt: skip
         if retries:
             with warnings.catch_warnings():  # experimental in Optuna 5.1
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                 retry = RetryHeartbeatStaleTrialCallback(max_retry=retries)
             retry(study, storage.get_trial(trial._trial_id))
     return failed
+
+
+def stale_reason(trial: Any) -> str:
+    """Why a RUNNING trial was failed as stale: its result lost with a journal line cut
+    mid-write (:data:`~resireg_train.sweeps.journal.ATTR_LOST`: its worker had ended it), else
+    its worker died mid-trial."""
+    if journal := trial.system_attrs.get(ATTR_LOST):
+        return (f"its result was lost: the last line of {journal}, which held it, was cut "
+                "mid-write")
+    return (f"its worker (host {trial.user_attrs.get(ATTR_HOST)}, PID "
+            f"{trial.user_attrs.get(ATTR_PID)}) died mid-trial")
 
 
 def counted_trials(trials: Sequence[Any]) -> list[Any]:

@@ -21,8 +21,11 @@ does not match is an :class:`~resireg.integrity.IntegrityError` naming the file.
 The registry is the one MLflow's own settings name (``MLFLOW_REGISTRY_URI``, else
 ``MLFLOW_TRACKING_URI``; credentials in ``MLFLOW_TRACKING_USERNAME`` /
 ``MLFLOW_TRACKING_PASSWORD``), else MLflow's default (``sqlite:///mlflow.db`` in the working
-folder). MLflow is imported only here and only for a ``models:/`` source (the ``tracking``
-extra); without it the error names the extra.
+folder). Before MLflow is asked anything, a registry server must accept a connection within
+``logger.mlflow.check_timeout`` seconds (:func:`check_registry`: the trackers' check,
+:func:`resireg.network.reach`), not after MLflow's minutes of retries. MLflow is imported only
+here and only for a ``models:/`` source (the ``tracking`` extra); without it the error names
+the extra.
 """
 
 from __future__ import annotations
@@ -33,10 +36,13 @@ import shutil
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
 
 from resireg.errors import ResiregError
 from resireg.integrity import IntegrityError, verify_digests
 from resireg.models.vlm.folder import read_config
+from resireg.network import reach
 from resireg.secrets import mask_url
 from resireg.specs.exports import registry_model
 
@@ -46,7 +52,9 @@ __all__ = [
     "RegistryError",
     "RegistryExport",
     "cache_root",
+    "check_registry",
     "registry_export",
+    "registry_timeout",
     "resolve",
 ]
 
@@ -92,6 +100,38 @@ def _uris() -> tuple[str, str]:
     return tracking, str(mlflow.get_registry_uri() or tracking)
 
 
+def registry_timeout(cfg: Any = None) -> float:
+    """How long to wait for the model registry's server: ``logger.mlflow.check_timeout``
+    (``cfg``'s when it has one, else ``conf/logger/mlflow.yaml``'s): the one setting of how long
+    resireg waits for an MLflow server, its tracker's and its registry's."""
+    from resireg.specs.table import compose_conf, conf_dir
+
+    own = None
+    if cfg is not None and hasattr(cfg, "get"):
+        own = ((cfg.get("logger") or {}).get("mlflow") or {}).get("check_timeout")
+    if own is None:
+        own = compose_conf(conf_dir() / "logger", "mlflow")["mlflow"][0]["check_timeout"]
+    return float(own)
+
+
+def check_registry(uri: str | None = None, timeout: float | None = None, what: str = "") -> None:
+    """Refuse at once a model registry that cannot be reached: the server of ``uri`` (else the
+    one MLflow's settings name: ``MLFLOW_REGISTRY_URI``, ``MLFLOW_TRACKING_URI``) must accept a
+    connection within ``timeout`` seconds (:func:`registry_timeout`), the check the trackers
+    make (:func:`resireg.network.reach`; a local store: its folder writable), not MLflow's
+    minutes of retries. A :class:`RegistryError` (one line) names it, its password masked;
+    ``what``: whose registry (``model_path='models:/...'``)."""
+    if uri is None:
+        uri = _uris()[1]
+    timeout = registry_timeout() if timeout is None else float(timeout)
+    if (why := reach(uri, timeout)) is not None:
+        raise RegistryError(
+            f"{what + ': ' if what else ''}cannot reach the model registry {mask_url(uri)} "
+            f"({why}); start it or set MLFLOW_TRACKING_URI (MLFLOW_REGISTRY_URI) to the one "
+            f"that holds the model (the wait, {timeout:g} s: logger.mlflow.check_timeout)"
+        )
+
+
 def _safe(name: str) -> str:
     """A registered model's name as one folder name."""
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name).lstrip(".") or "_"
@@ -105,9 +145,11 @@ def _verify(folder: Path, recorded: dict[str, str]) -> None:
     read_config(folder)
 
 
-def resolve(uri: str) -> RegistryExport:
+def resolve(uri: str, timeout: float | None = None) -> RegistryExport:
     """The registered export of ``uri`` (``models:/NAME@ALIAS`` or ``models:/NAME/VERSION``),
-    downloaded once into :func:`cache_root` and verified (module docstring)."""
+    downloaded once into :func:`cache_root` and verified (module docstring); its registry's
+    server checked first (:func:`check_registry`, ``timeout`` seconds, default
+    :func:`registry_timeout`)."""
     parsed = registry_model(uri)
     if parsed is None:
         raise ValueError(f"{uri!r} is not a model registry URI (models:/NAME@ALIAS)")
@@ -123,6 +165,9 @@ def resolve(uri: str) -> RegistryExport:
     if registry.startswith("sqlite:///") and not Path(registry[len("sqlite:///") :]).is_file():
         raise RegistryError(f"{uri!r}: no {where}: set MLFLOW_TRACKING_URI to the store the "
                             "export was registered in")  # fmt: skip
+    for server in dict.fromkeys((registry, tracking)):  # the files come from the tracking one
+        if urlsplit(server).hostname:  # a local store is only read here: nothing made
+            check_registry(server, timeout, what=repr(uri))
     client = MlflowClient(tracking_uri=tracking, registry_uri=registry)
     try:
         found = (client.get_model_version_by_alias(name, alias) if alias
@@ -182,6 +227,6 @@ def _download(name: str, version: str, folder: Path, recorded: dict[str, str], u
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def registry_export(uri: str) -> Path:
+def registry_export(uri: str, timeout: float | None = None) -> Path:
     """The verified local folder of the registered export ``uri`` (:func:`resolve`)."""
-    return resolve(uri).folder
+    return resolve(uri, timeout).folder
