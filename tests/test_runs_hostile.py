@@ -225,6 +225,28 @@ def test_reproduce_refuses_a_paper_file_off_its_schema_naming_the_key(
     assert not out.exists() and _digests(tmp_path) == before
 
 
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("table1: !!python/object/apply:os.system [echo]\n",
+         "could not determine a constructor for the tag"),
+        ("table1: [unclosed\n", "while parsing a flow sequence"),
+    ],
+)  # fmt: skip
+def test_reproduce_refuses_a_paper_file_that_is_not_yaml_in_one_line(tmp_path, capsys, text, says):
+    """A figures file YAML cannot read (a Python tag, a broken flow list): PyYAML's message
+    spans lines (the place on its own line); the refusal is one line naming the file."""
+    paper = tmp_path / "paper.yaml"
+    paper.write_text(text)
+    before = _digests(tmp_path)
+    out = tmp_path / "sweep"
+    err = _refused(["reproduce", "table1/resireg_vlm", "--paper", str(paper), "--out", str(out)],
+                   capsys)  # fmt: skip
+    assert f"--paper {paper}: not a paper file (" in err and says in err, err
+    assert f'in "{paper}", line 1' in err, err
+    assert not out.exists() and _digests(tmp_path) == before
+
+
 def test_the_papers_own_figures_file_fits_the_schema():
     from resireg_train.replay.reproduce import paper_problems
     from resireg_train.report.paper import paper_results
