@@ -141,6 +141,40 @@ def test_ls_reports_a_heartbeat_from_the_future_or_never_stale_as_unknown(tmp_pa
     assert _digests(root) == before
 
 
+def test_ls_reports_a_heartbeat_time_that_is_no_time_as_unknown(tmp_path, capsys):
+    """A running record of another host whose heartbeat.time is NaN, a number or absent never
+    ages (nothing to compare with the clock): listed 'unknown', naming the field, not running;
+    gc keeps its checkpoints."""
+    root = tmp_path / "outputs"
+    for name, time in (("nan", float("nan")), ("text", "nan"), ("number", 12345)):
+        folder = _remote(root, name, -10, 300.0)
+        record = json.loads((folder / "results.json").read_text())
+        record["heartbeat"]["time"] = time
+        (folder / "results.json").write_text(json.dumps(record))
+    folder = _remote(root, "absent", -10, 300.0)
+    record = json.loads((folder / "results.json").read_text())
+    del record["heartbeat"]["time"]
+    (folder / "results.json").write_text(json.dumps(record))
+    _remote(root, "fresh", -10, 300.0)
+    before = _digests(root)
+    main(["ls", str(root), "--format", "json", "--columns", "run_id,status"])
+    captured = capsys.readouterr()
+    statuses = {r["run_id"]: r["status"] for r in json.loads(captured.out)}
+    assert statuses == {"nan": "unknown", "text": "unknown", "number": "unknown",
+                        "absent": "unknown", "fresh": "running"}  # fmt: skip
+    err = captured.err.splitlines()
+    assert len(err) == 4 and "Traceback" not in captured.err, captured.err
+    for name, shown in (("nan", "nan"), ("text", "'nan'"), ("number", "12345"),
+                        ("absent", "None")):  # fmt: skip
+        (line,) = [x for x in err if f"/{name}/" in x]
+        assert f"heartbeat.time={shown} is not a time (ISO 8601)" in line, line
+        assert "listed as 'unknown', not running" in line
+    main(["gc", str(root), "--keep", "0", "--by", "loss"])
+    capsys.readouterr()
+    assert {p.parent.parent.name for p in root.glob("*/checkpoints/last.ckpt")} == set(statuses)
+    assert _digests(root) == before
+
+
 # ------------------------------------------------------------------------------ item 9
 def _train_run(folder: Path, csv_text: str) -> Path:
     folder.mkdir(parents=True)

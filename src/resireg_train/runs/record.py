@@ -257,9 +257,10 @@ def heartbeat_doubt(
     record: Mapping[str, Any], skew: float, now: _dt.datetime | None = None
 ) -> str | None:
     """Why the heartbeat of ``record`` cannot tell whether its job still runs, or ``None``:
-    a ``heartbeat.time`` more than ``skew`` seconds ahead of this machine's clock (another
-    host's clock is wrong: the beat would look fresh for as long), or a
-    ``heartbeat.stale_after`` that is not a finite number > 0 (never stale)."""
+    a ``heartbeat.time`` that is not an ISO 8601 time (it would never age) or is more than
+    ``skew`` seconds ahead of this machine's clock (another host's clock is wrong: the beat
+    would look fresh for as long), or a ``heartbeat.stale_after`` that is not a finite number
+    > 0 (never stale)."""
     beat = record.get(HEARTBEAT)
     if not isinstance(beat, Mapping):
         return None
@@ -268,9 +269,9 @@ def heartbeat_doubt(
                                   and math.isfinite(limit) and limit > 0):  # fmt: skip
         return f"heartbeat.stale_after={limit!r} is not a number of seconds > 0"
     try:
-        when = _dt.datetime.fromisoformat(str(beat.get("time")))
-    except ValueError:
-        return None
+        when = _dt.datetime.fromisoformat(beat["time"])
+    except (KeyError, TypeError, ValueError):
+        return f"heartbeat.time={beat.get('time')!r} is not a time (ISO 8601)"
     if when.tzinfo is None:
         when = when.replace(tzinfo=_dt.timezone.utc)
     ahead = (when - (now or _utc_now())).total_seconds()
