@@ -224,6 +224,30 @@ def test_plot_leaves_out_points_it_cannot_draw_and_refuses_a_bad_out(tmp_path, c
     assert _digests(tmp_path) == before
 
 
+def test_plot_names_points_whose_step_or_value_is_text(tmp_path, capsys):
+    """metrics.csv with a word or nothing in the step column of a row holding a value, and a
+    word as a value: those points cannot be drawn and are named (not lost in silence); a row
+    whose value cell is empty is no point (the metric was not logged at that step)."""
+    from resireg_train.runs.index import read_run
+    from resireg_train.runs.plots import plot_runs
+
+    run = _train_run(tmp_path / "text", "step,train/loss,other\n0,1.0,\nabc,0.5,\n,0.4,\n"
+                     "3,high,\n4,,7\nxyz,,8\n5,0.2,\n")  # fmt: skip
+    before = _digests(tmp_path)
+    out = tmp_path / "curves.png"
+    main(["plot", str(run), "--metric", "train/loss", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert captured.out.strip() == str(out) and "Traceback" not in captured.err
+    (warned,) = captured.err.strip().splitlines()
+    assert "run text (" in warned and "train/loss: 3 point(s) of metrics.csv:train/loss" in warned
+    assert "step=abc value=0.5, step= value=0.4, step=3 value=high" in warned, warned
+    drawn = plot_runs([read_run(run)], ["train/loss"], tmp_path / "b.png")
+    assert list(drawn.curves["train/loss"].values()) == [([0.0, 5.0], [1.0, 0.2])]
+    out.unlink()
+    (tmp_path / "b.png").unlink()
+    assert _digests(tmp_path) == before
+
+
 # ------------------------------------------------------------------------------ item 7
 _ROW = "resireg_vlm: {params_m: 25, ade20k: {bb: 12.5}}"
 
