@@ -90,6 +90,29 @@ def test_a_rerun_refuses_a_bad_out_a_gone_export_and_the_run_folder_override(
     assert _digests(tmp_path, tiny_export) == before
 
 
+def test_a_rerun_into_a_folder_inside_another_run_or_map_is_refused(tmp_path, tiny_export, capsys):
+    """rerun --out <a new folder inside another run's folder> (its .hydra/) or inside a map
+    folder: refused in one line naming the folder it lies in, nothing written; a folder under
+    another tool's results.json (no run record) is not another run's."""
+    from resireg_train.runs.record import target_problem
+
+    other = _eval_run(tmp_path / "other", ["dataset=synthetic"])
+    run = _eval_run(tmp_path / "run", ["dataset=synthetic", f"model_path={tiny_export}"])
+    a_map = tmp_path / "a-map"
+    a_map.mkdir()
+    (a_map / "map.json").write_text("{}\n")
+    before = _digests(tmp_path, tiny_export)
+    for out, above in ((other / ".hydra" / "x", other), (a_map / "x", a_map)):
+        err = _refused(["rerun", str(run), "--out", str(out), "--allow-drift"], capsys)
+        assert f"--out {out}: inside the folder of another run or map ({above})" in err, err
+        assert not out.exists()
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "results.json").write_text("[1, 2]\n")
+    assert target_problem(notes / "x", folder=True) is None
+    assert _digests(tmp_path, tiny_export) == {**before, **_digests(notes)}
+
+
 # ----------------------------------------------------------------------------- item 10
 def _remote(root: Path, name: str, ahead_s: float, stale_after) -> Path:
     """A ``running`` record of another host, its heartbeat ``ahead_s`` seconds in the future

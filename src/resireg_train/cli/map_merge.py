@@ -37,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, DataError, MapError
 from resireg_train.cli.job import error_text, hydra_entry_point, run_task
-from resireg_train.runs.record import RecordError, RunRecord
+from resireg_train.runs.record import RecordError, RunRecord, enclosing_run
 
 __all__ = ["PROG", "MergeFolderCheck", "check_out", "hydra_arguments", "main"]
 
@@ -78,16 +78,11 @@ def check_out(out: Path, names: Any) -> None:
     for held in (out, target):
         if (held / "map.json").is_file():
             raise ConfigError(f"--out {out} holds a map ({held}): give another --out")
-    for above in out.resolve().parents:  # a folder inside another run's folder or a map
-        try:
-            inside = (above / "map.json").is_file() or bool(RunRecord.read(above))
-        except (RecordError, OSError):  # another tool's results.json, an unreadable one
-            inside = False
-        if inside:
-            raise ConfigError(
-                f"--out {out} is inside the folder of another run or map ({above}): "
-                "a merge never writes into another run's folder; give another --out"
-            )
+    if (above := enclosing_run(out)) is not None:
+        raise ConfigError(
+            f"--out {out} is inside the folder of another run or map ({above}): "
+            "a merge never writes into another run's folder; give another --out"
+        )
     try:
         previous = RunRecord.read(out)
     except RecordError as err:
