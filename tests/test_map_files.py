@@ -287,6 +287,36 @@ def test_merge_out_onto_another_run_is_refused_before_anything_is_written(tmp_pa
 
 
 @pytest.mark.slow
+def test_merge_out_inside_another_run_or_map_is_refused(tmp_path):
+    """resireg-map-merge A B --out <a folder inside an evaluation's run folder> (its .hydra/,
+    where a merge once wrote a whole run of its own) and --out <a new folder inside a map
+    folder>: each refused in one line naming the folder it lies in; every file of those runs
+    keeps its bytes and nothing is added. A results.json above --out that is no run record
+    (another tool's file) does not stop a merge."""
+    from _run import run_side_by_side
+
+    a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
+    runs = other_runs(tmp_path)
+    other_tool = tmp_path / "notes"
+    other_tool.mkdir()
+    (other_tool / "results.json").write_text("[1, 2]\n")
+    before = digests(tmp_path)
+    procs = run_side_by_side(
+        ("resireg-map-merge", a, b, "--out", runs["eval"] / ".hydra"),
+        ("resireg-map-merge", a, b, "--out", runs["map"] / "map" / "merged"),
+        ("resireg-map-merge", a, b, "--out", other_tool / "merged"),
+        check=(False, False, True),
+    )  # fmt: skip
+    one_line_refusal(procs[0], f"--out {runs['eval'] / '.hydra'} is inside the folder of "
+                     f"another run or map ({runs['eval']})")  # fmt: skip
+    one_line_refusal(procs[1], f"--out {runs['map'] / 'map' / 'merged'} is inside the folder of "
+                     f"another run or map ({runs['map'] / 'map'})")  # fmt: skip
+    after = digests(tmp_path)
+    assert {k: v for k, v in after.items() if "/notes/merged/" not in k} == before
+    assert SemanticMap.load(other_tool / "merged").frames == 4
+
+
+@pytest.mark.slow
 def test_a_map_merged_with_itself_is_refused_and_a_killed_save_is_cleaned(tmp_path):
     """resireg-map-merge A A (the same path; here once as the run folder, once as its map
     folder) and A C (C a copy of A: the same tensor file SHA-256) are refused in one line

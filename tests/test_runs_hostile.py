@@ -90,6 +90,29 @@ def test_a_rerun_refuses_a_bad_out_a_gone_export_and_the_run_folder_override(
     assert _digests(tmp_path, tiny_export) == before
 
 
+def test_a_rerun_into_a_folder_inside_another_run_or_map_is_refused(tmp_path, tiny_export, capsys):
+    """rerun --out <a new folder inside another run's folder> (its .hydra/) or inside a map
+    folder: refused in one line naming the folder it lies in, nothing written; a folder under
+    another tool's results.json (no run record) is not another run's."""
+    from resireg_train.runs.record import target_problem
+
+    other = _eval_run(tmp_path / "other", ["dataset=synthetic"])
+    run = _eval_run(tmp_path / "run", ["dataset=synthetic", f"model_path={tiny_export}"])
+    a_map = tmp_path / "a-map"
+    a_map.mkdir()
+    (a_map / "map.json").write_text("{}\n")
+    before = _digests(tmp_path, tiny_export)
+    for out, above in ((other / ".hydra" / "x", other), (a_map / "x", a_map)):
+        err = _refused(["rerun", str(run), "--out", str(out), "--allow-drift"], capsys)
+        assert f"--out {out}: inside the folder of another run or map ({above})" in err, err
+        assert not out.exists()
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "results.json").write_text("[1, 2]\n")
+    assert target_problem(notes / "x", folder=True) is None
+    assert _digests(tmp_path, tiny_export) == {**before, **_digests(notes)}
+
+
 # ----------------------------------------------------------------------------- item 10
 def _remote(root: Path, name: str, ahead_s: float, stale_after) -> Path:
     """A ``running`` record of another host, its heartbeat ``ahead_s`` seconds in the future
@@ -138,6 +161,40 @@ def test_ls_reports_a_heartbeat_from_the_future_or_never_stale_as_unknown(tmp_pa
     capsys.readouterr()
     kept = {p.parent.parent.name for p in root.glob("*/checkpoints/last.ckpt")}
     assert kept == set(statuses)
+    assert _digests(root) == before
+
+
+def test_ls_reports_a_heartbeat_time_that_is_no_time_as_unknown(tmp_path, capsys):
+    """A running record of another host whose heartbeat.time is NaN, a number or absent never
+    ages (nothing to compare with the clock): listed 'unknown', naming the field, not running;
+    gc keeps its checkpoints."""
+    root = tmp_path / "outputs"
+    for name, time in (("nan", float("nan")), ("text", "nan"), ("number", 12345)):
+        folder = _remote(root, name, -10, 300.0)
+        record = json.loads((folder / "results.json").read_text())
+        record["heartbeat"]["time"] = time
+        (folder / "results.json").write_text(json.dumps(record))
+    folder = _remote(root, "absent", -10, 300.0)
+    record = json.loads((folder / "results.json").read_text())
+    del record["heartbeat"]["time"]
+    (folder / "results.json").write_text(json.dumps(record))
+    _remote(root, "fresh", -10, 300.0)
+    before = _digests(root)
+    main(["ls", str(root), "--format", "json", "--columns", "run_id,status"])
+    captured = capsys.readouterr()
+    statuses = {r["run_id"]: r["status"] for r in json.loads(captured.out)}
+    assert statuses == {"nan": "unknown", "text": "unknown", "number": "unknown",
+                        "absent": "unknown", "fresh": "running"}  # fmt: skip
+    err = captured.err.splitlines()
+    assert len(err) == 4 and "Traceback" not in captured.err, captured.err
+    for name, shown in (("nan", "nan"), ("text", "'nan'"), ("number", "12345"),
+                        ("absent", "None")):  # fmt: skip
+        (line,) = [x for x in err if f"/{name}/" in x]
+        assert f"heartbeat.time={shown} is not a time (ISO 8601)" in line, line
+        assert "listed as 'unknown', not running" in line
+    main(["gc", str(root), "--keep", "0", "--by", "loss"])
+    capsys.readouterr()
+    assert {p.parent.parent.name for p in root.glob("*/checkpoints/last.ckpt")} == set(statuses)
     assert _digests(root) == before
 
 
@@ -190,6 +247,30 @@ def test_plot_leaves_out_points_it_cannot_draw_and_refuses_a_bad_out(tmp_path, c
     assert _digests(tmp_path) == before
 
 
+def test_plot_names_points_whose_step_or_value_is_text(tmp_path, capsys):
+    """metrics.csv with a word or nothing in the step column of a row holding a value, and a
+    word as a value: those points cannot be drawn and are named (not lost in silence); a row
+    whose value cell is empty is no point (the metric was not logged at that step)."""
+    from resireg_train.runs.index import read_run
+    from resireg_train.runs.plots import plot_runs
+
+    run = _train_run(tmp_path / "text", "step,train/loss,other\n0,1.0,\nabc,0.5,\n,0.4,\n"
+                     "3,high,\n4,,7\nxyz,,8\n5,0.2,\n")  # fmt: skip
+    before = _digests(tmp_path)
+    out = tmp_path / "curves.png"
+    main(["plot", str(run), "--metric", "train/loss", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert captured.out.strip() == str(out) and "Traceback" not in captured.err
+    (warned,) = captured.err.strip().splitlines()
+    assert "run text (" in warned and "train/loss: 3 point(s) of metrics.csv:train/loss" in warned
+    assert "step=abc value=0.5, step= value=0.4, step=3 value=high" in warned, warned
+    drawn = plot_runs([read_run(run)], ["train/loss"], tmp_path / "b.png")
+    assert list(drawn.curves["train/loss"].values()) == [([0.0, 5.0], [1.0, 0.2])]
+    out.unlink()
+    (tmp_path / "b.png").unlink()
+    assert _digests(tmp_path) == before
+
+
 # ------------------------------------------------------------------------------ item 7
 _ROW = "resireg_vlm: {params_m: 25, ade20k: {bb: 12.5}}"
 
@@ -222,6 +303,28 @@ def test_reproduce_refuses_a_paper_file_off_its_schema_naming_the_key(
     err = _refused(["reproduce", "table1/resireg_vlm", "--paper", str(paper), "--out", str(out)],
                    capsys)  # fmt: skip
     assert f"--paper {paper}: {key}, got {held}" in err, err
+    assert not out.exists() and _digests(tmp_path) == before
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("table1: !!python/object/apply:os.system [echo]\n",
+         "could not determine a constructor for the tag"),
+        ("table1: [unclosed\n", "while parsing a flow sequence"),
+    ],
+)  # fmt: skip
+def test_reproduce_refuses_a_paper_file_that_is_not_yaml_in_one_line(tmp_path, capsys, text, says):
+    """A figures file YAML cannot read (a Python tag, a broken flow list): PyYAML's message
+    spans lines (the place on its own line); the refusal is one line naming the file."""
+    paper = tmp_path / "paper.yaml"
+    paper.write_text(text)
+    before = _digests(tmp_path)
+    out = tmp_path / "sweep"
+    err = _refused(["reproduce", "table1/resireg_vlm", "--paper", str(paper), "--out", str(out)],
+                   capsys)  # fmt: skip
+    assert f"--paper {paper}: not a paper file (" in err and says in err, err
+    assert f'in "{paper}", line 1' in err, err
     assert not out.exists() and _digests(tmp_path) == before
 
 

@@ -18,9 +18,10 @@ seconds per stage, through the run's record of every command
 
 ``--out`` is checked before anything is written into it (:class:`MergeFolderCheck`, before
 Hydra writes its ``.hydra/`` files and the log): a folder that holds a map, or the record of
-any other run (a ``resireg-map`` run, an evaluation, another merge), is refused in one line and
-left as it was; the folder of this same merge that did not complete (interrupted, killed,
-failed) is taken again, the temporary files a killed save left in ``<out>/map`` removed.
+any other run (a ``resireg-map`` run, an evaluation, another merge), or lies inside such a
+folder, is refused in one line and left as it was; the folder of this same merge that did not
+complete (interrupted, killed, failed) is taken again, the temporary files a killed save left
+in ``<out>/map`` removed.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, DataError, MapError
 from resireg_train.cli.job import error_text, hydra_entry_point, run_task
-from resireg_train.runs.record import RecordError, RunRecord
+from resireg_train.runs.record import RecordError, RunRecord, enclosing_run
 
 __all__ = ["PROG", "MergeFolderCheck", "check_out", "hydra_arguments", "main"]
 
@@ -67,15 +68,21 @@ def _folders(names: Any) -> list[Path]:
 
 def check_out(out: Path, names: Any) -> None:
     """Refuse ``--out`` (the run folder ``out``) before anything is written into it: a
-    :class:`ConfigError` when it holds a map, or the record (``results.json``) of any run but
-    this merge's own that did not complete (a merge of the same maps ``names``, or one that
-    failed before it recorded them)."""
+    :class:`ConfigError` when it holds a map, lies inside a folder that holds one or a run's
+    record, or holds the record (``results.json``) of any run but this merge's own that did
+    not complete (a merge of the same maps ``names``, or one that failed before it recorded
+    them)."""
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: not a folder: give another --out")
     target = out / "map"
     for held in (out, target):
         if (held / "map.json").is_file():
             raise ConfigError(f"--out {out} holds a map ({held}): give another --out")
+    if (above := enclosing_run(out)) is not None:
+        raise ConfigError(
+            f"--out {out} is inside the folder of another run or map ({above}): "
+            "a merge never writes into another run's folder; give another --out"
+        )
     try:
         previous = RunRecord.read(out)
     except RecordError as err:

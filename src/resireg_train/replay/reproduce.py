@@ -82,8 +82,9 @@ def _paper(path: str | Path) -> dict[str, Any]:
         paper = paper_results(str(path))
     except OSError as err:
         raise ReproduceRefused(f"--paper {path}: cannot be read ({err.strerror or err})") from None
-    except Exception as err:  # not YAML
-        raise ReproduceRefused(f"--paper {path}: not a paper file ({err})") from None
+    except Exception as err:  # not YAML (a YAML error's message spans lines: one line here)
+        raise ReproduceRefused(f"--paper {path}: not a paper file ({' '.join(str(err).split())})"
+                               ) from None  # fmt: skip
     if not isinstance(paper, dict):
         raise ReproduceRefused(f"--paper {path}: not a paper file (a YAML mapping)")
     if problems := paper_problems(paper):

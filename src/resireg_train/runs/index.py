@@ -9,8 +9,8 @@ list in well under two seconds (``benchmarks/bench_runs.py``). A run still marke
 whose process is gone is shown as ``died``: on this host, its PID is not alive; on another
 host (a shared file system), its heartbeat is stale (:func:`~resireg_train.runs.record.
 heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A heartbeat that
-cannot tell (more than ``provenance.heartbeat_skew`` seconds ahead of this machine's clock, or
-a ``stale_after`` that is not a number > 0) is shown as ``unknown``, named once in the run's
+cannot tell (a ``time`` that is no time, or more than ``provenance.heartbeat_skew`` seconds ahead
+of this machine's clock, or a ``stale_after`` that is not a number > 0) is shown as ``unknown``, named once in the run's
 problems (:func:`~resireg_train.runs.record.heartbeat_doubt`). A file that is not what
 it should be (a record that is not a run record, an overrides file that is not a YAML list) is
 named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other

@@ -95,21 +95,23 @@ def _out_of_range(text: Any) -> bool:
 def _points(
     run: Run, metric: str, source: str, pairs: list[tuple[Any, Any]]
 ) -> tuple[list[float], list[float]]:
-    """The ``(x, y)`` pairs that can be drawn; the others (a NaN, an infinity or a number
-    beyond :data:`LIMIT`, in x or y) left out and named once in ``run.problems``."""
+    """The ``(x, y)`` pairs that can be drawn; the others whose value cell holds something (a
+    word, a NaN, an infinity or a number beyond :data:`LIMIT`, in x or y) left out and named
+    once in ``run.problems``. An empty value cell is no point (metrics.csv leaves the cells of
+    the metrics not logged at a step empty)."""
     xs, ys, dropped = [], [], []
     for x, y in pairs:
         fx, fy = _number(x), _number(y)
         if fx is not None and fy is not None:
             xs.append(fx)
             ys.append(fy)
-        elif (fx is not None or _out_of_range(x)) and (fy is not None or _out_of_range(y)):
+        elif y is not None and str(y).strip():
             dropped.append(f"step={x} value={y}")
     if dropped:
         shown = ", ".join(dropped[:3]) + (f" and {len(dropped) - 3} more" if len(dropped) > 3
                                            else "")  # fmt: skip
         problem = (f"run {run.run_id} ({run.path}): {metric}: {len(dropped)} point(s) of {source} "
-                   f"left out, not finite or beyond +-{LIMIT:.3g}: {shown}")  # fmt: skip
+                   f"left out, not a number, not finite or beyond +-{LIMIT:.3g}: {shown}")  # fmt: skip
         if problem not in run.problems:
             run.problems.append(problem)
     return xs, ys

@@ -52,6 +52,7 @@ __all__ = [
     "RecordError",
     "Heartbeat",
     "RunRecord",
+    "enclosing_run",
     "flat",
     "heartbeat_doubt",
     "heartbeat_stale",
@@ -239,17 +240,39 @@ def heartbeat_stale(
 def target_problem(path: Path, folder: bool) -> str | None:
     """Why a command cannot write its output at ``path`` (``None`` when it can), checked
     before any work: a new run's folder (``folder``) must be absent or empty (another run's
-    otherwise), a file must not be a folder, and no folder above it may be a file."""
+    otherwise) and lie inside no other run's folder or map (:func:`enclosing_run`), a file
+    must not be a folder, and no folder above it may be a file."""
     path = Path(path)
     if path.is_dir():
         if not folder:
             return "a folder, not a file"
-        return "not empty" if any(path.iterdir()) else None
-    if folder and (path.exists() or path.is_symlink()):
+        if any(path.iterdir()):
+            return "not empty"
+    elif folder and (path.exists() or path.is_symlink()):
         return "not a folder"
-    for parent in path.absolute().parents:
-        if parent.exists():
-            return None if parent.is_dir() else f"{parent} is not a folder"
+    else:
+        for parent in path.absolute().parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    return f"{parent} is not a folder"
+                break
+    if folder and (above := enclosing_run(path)) is not None:
+        return f"inside the folder of another run or map ({above})"
+    return None
+
+
+def enclosing_run(path: str | os.PathLike) -> Path | None:
+    """The folder above ``path`` that holds a run's record (a ``results.json`` that is a run
+    record) or a saved map (``map.json``), else ``None``: a new run's folder never lies inside
+    another run's (its ``.hydra/``, its map). Another tool's ``results.json`` is no run's."""
+    from resireg.mapping.semantic_map import MAP_JSON
+
+    for above in Path(path).resolve().parents:
+        try:
+            if (above / MAP_JSON).is_file() or RunRecord.read(above):
+                return above
+        except (RecordError, OSError):  # another tool's results.json, an unreadable one
+            continue
     return None
 
 
@@ -257,9 +280,10 @@ def heartbeat_doubt(
     record: Mapping[str, Any], skew: float, now: _dt.datetime | None = None
 ) -> str | None:
     """Why the heartbeat of ``record`` cannot tell whether its job still runs, or ``None``:
-    a ``heartbeat.time`` more than ``skew`` seconds ahead of this machine's clock (another
-    host's clock is wrong: the beat would look fresh for as long), or a
-    ``heartbeat.stale_after`` that is not a finite number > 0 (never stale)."""
+    a ``heartbeat.time`` that is not an ISO 8601 time (it would never age) or is more than
+    ``skew`` seconds ahead of this machine's clock (another host's clock is wrong: the beat
+    would look fresh for as long), or a ``heartbeat.stale_after`` that is not a finite number
+    > 0 (never stale)."""
     beat = record.get(HEARTBEAT)
     if not isinstance(beat, Mapping):
         return None
@@ -268,9 +292,9 @@ def heartbeat_doubt(
                                   and math.isfinite(limit) and limit > 0):  # fmt: skip
         return f"heartbeat.stale_after={limit!r} is not a number of seconds > 0"
     try:
-        when = _dt.datetime.fromisoformat(str(beat.get("time")))
-    except ValueError:
-        return None
+        when = _dt.datetime.fromisoformat(beat["time"])
+    except (KeyError, TypeError, ValueError):
+        return f"heartbeat.time={beat.get('time')!r} is not a time (ISO 8601)"
     if when.tzinfo is None:
         when = when.replace(tzinfo=_dt.timezone.utc)
     ahead = (when - (now or _utc_now())).total_seconds()
