@@ -45,7 +45,7 @@ from torch.utils.data import DataLoader, get_worker_info
 from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
-from resireg.models.images import pil_to_tensor
+from resireg.models.images import _WIDE_GREY, pil_to_tensor
 from resireg.sources.frames import DECODE_ERRORS
 from resireg_train.data.specs import CAPTION_SOURCE_KEYS, require_keys
 from resireg_train.data.synthetic import SyntheticScenes
@@ -169,6 +169,8 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
             _require_hub_dataset(key, path)
         require_keys(spec, CAPTION_SOURCE_KEYS[kind]["required"], key, "conf/data/")
         kwargs = {k: spec[k] for k in CAPTION_SOURCE_KEYS[kind]["optional"] if spec.get(k)}
+        if _is_local(path):
+            kwargs = _without_empty_shards(key, path, kwargs)
         ds = load_dataset(path, split=spec["split"], streaming=True, **kwargs)
         image_col, caption_col = spec["image"], spec["caption"]
     ds = ds.decode(False)
@@ -180,6 +182,46 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
     return ds.map(
         _to_schema(image_col, caption_col), remove_columns=columns, features=CAPTION_FEATURES
     )
+
+
+#: Files that hold many examples each (a 0-byte one is an empty shard, not an empty image).
+_SHARD_SUFFIXES = (".tar", ".tgz", ".tar.gz", ".parquet", ".arrow", ".jsonl", ".json", ".csv")
+
+
+def _without_empty_shards(key: str, path: str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``load_dataset``'s keyword arguments with every 0-byte local shard left out of its data
+    files (``datasets`` would fail on it in the middle of an epoch: ``tarfile.ReadError: empty
+    file``); each one left out is counted in one warning naming the files. The arguments are
+    returned unchanged when no shard is empty."""
+    from datasets.data_files import DataFilesDict, get_data_patterns
+
+    base = path if os.path.isdir(path) else None
+    files = kwargs.get("data_files")
+    if files is None:
+        if base is None:
+            return kwargs
+        patterns = get_data_patterns(base)
+    else:
+        patterns = files if isinstance(files, Mapping) else {"train": files}
+        patterns = {k: [v] if isinstance(v, str) else list(v) for k, v in patterns.items()}
+    try:
+        resolved = DataFilesDict.from_patterns(patterns, base_path=base or os.getcwd())
+    except FileNotFoundError:
+        return kwargs  # load_dataset reports the pattern that matches nothing
+    empty = sorted({
+        f for split in resolved.values() for f in split
+        if str(f).endswith(_SHARD_SUFFIXES) and os.path.isfile(f) and os.path.getsize(f) == 0
+    })  # fmt: skip
+    if not empty:
+        return kwargs
+    log.warning(
+        "%s: skipped %d empty (0-byte) shard(s): %s",
+        key, len(empty), ", ".join(os.path.basename(f) for f in empty),
+    )  # fmt: skip
+    kept = {split: [f for f in fs if f not in empty] for split, fs in resolved.items()}
+    if files is not None and not isinstance(files, Mapping):
+        return {**kwargs, "data_files": kept["train"]}
+    return {**kwargs, "data_files": kept}
 
 
 def _require_hub_dataset(key: str, repo_id: str) -> None:
@@ -261,6 +303,9 @@ class CaptionStream(torch.utils.data.IterableDataset):
         self.mean, self.std = list(mean), list(std)
         self.seed, self.rank = seed, rank
         self.epoch = 0
+        # (x / 255 - mean) / std as (x - 255 mean) * (1 / (255 std)), per channel
+        self._shift = torch.tensor([255.0 * m for m in self.mean]).view(3, 1, 1)
+        self._gain = torch.tensor([1.0 / (255.0 * s) for s in self.std]).view(3, 1, 1)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -282,23 +327,44 @@ class CaptionStream(torch.utils.data.IterableDataset):
                 )
 
     def _prepare(self, example: dict, rng: np.random.Generator) -> torch.Tensor | str:
-        """Decoded, cropped, normalised image, or the reason it was skipped."""
+        """Decoded, cropped, normalised image, or the reason it was skipped.
+
+        The crop is the one of the image resized (shorter side ``crop_size``, aspect kept, as
+        ``torchvision``'s ``resize`` sizes it) at a random position, computed without the
+        resized image: a JPEG is decoded at the smallest of its 1/2, 1/4, 1/8 scales that still
+        holds the resized size (``Image.draft``, the DCT scaled in the decoder), and only the
+        crop's box of it is resampled to ``crop_size`` (PIL's bilinear filter, antialiased like
+        ``torchvision``'s, its support read around the box), so no full-size or resized copy
+        exists; other formats are decoded whole. Then one float copy, normalised in place."""
         if example["image"] is None or not example["caption"]:
             return "invalid"
+        size = self.crop_size
         try:
             with Image.open(io.BytesIO(example["image"])) as im:
-                pixels = pil_to_tensor(im)
+                w, h = im.size
+                if min(w, h) < self.min_image_size:
+                    return "small"
+                # torchvision's resized size: the shorter side `size`, the longer truncated
+                out_w, out_h = (size, int(size * h / w)) if w <= h else (int(size * w / h), size)
+                top = int(rng.integers(0, out_h - size + 1))
+                left = int(rng.integers(0, out_w - size + 1))
+                if im.mode in _WIDE_GREY:  # 16/32-bit grey: scaled by pil_to_tensor, rare
+                    image = TF.resize(pil_to_tensor(im), [out_h, out_w], antialias=True)
+                    image = TF.crop(image, top, left, size, size)
+                    return self._normalise(image.permute(1, 2, 0))
+                im.draft("RGB", (out_w, out_h))  # JPEG: decode at a reduced scale (else no-op)
+                rgb = im.convert("RGB") if im.mode != "RGB" else im
+                sx, sy = rgb.width / out_w, rgb.height / out_h  # decoded px per resized px
+                box = (left * sx, top * sy, (left + size) * sx, (top + size) * sy)
+                crop = rgb.resize((size, size), Image.Resampling.BILINEAR, box=box)
         except DECODE_ERRORS:
             return "invalid"
-        if min(pixels.shape[-2:]) < self.min_image_size:
-            return "small"
-        image = TF.resize(pixels, self.crop_size, antialias=True)
-        h, w = image.shape[-2:]
-        top = int(rng.integers(0, h - self.crop_size + 1))
-        left = int(rng.integers(0, w - self.crop_size + 1))
-        image = TF.crop(image, top, left, self.crop_size, self.crop_size)
-        image = TF.to_dtype(image, torch.float32, scale=True)
-        return TF.normalize(image, self.mean, self.std)
+        return self._normalise(torch.from_numpy(np.array(crop)))  # writable: no warning
+
+    def _normalise(self, pixels: torch.Tensor) -> torch.Tensor:
+        """uint8 ``[S, S, 3]`` -> float ``[3, S, S]``, ``(x / 255 - mean) / std``: one copy."""
+        image = pixels.permute(2, 0, 1).to(torch.float32)
+        return image.sub_(self._shift).mul_(self._gain)
 
     def __iter__(self) -> Iterator[dict]:
         info = get_worker_info()
