@@ -353,3 +353,22 @@ def test_bad_jpegs_and_empty_shards_are_skipped_and_counted(bad, tmp_path, caplo
         assert warnings_ == ["data.sources.wds: skipped 1 empty (0-byte) shard(s): shard-2.tar"]
     else:
         assert invalid == 1 and not warnings_
+
+
+def test_auto_workers_follow_the_cores_this_process_may_use(monkeypatch, tmp_path):
+    """``data.num_workers: auto``: the affinity mask's cores shared by the node's processes,
+    one left to each process, capped at the shards; the prefetch depth keeps >= 4 batches."""
+    from resireg_train.data import captions
+
+    monkeypatch.setattr(captions.os, "sched_getaffinity", lambda pid: set(range(16)))
+    assert captions.loader_workers("auto", shards=100, processes=2) == (7, 2)
+    assert captions.loader_workers("auto", shards=100, processes=1) == (15, 2)
+    assert captions.loader_workers("auto", shards=3, processes=1) == (3, 2)
+    monkeypatch.setattr(captions.os, "sched_getaffinity", lambda pid: {0, 1})
+    assert captions.loader_workers("auto", shards=100) == (1, 4)  # 4 batches ahead from 1
+    assert captions.loader_workers(0, shards=100) == (0, None)
+    assert captions.loader_workers(8, shards=5) == (5, 2)
+    folder = _cauldron_parquet(tmp_path / "c", 8, files=4)
+    spec = _source(folder, image="images.0", caption="texts.0.assistant")
+    _, loader = _loader({"c": spec}, num_workers="auto")
+    assert (loader.num_workers, loader.prefetch_factor) == (1, 4)
