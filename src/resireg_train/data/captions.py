@@ -29,6 +29,7 @@ import io
 import logging
 import math
 import os
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from itertools import count
 from pathlib import Path
@@ -304,9 +305,9 @@ class CaptionStream(torch.utils.data.IterableDataset):
         self.mean, self.std = list(mean), list(std)
         self.seed, self.rank = seed, rank
         self.epoch = 0
-        # (x / 255 - mean) / std as (x - 255 mean) * (1 / (255 std)), per channel
-        self._shift = torch.tensor([255.0 * m for m in self.mean]).view(3, 1, 1)
-        self._gain = torch.tensor([1.0 / (255.0 * s) for s in self.std]).view(3, 1, 1)
+        # (x / 255 - mean) / std as x * gain + bias per channel (channels last)
+        self._gain = torch.tensor([1.0 / (255.0 * s) for s in self.std])
+        self._bias = torch.tensor([-m / s for m, s in zip(self.mean, self.std, strict=True)])
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -360,12 +361,16 @@ class CaptionStream(torch.utils.data.IterableDataset):
                 crop = rgb.resize((size, size), Image.Resampling.BILINEAR, box=box)
         except DECODE_ERRORS:
             return "invalid"
-        return self._normalise(torch.from_numpy(np.array(crop)))  # writable: no warning
+        with warnings.catch_warnings():  # read-only (PIL's bytes): only read, by the copy below
+            warnings.simplefilter("ignore", UserWarning)
+            pixels = torch.from_numpy(np.asarray(crop))
+        return self._normalise(pixels)
 
     def _normalise(self, pixels: torch.Tensor) -> torch.Tensor:
-        """uint8 ``[S, S, 3]`` -> float ``[3, S, S]``, ``(x / 255 - mean) / std``: one copy."""
-        image = pixels.permute(2, 0, 1).to(torch.float32)
-        return image.sub_(self._shift).mul_(self._gain)
+        """uint8 ``[S, S, 3]`` -> float ``[3, S, S]``, ``(x / 255 - mean) / std``: one float
+        copy, normalised in place as ``x * gain + bias`` (channels last: the ``[3, S, S]`` is a
+        view, which the collate's stack copies into the batch as it would a contiguous one)."""
+        return pixels.to(torch.float32).mul_(self._gain).add_(self._bias).permute(2, 0, 1)
 
     def __iter__(self) -> Iterator[dict]:
         info = get_worker_info()
