@@ -302,8 +302,8 @@ def test_crops_equal_the_full_size_decode_within_resampling_tolerance(
     assert decoded[0] == (-(-size[0] // scale), -(-size[1] // scale))
     err = ((got - ref) * torch.tensor(std).view(3, 1, 1) * 255).abs()  # in 8-bit levels
     psnr = 10 * torch.log10(255.0**2 / (err**2).mean())
-    if scale == 1:  # the same pixels resampled by the same filter: rounding only
-        assert err.max() <= 1.01, float(err.max())
+    if scale == 1:  # the same pixels resized by the same function: float rounding only
+        assert err.max() <= 1e-3, float(err.max())
     else:  # the DCT's reduced scale: resampling differences, no shift
         assert err.mean() <= 1.0 and psnr >= 40, (float(err.mean()), float(psnr))
 

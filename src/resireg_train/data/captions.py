@@ -331,13 +331,13 @@ class CaptionStream(torch.utils.data.IterableDataset):
     def _prepare(self, example: dict, rng: np.random.Generator) -> torch.Tensor | str:
         """Decoded, cropped, normalised image, or the reason it was skipped.
 
-        The crop is the one of the image resized (shorter side ``crop_size``, aspect kept, as
-        ``torchvision``'s ``resize`` sizes it) at a random position, computed without the
-        resized image: a JPEG is decoded at the smallest of its 1/2, 1/4, 1/8 scales that still
-        holds the resized size (``Image.draft``, the DCT scaled in the decoder), and only the
-        crop's box of it is resampled to ``crop_size`` (PIL's bilinear filter, antialiased like
-        ``torchvision``'s, its support read around the box), so no full-size or resized copy
-        exists; other formats are decoded whole. Then one float copy, normalised in place."""
+        The image resized (shorter side ``crop_size``, aspect kept, antialiased: torchvision's
+        ``resize``), cropped at a random position. A JPEG is decoded at the smallest of its 1/2,
+        1/4, 1/8 scales that still holds the resized size (``Image.draft``: the DCT scaled in
+        the decoder, so a large photo never exists at full size) and resized from there; other
+        formats are decoded whole. The decoded pixels are read in place (channels last, the
+        layout of torch's vectorised uint8 resize), and the crop is copied once, to float,
+        and normalised in place."""
         if example["image"] is None or not example["caption"]:
             return "invalid"
         size = self.crop_size
@@ -348,23 +348,20 @@ class CaptionStream(torch.utils.data.IterableDataset):
                     return "small"
                 # torchvision's resized size: the shorter side `size`, the longer truncated
                 out_w, out_h = (size, int(size * h / w)) if w <= h else (int(size * w / h), size)
-                top = int(rng.integers(0, out_h - size + 1))
-                left = int(rng.integers(0, out_w - size + 1))
                 if im.mode in _WIDE_GREY:  # 16/32-bit grey: scaled by pil_to_tensor, rare
-                    image = TF.resize(pil_to_tensor(im), [out_h, out_w], antialias=True)
-                    image = TF.crop(image, top, left, size, size)
-                    return self._normalise(image.permute(1, 2, 0))
-                im.draft("RGB", (out_w, out_h))  # JPEG: decode at a reduced scale (else no-op)
-                rgb = im.convert("RGB") if im.mode != "RGB" else im
-                sx, sy = rgb.width / out_w, rgb.height / out_h  # decoded px per resized px
-                box = (left * sx, top * sy, (left + size) * sx, (top + size) * sy)
-                crop = rgb.resize((size, size), Image.Resampling.BILINEAR, box=box)
+                    pixels = pil_to_tensor(im)
+                else:
+                    im.draft("RGB", (out_w, out_h))  # JPEG: decode at a reduced scale
+                    rgb = im.convert("RGB") if im.mode != "RGB" else im
+                    with warnings.catch_warnings():  # read-only (PIL's bytes): only read
+                        warnings.simplefilter("ignore", UserWarning)
+                        pixels = torch.from_numpy(np.asarray(rgb)).permute(2, 0, 1)
         except DECODE_ERRORS:
             return "invalid"
-        with warnings.catch_warnings():  # read-only (PIL's bytes): only read, by the copy below
-            warnings.simplefilter("ignore", UserWarning)
-            pixels = torch.from_numpy(np.asarray(crop))
-        return self._normalise(pixels)
+        image = TF.resize(pixels, [out_h, out_w], antialias=True)
+        top = int(rng.integers(0, out_h - size + 1))
+        left = int(rng.integers(0, out_w - size + 1))
+        return self._normalise(TF.crop(image, top, left, size, size).permute(1, 2, 0))
 
     def _normalise(self, pixels: torch.Tensor) -> torch.Tensor:
         """uint8 ``[S, S, 3]`` -> float ``[3, S, S]``, ``(x / 255 - mean) / std``: one float
