@@ -295,7 +295,9 @@ def test_crops_equal_the_full_size_decode_within_resampling_tolerance(
     monkeypatch.setattr(Image.Image, "load", spy)
     mean, std = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
     stream = CaptionStream(None, steps_per_epoch=1, batch_size=1, crop_size=512, mean=mean, std=std)
-    got = stream._prepare({"image": data, "caption": ["c"]}, np.random.default_rng(7))
+    crop = stream._prepare({"image": data, "caption": ["c"]}, np.random.default_rng(7))
+    sample = {"image": crop, "caption": "c", "skipped_invalid": 0, "skipped_small": 0}
+    got = stream.collate([sample])["image"][0]  # the loader's batch, normalised
     monkeypatch.setattr(Image.Image, "load", load)
     ref = _full_size_crop(data, 512, np.random.default_rng(7), mean, std)
     assert got.shape == ref.shape == (3, 512, 512) and got.dtype == torch.float32

@@ -43,7 +43,7 @@ from datasets import Image as HFImage
 from datasets.distributed import split_dataset_by_node
 from PIL import Image
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
-from torch.utils.data import DataLoader, get_worker_info
+from torch.utils.data import DataLoader, default_collate, get_worker_info
 from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
@@ -269,8 +269,9 @@ def mix_caption_sources(
 class CaptionStream(torch.utils.data.IterableDataset):
     """One rank's training samples: exactly ``steps_per_epoch`` batches per epoch.
 
-    Each sample is ``{"image": [3, S, S] float, "caption": str, "skipped_invalid": int,
-    "skipped_small": int}``; the two counters hold how many examples were dropped
+    Each sample is ``{"image": [3, S, S] uint8, "caption": str, "skipped_invalid": int,
+    "skipped_small": int}``, and :meth:`collate` makes batches of them with the images
+    normalised (``[B, 3, S, S]`` float, what the loader yields); the two counters hold how many examples were dropped
     (undecodable image / no caption, or shorter side < ``min_image_size``) just before it,
     so summing them over batches counts every skip exactly once.
 
@@ -305,7 +306,7 @@ class CaptionStream(torch.utils.data.IterableDataset):
         self.mean, self.std = list(mean), list(std)
         self.seed, self.rank = seed, rank
         self.epoch = 0
-        # (x / 255 - mean) / std as x * gain + bias per channel (channels last)
+        # (x / 255 - mean) / std as x * gain + bias per channel (CaptionStream.collate)
         self._gain = torch.tensor([1.0 / (255.0 * s) for s in self.std])
         self._bias = torch.tensor([-m / s for m, s in zip(self.mean, self.std, strict=True)])
 
@@ -336,8 +337,8 @@ class CaptionStream(torch.utils.data.IterableDataset):
         1/4, 1/8 scales that still holds the resized size (``Image.draft``: the DCT scaled in
         the decoder, so a large photo never exists at full size) and resized from there; other
         formats are decoded whole. The decoded pixels are read in place (channels last, the
-        layout of torch's vectorised uint8 resize), and the crop is copied once, to float,
-        and normalised in place."""
+        layout of torch's vectorised uint8 resize); the crop stays uint8 (a view) until
+        :meth:`collate` stacks and normalises the batch."""
         if example["image"] is None or not example["caption"]:
             return "invalid"
         size = self.crop_size
@@ -361,13 +362,22 @@ class CaptionStream(torch.utils.data.IterableDataset):
         image = TF.resize(pixels, [out_h, out_w], antialias=True)
         top = int(rng.integers(0, out_h - size + 1))
         left = int(rng.integers(0, out_w - size + 1))
-        return self._normalise(TF.crop(image, top, left, size, size).permute(1, 2, 0))
+        return TF.crop(image, top, left, size, size)  # uint8 [3, S, S], a view
 
-    def _normalise(self, pixels: torch.Tensor) -> torch.Tensor:
-        """uint8 ``[S, S, 3]`` -> float ``[3, S, S]``, ``(x / 255 - mean) / std``: one float
-        copy, normalised in place as ``x * gain + bias`` (channels last: the ``[3, S, S]`` is a
-        view, which the collate's stack copies into the batch as it would a contiguous one)."""
-        return pixels.to(torch.float32).mul_(self._gain).add_(self._bias).permute(2, 0, 1)
+    def collate(self, samples: list[dict]) -> dict:
+        """Samples -> a batch: the uint8 crops stacked (a quarter of the float bytes) and
+        normalised together, ``(x / 255 - mean) / std`` computed as ``x * gain + bias`` straight
+        into the float batch ``[B, 3, S, S]``; the other fields as ``default_collate``."""
+        images = torch.stack([s["image"] for s in samples])
+        batch = default_collate([{k: v for k, v in s.items() if k != "image"} for s in samples])
+        out = torch.empty(0, dtype=torch.float32)
+        if get_worker_info() is not None:  # in shared memory, as default_collate does: the
+            # batch reaches the main process without a copy
+            out = out.new(out._typed_storage()._new_shared(images.numel(), device=out.device))
+        out = out.resize_(images.shape)
+        torch.mul(images, self._gain.view(1, 3, 1, 1), out=out)
+        batch["image"] = out.add_(self._bias.view(1, 3, 1, 1))
+        return batch
 
     def __iter__(self) -> Iterator[dict]:
         info = get_worker_info()
@@ -511,6 +521,7 @@ class CaptionDataModule(L.LightningDataModule):
             self.train_set,
             epoch=lambda: self.trainer.current_epoch if self.trainer is not None else 0,
             batch_size=self.train_set.batch_size,
+            collate_fn=self.train_set.collate,
             num_workers=workers,
             prefetch_factor=prefetch,
             pin_memory=self.pin_memory,
