@@ -253,15 +253,16 @@ def test_factorised_lite_equals_float64_dense_reference(
         (0.005, 1, (9, 7), (9, 7)),
     ],
 )
-def test_factorised_graph_form_equals_float64_dense_reference(tau, upscale, grid, lang_grid):
+@pytest.mark.parametrize("alpha", [10.0, 200.0])  # unshifted exp / shifted as the eager form
+def test_factorised_graph_form_equals_float64_dense_reference(tau, upscale, grid, lang_grid, alpha):
     """The batched form traced into ONNX graphs (``_factorised_graph``: no blocks, tiles or
     data-dependent checks) computes the formula: fp32 within 1e-5, float64 to its rounding."""
     g = torch.Generator().manual_seed(5)
     (h, w), (hl, wl) = grid, lang_grid
     inter = torch.randn(3, 16, h, w, generator=g)
     lang = torch.randn(3, 12, hl, wl, generator=g)
-    lite = ReSiRegLite(alpha=10.0, tau=tau, upscale=upscale, attention="factorised")
-    ref64 = _lite_float64(inter, lang, 10.0, tau, upscale)
+    lite = ReSiRegLite(alpha=alpha, tau=tau, upscale=upscale, attention="factorised")
+    ref64 = _lite_float64(inter, lang, alpha, tau, upscale)
     out = lite._factorised_graph(inter, lang, None)
     assert out.shape == ref64.shape == (3, 12, h * upscale, w * upscale)
     assert (out - ref64.float()).abs().max() <= 1e-5

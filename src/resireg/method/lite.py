@@ -36,6 +36,9 @@ _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
 # 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
 # pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
 # passes win there): 8M (32 MB in float32) is the compromise.
+# The largest alpha for which the traced factorised form exponentiates alpha cos unshifted:
+# exp(60) * 1e6 points * |token| stays far below float32's 3.4e38.
+_GRAPH_UNSHIFTED_ALPHA = 60.0
 _FACTORISED_BLOCK = 8 * 1024 * 1024
 _FACTORISED_TILE = 8 * 1024 * 1024
 
@@ -241,8 +244,9 @@ class ReSiRegLite(nn.Module):
         Per image, the Gram matrix ``G = X X^T`` of the coarse points is bilinearly upsampled
         on the query side (``G`` read as ``h w`` channels of an ``h x w`` map), scaled by
         ``alpha r_p``, and upsampled on the key side (the queries as channels), which gives
-        ``alpha cos(u_p, u_q) / r_q``; times ``r_q``, shifted by ``alpha`` (clamped at 0) and
-        exponentiated, these are the softmax numerators ``[B, N, s h, s w]``, summed over the
+        ``alpha cos(u_p, u_q) / r_q``; times ``r_q`` and exponentiated (shifted by ``alpha`` and
+        clamped at 0 as the eager form does only where ``alpha`` > 60: unshifted, the numerators
+        carry a constant factor the normalisation removes), these are the softmax numerators ``[B, N, s h, s w]``, summed over the
         keys of each language token (a sum pooling of ``s x s`` blocks when the language grid
         is the intermediates', else products with the one-hot nearest maps of rows and
         columns: the nearest resize is separable), then multiplied by the coarse tokens.
@@ -269,8 +273,13 @@ class ReSiRegLite(nn.Module):
         left = upsample(gram.reshape(b, hw, hv, wv), s).reshape(b, hw, n) * (inv * alpha)
         # key side: [B, N (queries), s h, s w (keys)]
         sim = upsample(left.transpose(1, 2).reshape(b, n, hv, wv), s)
-        logits = sim * inv.reshape(b, 1, big_h, big_w) - alpha
-        weights = logits.clamp_max(0.0).exp()
+        logits = sim * inv.reshape(b, 1, big_h, big_w)  # alpha cos(u_p, u_q)
+        if alpha <= _GRAPH_UNSHIFTED_ALPHA:  # exp(alpha cos) and its sums stay finite: the
+            # shift by -alpha, a constant factor that the normalisation and the gate's
+            # comparison with tau Z ignore, is left out (two passes over B N^2 fewer)
+            weights = logits.exp()
+        else:
+            weights = (logits - alpha).clamp_max(0.0).exp()
         sums = self._graph_token_sums(weights, (hv, wv, s), (hl, wl))  # [B, N, hl wl]
         if self.tau > 0:  # gate: lambda = w / Z >= tau, then the sums again
             norm = weights.sum(dim=(2, 3), keepdim=True)
