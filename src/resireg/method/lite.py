@@ -140,7 +140,8 @@ class ReSiRegLite(nn.Module):
         dtype = torch.promote_types(intermediates.dtype, language.dtype)
         with torch.autocast(device_type=intermediates.device.type, enabled=False):
             if self.resolve_attention(intermediates.device) == "factorised":
-                if torch.compiler.is_compiling():  # torch.export / ONNX: one batched graph
+                # traced (torch.export, the ONNX export, torch.compile): one batched graph, B N^2
+                if torch.compiler.is_compiling():
                     return self._factorised_graph(intermediates, language, prior).to(language.dtype)
                 return self._factorised(intermediates, language, prior).to(language.dtype)
             fv = F.normalize(upsample(intermediates.to(dtype), self.upscale), dim=1)
