@@ -228,3 +228,149 @@ def test_hub_source_offline_fails_at_once_naming_the_key():
     assert time.perf_counter() - start < 5
     with pytest.raises(FileNotFoundError, match=r"data\.sources\.x\.path='/no/such/dir'"):
         open_caption_source("x", {"path": "/no/such/dir"})
+
+
+# ------------------------------------------------- decoding at the crop's scale (issue 54 item 3)
+def _photo_jpeg(w, h, seed=0, mode="RGB"):
+    """A JPEG with a photo's spread of frequencies: smooth colour fields, grain, and a
+    checkerboard of shading whose edges show any offset of the crop."""
+    g = np.random.default_rng(seed)
+    low = Image.fromarray((g.random((h // 64 + 2, w // 64 + 2, 3)) * 255).astype(np.uint8))
+    arr = np.asarray(low.resize((w, h), Image.Resampling.BICUBIC)).astype(np.float32)
+    arr += g.normal(0, 6, arr.shape)
+    yy, xx = np.mgrid[0:h, 0:w]
+    arr[((xx // max(1, w // 9)) + (yy // max(1, h // 7))) % 2 == 0] *= 0.6
+    image = Image.fromarray(np.clip(arr, 0, 255).astype(np.uint8)).convert(mode)
+    buf = io.BytesIO()
+    image.save(buf, format="JPEG", quality=90)
+    return buf.getvalue()
+
+
+def _full_size_crop(data, crop, rng, mean, std):
+    """Today's reference, independent of the stream's code: the whole image decoded at full
+    size (plain PIL), torchvision's antialiased resize of the shorter side to ``crop``, the
+    random crop drawn as the stream draws it (top, then left), normalised."""
+    from torchvision.transforms.v2 import functional as TF
+
+    with Image.open(io.BytesIO(data)) as im:
+        pixels = torch.from_numpy(np.array(im.convert("RGB"))).permute(2, 0, 1)
+    image = TF.resize(pixels, crop, antialias=True)
+    h, w = image.shape[-2:]
+    top = int(rng.integers(0, h - crop + 1))
+    left = int(rng.integers(0, w - crop + 1))
+    image = TF.to_dtype(TF.crop(image, top, left, crop, crop), torch.float32, scale=True)
+    return TF.normalize(image, list(mean), list(std))
+
+
+@pytest.mark.parametrize(
+    ("size", "mode", "fmt", "scale"),
+    [
+        ((2800, 2100), "RGB", "JPEG", 4),  # decoded at 1/4: 700 x 525 holds 682 x 512
+        ((1600, 1200), "RGB", "JPEG", 2),
+        ((1200, 1800), "RGB", "JPEG", 2),  # portrait
+        ((1100, 1000), "L", "JPEG", 1),  # grey; 1/2 would be 500 high, below 512
+        ((400, 300), "RGB", "JPEG", 1),  # upsampled
+        ((900, 700), "RGB", "PNG", 1),  # not a JPEG: decoded whole
+    ],
+)
+def test_crops_equal_the_full_size_decode_within_resampling_tolerance(
+    size, mode, fmt, scale, monkeypatch
+):
+    from resireg_train.data.captions import CaptionStream
+
+    data = _photo_jpeg(*size, seed=size[0], mode=mode)
+    if fmt == "PNG":
+        with Image.open(io.BytesIO(data)) as im:
+            buf = io.BytesIO()
+            im.save(buf, format="PNG")
+        data = buf.getvalue()
+    decoded = []
+    load = Image.Image.load
+
+    def spy(self):  # the size each image is decoded at
+        out = load(self)
+        decoded.append(self.size)
+        return out
+
+    monkeypatch.setattr(Image.Image, "load", spy)
+    mean, std = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+    stream = CaptionStream(None, steps_per_epoch=1, batch_size=1, crop_size=512, mean=mean, std=std)
+    crop = stream._prepare({"image": data, "caption": ["c"]}, np.random.default_rng(7))
+    sample = {"image": crop, "caption": "c", "skipped_invalid": 0, "skipped_small": 0}
+    got = stream.collate([sample])["image"][0]  # the loader's batch, normalised
+    monkeypatch.setattr(Image.Image, "load", load)
+    ref = _full_size_crop(data, 512, np.random.default_rng(7), mean, std)
+    assert got.shape == ref.shape == (3, 512, 512) and got.dtype == torch.float32
+    assert decoded[0] == (-(-size[0] // scale), -(-size[1] // scale))
+    err = ((got - ref) * torch.tensor(std).view(3, 1, 1) * 255).abs()  # in 8-bit levels
+    psnr = 10 * torch.log10(255.0**2 / (err**2).mean())
+    if scale == 1:  # the same pixels resized by the same function: float rounding only
+        assert err.max() <= 1e-3, float(err.max())
+    else:  # the DCT's reduced scale: resampling differences, no shift
+        assert err.mean() <= 1.0 and psnr >= 40, (float(err.mean()), float(psnr))
+
+
+def _wds_shards(folder, shards):
+    """webdataset shards: ``shards`` is a list of lists of ``(key, jpeg bytes)``; ``None``
+    for a 0-byte shard."""
+    folder.mkdir()
+    for s, items in enumerate(shards):
+        path = folder / f"shard-{s}.tar"
+        if items is None:
+            path.write_bytes(b"")
+            continue
+        with tarfile.open(path, "w") as tar:
+            for key, image in items:
+                for ext, data in (("jpg", image), ("txt", f"caption {key}".encode())):
+                    info = tarfile.TarInfo(f"{key}.{ext}")
+                    info.size = len(data)
+                    tar.addfile(info, io.BytesIO(data))
+    return {"path": "webdataset", "data_files": str(folder / "*.tar"), "split": "train",
+            "image": "jpg", "caption": "txt", "probability": 1.0}  # fmt: skip
+
+
+@pytest.mark.parametrize("bad", ["undecodable", "truncated", "empty shard"])
+def test_bad_jpegs_and_empty_shards_are_skipped_and_counted(bad, tmp_path, caplog):
+    """Six good JPEGs in two shards, and one bad thing: a JPEG that is not one, a JPEG cut
+    in half, or a third shard of 0 bytes. The epoch holds the six, the bad image is counted
+    in ``skipped_invalid``, the empty shard in one warning naming it."""
+    good = [(f"{s}{i}", _photo_jpeg(96, 80, seed=10 * s + i)) for s in range(2) for i in range(3)]
+    shards = [good[:3], good[3:]]
+    whole = _photo_jpeg(400, 300, seed=99)
+    if bad == "empty shard":
+        shards.append(None)
+    else:
+        shards[0].append(("bad", b"\xff\xd8\xff\xe0 not a JPEG" if bad == "undecodable"
+                          else whole[: len(whole) // 2]))  # fmt: skip
+    spec = _wds_shards(tmp_path / "wds", shards)
+    _, loader = _loader({"wds": spec}, steps_per_epoch=3, batch_size=2)
+    with caplog.at_level("WARNING"):
+        batches = _epoch(loader)
+    captions = sorted(c for b in batches for c in b["caption"])
+    assert captions == sorted(f"caption {k}" for k, _ in good)
+    invalid = sum(int(b["skipped_invalid"].sum()) for b in batches)
+    warnings_ = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    if bad == "empty shard":
+        assert invalid == 0
+        assert warnings_ == ["data.sources.wds: skipped 1 empty (0-byte) shard(s): shard-2.tar"]
+    else:
+        assert invalid == 1 and not warnings_
+
+
+def test_auto_workers_follow_the_cores_this_process_may_use(monkeypatch, tmp_path):
+    """``data.num_workers: auto``: the affinity mask's cores shared by the node's processes,
+    one left to each process, capped at the shards; the prefetch depth keeps >= 4 batches."""
+    from resireg_train.data import captions
+
+    monkeypatch.setattr(captions.os, "sched_getaffinity", lambda pid: set(range(16)))
+    assert captions.loader_workers("auto", shards=100, processes=2) == (7, 2)
+    assert captions.loader_workers("auto", shards=100, processes=1) == (15, 2)
+    assert captions.loader_workers("auto", shards=3, processes=1) == (3, 2)
+    monkeypatch.setattr(captions.os, "sched_getaffinity", lambda pid: {0, 1})
+    assert captions.loader_workers("auto", shards=100) == (1, 4)  # 4 batches ahead from 1
+    assert captions.loader_workers(0, shards=100) == (0, None)
+    assert captions.loader_workers(8, shards=5) == (5, 2)
+    folder = _cauldron_parquet(tmp_path / "c", 8, files=4)
+    spec = _source(folder, image="images.0", caption="texts.0.assistant")
+    _, loader = _loader({"c": spec}, num_workers="auto")
+    assert (loader.num_workers, loader.prefetch_factor) == (1, 4)

@@ -6,7 +6,6 @@ References are independent of the code under test: digests by ``hashlib``, opera
 ``encode_text`` and ``ReSiRegLite`` in its other exact form (factorised on the CPU), the model
 card parsed by ``huggingface_hub.ModelCard``."""
 
-import copy
 import hashlib
 import json
 import os
@@ -30,7 +29,7 @@ ort = pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 
 from resireg.deploy import open_graph  # noqa: E402
-from resireg.deploy.onnx_export import ImageGraph, export_onnx  # noqa: E402
+from resireg.deploy.onnx_export import export_onnx  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -434,14 +433,49 @@ def test_fp16_graphs_match_torch_fp32(tiny_model, tmp_path):
     assert next(tiny_model.parameters()).dtype == torch.float32  # the caller's model unchanged
 
 
-def test_factorised_lite_does_not_export_and_is_refused_with_the_reason(tiny_model, tmp_path):
-    graph = ImageGraph(copy.deepcopy(tiny_model), ReSiRegLite(attention="factorised")).eval()
-    with pytest.raises(Exception, match="(?i)data.dependent|equal"):  # the documented reason
-        torch.export.export(graph, (torch.randn(1, 3, 48, 64),))
-    with pytest.raises(ValueError, match="attention='factorised'.*does not export"):
-        export_onnx(tiny_model, tmp_path / "f.onnx", lite=True, attention="factorised")
+def _own_ops(graph, output, inputs):
+    """The operator types computing ``output`` from the values ``inputs`` (the nodes above
+    ``output`` that are not above any of ``inputs``)."""
+    producer = {out: node for node in graph.node for out in node.output}
+
+    def above(names):
+        seen, stack = set(), list(names)
+        while stack:
+            node = producer.get(stack.pop())
+            if node is not None and id(node) not in seen:
+                seen.add(id(node))
+                stack.extend(node.input)
+        return seen
+
+    shared = above(inputs)
+    return {n.op_type for n in graph.node if id(n) in above([output]) - shared}
+
+
+def test_factorised_lite_graph_equals_torch_within_1e_5(tiny_model, tmp_path):
+    """Lite's factorised form exports (dynamic shapes, no MatMul -> Softmax -> MatMul: the
+    graph upsamples the Gram matrix with Resize) and its output equals torch's Lite, both forms
+    and the formula in float64, within 1e-5 (float32) at two batches and grids."""
+    result = export_onnx(tiny_model, tmp_path / "f.onnx", lite=True, attention="factorised",
+                         dynamic=True, text=False)  # fmt: skip
+    manifest = _check_manifest(result)
+    assert manifest["lite"]["attention"] == "factorised"
+    ops = _own_ops(onnx.load(str(result.image)).graph, "lite", ["intermediates", "language"])
+    assert "Softmax" not in ops and "Resize" in ops and "Exp" in ops, sorted(ops)
+    for batch, (h, w) in ((1, (48, 64)), (3, (64, 96))):
+        images = torch.randn(batch, 3, h, w, generator=torch.Generator().manual_seed(batch))
+        got = torch.from_numpy(_run_onnx(result.image, images=images)["lite"])
+        with torch.no_grad():
+            out = tiny_model.encode(images)
+            for form in ("factorised", "sdpa"):
+                ref = ReSiRegLite(attention=form)(out.intermediates, out.language)
+                assert got.shape == ref.shape
+                assert (got - ref).abs().max() <= 1e-5, form
+            ref64 = ReSiRegLite(attention="sdpa")(out.intermediates.double(), out.language.double())
+        assert (got.double() - ref64).abs().max() <= 1e-5
     with pytest.raises(ValueError, match="height=50: expected a positive multiple of the patch"):
         export_onnx(tiny_model, tmp_path / "f.onnx", height=50, width=64)
+    with pytest.raises(ValueError, match="attention='flash'.*'factorised'"):
+        export_onnx(tiny_model, tmp_path / "g.onnx", lite=True, attention="flash")
 
 
 @pytest.fixture(scope="module")

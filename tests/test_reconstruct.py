@@ -243,6 +243,36 @@ def test_factorised_lite_equals_float64_dense_reference(
         ).abs().max() > 1e-3
 
 
+@pytest.mark.parametrize(
+    ("tau", "upscale", "grid", "lang_grid"),
+    [
+        (0.0, 2, (5, 7), (5, 7)),
+        (0.01, 3, (7, 5), (7, 5)),
+        (0.0, 2, (5, 7), (3, 4)),  # language on another grid: one-hot products, no blocks
+        (0.005, 3, (4, 6), (6, 5)),  # a language grid finer in one axis
+        (0.005, 1, (9, 7), (9, 7)),
+    ],
+)
+@pytest.mark.parametrize("alpha", [10.0, 200.0])  # unshifted exp / shifted as the eager form
+def test_factorised_graph_form_equals_float64_dense_reference(tau, upscale, grid, lang_grid, alpha):
+    """The batched form traced into ONNX graphs (``_factorised_graph``: no blocks, tiles or
+    data-dependent checks) computes the formula: fp32 within 1e-5, float64 to its rounding."""
+    g = torch.Generator().manual_seed(5)
+    (h, w), (hl, wl) = grid, lang_grid
+    inter = torch.randn(3, 16, h, w, generator=g)
+    lang = torch.randn(3, 12, hl, wl, generator=g)
+    lite = ReSiRegLite(alpha=alpha, tau=tau, upscale=upscale, attention="factorised")
+    ref64 = _lite_float64(inter, lang, alpha, tau, upscale)
+    out = lite._factorised_graph(inter, lang, None)
+    assert out.shape == ref64.shape == (3, 12, h * upscale, w * upscale)
+    assert (out - ref64.float()).abs().max() <= 1e-5
+    assert (
+        lite._factorised_graph(inter.double(), lang.double(), None) - ref64
+    ).abs().max() <= 1e-12
+    with pytest.raises(ValueError, match="takes no prior"):
+        lite._factorised_graph(inter, lang, torch.zeros(3, h, w, dtype=torch.long))
+
+
 def test_factorised_and_sdpa_lite_agree_at_protocol_width():
     """One protocol-like image (384-d intermediates, 512-d tokens, a 12 x 16 grid, s = 2):
     both computations agree to fp32 rounding."""

@@ -301,7 +301,7 @@ def test_library_defaults_equal_the_conf_files_they_stand_for():
         defaults = {k: p.default for k, p in inspect.signature(cls).parameters.items()
                     if p.default is not p.empty and k in node and k != "seed"}  # fmt: skip
         assert defaults and defaults == {k: node[k] for k in defaults}, cls.__name__
-    assert train.data.num_workers == 8 and train.callbacks.resireg_eval.num_workers == 2
+    assert train.data.num_workers == "auto" and train.callbacks.resireg_eval.num_workers == 2
 
 
 def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source():

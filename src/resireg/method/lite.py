@@ -36,6 +36,9 @@ _LITE_CHUNK_ELEMENTS = 16 * 1024 * 1024
 # 1.4, 1.3, 1.2 s on two threads while other processes shared the cores (each elementwise
 # pass is a parallel region whose barrier waits for a descheduled thread, so fewer, larger
 # passes win there): 8M (32 MB in float32) is the compromise.
+# The largest alpha for which the traced factorised form exponentiates alpha cos unshifted:
+# exp(60) * 1e6 points * |token| stays far below float32's 3.4e38.
+_GRAPH_UNSHIFTED_ALPHA = 60.0
 _FACTORISED_BLOCK = 8 * 1024 * 1024
 _FACTORISED_TILE = 8 * 1024 * 1024
 
@@ -137,6 +140,9 @@ class ReSiRegLite(nn.Module):
         dtype = torch.promote_types(intermediates.dtype, language.dtype)
         with torch.autocast(device_type=intermediates.device.type, enabled=False):
             if self.resolve_attention(intermediates.device) == "factorised":
+                # traced (torch.export, the ONNX export, torch.compile): one batched graph, B N^2
+                if torch.compiler.is_compiling():
+                    return self._factorised_graph(intermediates, language, prior).to(language.dtype)
                 return self._factorised(intermediates, language, prior).to(language.dtype)
             fv = F.normalize(upsample(intermediates.to(dtype), self.upscale), dim=1)
             b, _, h, w = fv.shape
@@ -228,6 +234,82 @@ class ReSiRegLite(nn.Module):
                         self._add_prior(tile_out, extra, t0, t1, norm, fade)
         normalise_(out, dim=2)
         return out.transpose(1, 2).reshape(b, dl, big_h, big_w)
+
+    def _factorised_graph(
+        self, intermediates: Tensor, language: Tensor, prior: Tensor | None
+    ) -> Tensor:
+        """:meth:`_factorised` as one batched graph, for ``torch.export`` and the ONNX export:
+        the same arithmetic without its blocks, tiles and data-dependent checks, so every shape
+        is a function of the input's (dynamic batch and grid).
+
+        Per image, the Gram matrix ``G = X X^T`` of the coarse points is bilinearly upsampled
+        on the query side (``G`` read as ``h w`` channels of an ``h x w`` map), scaled by
+        ``alpha r_p``, and upsampled on the key side (the queries as channels), which gives
+        ``alpha cos(u_p, u_q) / r_q``; times ``r_q`` and exponentiated (shifted by ``alpha`` and
+        clamped at 0 as the eager form does only where ``alpha`` > 60: unshifted, the numerators
+        carry a constant factor the normalisation removes), these are the softmax numerators ``[B, N, s h, s w]``, summed over the
+        keys of each language token (a sum pooling of ``s x s`` blocks when the language grid
+        is the intermediates', else products with the one-hot nearest maps of rows and
+        columns: the nearest resize is separable), then multiplied by the coarse tokens.
+        Memory: ``B N^2`` elements at once (191 MB per image at the protocol's 6,912 points);
+        the eager path keeps to :data:`_FACTORISED_BLOCK` and :data:`_FACTORISED_TILE`.
+        Exported without a prior (a ValueError otherwise: its instance count is data)."""
+        if prior is not None:
+            raise ValueError("factorised Lite in a traced graph takes no prior")
+        dtype = torch.promote_types(
+            torch.promote_types(intermediates.dtype, language.dtype), torch.float32
+        )
+        x = intermediates.to(dtype)
+        lang = language.to(dtype)
+        b, dv, hv, wv = x.shape
+        dl, hl, wl = lang.shape[1:]
+        s, alpha = self.upscale, self.alpha
+        big_h, big_w = hv * s, wv * s
+        n, hw = big_h * big_w, hv * wv
+        pts = x.reshape(b, dv, hw)
+        gram = pts.transpose(1, 2) @ pts  # [B, h w, h w], symmetric
+        inv = torch.linalg.vector_norm(upsample(x, s), dim=1).clamp_min(1e-12).reciprocal()
+        inv = inv.reshape(b, 1, n)  # r_q over the keys
+        # query side: [B, h w (keys), N (queries)], times alpha r_p
+        left = upsample(gram.reshape(b, hw, hv, wv), s).reshape(b, hw, n) * (inv * alpha)
+        # key side: [B, N (queries), s h, s w (keys)]
+        sim = upsample(left.transpose(1, 2).reshape(b, n, hv, wv), s)
+        logits = sim * inv.reshape(b, 1, big_h, big_w)  # alpha cos(u_p, u_q)
+        if alpha <= _GRAPH_UNSHIFTED_ALPHA:  # exp(alpha cos) and its sums stay finite: the
+            # shift by -alpha, a constant factor that the normalisation and the gate's
+            # comparison with tau Z ignore, is left out (two passes over B N^2 fewer)
+            weights = logits.exp()
+        else:
+            weights = (logits - alpha).clamp_max(0.0).exp()
+        sums = self._graph_token_sums(weights, (hv, wv, s), (hl, wl))  # [B, N, hl wl]
+        if self.tau > 0:  # gate: lambda = w / Z >= tau, then the sums again
+            norm = weights.sum(dim=(2, 3), keepdim=True)
+            weights = weights * (weights >= self.tau * norm).to(dtype)
+            sums = self._graph_token_sums(weights, (hv, wv, s), (hl, wl))
+        tokens = lang.reshape(b, dl, hl * wl).transpose(1, 2)  # [B, hl wl, Dl]
+        out = F.normalize(sums @ tokens, dim=2)  # [B, N, Dl]
+        return out.transpose(1, 2).reshape(b, dl, big_h, big_w)
+
+    @staticmethod
+    def _graph_token_sums(
+        weights: Tensor, grid: tuple[int, int, int], lang_size: tuple[int, int]
+    ) -> Tensor:
+        """``[B, N, hl wl]``: the numerators ``weights`` ``[B, N, s h, s w]`` summed over the
+        keys of each language token (:meth:`_token_sums` for :meth:`_factorised_graph`)."""
+        h, w, s = grid
+        hl, wl = lang_size
+        b, n = weights.shape[:2]
+        if (hl, wl) == (h, w):  # token j is the s x s block j
+            return weights.reshape(b, n, h, s, w, s).sum(dim=(3, 5)).reshape(b, n, h * w)
+
+        def one_hot(size: int, big: int) -> Tensor:  # [big, size]: nearest's source of each
+            index = torch.arange(size, dtype=weights.dtype, device=weights.device)
+            src = nearest(index.view(1, 1, 1, size), (1, big)).view(big, 1)
+            return (src == index.view(1, size)).to(weights.dtype)
+
+        cols = weights @ one_hot(wl, w * s)  # [B, N, s h, wl]
+        sums = one_hot(hl, h * s).T @ cols  # [B, N, hl, wl]
+        return sums.reshape(b, n, hl * wl)
 
     @staticmethod
     def _token_sums(

@@ -38,7 +38,10 @@ TRAIN_RULES: dict[str, Rule] = {
     "data.steps_per_epoch": integer(1),
     "data.crop_size": integer(16),
     "data.min_image_size": integer(1),
-    "data.num_workers": integer(0),
+    "data.num_workers": (
+        lambda v: v == "auto" or is_int(v) and v >= 0,
+        "'auto' or an integer >= 0",
+    ),
     "data.shuffle_buffer": integer(0),
     "data.sources": (lambda v: isinstance(v, dict) and len(v) > 0, "a non-empty mapping"),
     "model.optimizer._target_": (lambda v: isinstance(v, str), "an optimizer class path"),

@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import io
 import logging
+import math
 import os
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from itertools import count
 from pathlib import Path
@@ -41,11 +43,11 @@ from datasets import Image as HFImage
 from datasets.distributed import split_dataset_by_node
 from PIL import Image
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
-from torch.utils.data import DataLoader, get_worker_info
+from torch.utils.data import DataLoader, default_collate, get_worker_info
 from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
-from resireg.models.images import pil_to_tensor
+from resireg.models.images import _WIDE_GREY, pil_to_tensor
 from resireg.sources.frames import DECODE_ERRORS
 from resireg_train.data.specs import CAPTION_SOURCE_KEYS, require_keys
 from resireg_train.data.synthetic import SyntheticScenes
@@ -169,6 +171,8 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
             _require_hub_dataset(key, path)
         require_keys(spec, CAPTION_SOURCE_KEYS[kind]["required"], key, "conf/data/")
         kwargs = {k: spec[k] for k in CAPTION_SOURCE_KEYS[kind]["optional"] if spec.get(k)}
+        if _is_local(path):
+            kwargs = _without_empty_shards(key, path, kwargs)
         ds = load_dataset(path, split=spec["split"], streaming=True, **kwargs)
         image_col, caption_col = spec["image"], spec["caption"]
     ds = ds.decode(False)
@@ -180,6 +184,46 @@ def open_caption_source(name: str, spec: Mapping[str, Any]) -> IterableDataset:
     return ds.map(
         _to_schema(image_col, caption_col), remove_columns=columns, features=CAPTION_FEATURES
     )
+
+
+#: Files that hold many examples each (a 0-byte one is an empty shard, not an empty image).
+_SHARD_SUFFIXES = (".tar", ".tgz", ".tar.gz", ".parquet", ".arrow", ".jsonl", ".json", ".csv")
+
+
+def _without_empty_shards(key: str, path: str, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``load_dataset``'s keyword arguments with every 0-byte local shard left out of its data
+    files (``datasets`` would fail on it in the middle of an epoch: ``tarfile.ReadError: empty
+    file``); each one left out is counted in one warning naming the files. The arguments are
+    returned unchanged when no shard is empty."""
+    from datasets.data_files import DataFilesDict, get_data_patterns
+
+    base = path if os.path.isdir(path) else None
+    files = kwargs.get("data_files")
+    if files is None:
+        if base is None:
+            return kwargs
+        patterns = get_data_patterns(base)
+    else:
+        patterns = files if isinstance(files, Mapping) else {"train": files}
+        patterns = {k: [v] if isinstance(v, str) else list(v) for k, v in patterns.items()}
+    try:
+        resolved = DataFilesDict.from_patterns(patterns, base_path=base or os.getcwd())
+    except FileNotFoundError:
+        return kwargs  # load_dataset reports the pattern that matches nothing
+    empty = sorted({
+        f for split in resolved.values() for f in split
+        if str(f).endswith(_SHARD_SUFFIXES) and os.path.isfile(f) and os.path.getsize(f) == 0
+    })  # fmt: skip
+    if not empty:
+        return kwargs
+    log.warning(
+        "%s: skipped %d empty (0-byte) shard(s): %s",
+        key, len(empty), ", ".join(os.path.basename(f) for f in empty),
+    )  # fmt: skip
+    kept = {split: [f for f in fs if f not in empty] for split, fs in resolved.items()}
+    if files is not None and not isinstance(files, Mapping):
+        return {**kwargs, "data_files": kept["train"]}
+    return {**kwargs, "data_files": kept}
 
 
 def _require_hub_dataset(key: str, repo_id: str) -> None:
@@ -225,8 +269,9 @@ def mix_caption_sources(
 class CaptionStream(torch.utils.data.IterableDataset):
     """One rank's training samples: exactly ``steps_per_epoch`` batches per epoch.
 
-    Each sample is ``{"image": [3, S, S] float, "caption": str, "skipped_invalid": int,
-    "skipped_small": int}``; the two counters hold how many examples were dropped
+    Each sample is ``{"image": [3, S, S] uint8, "caption": str, "skipped_invalid": int,
+    "skipped_small": int}``, and :meth:`collate` makes batches of them with the images
+    normalised (``[B, 3, S, S]`` float, what the loader yields); the two counters hold how many examples were dropped
     (undecodable image / no caption, or shorter side < ``min_image_size``) just before it,
     so summing them over batches counts every skip exactly once.
 
@@ -261,6 +306,9 @@ class CaptionStream(torch.utils.data.IterableDataset):
         self.mean, self.std = list(mean), list(std)
         self.seed, self.rank = seed, rank
         self.epoch = 0
+        # (x / 255 - mean) / std as x * gain + bias per channel (CaptionStream.collate)
+        self._gain = torch.tensor([1.0 / (255.0 * s) for s in self.std])
+        self._bias = torch.tensor([-m / s for m, s in zip(self.mean, self.std, strict=True)])
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -282,23 +330,54 @@ class CaptionStream(torch.utils.data.IterableDataset):
                 )
 
     def _prepare(self, example: dict, rng: np.random.Generator) -> torch.Tensor | str:
-        """Decoded, cropped, normalised image, or the reason it was skipped."""
+        """Decoded, cropped, normalised image, or the reason it was skipped.
+
+        The image resized (shorter side ``crop_size``, aspect kept, antialiased: torchvision's
+        ``resize``), cropped at a random position. A JPEG is decoded at the smallest of its 1/2,
+        1/4, 1/8 scales that still holds the resized size (``Image.draft``: the DCT scaled in
+        the decoder, so a large photo never exists at full size) and resized from there; other
+        formats are decoded whole. The decoded pixels are read in place (channels last, the
+        layout of torch's vectorised uint8 resize); the crop stays uint8 (a view) until
+        :meth:`collate` stacks and normalises the batch."""
         if example["image"] is None or not example["caption"]:
             return "invalid"
+        size = self.crop_size
         try:
             with Image.open(io.BytesIO(example["image"])) as im:
-                pixels = pil_to_tensor(im)
+                w, h = im.size
+                if min(w, h) < self.min_image_size:
+                    return "small"
+                # torchvision's resized size: the shorter side `size`, the longer truncated
+                out_w, out_h = (size, int(size * h / w)) if w <= h else (int(size * w / h), size)
+                if im.mode in _WIDE_GREY:  # 16/32-bit grey: scaled by pil_to_tensor, rare
+                    pixels = pil_to_tensor(im)
+                else:
+                    im.draft("RGB", (out_w, out_h))  # JPEG: decode at a reduced scale
+                    rgb = im.convert("RGB") if im.mode != "RGB" else im
+                    with warnings.catch_warnings():  # read-only (PIL's bytes): only read
+                        warnings.simplefilter("ignore", UserWarning)
+                        pixels = torch.from_numpy(np.asarray(rgb)).permute(2, 0, 1)
         except DECODE_ERRORS:
             return "invalid"
-        if min(pixels.shape[-2:]) < self.min_image_size:
-            return "small"
-        image = TF.resize(pixels, self.crop_size, antialias=True)
-        h, w = image.shape[-2:]
-        top = int(rng.integers(0, h - self.crop_size + 1))
-        left = int(rng.integers(0, w - self.crop_size + 1))
-        image = TF.crop(image, top, left, self.crop_size, self.crop_size)
-        image = TF.to_dtype(image, torch.float32, scale=True)
-        return TF.normalize(image, self.mean, self.std)
+        image = TF.resize(pixels, [out_h, out_w], antialias=True)
+        top = int(rng.integers(0, out_h - size + 1))
+        left = int(rng.integers(0, out_w - size + 1))
+        return TF.crop(image, top, left, size, size)  # uint8 [3, S, S], a view
+
+    def collate(self, samples: list[dict]) -> dict:
+        """Samples -> a batch: the uint8 crops stacked (a quarter of the float bytes) and
+        normalised together, ``(x / 255 - mean) / std`` computed as ``x * gain + bias`` straight
+        into the float batch ``[B, 3, S, S]``; the other fields as ``default_collate``."""
+        images = torch.stack([s["image"] for s in samples])
+        batch = default_collate([{k: v for k, v in s.items() if k != "image"} for s in samples])
+        out = torch.empty(0, dtype=torch.float32)
+        if get_worker_info() is not None:  # in shared memory, as default_collate does: the
+            # batch reaches the main process without a copy
+            out = out.new(out._typed_storage()._new_shared(images.numel(), device=out.device))
+        out = out.resize_(images.shape)
+        torch.mul(images, self._gain.view(1, 3, 1, 1), out=out)
+        batch["image"] = out.add_(self._bias.view(1, 3, 1, 1))
+        return batch
 
     def __iter__(self) -> Iterator[dict]:
         info = get_worker_info()
@@ -360,7 +439,9 @@ class CaptionDataModule(L.LightningDataModule):
         steps_per_epoch: batches per epoch (each rank).
         crop_size: square crop side.
         min_image_size: images with a shorter side below this are skipped (counted).
-        num_workers: ``DataLoader`` workers per process (capped at the stream's shards).
+        num_workers: ``DataLoader`` workers per process (capped at the stream's shards), or
+            ``"auto"``: from the cores this process may use (:func:`loader_workers`, which also
+            sets the prefetch depth).
         shuffle_buffer: ``datasets`` shuffle buffer (examples); <= 1 disables it.
         seed: data seed (shuffling, mixing, crops, caption choice).
         mean, std: image normalisation; the training entry point checks they match the
@@ -374,7 +455,7 @@ class CaptionDataModule(L.LightningDataModule):
         steps_per_epoch: int = 1000,
         crop_size: int = 512,
         min_image_size: int = 64,
-        num_workers: int = 8,
+        num_workers: int | str = "auto",
         shuffle_buffer: int = 1000,
         seed: int = 0,
         mean: tuple[float, ...] = IMAGENET_DEFAULT_MEAN,
@@ -422,20 +503,59 @@ class CaptionDataModule(L.LightningDataModule):
             rank=rank,
         )
 
+    def _processes_per_node(self) -> int:
+        trainer = self.trainer
+        return max(1, int(getattr(trainer, "num_devices", 1))) if trainer is not None else 1
+
     def train_dataloader(self) -> DataLoader:
         self.setup()
         assert self.train_set is not None
-        workers = min(self.num_workers, self.train_set.stream.num_shards)
-        if workers < self.num_workers:
+        shards = self.train_set.stream.num_shards
+        workers, prefetch = loader_workers(self.num_workers, shards, self._processes_per_node())
+        if self.num_workers != "auto" and workers < self.num_workers:
             log.warning(
                 "data.num_workers=%d capped at %d: the caption stream has only %d shards",
-                self.num_workers, workers, self.train_set.stream.num_shards,
+                self.num_workers, workers, shards,
             )  # fmt: skip
         return _EpochDataLoader(
             self.train_set,
             epoch=lambda: self.trainer.current_epoch if self.trainer is not None else 0,
             batch_size=self.train_set.batch_size,
+            collate_fn=self.train_set.collate,
             num_workers=workers,
+            prefetch_factor=prefetch,
             pin_memory=self.pin_memory,
             persistent_workers=False,  # workers must re-read the epoch every pass
         )
+
+
+#: Batches each process keeps decoded ahead (over all its workers) at least: decode time
+#: varies ~10x between a 320 px and a 4000 px photo, and a queue this deep absorbs a run of
+#: large ones.
+_MIN_BATCHES_AHEAD = 4
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask, e.g. a SLURM allocation's;
+    ``os.cpu_count()`` where the platform has no mask)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def loader_workers(requested: int | str, shards: int, processes: int = 1) -> tuple[int, int | None]:
+    """``(num_workers, prefetch_factor)`` of one process's caption loader.
+
+    ``requested`` is ``data.num_workers``: an integer, or ``"auto"``: the cores this process
+    may use (:func:`available_cores`) shared by the ``processes`` training processes of the
+    node, less one for each process itself (at least one worker). Either is capped at the
+    stream's ``shards`` (a worker reads whole shards). ``prefetch_factor`` (batches each worker
+    keeps ahead) is the smallest >= 2 that keeps :data:`_MIN_BATCHES_AHEAD` batches ahead;
+    ``None`` without workers (``DataLoader`` takes none then)."""
+    if requested == "auto":
+        requested = max(1, available_cores() // max(1, processes) - 1)
+    workers = min(int(requested), shards)
+    if workers == 0:
+        return 0, None
+    return workers, max(2, math.ceil(_MIN_BATCHES_AHEAD / workers))
