@@ -527,7 +527,8 @@ class CompactVoxelMap(SparseVoxels):
         probability within its bound of ``threshold`` or ``denoise``, a hot voxel, a
         near-zero feature) is decided in float64, and so are the rows whose best class the
         denoising removes (their best remaining class). ``denoise < 0.5`` (a removed class
-        need not be a row's best) is decided in float64 throughout."""
+        need not be a row's best) is decided in float64 throughout. (A probability equal to
+        the threshold to float64's own rounding goes the way torch's float64 softmax says.)"""
         protos = prototypes.to(self.device, torch.float64)
         if protos.ndim != 2 or protos.shape[1] != self.dim or protos.shape[0] == 0:
             raise ValueError(f"prototypes of shape {tuple(prototypes.shape)}: expected "
