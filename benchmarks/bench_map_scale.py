@@ -17,6 +17,10 @@ at its size:
   apart: ``text_queries`` of a new text with the 25M VLM's text tower, and of a cached one);
   ``top_k(q, 100)`` of 1 text and of 16 (per text), ``query`` (every voxel's score) of 1 and
   16; p50 and p95 of 15 runs;
+- **classify**: ``classify_features`` (as the 3D evaluation calls it) of 16 and of 150 class
+  prototypes (ADE20K's count; near the class directions), the cosine argmax and the 3D task's
+  rule with RayFronts' threshold 0.1 and prompt denoising 0.5; p50 and p95 of 15 runs (the
+  whole call, not per class);
 - **top-100 recall**: ``top_k`` against a float64 numpy brute force over the same stored
   features (:meth:`unit_rows`, chunk by chunk), ties to the lower index;
 - **save / load**: ``save`` to a temporary folder and ``SemanticMap.load`` (digest verified,
@@ -135,8 +139,14 @@ class Corridor:
         h, w = GRID
         cls = torch.randint(0, CLASSES, (n, h // 8 + 1, w // 8 + 1), generator=self.g)
         cls = cls.repeat_interleave(8, 1).repeat_interleave(8, 2)[:, :h, :w]
-        f = self.dirs[cls] + 0.6 * torch.randn(n, h, w, D, generator=self.g) / math.sqrt(D)
-        return torch.nn.functional.normalize(f, dim=-1).permute(0, 3, 1, 2).contiguous()
+        # written into one [n, D, h, w] tensor in place (what an encoder hands over), so the
+        # synthesis holds two window-sized tensors at most: its temporaries are no part of
+        # the mapping's peak memory
+        out = self.dirs.T[:, cls].transpose(0, 1).contiguous()  # [n, D, h, w]
+        noise = torch.randn(n, h, w, D, generator=self.g).permute(0, 3, 1, 2)  # the same draws
+        out.add_(noise, alpha=0.6 / math.sqrt(D))
+        del noise
+        return out.div_(torch.linalg.vector_norm(out, dim=1, keepdim=True).clamp_min_(1e-12))
 
     def window(self, frames):
         torch = self.torch
@@ -230,6 +240,24 @@ def one(size: int, storage: str, threads: int) -> dict:
         per = 16 if name.endswith("16") else 1
         out[f"{name}_p50_ms"] = pctl(runs, 50) / per
         out[f"{name}_p95_ms"] = pctl(runs, 95) / per
+    # classify: 16 and 150 (ADE20K's count) class prototypes near the class directions, the
+    # cosine argmax and the 3D task's rule with RayFronts' settings (threshold 0.1, prompt
+    # denoising 0.5), through classify_features as the 3D evaluation calls it
+    for n_cls in (16, 150):
+        g = torch.Generator().manual_seed(2)
+        protos = torch.nn.functional.normalize(
+            corridor.dirs[torch.arange(n_cls) % CLASSES]
+            + 2 * torch.randn(n_cls, D, generator=g) / math.sqrt(D), dim=1)  # fmt: skip
+        stored = smap.project(protos)
+        for rule, (threshold, denoise) in (("argmax", (None, None)), ("rule", (0.1, 0.5))):
+            smap.classify_features(stored, threshold, denoise)
+            runs = []
+            for _ in range(15):
+                t = time.perf_counter()
+                smap.classify_features(stored, threshold, denoise)
+                runs.append(time.perf_counter() - t)
+            out[f"classify_{n_cls}_{rule}_p50_ms"] = pctl(runs, 50)
+            out[f"classify_{n_cls}_{rule}_p95_ms"] = pctl(runs, 95)
     recalls = []
     for q in texts[:4]:
         got = smap.top_k(q, 100)
@@ -322,6 +350,15 @@ ROWS = [
         "query (all voxels) 16 texts, per text p50 / p95 ms",
         ("query_16_p50_ms", "query_16_p95_ms"),
         "{:.1f} / {:.1f}",
+    ),  # fmt: skip
+    *(
+        (
+            f"classify {n} classes, {label}, p50 / p95 ms",
+            (f"classify_{n}_{rule}_p50_ms", f"classify_{n}_{rule}_p95_ms"),
+            "{:.1f} / {:.1f}",
+        )
+        for n in (16, 150)
+        for rule, label in (("argmax", "argmax"), ("rule", "threshold 0.1 + denoise 0.5"))
     ),  # fmt: skip
     ("top-100 recall vs float64", "recall_at_100", "{:.3f}"),
     ("text tower: new text / cached ms", ("text_new_ms", "text_cached_ms"), "{:.1f} / {:.3f}"),

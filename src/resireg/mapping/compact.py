@@ -47,6 +47,9 @@ __all__ = ["STORED_DTYPES", "CompactSettings", "CompactVoxelMap", "half_mv_error
 STORED_DTYPES = {name: getattr(torch, name) for name in COMPACT_DTYPES}
 # Rows per chunk of the float32 passes (features, scores): 4 MB of float32 at k = 128.
 _CHUNK_ROWS = 8192
+# Rows per chunk of the float64 folds and stores (2 MB at k = 128): a window's new voxels are
+# written a chunk at a time, so its float64 temporaries do not scale with the window.
+_STORE_ROWS = 2048
 
 
 @dataclass(frozen=True)
@@ -266,11 +269,13 @@ class CompactVoxelMap(SparseVoxels):
             now = counts[cold] >= n
             if bool(now.any()):
                 pick = cold.nonzero().squeeze(1)[now]
-                mean, held = self._combined(rows[pick], None)
-                total = held + counts[pick]
-                mean = (mean * held[:, None] + sums[pick]) / total[:, None]
-                self._store(rows[pick], mean, total, None if csums is None else csums[pick],
-                            None if ccounts is None else ccounts[pick])  # fmt: skip
+                for at in range(0, pick.numel(), _STORE_ROWS):  # row-wise: chunks change nothing
+                    p = pick[at : at + _STORE_ROWS]
+                    mean, held = self._combined(rows[p], None)
+                    total = held + counts[p]
+                    mean.mul_(held[:, None]).add_(sums[p]).div_(total[:, None])
+                    self._store(rows[p], mean, total, None if csums is None else csums[p],
+                                None if ccounts is None else ccounts[p])  # fmt: skip
                 keep = torch.ones_like(cold)
                 keep[pick] = False
                 rows, sums, counts = rows[keep], sums[keep], counts[keep]
@@ -361,7 +366,7 @@ class CompactVoxelMap(SparseVoxels):
         """Write float64 means ``[R, k]`` and point counts of ``rows`` (one rounding to the
         stored dtype), and add colour sums and counts to their mean colours."""
         norm = mean.norm(dim=1)
-        unit = mean / norm.clamp_min(1e-300)[:, None]
+        unit = mean.div_(norm.clamp_min(1e-300)[:, None])  # in place: the callers are done with it
         self._acc["unit"].put(rows, unit.to(self.dtype))
         self._acc["norm"].put(rows, norm.to(torch.float32))
         self._acc["counts"].put(rows, total.to(torch.int32))
@@ -378,9 +383,11 @@ class CompactVoxelMap(SparseVoxels):
         """Fold the hot blocks of the slots at ``mask`` into their voxels' stored values and
         free the slots."""
         at = mask.nonzero().squeeze(1)
-        rows = self._hot_row[at]
-        mean, n = self._combined(rows, at)
-        self._store(rows, mean, n, self._hot_colour[at], self._hot_colour_counts[at])
+        for start in range(0, at.numel(), _STORE_ROWS):  # row-wise: chunks change nothing
+            a = at[start : start + _STORE_ROWS]
+            rows = self._hot_row[a]
+            mean, n = self._combined(rows, a)
+            self._store(rows, mean, n, self._hot_colour[a], self._hot_colour_counts[a])
         self._hot_row[at] = -1
         self._hot_n[at] = 0
         self._hot_sums[at] = 0
