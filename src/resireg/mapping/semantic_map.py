@@ -874,8 +874,9 @@ class SemanticMap:
         templates: Sequence[Callable[[str], str]] | None = None,
     ) -> Tensor:
         """``[M]`` class id per voxel (``-1``: no prediction under ``threshold``) against
-        :meth:`prototypes`: :func:`resireg.mapping.classify` (the 3D task's rule), on a
-        compact map in chunks of its features (the prompt-denoising chunks kept)."""
+        :meth:`prototypes`: :func:`resireg.mapping.classify` (the 3D task's rule); a compact
+        map's labels are the rule's in float64 over its stored features
+        (:meth:`CompactVoxelMap.classify`: one float32 pass, the rows it leaves open in float64)."""
         protos = self.prototypes(classes, templates)
         if not isinstance(self.voxels, CompactVoxelMap):
             _, feats = self.features()
