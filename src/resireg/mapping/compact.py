@@ -556,8 +556,11 @@ class CompactVoxelMap(SparseVoxels):
             # prototypes' rounding to float32, the norm's own rounding (x is exact)
             c = (_sum_bound(self.dim) + 4 * 2.0**-24) * 1.01
             # relative error of a row's probability (1 / its softmax denominator): each
-            # exponent off by <= 2 T c (the two scores), exp and the sum's rounding; twice it
-            margin = 2 * (math.expm1(2 * temperature * c) + (4 + n_cls) * 2.0**-23)
+            # exponent that counts (>= -32) off by <= 2 T c (the two scores) and 32 (k + 2) u
+            # (the norm's and the scaling's rounding), exp's and the sum's rounding; twice it
+            u = 2.0**-24
+            margin = 2 * (math.expm1(2 * temperature * c + 32 * (self.dim + 2) * u)
+                          + (4 + n_cls) * 2 * u)  # fmt: skip
             weights = torch.stack([torch.ones(n_cls), torch.arange(n_cls, dtype=torch.float32)]).to(
                 self.device
             )
