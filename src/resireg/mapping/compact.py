@@ -491,23 +491,25 @@ class CompactVoxelMap(SparseVoxels):
             out[hot] = self.exact_scores(hot, q).to(torch.float32)
         return out, bound
 
-    def stored_products(self, queries: Tensor, out: Tensor | None = None, rows_first: bool = True):
+    def stored_products(self, queries: Tensor, out: Tensor | None = None, rows_first: bool = True,
+                        chunk: int = _CHUNK_ROWS):  # fmt: skip
         """The one product of the stored features with queries ``[T, k]`` float32, chunk by
         chunk of rows in row order (what :meth:`approx_scores`, :meth:`query` through it,
         :meth:`~resireg.mapping.SemanticMap.top_k` and :meth:`classify` share): yields
         ``(start, x, scores)``: ``x`` the chunk's stored directions widened to float32 ``[n,
         k]`` (exactly: a buffer the next chunk reuses), ``scores`` ``x @ queries.T`` ``[n, T]``
         (``rows_first=False``: ``[T, n]``, the layout whose reductions over the texts
-        vectorise), written into ``out[start : start + n]`` when given. Each score is within
+        vectorise), written into ``out[start : start + n]`` when given; ``chunk`` rows at a
+        time (at most: a block's end cuts a chunk). Each score is within
         ``gamma_k ||x|| ||q||`` of its float64 value (a float32 sum of ``k`` products). Hot
         voxels' blocks are not in ``x`` (the callers score them apart)."""
         m = len(self)
         if not m:
             return
-        buf = torch.empty(min(m, _CHUNK_ROWS), self.dim, dtype=torch.float32, device=self.device)
+        buf = torch.empty(min(m, chunk), self.dim, dtype=torch.float32, device=self.device)
         for start, block in self._acc["unit"].spans(m):
-            for s in range(0, block.shape[0], _CHUNK_ROWS):
-                part = block[s : s + _CHUNK_ROWS]
+            for s in range(0, block.shape[0], chunk):
+                part = block[s : s + chunk]
                 x = buf[: part.shape[0]]
                 x.copy_(part)
                 at = start + s
