@@ -45,6 +45,7 @@ downloaded), mIoU and f-mIoU of each.
     python benchmarks/bench_map_scale.py --table2
     python benchmarks/bench_map_scale.py --transform
     python benchmarks/bench_map_scale.py --sizes 1000000 --storages compact --peak-only
+    python benchmarks/bench_map_scale.py --classify-cpu 100000   # CPU time per classify call
 
 Figures: docs/benchmarks.md (one run, ratios against ``exact``).
 """
@@ -316,6 +317,60 @@ def one(size: int, storage: str, threads: int, peak_only: bool = False) -> dict:
     return out
 
 
+def classify_cpu(size: int, threads: int, runs: int = 5) -> dict:
+    """CPU time per ``classify_features`` call on a compact map of ``size`` voxels (the
+    process's user + system time, less sensitive than the wall clock to a loaded machine),
+    against the previous path (``resireg.mapping.classify`` over the stored features in chunks
+    of the indices order, float32), calls interleaved; and how many labels of the previous
+    path differ from the exact ones."""
+    import torch
+
+    from resireg.mapping.query import classify as classify_rows
+
+    torch.set_num_threads(threads)
+    corridor = Corridor()
+    smap = make_map("compact")
+    build(smap, corridor, 0, math.ceil(size / PER_FRAME))
+    vmap = smap.voxels
+
+    def previous(stored, threshold, denoise):
+        order = vmap.sorted_rows
+        step = 10_000 if denoise is not None else 1 << 16
+        out = torch.empty(order.numel(), dtype=torch.int64)
+        for s in range(0, order.numel(), step):
+            feats = vmap.unit_rows(order[s : s + step])
+            out[s : s + step] = classify_rows(feats, stored, threshold, denoise, none=-1)
+        return out
+
+    def now(stored, threshold, denoise):
+        return smap.classify_features(stored, threshold, denoise)
+
+    def cpu():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    out = {"size": size, "voxels": len(smap), "threads": threads}
+    for n_cls in (16, 150):
+        g = torch.Generator().manual_seed(2)
+        protos = torch.nn.functional.normalize(
+            corridor.dirs[torch.arange(n_cls) % CLASSES]
+            + 2 * torch.randn(n_cls, D, generator=g) / math.sqrt(D), dim=1)  # fmt: skip
+        stored = smap.project(protos)
+        for rule, (threshold, denoise) in (("argmax", (None, None)), ("rule", (0.1, 0.5))):
+            spent = {"previous": 0.0, "now": 0.0}
+            labels = {}
+            for _ in range(runs):
+                for name, fn in (("previous", previous), ("now", now)):
+                    t = cpu()
+                    labels[name] = fn(stored, threshold, denoise)
+                    spent[name] += cpu() - t
+            key = f"classify_{n_cls}_{rule}"
+            out[f"{key}_cpu_ms_previous"] = spent["previous"] / runs * 1000
+            out[f"{key}_cpu_ms_now"] = spent["now"] / runs * 1000
+            out[f"{key}_previous_labels_off"] = int((labels["previous"] != labels["now"]).sum())
+    return out
+
+
 def merge(size: int, storage: str, threads: int) -> dict:
     import torch
 
@@ -526,6 +581,9 @@ def main() -> None:
         "--child", nargs=3, metavar=("KIND", "SIZE", "STORAGE"), help=argparse.SUPPRESS
     )
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--classify-cpu", type=int, metavar="SIZE",
+                        help="classify's CPU time per call on a compact map of SIZE voxels, "
+                        "against the previous path, only")  # fmt: skip
     parser.add_argument("--peak-only", action="store_true",
                         help="build the maps and measure the mapping peak only")  # fmt: skip
     args = parser.parse_args()
@@ -535,6 +593,12 @@ def main() -> None:
             print(json.dumps(one(int(size), storage, args.threads, args.peak_only)))
         else:
             print(json.dumps(merge(int(size), storage, args.threads)))
+        return
+    if args.classify_cpu:
+        result = classify_cpu(args.classify_cpu, args.threads)
+        print(json.dumps(result, indent=2))
+        if args.json:
+            args.json.write_text(json.dumps(result, indent=2))
         return
     if args.table2 or args.transform:
         result = table2(args.threads) if args.table2 else transform_error(args.threads)
