@@ -318,11 +318,11 @@ def one(size: int, storage: str, threads: int, peak_only: bool = False) -> dict:
 
 
 def classify_cpu(size: int, threads: int, runs: int = 5) -> dict:
-    """CPU time per ``classify_features`` call on a compact map of ``size`` voxels (the
-    process's user + system time, less sensitive than the wall clock to a loaded machine),
-    against the previous path (``resireg.mapping.classify`` over the stored features in chunks
-    of the indices order, float32), calls interleaved; and how many labels of the previous
-    path differ from the exact ones."""
+    """CPU time (the process's user + system time, less sensitive than the wall clock to a
+    loaded machine) and wall-clock p50 per ``classify_features`` call on a compact map of
+    ``size`` voxels, against the previous path (``resireg.mapping.classify`` over the stored
+    features in chunks of the indices order, float32), calls interleaved; and how many labels
+    of the previous path differ from the exact ones."""
     import torch
 
     from resireg.mapping.query import classify as classify_rows
@@ -358,15 +358,18 @@ def classify_cpu(size: int, threads: int, runs: int = 5) -> dict:
         stored = smap.project(protos)
         for rule, (threshold, denoise) in (("argmax", (None, None)), ("rule", (0.1, 0.5))):
             spent = {"previous": 0.0, "now": 0.0}
+            wall: dict[str, list[float]] = {"previous": [], "now": []}
             labels = {}
             for _ in range(runs):
                 for name, fn in (("previous", previous), ("now", now)):
-                    t = cpu()
+                    t, w = cpu(), time.perf_counter()
                     labels[name] = fn(stored, threshold, denoise)
+                    wall[name].append(time.perf_counter() - w)
                     spent[name] += cpu() - t
             key = f"classify_{n_cls}_{rule}"
-            out[f"{key}_cpu_ms_previous"] = spent["previous"] / runs * 1000
-            out[f"{key}_cpu_ms_now"] = spent["now"] / runs * 1000
+            for name in ("previous", "now"):
+                out[f"{key}_cpu_ms_{name}"] = spent[name] / runs * 1000
+                out[f"{key}_wall_p50_ms_{name}"] = pctl(wall[name], 50)
             out[f"{key}_previous_labels_off"] = int((labels["previous"] != labels["now"]).sum())
     return out
 
