@@ -10,13 +10,20 @@ at its size:
 - **bytes / voxel**: ``SemanticMap.nbytes / len`` (keys, hash slots, features, weights,
   colours, spare rows; the compact map's float32 blocks and basis);
 - **peak RSS**: the process's peak resident memory over the whole run (``ru_maxrss``) less
-  its size after the imports, against the map's ``nbytes``;
+  its size after the imports, against the map's ``nbytes``; and its fixed part, named: the
+  encoder's first text run when the map is made (before any frame), a window's input (8
+  frames of 512-d features) and the first window's peak over the empty map (its fusion; a
+  compact map fits its basis on it);
 - **fuse ms / frame**: ``fuse`` of 30 frames (one per call) that revisit mapped ground and
   add ~10% new voxels; median and mean (every call, rehashes and new blocks included);
 - **query**: the texts are 16 unit vectors near the class directions (the text tower is timed
   apart: ``text_queries`` of a new text with the 25M VLM's text tower, and of a cached one);
   ``top_k(q, 100)`` of 1 text and of 16 (per text), ``query`` (every voxel's score) of 1 and
   16; p50 and p95 of 15 runs;
+- **classify**: ``classify_features`` (as the 3D evaluation calls it) of 16 and of 150 class
+  prototypes (ADE20K's count; near the class directions), the cosine argmax and the 3D task's
+  rule with RayFronts' threshold 0.1 and prompt denoising 0.5; p50 and p95 of 15 runs (the
+  whole call, not per class);
 - **top-100 recall**: ``top_k`` against a float64 numpy brute force over the same stored
   features (:meth:`unit_rows`, chunk by chunk), ties to the lower index;
 - **save / load**: ``save`` to a temporary folder and ``SemanticMap.load`` (digest verified,
@@ -37,6 +44,8 @@ downloaded), mIoU and f-mIoU of each.
     python benchmarks/bench_map_scale.py --sizes 10000 100000 --threads 1
     python benchmarks/bench_map_scale.py --table2
     python benchmarks/bench_map_scale.py --transform
+    python benchmarks/bench_map_scale.py --sizes 1000000 --storages compact --peak-only
+    python benchmarks/bench_map_scale.py --classify-cpu 100000   # CPU time per classify call
 
 Figures: docs/benchmarks.md (one run, ratios against ``exact``).
 """
@@ -135,8 +144,14 @@ class Corridor:
         h, w = GRID
         cls = torch.randint(0, CLASSES, (n, h // 8 + 1, w // 8 + 1), generator=self.g)
         cls = cls.repeat_interleave(8, 1).repeat_interleave(8, 2)[:, :h, :w]
-        f = self.dirs[cls] + 0.6 * torch.randn(n, h, w, D, generator=self.g) / math.sqrt(D)
-        return torch.nn.functional.normalize(f, dim=-1).permute(0, 3, 1, 2).contiguous()
+        # written into one [n, D, h, w] tensor in place (what an encoder hands over), so the
+        # synthesis holds two window-sized tensors at most: its temporaries are no part of
+        # the mapping's peak memory
+        out = self.dirs.T[:, cls].transpose(0, 1).contiguous()  # [n, D, h, w]
+        noise = torch.randn(n, h, w, D, generator=self.g).permute(0, 3, 1, 2)  # the same draws
+        out.add_(noise, alpha=0.6 / math.sqrt(D))
+        del noise
+        return out.div_(torch.linalg.vector_norm(out, dim=1, keepdim=True).clamp_min_(1e-12))
 
     def window(self, frames):
         torch = self.torch
@@ -174,7 +189,7 @@ def brute_top_k(smap, q, k: int):
     return set(vmap.keys[order[torch.from_numpy(best)]].tolist())
 
 
-def one(size: int, storage: str, threads: int) -> dict:
+def one(size: int, storage: str, threads: int, peak_only: bool = False) -> dict:
     import torch
 
     torch.set_num_threads(threads)
@@ -185,9 +200,20 @@ def one(size: int, storage: str, threads: int) -> dict:
     text_model = build_model(tiny=False)  # the text tower, timed apart
     base = rss_mb()
     smap = make_map(storage, text_model)
+    # the fixed part of the peak, named: the encoder's first text run (the map asks the
+    # dimension of its text queries), a window's input, the first window's fusion (a compact
+    # map fits its basis on it: a float64 copy of its features)
+    probe = rss_mb() - base
     frames = math.ceil(size / PER_FRAME)
+    window = corridor.window(list(range(8)))
+    window_mb = sum(t.numel() * t.element_size() for t in window) / 2**20
+    del window
     t0 = time.perf_counter()
-    build(smap, corridor, 0, frames)
+    before = rss_mb()
+    with RssProbe() as first:
+        build(smap, corridor, 0, min(8, frames))
+    first_peak = max(first.top, peak_mb()) - before
+    build(smap, corridor, min(8, frames), frames - min(8, frames))
     out = {
         "size": size,
         "storage": storage,
@@ -207,6 +233,9 @@ def one(size: int, storage: str, threads: int) -> dict:
     out["fuse_ms_p50"] = pctl(times, 50)
     out["fuse_ms_mean"] = float(np.mean(times) * 1000)
     out["peak_mapping_mb"] = peak_mb() - base
+    out["probe_mb"], out["window_mb"], out["first_window_peak_mb"] = probe, window_mb, first_peak
+    if peak_only:
+        return out
     # the text tower apart: a new text, then the cached one
     t = time.perf_counter()
     smap.text_queries(["a red office chair"])
@@ -230,6 +259,24 @@ def one(size: int, storage: str, threads: int) -> dict:
         per = 16 if name.endswith("16") else 1
         out[f"{name}_p50_ms"] = pctl(runs, 50) / per
         out[f"{name}_p95_ms"] = pctl(runs, 95) / per
+    # classify: 16 and 150 (ADE20K's count) class prototypes near the class directions, the
+    # cosine argmax and the 3D task's rule with RayFronts' settings (threshold 0.1, prompt
+    # denoising 0.5), through classify_features as the 3D evaluation calls it
+    for n_cls in (16, 150):
+        g = torch.Generator().manual_seed(2)
+        protos = torch.nn.functional.normalize(
+            corridor.dirs[torch.arange(n_cls) % CLASSES]
+            + 2 * torch.randn(n_cls, D, generator=g) / math.sqrt(D), dim=1)  # fmt: skip
+        stored = smap.project(protos)
+        for rule, (threshold, denoise) in (("argmax", (None, None)), ("rule", (0.1, 0.5))):
+            smap.classify_features(stored, threshold, denoise)
+            runs = []
+            for _ in range(15):
+                t = time.perf_counter()
+                smap.classify_features(stored, threshold, denoise)
+                runs.append(time.perf_counter() - t)
+            out[f"classify_{n_cls}_{rule}_p50_ms"] = pctl(runs, 50)
+            out[f"classify_{n_cls}_{rule}_p95_ms"] = pctl(runs, 95)
     recalls = []
     for q in texts[:4]:
         got = smap.top_k(q, 100)
@@ -270,6 +317,63 @@ def one(size: int, storage: str, threads: int) -> dict:
     return out
 
 
+def classify_cpu(size: int, threads: int, runs: int = 5) -> dict:
+    """CPU time (the process's user + system time, less sensitive than the wall clock to a
+    loaded machine) and wall-clock p50 per ``classify_features`` call on a compact map of
+    ``size`` voxels, against the previous path (``resireg.mapping.classify`` over the stored
+    features in chunks of the indices order, float32), calls interleaved; and how many labels
+    of the previous path differ from the exact ones."""
+    import torch
+
+    from resireg.mapping.query import classify as classify_rows
+
+    torch.set_num_threads(threads)
+    corridor = Corridor()
+    smap = make_map("compact")
+    build(smap, corridor, 0, math.ceil(size / PER_FRAME))
+    vmap = smap.voxels
+
+    def previous(stored, threshold, denoise):
+        order = vmap.sorted_rows
+        step = 10_000 if denoise is not None else 1 << 16
+        out = torch.empty(order.numel(), dtype=torch.int64)
+        for s in range(0, order.numel(), step):
+            feats = vmap.unit_rows(order[s : s + step])
+            out[s : s + step] = classify_rows(feats, stored, threshold, denoise, none=-1)
+        return out
+
+    def now(stored, threshold, denoise):
+        return smap.classify_features(stored, threshold, denoise)
+
+    def cpu():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    out = {"size": size, "voxels": len(smap), "threads": threads}
+    for n_cls in (16, 150):
+        g = torch.Generator().manual_seed(2)
+        protos = torch.nn.functional.normalize(
+            corridor.dirs[torch.arange(n_cls) % CLASSES]
+            + 2 * torch.randn(n_cls, D, generator=g) / math.sqrt(D), dim=1)  # fmt: skip
+        stored = smap.project(protos)
+        for rule, (threshold, denoise) in (("argmax", (None, None)), ("rule", (0.1, 0.5))):
+            spent = {"previous": 0.0, "now": 0.0}
+            wall: dict[str, list[float]] = {"previous": [], "now": []}
+            labels = {}
+            for _ in range(runs):
+                for name, fn in (("previous", previous), ("now", now)):
+                    t, w = cpu(), time.perf_counter()
+                    labels[name] = fn(stored, threshold, denoise)
+                    wall[name].append(time.perf_counter() - w)
+                    spent[name] += cpu() - t
+            key = f"classify_{n_cls}_{rule}"
+            for name in ("previous", "now"):
+                out[f"{key}_cpu_ms_{name}"] = spent[name] / runs * 1000
+                out[f"{key}_wall_p50_ms_{name}"] = pctl(wall[name], 50)
+            out[f"{key}_previous_labels_off"] = int((labels["previous"] != labels["now"]).sum())
+    return out
+
+
 def merge(size: int, storage: str, threads: int) -> dict:
     import torch
 
@@ -290,8 +394,9 @@ def merge(size: int, storage: str, threads: int) -> dict:
             "merge_s": time.perf_counter() - t}  # fmt: skip
 
 
-def child(kind: str, size: int, storage: str, threads: int) -> dict:
+def child(kind: str, size: int, storage: str, threads: int, peak_only: bool = False) -> dict:
     cmd = [sys.executable, __file__, "--child", kind, str(size), storage, "--threads", str(threads)]
+    cmd += ["--peak-only"] if peak_only else []
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode:
@@ -305,6 +410,9 @@ ROWS = [
     ("map (nbytes, MiB)", "nbytes_mb", "{:,.0f}"),
     ("peak RSS over the run (MiB)", "peak_rss_mb", "{:,.0f}"),
     ("peak RSS while mapping / nbytes", "peak_ratio", "{:.2f}"),
+    ("fixed: the encoder's first text run, before any frame (MiB)", "probe_mb", "{:,.0f}"),
+    ("fixed: a window's input, 8 frames (MiB)", "window_mb", "{:,.0f}"),
+    ("fixed: the first window's peak over the empty map (MiB)", "first_window_peak_mb", "{:,.0f}"),
     ("fuse ms / frame (p50)", "fuse_ms_p50", "{:.1f}"),
     ("fuse ms / frame (mean)", "fuse_ms_mean", "{:.1f}"),
     ("top-100 of 1 text, p50 / p95 ms", ("top_k_1_p50_ms", "top_k_1_p95_ms"), "{:.1f} / {:.1f}"),
@@ -322,6 +430,15 @@ ROWS = [
         "query (all voxels) 16 texts, per text p50 / p95 ms",
         ("query_16_p50_ms", "query_16_p95_ms"),
         "{:.1f} / {:.1f}",
+    ),  # fmt: skip
+    *(
+        (
+            f"classify {n} classes, {label}, p50 / p95 ms",
+            (f"classify_{n}_{rule}_p50_ms", f"classify_{n}_{rule}_p95_ms"),
+            "{:.1f} / {:.1f}",
+        )
+        for n in (16, 150)
+        for rule, label in (("argmax", "argmax"), ("rule", "threshold 0.1 + denoise 0.5"))
     ),  # fmt: skip
     ("top-100 recall vs float64", "recall_at_100", "{:.3f}"),
     ("text tower: new text / cached ms", ("text_new_ms", "text_cached_ms"), "{:.1f} / {:.3f}"),
@@ -467,11 +584,24 @@ def main() -> None:
         "--child", nargs=3, metavar=("KIND", "SIZE", "STORAGE"), help=argparse.SUPPRESS
     )
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--classify-cpu", type=int, metavar="SIZE",
+                        help="classify's CPU time per call on a compact map of SIZE voxels, "
+                        "against the previous path, only")  # fmt: skip
+    parser.add_argument("--peak-only", action="store_true",
+                        help="build the maps and measure the mapping peak only")  # fmt: skip
     args = parser.parse_args()
     if args.child:
         kind, size, storage = args.child
-        fn = one if kind == "one" else merge
-        print(json.dumps(fn(int(size), storage, args.threads)))
+        if kind == "one":
+            print(json.dumps(one(int(size), storage, args.threads, args.peak_only)))
+        else:
+            print(json.dumps(merge(int(size), storage, args.threads)))
+        return
+    if args.classify_cpu:
+        result = classify_cpu(args.classify_cpu, args.threads)
+        print(json.dumps(result, indent=2))
+        if args.json:
+            args.json.write_text(json.dumps(result, indent=2))
         return
     if args.table2 or args.transform:
         result = table2(args.threads) if args.table2 else transform_error(args.threads)
@@ -482,9 +612,9 @@ def main() -> None:
     results = []
     for size in args.sizes:
         for storage in args.storages:
-            r = child("one", size, storage, args.threads)
-            m = child("merge", size, storage, args.threads)
-            r["merge_s"] = m.get("merge_s")
+            r = child("one", size, storage, args.threads, args.peak_only)
+            if not args.peak_only:
+                r["merge_s"] = child("merge", size, storage, args.threads).get("merge_s")
             if "peak_mapping_mb" in r:
                 r["peak_ratio"] = r["peak_mapping_mb"] / r["nbytes_mb"]
             results.append(r)

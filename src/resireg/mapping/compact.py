@@ -30,6 +30,7 @@ they are) and :meth:`from_tensors`.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
@@ -46,6 +47,9 @@ __all__ = ["STORED_DTYPES", "CompactSettings", "CompactVoxelMap", "half_mv_error
 STORED_DTYPES = {name: getattr(torch, name) for name in COMPACT_DTYPES}
 # Rows per chunk of the float32 passes (features, scores): 4 MB of float32 at k = 128.
 _CHUNK_ROWS = 8192
+# Rows per chunk of the float64 folds and stores (2 MB at k = 128): a window's new voxels are
+# written a chunk at a time, so its float64 temporaries do not scale with the window.
+_STORE_ROWS = 2048
 
 
 @dataclass(frozen=True)
@@ -266,11 +270,13 @@ class CompactVoxelMap(SparseVoxels):
             now = counts[cold] >= n
             if bool(now.any()):
                 pick = cold.nonzero().squeeze(1)[now]
-                mean, held = self._combined(rows[pick], None)
-                total = held + counts[pick]
-                mean = (mean * held[:, None] + sums[pick]) / total[:, None]
-                self._store(rows[pick], mean, total, None if csums is None else csums[pick],
-                            None if ccounts is None else ccounts[pick])  # fmt: skip
+                for at in range(0, pick.numel(), _STORE_ROWS):  # row-wise: chunks change nothing
+                    p = pick[at : at + _STORE_ROWS]
+                    mean, held = self._combined(rows[p], None)
+                    total = held + counts[p]
+                    mean.mul_(held[:, None]).add_(sums[p]).div_(total[:, None])
+                    self._store(rows[p], mean, total, None if csums is None else csums[p],
+                                None if ccounts is None else ccounts[p])  # fmt: skip
                 keep = torch.ones_like(cold)
                 keep[pick] = False
                 rows, sums, counts = rows[keep], sums[keep], counts[keep]
@@ -361,7 +367,7 @@ class CompactVoxelMap(SparseVoxels):
         """Write float64 means ``[R, k]`` and point counts of ``rows`` (one rounding to the
         stored dtype), and add colour sums and counts to their mean colours."""
         norm = mean.norm(dim=1)
-        unit = mean / norm.clamp_min(1e-300)[:, None]
+        unit = mean.div_(norm.clamp_min(1e-300)[:, None])  # in place: the callers are done with it
         self._acc["unit"].put(rows, unit.to(self.dtype))
         self._acc["norm"].put(rows, norm.to(torch.float32))
         self._acc["counts"].put(rows, total.to(torch.int32))
@@ -378,9 +384,11 @@ class CompactVoxelMap(SparseVoxels):
         """Fold the hot blocks of the slots at ``mask`` into their voxels' stored values and
         free the slots."""
         at = mask.nonzero().squeeze(1)
-        rows = self._hot_row[at]
-        mean, n = self._combined(rows, at)
-        self._store(rows, mean, n, self._hot_colour[at], self._hot_colour_counts[at])
+        for start in range(0, at.numel(), _STORE_ROWS):  # row-wise: chunks change nothing
+            a = at[start : start + _STORE_ROWS]
+            rows = self._hot_row[a]
+            mean, n = self._combined(rows, a)
+            self._store(rows, mean, n, self._hot_colour[a], self._hot_colour_counts[a])
         self._hot_row[at] = -1
         self._hot_n[at] = 0
         self._hot_sums[at] = 0
@@ -477,14 +485,149 @@ class CompactVoxelMap(SparseVoxels):
                 out[start : start + block.shape[0], 0] = (block @ q16).float()
         else:
             bound = sums + 2.0**-20 * q.norm(dim=1)
-            for start, block in self._acc["unit"].spans(m):
-                for s in range(0, block.shape[0], _CHUNK_ROWS):
-                    chunk = block[s : s + _CHUNK_ROWS].to(torch.float32)
-                    torch.mm(chunk, q.T, out=out[start + s : start + s + chunk.shape[0]])
+            for _ in self.stored_products(q, out=out):
+                pass
         hot = self.hot_rows
         if hot.numel():
             out[hot] = self.exact_scores(hot, q).to(torch.float32)
         return out, bound
+
+    def stored_products(self, queries: Tensor, out: Tensor | None = None, rows_first: bool = True,
+                        chunk: int = _CHUNK_ROWS):  # fmt: skip
+        """The one product of the stored features with queries ``[T, k]`` float32, chunk by
+        chunk of rows in row order (what :meth:`approx_scores`, :meth:`query` through it,
+        :meth:`~resireg.mapping.SemanticMap.top_k` and :meth:`classify` share): yields
+        ``(start, x, scores)``: ``x`` the chunk's stored directions widened to float32 ``[n,
+        k]`` (exactly: a buffer the next chunk reuses), ``scores`` ``x @ queries.T`` ``[n, T]``
+        (``rows_first=False``: ``[T, n]``, the layout whose reductions over the texts
+        vectorise), written into ``out[start : start + n]`` when given; ``chunk`` rows at a
+        time (at most: a block's end cuts a chunk). Each score is within
+        ``gamma_k ||x|| ||q||`` of its float64 value (a float32 sum of ``k`` products). Hot
+        voxels' blocks are not in ``x`` (the callers score them apart)."""
+        m = len(self)
+        if not m:
+            return
+        buf = torch.empty(min(m, chunk), self.dim, dtype=torch.float32, device=self.device)
+        for start, block in self._acc["unit"].spans(m):
+            for s in range(0, block.shape[0], chunk):
+                part = block[s : s + chunk]
+                x = buf[: part.shape[0]]
+                x.copy_(part)
+                at = start + s
+                if out is not None:
+                    scores = torch.mm(x, queries.T, out=out[at : at + x.shape[0]])
+                elif rows_first:
+                    scores = torch.mm(x, queries.T)
+                else:
+                    scores = torch.mm(queries, x.T)
+                yield at, x, scores
+
+    def classify(self, prototypes: Tensor, threshold: float | None = None,
+                 denoise: float | None = None, temperature: float = 100.0, none: int = -1,
+                 denoise_chunk: int = 10_000) -> Tensor:  # fmt: skip
+        """``[M]`` int64 class per voxel, in :attr:`indices` order: the rule of
+        :func:`resireg.mapping.classify` (cosine argmax; with ``threshold`` / ``denoise``
+        RayFronts' softmax rule, its denoising chunks taken in :attr:`indices` order) over the
+        voxels' features as :meth:`features` gives them, *exactly* as computed in float64
+        (both sides normalised, ties to the lowest class id).
+
+        One float32 pass (:meth:`stored_products`, the texts' side ``[K, n]``) gives each
+        row's best class and, with the rule, its probability, each with an error bound; a row
+        whose decision the bound leaves open (a second class within twice the bound, a
+        probability within its bound of ``threshold`` or ``denoise``, a hot voxel, a
+        near-zero feature) is decided in float64, and so are the rows whose best class the
+        denoising removes (their best remaining class). ``denoise < 0.5`` (a removed class
+        need not be a row's best) is decided in float64 throughout. (A probability equal to
+        the threshold to float64's own rounding goes the way torch's float64 softmax says.)"""
+        protos = prototypes.to(self.device, torch.float64)
+        if protos.ndim != 2 or protos.shape[1] != self.dim or protos.shape[0] == 0:
+            raise ValueError(f"prototypes of shape {tuple(prototypes.shape)}: expected "
+                             f"[K >= 1, {self.dim}]")  # fmt: skip
+        protos = protos / protos.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        m, n_cls = len(self), protos.shape[0]
+        if not m:
+            return torch.empty(0, dtype=torch.int64, device=self.device)
+        rule = threshold is not None or denoise is not None
+        best = torch.empty(m, dtype=torch.int64, device=self.device)
+        prob = torch.ones(m, dtype=torch.float32, device=self.device)
+        open_ = torch.zeros(m, dtype=torch.bool, device=self.device)
+        if denoise is not None and denoise < 0.5:
+            open_[:] = True
+        else:
+            p32 = protos.to(torch.float32)
+            # |float32 score - float64 score| <= c ||x||: the float32 sum of k products, the
+            # prototypes' rounding to float32, the norm's own rounding (x is exact)
+            c = (_sum_bound(self.dim) + 4 * 2.0**-24) * 1.01
+            # relative error of a row's probability (1 / its softmax denominator): each
+            # exponent that counts (>= -32) off by <= 2 T c (the two scores) and 32 (k + 2) u
+            # (the norm's and the scaling's rounding), exp's and the sum's rounding; twice it
+            u = 2.0**-24
+            margin = 2 * (math.expm1(2 * temperature * c + 32 * (self.dim + 2) * u)
+                          + (4 + n_cls) * 2 * u)  # fmt: skip
+            weights = torch.stack([torch.ones(n_cls), torch.arange(n_cls, dtype=torch.float32)]).to(
+                self.device
+            )
+            near = None
+            for at, x, s in self.stored_products(p32, rows_first=False):
+                n = x.shape[0]
+                if near is None:
+                    near = torch.empty_like(s)
+                norm = torch.linalg.vector_norm(x, dim=1)
+                top = s.amax(0)
+                flags = torch.ge(s, top - 2 * c * norm, out=near[:, :n])  # 1.0: near the top
+                count, index = torch.mm(weights, flags)  # classes near the top, their id sum
+                best[at : at + n] = index.to(torch.int64)
+                open_[at : at + n] = (count != 1) | (norm < 1e-6)
+                if rule:
+                    # exponents below -80 (terms < 2e-35, within the margin) clamped: the
+                    # float32 exp of a denormal result takes a slow path
+                    z = s.sub_(top).mul_(temperature / norm).clamp_(min=-80.0).exp_().sum(0)
+                    p = 1 / z
+                    prob[at : at + n] = p
+                    for level in (threshold, denoise):
+                        if level is not None:
+                            open_[at : at + n] |= (p - level).abs() <= margin * p
+            hot = self.hot_rows
+            if hot.numel():
+                open_[hot] = True
+        order = self.sorted_rows
+        rank = torch.empty(m, dtype=torch.int64, device=self.device)
+        rank[order] = torch.arange(m, device=self.device)
+        chunk = rank // denoise_chunk
+
+        def exact(rows: Tensor):
+            """``(rows, float64 probabilities (the rule) or cosines (argmax))``, in chunks."""
+            for s in range(0, rows.numel(), _CHUNK_ROWS):
+                r = rows[s : s + _CHUNK_ROWS]
+                f = self.unit_rows(r).to(torch.float64)
+                f = f / f.norm(dim=1, keepdim=True).clamp_min(1e-12)
+                cos = f @ protos.T
+                yield r, torch.softmax(temperature * cos, dim=1) if rule else cos
+
+        label = best.clone()
+        decided = open_.nonzero().squeeze(1)
+        keep = None
+        if denoise is not None:
+            keep = torch.zeros(int(chunk.max()) + 1, n_cls, dtype=torch.bool, device=self.device)
+            sure = ~open_ & (prob >= denoise)  # a probability >= 0.5 only the best class has
+            keep[chunk[sure], best[sure]] = True
+            for r, p in exact(decided):
+                hit = (p >= denoise).nonzero()
+                keep[chunk[r[hit[:, 0]]], hit[:, 1]] = True
+            # rows whose best class their chunk removes: their best remaining one, in float64
+            removed = ~open_ & ~keep[chunk, best.masked_fill(open_, 0)]
+            decided = torch.cat([decided, removed.nonzero().squeeze(1)])
+            open_ |= removed
+        for r, p in exact(decided):
+            if keep is not None:
+                p[~keep[chunk[r]]] = -torch.inf
+            value, cls = torch.max(p, dim=1)
+            if threshold is not None:
+                cls = torch.where(value < threshold, none, cls)
+            label[r] = cls
+        if threshold is not None:
+            label[~open_ & (prob < threshold)] = none
+        return label[order]
 
     def exact_scores(self, rows: Tensor, queries: Tensor) -> Tensor:
         """``[R, T]`` float64 dot products of the unit features of ``rows`` (as

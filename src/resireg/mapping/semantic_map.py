@@ -995,8 +995,9 @@ class SemanticMap:
         templates: Sequence[Callable[[str], str]] | None = None,
     ) -> Tensor:
         """``[M]`` class id per voxel (``-1``: no prediction under ``threshold``) against
-        :meth:`prototypes`: :func:`resireg.mapping.classify` (the 3D task's rule), on a
-        compact map in chunks of its features (the prompt-denoising chunks kept)."""
+        :meth:`prototypes`: :func:`resireg.mapping.classify` (the 3D task's rule); a compact
+        map's labels are the rule's in float64 over its stored features
+        (:meth:`CompactVoxelMap.classify`: one float32 pass, the rows it leaves open in float64)."""
         protos = self.prototypes(classes, templates)
         if not isinstance(self.voxels, CompactVoxelMap):
             _, feats = self.features()
@@ -1006,22 +1007,16 @@ class SemanticMap:
     def classify_features(self, prototypes: Tensor, threshold: float | None = None,
                           denoise: float | None = None, none: int = -1) -> Tensor:  # fmt: skip
         """:func:`resireg.mapping.classify` of the map's features against ``prototypes`` in
-        the stored space (:meth:`project`), chunk by chunk of :attr:`indices` order: no
-        float32 copy of the whole map."""
+        the stored space (:meth:`project`). A compact map's labels are those of the rule in
+        float64 over its stored features, from one float32 pass over them
+        (:meth:`CompactVoxelMap.classify`): no float32 copy of the whole map."""
         if self.voxels is None:
             raise ValueError("the map is empty: add frames first")
         if not isinstance(self.voxels, CompactVoxelMap):
             _, feats = self.features()
             return classify_features(feats, prototypes.to(feats.device), threshold, denoise,
                                      none=none)  # fmt: skip
-        order = self.voxels.sorted_rows
-        step = 10_000 if denoise is not None else 1 << 16  # classify's denoising chunks
-        out = torch.empty(order.numel(), dtype=torch.int64, device=self.device)
-        for start in range(0, order.numel(), step):
-            feats = self.voxels.unit_rows(order[start : start + step])
-            out[start : start + step] = classify_features(feats, prototypes, threshold, denoise,
-                                                          none=none)  # fmt: skip
-        return out
+        return self.voxels.classify(prototypes, threshold, denoise, none=none)
 
     @torch.no_grad()
     def top_k(
