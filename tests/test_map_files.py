@@ -227,6 +227,106 @@ def test_the_multi_session_recipe_through_the_commands(tmp_path, export_512):
     cos = np.sum(unit(merged.features()[1].numpy()) * expected, 1)
     assert cos.min() >= 0.999
     assert digests(run1, run2) == before
+    # The merge is made of both runs' parts: run1 merged with it again is refused, naming
+    # both and run1's part, also after run1 was resumed (its tensor file rewritten, its id kept).
+    assert len(a.parts) == len(b.parts) == 1 and merged.parts == [*a.parts, *b.parts]
+    for resumed in (False, True):
+        if resumed:
+            run("resireg-map", *common, f"hydra.run.dir={run1}", "resume=true", threads=1)
+            assert SemanticMap.load(run1).frames == 6 and SemanticMap.load(run1).parts == a.parts
+        before = digests(run1, out)
+        again = tmp_path / f"again-{resumed}"
+        proc = run("resireg-map-merge", run1, out, "--out", again, check=False)
+        one_line_refusal(proc, f"maps: {out / 'map'} and {run1 / 'map'} share the part "
+                         f"{a.parts[0]}", "count twice")  # fmt: skip
+        assert not (again / "map").exists() and digests(run1, out) == before
+
+
+def strip_parts(folder):
+    """A map as saved before maps recorded their parts (no ``parts`` in map.json)."""
+    _rewrite(folder, lambda r: r.pop("parts"))
+    return folder
+
+
+def tensor_sha256(folder):
+    name = json.loads((folder / "map.json").read_text())["tensors"]
+    return hashlib.sha256((folder / name).read_bytes()).hexdigest()
+
+
+def test_a_map_records_its_parts_and_a_merge_refuses_a_shared_one(tmp_path):
+    """A new map is one part, a uuid4 kept through save and load (and a save after more
+    frames: a resumed map); a merge is made of both maps' parts, in order; merging a map into
+    a merge that holds it is refused naming the part, the merge unchanged. A map saved before
+    maps recorded their parts is one part, its tensor file's SHA-256 (hashlib, from the file).
+    A parts field of the wrong kind is refused on load in one line naming it."""
+    import uuid
+
+    from resireg.errors import MapError
+
+    a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
+    pa = json.loads((a / "map.json").read_text())["parts"]
+    assert len(pa) == 1 and uuid.UUID(pa[0]).version == 4 and SemanticMap.load(a).parts == pa
+    grown = SemanticMap.load(a)
+    grown.fuse(*frames(1, 3)[0])
+    assert SemanticMap.load(grown.save(tmp_path / "grown")).parts == pa
+    pb = SemanticMap.load(b).parts
+    assert pb != pa
+    merged = SemanticMap.load(a).merge(SemanticMap.load(b))
+    assert merged.parts == [*pa, *pb] and merged.frames == 4
+    m = SemanticMap.load(merged.save(tmp_path / "m"))
+    for first, second, part in ((m, SemanticMap.load(a), pa[0]), (SemanticMap.load(b), m, pb[0])):
+        with pytest.raises(MapError, match=f"^merge: the maps share the part {part} "):
+            first.merge(second)
+    assert m.frames == 4 and m.parts == [*pa, *pb]
+    old = strip_parts(saved(tmp_path / "old", seed=4))
+    assert SemanticMap.load(old).parts == [tensor_sha256(old)]
+    assert SemanticMap.load(a).merge(SemanticMap.load(old)).parts == [*pa, tensor_sha256(old)]
+    bad = {  # parts -> what the one line says
+        "str": "ab" * 16, "empty": [], "short": ["abc"], "upper": ["AB" * 16],
+        "twice": [pa[0], pa[0]], "many": [f"{i:032x}" for i in range(4097)],
+    }  # fmt: skip
+    for label, value in bad.items():
+        folder = tmp_path / f"bad-{label}"
+        shutil.copytree(a, folder)
+        _rewrite(folder, lambda r, v=value: r.update(parts=v))
+        with pytest.raises(IntegrityError) as info:
+            SemanticMap.load(folder)
+        text = str(info.value)
+        assert "\n" not in text and f"{folder / 'map.json'}: parts=" in text, text
+        assert "expected a list of 1 to 4096 distinct ids" in text and len(text) < 400, text
+
+
+@pytest.mark.slow
+def test_a_merge_refuses_a_map_it_is_made_of(tmp_path):
+    """resireg-map-merge A B --out M, then A M and M B (M holds A and B) refused in one
+    line naming both maps and the shared part, nothing written, every input keeping its
+    bytes. A map saved before maps recorded their parts (no parts field) merges; merged again
+    with what holds it, it is refused naming its tensor file's SHA-256."""
+    from _run import run_side_by_side
+
+    a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
+    old = strip_parts(saved(tmp_path / "old", seed=3))
+    pa, pb = SemanticMap.load(a).parts, SemanticMap.load(b).parts
+    m = tmp_path / "m"
+    run_side_by_side(("resireg-map-merge", a, b, "--out", m),
+                     ("resireg-map-merge", old, a, "--out", tmp_path / "o"))  # fmt: skip
+    assert SemanticMap.load(m).parts == [*pa, *pb] and SemanticMap.load(m).frames == 4
+    o = SemanticMap.load(tmp_path / "o")
+    assert o.parts == [tensor_sha256(old), *pa] and o.frames == 4
+    before = digests(tmp_path)
+    procs = run_side_by_side(
+        ("resireg-map-merge", a, m, "--out", tmp_path / "x1"),
+        ("resireg-map-merge", m, b, "--out", tmp_path / "x2"),
+        ("resireg-map-merge", b, tmp_path / "o", old, "--out", tmp_path / "x3"),
+        check=(False, False, False),
+    )  # fmt: skip
+    one_line_refusal(procs[0], f"maps: {m / 'map'} and {a} share the part {pa[0]}")
+    one_line_refusal(procs[1], f"maps: {b} and {m / 'map'} share the part {pb[0]}")
+    one_line_refusal(procs[2], f"maps: {old} and {tmp_path / 'o' / 'map'} share the part "
+                     f"{tensor_sha256(old)}")  # fmt: skip
+    after = digests(tmp_path)
+    assert {k: v for k, v in after.items() if "/x" not in k} == before
+    assert not any((tmp_path / f"x{i}" / "map").exists() for i in (1, 2, 3))
 
 
 # ---------------------------------------------------------------- items 3 and 4: --out, twice

@@ -65,7 +65,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from resireg.errors import MapError, parameters
-from resireg.integrity import IntegrityError, atomic_write, read_json, verify_digests
+from resireg.integrity import IntegrityError, atomic_write, read_json, sha256_file, verify_digests
 from resireg.mapping.compact import STORED_DTYPES, CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import patch_points
 from resireg.mapping.keys import pack_keys, unpack_keys
@@ -210,6 +210,21 @@ def _sha256_text(value: Any) -> bool:
                              and all(c in hexdigits for c in value))  # fmt: skip
 
 
+#: The most parts (:attr:`SemanticMap.parts`) a map may be made of (a merge of more is refused;
+#: a record naming more is refused before it is read further).
+MAX_PARTS = 4096
+
+
+def _parts_ok(value: Any) -> bool:
+    """A map's ``parts``: 1 to :data:`MAX_PARTS` distinct ids, each 32 (a uuid4's hex) or 64
+    (a SHA-256) lowercase hex digits."""
+    hexdigits = "0123456789abcdef"
+    return (isinstance(value, list) and 0 < len(value) <= MAX_PARTS
+            and all(isinstance(x, str) and len(x) in (32, 64) and all(c in hexdigits for c in x)
+                    for x in value)
+            and len(set(value)) == len(value))  # fmt: skip
+
+
 def _params_ok(value: Any) -> bool:
     """A map's ``params``: variant name -> ``None`` or its keyword arguments."""
     return isinstance(value, dict) and all(
@@ -228,6 +243,11 @@ _RECORD_FIELDS: dict[str, tuple[bool, Callable[[Any], bool], str]] = {
     "frames": (True, lambda v: _integer(v, 0), "an integer >= 0"),
     "windows": (True, lambda v: _integer(v, 0), "an integer >= 0"),
     "meta": (False, lambda v: v is None or isinstance(v, dict), "null or a mapping"),
+    "parts": (
+        False,
+        _parts_ok,
+        f"a list of 1 to {MAX_PARTS} distinct ids of 32 or 64 lowercase hex digits",
+    ),
 }
 #: The keys of a record's ``settings`` that are not rules of MAP_RULES: their rule here.
 _SETTING_TYPES: dict[str, tuple[Callable[[Any], bool], str]] = {
@@ -544,6 +564,9 @@ class SemanticMap:
         self.frames = 0  # frames fused
         self.windows = 0  # add / fuse calls that fused frames
         self.meta: dict[str, Any] = {}  # the caller's record, saved with the map (e.g. the source)
+        # What the map is made of: its own id, assigned here and kept through save, load and
+        # resume; a merge's is the union of its inputs' (merge refuses maps sharing a part).
+        self.parts: list[str] = [uuid.uuid4().hex]
 
     def __len__(self) -> int:
         """Occupied voxels."""
@@ -1166,11 +1189,22 @@ class SemanticMap:
         transform moves each voxel centre and takes the voxel it falls in: an approximation
         of re-mapping the frames (points near a voxel face change voxels; docs/benchmarks.md
         gives its measured error). A map that differs (:meth:`merge_differences`) is refused,
-        naming what differs."""
+        naming what differs, and so is one that shares a part (:attr:`parts`) with this one
+        (a map and a merge that holds it): merged, its points would count twice. The result
+        is made of both maps' parts."""
         if not isinstance(other, SemanticMap):
             raise TypeError(f"merge(): expected a SemanticMap, got {type(other).__name__}")
         if other is self:
             raise ValueError("merge(): a map cannot merge itself")
+        mine = set(self.parts)
+        shared = next((p for p in other.parts if p in mine), None)
+        if shared is not None:  # a map merged with one it is part of: its points count twice
+            raise MapError(f"merge: the maps share the part {shared} (one holds the other's "
+                           "frames: merged, they would count twice)")  # fmt: skip
+        parts = [*self.parts, *other.parts]
+        if len(parts) > MAX_PARTS:
+            raise MapError(f"merge: the maps are made of {len(parts)} parts, more than "
+                           f"{MAX_PARTS}")  # fmt: skip
         self.fit_pending()
         other.fit_pending()
         if self.voxels is None and other.voxels is not None and self.compact is not None:
@@ -1192,6 +1226,7 @@ class SemanticMap:
                 self.colours.merge_from(other.colours, keys)
         self.frames += other.frames
         self.windows += other.windows
+        self.parts = parts
         step = None if transform is None else torch.as_tensor(transform).double().tolist()
         self.meta.setdefault("merged", []).append(
             {"frames": other.frames, "voxels": len(other), "transform": step,
@@ -1239,14 +1274,15 @@ class SemanticMap:
             "frames": self.frames,
             "windows": self.windows,
             "meta": json.loads(json.dumps(self.meta)),
+            "parts": list(self.parts),
         }
         return MapSnapshot(tensors, record)
 
     def save(self, folder: str | Path) -> Path:
         """Write the map to ``folder`` (created): ``map-<id>.safetensors`` (every tensor in row
         order, written from the map's blocks without a copy, :mod:`resireg.mapping.store`)
-        and then ``map.json`` (format, settings, counts, ``meta``, the name and SHA-256 of that
-        tensor file, the basis's SHA-256, and ``record_sha256``, the digest of the record
+        and then ``map.json`` (format, settings, counts, ``meta``, ``parts``, the name and
+        SHA-256 of that tensor file, the basis's SHA-256, and ``record_sha256``, the digest of the record
         itself), each through :func:`resireg.integrity.atomic_write` (a temporary file, fsync,
         the umask's mode, ``os.replace``). ``map.json`` is the commit point: a crash before it
         leaves the previous save in force; older tensor files are removed after it, and a save
@@ -1358,6 +1394,12 @@ class SemanticMap:
                                  f"describes ({err})") from err  # fmt: skip
         smap.frames, smap.windows = record["frames"], record["windows"]
         smap.meta = dict(record.get("meta") or {})
+        # A map saved before maps recorded their parts is one part: its tensor file's SHA-256.
+        smap.parts = (
+            list(record["parts"])
+            if "parts" in record
+            else [(record.get("sha256") or {}).get(tensor_file.name) or sha256_file(tensor_file)]
+        )
         return smap
 
     def _restore(self, record: Mapping[str, Any], tensors: Mapping[str, Tensor]) -> None:

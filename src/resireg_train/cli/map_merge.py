@@ -7,7 +7,10 @@ docs/guide.md#merging-maps).
 A map argument is a map folder or a run folder holding one in ``map/``
 (:func:`resireg.mapping.map_folder`, the rule ``compact.basis`` follows too). The same map
 given twice (by its path or by the SHA-256 of its tensor file: a copy) is refused, naming it:
-merged with itself every point would count twice. The maps are loaded (memory-mapped) and
+merged with itself every point would count twice; so are two maps made of a same part (each map
+records its parts in ``map.json``: its own id, or, for a merge, its inputs' parts; a map saved
+before maps recorded them is one part, its tensor file's SHA-256), e.g. a run and a merge that
+holds it, naming both and the part. The maps are loaded (memory-mapped) and
 merged into the first, in place (:meth:`resireg.mapping.SemanticMap.merge`): maps of another
 encoder (their weights' digest), other settings or another basis (by its SHA-256) are refused,
 naming what differs, before anything is written. The result is saved to ``<out>/map``
@@ -155,8 +158,17 @@ def _merge(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
             raise ConfigError(f"maps: {folders[i]} holds the same map as "
                               f"{folders[contents.index(digest)]} (tensor file SHA-256 {digest}): "
                               "a map merged with itself counts every point twice")  # fmt: skip
+    for i, smap in enumerate(maps):  # a run and a merge that holds it: its points count twice
+        for j in range(i):
+            held = set(maps[j].parts)
+            shared = next((p for p in smap.parts if p in held), None)
+            if shared is not None:
+                raise ConfigError(f"maps: {folders[i]} and {folders[j]} share the part {shared} "
+                                  "(one is made of the other's map): merged, its points would "
+                                  "count twice")  # fmt: skip
     inputs = [{"folder": str(f), "voxels": len(m), "frames": m.frames, "storage": m.storage,
-               "sha256": _record(f).get("sha256")} for f, m in zip(folders, maps, strict=True)]  # fmt: skip
+               "sha256": _record(f).get("sha256"), "parts": m.parts}
+              for f, m in zip(folders, maps, strict=True)]  # fmt: skip
     record.update(params={"maps": [str(f) for f in folders], "transform": transform},
                    inputs=inputs)  # fmt: skip
     merged, t0 = maps[0], time.perf_counter()
