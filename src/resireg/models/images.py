@@ -15,6 +15,7 @@ from PIL import Image
 from torch import Tensor
 
 __all__ = [
+    "WIDE_GREY",
     "pil_to_tensor",
     "patch_grid_size",
     "resize_to_patch_grid",
@@ -24,7 +25,7 @@ __all__ = [
 
 
 #: PIL modes of 16-bit (and 32-bit integer) single-channel images, e.g. 16-bit PNGs.
-_WIDE_GREY = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+WIDE_GREY = ("I;16", "I;16L", "I;16B", "I;16N", "I")
 
 
 def pil_to_tensor(image: Image.Image) -> Tensor:
@@ -34,7 +35,7 @@ def pil_to_tensor(image: Image.Image) -> Tensor:
     clips them at 255 instead, turning almost every pixel white. Mode ``I`` (32-bit int)
     is read as 16-bit, what PNG decoders give it.
     """
-    if image.mode in _WIDE_GREY:
+    if image.mode in WIDE_GREY:
         wide = np.asarray(image).astype(np.float64)
         grey = np.clip(np.rint(wide / 257.0), 0, 255).astype(np.uint8)
         return torch.from_numpy(grey).expand(3, *grey.shape).contiguous()

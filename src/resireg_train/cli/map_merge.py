@@ -102,7 +102,7 @@ def check_out(out: Path, names: Any) -> None:
         except ConfigError:
             pass
     raise ConfigError(
-        f"--out {out} holds the record of another run ({out / 'results.json'}: "
+        f"--out {out} holds the record of another run ({RunRecord(out).path}: "
         f"{previous.get('name')!r}, status {previous.get('status')!r}"
         + (f", maps {recorded}" if recorded else "")
         + "): a merge never writes into another run's folder; give another --out"

@@ -47,7 +47,7 @@ from torch.utils.data import DataLoader, default_collate, get_worker_info
 from torchvision.transforms.v2 import functional as TF
 
 from resireg.models.hub import require_online
-from resireg.models.images import _WIDE_GREY, pil_to_tensor
+from resireg.models.images import WIDE_GREY, pil_to_tensor
 from resireg.sources.frames import DECODE_ERRORS
 from resireg_train.data.specs import CAPTION_SOURCE_KEYS, require_keys
 from resireg_train.data.synthetic import SyntheticScenes
@@ -349,7 +349,7 @@ class CaptionStream(torch.utils.data.IterableDataset):
                     return "small"
                 # torchvision's resized size: the shorter side `size`, the longer truncated
                 out_w, out_h = (size, int(size * h / w)) if w <= h else (int(size * w / h), size)
-                if im.mode in _WIDE_GREY:  # 16/32-bit grey: scaled by pil_to_tensor, rare
+                if im.mode in WIDE_GREY:  # 16/32-bit grey: scaled by pil_to_tensor, rare
                     pixels = pil_to_tensor(im)
                 else:
                     im.draft("RGB", (out_w, out_h))  # JPEG: decode at a reduced scale
