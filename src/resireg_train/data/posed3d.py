@@ -26,6 +26,7 @@ one-line error naming the file, the download that holds it and the config key to
 
 from __future__ import annotations
 
+import abc
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -140,7 +141,7 @@ class PosedFrame:
     pose: np.ndarray
 
 
-class PosedFrames(torch.utils.data.Dataset):
+class PosedFrames(torch.utils.data.Dataset, abc.ABC):
     """The kept frames of the chosen scenes, scene by scene in frame order (module docstring).
 
     A reader subclasses it: its ``__init__`` calls this one, then :meth:`add_scene` per scene
@@ -217,19 +218,23 @@ class PosedFrames(torch.utils.data.Dataset):
         self.frames_per_scene.append(items)
 
     # ------------------------------------------------------------------ reader hooks
-    def read_depth(self, path: Path) -> np.ndarray:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def read_depth(self, path: Path) -> np.ndarray:
+        """The depth image at ``path`` in metres (0 = no depth)."""
 
-    def read_label(self, path: Path) -> np.ndarray:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def camera(self, frame: PosedFrame, size: tuple[int, int]) -> np.ndarray:
+        """``K`` (3 x 3) of ``frame`` at ``size`` ``(H, W)``."""
 
-    def camera(self, frame: PosedFrame, size: tuple[int, int]) -> np.ndarray:  # pragma: no cover
-        raise NotImplementedError
+    def read_label(self, path: Path) -> np.ndarray:
+        """Class indices (255 = ignored) of the label image at ``path``: a reader whose frames
+        carry label files defines it (:meth:`add_scene` records none for the others)."""
+        raise TypeError(f"{type(self).__name__} records no per-frame label files ({path})")
 
     def scene_ground_truth(self, scene: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``(points [N, 3] float64, class indices [N] int64, 255 = ignored)`` of a scene
-        whose ground truth is external."""
-        raise NotImplementedError(f"{type(self).__name__} lifts its ground truth from frames")
+        whose ground truth is external (``ground_truth = "external"``)."""
+        raise TypeError(f"{type(self).__name__} lifts its ground truth from frames")
 
     # ------------------------------------------------------------------ dataset
     def __len__(self) -> int:
