@@ -668,6 +668,21 @@ def test_a_worker_whose_trainer_differs_from_the_study_is_refused(tmp_path):
     assert _study(sweep, "stage1_optuna").get_trials() == []
 
 
+def test_a_trial_launcher_that_is_no_program_is_refused_before_the_first_trial(tmp_path):
+    """RESIREG_SEARCH_TRIAL_LAUNCHER naming no program on PATH, or no command line at all: the
+    search refuses in one line naming the variable, before any trial or study is made."""
+    for launcher, why in (("no-such-srun --nodes=2", "no program 'no-such-srun' on PATH"),
+                          ("srun 'unclosed", "not a command line")):  # fmt: skip
+        sweep = tmp_path / launcher.split()[0]
+        env = _with_tests({**os.environ, "RESIREG_SEARCH_TRIAL_LAUNCHER": launcher})
+        proc = run(*_ddp_search(sweep, "ddp"), check=False, env=env, threads=1, timeout=300)
+        assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+        refusal = [x for x in proc.stderr.splitlines() if "RESIREG_SEARCH_TRIAL_LAUNCHER" in x]
+        assert len(refusal) == 1 and why in refusal[0], proc.stderr
+        assert "refused before the first trial" in refusal[0]
+        assert not list(sweep.rglob("results.json"))  # no trial ran
+
+
 @pytest.mark.slow
 def test_a_search_of_trials_on_two_nodes_through_a_launcher(tmp_path):
     """trainer.num_nodes=2 under a search: refused before the first trial without a launcher;

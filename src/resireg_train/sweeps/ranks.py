@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shlex
+import shutil
 import signal
 import socket
 import subprocess
@@ -95,6 +97,15 @@ def trial_nodes_problem(trainer: Mapping[str, Any]) -> str | None:
                 f"starts its ranks there: set {TRIAL_LAUNCHER_ENV} (e.g. 'srun "
                 f"--nodes={nodes} --ntasks-per-node=<devices>' in the worker's allocation), or "
                 "run each trial on one node (trainer.num_nodes=1) with one worker per node")  # fmt: skip
+    launcher = os.environ.get(TRIAL_LAUNCHER_ENV)
+    if launcher:
+        try:
+            words = shlex.split(launcher)
+        except ValueError as err:
+            return f"{TRIAL_LAUNCHER_ENV}={launcher!r}: not a command line ({err})"
+        if not words or shutil.which(words[0]) is None:
+            return (f"{TRIAL_LAUNCHER_ENV}={launcher!r}: no program "
+                    f"{words[0] if words else ''!r} on PATH")  # fmt: skip
     return None
 
 
