@@ -594,7 +594,7 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
     from resireg_train.cli.map import run_map
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
-    real = semantic_map.write_tensors  # the map's tensor-file writer (resireg.mapping.store)
+    real = semantic_map.write_tensors  # the map's tensor-file writer (resireg.mapping.tensor_file)
     calls = []
 
     def full_disk(filename, tensors):

@@ -71,7 +71,7 @@ from resireg.mapping.geometry import patch_points
 from resireg.mapping.keys import pack_keys, unpack_keys
 from resireg.mapping.lifting import pixel_pairs
 from resireg.mapping.query import classify as classify_features
-from resireg.mapping.store import read_tensors, write_tensors
+from resireg.mapping.tensor_file import read_tensors, write_tensors
 from resireg.mapping.voxels import (
     SUM_DTYPES,
     VoxelMap,
@@ -1280,7 +1280,7 @@ class SemanticMap:
 
     def save(self, folder: str | Path) -> Path:
         """Write the map to ``folder`` (created): ``map-<id>.safetensors`` (every tensor in row
-        order, written from the map's blocks without a copy, :mod:`resireg.mapping.store`)
+        order, written from the map's blocks without a copy, :mod:`resireg.mapping.tensor_file`)
         and then ``map.json`` (format, settings, counts, ``meta``, ``parts``, the name and
         SHA-256 of that tensor file, the basis's SHA-256, and ``record_sha256``, the digest of the record
         itself), each through :func:`resireg.integrity.atomic_write` (a temporary file, fsync,
