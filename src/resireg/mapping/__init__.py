@@ -35,6 +35,8 @@ from resireg.mapping.geometry import (
     scale_intrinsics,
     unproject,
 )
+from resireg.mapping.keys import LATTICES, voxel_centres, voxel_indices
+from resireg.mapping.labels import LabelVoxelMap
 from resireg.mapping.lifting import pixel_pairs, pixel_points
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
 from resireg.mapping.semantic_map import (
@@ -46,13 +48,7 @@ from resireg.mapping.semantic_map import (
     pca_colours,
     write_ply,
 )
-from resireg.mapping.voxels import (
-    LATTICES,
-    LabelVoxelMap,
-    VoxelMap,
-    voxel_centres,
-    voxel_indices,
-)
+from resireg.mapping.voxels import VoxelMap
 
 __all__ = [
     "scale_intrinsics",

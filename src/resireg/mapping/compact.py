@@ -4,7 +4,7 @@
 ``float16`` (or ``bfloat16``), the mean's length (``float32``), the number of points it saw
 (``int32``) and, with ``colour=True``, its mean colour (``uint8``) and that colour's count:
 ``2 k + 8`` bytes of features and weights for ``k`` channels (``k = 128``: 264), ``+ 7`` of
-colour, beside the key index's ``8 + 5.7..11.4`` (:mod:`resireg.mapping.voxels`).
+colour, beside the key index's ``8 + 5.7..11.4`` (:mod:`resireg.mapping.keys`).
 
 Why not a low-precision running mean: a ``float16`` mean updated with each new point stalls once
 the update ``(x - mean) / n`` falls below half a unit in the last place (``n`` in the hundreds
@@ -38,7 +38,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from resireg.mapping.voxels import SparseVoxels
+from resireg.mapping.sparse import SparseVoxels
 from resireg.specs.mapping import COMPACT_DTYPES
 
 __all__ = ["STORED_DTYPES", "CompactSettings", "CompactVoxelMap", "half_mv_error"]
@@ -125,7 +125,7 @@ class CompactVoxelMap(SparseVoxels):
         voxel_size: voxel edge in metres (> 0).
         dim: channels ``k`` of the stored features.
         device: where the map's tensors live.
-        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.voxels`).
+        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.keys`).
         dtype: ``torch.float16`` or ``torch.bfloat16``.
         colour: also keep a mean colour per voxel.
         hot_voxels: the most voxels whose points wait in ``float32`` blocks.

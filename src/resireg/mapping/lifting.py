@@ -32,8 +32,7 @@ from resireg.mapping.geometry import (
     nearest_indices,
     unproject,
 )
-from resireg.mapping.keys import MAX_INDEX, pack_keys, unpack_keys
-from resireg.mapping.voxels import check_lattice, check_voxel_size
+from resireg.mapping.keys import MAX_INDEX, check_lattice, check_voxel_size, pack_keys, unpack_keys
 
 __all__ = ["pixel_pairs", "pixel_points"]
 
@@ -50,7 +49,7 @@ _TWO52_BITS = int(torch.tensor(float(_TWO52), dtype=torch.float64).view(torch.in
 
 def _lattice_op(scaled: Tensor, lattice: str) -> Tensor:
     """``round`` (half to even) or ``floor`` of coordinates in voxel units, still float64 (the
-    operations of :func:`resireg.mapping.voxels.lattice_index`)."""
+    operations of :func:`resireg.mapping.keys.lattice_index`)."""
     return torch.round(scaled) if lattice == "round" else torch.floor(scaled)
 
 
@@ -158,7 +157,7 @@ def pixel_pairs(
         cam_to_world: ``[B, 4, 4]`` poses.
         grid: ``(h, w)`` feature grid.
         voxel_size: voxel edge in metres.
-        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.voxels`).
+        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.keys`).
 
     Returns:
         ``index`` ``[M, 3]`` int64 voxel indices, ``patch`` ``[M]`` int64 flat patch indices

@@ -38,7 +38,7 @@ intrinsics and poses (:func:`resireg.method.checks.check_features`).
 Memory bound (``exact``): the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators
 (``s`` = 8 for float64 sums, 4 for ``sum_dtype="float32"``), 8 bytes of key and 5.7 to 11.4 of
 hash slot, and, with ``colour=True``, ``8 x 3 + 8`` bytes of colour sums and their own key and
-slot; the accumulators' last block holds fewer than :data:`~resireg.mapping.voxels.BLOCK_ROWS`
+slot; the accumulators' last block holds fewer than :data:`~resireg.mapping.blocks.BLOCK_ROWS`
 spare rows (:attr:`SemanticMap.nbytes` counts them). ``max_voxels`` caps the occupied voxels:
 a window that would exceed it raises :class:`MapFullError` *before* anything of it is added, so
 the map stays as it was and can be saved. At 5 cm and D = 512 one million voxels (a large
@@ -68,18 +68,18 @@ from resireg.errors import MapError, parameters
 from resireg.integrity import IntegrityError, atomic_write, read_json, sha256_file, verify_digests
 from resireg.mapping.compact import STORED_DTYPES, CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import patch_points
-from resireg.mapping.keys import pack_keys, unpack_keys
-from resireg.mapping.lifting import pixel_pairs
-from resireg.mapping.query import classify as classify_features
-from resireg.mapping.tensor_file import read_tensors, write_tensors
-from resireg.mapping.voxels import (
-    SUM_DTYPES,
-    VoxelMap,
+from resireg.mapping.keys import (
     check_lattice,
+    pack_keys,
     transform_keys,
+    unpack_keys,
     voxel_centres,
     voxel_indices,
 )
+from resireg.mapping.lifting import pixel_pairs
+from resireg.mapping.query import classify as classify_features
+from resireg.mapping.tensor_file import read_tensors, write_tensors
+from resireg.mapping.voxels import SUM_DTYPES, VoxelMap
 from resireg.method.checks import check_features
 from resireg.method.variants import apply_variant, build_variants
 from resireg.specs.mapping import POINTS, STORAGES, map_errors
@@ -465,7 +465,7 @@ class SemanticMap:
         prior: a segmentation-prior provider (:class:`resireg.priors.SamPrior`) for a ``+prior``
             configuration: called on each window's resized images (float ``[B, 3, H, W]``).
         points: :data:`POINTS`.
-        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.voxels`).
+        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.keys`).
         sum_dtype: ``"float64"`` or ``"float32"``: an ``exact`` map's feature sums.
         max_voxels: ``None`` (no bound) or the most voxels the map may hold.
         short_side: the encoder's input rule on the images (``None``: keep the size, sides
