@@ -22,7 +22,7 @@ OUTSIDE_THE_BASE = {
     # ResiregError (a bad input) must not swallow it
     "resireg_train.sweeps.pruning.TrialPrunedStop": "a control-flow signal, not an error",
     # a warning (an old map format loaded), raised only by warnings.warn: nothing catches it
-    "resireg.mapping.semantic_map.MapFormatWarning": "a warning category, not an error",
+    "resireg.mapping.map_file.MapFormatWarning": "a warning category, not an error",
 }
 
 

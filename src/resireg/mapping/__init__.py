@@ -27,27 +27,21 @@ the 3D task); it imports the method, ``resireg.ovss``, ``resireg.specs`` and
 ``resireg.integrity`` (the encoder and the prior it is given are built by its callers).
 """
 
+from resireg.mapping.colours import pca_colours, write_ply
 from resireg.mapping.compact import CompactSettings, CompactVoxelMap
 from resireg.mapping.geometry import (
     nearest_downsample,
     nearest_indices,
-    patch_points,
     scale_intrinsics,
     unproject,
 )
 from resireg.mapping.keys import LATTICES, voxel_centres, voxel_indices
 from resireg.mapping.labels import LabelVoxelMap
-from resireg.mapping.lifting import pixel_pairs, pixel_points
+from resireg.mapping.lifting import LiftedPoints, patch_points, pixel_pairs, pixel_points
+from resireg.mapping.map_file import MapFormatWarning, map_folder
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
-from resireg.mapping.semantic_map import (
-    MapFormatWarning,
-    MapFullError,
-    SemanticMap,
-    TopK,
-    map_folder,
-    pca_colours,
-    write_ply,
-)
+from resireg.mapping.semantic_map import MapFullError, SemanticMap
+from resireg.mapping.top_k import TopK
 from resireg.mapping.voxels import VoxelMap
 
 __all__ = [
@@ -58,6 +52,7 @@ __all__ = [
     "patch_points",
     "pixel_points",
     "pixel_pairs",
+    "LiftedPoints",
     "LATTICES",
     "VoxelMap",
     "LabelVoxelMap",

@@ -126,7 +126,7 @@ class MergeFolderCheck(Callback):
 
 def _merge(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     from resireg.mapping import SemanticMap
-    from resireg.mapping.semantic_map import remove_partial_saves
+    from resireg.mapping.map_file import remove_partial_saves
 
     out = record.folder
     names = _names(cfg)
