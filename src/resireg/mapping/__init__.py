@@ -29,6 +29,7 @@ the 3D task); it imports the method, ``resireg.ovss``, ``resireg.specs`` and
 
 from resireg.mapping.colours import pca_colours, write_ply
 from resireg.mapping.compact import CompactSettings, CompactVoxelMap
+from resireg.mapping.fusion import MapFullError
 from resireg.mapping.geometry import (
     nearest_downsample,
     nearest_indices,
@@ -40,7 +41,7 @@ from resireg.mapping.labels import LabelVoxelMap
 from resireg.mapping.lifting import LiftedPoints, patch_points, pixel_pairs, pixel_points
 from resireg.mapping.map_file import MapFormatWarning, map_folder
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
-from resireg.mapping.semantic_map import MapFullError, SemanticMap
+from resireg.mapping.semantic_map import SemanticMap
 from resireg.mapping.top_k import TopK
 from resireg.mapping.voxels import VoxelMap
 

@@ -60,7 +60,6 @@ class MapFormatWarning(UserWarning):
     """A saved map of an earlier format was loaded without what the current one proves."""
 
 
-
 def inside_folder(folder: Path, name: Any, field: str, record: Path) -> Path:
     """``folder / name`` when ``name`` (read from ``record``'s ``field``) is a file name that
     stays inside ``folder``; else an :class:`IntegrityError` naming the field and the path
@@ -189,7 +188,6 @@ def record_digest(record: Mapping[str, Any]) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
 
-
 @torch.no_grad()
 def encoder_dim(encoder: Any) -> int | None:
     """The dimension of ``encoder``'s dense text queries (that of the features it fuses), or
@@ -234,6 +232,29 @@ class MapSnapshot:
     def __init__(self, tensors: dict[str, list[Tensor]], record: dict[str, Any]) -> None:
         self.tensors, self.record = tensors, record
 
+    @classmethod
+    def of(cls, smap: Any, copy: bool = True) -> MapSnapshot:
+        """What :meth:`SemanticMap.save <resireg.mapping.SemanticMap.save>` writes of ``smap``,
+        taken now (a compact map's waiting windows fitted first); with ``copy`` the tensors
+        are copied, so the snapshot is written while the map goes on changing."""
+        smap.fit_pending()
+        tensors = smap.store.tensors()
+        if copy:
+            tensors = {k: [b.clone() for b in v] for k, v in tensors.items()}
+        record = {
+            "format": FORMAT,
+            "settings": smap.settings(),
+            "dim": smap.dim,
+            "stored_dim": smap.stored_dim,
+            "basis_sha256": smap.basis_sha256,
+            "voxels": len(smap),
+            "frames": smap.frames,
+            "windows": smap.windows,
+            "meta": json.loads(json.dumps(smap.meta)),
+            "parts": list(smap.parts),
+        }
+        return cls(tensors, record)
+
     def write(self, folder: str | Path) -> Path:
         """Write the tensor file, then ``map.json`` (the commit point), then remove older
         tensor files (:meth:`SemanticMap.save`)."""
@@ -257,6 +278,7 @@ class MapSnapshot:
             if old.name != name:
                 old.unlink(missing_ok=True)
         return folder
+
 
 def read_map(
     cls: Any,

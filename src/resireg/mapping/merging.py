@@ -47,8 +47,20 @@ def merge_differences(target: SemanticMap, other: SemanticMap) -> list[str]:
 
 @torch.no_grad()
 def merge_into(target: SemanticMap, other: SemanticMap, transform: Any = None) -> SemanticMap:
-    """Add ``other`` to ``target`` in place (:meth:`SemanticMap.merge
-    <resireg.mapping.SemanticMap.merge>`); returns ``target``."""
+    """(:meth:`SemanticMap.merge <resireg.mapping.SemanticMap.merge>`) Add another map of the same encoder and settings (another mapping run) to ``target``,
+    in place; returns ``target``.
+
+    ``transform``: ``None`` (the same world frame) or the ``[4, 4]`` rigid transform from
+    ``other``'s world to ``target``'s. One that keeps the lattice (a rotation by multiples
+    of 90 degrees about the axes, e.g. about the vertical, and a translation by whole
+    voxels) re-keys the voxels exactly: the result equals mapping the transformed frames
+    (keys and counts exactly, means to float64 / the storage's rounding). Any other
+    transform moves each voxel centre and takes the voxel it falls in: an approximation
+    of re-mapping the frames (points near a voxel face change voxels; docs/benchmarks.md
+    gives its measured error). A map that differs (:func:`merge_differences`) is refused,
+    naming what differs, and so is one that shares a part (``parts``) with ``target``
+    (a map and a merge that holds it): merged, its points would count twice. The result
+    is made of both maps' parts."""
     mine = set(target.parts)
     shared = next((p for p in other.parts if p in mine), None)
     if shared is not None:  # a map merged with one it is part of: its points count twice

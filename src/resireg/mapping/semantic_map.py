@@ -1,57 +1,35 @@
 """A language-queryable 3D map a robot feeds with posed RGB-D windows (docs/method.md#robot-maps-semanticmap).
 
-:class:`SemanticMap` holds one dense encoder, one ReSiReg variant (``bb``, ``lite``,
-``full``, ``full@n_prototypes:24``, ``lite+prior``...) and one map storage. :meth:`SemanticMap.add`
-encodes a window of consecutive frames in one encoder pass, applies the variant to the
-window (ReSiReg Full takes the window as one scene: its prototypes are shared by the window's
-frames, as in the 3D task), lifts the features to 3D (:mod:`resireg.mapping.lifting`: :func:`patch_points` or
-:func:`pixel_pairs`) and fuses them. :meth:`SemanticMap.fuse` is the lift-and-fuse step alone,
-for features computed elsewhere: the 3D task's engine (``resireg_train.evaluation.mapping.engine``) encodes
-a batch once, applies every variant to it and fuses each into its own ``SemanticMap``, so
-the benchmark and a robot run the same code.
+:class:`SemanticMap` holds one dense encoder, one ReSiReg variant (``bb``, ``lite``, ``full``,
+``full@n_prototypes:24``, ``lite+prior``...) and one map storage. :meth:`SemanticMap.add`
+encodes a window of consecutive frames in one encoder pass, applies the variant to the window
+(ReSiReg Full takes the window as one scene: its prototypes are shared by the window's frames,
+as in the 3D task), lifts the features to 3D (:mod:`resireg.mapping.lifting`) and fuses them.
+:meth:`SemanticMap.fuse` is the lift-and-fuse step alone, for features computed elsewhere: the
+3D task's engine (``resireg_train.evaluation.mapping.engine``) encodes a batch once, applies
+every variant to it and fuses each into its own ``SemanticMap``, so the benchmark and a robot
+run the same code.
 
-Storage (``storage``, :data:`~resireg.specs.mapping.STORAGES`; :mod:`resireg.mapping.storage`: the map
-asks its storage object and never branches on the kind): ``exact`` keeps running feature
-sums (:class:`VoxelMap`, ``sum_dtype`` float64 or float32) and a mean colour map; ``compact``
-keeps low-precision unit features, optionally projected to ``compact.dim`` channels by a basis
-fitted once on the first ``compact.basis_rows`` features (an uncentred PCA, :mod:`resireg.mapping.basis`)
-or given (``compact.basis``: a map or run folder, or a ``.safetensors`` file), recorded by its SHA-256
-(:class:`~resireg.mapping.compact.CompactVoxelMap`: ~290 bytes per voxel at 128 channels,
-against ~4,170 for float64 sums of 512). Until a compact map's basis is fitted its frames wait
-(the map reads as empty); a save fits it on what it has.
-
-Queries: :meth:`~SemanticMap.query` (cosine similarity of every voxel to text queries),
-:meth:`~SemanticMap.top_k` (the best voxels of a text, exact: scored fast in low precision,
-the candidates within the error bound re-scored in float64; optionally in a box or a ball,
-looked up without reading the map), :meth:`~SemanticMap.region`,
-:meth:`~SemanticMap.classify` (the protocol's class prototypes: 80 templates averaged, cosine
-argmax or RayFronts' thresholded rule); text embeddings are cached per text, prototypes per class
-list. A compact map with a basis scores in the basis's space (the texts projected and
-normalised: RayFronts' compressed query). :meth:`~SemanticMap.merge` adds another mapping run's
-map (the same encoder and settings; refused naming what differs), optionally through a rigid
-transform. Persistence: :meth:`~SemanticMap.save` / :meth:`SemanticMap.load` (a safetensors file
-written from the map's blocks, and ``map.json``, atomic: a crash mid-save leaves the previous save
-loadable; :mod:`resireg.mapping.map_file`; the JSON records the tensor file's SHA-256 and its own digest, verified on load; the
-tensors are memory-mapped), :meth:`~SemanticMap.to_ply` (:mod:`resireg.mapping.colours`). Maps of the
-earlier formats load (:data:`~resireg.mapping.map_file.FORMATS`). :meth:`~SemanticMap.fuse` refuses non-finite or non-floating features,
-intrinsics and poses (:func:`resireg.method.checks.check_features`).
-
-Memory bound (``exact``): the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators
-(``s`` = 8 for float64 sums, 4 for ``sum_dtype="float32"``), 8 bytes of key and 5.7 to 11.4 of
-hash slot, and, with ``colour=True``, ``8 x 3 + 8`` bytes of colour sums and their own key and
-slot; the accumulators' last block holds fewer than :data:`~resireg.mapping.blocks.BLOCK_ROWS`
-spare rows (:attr:`SemanticMap.nbytes` counts them). ``max_voxels`` caps the occupied voxels:
-a window that would exceed it raises :class:`MapFullError` *before* anything of it is added, so
-the map stays as it was and can be saved. At 5 cm and D = 512 one million voxels (a large
-building floor) take ~4.2 GB with float64 sums, ~2.1 GB with float32 ones and ~0.3 GB
-``compact`` (docs/benchmarks.md).
+The rooms: the voxels live in the storage ``storage`` names (:mod:`resireg.mapping.storage`:
+``exact`` running sums or ``compact`` low-precision unit features with their basis,
+:mod:`resireg.mapping.basis`; the map asks its storage and never branches on the kind; the
+memory bound: :mod:`resireg.mapping.storage.exact`); queries by text
+(:meth:`~SemanticMap.query`, :meth:`~SemanticMap.top_k` and :meth:`~SemanticMap.region`:
+:mod:`resireg.mapping.top_k`; :meth:`~SemanticMap.classify`; embeddings kept by
+:mod:`resireg.mapping.texts`; a compact map with a basis scores in the basis's space, RayFronts'
+compressed query); :meth:`~SemanticMap.merge` (another mapping run's map, optionally through a
+rigid transform: :mod:`resireg.mapping.merging`); :meth:`~SemanticMap.save` /
+:meth:`SemanticMap.load` (atomic, verified, memory-mapped; the earlier formats load:
+:mod:`resireg.mapping.map_file`); :meth:`~SemanticMap.to_ply` (:mod:`resireg.mapping.colours`).
+:meth:`~SemanticMap.fuse` refuses non-finite or non-floating features, intrinsics and poses
+(:func:`resireg.method.checks.check_features`); ``max_voxels`` caps the occupied voxels: a
+window that would exceed it raises :class:`MapFullError` *before* anything of it is added, so
+the map stays as it was and can be saved.
 """
 
 from __future__ import annotations
 
-import json
 import uuid
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -60,22 +38,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from resireg.errors import MapError
 from resireg.mapping.colours import voxel_colours, write_ply
 from resireg.mapping.compact import CompactSettings
+from resireg.mapping.fusion import MapFullError, encode_resized, fuse_window, resize_images
 from resireg.mapping.keys import check_lattice, unpack_keys
-from resireg.mapping.lifting import lift_grid
-from resireg.mapping.map_file import FORMAT, MapSnapshot, read_map
+from resireg.mapping.map_file import MapSnapshot, read_map
 from resireg.mapping.merging import merge_differences, merge_into
 from resireg.mapping.storage import make_storage
 from resireg.mapping.storage.base import MapStorage
 from resireg.mapping.texts import TextEmbeddings
 from resireg.mapping.top_k import TopK, best_voxels, region_rows
+from resireg.mapping.variant import map_variant, variant_argument
 from resireg.mapping.voxels import SUM_DTYPES
-from resireg.method.checks import check_features
-from resireg.method.variants import apply_variant, build_variants
 from resireg.specs.mapping import POINTS
-from resireg.specs.variants import takes_prior, variant_layer
 
 __all__ = ["ENCODER_OUTPUT", "MapFullError", "SemanticMap"]
 
@@ -83,29 +58,6 @@ __all__ = ["ENCODER_OUTPUT", "MapFullError", "SemanticMap"]
 #: :class:`resireg.method.checks.NonFiniteError` (``resireg-map`` skips such a window and counts it).
 ENCODER_OUTPUT = "encoder output"
 _EMPTY = "the map is empty: add frames first"
-
-
-class MapFullError(MapError):
-    """A window would take the map past its ``max_voxels`` budget (nothing of it was added)."""
-
-
-def _variant_argument(variant: Any, configuration: Any) -> Any:
-    """The variant given, by ``variant`` or by the keyword it replaces, ``configuration`` (one
-    release: a FutureWarning naming ``variant``); both given are refused naming both."""
-    if configuration is None:
-        if variant is None:
-            raise TypeError("SemanticMap() needs variant= (a variant name or module)")
-        return variant
-    if variant is not None:
-        raise TypeError(f"SemanticMap(): variant={_name(variant)!r} and configuration="
-                        f"{_name(configuration)!r} both given: give variant= only")  # fmt: skip
-    warnings.warn("SemanticMap(configuration=...) is deprecated and will be removed in the next "
-                  "release: use variant=", FutureWarning, stacklevel=3)  # fmt: skip
-    return configuration
-
-
-def _name(variant: Any) -> str:
-    return type(variant).__name__ if isinstance(variant, nn.Module) else str(variant)
 
 
 class SemanticMap:
@@ -156,7 +108,7 @@ class SemanticMap:
         compact: CompactSettings | Mapping[str, Any] | None = None,
         configuration: str | nn.Module | None = None,
     ) -> None:
-        variant = _variant_argument(variant, configuration)
+        variant = variant_argument(variant, configuration)
         if points not in POINTS:
             raise ValueError(f"points={points!r}: expected one of {POINTS}")
         if sum_dtype not in SUM_DTYPES:
@@ -167,21 +119,13 @@ class SemanticMap:
             raise ValueError(f"max_voxels={max_voxels!r}: expected null or an integer >= 1")
         self.storage = storage
         self.encoder = encoder
-        if isinstance(variant, nn.Module):
-            self.variant_name = type(variant).__name__
-            self.variant = variant
-            self.takes_prior = bool(prior_input)
-        else:
-            name = str(variant)
-            if variant_layer(name) is not None:
-                raise ValueError(
-                    f"variant={name!r}: @layer: is an evaluation sweep setting; a map "
-                    "runs on the encoder's own intermediates"
-                )
-            self.variant_name = name
-            self.variant = build_variants([name], params or {})[name]
-            self.takes_prior = takes_prior(name)
-        if self.takes_prior and prior is None and encoder is not None and not isinstance(variant, nn.Module):
+        chosen = map_variant(variant, params, prior_input)
+        self.variant_name, self.variant, self.takes_prior = (
+            chosen.name,
+            chosen.module,
+            chosen.takes_prior,
+        )
+        if self.takes_prior and prior is None and encoder is not None and not chosen.given:
             raise ValueError(f"variant={self.variant_name!r} takes a prior: pass prior=")
         self.prior = prior
         self.params = {k: dict(v or {}) for k, v in (params or {}).items()}
@@ -222,11 +166,15 @@ class SemanticMap:
     compact = property(lambda self: self.store.compact, doc="A compact map's settings, else None.")
     voxels = property(lambda self: self.store.voxels, doc="The feature map (None before features).")
     colours = property(lambda self: self.store.colours, doc="An exact map's colour sums, or None.")
-    basis = property(lambda self: self.store.basis, doc="A compact map's basis ``[D, k]``, or None.")
+    basis = property(
+        lambda self: self.store.basis, doc="A compact map's basis ``[D, k]``, or None."
+    )
     basis_sha256 = property(lambda self: self.store.basis_sha256, doc="The basis's SHA-256.")
     dim = property(lambda self: self.store.dim, doc="The fused features' dimension (None before).")
     stored_dim = property(lambda self: self.store.stored_dim, doc="The stored features' dimension.")
-    nbytes = property(lambda self: self.store.nbytes, doc="Bytes held (spare rows, basis included).")
+    nbytes = property(
+        lambda self: self.store.nbytes, doc="Bytes held (spare rows, basis included)."
+    )
 
     def set_basis(self, basis: Tensor) -> None:
         """Project this compact map's features with ``basis`` ``[D, k]`` (before any voxel)."""
@@ -249,39 +197,11 @@ class SemanticMap:
         float in [0, 1]): the encoder's input rule, one encoder pass, the variant applied to
         the window (with the prior if it takes one). Every module in eval mode for the pass
         (each module's mode restored), autocast off."""
-        return self._encode_resized(self.resized(images))
-
-    @torch.no_grad()
-    def _encode_resized(self, raw: Tensor) -> Tensor:
-        """:meth:`encode` of images already resized by :meth:`resized`."""
-        if self.takes_prior and self.prior is None:
-            raise ValueError(f"variant={self.variant_name!r} takes a prior: pass prior=")
-        x = self.encoder.input_rule.normalize(raw)
-        modes = {m: m.training for m in self.encoder.modules()}
-        self.encoder.eval()
-        try:
-            with torch.autocast(self.device.type, enabled=False):
-                out = self.encoder.encode(x)
-                seg = None
-                if self.takes_prior:
-                    seg = self.prior(raw).to(out.intermediates.device)
-                dense = apply_variant(self.variant, out.intermediates, out.language, seg)
-        finally:
-            for module, mode in modes.items():
-                module.training = mode
-        return dense
+        return encode_resized(self, self.resized(images))
 
     def resized(self, images: Tensor) -> Tensor:
         """RGB ``[B, 3, H, W]`` -> float ``[B, 3, H', W']`` in [0, 1] by the encoder's input rule."""
-        if not isinstance(images, Tensor) or images.ndim != 4 or images.shape[1] != 3:
-            shape = tuple(images.shape) if isinstance(images, Tensor) else type(images)
-            raise ValueError(f"images of shape {shape}: expected an RGB [B, 3, H, W] tensor")
-        if self.encoder is None:
-            raise ValueError("this map has no encoder: pass features to fuse() instead")
-        rule = self.encoder.input_rule
-        return torch.stack([rule.resize(im, self.short_side) for im in images]).to(
-            self.encoder.device
-        )
+        return resize_images(self, images)
 
     @torch.no_grad()
     def add(self, images: Tensor, depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor) -> int:
@@ -303,8 +223,8 @@ class SemanticMap:
                 f"per image of {tuple(images.shape)}"
             )
         raw = self.resized(images)
-        dense = self._encode_resized(raw)
-        return self._fuse(dense, depth, intrinsics, cam_to_world,
+        dense = encode_resized(self, raw)
+        return fuse_window(self, dense, depth, intrinsics, cam_to_world,
                           raw if self.keeps_colour else None, None, ENCODER_OUTPUT)  # fmt: skip
 
     @torch.no_grad()
@@ -325,61 +245,9 @@ class SemanticMap:
         each feature grid once (the 3D task's engine). Runs with autocast off (fp32 / fp64).
         Raises :class:`MapFullError` (adding nothing) when the window would take the map past
         ``max_voxels``."""
-        return self._fuse(features, depth, intrinsics, cam_to_world, colour, lifted, "features")
-
-    def _fuse(self, features, depth, intrinsics, cam_to_world, colour, lifted, name) -> int:
-        """:meth:`fuse`, its features checked under ``name`` (:meth:`add`: the encoder output,
-        checked once)."""
-        if not isinstance(features, Tensor) or features.ndim != 4:
-            shape = tuple(features.shape) if isinstance(features, Tensor) else type(features)
-            raise ValueError(f"features of shape {shape}: expected [B, D, h, w]")
-        # A NaN feature would stay in its voxel's sum for good, and integer features would be
-        # fused as they are: refused here (resireg.method.checks, one isfinite reduction per tensor).
-        check_features(name, features)
-        check_features("intrinsics", intrinsics)
-        check_features("cam_to_world", cam_to_world)
-        if not isinstance(depth, Tensor) or not depth.is_floating_point():
-            raise TypeError(f"depth must be a floating-point tensor of metres, got "
-                            f"{depth.dtype if isinstance(depth, Tensor) else type(depth).__name__}")  # fmt: skip
-        if colour is not None:
-            check_features("colour", colour)
-        if self.dim is not None and features.shape[1] != self.dim:
-            raise ValueError(f"features of shape {tuple(features.shape)}: the map has "
-                             f"dim={self.dim}")  # fmt: skip
-        with torch.autocast(self.device.type, enabled=False):
-            grid = tuple(features.shape[-2:])
-            cache = {} if lifted is None else lifted
-            if grid not in cache:
-                cache[grid] = lift_grid(self.points, depth.to(self.device),
-                                        intrinsics.to(self.device), cam_to_world.to(self.device),
-                                        grid, self.voxel_size, self.lattice)  # fmt: skip
-            feats = features.permute(0, 2, 3, 1).float().to(self.device)
-            if self.voxels is None:
-                self.store.start(int(feats.shape[-1]))
-            rgb = None
-            if self.keeps_colour and colour is not None:
-                rgb = F.adaptive_avg_pool2d(colour.float().to(self.device), grid)
-                rgb = rgb.permute(0, 2, 3, 1)
-            window = cache[grid].with_features(feats, rgb)
-            probe = None
-            if self.max_voxels is not None or self.store.waiting:  # (the voxels' indices)
-                probe = window.voxel_index(self.voxel_size, self.lattice)
-            before = len(self)
-            if self.max_voxels is not None:
-                new = self.store.count_new(probe)
-                held = before + self.store.pending_voxels
-                if held + new > self.max_voxels:
-                    raise MapFullError(
-                        f"max_voxels={self.max_voxels}: this window of {features.shape[0]} "
-                        f"frames adds {new} voxels to the map's {held}; raise max_voxels "
-                        f"(each voxel holds ~{self.bytes_per_voxel(feats.shape[-1])} bytes), "
-                        "use a coarser voxel_size, sum_dtype=float32 or storage=compact, or "
-                        "save this map and start a new one"
-                    )
-            self.store.add(window, probe)
-        self.frames += int(features.shape[0])
-        self.windows += 1
-        return len(self) - before
+        return fuse_window(
+            self, features, depth, intrinsics, cam_to_world, colour, lifted, "features"
+        )
 
     # ------------------------------------------------------------------ reading
     @property
@@ -538,19 +406,9 @@ class SemanticMap:
 
     def merge(self, other: SemanticMap, transform: Any = None) -> SemanticMap:
         """Add another map of the same encoder and settings (another mapping run) to this one,
-        in place; returns ``self``.
-
-        ``transform``: ``None`` (the same world frame) or the ``[4, 4]`` rigid transform from
-        ``other``'s world to this one's. One that keeps the lattice (a rotation by multiples
-        of 90 degrees about the axes, e.g. about the vertical, and a translation by whole
-        voxels) re-keys the voxels exactly: the result equals mapping the transformed frames
-        (keys and counts exactly, means to float64 / the storage's rounding). Any other
-        transform moves each voxel centre and takes the voxel it falls in: an approximation
-        of re-mapping the frames (points near a voxel face change voxels; docs/benchmarks.md
-        gives its measured error). A map that differs (:meth:`merge_differences`) is refused,
-        naming what differs, and so is one that shares a part (:attr:`parts`) with this one
-        (a map and a merge that holds it): merged, its points would count twice. The result
-        is made of both maps' parts."""
+        in place, optionally through a rigid ``transform`` (exact when it keeps the lattice);
+        returns ``self``. A map that differs (:meth:`merge_differences`) or shares a part
+        (:attr:`parts`) is refused (:func:`resireg.mapping.merging.merge_into`: the details)."""
         if not isinstance(other, SemanticMap):
             raise TypeError(f"merge(): expected a SemanticMap, got {type(other).__name__}")
         if other is self:
@@ -580,23 +438,7 @@ class SemanticMap:
         """What :meth:`save` writes, taken now: with ``copy`` the map's tensors are copied
         (one copy of the map), so the snapshot is written while the map goes on changing
         (the live node copies under its lock and writes outside it)."""
-        self.fit_pending()
-        tensors = self.store.tensors()
-        if copy:
-            tensors = {k: [b.clone() for b in v] for k, v in tensors.items()}
-        record = {
-            "format": FORMAT,
-            "settings": self.settings(),
-            "dim": self.dim,
-            "stored_dim": self.stored_dim,
-            "basis_sha256": self.basis_sha256,
-            "voxels": len(self),
-            "frames": self.frames,
-            "windows": self.windows,
-            "meta": json.loads(json.dumps(self.meta)),
-            "parts": list(self.parts),
-        }
-        return MapSnapshot(tensors, record)
+        return MapSnapshot.of(self, copy)
 
     def save(self, folder: str | Path) -> Path:
         """Write the map to ``folder`` (created): ``map-<id>.safetensors`` (every tensor in row

@@ -4,6 +4,16 @@
 (float64 by default: a voxel's mean does not depend on how its points were split or ordered,
 up to float64 rounding) and, with ``colour=True``, a second one of colour sums. Queries score
 the unit means in float64 (exact).
+
+Memory bound (``exact``): the map holds, per occupied voxel, ``s D + 8`` bytes of accumulators
+(``s`` = 8 for float64 sums, 4 for ``sum_dtype="float32"``), 8 bytes of key and 5.7 to 11.4 of
+hash slot, and, with ``colour=True``, ``8 x 3 + 8`` bytes of colour sums and their own key and
+slot; the accumulators' last block holds fewer than :data:`~resireg.mapping.blocks.BLOCK_ROWS`
+spare rows (:attr:`MapStorage.nbytes` counts them). ``max_voxels`` caps the occupied voxels:
+a window that would exceed it raises :class:`MapFullError` *before* anything of it is added, so
+the map stays as it was and can be saved. At 5 cm and D = 512 one million voxels (a large
+building floor) take ~4.2 GB with float64 sums, ~2.1 GB with float32 ones and ~0.3 GB
+``compact`` (docs/benchmarks.md).
 """
 
 from __future__ import annotations
