@@ -25,6 +25,13 @@ Reading: :meth:`CompactVoxelMap.features` (unit features, ``float32``), :meth:`m
 :attr:`counts`, :meth:`mean_colours`; scoring for queries without a pass in ``float64``
 (:meth:`approx_scores`, :meth:`exact_scores`). Saving: :meth:`tensors` (row order, blocks as
 they are) and :meth:`from_tensors`.
+
+One idea: the compact voxel map, one data structure. Its accumulation (stored unit means in
+low precision, float32 blocks of the hot voxels, the folds between them) and its scoring (the
+low-precision products with their error bound, the float64 re-scoring, the classify rule over
+stored and hot rows) read the same private layout of rows, blocks and weights; split, each half
+would reach into the other's internals. Its settings (:class:`CompactSettings`) and the storage
+that uses it (:mod:`resireg.mapping.storage.compact`: the basis, the waiting windows) live apart.
 """
 
 from __future__ import annotations

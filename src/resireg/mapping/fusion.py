@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -15,8 +15,8 @@ from resireg.mapping.lifting import lift_grid
 from resireg.method.checks import check_features
 from resireg.method.variants import apply_variant
 
-if TYPE_CHECKING:
-    from resireg.mapping.semantic_map import SemanticMap
+#: A :class:`~resireg.mapping.SemanticMap` (not imported: the map sits above this module).
+SemanticMap = Any
 
 __all__ = ["MapFullError", "encode_resized", "fuse_window", "resize_images"]
 

@@ -4,15 +4,15 @@ and the merge itself (:func:`merge_into`), for :meth:`SemanticMap.merge
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
 from resireg.errors import MapError
 from resireg.mapping.map_file import MAX_PARTS
 
-if TYPE_CHECKING:
-    from resireg.mapping.semantic_map import SemanticMap
+#: A :class:`~resireg.mapping.SemanticMap` (not imported: the map sits above this module).
+SemanticMap = Any
 
 __all__ = ["merge_differences", "merge_into"]
 
