@@ -81,7 +81,9 @@ def test_each_storage_answers_the_numpy_similarities(window, storage, atol):
     best = smap.top_k(queries[0], k=3)
     order = np.argsort(-want[:, 0], kind="stable")[:3]
     assert best.indices.tolist() == [list(keys[i]) for i in order]
-    np.testing.assert_allclose(best.scores.numpy(), want[order, 0], atol=atol)  # of the stored means
+    np.testing.assert_allclose(
+        best.scores.numpy(), want[order, 0], atol=atol
+    )  # of the stored means
 
 
 def test_the_compact_basis_is_the_numpy_uncentred_pca(window):
@@ -107,7 +109,9 @@ def test_the_storage_table_is_the_storage_choices():
     assert all(issubclass(cls, MapStorage) for cls in STORAGE_TYPES.values())
     with pytest.raises(TypeError, match="abstract"):
         MapStorage(0.1, "round", torch.device("cpu"), False, "float64", None)
-    with pytest.raises(ValueError, match=r"storage='dense': expected one of \['exact', 'compact'\]"):
+    with pytest.raises(
+        ValueError, match=r"storage='dense': expected one of \['exact', 'compact'\]"
+    ):
         SemanticMap(None, "bb", 0.1, storage="dense")
 
 

@@ -1,11 +1,14 @@
 """3D semantic mapping with dense vision-language features (torch, numpy, scipy, scikit-learn).
 
-Patch points from depth, intrinsics and pose (:mod:`.geometry`), every pixel at its patch's
-depth as (patch, voxel, count) pairs (:mod:`.lifting`), sparse voxel maps of running feature
-sums and of ground-truth class votes (:mod:`.voxels`), and queries: cosine classification
-(optionally with RayFronts' prediction threshold and prompt denoising) and k-nearest-neighbour
-label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`) puts them together
-into the object a robot feeds with posed RGB-D windows and queries by text (docs/method.md#robot-maps-semanticmap). Conventions: docs/method.md#the-voxel-map.
+The lattice and the packed voxel keys (:mod:`.keys`), patch points and every pixel at its patch's
+depth as (patch, voxel, count) pairs (:mod:`.lifting`, on the camera geometry of :mod:`.geometry`),
+sparse voxel maps of running feature sums (:mod:`.voxels`), of low-precision unit features
+(:mod:`.compact`) and of ground-truth class votes (:mod:`.labels`), and queries: cosine
+classification (optionally with RayFronts' prediction threshold and prompt denoising) and
+k-nearest-neighbour label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`)
+puts them together, over one storage interface (:mod:`.storage`), into the object a robot feeds
+with posed RGB-D windows and queries by text (docs/method.md#robot-maps-semanticmap); its files:
+:mod:`.map_file`. Conventions: docs/method.md#the-voxel-map.
 
 Typical online use, one batch of frames at a time::
 

@@ -54,9 +54,7 @@ def resize_images(smap: SemanticMap, images: Tensor) -> Tensor:
     if smap.encoder is None:
         raise ValueError("this map has no encoder: pass features to fuse() instead")
     rule = smap.encoder.input_rule
-    return torch.stack([rule.resize(im, smap.short_side) for im in images]).to(
-        smap.encoder.device
-    )
+    return torch.stack([rule.resize(im, smap.short_side) for im in images]).to(smap.encoder.device)
 
 
 @torch.no_grad()

@@ -78,4 +78,3 @@ class TextEmbeddings:
         while len(self._prototypes) > PROTOTYPE_CACHE:
             self._prototypes.popitem(last=False)
         return protos
-

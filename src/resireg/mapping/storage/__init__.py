@@ -2,7 +2,9 @@
 :data:`~resireg.specs.mapping.STORAGES`): one interface (:class:`.base.MapStorage`), an exact
 implementation (:mod:`.exact`: running sums) and a compact one (:mod:`.compact`: low-precision
 unit features, optionally projected by a basis). The map asks its storage; it never branches on
-the kind (:func:`make_storage` picks the class by name)."""
+the kind (:func:`make_storage` picks the class by name). Imported by
+:mod:`resireg.mapping` only (the map and its query helpers); it imports the voxel maps, the
+lifting and the basis below it."""
 
 from __future__ import annotations
 

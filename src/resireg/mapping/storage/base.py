@@ -91,7 +91,9 @@ class MapStorage(ABC):
         """:func:`resireg.mapping.classify` of the voxels' features against ``prototypes``."""
 
     @abstractmethod
-    def candidates(self, q: Tensor, k: int, approx: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor]:
+    def candidates(
+        self, q: Tensor, k: int, approx: tuple[Tensor, Tensor] | None
+    ) -> tuple[Tensor, Tensor]:
         """Rows holding the ``k`` best voxels of one query ``q`` ``[1, k']`` among all, and
         their float64 scores (``approx``: its low-precision scores and bound, when scored
         with others)."""

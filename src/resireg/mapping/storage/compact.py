@@ -6,7 +6,8 @@ included) and, with ``compact.dim`` below the features' dimension, a basis ``[D,
 ``compact.basis_rows`` features. Until it is fitted the windows wait (the map reads as empty);
 a save fits it on what waits (:meth:`~CompactStorage.fit_pending`). Queries are projected by
 the basis and renormalised (RayFronts' compressed query); top-k scores every voxel in low
-precision and re-scores in float64 the candidates within the error bound.
+precision and re-scores in float64 the candidates within the error bound. About 290 bytes per
+voxel at 128 channels, against ~4,170 for float64 sums of 512 (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -62,7 +63,9 @@ class CompactStorage(MapStorage):
     @property
     def waiting(self) -> bool:
         c = self.compact
-        return c.dim is not None and self.basis is None and self.dim is not None and c.dim < self.dim
+        return (
+            c.dim is not None and self.basis is None and self.dim is not None and c.dim < self.dim
+        )
 
     @property
     def pending_voxels(self) -> int:
@@ -185,7 +188,9 @@ class CompactStorage(MapStorage):
             return None
         return self.voxels.approx_scores(queries.to(self.device))
 
-    def candidates(self, q: Tensor, k: int, approx: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor]:
+    def candidates(
+        self, q: Tensor, k: int, approx: tuple[Tensor, Tensor] | None
+    ) -> tuple[Tensor, Tensor]:
         """The voxels within ``2 e`` of the ``k``-th best low-precision score (``e``: its error
         bound), re-scored in float64: no voxel outside can be among the best."""
         if approx is None:

@@ -81,7 +81,9 @@ class ExactStorage(MapStorage):
         return classify_features(feats, prototypes.to(feats.device), threshold, denoise,
                                  none=none)  # fmt: skip
 
-    def candidates(self, q: Tensor, k: int, approx: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor]:
+    def candidates(
+        self, q: Tensor, k: int, approx: tuple[Tensor, Tensor] | None
+    ) -> tuple[Tensor, Tensor]:
         """Every row, scored in float64 in chunks (:meth:`VoxelMap.all_scores`)."""
         rows = torch.arange(len(self.voxels), device=self.device)
         return rows, self.voxels.all_scores(q)[:, 0]
