@@ -120,11 +120,7 @@ class SemanticMap:
         self.storage = storage
         self.encoder = encoder
         chosen = map_variant(variant, params, prior_input)
-        self.variant_name, self.variant, self.takes_prior = (
-            chosen.name,
-            chosen.module,
-            chosen.takes_prior,
-        )
+        self.variant_name, self.variant, self.takes_prior, _ = chosen
         if self.takes_prior and prior is None and encoder is not None and not chosen.given:
             raise ValueError(f"variant={self.variant_name!r} takes a prior: pass prior=")
         self.prior = prior
