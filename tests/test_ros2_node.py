@@ -101,7 +101,7 @@ def reference_map(bag, encoder, frames_window=WINDOW, extra=()):
 
     from resireg.sources.frames import FrameCounts, windows
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.cli.map import build_source, make_map
+    from resireg_train.jobs.map import build_source, make_map
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"configuration={CONFIG}", f"window={frames_window}",

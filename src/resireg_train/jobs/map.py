@@ -1,25 +1,23 @@
-"""``resireg-map``: a language-queryable voxel map from a posed RGB-D recording (Hydra main;
-``conf/map.yaml``, docs/method.md#robot-maps-semanticmap).
+"""``resireg-map``'s job: a language-queryable voxel map from a posed RGB-D recording (its door:
+:mod:`resireg_train.cli.map`; ``conf/map.yaml``, docs/method.md#robot-maps-semanticmap).
 
-    resireg-map source=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
-    resireg-map source=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
-    resireg-map source=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
-    resireg-map source=nerfstudio source.path=data/scene
-    resireg-map source=ros2 source.world_frame=odom     # live topics, until idle or Ctrl-C
-
-The source (``source=<kind>``: ``conf/source/<kind>.yaml``, a kind of the table
-:data:`resireg.specs.sources.SOURCE_SPECS`, read by :mod:`resireg.sources`) is checked and
-opened before the encoder loads (every missing topic is reported in a second, with the bag's
-topics). Windows of ``window`` consecutive frames go through
+The steps, in order (:func:`map_job`): the config checked (:mod:`resireg_train.checks.map`);
+the source (``source=<kind>``: ``conf/source/<kind>.yaml``, a kind of the table
+:data:`resireg.specs.sources.SOURCE_SPECS`, read by :mod:`resireg.sources`) checked and opened
+before the encoder loads (every missing topic is reported in a second, with the bag's topics);
+the encoder and, for a variant that takes one, the prior; the map opened
+(:func:`resireg.mapping.opening.open_map`, the live node's rule too): a fresh map in
+``<output dir>/map``, or with ``resume=true`` the saved one continued from the last frame it
+holds (a live source, ``source=ros2``: with the frames it receives now), or refused naming the
+fields that differ (source, settings, ReSiReg parameters, encoder entry, a digest of the
+encoder's weights); windows of ``window`` consecutive frames fused by
 :meth:`resireg.mapping.SemanticMap.add` (a window whose encoder output is not finite is skipped
-and counted); the map is saved every ``save_every`` windows and at the end to
-``<output dir>/map`` with its identity (source, settings, ReSiReg parameters, encoder entry, a
-digest of the encoder's weights): ``resume=true`` continues it from the last frame it holds (a
-live source, ``source=ros2``: with the frames it receives now), or is refused naming the keys
-that differ. Then ``map.ply``; ``results.json`` records frames read
-/ used / skipped (by kind, the first reason of each, examples), corrupt messages, out-of-range
-depth, the map's voxels and bytes, and seconds per stage; a run that maps nothing fails with the
-reason per kind.
+and counted), the map saved every ``save_every`` windows and at the end; then ``map.ply``.
+``results.json`` records frames read / used / skipped (by kind, the first reason of each,
+examples), corrupt messages, out-of-range depth, the map's voxels and bytes, and seconds per
+stage; a run that maps nothing fails with the reason per kind.
+
+Imported by :mod:`resireg_train.cli.map`.
 """
 
 from __future__ import annotations
@@ -35,13 +33,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, ResiregError, argument_names, rename_arguments
 from resireg.specs.encoders import encoder_kwargs
-from resireg.specs.sources import SOURCE_SPECS, source_errors
-from resireg.specs.tree import MISSING, differences
-from resireg_train.cli.job import hydra_entry_point, run_task
-from resireg_train.config.errors import block_errors, config_path, encoder_arguments
+from resireg.specs.sources import SOURCE_SPECS
+from resireg_train.checks.map import check_map_config, check_source
+from resireg_train.config.errors import config_path, encoder_arguments
 from resireg_train.runs.record import RunRecord
 
-__all__ = ["SOURCES", "build_source", "check_map_config", "make_map", "main"]
+__all__ = ["SOURCES", "build_source", "make_map", "map_job"]
 
 log = logging.getLogger(__name__)
 
@@ -51,13 +48,12 @@ SOURCES = SOURCE_SPECS.names()
 
 def build_source(spec: dict[str, Any], key: str = "source"):
     """The frame source of a ``source`` block (``conf/source/<kind>.yaml``): its keys and
-    values checked against its kind's entry of :data:`~resireg.specs.sources.SOURCE_SPECS`,
-    then the entry's reader called with the block's keys; it opens the recording, so a missing
-    file or topic fails here. Every refusal is a :class:`ConfigError` naming the config path:
-    the library's own (``path='x': ...``) as ``source.path='x': ...``."""
-    errors = block_errors(source_errors(spec), key, spec)
-    if errors:
-        raise ConfigError("; ".join(errors))
+    values checked against its kind's entry of :data:`~resireg.specs.sources.SOURCE_SPECS`
+    (:func:`~resireg_train.checks.map.check_source`), then the entry's reader called with the
+    block's keys; it opens the recording, so a missing file or topic fails here. Every refusal
+    is a :class:`ConfigError` naming the config path: the library's own (``path='x': ...``) as
+    ``source.path='x': ...``."""
+    check_source(spec, key)
     entry = SOURCE_SPECS.get(spec["kind"])
     try:
         return entry.load()(**entry.arguments(spec))
@@ -73,13 +69,18 @@ def _under(message: str, key: str, names: Iterable[str]) -> str:
 
 
 def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
-    """The :class:`~resireg.mapping.SemanticMap` of the config's map keys (conf/map.yaml)."""
+    """The empty :class:`~resireg.mapping.SemanticMap` of the config's map keys
+    (conf/map.yaml); ``encoder=None``: a map for its settings only (its identity)."""
     from resireg.mapping import SemanticMap
+    from resireg.mapping.opening import local_path
     from resireg.specs.variants import PARAM_VARIANTS  # the variant table's, with parameters
 
     params = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in PARAM_VARIANTS}
     storage = str(cfg.get("storage", "exact"))
-    compact = _compact(cfg) if storage == "compact" else None
+    compact = None
+    if storage == "compact":  # the basis path resolved (recorded absolute)
+        compact = OmegaConf.to_container(cfg.compact, resolve=True)
+        compact["basis"] = local_path(compact.get("basis"))
     try:
         return SemanticMap(encoder, str(cfg.configuration), float(cfg.voxel_size), params=params,
                            prior=prior, points=str(cfg.points), lattice=str(cfg.lattice),
@@ -89,144 +90,98 @@ def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
         raise ConfigError(str(err)) from err
 
 
-def _compact(cfg: DictConfig) -> dict[str, Any]:
-    """The ``compact`` block, its ``basis`` path resolved (recorded absolute)."""
-    block = OmegaConf.to_container(cfg.compact, resolve=True)
-    block["basis"] = _resolved(block.get("basis"))
-    return block
-
-
-def check_map_config(cfg: DictConfig) -> None:
-    """The map's settings by their rules (:data:`resireg.specs.mapping.MAP_RULES`, the live
-    node's too), every violation in one :class:`ConfigError`, before anything is loaded."""
-    from resireg.specs.mapping import MAP_RULES, map_errors
+def _identity(cfg: DictConfig, smap: Any, weights: str | None = None) -> dict[str, Any]:
+    """The config's blocks of the map's identity (:func:`resireg.mapping.opening.map_identity`)."""
+    from resireg.mapping.opening import map_identity
 
     every = OmegaConf.to_container(cfg, resolve=True)
-    values = {k: every[k] for k in MAP_RULES if "." not in k and k in every}
-    if "compact" in every:
-        values["compact"] = every["compact"]
-    errors = map_errors(values)
-    if errors:
-        raise ConfigError("; ".join(errors))
+    return map_identity(smap, encoder=every["encoder"], source=every["source"],
+                        window=every["window"], prior=every.get("prior"), weights=weights)  # fmt: skip
 
 
-def _resolved(value: Any) -> Any:
-    """A local path as its absolute, resolved form (a Hugging Face repo id or a name stays)."""
-    if isinstance(value, str) and value and Path(value).expanduser().exists():
-        return str(Path(value).expanduser().resolve())
-    return value
+def _viewer_file(cfg: DictConfig, out: Path) -> Path | None:
+    """The Rerun recording to save (``rerun.save``): under the run folder unless absolute;
+    recorded absolute."""
+    if not cfg.rerun.save:
+        return None
+    rrd = Path(str(cfg.rerun.save)).expanduser()
+    return (rrd if rrd.is_absolute() else out / rrd).resolve()
 
 
-def _identity(cfg: DictConfig, weights: str | None = None) -> dict[str, Any]:
-    """What a resumed run must share with the saved map: the source (its path resolved; but
-    ``limit`` and a live source's ``idle``: a run cut short by them resumes without them), the
-    map's settings, the ReSiReg configuration's parameters (``lite`` / ``full`` / ``calib``...), the encoder's entry (its
-    path resolved) and a digest of its weights (:func:`resireg.models.factory.weights_fingerprint`:
-    another model at the same path differs)."""
-    from resireg.specs.variants import PARAM_VARIANTS
-
-    every = OmegaConf.to_container(cfg, resolve=True)
-    source = dict(every["source"])
-    source.pop("limit", None)
-    source.pop("idle", None)  # a live source's stop rule, as limit is
-    source["path"] = _resolved(source.get("path"))
-    encoder = {k: _resolved(v) if k == "path" else v for k, v in every["encoder"].items()}
-    keep = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
-            "short_side")  # fmt: skip
-    out = {"source": source, **{k: every[k] for k in keep}, "encoder": encoder,
-           "resireg": {k: every[k] for k in PARAM_VARIANTS if k in every},
-           "prior": every.get("prior")}  # fmt: skip
-    if every.get("storage", "exact") != "exact":  # (an exact map's identity is as before)
-        out["storage"] = every["storage"]
-        out["compact"] = _compact(cfg)
-    if weights is not None:
-        out["weights"] = weights
-    return out
-
-
-def _differences(saved: Any, now: dict[str, Any]) -> list[str]:
-    """``key: saved -> now`` for each leaf key that differs (a key one side lacks included)."""
-    shown = {id(MISSING): "(not recorded)"}
-    return [
-        f"{key}: {shown.get(id(a), repr(a))} in the map, {shown.get(id(b), repr(b))} now"
-        for key, a, b in differences(saved if isinstance(saved, dict) else {}, now)
-    ]
-
-
-def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
+def _encoder_and_prior(cfg: DictConfig) -> tuple[Any, Any]:
+    """The encoder of the ``encoder`` entry on ``device`` (seeded by ``seed``) and, for a
+    variant that takes one, the prior of the ``prior`` block; errors name their config path."""
     import torch
 
-    from resireg.mapping import MapFullError, SemanticMap
-    from resireg.mapping.semantic_map import ENCODER_OUTPUT
-    from resireg.method.checks import NonFiniteError
     from resireg.models import build_encoder
     from resireg.models.factory import resolve_device
-    from resireg.sources.frames import FrameCounts, SkippedFrame, windows
+    from resireg.specs.variants import takes_prior
+
+    torch.manual_seed(int(cfg.seed))
+    entry = encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True))
+    with config_path("encoder", encoder_arguments(entry)):
+        encoder = build_encoder(**entry, device=resolve_device(str(cfg.device)))
+    if not takes_prior(str(cfg.configuration)):
+        return encoder, None
+    from resireg.priors import build_prior
+
+    prior_spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else {}
+    with config_path("prior", {"spec": "prior"}):
+        return encoder, build_prior(prior_spec, device=encoder.device)
+
+
+def map_job(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
+    """Map from a composed ``map.yaml`` config into ``record``'s folder (module docstring);
+    returns the ``results.json`` content."""
+    from resireg.mapping.opening import open_map
+    from resireg.models.factory import weights_fingerprint
+    from resireg.sources.frames import FrameCounts
 
     out = record.folder
     check_map_config(cfg)
-    window, save_every = cfg.window, cfg.save_every
     spec = OmegaConf.to_container(cfg.source, resolve=True)
-    errors = block_errors(source_errors(spec), "source", spec)  # before anything is written
-    if errors:
-        raise ConfigError("; ".join(errors))
-    max_depth = spec["max_depth"]
-    rrd = None
-    if cfg.rerun.save:  # under the run folder unless absolute; recorded absolute
-        rrd = Path(str(cfg.rerun.save)).expanduser()
-        rrd = (rrd if rrd.is_absolute() else out / rrd).resolve()
-    params = {"source": spec, "identity": _identity(cfg)}
+    check_source(spec)  # before anything is written
+    rrd = _viewer_file(cfg, out)
+    params = {"source": spec, "identity": _identity(cfg, make_map(cfg, None))}
     record.update(params=params)
     timer: dict[str, float] = defaultdict(float)
     start = time.perf_counter()
     source = build_source(spec)  # a wrong path, a missing topic: one line, no traceback
     timer["open_source"] += time.perf_counter() - start
-    torch.manual_seed(int(cfg.seed))
-    entry = encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True))
-    with config_path("encoder", encoder_arguments(entry)):
-        encoder = build_encoder(**entry, device=resolve_device(str(cfg.device)))
-    prior = None
-    from resireg.specs.variants import takes_prior
-
-    if takes_prior(str(cfg.configuration)):
-        from resireg.priors import build_prior
-
-        prior_spec = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else {}
-        with config_path("prior", {"spec": "prior"}):
-            prior = build_prior(prior_spec, device=encoder.device)
-    from resireg.models.factory import weights_fingerprint
-
+    encoder, prior = _encoder_and_prior(cfg)
+    fresh = make_map(cfg, encoder, prior)
     t0 = time.perf_counter()
-    identity = _identity(cfg, weights_fingerprint(encoder))
+    identity = _identity(cfg, fresh, weights_fingerprint(encoder))
     timer["weights_digest"] += time.perf_counter() - t0
     record.update(params={**params, "identity": identity})
-    folder = out / "map"
-    if cfg.resume and (folder / "map.json").is_file():
-        smap = SemanticMap.load(folder, encoder, prior, max_voxels=cfg.max_voxels)
-        differ = _differences(smap.meta.get("identity"), identity)
-        if differ:
-            raise ConfigError(
-                f"resume=true: {folder} was made with other settings ({len(differ)} differ): "
-                + "; ".join(differ)
-                + ". Start a new run folder, or resume with the map's values"
-            )
+    smap, folder, resumed = open_map(out / "map", fresh, identity, resume=bool(cfg.resume),
+                                     encoder=encoder, prior=prior)  # fmt: skip
+    if resumed:
         log.info("resuming %s: %d frames, %d voxels", folder, smap.frames, len(smap))
-    else:
-        if (folder / "map.json").is_file():
-            raise ConfigError(f"{folder} holds a map: resume=true continues it, or use a new "
-                              "run folder")  # fmt: skip
-        smap = make_map(cfg, encoder, prior)
-        smap.meta = {"identity": identity, "kept_frames": 0}
-    done = int(smap.meta.get("kept_frames", 0))
-    # A recording is read again from its start, so the frames a resumed map holds are skipped;
-    # a live stream (a source whose ``live`` is true: ros2) goes on from now, every frame new.
-    base, start = (done, 0) if getattr(source, "live", False) else (0, done)
     view = None
     if rrd is not None or cfg.rerun.spawn:
         from resireg.mapping.viewer import RerunView
 
         view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
     counts = FrameCounts()
+    _fuse(cfg, spec, source, smap, folder, view, counts, timer)
+    return _finish(cfg, record, source, smap, folder, view, rrd, counts, timer)
+
+
+def _fuse(cfg: DictConfig, spec: dict[str, Any], source: Any, smap: Any, folder: Path,
+          view: Any, counts: Any, timer: dict[str, float]) -> None:  # fmt: skip
+    """Every window of the source fused into ``smap`` (saved every ``save_every`` windows and
+    at the end, also when the map is full); the frames a resumed map holds are not read again."""
+    from resireg.mapping import MapFullError
+    from resireg.mapping.semantic_map import ENCODER_OUTPUT
+    from resireg.method.checks import NonFiniteError
+    from resireg.sources.frames import SkippedFrame, windows
+
+    window, save_every, max_depth = cfg.window, cfg.save_every, spec["max_depth"]
+    done = int(smap.meta.get("kept_frames", 0))
+    # A recording is read again from its start, so the frames a resumed map holds are skipped;
+    # a live stream (a source whose ``live`` is true: ros2) goes on from now, every frame new.
+    base, start = (done, 0) if getattr(source, "live", False) else (0, done)
     added = 0
     # start: the frames the resumed map holds are skipped, whatever window they fell in
     frames = iter(windows(source, window, counts, int(spec["frame_skip"]), spec["limit"],
@@ -277,6 +232,13 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     t0 = time.perf_counter()
     smap.save(folder)
     timer["save"] += time.perf_counter() - t0
+
+
+def _finish(cfg: DictConfig, record: RunRecord, source: Any, smap: Any, folder: Path,
+            view: Any, rrd: Path | None, counts: Any, timer: dict[str, float]) -> dict[str, Any]:  # fmt: skip
+    """``map.ply``, the summary (console, log) and the record of a fused map; a map of no
+    frame fails with the reason per kind."""
+    out = record.folder
     source_record = _source_record(source, counts)
     if not len(smap):
         why = "; ".join(f"{kind}: {reason}" for kind, reason in sorted(counts.reasons.items()))
@@ -358,13 +320,3 @@ def _source_warnings(record: dict[str, Any]) -> list[str]:
     return lines
 
 
-def run_map(cfg: DictConfig) -> dict[str, Any]:
-    """Map from a composed ``map.yaml`` config; returns the ``results.json`` content."""
-    return run_task(cfg, _map, resume_hint="resume=true with the same run folder "
-                    "continues from the last save")  # fmt: skip
-
-
-main = hydra_entry_point("map", run_map)
-
-if __name__ == "__main__":
-    main()
