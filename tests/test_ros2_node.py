@@ -505,8 +505,9 @@ def test_threads_end_with_close(ros, encoder, tmp_path):
 
 def test_a_resume_is_refused_for_other_weights_or_settings(ros, encoder, tmp_path):
     """A map one node saved: a node with resume:=true and the same encoder continues it; one
-    with a weight changed (model_path unchanged) or another voxel size is refused, naming the
-    weights' digest or voxel_size; without resume:=true the folder's map is refused."""
+    with a weight changed (model_path unchanged), another voxel size or another window is
+    refused, naming the weights' digest, voxel_size or window (resireg.mapping.opening, the
+    rule of resireg-map); without resume:=true the folder's map is refused."""
     import copy
 
     from resireg.models.factory import weights_fingerprint
@@ -536,5 +537,10 @@ def test_a_resume_is_refused_for_other_weights_or_settings(ros, encoder, tmp_pat
         node(other, "resireg_resume_c", resume=True)
     with pytest.raises(SettingsError, match=r"other settings \(1 differ\): voxel_size: 0\.2 in "):
         node(encoder, "resireg_resume_d", resume=True, voxel_size=0.3)
+    # the window, which resireg-map's resume compared and the node's did not: one rule now
+    with pytest.raises(SettingsError, match=rf"other settings \(1 differ\): window: {WINDOW} in "
+                       rf"the map, {WINDOW + 1} now\. Resume with the map's values, or set "
+                       r"another -p output_dir:="):  # fmt: skip
+        node(encoder, "resireg_resume_f", resume=True, window=WINDOW + 1)
     with pytest.raises(SettingsError, match=r"holds a map: -p resume:=true continues it"):
         node(encoder, "resireg_resume_e")
