@@ -1,7 +1,7 @@
 """The live node (``resireg-ros2``) on this CPU: frames per second from publication to map
 update, latency from a keyframe's stamp to its voxels, query latency, and the ROS layer's share.
 
-Setting. One process: a replaying node publishes the ray-cast room of
+Setting. One process: a bag-playing node publishes the ray-cast room of
 :mod:`resireg_train.data.room_bag` at ``--size`` (PNG colour as ``CompressedImage``, 16UC1
 depth, ``CameraInfo``, ``Odometry``) to :class:`resireg.ros2.node.ResiregMapNode` over Fast DDS
 restricted to shared memory (``tests/fastdds_shm.xml``, reliable QoS), every frame a keyframe,
@@ -58,8 +58,8 @@ def _offset():
 def _node(context, encoder, folder, name, window, queue):
     from rclpy.parameter import Parameter
 
+    from resireg.ros2.bag_player import offset_parameter
     from resireg.ros2.node import ResiregMapNode
-    from resireg.ros2.replay import offset_parameter
     from resireg_train.data.room_bag import TOPICS
 
     values = {"window": window, "device": "cpu", "source.colour_topic": TOPICS["colour"],
@@ -72,17 +72,17 @@ def _node(context, encoder, folder, name, window, queue):
                           parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])  # fmt: skip
 
 
-def _replayer(context, name):
-    from resireg.ros2.replay import Replayer
+def _player(context, name):
+    from resireg.ros2.bag_player import BagPlayer
     from resireg_train.data.room_bag import TOPICS
 
     topics = {"colour": TOPICS["colour"], "depth": TOPICS["depth"], "info": TOPICS["info"],
               "pose": "/odom"}  # fmt: skip
-    return Replayer(topics, context=context, name=name)
+    return BagPlayer(topics, context=context, name=name)
 
 
 def _messages(room, frames, stamps):
-    from resireg.ros2.replay import frame_messages
+    from resireg.ros2.bag_player import frame_messages
 
     r, written = room
     return [frame_messages(*written[i % len(written)], r.intrinsics, stamps[i], _offset())
@@ -121,7 +121,7 @@ def _window_seconds(node):
 
 def throughput(context, spinner, encoder, room, frames, window, folder, name):
     node = _node(context, encoder, folder, name, window, frames)
-    pub = _replayer(context, f"{name}_replay")
+    pub = _player(context, f"{name}_player")
     spent = _window_seconds(node)
     spinner.add(node)
     spinner.add(pub)
@@ -158,7 +158,7 @@ def throughput(context, spinner, encoder, room, frames, window, folder, name):
 
 def latency(context, spinner, encoder, room, frames, window, rate, folder, name):
     node = _node(context, encoder, folder, name, window, frames)
-    pub = _replayer(context, f"{name}_replay")
+    pub = _player(context, f"{name}_player")
     delays = []
     real = node._on_window
 
@@ -172,7 +172,7 @@ def latency(context, spinner, encoder, room, frames, window, rate, folder, name)
     spinner.add(pub)
     wait_for(lambda: len(node.subscribed) == 3, what="subscriptions")
     wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()), what="matching")
-    from resireg.ros2.replay import frame_messages
+    from resireg.ros2.bag_player import frame_messages
 
     r, written = room
     for i in range(frames):

@@ -5,7 +5,7 @@ displays would receive them and drawn with matplotlib.
 
 Setting. One process, Fast DDS restricted to shared memory (``--profile``, default
 ``tests/fastdds_shm.xml``; ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp``, ``ROS_DOMAIN_ID``
-``--domain``): a replaying node publishes the ray-cast room of
+``--domain``): a bag-playing node publishes the ray-cast room of
 :mod:`resireg_train.data.room_bag` (``--frames`` frames of ``--size``; PNG colour, 16UC1 depth,
 ``CameraInfo``, ``Odometry`` on ``/odom`` with the room's camera mount), every frame a keyframe.
 The node builds its encoder from ``--model-path`` (default: the tests' tiny ResiregVLM, random
@@ -81,8 +81,8 @@ def tiny_export(folder: Path) -> Path:
 def make_node(context, model_path, folder, voxel, rrd, query):
     from rclpy.parameter import Parameter
 
+    from resireg.ros2.bag_player import offset_parameter
     from resireg.ros2.node import ResiregMapNode
-    from resireg.ros2.replay import offset_parameter
     from resireg_train.data.room_bag import BASE_TO_LINK, LINK_TO_OPTICAL
     from resireg_train.data.room_bag import TOPICS as ROOM
 
@@ -118,8 +118,8 @@ def run(args, model_path, folder):
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
 
+    from resireg.ros2.bag_player import BagPlayer, frame_messages
     from resireg.ros2.clouds import read_cloud
-    from resireg.ros2.replay import Replayer, frame_messages
     from resireg_train.data.room_bag import BASE_TO_LINK, DT, LINK_TO_OPTICAL, T0, room_frames
     from resireg_train.data.room_bag import TOPICS as ROOM
 
@@ -133,14 +133,14 @@ def run(args, model_path, folder):
     inbox["top_k"] = Latest(viewer, PoseArray, TOPICS["top_k"])
     query = viewer.create_publisher(String, f"/{NODE}/query", 10)
     node = make_node(context, model_path, folder, args.voxel, args.rrd, args.query)
-    pub = Replayer({"colour": ROOM["colour"], "depth": ROOM["depth"], "info": ROOM["info"],
-                    "pose": "/odom"}, context=context, name="room_replay")  # fmt: skip
+    pub = BagPlayer({"colour": ROOM["colour"], "depth": ROOM["depth"], "info": ROOM["info"],
+                    "pose": "/odom"}, context=context, name="room_player")  # fmt: skip
     try:
         spinner.add(node)
         spinner.add(pub)
         wait_for(lambda: len(node.subscribed) == 3, what="the node's subscriptions")
         wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
-                 what="the replay's subscribers")  # fmt: skip
+                 what="the player's subscribers")  # fmt: skip
         path = []
         start = time.perf_counter()
         for i, (rgb, depth, pose) in enumerate(frames):

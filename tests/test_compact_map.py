@@ -481,7 +481,7 @@ def test_map_settings_are_one_table_and_conf_holds_the_defaults():
     from resireg.mapping.compact import CompactSettings
     from resireg.ros2.settings import _MAP_RULES, parameters
     from resireg.specs.mapping import MAP_RULES, compact_defaults
-    from resireg_train.cli.map import check_map_config
+    from resireg_train.checks.map import check_map_config
     from resireg_train.data.specs import DATASET_SPECS
 
     for key, rule in MAP_RULES.items():

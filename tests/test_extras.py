@@ -85,7 +85,7 @@ def test_a_missing_module_is_named_before_the_encoder_loads(monkeypatch):
 
 
 #: Modules resireg.ros2 imports where a ROS 2 install provides them (not on PyPI): the camera
-#: pose from tf (resireg.ros2.node.TfPoses); without them the pose comes from a topic.
+#: pose from tf (resireg.ros2.poses.TfPoses); without them the pose comes from a topic.
 FROM_A_ROS_INSTALL = ("tf2_ros",)
 
 

@@ -115,7 +115,7 @@ def test_keyframes_follow_the_motion_thresholds():
 def test_pose_buffer_equals_the_whole_stream_track():
     """A live pose buffer (samples arriving one by one) answers at each time as PoseTrack
     over the whole stream does, times the camera offset; final once a later sample came."""
-    from resireg.ros2.pipeline import PoseBuffer
+    from resireg.ros2.poses import PoseBuffer
     from resireg.sources.pairing import PoseTrack
 
     rng = np.random.default_rng(1)

@@ -1,4 +1,4 @@
-"""The live node (resireg.ros2) against resireg-map: real rclpy publishers replay the ray-cast
+"""The live node (resireg.ros2) against resireg-map: real rclpy publishers play the ray-cast
 room over Fast DDS restricted to shared memory (tests/fastdds_shm.xml; no UDP socket is opened,
 checked per process), the node maps it with the tiny random-initialised VLM, and its map equals
 resireg-map's on a bag of the same frames (voxel keys exact, features to 1e-6). Queries, save
@@ -24,8 +24,8 @@ pytest.importorskip("rosbags")
 
 from resireg.mapping import SemanticMap  # noqa: E402
 from resireg.mapping.colours import diverging_ramp  # noqa: E402
+from resireg.ros2.bag_player import BagPlayer, frame_messages, offset_parameter  # noqa: E402
 from resireg.ros2.clouds import read_cloud  # noqa: E402
-from resireg.ros2.replay import Replayer, frame_messages, offset_parameter  # noqa: E402
 from resireg_train.data.room_bag import (  # noqa: E402
     BASE_TO_LINK,
     COLOUR_LAG,
@@ -44,7 +44,7 @@ CONFIG = "full@n_prototypes:4"
 OFFSET = BASE_TO_LINK @ LINK_TO_OPTICAL
 
 
-def replay_topics(prefix=""):
+def player_topics(prefix=""):
     """The room's topics (the bag's, the pose on /odom) under ``prefix``: each test that starts
     its own mapping node gives it topics of its own, so a node another test left subscribed
     (the module's mapped node, or one a failed test could not close) never takes its frames."""
@@ -52,16 +52,16 @@ def replay_topics(prefix=""):
             "info": prefix + TOPICS["info"], "pose": prefix + "/odom"}  # fmt: skip
 
 
-REPLAY_TOPICS = replay_topics()
+PLAYER_TOPICS = player_topics()
 
 
 def node_parameters(tmp_path, prefix="", **extra):
     """The node's parameters for the room: as resireg-map's test sets them, the pose from
     /odom with the room's camera mount, every frame a keyframe, reliable inputs; the topics
-    under ``prefix`` (replay_topics)."""
+    under ``prefix`` (player_topics)."""
     from rclpy.parameter import Parameter
 
-    topics = replay_topics(prefix)
+    topics = player_topics(prefix)
     values = {"configuration": CONFIG, "window": WINDOW, "voxel_size": VOXEL, "device": "cpu",
               "source.colour_topic": topics["colour"], "source.depth_topic": topics["depth"],
               "source.camera_info_topic": topics["info"], "source.pose_topic": topics["pose"],
@@ -72,7 +72,7 @@ def node_parameters(tmp_path, prefix="", **extra):
     return [Parameter(k, value=v) for k, v in values.items()]
 
 
-def replay(pub, room, decoys=True, start=0, stop=None, pause=0.01):
+def play(pub, room, decoys=True, start=0, stop=None, pause=0.01):
     """The room's frames as a driver publishes them (pose, info, depth, colour; the decoys of
     write_bag: a second colour image 15 ms after each depth, then a colour image far from any
     depth and a depth image far from any colour); also a pose halfway to the next frame."""
@@ -101,7 +101,7 @@ def reference_map(bag, encoder, frames_window=WINDOW, extra=()):
 
     from resireg.sources.frames import FrameCounts, windows
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.cli.map import build_source, make_map
+    from resireg_train.jobs.map import build_source, make_map
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"configuration={CONFIG}", f"window={frames_window}",
@@ -175,7 +175,7 @@ def call(node, srv_type, name):
 
 @pytest.fixture(scope="module")
 def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
-    """The node, fed the room by a replaying node in this process; (node, folder)."""
+    """The node, fed the room by a bag-playing node in this process; (node, folder)."""
     from resireg.ros2.node import ResiregMapNode
 
     context, test_node, spinner = ros
@@ -183,14 +183,14 @@ def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
     node = ResiregMapNode(parameter_overrides=node_parameters(
         folder, model_path=str(tiny_export), **{"rerun.save": str(folder / "live.rrd"),
                                                 "rerun.map_every": 1}), context=context)  # fmt: skip
-    pub = Replayer(REPLAY_TOPICS, context=context)
+    pub = BagPlayer(PLAYER_TOPICS, context=context)
     spinner.add(node)
     spinner.add(pub)
     try:
         wait_for(lambda: len(node.subscribed) == 3, what="the node's subscriptions")
         wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
-                 what="the replay's subscribers")  # fmt: skip
-        replay(pub, room)
+                 what="the player's subscribers")  # fmt: skip
+        play(pub, room)
         total = FRAMES + 1
         wait_for(lambda: (lambda s: s["frames"]["used"] + sum(s["frames"]["dropped"].values())
                           == total)(node.status()), timeout=60,
@@ -331,7 +331,7 @@ def test_overload_stays_bounded_and_answers_queries(ros, room, encoder, tmp_path
 
     smap.add = slow_add  # 2 frames per 0.25 s at most: 8 frames/s
     # a deep writer history: under a loaded machine no frame is lost before the node's reader
-    pub = Replayer(replay_topics("/overload"), context=context, name="replay_overload", qos=100)
+    pub = BagPlayer(player_topics("/overload"), context=context, name="player_overload", qos=100)
     spinner.add(node)
     spinner.add(pub)
     answers = Inbox(test_node, PointCloud2, "/resireg_overload/query/cloud")
@@ -398,7 +398,7 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
     from std_msgs.msg import String
 
     context, test_node, spinner = ros
-    pub = Replayer(replay_topics("/sigint"), context=context, name="replay_sigint")
+    pub = BagPlayer(player_topics("/sigint"), context=context, name="player_sigint")
     spinner.add(pub)
     status = []
     sub = test_node.create_subscription(String, "/resireg_sigint/status",
@@ -411,8 +411,8 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
                 wait_for(lambda: status and len(status[-1]["subscribed"]) == 3, timeout=120,
                          what="the node's subscriptions")  # fmt: skip
                 wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
-                         what="the replay's subscribers")  # fmt: skip
-                replay(pub, room, decoys=False, start=start, stop=stop)
+                         what="the player's subscribers")  # fmt: skip
+                play(pub, room, decoys=False, start=start, stop=stop)
                 wait_for(lambda n=stop - start: status and status[-1]["frames"]["used"] == n,
                          timeout=90, what="the frames mapped")  # fmt: skip
                 assert udp_sockets(proc.pid) == set()
@@ -450,14 +450,14 @@ def test_a_compact_live_map_equals_resireg_map_compact(ros, room, encoder, tmp_p
     node = ResiregMapNode(encoder, "resireg_compact", context=context,
                           parameter_overrides=node_parameters(tmp_path, "/compact",
                                                               storage="compact", **compact))  # fmt: skip
-    pub = Replayer(replay_topics("/compact"), context=context, name="replay_compact")
+    pub = BagPlayer(player_topics("/compact"), context=context, name="player_compact")
     spinner.add(node)
     spinner.add(pub)
     try:
         wait_for(lambda: len(node.subscribed) == 3, what="the node's subscriptions")
         wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
-                 what="the replay's subscribers")  # fmt: skip
-        replay(pub, room, decoys=False)
+                 what="the player's subscribers")  # fmt: skip
+        play(pub, room, decoys=False)
         wait_for(lambda: node.status()["frames"]["used"] == FRAMES, timeout=60,
                  what="every frame used")  # fmt: skip
         assert node.worker.drain()
@@ -505,8 +505,9 @@ def test_threads_end_with_close(ros, encoder, tmp_path):
 
 def test_a_resume_is_refused_for_other_weights_or_settings(ros, encoder, tmp_path):
     """A map one node saved: a node with resume:=true and the same encoder continues it; one
-    with a weight changed (model_path unchanged) or another voxel size is refused, naming the
-    weights' digest or voxel_size; without resume:=true the folder's map is refused."""
+    with a weight changed (model_path unchanged), another voxel size or another window is
+    refused, naming the weights' digest, voxel_size or window (resireg.mapping.opening, the
+    rule of resireg-map); without resume:=true the folder's map is refused."""
     import copy
 
     from resireg.models.factory import weights_fingerprint
@@ -536,5 +537,10 @@ def test_a_resume_is_refused_for_other_weights_or_settings(ros, encoder, tmp_pat
         node(other, "resireg_resume_c", resume=True)
     with pytest.raises(SettingsError, match=r"other settings \(1 differ\): voxel_size: 0\.2 in "):
         node(encoder, "resireg_resume_d", resume=True, voxel_size=0.3)
+    # the window, which resireg-map's resume compared and the node's did not: one rule now
+    with pytest.raises(SettingsError, match=rf"other settings \(1 differ\): window: {WINDOW} in "
+                       rf"the map, {WINDOW + 1} now\. Resume with the map's values, or set "
+                       r"another -p output_dir:="):  # fmt: skip
+        node(encoder, "resireg_resume_f", resume=True, window=WINDOW + 1)
     with pytest.raises(SettingsError, match=r"holds a map: -p resume:=true continues it"):
         node(encoder, "resireg_resume_e")

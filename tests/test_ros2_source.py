@@ -1,5 +1,5 @@
-"""resireg-map source=ros2: the live source (resireg.ros2.source.LiveSource) fed by a replaying
-publisher (resireg.ros2.replay, the ray-cast room) over Fast DDS restricted to shared memory
+"""resireg-map source=ros2: the live source (resireg.ros2.source.LiveSource) fed by a bag-playing
+publisher (resireg.ros2.bag_player, the ray-cast room) over Fast DDS restricted to shared memory
 (tests/fastdds_shm.xml; no UDP socket is opened), resireg-map run in this process: its map
 equals resireg-map's on a bag of the same frames (voxel keys exact, features to 1e-6) and
 results.json counts the frames alike; a resumed live run adds the frames it receives. The stop
@@ -19,22 +19,22 @@ from _ros2 import udp_sockets, wait_for  # sets the DDS environment first
 from resireg.errors import ConfigError
 
 THREAD = "resireg-live-source"
-#: This module's topics (test_ros2_node.replay_topics): apart from any node another module left.
+#: This module's topics (test_ros2_node.player_topics): apart from any node another module left.
 PREFIX = "/source"
 
 
 @pytest.fixture(scope="module")
 def live():
-    """A replaying node in its own context, and tests/test_ros2_node.py's room, topics and
+    """A bag-playing node in its own context, and tests/test_ros2_node.py's room, topics and
     comparisons (skipped without rclpy or rosbags)."""
     rclpy = pytest.importorskip("rclpy")
     pytest.importorskip("rosbags")
     import test_ros2_node as helpers
-    from resireg.ros2.replay import Replayer
+    from resireg.ros2.bag_player import BagPlayer
 
     context = rclpy.Context()
     rclpy.init(context=context)
-    pub = Replayer(helpers.replay_topics(PREFIX), context=context, name="replay_source")
+    pub = BagPlayer(helpers.player_topics(PREFIX), context=context, name="player_source")
     yield pub, helpers
     pub.destroy_node()
     rclpy.try_shutdown(context=context)
@@ -50,17 +50,17 @@ def room(live):
 def source_keys(helpers):
     """The room's inputs as resireg-map's source keys: the pose from /odom with the room's
     camera mount, reliable subscriptions."""
-    from resireg.ros2.replay import offset_parameter
+    from resireg.ros2.bag_player import offset_parameter
 
-    topics = helpers.replay_topics(PREFIX)
+    topics = helpers.player_topics(PREFIX)
     return {"colour_topic": topics["colour"], "depth_topic": topics["depth"],
             "camera_info_topic": topics["info"], "pose_topic": topics["pose"],
             "camera_offset": offset_parameter(helpers.OFFSET), "qos": "reliable",
             "max_wait": 1.0}  # fmt: skip
 
 
-def feeding(pub, helpers, room, **replay):
-    """A thread that replays the room (``replay``: test_ros2_node.replay's keywords) once the
+def feeding(pub, helpers, room, **play):
+    """A thread that plays the room (``play``: test_ros2_node.play's keywords) once the
     source has subscribed to every input. Start it when no earlier source is subscribed."""
     wait_for(lambda: not any(p.get_subscription_count() for p in pub.pubs.values()),
              what="the earlier subscribers to leave")  # fmt: skip
@@ -70,7 +70,7 @@ def feeding(pub, helpers, room, **replay):
         try:
             wait_for(lambda: all(p.get_subscription_count() for p in pub.pubs.values()),
                      timeout=60, what="the source's subscriptions")  # fmt: skip
-            helpers.replay(pub, room, **replay)
+            helpers.play(pub, room, **play)
         except BaseException as err:  # reported by the test
             errors.append(err)
 

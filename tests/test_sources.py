@@ -132,7 +132,7 @@ def test_the_map_cli_names_the_config_path(tmp_path, room):
     """resireg-map's boundary: the library names its arguments, the CLI's ConfigError names
     source.<argument>= (each wrong topic of a bag, the path), one line, before any model."""
     from resireg.errors import ConfigError
-    from resireg_train.cli.map import build_source
+    from resireg_train.jobs.map import build_source
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
     block = {**compose_map("source.path=x"), "path": str(bag), "colour_topic": "/a",

@@ -71,7 +71,7 @@ def _takes_what_it_is_given(kind, entry, target):
     elif kind == "tasks":  # resireg_train.cli.eval: load()(spec, cfg, params, out)
         assert inspect.isclass(target) and issubclass(target, TaskProtocol), target
         takes(entry, None, {}, None)
-    elif kind == "sources":  # resireg_train.cli.map: load()(**entry.arguments(block))
+    elif kind == "sources":  # resireg_train.jobs.map: load()(**entry.arguments(block))
         takes(**dict.fromkeys([*entry.common, *entry.keys]))
     elif kind in ("text towers", "teachers"):  # the keys of each of its conf/ files:
         for stem in TABLES[kind].configs(entry.kind):  # FrozenTextTower.from_spec: the builder

@@ -6,7 +6,12 @@ rclpy; no Lightning, no Hydra). ``resireg-ros2`` runs it (:mod:`.cli`); docs/rob
   rclpy, no torch);
 - :mod:`.pipeline`: pairing, keyframes and the mapping thread (no rclpy);
 - :mod:`.clouds`: ``PointCloud2`` of voxel maps, written and read with numpy;
+- :mod:`.poses`: the camera pose from a pose topic or from tf;
+- :mod:`.topics`: the input types, the QoS profiles, subscribing once a publisher appears;
+- :mod:`.session`: the node's map: encoder, opened or resumed map, mapping thread, saves;
 - :mod:`.node`: the rclpy node (needs the ``robot`` extra or a ROS 2 Jazzy install);
+- :mod:`.bag_player`: recorded frames published as a camera driver would (the tests' and the
+  benchmarks' robot);
 - :mod:`.source`: live topics as a map source, ``resireg-map source=ros2`` (the node's pairing,
   its own rclpy context; rclpy imported when a source is made).
 

@@ -8,9 +8,10 @@ camera pose at each depth stamp: from tf (``source.world_frame`` -> ``source.cam
 the depth image's frame, through a ``tf2_ros.Buffer``) where ``tf2_ros`` can be imported (a ROS
 install; it is not on PyPI), else from a ``geometry_msgs/PoseStamped`` or ``nav_msgs/Odometry``
 topic (``source.pose_topic``) times ``camera_offset`` (the camera's optical frame in the pose's
-body frame). The image and pose topics are subscribed to once a publisher appears (their type
-is read from the graph). Pairing, keyframes and the mapping thread: :mod:`.pipeline`; mapping
-never runs in a callback.
+body frame): :mod:`.poses`. The image and pose topics are subscribed to once a publisher appears
+(their type is read from the graph) with the ``qos`` parameter's profile: :mod:`.topics`.
+Pairing, keyframes and the mapping thread: :mod:`.pipeline`; mapping never runs in a callback.
+The encoder, the map opened or resumed, the mapping thread and the saves: :mod:`.session`.
 
 Outputs, in ``source.world_frame``:
 
@@ -32,7 +33,8 @@ The map (``storage``: ``exact`` or ``compact``, as ``resireg-map``'s) is saved t
 before the ROS context ends); a save copies the map under its lock and writes it outside, so
 mapping waits only for the copy. ``~/clear_map`` empties the map and republishes every latched
 output empty. ``resume:=true`` continues a saved map (refused, naming the settings, if they
-differ: the map's, the source's, the encoder entry or its weights' digest).
+differ: the map's, the source's, the window, the encoder entry or its weights' digest:
+:func:`resireg.mapping.opening.open_map`, as ``resireg-map``).
 ``rerun.*``: the live Rerun stream (:class:`RerunView`), the same entities as ``resireg-map``'s
 recording.
 """
@@ -50,25 +52,19 @@ from typing import Any
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import (
-    DurabilityPolicy,
-    HistoryPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-    qos_profile_sensor_data,
-)
+from rclpy.qos import QoSProfile
 
-from resireg.errors import ResiregError
 from resireg.ros2.clouds import cloud_message
-from resireg.ros2.pipeline import FramePairer, KeyframeFilter, MapWorker, PoseBuffer
-from resireg.ros2.settings import (
-    SOURCE_KEYS,
-    SettingsError,
-    check,
-    compact_settings,
-    encoder_entry,
-    parameters,
-    variant_params,
+from resireg.ros2.pipeline import FramePairer, KeyframeFilter
+from resireg.ros2.poses import PoseBuffer, pose_of, pose_source
+from resireg.ros2.session import MapSession
+from resireg.ros2.settings import SettingsError, check, parameters
+from resireg.ros2.topics import (
+    IMAGE_TYPES,
+    POSE_TYPES,
+    input_qos,
+    latched_qos,
+    subscribe_published,
 )
 from resireg.sources.frames import RGBDFrame, SkippedFrame
 from resireg.sources.messages import (
@@ -76,30 +72,10 @@ from resireg.sources.messages import (
     camera_size,
     decode_colour,
     decode_depth,
-    pose_msg_matrix,
     stamp_seconds,
-    transform_matrix,
 )
-from resireg.sources.pairing import pose_matrix
 
-__all__ = ["ResiregMapNode", "TfPoses", "input_qos", "pose_source", "subscribe_published"]
-
-_IMAGE, _COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
-_POSE, _ODOMETRY = "geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry"
-
-
-def _msg_type(name: str):
-    from geometry_msgs.msg import PoseStamped
-    from nav_msgs.msg import Odometry
-    from sensor_msgs.msg import CompressedImage, Image
-
-    return {_IMAGE: Image, _COMPRESSED: CompressedImage, _POSE: PoseStamped,
-            _ODOMETRY: Odometry}[name]  # fmt: skip
-
-
-def pose_of(msg: Any) -> np.ndarray:
-    """The pose of a ``PoseStamped`` or ``Odometry`` message, ``[4, 4]``."""
-    return pose_msg_matrix(msg.pose.pose if hasattr(msg, "child_frame_id") else msg.pose)
+__all__ = ["ResiregMapNode"]
 
 
 def _plain(value: Any) -> Any:
@@ -107,71 +83,6 @@ def _plain(value: Any) -> Any:
     if isinstance(value, array.array | tuple):
         return list(value)
     return value
-
-
-class TfPoses:
-    """The camera pose from tf (``tf2_ros.Buffer`` and ``TransformListener``): ``lookup`` as
-    :class:`~resireg.ros2.pipeline.PoseBuffer`'s, final once tf2 can answer (it interpolates
-    and does not extrapolate)."""
-
-    def __init__(self, node: Node, world_frame: str, cache_seconds: float = 30.0) -> None:
-        import tf2_ros
-        from rclpy.duration import Duration
-
-        self.world = world_frame
-        self.buffer = tf2_ros.Buffer(cache_time=Duration(seconds=cache_seconds))
-        self.listener = tf2_ros.TransformListener(self.buffer, node)
-
-    def lookup(self, t: float, frame_id: str) -> tuple[np.ndarray | None, str, bool]:
-        from rclpy.time import Time
-
-        try:
-            tr = self.buffer.lookup_transform(self.world, frame_id,
-                                              Time(nanoseconds=int(round(t * 1e9))))  # fmt: skip
-        except Exception as err:  # tf2's lookup, connectivity and extrapolation errors
-            return None, f"no tf {self.world} -> {frame_id} at {t:.6f}: {err}", False
-        return transform_matrix(tr.transform), "", True
-
-
-def pose_source(node: Node, pose_topic: str | None, camera_offset: Any, tolerance: float,
-                max_pose_gap: float, buffer_size: int, world_frame: str) -> Any:  # fmt: skip
-    """The camera pose source of ``node``'s inputs: a :class:`PoseBuffer` of ``pose_topic``
-    (``PoseStamped`` / ``Odometry``, the latest ``20 * buffer_size`` samples) times
-    ``camera_offset`` (x y z qx qy qz qw), or without a topic tf (:class:`TfPoses`; ImportError
-    without ``tf2_ros``). Shared by the node and :class:`resireg.ros2.source.LiveSource`."""
-    if pose_topic is not None:
-        o = list(camera_offset)
-        offset = pose_matrix(o[:3], o[3:])
-        return PoseBuffer(pose_topic, offset, tolerance, max_pose_gap, 20 * int(buffer_size))
-    return TfPoses(node, world_frame)
-
-
-def input_qos(qos: str, buffer_size: int) -> QoSProfile:
-    """The QoS of the image, camera-info and pose subscriptions: ``sensor_data`` (best effort,
-    as camera drivers publish) or ``reliable`` (keep the last ``buffer_size``)."""
-    if qos == "sensor_data":
-        return qos_profile_sensor_data
-    return QoSProfile(depth=int(buffer_size), reliability=ReliabilityPolicy.RELIABLE,
-                      history=HistoryPolicy.KEEP_LAST)  # fmt: skip
-
-
-def subscribe_published(node: Node, wanted: dict[str, tuple[str, tuple[str, ...]]],
-                        subscribed: dict[str, str], handlers: dict[str, Any],
-                        qos: QoSProfile) -> None:  # fmt: skip
-    """Subscribe ``node`` to each input of ``wanted`` (``key -> (topic, accepted types)``) once
-    a publisher shows its type on the graph (an image topic is ``Image`` or
-    ``CompressedImage``); ``subscribed`` (``key -> type``) records those done."""
-    if len(subscribed) == len(wanted):
-        return
-    graph = dict(node.get_topic_names_and_types())
-    for key, (topic, types) in wanted.items():
-        if key in subscribed:
-            continue
-        found = [t for t in graph.get(node.resolve_topic_name(topic), []) if t in types]
-        if found:
-            node.create_subscription(_msg_type(found[0]), topic, handlers[key], qos)
-            subscribed[key] = found[0]
-            node.get_logger().info(f"subscribed to {topic} ({found[0]})")
 
 
 class ResiregMapNode(Node):
@@ -198,13 +109,13 @@ class ResiregMapNode(Node):
         given = {n: _plain(self.get_parameter(n).value) for n in table}
         self.values = v = check(given, table, unknown)
         self.world_frame = v["source.world_frame"]
-        self.folder = Path(v["output_dir"]).expanduser() / "map"
-        self.encoder = encoder if encoder is not None else self._build_encoder()
-        self.smap = self._open_map()
+        self.session = MapSession(v, encoder, self._on_window)
+        self.encoder, self.folder, self.worker = (self.session.encoder, self.session.folder,
+                                                  self.session.worker)  # fmt: skip
+        if self.session.resumed:
+            self.get_logger().info(f"resuming {self.folder}: {self.worker.smap.frames} frames, "
+                                   f"{len(self.worker.smap)} voxels")  # fmt: skip
         self.keyframes = KeyframeFilter(v["keyframe.translation"], v["keyframe.rotation"])
-        self.worker = MapWorker(self.smap, self._new_map, v["window"], v["queue_size"],
-                                v["window_timeout"], v["source.max_depth"],
-                                self._on_window)  # fmt: skip
         self.pairer = FramePairer(self._pose_source(), {
             "colour": v["source.colour_topic"], "depth": v["source.depth_topic"],
             "camera_info": v["source.camera_info_topic"]}, v["source.tolerance"], v["max_wait"],
@@ -218,7 +129,6 @@ class ResiregMapNode(Node):
         self.timing: dict[str, float] = {"ros_seconds": 0.0, "cloud_seconds": 0.0}
         self._closing = False
         self._saved_windows = 0
-        self._save_lock = threading.Lock()  # one write of the map folder at a time
         self._publish_lock = threading.Lock()  # the output thread's and the services' publishes
         self._make_io()
         self.worker.start()
@@ -232,75 +142,6 @@ class ResiregMapNode(Node):
         )
 
     # ------------------------------------------------------------------ set-up
-    def _build_encoder(self) -> Any:
-        import torch
-
-        from resireg.models import build_encoder
-        from resireg.models.factory import resolve_device
-
-        v = self.values
-        entry = encoder_entry(v)
-        device = resolve_device(v["device"])
-        torch.manual_seed(int(v["seed"]))
-        try:
-            return build_encoder(**entry, device=device)
-        except (OSError, ValueError, TypeError) as err:
-            raise SettingsError(f"encoder={v['encoder']!r} (model_path={v['model_path']!r}): "
-                                f"{err}") from err  # fmt: skip
-
-    def _new_map(self) -> Any:
-        """An empty map of the parameters (as resireg-map's ``make_map``)."""
-        from resireg.mapping import SemanticMap
-
-        v = self.values
-        try:
-            return SemanticMap(self.encoder, v["configuration"], float(v["voxel_size"]),
-                               params=variant_params(v), points=v["points"],
-                               lattice=v["lattice"], sum_dtype=v["sum_dtype"],
-                               max_voxels=v["max_voxels"], short_side=v["short_side"],
-                               storage=v["storage"], compact=compact_settings(v))  # fmt: skip
-        except (ValueError, OSError, ResiregError) as err:
-            raise SettingsError(str(err)) from err
-
-    def _identity(self) -> dict[str, Any]:
-        """What a resumed map must share with the node (besides the map's own settings): the
-        encoder entry (its path resolved), a digest of the encoder's weights (as resireg-map
-        keys its maps: another model at the same path differs) and the source parameters."""
-        from resireg.models.factory import weights_fingerprint
-
-        entry = dict(encoder_entry(self.values)) if self.values["model_path"] else {}
-        path = entry.get("path")
-        if isinstance(path, str) and Path(path).expanduser().exists():
-            entry["path"] = str(Path(path).expanduser().resolve())
-        return {"encoder": entry, "weights": weights_fingerprint(self.encoder),
-                "source": {k: self.values[f"source.{k}"] for k in SOURCE_KEYS}}  # fmt: skip
-
-    def _open_map(self) -> Any:
-        from resireg.mapping import SemanticMap
-
-        fresh = self._new_map()
-        identity = self._identity()
-        if not (self.folder / "map.json").is_file():
-            fresh.meta = {"identity": identity, "kept_frames": 0}
-            return fresh
-        if not self.values["resume"]:
-            raise SettingsError(f"{self.folder} holds a map: -p resume:=true continues it, or "
-                                "set another -p output_dir:=...")  # fmt: skip
-        smap = SemanticMap.load(self.folder, self.encoder, max_voxels=self.values["max_voxels"])
-        saved = {k: x for k, x in smap.settings().items() if k != "max_voxels"}
-        now = {k: x for k, x in fresh.settings().items() if k != "max_voxels"}
-        differ = [f"{k}: {saved.get(k)!r} in the map, {now.get(k)!r} now"
-                  for k in sorted(set(saved) | set(now)) if saved.get(k) != now.get(k)]  # fmt: skip
-        old = (smap.meta or {}).get("identity") or {}
-        differ += [f"{k}: {old.get(k)!r} in the map, {identity[k]!r} now"
-                   for k in identity if k in old and old[k] != identity[k]]  # fmt: skip
-        if differ:
-            raise SettingsError(f"resume:=true: {self.folder} was made with other settings ("
-                                f"{len(differ)} differ): " + "; ".join(differ))  # fmt: skip
-        smap.meta = {**smap.meta, "identity": identity}
-        self.get_logger().info(f"resuming {self.folder}: {smap.frames} frames, {len(smap)} voxels")
-        return smap
-
     def _pose_source(self) -> Any:
         v = self.values
         try:
@@ -339,8 +180,7 @@ class ResiregMapNode(Node):
         from visualization_msgs.msg import MarkerArray
 
         v = self.values
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)  # fmt: skip
+        latched = latched_qos()
         self.pub = {
             "rgb": self.create_publisher(PointCloud2, "~/map/rgb", latched),
             "pca": self.create_publisher(PointCloud2, "~/map/pca", latched),
@@ -354,10 +194,10 @@ class ResiregMapNode(Node):
         self.create_subscription(String, "~/query", self._on_query, 10)
         self.create_service(Trigger, "~/save_map", self._on_save)
         self.create_service(Trigger, "~/clear_map", self._on_clear)
-        self.wanted = {"colour": (v["source.colour_topic"], (_IMAGE, _COMPRESSED)),
-                       "depth": (v["source.depth_topic"], (_IMAGE, _COMPRESSED))}  # fmt: skip
+        self.wanted = {"colour": (v["source.colour_topic"], IMAGE_TYPES),
+                       "depth": (v["source.depth_topic"], IMAGE_TYPES)}  # fmt: skip
         if isinstance(self.pairer.poses, PoseBuffer):
-            self.wanted["pose"] = (v["source.pose_topic"], (_POSE, _ODOMETRY))
+            self.wanted["pose"] = (v["source.pose_topic"], POSE_TYPES)
         self.subscribed: dict[str, str] = {}
         self._discover()
         self.create_timer(0.25, self._discover)
@@ -461,13 +301,8 @@ class ResiregMapNode(Node):
         self.wake.set()
 
     def save(self) -> Path:
-        """Save the map to ``<output_dir>/map``: a copy of it taken under the map's lock
-        (:meth:`SemanticMap.snapshot`), written outside it, one save at a time."""
-        with self._save_lock:
-            with self.worker.lock:
-                self.worker.smap.meta["kept_frames"] = self.worker.smap.frames
-                snapshot = self.worker.smap.snapshot(copy=True)
-            return snapshot.write(self.folder)
+        """Save the map to ``<output_dir>/map`` (:meth:`MapSession.save`)."""
+        return self.session.save()
 
     # ------------------------------------------------------------------ outputs
     def _header(self) -> Any:

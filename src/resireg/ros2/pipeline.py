@@ -3,9 +3,8 @@
 Messages come in one at a time (:class:`FramePairer`); each depth image is a candidate frame,
 as in a bag (:mod:`resireg.sources.rosbag`): the colour image of the nearest stamp within
 ``tolerance`` (:func:`pair_nearest`), the latest camera info received up to its stamp (else the
-first), the camera pose at its stamp (a pose source: :class:`PoseBuffer` for a
-``PoseStamped`` / ``Odometry`` topic and a fixed camera offset, interpolated by
-:class:`PoseTrack`; or tf). A depth image is decided as soon as nothing that could still
+first), the camera pose at its stamp (a pose source of :mod:`resireg.ros2.poses`: a
+``PoseStamped`` / ``Odometry`` topic and a fixed camera offset, or tf). A depth image is decided as soon as nothing that could still
 arrive would change the answer: a colour image stamped as far past it as its best match (or
 ``tolerance``) has arrived (stamps increase per topic) and the pose source has a sample at or
 after its stamp; or else
@@ -37,13 +36,12 @@ import numpy as np
 
 # The frame records, windows, pairing and pose interpolation of resireg-map's readers.
 from resireg.sources.frames import FrameCounts, RGBDFrame, SkippedFrame, windows
-from resireg.sources.pairing import PoseTrack, pair_nearest
+from resireg.sources.pairing import pair_nearest
 
 __all__ = [
     "FramePairer",
     "KeyframeFilter",
     "MapWorker",
-    "PoseBuffer",
     "rotation_angle",
 ]
 
@@ -74,43 +72,6 @@ class KeyframeFilter:
 
     def reset(self) -> None:
         self.last = None
-
-
-class PoseBuffer:
-    """The body poses of a ``PoseStamped`` / ``Odometry`` topic (the latest ``maxlen``), times a
-    fixed ``offset`` (the camera in the body frame): ``lookup(t)`` interpolates as
-    :class:`PoseTrack` does over the whole stream (only the samples around ``t`` take part)."""
-
-    def __init__(self, topic: str, offset: np.ndarray, tolerance: float, max_gap: float,
-                 maxlen: int = 600) -> None:  # fmt: skip
-        self.topic, self.offset = topic, np.asarray(offset, dtype=np.float64)
-        self.tolerance, self.max_gap = float(tolerance), float(max_gap)
-        self.stamps: deque[float] = deque(maxlen=maxlen)
-        self.poses: deque[np.ndarray] = deque(maxlen=maxlen)
-        self.bad_stamps = 0
-
-    def add(self, stamp: float, body: np.ndarray) -> None:
-        if self.stamps and stamp <= self.stamps[-1]:
-            self.bad_stamps += 1  # goes back or repeats: left out, as in a bag
-            return
-        self.stamps.append(float(stamp))
-        self.poses.append(np.asarray(body, dtype=np.float64))
-
-    def lookup(self, t: float, frame_id: str = "") -> tuple[np.ndarray | None, str, bool]:
-        """``(camera pose or None, why not, final)``: final once a sample at or after ``t``
-        has arrived (no later sample can change the answer)."""
-        if not self.stamps:
-            return None, f"no message on {self.topic} yet", False
-        stamps = np.fromiter(self.stamps, dtype=np.float64, count=len(self.stamps))
-        i = int(np.searchsorted(stamps, t, side="left"))
-        lo, hi = max(i - 1, 0), min(i + 1, stamps.size)
-        track = PoseTrack(stamps[lo:hi], np.stack([self.poses[j] for j in range(lo, hi)]),
-                          self.tolerance, self.max_gap)  # fmt: skip
-        body = track.at(t)
-        final = bool(stamps[-1] >= t)
-        if body is None:
-            return None, f"no pose on {self.topic} at {t:.6f} (gap or end of the stream)", final
-        return body @ self.offset, "", final
 
 
 @dataclass

@@ -282,7 +282,7 @@ def check(values: Mapping[str, Any], table: Mapping[str, Parameter],
 
 def variant_params(values: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """``{"full": {...}, "lite": {...}, "calib": {...}}`` of checked values (SemanticMap's
-    ``params``, as resireg-map's ``make_map`` passes them)."""
+    ``params``, as ``resireg_train.jobs.map.make_map`` passes them)."""
     out: dict[str, dict[str, Any]] = {name: {} for name in PARAM_VARIANTS}
     for key, value in values.items():
         name, _, rest = key.partition(".")

@@ -9,7 +9,7 @@ depth and camera-info topics and the pose (``pose_topic``: ``PoseStamped`` / ``O
 live node's :class:`~resireg.ros2.pipeline.FramePairer` (the same rules as a bag's reader: the
 frames it yields, in stamp order as they are decided, are the ones a bag of the same messages
 gives). Image and pose topics are subscribed to once a publisher shows their type, as the node
-does (:func:`~resireg.ros2.node.subscribe_published`).
+does (:func:`~resireg.ros2.topics.subscribe_published`).
 
 The stream ends (the depth images still waiting are then paired with what has arrived, and the
 executor, node and context are shut down):
@@ -155,8 +155,9 @@ class LiveSource:
         from rclpy.node import Node
         from sensor_msgs.msg import CameraInfo
 
-        from resireg.ros2.node import input_qos, pose_of, pose_source, subscribe_published
         from resireg.ros2.pipeline import FramePairer
+        from resireg.ros2.poses import pose_of, pose_source
+        from resireg.ros2.topics import input_qos, subscribe_published
         from resireg.sources.messages import (
             camera_intrinsics,
             camera_size,

@@ -1,7 +1,7 @@
 """The 3D mapping library's named options and the rules of a map's settings, without importing torch.
 
 Read by :mod:`resireg.mapping` (its own argument checks), by ``resireg-map``'s config check
-(``resireg_train.cli.map``), by the live node's parameters (:mod:`resireg.ros2.settings`) and by
+(``resireg_train.checks.map``), by the live node's parameters (:mod:`resireg.ros2.settings`) and by
 the ScanNet protocol's config rules (``resireg_train.data.specs``), so each list and each rule
 is written once (:data:`MAP_RULES`).
 """

@@ -1,10 +1,11 @@
-"""Posed RGB-D frames published as a camera driver and an odometry source would (rclpy): the
-tests' and the benchmark's stand-in for a robot, and a way to try the node without one.
+"""The bag player: recorded posed RGB-D frames published as a camera driver and an odometry
+source would (rclpy), as ``ros2 bag play`` plays a recording: the tests' and the benchmark's
+stand-in for a robot, and a way to try the node without one.
 
 :func:`frame_messages` builds the messages of one frame: colour (``png``: ``CompressedImage``,
 ``rgb8`` / ``bgr8``: ``Image``) stamped ``colour_lag`` after the depth image (``16UC1`` mm or
 ``32FC1`` m), its ``CameraInfo`` and the body pose (``nav_msgs/Odometry``, ``odom`` ->
-``base_link``) whose product with ``offset`` is the camera pose. :class:`Replayer` is a node
+``base_link``) whose product with ``offset`` is the camera pose. :class:`BagPlayer` is a node
 with those publishers.
 """
 
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["Replayer", "frame_messages", "offset_parameter", "time_msg"]
+__all__ = ["BagPlayer", "frame_messages", "offset_parameter", "time_msg"]
 
 
 def time_msg(t: float) -> Any:
@@ -103,11 +104,11 @@ def frame_messages(rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray, k: np.n
     }
 
 
-def Replayer(
+def BagPlayer(
     topics: dict[str, str],
     colour: str = "png",
     context: Any = None,
-    name: str = "replay",
+    name: str = "bag_player",
     qos: Any = 10,
 ) -> Any:
     """A node with the publishers of :func:`frame_messages` (``topics``: ``colour``, ``depth``,
