@@ -22,7 +22,7 @@ from PIL import Image
 from resireg.method.variants import build_variants
 from resireg.models import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import SegmentationMetric
-from resireg_train.data.seg_protocol import SegmentationProtocol, protocol_conf, rescaled_size
+from resireg_train.data.windows import SegmentationProtocol, protocol_conf, rescaled_size
 from resireg_train.data.segmentation import SegmentationSet
 from resireg_train.evaluation.ovss.engine import OVSSEngine
 from resireg_train.evaluation.ovss.slide import (

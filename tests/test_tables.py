@@ -17,8 +17,8 @@ from resireg.specs.table import SpecTable, UnknownNameError, conf_dir
 from resireg.specs.text import TEXT_SPECS
 from resireg.specs.variants import VARIANT_SPECS
 from resireg_train.data.specs import DATASET_SPECS
-from resireg_train.evaluation.tasks import TASK_SPECS
-from resireg_train.report.sections import REPORT_SECTIONS
+from resireg_train.evaluation.specs import TASK_SPECS
+from resireg_train.report.specs import REPORT_SECTIONS
 from resireg_train.training.specs import TEACHER_SPECS
 
 TABLES = {
@@ -83,7 +83,7 @@ def _takes_what_it_is_given(kind, entry, target):
             else:
                 takes(device="cpu", **keys)
     elif kind == "report sections":  # report.writer: writer(**the inputs it names), detector
-        from resireg_train.report.sections import SECTION_INPUTS  # (the same)
+        from resireg_train.report.specs import SECTION_INPUTS  # (the same)
 
         for function in (target, entry.detector()):
             if function is not None:

@@ -4,7 +4,7 @@ Every dataset is a map-style :class:`SegmentationSet` yielding the image resized
 shorter side is ``short_side`` (576 in the paper's protocol; sides rounded to the patch
 size) and the label map at full resolution (predictions are brought to the label size
 with nearest upsampling, docs/method.md#2d-evaluation-ovss). The entry's 2D protocol
-(:mod:`resireg_train.data.seg_protocol`: ``conf/protocol/paper.yaml`` or ``ovss8.yaml``) may
+(:mod:`resireg_train.data.windows`: ``conf/protocol/paper.yaml`` or ``ovss8.yaml``) may
 cap the longer side, drop the antialiasing and the patch rounding (sliding windows take any
 size) and have the engine slide windows and resize logits bilinearly. The OVSS field's
 benchmarks read from their downloaded folders are the kinds of :mod:`resireg_train.data.voc`,
@@ -53,7 +53,7 @@ from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
 from resireg_train.config.errors import key_errors
-from resireg_train.data.seg_protocol import SegmentationProtocol, protocol_conf
+from resireg_train.data.windows import SegmentationProtocol, protocol_conf
 from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 
@@ -115,7 +115,7 @@ class SegmentationSet(torch.utils.data.Dataset):
         patch_size: sides are rounded to a multiple of it.
         reduce_zero_label: labels are 0 = unlabelled, ``c`` = class ``c - 1`` (ADE20K).
         describe: ``index -> str`` naming the sample's file (or row) in skip reports.
-        protocol: the entry's 2D protocol (:class:`~resireg_train.data.seg_protocol.
+        protocol: the entry's 2D protocol (:class:`~resireg_train.data.windows.
             SegmentationProtocol`: the longer side's cap, antialiasing, windows, upsampling,
             background); ``None``: ``conf/protocol/paper.yaml``'s.
         names: every name of each class (synonyms, ``conf/classes/``); ``None``: each class
@@ -198,7 +198,7 @@ class SegmentationSet(torch.utils.data.Dataset):
 
     def resized_size(self, size: tuple[int, int]) -> tuple[int, int]:
         """``(H, W)`` an image of ``size`` is resized to (the protocol's rule:
-        :meth:`~resireg_train.data.seg_protocol.SegmentationProtocol.resized_size`)."""
+        :meth:`~resireg_train.data.windows.SegmentationProtocol.resized_size`)."""
         return self.protocol.resized_size(size, self.short_side, self.patch_size)
 
     def resize(self, pixels: torch.Tensor) -> torch.Tensor:
@@ -272,7 +272,7 @@ def build_segmentation_set(
         spec: an entry of a kind of the dataset table (:data:`resireg_train.data.specs.
             DATASET_SPECS`: ``synthetic``, ``ade20k``, ``orad3d`` or one registered there),
             holding every key of its kind (``name`` aside): ``short_side``, ``limit`` (first N
-            images only), the 2D protocol's (:class:`~resireg_train.data.seg_protocol.
+            images only), the 2D protocol's (:class:`~resireg_train.data.windows.
             SegmentationProtocol`, passed to the builder in ``common`` as ``protocol``) and the
             kind's own (module docstring; ADE20K's hub config name is ``config``).
             ``conf/dataset/<kind>.yaml`` holds them

@@ -2,9 +2,9 @@
 entry each, the only place a kind's builder, keys and task are written (docs/architecture.md#spec-tables).
 
 Torch-free, like the spec tables of :mod:`resireg.specs` and the task table
-(:mod:`resireg_train.evaluation.tasks`): the config check (:func:`resireg_train.config.eval.validate_eval`)
+(:mod:`resireg_train.evaluation.specs`): the config check (:func:`resireg_train.config.eval.validate_eval`)
 reads the kinds, their keys and the task that scores each before anything heavy loads; the
-task table derives each task's kinds from here (:attr:`resireg_train.evaluation.tasks.TaskSpec.
+task table derives each task's kinds from here (:attr:`resireg_train.evaluation.specs.TaskSpec.
 dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segmentation_set`,
 :func:`resireg_train.data.scannet.build_scannet`) check an entry's keys with
 :func:`dataset_key_errors` and load the entry's builder, named lazily as ``"module:function"``.
@@ -152,8 +152,8 @@ _POSED_RULES["scenes"] = (
 UPSAMPLES = ("nearest", "bilinear")
 
 #: The 2D protocol's keys every segmentation entry holds beside ``short_side``
-#: (``conf/protocol/paper.yaml`` / ``ovss8.yaml`` give them; :mod:`resireg_train.data.
-#: seg_protocol` reads them): the longer side's cap, the resize's antialiasing, the sliding window,
+#: (``conf/protocol/paper.yaml`` / ``ovss8.yaml`` give them; :mod:`resireg_train.data.windows`
+#: reads them): the longer side's cap, the resize's antialiasing, the sliding window,
 #: the upsampling, the background rule of the with-background sets and the protocol's name.
 SEGMENTATION_PROTOCOL_KEYS = (
     "long_side", "antialias", "slide_crop", "slide_stride", "upsample",
@@ -205,7 +205,7 @@ class DatasetSpec:
             files are the defaults), except those of ``optional``.
         optional: the keys an entry may leave out (``name``: the kind, or the name the entry is
             listed under).
-        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.evaluation.tasks.TASK_SPECS`).
+        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.evaluation.specs.TASK_SPECS`).
         check: ``"module:function"`` ``(spec, key) -> None`` raising the errors its build
             would on a missing source, run before the encoder loads; ``None``: none.
         summary: one line for errors and docs.

@@ -162,7 +162,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
             report="table2",
         ),
     ),
-    where="resireg_train.evaluation.tasks",
+    where="resireg_train.evaluation.specs",
 )
 
 
@@ -188,7 +188,7 @@ def task_config_errors(
     ``+prior`` / ``@layer:`` configurations a task does not score."""
     spec = find_task(name)
     if spec is None:
-        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.evaluation.tasks)"]
+        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.evaluation.specs)"]
     errors = []
     dataset = find_dataset(kind)
     if dataset is not None and spec.name not in dataset.tasks:

@@ -100,10 +100,10 @@ REPORT_SECTIONS: SpecTable[SectionSpec] = SpecTable(
             detect="resireg_train.report.mapping3d:is_table3d",
         ),
         SectionSpec(
-            "prototype_grid", "resireg_train.report.prototypes:prototype_grid_section",
+            "prototype_grid", "resireg_train.report.prototype_batch:prototype_grid_section",
             "batch size x prototype count of ReSiReg Full (heatmap.png) and the fitted "
             "prototype heuristic (prototype_heuristic.json)",
-            detect="resireg_train.report.prototypes:is_prototype_sweep",
+            detect="resireg_train.report.prototype_batch:is_prototype_sweep",
         ),
         SectionSpec(
             "curves", "resireg_train.report.figures:curves_section",
@@ -127,7 +127,7 @@ REPORT_SECTIONS: SpecTable[SectionSpec] = SpecTable(
             detect="resireg_train.sweeps.report:is_optuna_sweep", always=True,
         ),
     ),
-    where="resireg_train.report.sections",
+    where="resireg_train.report.specs",
 )  # fmt: skip
 
 

@@ -1,5 +1,5 @@
 """One sweep's report (``resireg-report SWEEP_DIR``): the summary, then each section of the
-section table (:data:`resireg_train.report.sections.REPORT_SECTIONS`) the sweep names or shows,
+section table (:data:`resireg_train.report.specs.REPORT_SECTIONS`) the sweep names or shows,
 then the jobs that did not complete (module docstring of :mod:`resireg_train.report`)."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from resireg_train.report.jobs import (
     varying_keys,
 )
 from resireg_train.report.paper import DEFAULT_TOLERANCE
-from resireg_train.report.sections import REPORT_SECTIONS, SECTION_INPUTS
+from resireg_train.report.specs import REPORT_SECTIONS, SECTION_INPUTS
 from resireg_train.report.summary import summary_table
 from resireg_train.report.tables import markdown
 from resireg_train.runs.record import flat

@@ -79,7 +79,7 @@ from resireg_train.evaluation.engine import (
     no_timer,
     nonfinite_output,
 )
-from resireg_train.evaluation.tasks import TASK_SPECS
+from resireg_train.evaluation.specs import TASK_SPECS
 
 __all__ = [
     "GT_RULES",
@@ -92,7 +92,7 @@ __all__ = [
 ]
 
 #: What the scores' names start with, ``val/scannet3d/``: the task table's
-#: (:attr:`resireg_train.evaluation.tasks.TaskSpec.metric_prefix`).
+#: (:attr:`resireg_train.evaluation.specs.TaskSpec.metric_prefix`).
 METRIC_PREFIX = TASK_SPECS["scannet3d"].metric_prefix
 #: RayFronts' ground-truth rule: ``compute_semseg_preds(votes, prompts, 0, 0.1)``, and the
 #: ``eps`` of its ``ImageSemSegEncoder.encode_labels`` one-hot prompts.

@@ -1,7 +1,7 @@
 """``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet, Replica or TartanAir scenes
 (the dataset table's kinds scored by ``scannet3d``, each read by its own builder) as a task protocol
 (:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``scannet3d`` of
-:data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine
+:data:`resireg_train.evaluation.specs.TASK_SPECS`) over the engine
 :class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
 :meth:`~resireg_train.evaluation.mapping.engine.MappingResult.write_csv`), ``frames`` and

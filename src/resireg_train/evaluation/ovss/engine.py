@@ -34,7 +34,7 @@ from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, class_similarity, predict_grid
 from resireg.specs.metrics import METRIC_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
-from resireg_train.data.seg_protocol import protocol_conf
+from resireg_train.data.windows import protocol_conf
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
 from resireg_train.evaluation.engine import (  # shared with the 3D engine; importable from here too
     ClassPrototypes,
@@ -54,7 +54,7 @@ from resireg_train.evaluation.ovss.slide import (
     window_logits,
     window_shape,
 )
-from resireg_train.evaluation.tasks import TASK_SPECS
+from resireg_train.evaluation.specs import TASK_SPECS
 
 if TYPE_CHECKING:
     from resireg_train.evaluation.cache import FeatureCache
@@ -71,7 +71,7 @@ __all__ = [
 ]
 
 #: What the scores' names start with, ``val/ovss/``: the task table's
-#: (:attr:`resireg_train.evaluation.tasks.TaskSpec.metric_prefix`), also the training callback's.
+#: (:attr:`resireg_train.evaluation.specs.TaskSpec.metric_prefix`), also the training callback's.
 METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
 #: The variants that read the intermediates: all but the backbone alone (the @layer: error).
 _INTERMEDIATE_VARIANTS = tuple(v for v in VARIANTS if v != BASELINE)

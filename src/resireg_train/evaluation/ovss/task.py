@@ -1,6 +1,6 @@
 """``resireg-eval task=ovss``: 2D open-vocabulary segmentation as a task protocol
 (:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``ovss`` of
-:data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine :class:`~resireg_train.evaluation.ovss.engine.OVSSEngine`,
+:data:`resireg_train.evaluation.specs.TASK_SPECS`) over the engine :class:`~resireg_train.evaluation.ovss.engine.OVSSEngine`,
 with the feature cache (``feature_cache``) and the segmentation prior (``+prior``
 configurations, ``prior=``) that only this task takes."""
 
