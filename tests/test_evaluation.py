@@ -317,7 +317,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_scored(
     the scores are those of the other batches alone (sklearn's confusion over
     encode_image + predict, image by image). Before the check, Full's whole batch scored
     NaN features as class 0 and a NaN in the intermediates failed the run."""
-    from resireg_train.evaluation.ovss.task import OVSSProtocol
+    from resireg_train.evaluation.ovss.task import OVSSTask
 
     task = _task(batch_size=3)
     batches = task.dataset.batches(3)
@@ -344,7 +344,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_scored(
                 pred = predict(dense[j : j + 1], protos, tuple(label.shape))
                 expected += confusion_matrix(label.flatten(), pred.flatten(), labels=range(8))
         assert np.array_equal(result.metrics[name].confusion.numpy(), expected), name
-    protocol = OVSSProtocol.__new__(OVSSProtocol)  # results() reads only its cache
+    protocol = OVSSTask.__new__(OVSSTask)  # results() reads only its cache
     protocol.cache = None
     with caplog.at_level("WARNING"):
         record = protocol.results(result)

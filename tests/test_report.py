@@ -530,12 +530,12 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
 
     from resireg_train.report.specs import (
         ENCODER_SWEEPS,
-        REPORT_SECTIONS,
+        SECTION_SPECS,
         SECTION_INPUTS,
         section_names,
     )
 
-    for name, spec in REPORT_SECTIONS.items():
+    for name, spec in SECTION_SPECS.items():
         for function in (spec.load(), spec.detector()):
             if function is not None:
                 assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS), name
@@ -561,7 +561,7 @@ def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypat
     module.count_section = count_section
     monkeypatch.setitem(sys.modules, "count_section_module", module)
     entry = sections.SectionSpec("count", "count_section_module:count_section", "the job count")
-    monkeypatch.setitem(sections.REPORT_SECTIONS, "count", entry)
+    monkeypatch.setitem(sections.SECTION_SPECS, "count", entry)
     sweep = tmp_path / "sweep"
     for n in range(3):
         _saved_config(_job(sweep, n, {"seed": n}, {"status": "completed", "final": {}}),

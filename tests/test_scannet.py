@@ -344,7 +344,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room,
     and the map is that of the other 6 frames: the scored ground-truth voxels are the numpy
     reference's without those frames, and the oracle still scores 1. Before the check the
     batch was fused (a NaN voxel feature) and counted as mapped."""
-    from resireg_train.evaluation.mapping.task import ScanNet3DProtocol
+    from resireg_train.evaluation.mapping.task import ScanNet3DTask
 
     frames = _frames(root, room)
     variants = build_variants(["bb", "full"], {"full": {"n_prototypes": 4}})
@@ -362,7 +362,7 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room,
     assert result.voxels[SCENE] == sum(c != 255 for c in reference.values())
     assert result.voxels[SCENE] < sum(c != 255 for c in _reference_gt(root, room, VOXEL).values())
     assert result.scores()["val/scannet3d/scannet/miou_bb"] == 1.0
-    protocol = ScanNet3DProtocol.__new__(ScanNet3DProtocol)  # results() needs out and data
+    protocol = ScanNet3DTask.__new__(ScanNet3DTask)  # results() needs out and data
     protocol.dataset, protocol.out = frames, tmp_path
     with caplog.at_level("WARNING"):
         record = protocol.results(result)

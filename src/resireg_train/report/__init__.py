@@ -6,7 +6,7 @@ Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
 with its status and error. Which sections beyond the summary it writes, the sweep config names
 (``report: [table1]`` etc. in ``conf/sweep/``, saved in every job's ``.hydra/config.yaml``); an
 ad hoc ``-m`` sweep, which names none, gets those its jobs show (:func:`report_sections`). The
-sections are the entries of one table, :data:`resireg_train.report.specs.REPORT_SECTIONS`
+sections are the entries of one table, :data:`resireg_train.report.specs.SECTION_SPECS`
 (its docstring: adding a section). Writes, into the sweep folder (or ``--out``):
 
 - ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
