@@ -530,8 +530,8 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
 
     from resireg_train.report.specs import (
         ENCODER_SWEEPS,
-        SECTION_SPECS,
         SECTION_INPUTS,
+        SECTION_SPECS,
         section_names,
     )
 

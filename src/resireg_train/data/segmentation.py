@@ -53,9 +53,9 @@ from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES, label_problem
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
 from resireg_train.config.errors import key_errors
-from resireg_train.data.windows import SegmentationProtocol, protocol_conf
 from resireg_train.data.specs import check_dataset_keys, require_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
+from resireg_train.data.windows import WindowRules, window_rules
 
 __all__ = [
     "SegmentationSet",
@@ -115,8 +115,8 @@ class SegmentationSet(torch.utils.data.Dataset):
         patch_size: sides are rounded to a multiple of it.
         reduce_zero_label: labels are 0 = unlabelled, ``c`` = class ``c - 1`` (ADE20K).
         describe: ``index -> str`` naming the sample's file (or row) in skip reports.
-        protocol: the entry's 2D protocol (:class:`~resireg_train.data.windows.
-            SegmentationProtocol`: the longer side's cap, antialiasing, windows, upsampling,
+        windows: the entry's resize and window rules (:class:`~resireg_train.data.windows.
+            WindowRules`: the longer side's cap, antialiasing, windows, upsampling,
             background); ``None``: ``conf/protocol/paper.yaml``'s.
         names: every name of each class (synonyms, ``conf/classes/``); ``None``: each class
             its own name.
@@ -137,7 +137,7 @@ class SegmentationSet(torch.utils.data.Dataset):
         patch_size: int,
         reduce_zero_label: bool = False,
         describe: Callable[[int], str] | None = None,
-        protocol: SegmentationProtocol | None = None,
+        windows: WindowRules | None = None,
         names: Sequence[Sequence[str]] | None = None,
     ) -> None:
         self.name = name
@@ -145,7 +145,7 @@ class SegmentationSet(torch.utils.data.Dataset):
         self.names = tuple(tuple(n) for n in names) if names else tuple((c,) for c in classes)
         if len(self.names) != len(self.classes):
             raise ValueError(f"{len(self.names)} name lists for {len(self.classes)} classes")
-        self.protocol = protocol if protocol is not None else protocol_conf("paper")
+        self.windows = windows if windows is not None else window_rules("paper")
         self._load = load
         self._header_size = header_size
         self.length = length
@@ -198,8 +198,8 @@ class SegmentationSet(torch.utils.data.Dataset):
 
     def resized_size(self, size: tuple[int, int]) -> tuple[int, int]:
         """``(H, W)`` an image of ``size`` is resized to (the protocol's rule:
-        :meth:`~resireg_train.data.windows.SegmentationProtocol.resized_size`)."""
-        return self.protocol.resized_size(size, self.short_side, self.patch_size)
+        :meth:`~resireg_train.data.windows.WindowRules.resized_size`)."""
+        return self.windows.resized_size(size, self.short_side, self.patch_size)
 
     def resize(self, pixels: torch.Tensor) -> torch.Tensor:
         """An RGB image ``[3, H, W]`` (uint8) -> float ``[3, h, w]`` in [0, 1] at
@@ -207,9 +207,9 @@ class SegmentationSet(torch.utils.data.Dataset):
         says (the paper's path is :func:`resireg.models.images.resize_to_patch_grid`'s)."""
         size = self.resized_size(tuple(pixels.shape[-2:]))
         if (
-            self.protocol.antialias
-            and not self.protocol.sliding
-            and (self.protocol.long_side is None)
+            self.windows.antialias
+            and not self.windows.sliding
+            and (self.windows.long_side is None)
         ):  # the paper's rule, one implementation
             return resize_to_patch_grid(pixels, self.short_side, self.patch_size)
         image = pixels.float() / 255.0
@@ -217,7 +217,7 @@ class SegmentationSet(torch.utils.data.Dataset):
             return image
         return torch.nn.functional.interpolate(
             image[None], size=size, mode="bilinear", align_corners=False,
-            antialias=self.protocol.antialias,
+            antialias=self.windows.antialias,
         )[0]  # fmt: skip
 
     def grid_sizes(self) -> dict[int, tuple[int, int]]:
@@ -272,8 +272,8 @@ def build_segmentation_set(
         spec: an entry of a kind of the dataset table (:data:`resireg_train.data.specs.
             DATASET_SPECS`: ``synthetic``, ``ade20k``, ``orad3d`` or one registered there),
             holding every key of its kind (``name`` aside): ``short_side``, ``limit`` (first N
-            images only), the 2D protocol's (:class:`~resireg_train.data.windows.
-            SegmentationProtocol`, passed to the builder in ``common`` as ``protocol``) and the
+            images only), the resize and window rules (:class:`~resireg_train.data.windows.
+            WindowRules`, passed to the builder in ``common`` as ``windows``) and the
             kind's own (module docstring; ADE20K's hub config name is ``config``).
             ``conf/dataset/<kind>.yaml`` holds them
             (:func:`resireg_train.data.specs.dataset_conf` reads it outside Hydra).
@@ -291,8 +291,8 @@ def _build(spec: Mapping[str, Any], patch_size: int, key: str, name: str | None)
     short_side = spec["short_side"]
     if short_side is not None and int(short_side) < patch_size:
         raise ValueError(f"{key}.short_side={short_side!r}: expected null or >= {patch_size}")
-    protocol = SegmentationProtocol.from_spec(spec, key, patch_size)
-    common = {"short_side": short_side, "patch_size": patch_size, "protocol": protocol}
+    windows = WindowRules.from_spec(spec, key, patch_size)
+    common = {"short_side": short_side, "patch_size": patch_size, "windows": windows}
     dataset = entry.load()(name, spec, key, common)
     limit = spec["limit"]
     if limit is not None:

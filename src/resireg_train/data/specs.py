@@ -39,7 +39,7 @@ __all__ = [
     "CLASS_NAMES",
     "DATASET_SPECS",
     "SEGMENTATION_KEYS",
-    "SEGMENTATION_PROTOCOL_KEYS",
+    "WINDOW_RULE_KEYS",
     "SEGMENTATION_RULES",
     "UPSAMPLES",
     "DatasetSpec",
@@ -155,13 +155,13 @@ UPSAMPLES = ("nearest", "bilinear")
 #: (``conf/protocol/paper.yaml`` / ``ovss8.yaml`` give them; :mod:`resireg_train.data.windows`
 #: reads them): the longer side's cap, the resize's antialiasing, the sliding window,
 #: the upsampling, the background rule of the with-background sets and the protocol's name.
-SEGMENTATION_PROTOCOL_KEYS = (
+WINDOW_RULE_KEYS = (
     "long_side", "antialias", "slide_crop", "slide_stride", "upsample",
     "background_threshold", "background_logit_scale", "protocol",
 )  # fmt: skip
 #: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task): a kind
 #: outside the project names them first (``(*SEGMENTATION_KEYS, "its", "own")``).
-SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *SEGMENTATION_PROTOCOL_KEYS)
+SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *WINDOW_RULE_KEYS)
 _SEGMENTATION = SEGMENTATION_KEYS
 
 

@@ -19,7 +19,7 @@ from resireg_train.report.jobs import (
     varying_keys,
 )
 from resireg_train.report.paper import DEFAULT_TOLERANCE
-from resireg_train.report.specs import SECTION_SPECS, SECTION_INPUTS
+from resireg_train.report.specs import SECTION_INPUTS, SECTION_SPECS
 from resireg_train.report.summary import summary_table
 from resireg_train.report.tables import markdown
 from resireg_train.runs.record import flat
