@@ -4,7 +4,7 @@
 :data:`resireg_train.evaluation.specs.TASK_SPECS`) over the engine
 :class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
-:meth:`~resireg_train.evaluation.mapping.engine.MappingResult.write_csv`), ``frames`` and
+:meth:`~resireg_train.evaluation.mapping.result.MappingResult.write_csv`), ``frames`` and
 ``frames_dropped``."""
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from resireg.models import DenseEncoder
 from resireg_train.data.specs import check_dataset_keys
 from resireg_train.evaluation.base import EvalTask
 from resireg_train.evaluation.engine import StageTimer
-from resireg_train.evaluation.mapping.engine import MappingEngine, MappingResult, MappingSettings
+from resireg_train.evaluation.mapping.engine import MappingEngine, MappingSettings
+from resireg_train.evaluation.mapping.result import MappingResult
 from resireg_train.evaluation.protocol import protocol_record
 
 __all__ = ["ScanNet3DTask"]
