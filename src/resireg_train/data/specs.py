@@ -19,8 +19,13 @@ Adding a dataset: one builder (``(name, spec, common) -> SegmentationSet`` for a
 one ``conf/dataset/<name>.yaml`` file with its ``kind`` and every key (found by scanning
 ``conf/dataset/``). ``resireg-eval dataset=<name>`` then builds and checks it;
 ``tests/test_tables.py`` checks the entry against its file. The training captions (``conf/data/``) are not evaluation datasets: their source
-keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.captions.
+keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.caption_sources.
 open_caption_source`.
+
+One idea: the dataset table. Every kind's entry sits beside the value rules of its keys (the
+ScanNet, posed-frames and segmentation rules), so a kind's keys, rules and tasks are read in
+one place, torch-free, by the config check and the builders alike; splitting the rules from the
+entries would write a kind in two files.
 """
 
 from __future__ import annotations
