@@ -44,8 +44,9 @@ prototype/batch ablation: ``[228, 308]``). The depth is resized to it by the sam
 rule and its intrinsics scaled by the ``intrinsics`` rule.
 
 One idea: the ScanNet reader. Its layout, classes, frame selection, resolution and ground truth
-are the one protocol of RayFronts' ``ScanNetDataset`` (above), read by one dataset class and its
-checks; Replica and TartanAir, which yield the same items, build on :mod:`resireg_train.data.posed3d`.
+are the one protocol of RayFronts' ``ScanNetDataset`` (above), read by one dataset class and
+its checks; Replica and TartanAir, which yield the same items, build on
+:mod:`resireg_train.data.posed3d`.
 """
 
 from __future__ import annotations
