@@ -34,9 +34,9 @@ sections are the entries of one table, :data:`resireg_train.report.specs.SECTION
 An explicit metric must be one the sweep's results hold (a ``final`` or ``best`` key of
 some job); anything else is a :class:`ValueError` that lists them.
 
-The package: :mod:`~resireg_train.report.writer` (:func:`report`), :mod:`.sections` (the
+The package: :mod:`~resireg_train.report.writer` (:func:`report`), :mod:`.specs` (the
 section table), :mod:`.jobs` (a sweep's job folders), :mod:`.summary`, :mod:`.tables` (Tables 1
-and 2, the layer sweep, the Markdown renderer), :mod:`.prototypes` (the batch x prototype
+and 2, the layer sweep, the Markdown renderer), :mod:`.prototype_batch` (the batch x prototype
 grid, the heuristic), :mod:`.figures`, :mod:`.paper` (the published figures beside ours),
 :mod:`.ovss8` (the eight OVSS benchmarks beside the published peers).
 Imported by the CLIs (``resireg-report``) and by ``resireg_train.sweeps`` (its search report
