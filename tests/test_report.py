@@ -508,7 +508,7 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
     it), every name is one the report writes, and a wrong one is refused naming the key."""
     from resireg.errors import ConfigError
     from resireg_train.config.eval import validate_eval
-    from resireg_train.report.sections import section_names
+    from resireg_train.report.specs import section_names
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
                    if p.stem != "train_hparams"]  # fmt: skip
@@ -528,14 +528,14 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
     sweeps are the encoder table sections."""
     import inspect
 
-    from resireg_train.report.sections import (
+    from resireg_train.report.specs import (
         ENCODER_SWEEPS,
-        REPORT_SECTIONS,
         SECTION_INPUTS,
+        SECTION_SPECS,
         section_names,
     )
 
-    for name, spec in REPORT_SECTIONS.items():
+    for name, spec in SECTION_SPECS.items():
         for function in (spec.load(), spec.detector()):
             if function is not None:
                 assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS), name
@@ -546,10 +546,10 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
 
 
 def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypatch):
-    """The recipe of resireg_train.report.sections: one writer and one entry; a sweep config
+    """The recipe of resireg_train.report.specs: one writer and one entry; a sweep config
     naming it (report: [...]) gets its file and its summary.md lines, in table order, and
     the config check accepts the name."""
-    import resireg_train.report.sections as sections
+    import resireg_train.report.specs as sections
     from resireg_train.config.eval import EVAL_RULES
 
     def count_section(jobs, out):
@@ -561,7 +561,7 @@ def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypat
     module.count_section = count_section
     monkeypatch.setitem(sys.modules, "count_section_module", module)
     entry = sections.SectionSpec("count", "count_section_module:count_section", "the job count")
-    monkeypatch.setitem(sections.REPORT_SECTIONS, "count", entry)
+    monkeypatch.setitem(sections.SECTION_SPECS, "count", entry)
     sweep = tmp_path / "sweep"
     for n in range(3):
         _saved_config(_job(sweep, n, {"seed": n}, {"status": "completed", "final": {}}),

@@ -314,7 +314,7 @@ def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source()
     64). The caption sources of conf/data/ hold every key their kind requires."""
     from resireg_train.data.segmentation import build_segmentation_set
     from resireg_train.data.specs import CAPTION_SOURCE_KEYS, DATASET_SPECS, dataset_conf
-    from resireg_train.evaluation.tasks import TASK_SPECS
+    from resireg_train.evaluation.specs import TASK_SPECS
 
     files = sorted((CONFIG_DIR / "dataset").glob("*.yaml"))
     assert {p.stem for p in files} == {c for d in DATASET_SPECS.values() for c in d.configs}

@@ -116,7 +116,7 @@ ENCODER_SPECS: SpecTable[EncoderSpec] = SpecTable(
              Needs("transformers", "transformers", _SIGLIP, lambda e: e.get("adaptor") != "clip")),
         ),
         EncoderSpec(
-            "radseg", "resireg.models.zoo.radio:RadSegEncoder",
+            "radseg", "resireg.models.zoo.radseg:RadSegEncoder",
             (Needs("segment_anything", "segment-anything", "RADSeg hubconf.py, radseg/radseg.py"),
              Needs("skimage", "scikit-image", "RADSeg radseg/sam_utils.py"),
              Needs("typing_extensions", "typing-extensions", "RADSeg radseg/base.py, radseg.py"),

@@ -11,8 +11,8 @@
     resireg-eval task=scannet3d dataset=scannet encoder=radseg paths.data_dir=/datasets  # 3D
     resireg-eval sweep=table2 paths.data_dir=/datasets          # 3D mapping: the paper's Table 2
 
-``task`` names an entry of the task table (:data:`resireg_train.evaluation.tasks.TASK_SPECS`: ``ovss``,
-``scannet3d``) whose protocol (:class:`resireg_train.evaluation.base.TaskProtocol`) this module
+``task`` names an entry of the task table (:data:`resireg_train.evaluation.specs.TASK_SPECS`: ``ovss``,
+``scannet3d``) whose class (:class:`resireg_train.evaluation.base.EvalTask`) this module
 drives with no task switch of its own: ``check`` the sources, load the encoder, ``build`` the
 dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.base.
 write_results` with the task's ``results``); docs/architecture.md#adding-a-task.
@@ -57,7 +57,7 @@ from resireg_train.config.machine import check_available, check_devices
 from resireg_train.config.paths import composing
 from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
-from resireg_train.report.sections import ENCODER_SWEEPS
+from resireg_train.report.specs import ENCODER_SWEEPS
 from resireg_train.runs.record import RunRecord
 
 if TYPE_CHECKING:
@@ -143,7 +143,7 @@ def _evaluate(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     params = {k: params[k] for k in ("model_path", "encoder", "dataset", *SETTING_KEYS)}
     params["task"] = str(cfg.get("task", "ovss"))
     params["prior"] = OmegaConf.to_container(cfg.prior, resolve=True) if cfg.get("prior") else None
-    spec = require_task(params["task"])  # the task's protocol (resireg_train.evaluation.tasks)
+    spec = require_task(params["task"])  # the task's entry (resireg_train.evaluation.specs)
     record.update(params=params, settings_from_export=from_export)
     # The models, datasets and torch load only now, after the config check.
     import torch
