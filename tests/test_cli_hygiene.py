@@ -26,7 +26,7 @@ def _hold(folder):
     code = textwrap.dedent(f"""
         import sys
         from pathlib import Path
-        from resireg_train.cli.job import hold_run_folder
+        from resireg_train.jobs.run_folder import hold_run_folder
         hold_run_folder(Path({str(folder)!r}))
         print("held", flush=True)
         sys.stdin.read()

@@ -565,7 +565,7 @@ def test_a_password_is_masked_where_urllib_cannot_take_the_url_apart():
     """Hydra's override_dirname joins overrides with ',' (urllib then sees one URL up to the
     next space, '[' in its host part): every password in it is masked all the same."""
     from resireg.secrets import mask_text
-    from resireg_train.cli.job import safe_dirname
+    from resireg_train.jobs.resolvers import safe_dirname
 
     dirname = ("logger.mlflow.tracking_uri=http://user:pw1@127.0.0.1:5000,provenance."
                "untracked_content=[*],storage=postgresql+psycopg://u:pw2@db/x")  # fmt: skip

@@ -25,7 +25,8 @@ from _sweeps import make_job as _job
 from resireg.method.full import ReSiRegFull
 from resireg.method.heuristic import PrototypeHeuristic
 from resireg_train.cli import report as report_cli
-from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point, safe_dirname
+from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point
+from resireg_train.jobs.resolvers import safe_dirname
 from resireg_train.report import (
     DPI,
     collect,
@@ -507,7 +508,7 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
     """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
     it), every name is one the report writes, and a wrong one is refused naming the key."""
     from resireg.errors import ConfigError
-    from resireg_train.config.eval import validate_eval
+    from resireg_train.checks.eval import validate_eval
     from resireg_train.report.sections import section_names
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
@@ -550,7 +551,7 @@ def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypat
     naming it (report: [...]) gets its file and its summary.md lines, in table order, and
     the config check accepts the name."""
     import resireg_train.report.sections as sections
-    from resireg_train.config.eval import EVAL_RULES
+    from resireg_train.checks.eval import EVAL_RULES
 
     def count_section(jobs, out):
         path = out / "count.txt"

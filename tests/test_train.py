@@ -18,9 +18,10 @@ from omegaconf import OmegaConf
 from _run import evaluate_export, run, run_side_by_side
 from resireg.errors import ConfigError
 from resireg.models import ResiregVLM
+from resireg_train.checks.train import validate
 from resireg_train.cli.job import CONFIG_DIR, optimized_value
-from resireg_train.cli.train import build, train
-from resireg_train.config.train import validate
+from resireg_train.cli.train import train
+from resireg_train.jobs.train import build
 from resireg_train.training.module import ResiregModule
 
 

@@ -39,7 +39,8 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, DataError, MapError
-from resireg_train.cli.job import error_text, hydra_entry_point, run_task
+from resireg_train.cli.job import hydra_entry_point, run_task
+from resireg_train.jobs.console import error_text
 from resireg_train.runs.record import RecordError, RunRecord, enclosing_run
 
 __all__ = ["PROG", "MergeFolderCheck", "check_out", "hydra_arguments", "main"]

@@ -1,6 +1,6 @@
 """Reading a composed config key by key: the value at a dotted key, the keys left ``???``, the
 rules a value breaks, and the keys nothing would read. What the config checks
-(:mod:`resireg_train.config.train`, :mod:`resireg_train.config.eval`,
+(:mod:`resireg_train.checks.train`, :mod:`resireg_train.checks.eval`,
 :mod:`resireg_train.config.machine`) share; OmegaConf only, no torch."""
 
 from __future__ import annotations

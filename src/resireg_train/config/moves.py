@@ -4,7 +4,7 @@ still resumes.
 A run folder keeps the config it was started with (``.hydra/config.yaml``), whose ``_target_``
 entries name classes by module path. When a module moves, a resume would see a difference in
 every moved ``_target_`` and refuse; :func:`current_targets` rewrites the stored paths to
-today's before the comparison (``resireg_train.cli.train.check_resume``). One entry per
+today's before the comparison (``resireg_train.checks.resume.check_resume``). One entry per
 ``_target_`` that a ``conf/`` file of an earlier release named and that has moved since (a class
 moved again: point its old entries at the new path, and add the path it leaves). The module
 moves behind them are listed in ``CHANGELOG.md``.
@@ -29,6 +29,10 @@ MOVED_TARGETS: dict[str, str] = {
     "resireg_train.runs.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
     # the pruning glue joins the search (resireg_train.training.pruning -> sweeps/pruning)
     "resireg_train.training.pruning.OptunaPruning": "resireg_train.sweeps.pruning.OptunaPruning",
+    # issue 52, H3: the Hydra callbacks leave the CLI's door for the jobs (cli/job.py split by idea)
+    "resireg_train.cli.job.RunFolderLock": "resireg_train.jobs.run_folder.RunFolderLock",
+    "resireg_train.cli.job.SweepRecords": "resireg_train.jobs.summary.SweepRecords",
+    "resireg_train.cli.train.RunFolderCheck": "resireg_train.jobs.train.RunFolderCheck",
 }
 
 

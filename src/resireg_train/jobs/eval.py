@@ -1,40 +1,12 @@
-"""``resireg-eval``: OVSS of a dense encoder (Hydra main): our exported
-:class:`~resireg.models.ResiregVLM` by default, or any encoder of ``conf/encoder/``.
-
-    resireg-eval model_path=outputs/smoke/<time>/export dataset=synthetic
-    resireg-eval encoder=clip_vit_b16 dataset=ade20k variants=[bb,calib,lite,full]
-    resireg-eval sweep=table1                              # every encoder x dataset: Table 1
-    resireg-eval model_path=<export> dataset=ade20k variants=[full] batch_size=16 \
-        full.n_prototypes=60
-    resireg-eval model_path=<export> dataset=ade20k sweep=prototype_batch      # the ablation grid
-    resireg-eval model_path=<export> prior=sam2 variants=[full,full+prior]  # SAM 2.1 prior
-    resireg-eval task=scannet3d dataset=scannet encoder=radseg paths.data_dir=/datasets  # 3D
-    resireg-eval sweep=table2 paths.data_dir=/datasets          # 3D mapping: the paper's Table 2
-
-``task`` names an entry of the task table (:data:`resireg_train.evaluation.tasks.TASK_SPECS`: ``ovss``,
-``scannet3d``) whose protocol (:class:`resireg_train.evaluation.base.TaskProtocol`) this module
-drives with no task switch of its own: ``check`` the sources, load the encoder, ``build`` the
-dataset and engine, ``run`` the pass, write the results (:func:`resireg_train.evaluation.base.
-write_results` with the task's ``results``); docs/architecture.md#adding-a-task.
-The 2D scores use the engine of the training callback (:mod:`resireg_train.evaluation.ovss.engine`), so a
-model's ``val/ovss/...`` numbers from training are recomputed exactly from its export.
-ReSiReg's parameters (``variants``, ``lite.*``, ``full.*``) come from the ``resireg``
-config group, which the training callback shares. An export written by ``resireg-train``
-records the settings its training run evaluated it with (``resireg_eval.json``: variants,
-``lite``, ``full``, ``batch_size``, ``precision``, ``temperature``); every one of them still at
-its default here (not set on the command line, nor by an experiment or sweep file) takes
-the recorded value, so ``resireg-eval`` reproduces the training score by default
-(``export_settings=false`` turns this off).
-``results.json`` in the output dir holds the status (and the error of a failed run), the
-scores under ``final``, per-class IoU, the parameters, image counts, the batch-size
-histogram and seconds per stage.
-"""
+"""The evaluation job's body (``resireg-eval``'s door is :mod:`resireg_train.cli.eval`): the
+export's recorded evaluation settings (:func:`with_export_settings`), the config check, then the
+task's protocol (:func:`evaluate_body`)."""
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from hydra import compose
 from hydra.core.hydra_config import HydraConfig
@@ -44,26 +16,17 @@ from resireg.errors import ConfigError
 from resireg.specs.encoders import ENCODER_SPECS, encoder_kwargs
 from resireg.specs.exports import registry_model
 from resireg.specs.tree import flatten
-from resireg_train.cli.job import (
-    CONFIG_DIR,
-    added_keys,
-    hydra_entry_point,
-    run_task,
-    top_level_keys,
-)
+from resireg_train.checks.eval import sweep_config_errors, validate_eval
 from resireg_train.config.errors import config_path, encoder_arguments
-from resireg_train.config.eval import sweep_config_errors, validate_eval
 from resireg_train.config.machine import check_available, check_devices
-from resireg_train.config.paths import composing
-from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
+from resireg_train.config.paths import CONFIG_DIR, composing
+from resireg_train.evaluation.base import require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
+from resireg_train.jobs.overrides import added_keys, top_level_keys
 from resireg_train.report.sections import ENCODER_SWEEPS
 from resireg_train.runs.record import RunRecord
 
-if TYPE_CHECKING:
-    pass
-
-__all__ = ["NothingScoredError", "evaluate", "main"]
+__all__ = ["evaluate_body", "with_export_settings"]
 
 log = logging.getLogger(__name__)
 
@@ -122,16 +85,10 @@ def with_export_settings(cfg: DictConfig) -> tuple[DictConfig, list[str]]:
     return merged, taken
 
 
-def evaluate(cfg: DictConfig) -> dict[str, Any]:
-    """Evaluate from a composed ``eval.yaml`` config; returns the ``results.json`` content.
-
-    A failure (bad value, missing model or dataset, too many prototypes for a batch) is
-    recorded in ``results.json`` as ``"status": "failed"`` with its error, then re-raised.
-    """
-    return run_task(cfg, _evaluate, fresh=True)
-
-
-def _evaluate(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
+def evaluate_body(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
+    """The evaluation of a composed ``eval.yaml`` config with its run's ``record``: the
+    export's settings, the config check, the task's ``check``, the encoder, ``build``, ``run``
+    and the results (:func:`~resireg_train.evaluation.base.write_results`)."""
     out = record.folder
     cfg, from_export = with_export_settings(cfg)
     validate_eval(cfg, added_keys(), top_level_keys("eval") if HydraConfig.initialized() else None)
@@ -171,8 +128,3 @@ def _evaluate(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     result = task.run(encoder, variants, timer)
     return write_results(record, task, result, variants, timer)
 
-
-main = hydra_entry_point("eval", evaluate)
-
-if __name__ == "__main__":
-    main()

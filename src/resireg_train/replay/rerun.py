@@ -182,7 +182,7 @@ def compose_job(job: str, overrides: Sequence[str]) -> Any:
     """``conf/<job>.yaml`` composed with ``overrides`` (Hydra's compose API)."""
     from hydra import compose
 
-    import resireg_train.config.eval  # noqa: F401  the resireg_encoders resolver
+    import resireg_train.checks.eval  # noqa: F401  the resireg_encoders resolver
     from resireg_train.config.paths import composing
     from resireg_train.sweeps.space import register_search_resolvers
 

@@ -542,7 +542,7 @@ def mask_saved_configs(folder: Path) -> None:
     (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and, for a multirun job, in
     its sweep's ``multirun.yaml``: a tracking URI given on the command line would otherwise
     keep its password there. A resume compares configs with their URLs masked
-    (:func:`resireg_train.cli.train.check_resume`)."""
+    (:func:`resireg_train.checks.resume.check_resume`)."""
     files = sorted((folder / ".hydra").glob("*.yaml"))
     try:
         from hydra.core.hydra_config import HydraConfig

@@ -1,0 +1,1 @@
+"""The checks of whole commands (train, eval, map, resume): above the packages whose tables they read."""
