@@ -20,7 +20,13 @@ from omegaconf import DictConfig, OmegaConf
 from resireg.errors import ConfigError
 from resireg.secrets import mask_text
 from resireg.specs.tree import differences
-from resireg_train.config.moves import current_keys, current_targets
+from resireg_train.config.moves import (
+    check_stored_targets,
+    current_keys,
+    current_overrides,
+    current_spelling,
+    current_targets,
+)
 from resireg_train.runs.record import RunRecord, masked_tree
 
 __all__ = ["check_resume", "hydra_quoted", "refuse_occupied", "resume_command"]
@@ -38,7 +44,7 @@ def hydra_quoted(folder: Path | str) -> str:
 #: Keys a resume may change: the resume itself, and what is recorded of the run without
 #: changing what it computes (its trackers, what provenance keeps of the code, the system
 #: metrics' interval).
-_RESUME_FREE = ("ckpt_path", "logger", "provenance", "system_metrics")
+_RESUME_FREE = ("ckpt_path", "tracker", "provenance", "system_metrics")
 #: Overrides a resume command sets itself (or must not repeat: the sweep's own folders).
 _RESUME_SET = ("ckpt_path", "hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir",
                "hydra.mode", "hydra.output_subdir", "hydra.job.name")  # fmt: skip
@@ -80,19 +86,23 @@ def _differences(run: dict[str, Any], this: dict[str, Any]) -> list[str]:
 
 def check_resume(out: Path, composed: DictConfig) -> None:
     """Refuse a resume of the run in ``out`` whose config (``composed``, without its
-    ``hydra`` node) differs from the run's ``.hydra/config.yaml``: ``ConfigError`` naming the
+    ``hydra`` node) differs from the run's ``.hydra/config.yaml`` (read in today's class paths
+    and key spellings, :mod:`resireg_train.config.moves`; one naming a class of ours that is
+    gone is refused naming it and the release): ``ConfigError`` naming the
     differing keys (up to 8, and how many more), the run's overrides and this command's, the
     command that resumes the run with its own overrides, and the way to train on with other
     settings. A folder without a stored config (a run started from Python) is not checked."""
     stored = out / ".hydra" / "config.yaml"
     if not stored.is_file():
         return
-    # a run written before a class moved names its old path, and one written before a key
-    # existed lacks it: compare with today's; the saved config has its URL passwords masked
-    # (RunRecord.start): compare masked values
-    run = current_keys(
-        current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False))
-    )
+    # a run written before a class moved names its old path, one written before a key
+    # existed lacks it, and one written before a key was renamed spells it the old way: compare
+    # with today's (a class of ours that is gone and in no moves table: refused, naming it);
+    # the saved config has its URL passwords masked (RunRecord.start): compare masked values
+    run = current_targets(OmegaConf.to_container(OmegaConf.load(stored), resolve=False))
+    written_by = ((RunRecord.read(out) or {}).get("provenance") or {}).get("code") or {}
+    check_stored_targets(run, str(stored), written_by.get("version"))
+    run = current_keys(current_spelling(run, "train"))
     this = OmegaConf.to_container(composed, resolve=False)
     this.pop("hydra", None)
     run, this = masked_tree(run), masked_tree(this)
@@ -105,7 +115,9 @@ def check_resume(out: Path, composed: DictConfig) -> None:
     hydra_file = out / ".hydra" / "hydra.yaml"
     recorded = yaml.safe_load(hydra_file.read_text())["hydra"] if hydra_file.is_file() else {}
     overrides = recorded.get("overrides") or {}
-    task = yaml.safe_load((out / ".hydra" / "overrides.yaml").read_text()) or []
+    task = current_overrides(
+        "train", yaml.safe_load((out / ".hydra" / "overrides.yaml").read_text()) or []
+    )
     command = resume_command(task, overrides.get("hydra") or [], out,
                              recorded.get("mode") == "MULTIRUN")  # fmt: skip
     given = list(composed.hydra.overrides.task) if "hydra" in composed else []

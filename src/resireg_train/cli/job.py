@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, ResiregError
 from resireg.secrets import mask_text
+from resireg_train.config.moves import current_argv
 from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.jobs.console import (
     error_text,
@@ -91,7 +92,7 @@ def run_task(
 def check_model_registry(cfg: DictConfig) -> None:
     """A ``model_path`` in MLflow's model registry (``models:/NAME@ALIAS``), checked before
     the run starts: one that is not of the registry's two forms is a :class:`ConfigError`,
-    a registry that does not answer within ``logger.mlflow.check_timeout`` seconds a
+    a registry that does not answer within ``tracker.mlflow.check_timeout`` seconds a
     :class:`~resireg.models.vlm.registry.RegistryError` (:func:`resireg.models.vlm.registry.
     check_registry`): one line each, instead of a traceback or minutes of MLflow's retries."""
     from resireg.specs.exports import REGISTRY_PREFIX, registry_model
@@ -175,8 +176,12 @@ def hydra_entry_point(
     """A console entry point: Hydra composes ``conf/<config_name>.yaml`` with the command
     line's overrides, ``task`` runs, and :func:`optimized_value` goes back to the sweeper.
 
-    A failing job is listed; a multirun ends with one line per failed job (on stderr),
-    after Hydra's report of the first one, wherever its jobs ran (:class:`~resireg_train.jobs.summary.SweepRecords`)."""
+    Before Hydra parses the command line, an override in a renamed key's old spelling
+    (``logger=mlflow``) is rewritten to the new one with one warning line, and one given in
+    both spellings is refused in one line (exit 1; :func:`resireg_train.config.moves.current_argv`).
+    A failing job is listed; a multirun ends with one line per failed job (on stderr), after
+    Hydra's report of the first one, wherever its jobs ran
+    (:class:`~resireg_train.jobs.summary.SweepRecords`)."""
     register_resolvers()
     prog = f"resireg-{config_name}"
 
@@ -193,6 +198,15 @@ def hydra_entry_point(
 
     def entry() -> float | None:
         SWEEP.clear()
+        with masked_console():  # (the warning names the overrides: a URL's password too)
+            try:
+                sys.argv[1:] = current_argv(
+                    config_name, sys.argv[1:], lambda line: print(f"{prog}: warning: {line}",
+                                                                  file=sys.stderr)
+                )  # fmt: skip
+            except ConfigError as err:
+                sys.stderr.write(f"{prog}: error: {err}\n")
+                raise SystemExit(1) from None
         with masked_console():  # no URL's password on the console, whoever prints it
             try:
                 return main()
