@@ -3,7 +3,7 @@
 
     resireg-map source=rosbag source.path=run.bag model_path=<export> source.world_frame=odom
     resireg-map source=tum source.path=rgbd_dataset_freiburg1_desk source.camera=fr1
-    resireg-map source=scannet source.path=/datasets/scannet/scene0011_00 rerun.save=map.rrd
+    resireg-map source=scannet source.path=/datasets/scannet/scene0011_00 viewer.save=map.rrd
     resireg-map source=nerfstudio source.path=data/scene
     resireg-map source=ros2 source.world_frame=odom     # live topics, until idle or Ctrl-C
 
@@ -172,8 +172,8 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
         raise ConfigError("; ".join(errors))
     max_depth = spec["max_depth"]
     rrd = None
-    if cfg.rerun.save:  # under the run folder unless absolute; recorded absolute
-        rrd = Path(str(cfg.rerun.save)).expanduser()
+    if cfg.viewer.save:  # under the run folder unless absolute; recorded absolute
+        rrd = Path(str(cfg.viewer.save)).expanduser()
         rrd = (rrd if rrd.is_absolute() else out / rrd).resolve()
     params = {"source": spec, "identity": _identity(cfg)}
     record.update(params=params)
@@ -222,10 +222,10 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     # a live stream (a source whose ``live`` is true: ros2) goes on from now, every frame new.
     base, start = (done, 0) if getattr(source, "live", False) else (0, done)
     view = None
-    if rrd is not None or cfg.rerun.spawn:
+    if rrd is not None or cfg.viewer.spawn:
         from resireg.mapping.viewer import RerunView
 
-        view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
+        view = RerunView(str(rrd) if rrd else None, bool(cfg.viewer.spawn), cfg.viewer.query)
     counts = FrameCounts()
     added = 0
     # start: the frames the resumed map holds are skipped, whatever window they fell in
@@ -264,7 +264,7 @@ def _map(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
             if view is not None:
                 t0 = time.perf_counter()
                 view.log_window(batch, base + batch["first"])
-                if added % max(1, int(cfg.rerun.map_every)) == 0:
+                if added % max(1, int(cfg.viewer.map_every)) == 0:
                     view.log_map(smap)
                 timer["rerun"] += time.perf_counter() - t0
             if save_every and added % save_every == 0:

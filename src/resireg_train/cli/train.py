@@ -10,7 +10,7 @@ into the folder, a resume whose composed config differs from the run's
 (``.hydra/config.yaml``), naming the keys, and a new run pointed at a folder that holds one.
 
 The run's output folder receives the resolved config (``.hydra/``), ``metrics.csv`` (always),
-the optional TensorBoard / MLflow logs (``logger=``), ``checkpoints/`` (``last.ckpt`` every
+the optional TensorBoard / MLflow logs (``tracker=``), ``checkpoints/`` (``last.ckpt`` every
 epoch), ``results.json`` (final and best metrics, status) and ``export/`` (the trained
 :class:`~resireg.models.ResiregVLM`, loadable with ``ResiregVLM.from_pretrained``).
 

@@ -197,7 +197,7 @@ def fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) -> 
         resume_step = int(resumed[1]["global_step"])
         log.info("resuming from %s (global step %d)", ckpt, resume_step)
 
-    # metrics.csv and the trackers' Lightning loggers (logger=...), from the run's record
+    # metrics.csv and the trackers' Lightning loggers (tracker=...), from the run's record
     loggers = record.trackers.lightning_loggers(resume_step)
     configured = instantiate_group(cfg.callbacks)
     # The model summary without an unmeasured "Total Flops: 0" (a configured one is kept); the
@@ -213,7 +213,7 @@ def fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) -> 
         bar["enable_progress_bar"] = False
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
-        logger=loggers,
+        tracker=loggers,
         callbacks=[*configured, ResultsTracker(record), EpochLog(), *summary, *callbacks],
         plugins=[AtomicCheckpointIO()],
         default_root_dir=str(out),
