@@ -213,7 +213,7 @@ def fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) -> 
         bar["enable_progress_bar"] = False
     trainer: L.Trainer = hydra.utils.instantiate(
         cfg.trainer,
-        tracker=loggers,
+        logger=loggers,
         callbacks=[*configured, ResultsTracker(record), EpochLog(), *summary, *callbacks],
         plugins=[AtomicCheckpointIO()],
         default_root_dir=str(out),
