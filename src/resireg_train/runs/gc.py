@@ -41,8 +41,8 @@ __all__ = ["CHECKPOINTS", "Decision", "collect", "command", "folder_bytes", "hum
 
 #: The folder of a run's checkpoints (conf/callbacks/default.yaml's model_checkpoint.dirpath).
 CHECKPOINTS = "checkpoints"
-#: The run folder's lock (resireg_train.jobs.run_folder.LOCK_FILE; that module is a CLI's, not
-#: imported here).
+#: The run folder's lock (resireg_train.jobs.run_folder.LOCK_FILE; that module is a job's, above
+#: runs/, so not imported here).
 LOCK_FILE = ".run.lock"
 
 
