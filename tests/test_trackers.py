@@ -256,7 +256,7 @@ def test_the_artifact_location_of_each_kind_of_store(tmp_path, monkeypatch):
     assert artifact_location(f"sqlite:///{tmp_path}/a/m.db") == (
         tmp_path / "a" / "mlartifacts").as_uri()  # fmt: skip
     assert artifact_location("http://user:pw@host:5000") is None
-    with pytest.raises(ConfigError, match=r"^logger\.mlflow\.artifact_location: required with the "
+    with pytest.raises(ConfigError, match=r"^tracker\.mlflow\.artifact_location: required with the "
                        r"database store 'postgresql://u:\*\*\*@db/mlflow'") as err:  # fmt: skip
         artifact_location("postgresql://u:pw@db/mlflow")
     assert "pw" not in str(err.value).replace("postgresql", "")
