@@ -262,3 +262,17 @@ def test_a_training_run_in_the_old_spelling_completes_and_resumes_silently(tmp_p
     proc = run("resireg-train", *recorded, "ckpt_path=last", f"hydra.run.dir={out}")
     assert "Restored all states from the checkpoint" in proc.stdout + proc.stderr
     assert "warning:" not in proc.stderr
+
+
+def test_a_search_record_in_the_old_spelling_starts_workers_in_todays(tmp_path, capsys):
+    """A search's record (``search.json``, written before the rename) gives its workers the
+    overrides in today's spelling, silently: a worker's command is not the user's."""
+    from resireg_train.sweeps.workers import RECORD_FORMAT, SEARCH_FILE, read_record, worker_command
+
+    (tmp_path / SEARCH_FILE).write_text(json.dumps(
+        {"format": RECORD_FORMAT, "job": "train", "storage": None, "study_name": "s",
+         "overrides": ["experiment=smoke", "logger=csv", "hparams_search=resireg_optuna"]}))  # fmt: skip
+    assert read_record(tmp_path).overrides == ("experiment=smoke", "tracker=csv",
+                                               "hparams_search=resireg_optuna")  # fmt: skip
+    assert "tracker=csv" in worker_command(tmp_path) and "logger=csv" not in worker_command(tmp_path)
+    assert "warning" not in capsys.readouterr().err
