@@ -276,3 +276,26 @@ def test_a_search_record_in_the_old_spelling_starts_workers_in_todays(tmp_path, 
                                                "hparams_search=resireg_optuna")  # fmt: skip
     assert "tracker=csv" in worker_command(tmp_path) and "logger=csv" not in worker_command(tmp_path)
     assert "warning" not in capsys.readouterr().err
+
+
+def test_a_rerun_of_a_run_naming_a_gone_class_is_refused_naming_it(tmp_path, capsys):
+    """resireg-runs rerun of a run whose stored config names a class of ours that is gone and
+    in no moves table: one line naming the key, the class and the releases; nothing started."""
+    from resireg_train.cli.runs import main
+
+    folder = tmp_path / "run"
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(["dataset=synthetic"]))
+    (folder / ".hydra" / "config.yaml").write_text(
+        yaml.safe_dump({"seed": 0, "prior": {"_target_": "resireg_train.gone.Prior"}}))
+    (folder / "results.json").write_text(json.dumps(
+        {"name": "eval", "status": "completed", "final": {},
+         "provenance": {"run_id": "f" * 12, "cli": "resireg-eval", "code": {"version": "0.1.0"}}}))  # fmt: skip
+    with pytest.raises(SystemExit) as exit_:
+        main(["rerun", str(folder), "--out", str(tmp_path / "again")])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert ("prior._target_=resireg_train.gone.Prior: no such class in release 0.2.0 (the run "
+            "was written by 0.1.0)") in err
+    assert not (tmp_path / "again").exists()
