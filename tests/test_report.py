@@ -453,7 +453,7 @@ def test_the_job_counts_the_readme_and_the_sweep_files_state_are_the_sweeps_own(
     after every `sweep=table1` / `sweep=table2 model_path=...` command of the README and the
     sweep files (`# 10 encoders x 2 datasets`, `# 10 x 2 = 20 jobs`, `# Table 2: 10 jobs`)
     matches the sweep's own axes."""
-    from resireg_train.config import eval as _eval_checks  # noqa: F401  registers ${resireg_encoders:}
+    from resireg_train.checks import eval as _eval_checks  # noqa: F401  registers ${resireg_encoders:}
 
     readme = (CONFIG_DIR.parent / "README.md").read_text().splitlines()
     for name, datasets in (("table1", None), ("table2", 1)):  # table2: ScanNet alone
