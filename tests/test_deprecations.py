@@ -299,3 +299,13 @@ def test_a_rerun_of_a_run_naming_a_gone_class_is_refused_naming_it(tmp_path, cap
     assert ("prior._target_=resireg_train.gone.Prior: no such class in release 0.2.0 (the run "
             "was written by 0.1.0)") in err
     assert not (tmp_path / "again").exists()
+
+
+def test_the_warning_masks_a_password_it_repeats(tmp_path):
+    """The warning repeats the overrides it read: a tracking URI's password is masked there
+    as everywhere the run prints (resireg.secrets)."""
+    proc = run("resireg-train", "experiment=smoke", "logger=mlflow",
+               "logger.mlflow.tracking_uri=http://ann:hunter2@127.0.0.1:9", "--cfg", "job")  # fmt: skip
+    assert "hunter2" not in proc.stdout + proc.stderr
+    (warning,) = [line for line in proc.stderr.splitlines() if "warning:" in line]
+    assert "tracker.mlflow.tracking_uri=http://ann:***@127.0.0.1:9" in warning, warning
