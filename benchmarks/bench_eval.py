@@ -29,10 +29,10 @@ from hydra import compose, initialize_config_dir
 
 from resireg.method.variants import build_variants
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.cli.train import build
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.evaluation.ovss.engine import OVSSEngine, StageTimer
+from resireg_train.jobs.train import build
 
 STAGES = ("data", "encoder", "reconstruction/bb", "reconstruction/lite",
           "reconstruction/full", "metric")  # fmt: skip

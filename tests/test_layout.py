@@ -51,10 +51,19 @@ def test_the_training_package_holds_packages_only():
     assert top == ["__init__.py"], top
 
 
+#: Packages created by two branches at once (issue 52), whose ``__init__`` is one fixed line so
+#: that they merge: what may import them is their floor in the import contract alone
+#: (``test_every_training_package_has_its_floor_in_the_import_contract``).
+ONE_LINE_INITS = ("resireg_train.checks", "resireg_train.jobs")
+
+
 @pytest.mark.parametrize("package", _packages())
 def test_every_package_says_what_lives_there_and_what_may_import_it(package):
     path = SRC.joinpath(*package.split(".")) / "__init__.py"
     doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
+    if package in ONE_LINE_INITS:
+        assert path.read_text(encoding="utf-8").count("\n") == 1, f"{package}: one line"
+        return
     assert len(doc.split()) >= 15, f"{package}: its docstring says too little: {doc!r}"
     assert "imported by" in doc.lower(), f"{package}: its docstring names no importer"
 
@@ -70,8 +79,8 @@ def test_the_architecture_page_is_short_and_names_every_package():
 
 
 def test_every_training_package_has_its_floor_in_the_import_contract():
-    """A new package of resireg_train (or module of its config/) is placed in the layers of
-    ``[tool.importlinter]``, or lint-imports would not check it."""
+    """A new package of resireg_train is placed in the layers of ``[tool.importlinter]``, or
+    lint-imports would not check it; ``config`` (the ground) is one layer, the bottom one."""
     config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     contracts = config["tool"]["importlinter"]["contracts"]
     (layers,) = [
@@ -79,10 +88,9 @@ def test_every_training_package_has_its_floor_in_the_import_contract():
     ]
     placed = {m.strip() for layer in layers for m in re.split(r"[|:]", layer)}
     top = {f"resireg_train.{p.name}" for p in (SRC / "resireg_train").iterdir()
-           if (p / "__init__.py").is_file()} - {"resireg_train.config"}  # fmt: skip
-    config_modules = {f"resireg_train.config.{p.stem}" for p in (SRC / "resireg_train" / "config").glob("*.py")
-                      if p.stem != "__init__"}  # fmt: skip
-    assert top | config_modules <= placed, sorted((top | config_modules) - placed)
+           if (p / "__init__.py").is_file()}  # fmt: skip
+    assert top <= placed, sorted(top - placed)
+    assert layers[-1] == "resireg_train.config", layers[-1]
 
 
 def _imports(modules: dict[str, Path]) -> dict[str, set[str]]:

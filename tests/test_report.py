@@ -25,7 +25,8 @@ from _sweeps import make_job as _job
 from resireg.method.full import ReSiRegFull
 from resireg.method.heuristic import PrototypeHeuristic
 from resireg_train.cli import report as report_cli
-from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point, safe_dirname
+from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point
+from resireg_train.jobs.resolvers import safe_dirname
 from resireg_train.report import (
     DPI,
     collect,
@@ -452,7 +453,7 @@ def test_the_job_counts_the_readme_and_the_sweep_files_state_are_the_sweeps_own(
     after every `sweep=table1` / `sweep=table2 model_path=...` command of the README and the
     sweep files (`# 10 encoders x 2 datasets`, `# 10 x 2 = 20 jobs`, `# Table 2: 10 jobs`)
     matches the sweep's own axes."""
-    from resireg_train.config import eval as _eval_checks  # noqa: F401  registers ${resireg_encoders:}
+    from resireg_train.checks import eval as _eval_checks  # noqa: F401  registers ${resireg_encoders:}
 
     readme = (CONFIG_DIR.parent / "README.md").read_text().splitlines()
     for name, datasets in (("table1", None), ("table2", 1)):  # table2: ScanNet alone
@@ -507,7 +508,7 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
     """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
     it), every name is one the report writes, and a wrong one is refused naming the key."""
     from resireg.errors import ConfigError
-    from resireg_train.config.eval import validate_eval
+    from resireg_train.checks.eval import validate_eval
     from resireg_train.report.specs import section_names
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
@@ -550,7 +551,7 @@ def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypat
     naming it (report: [...]) gets its file and its summary.md lines, in table order, and
     the config check accepts the name."""
     import resireg_train.report.specs as sections
-    from resireg_train.config.eval import EVAL_RULES
+    from resireg_train.checks.eval import EVAL_RULES
 
     def count_section(jobs, out):
         path = out / "count.txt"

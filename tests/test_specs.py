@@ -18,8 +18,8 @@ from resireg.errors import ConfigError
 from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
+from resireg_train.checks.eval import sweep_config_errors, validate_eval
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.eval import sweep_config_errors, validate_eval
 
 
 def _eval_config(*overrides):
@@ -149,7 +149,7 @@ def test_the_sweeps_over_every_encoder_resolve_to_the_table(monkeypatch, tmp_pat
     no list to edit."""
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.job import register_resolvers
+    from resireg_train.jobs.resolvers import register_resolvers
 
     register_resolvers()
     on_disk = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))

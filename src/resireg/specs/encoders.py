@@ -1,7 +1,7 @@
 """The dense encoders by ``kind``: one entry each, the only list of them.
 
 Every reader takes the kinds from here: :func:`resireg.models.build_encoder` (the builder),
-``resireg_train.config.eval`` (``encoder.kind`` and the modules each kind imports), the config
+``resireg_train.checks.eval`` (``encoder.kind`` and the modules each kind imports), the config
 check of the sweeps over every encoder (``conf/sweep/table1.yaml``, ``table2.yaml``: their
 ``encoder`` axis is generated from the table: ``${resireg_encoders:}``), the tests. The
 ``conf/encoder/<name>.yaml`` files of a kind are found by scanning ``conf/encoder/`` for their

@@ -2,7 +2,7 @@
 entry each, the only place a kind's builder, keys and task are written (docs/architecture.md#spec-tables).
 
 Torch-free, like the spec tables of :mod:`resireg.specs` and the task table
-(:mod:`resireg_train.evaluation.specs`): the config check (:func:`resireg_train.config.eval.validate_eval`)
+(:mod:`resireg_train.evaluation.specs`): the config check (:func:`resireg_train.checks.eval.validate_eval`)
 reads the kinds, their keys and the task that scores each before anything heavy loads; the
 task table derives each task's kinds from here (:attr:`resireg_train.evaluation.specs.TaskSpec.
 dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segmentation_set`,
@@ -100,7 +100,7 @@ CLASS_NAMES = ("label_map", "nyu40")
 METRICS = VOXEL_METRICS
 
 #: The 3D protocol's value rules of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
-#: section 4), by key; checked by :func:`resireg_train.config.eval.validate_eval` for that kind
+#: section 4), by key; checked by :func:`resireg_train.checks.eval.validate_eval` for that kind
 #: only (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
     "scenes": (
@@ -216,7 +216,7 @@ class DatasetSpec:
         summary: one line for errors and docs.
         rules: the value rules of its keys, ``key -> (check, expectation)``
             (:mod:`resireg.specs.rules`), checked by the config check
-            (:func:`resireg_train.config.eval.validate_eval`, as ``dataset.<key>=<value>:
+            (:func:`resireg_train.checks.eval.validate_eval`, as ``dataset.<key>=<value>:
             expected <expectation>``); keys without one are checked for presence only.
     """
 

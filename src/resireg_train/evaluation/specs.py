@@ -2,7 +2,7 @@
 them (docs/architecture.md#adding-a-task).
 
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
-(:func:`resireg_train.config.eval.validate_eval`) reads the task names and each task's
+(:func:`resireg_train.checks.eval.validate_eval`) reads the task names and each task's
 configuration rules from here before anything heavy loads (the dataset kinds a task scores are
 the dataset table's, :data:`resireg_train.data.specs.DATASET_SPECS`, each entry naming its
 tasks); the protocol record (:func:`resireg_train.evaluation.protocol.protocol_record`) and the report

@@ -9,7 +9,7 @@ finds it, named or not (the training curves, an Optuna search's trials). The wri
 (:func:`resireg_train.report.writer.report`) goes through the entries in table order.
 
 Torch- and pandas-free, like the other tables: the config check
-(:func:`resireg_train.config.eval.validate_eval`, ``report: [...]``) reads the names before
+(:func:`resireg_train.checks.eval.validate_eval`, ``report: [...]``) reads the names before
 anything heavy loads; an entry names its code lazily (``"module:function"``).
 
 Adding a report section:

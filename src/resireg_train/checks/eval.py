@@ -4,7 +4,7 @@
 :func:`validate_eval` reports every violation at once, each as ``key=value: expected ...``:
 ReSiReg's parameters (the ``resireg`` config group; the variant table's rules, which the
 classes check too), the pass settings (:func:`pass_rules`, shared with the training callback's
-check in :mod:`resireg_train.config.train`), the encoder, the prior, the task and its dataset
+check in :mod:`resireg_train.checks.train`), the encoder, the prior, the task and its dataset
 (the task and dataset tables, :data:`resireg_train.evaluation.specs.TASK_SPECS` and
 :data:`resireg_train.data.specs.DATASET_SPECS`) and the report's sections. It reads the tables,
 OmegaConf and nothing else: no torch.
@@ -178,7 +178,7 @@ def validate_eval(
 
 
 #: The ``encoder`` axis of a sweep over every encoder: the resolver (registered by the CLIs,
-#: :func:`resireg_train.cli.job.register_resolvers`) joins the encoder table's configurations.
+#: :func:`resireg_train.jobs.resolvers.register_resolvers`) joins the encoder table's configurations.
 EVERY_ENCODER = "${resireg_encoders:}"
 
 
