@@ -29,10 +29,10 @@ from hydra import compose, initialize_config_dir
 
 from resireg.method.variants import build_variants
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.cli.train import build
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.evaluation.ovss.engine import OVSSEngine, StageTimer
+from resireg_train.jobs.train import build
 
 STAGES = ("data", "encoder", "reconstruction/bb", "reconstruction/lite",
           "reconstruction/full", "metric")  # fmt: skip
@@ -71,19 +71,19 @@ def smoke(repeats: int) -> None:
 
     callback = hydra.utils.instantiate(cfg.callbacks.resireg_eval, _convert_="all")
     callback.setup(trainer, module, "fit")
-    (task,) = callback.tasks.values()
+    (engine,) = callback.engines.values()
     timers = []
     for _ in range(repeats + 1):
         timers.append(StageTimer())
         start = time.perf_counter()
-        task.run(module.vlm, callback.variants, timer=timers[-1])
+        engine.run(module.vlm, callback.variants, timer=timers[-1])
         timers[-1].seconds["total"] = time.perf_counter() - start
     first = timers[0].seconds["total"]
     warm = statistics.median(t.seconds["total"] for t in timers[1:])
     print(f"smoke: training epoch ({cfg.data.steps_per_epoch} steps) {1000 * epoch:.0f} ms")
-    print(f"  eval pass ({len(task.dataset)} images, {list(callback.variants)}): "
+    print(f"  eval pass ({len(engine.dataset)} images, {list(callback.variants)}): "
           f"{1000 * warm:.0f} ms = {warm / epoch:.2f} x an epoch "
-          f"(first pass, embedding {len(task.prompts)} prompts: {1000 * first:.0f} ms = "
+          f"(first pass, embedding {len(engine.prompts)} prompts: {1000 * first:.0f} ms = "
           f"{first / epoch:.2f} x)")  # fmt: skip
     _print_split(_split(timers[1:]), warm)
 

@@ -52,10 +52,10 @@ except ImportError:  # the code before RunRecord
     def saved(out):
         pass
 repeats = int(sys.argv[1])
-sys.argv = ["resireg-eval", "logger=mlflow",
-            "logger.mlflow.tracking_uri=http://user:pw@127.0.0.1:5000", "dataset=synthetic"]
+sys.argv = ["resireg-eval", "tracker=mlflow",
+            "tracker.mlflow.tracking_uri=http://user:pw@127.0.0.1:5000", "dataset=synthetic"]
 cfg = OmegaConf.create({"name": "bench", "seed": 0, "dataset": {"path": "synthetic", "size": 8},
-                        "logger": {"mlflow": {"tracking_uri": "http://user:pw@127.0.0.1:5000"}}})
+                        "tracker": {"mlflow": {"tracking_uri": "http://user:pw@127.0.0.1:5000"}}})
 try:  # this tree: every provenance key (the opt-in one changed)
     from resireg_train.runs.provenance import provenance_settings
     opted = OmegaConf.merge(cfg, {"provenance": {**provenance_settings(),
@@ -70,7 +70,7 @@ for _ in range(repeats):
         out = Path(tmp)
         (out / ".hydra").mkdir()
         (out / ".hydra" / "overrides.yaml").write_text(
-            "- logger.mlflow.tracking_uri=http://user:pw@127.0.0.1:5000\n" * 3)
+            "- tracker.mlflow.tracking_uri=http://user:pw@127.0.0.1:5000\n" * 3)
         t0 = time.perf_counter()
         write(out, name="bench", status="running", provenance=start_provenance(cfg, out))
         saved(out)

@@ -8,7 +8,7 @@
    (``system.sampler_cpu_seconds``: its thread's ``time.thread_time()``) and the run's
    (``provenance.time.cpu_hours``: the process and its children). The goal is a ratio of at
    most 1% at the default interval.
-2. MLflow's own monitor (``mlflow.system_metrics``, what ``logger=mlflow`` starts beside it):
+2. MLflow's own monitor (``mlflow.system_metrics``, what ``tracker=mlflow`` starts beside it):
    run for ``--mlflow-seconds`` at a 1 s interval on a local SQLite store, its thread's CPU
    seconds read from the kernel (psutil, by the thread's native id) per sample taken; a
    run pays that once per interval.

@@ -27,7 +27,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.cli.train import build
+from resireg_train.jobs.train import build
 
 #: The 25M VLM's trained head on a ViT-S/16-sized backbone (random init, no download) at a
 #: reduced crop and batch, so a CPU step costs about what a real step costs on a GPU.

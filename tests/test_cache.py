@@ -45,11 +45,11 @@ class _Counting:
 
 def test_cache_returns_exactly_the_encoders_outputs(tmp_path, model):
     dataset, cache = _cache(tmp_path, model, shard_images=4)
-    task = OVSSEngine(dataset, batch_size=2)
-    task.run(model, build_variants(["bb"]), cache=cache)
+    engine = OVSSEngine(dataset, batch_size=2)
+    engine.run(model, build_variants(["bb"]), cache=cache)
     assert len(cache) == len(dataset) and cache.bytes_written == cache.disk_bytes() > 0
     reread = FeatureCache(tmp_path, cache.key, dataset.describe)  # a later job: from disk
-    for batch in task.loader():
+    for batch in engine.loader():
         expected = model.encode(model.input_rule.normalize(batch["image"]))
         got = reread.get(batch["index"])
         assert torch.equal(got.intermediates, expected.intermediates)
@@ -60,13 +60,13 @@ def test_cache_returns_exactly_the_encoders_outputs(tmp_path, model):
 def test_cached_pass_scores_identically_without_encoding(tmp_path, model, monkeypatch):
     dataset, cache = _cache(tmp_path, model)
     names = ["bb", "lite", "full@n_prototypes:6"]
-    task = OVSSEngine(dataset, batch_size=3)
-    plain = task.run(model, build_variants(names))
-    task.run(model, build_variants(names), cache=cache)  # fills
+    engine = OVSSEngine(dataset, batch_size=3)
+    plain = engine.run(model, build_variants(names))
+    engine.run(model, build_variants(names), cache=cache)  # fills
     counter = _Counting(model)
     monkeypatch.setattr(model, "encode", counter)
     timer = StageTimer()
-    again = task.run(model, build_variants(names), timer=timer, cache=FeatureCache(
+    again = engine.run(model, build_variants(names), timer=timer, cache=FeatureCache(
         tmp_path, cache.key, dataset.describe))  # fmt: skip
     assert counter.calls == 0 and "encoder" not in timer.seconds and "cache" in timer.seconds
     for name in names:
@@ -92,28 +92,28 @@ def test_any_change_of_weights_resolution_or_precision_is_a_new_key(tmp_path, mo
 
 def test_new_weights_read_their_own_outputs_not_stale_ones(tmp_path, model):
     dataset, cache = _cache(tmp_path, model)
-    task = OVSSEngine(dataset, batch_size=2)
-    task.run(model, build_variants(["bb"]), cache=cache)
+    engine = OVSSEngine(dataset, batch_size=2)
+    engine.run(model, build_variants(["bb"]), cache=cache)
     changed = ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()  # other weights
     _, fresh = _cache(tmp_path, changed)
     assert len(fresh) == 0 and fresh.get([0]) is None
-    task.run(changed, build_variants(["bb"]), cache=fresh)
-    batch = next(iter(task.loader()))
+    engine.run(changed, build_variants(["bb"]), cache=fresh)
+    batch = next(iter(engine.loader()))
     expected = changed.encode(changed.input_rule.normalize(batch["image"]))
     assert torch.equal(fresh.get(batch["index"]).language, expected.language)
 
 
 def test_partial_cache_encodes_only_what_is_missing(tmp_path, model, monkeypatch):
     dataset, cache = _cache(tmp_path, model, shard_images=2)
-    task = OVSSEngine(dataset, batch_size=2)
-    first = next(iter(task.loader()))  # an interrupted job: one batch stored
+    engine = OVSSEngine(dataset, batch_size=2)
+    first = next(iter(engine.loader()))  # an interrupted job: one batch stored
     cache.put(first["index"], model.encode(model.input_rule.normalize(first["image"])))
     assert len(FeatureCache(tmp_path, cache.key, dataset.describe)) == 2
     (cache.folder / "shard-broken.json").write_text("{not json")  # a torn listing is ignored
     counter = _Counting(model)
     monkeypatch.setattr(model, "encode", counter)
     resumed = FeatureCache(tmp_path, cache.key, dataset.describe)
-    task.run(model, build_variants(["bb"]), cache=resumed)
+    engine.run(model, build_variants(["bb"]), cache=resumed)
     assert counter.calls == len(dataset) // 2 - 1 and resumed.hits == 1
 
 
@@ -193,7 +193,7 @@ def test_a_non_finite_batch_is_skipped_and_never_cached(tmp_path, model, monkeyp
     cache stores the other batches only, and a later job reading the cache re-encodes just
     that batch (a clean encoder then scores it)."""
     dataset, cache = _cache(tmp_path, model)
-    task = OVSSEngine(dataset, batch_size=2)
+    engine = OVSSEngine(dataset, batch_size=2)
     poisoned = dataset.batches(2)[1]
     real, calls = model.encode, []
 
@@ -205,7 +205,7 @@ def test_a_non_finite_batch_is_skipped_and_never_cached(tmp_path, model, monkeyp
         return out
 
     monkeypatch.setattr(model, "encode", encode)
-    result = task.run(model, build_variants(["bb"]), cache=cache)
+    result = engine.run(model, build_variants(["bb"]), cache=cache)
     monkeypatch.undo()
     assert [s.file for s in result.skipped_samples] == [dataset.describe(i) for i in poisoned]
     assert result.images == len(dataset) - len(poisoned)
@@ -213,5 +213,5 @@ def test_a_non_finite_batch_is_skipped_and_never_cached(tmp_path, model, monkeyp
     assert len(reread) == len(dataset) - len(poisoned) and reread.get(poisoned) is None
     counting = _Counting(model)
     monkeypatch.setattr(model, "encode", counting)
-    again = task.run(model, build_variants(["bb"]), cache=reread)
+    again = engine.run(model, build_variants(["bb"]), cache=reread)
     assert counting.calls == 1 and again.skipped == 0 and again.images == len(dataset)

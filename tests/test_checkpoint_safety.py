@@ -17,7 +17,8 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.cli.train import build, train
+from resireg_train.cli.train import train
+from resireg_train.jobs.train import build
 from resireg_train.training.checkpoints import (
     AtomicCheckpointIO,
     CheckpointError,

@@ -26,7 +26,7 @@ def _hold(folder):
     code = textwrap.dedent(f"""
         import sys
         from pathlib import Path
-        from resireg_train.cli.job import hold_run_folder
+        from resireg_train.jobs.run_folder import hold_run_folder
         hold_run_folder(Path({str(folder)!r}))
         print("held", flush=True)
         sys.stdin.read()
@@ -275,7 +275,7 @@ def test_resireg_map_prints_its_summary_once(tmp_path, tiny_export):
 
 
 def test_wandb_logger_does_not_warn_about_the_anonymous_setting(tmp_path):
-    """An offline W&B run made by conf/logger/wandb.yaml's factory: no warning about a setting
+    """An offline W&B run made by conf/tracker/wandb.yaml's factory: no warning about a setting
     the user never gave."""
     pytest.importorskip("wandb")
     code = textwrap.dedent(f"""

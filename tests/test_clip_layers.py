@@ -23,8 +23,8 @@ from resireg.models import ResiregVLM
 from resireg.models.zoo.clip import ClipEncoder
 from resireg.ovss import TEMPLATES
 from resireg.specs.variants import parse_variant, variant_layer
+from resireg_train.checks.eval import validate_eval
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.eval import validate_eval
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.evaluation.cache import FeatureCache

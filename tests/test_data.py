@@ -13,7 +13,8 @@ import torch
 from PIL import Image
 
 from resireg.models import WeightsUnavailableError
-from resireg_train.data.captions import CaptionDataModule, mix_caption_sources, open_caption_source
+from resireg_train.data.caption_sources import mix_caption_sources, open_caption_source
+from resireg_train.data.captions import CaptionDataModule
 
 
 def _png(h=40, w=48, value=0):

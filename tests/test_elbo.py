@@ -234,7 +234,7 @@ def test_ablation_report_places_the_elbo_count_beside_the_heuristic(tmp_path):
     import math
 
     from resireg_train.report.jobs import Job
-    from resireg_train.report.prototypes import elbo_table, fit_heuristic, prototype_grid
+    from resireg_train.report.prototype_batch import elbo_table, fit_heuristic, prototype_grid
 
     metric = "val/ovss/synthetic/miou_full"
     variants = ["full@n_prototypes:4", "full@n_prototypes:8", "full@n_prototypes:elbo"]

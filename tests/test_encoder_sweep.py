@@ -14,8 +14,8 @@ from _run import report, run
 from resireg.errors import ConfigError
 from resireg.models import ENCODERS, build_encoder
 from resireg.specs.encoders import ENCODER_SPECS
+from resireg_train.checks.eval import sweep_config_errors, validate_eval
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.eval import sweep_config_errors, validate_eval
 
 TEST_CONF = Path(__file__).parent / "conf"
 

@@ -71,8 +71,8 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg.method.checks import NonFiniteError
     from resireg.models.hub import WeightsUnavailableError
     from resireg.specs.table import UnknownNameError
-    from resireg_train.cli.job import RunFolderBusy
     from resireg_train.evaluation.base import NothingScoredError
+    from resireg_train.jobs.run_folder import RunFolderBusy
     from resireg_train.playground.core import PlaygroundError
     from resireg_train.sweeps.journal import JournalError
     from resireg_train.sweeps.loop import SearchError
@@ -243,8 +243,8 @@ def test_a_wrapping_library_function_names_its_own_argument():
 
 
 def test_the_cli_error_text_carries_the_notes():
-    from resireg_train.cli.job import error_text
     from resireg_train.config.errors import error_message
+    from resireg_train.jobs.console import error_text
 
     err = RuntimeError("CUDA error: out of memory")
     err.__notes__ = ["config: encoder"]

@@ -24,28 +24,28 @@ def vlm():
     return ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).eval()
 
 
-def _task(batch_size=4):
+def _engine(batch_size=4):
     return OVSSEngine(build_segmentation_set(SPEC, patch_size=16), batch_size=batch_size)
 
 
 def test_prototypes_embed_prompts_once_and_apply_the_current_projection(vlm):
-    task = _task()
+    engine = _engine()
     calls = []
     handle = vlm.text.tower.register_forward_hook(lambda m, i, o: calls.append(o.shape[0]))
     try:
-        first = task.prototypes(vlm)
-        again = task.prototypes(vlm)
+        first = engine.prototypes(vlm)
+        again = engine.prototypes(vlm)
         # The reference path: every prompt through encode_text (tower + projection + half).
         reference = text_prototypes(vlm.encode_text, SYNTHETIC_CLASSES)
         n_reference_calls = len(calls) - 1
         with torch.no_grad():
             vlm.text_proj.weight.mul_(-1.0)  # a different projection, as after a training step
-        flipped = task.prototypes(vlm)
+        flipped = engine.prototypes(vlm)
         with torch.no_grad():
             vlm.text_proj.weight.mul_(-1.0)
     finally:
         handle.remove()
-    assert calls[0] == len(SYNTHETIC_CLASSES) * 80 and task.tower_calls == 1
+    assert calls[0] == len(SYNTHETIC_CLASSES) * 80 and engine.tower_calls == 1
     assert len(calls) == 1 + n_reference_calls  # later prototype calls ran no tower
     torch.testing.assert_close(first, again, rtol=0, atol=0)
     torch.testing.assert_close(first, reference, rtol=1e-5, atol=1e-6)
@@ -54,13 +54,13 @@ def test_prototypes_embed_prompts_once_and_apply_the_current_projection(vlm):
 
 def test_scores_match_an_independent_per_image_computation(vlm):
     """Confusion of the engine == sklearn's over encode_image + predict image by image."""
-    task = _task(batch_size=3)
+    engine = _engine(batch_size=3)
     variants = build_variants(["bb", "lite", "full"], {"lite": {"alpha": 10.0}, "full": FULL})
-    result = task.run(vlm, variants)
+    result = engine.run(vlm, variants)
     assert result.images == 10 and result.skipped == 0
     assert result.batch_sizes == {1: 1, 3: 3}
-    protos = task.prototypes(vlm)
-    ds = task.dataset
+    protos = engine.prototypes(vlm)
+    ds = engine.dataset
     scores = result.scores()
     assert set(scores) == {f"val/ovss/synthetic/{m}_{v}" for m in ("miou", "fmiou")
                            for v in ("bb", "lite", "full")}  # fmt: skip
@@ -90,8 +90,8 @@ def test_scores_match_an_independent_per_image_computation(vlm):
 
 def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):
     variants = build_variants(["bb", "full"], {"full": FULL})
-    single = _task().run(vlm, variants)
-    shards = [_task().run(vlm, variants, rank=r, world_size=3) for r in range(3)]
+    single = _engine().run(vlm, variants)
+    shards = [_engine().run(vlm, variants, rank=r, world_size=3) for r in range(3)]
     assert sum(s.images for s in shards) == single.images == 10
 
     # What trainer.strategy.reduce(t, "sum") returns on every rank: the sum of the packs.
@@ -112,9 +112,9 @@ def test_bf16_pass_agrees_with_fp32_and_timer_splits_the_cost(vlm):
     stated tolerance of the fp32 protocol: at most 10% of pixels move between confusion
     cells and mIoU moves by at most 0.05."""
     variants = build_variants(["bb", "full"], {"full": FULL})
-    fp32 = _task().run(vlm, variants)
+    fp32 = _engine().run(vlm, variants)
     timer = StageTimer()
-    bf16 = _task().run(vlm, variants, precision="bf16", timer=timer)
+    bf16 = _engine().run(vlm, variants, precision="bf16", timer=timer)
     for name in variants:
         a, b = fp32.metrics[name].confusion, bf16.metrics[name].confusion
         moved = (a - b).abs().sum().item() / 2 / a.sum().item()
@@ -129,7 +129,7 @@ def test_bf16_pass_agrees_with_fp32_and_timer_splits_the_cost(vlm):
         "metric",
     } <= set(timer.seconds)
     with pytest.raises(ValueError, match="precision='fp8'"):
-        _task().run(vlm, build_variants(["bb"]), precision="fp8")
+        _engine().run(vlm, build_variants(["bb"]), precision="fp8")
 
 
 def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scores(
@@ -146,8 +146,8 @@ def test_callback_reduces_on_the_modules_device_and_logs_the_single_process_scor
                            full=FULL)  # fmt: skip
     module = SimpleNamespace(vlm=vlm, device=torch.device("meta"))
     callback.setup(None, module, "fit")
-    (task,) = callback.tasks.values()
-    single = task.run(vlm, callback.variants)
+    (engine,) = callback.engines.values()
+    single = engine.run(vlm, callback.variants)
     packed = []
     single.reduce(lambda t: packed.append(t) or t, lambda o: [o], torch.device("cpu"))
 
@@ -175,7 +175,7 @@ def test_variant_names_and_modes_are_checked(vlm):
     with pytest.raises(ValueError, match="n_prototypes"):
         build_variants(["full"], {"full": {"n_prototypes": 0}})
     vlm.head.train()
-    _task().run(vlm, build_variants(["bb"]))
+    _engine().run(vlm, build_variants(["bb"]))
     assert vlm.head.training and not vlm.backbone.training  # modes restored after the pass
     vlm.eval()
 
@@ -185,10 +185,10 @@ def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tm
 
     _ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
     spec = dataset_conf("ade20k", path=str(tmp_path / "ade"), short_side=32)
-    task = OVSSEngine(build_segmentation_set(spec, patch_size=16), batch_size=2)
-    single = task.run(vlm, build_variants(["bb"]))
+    engine = OVSSEngine(build_segmentation_set(spec, patch_size=16), batch_size=2)
+    single = engine.run(vlm, build_variants(["bb"]))
     assert (single.images, single.skipped) == (3, 1)
-    shards = [task.run(vlm, build_variants(["bb"]), rank=r, world_size=2) for r in range(2)]
+    shards = [engine.run(vlm, build_variants(["bb"]), rank=r, world_size=2) for r in range(2)]
     assert sum(s.skipped for s in shards) == 1 and sum(s.images for s in shards) == 3
 
 
@@ -220,7 +220,7 @@ def test_many_configurations_in_one_pass_equal_separate_runs(vlm):
     calls = []
     handle = vlm.head.register_forward_hook(lambda m, i, o: calls.append(1))
     try:
-        together = _task(batch_size=3).run(vlm, build_variants(names, params))
+        together = _engine(batch_size=3).run(vlm, build_variants(names, params))
     finally:
         handle.remove()
     assert len(calls) == 4  # 10 images in batches of 3: one head pass per batch
@@ -231,7 +231,7 @@ def test_many_configurations_in_one_pass_equal_separate_runs(vlm):
         "lite@upscale:1": ("lite", {"alpha": 10.0, "upscale": 1}),
     }
     for name, (variant, kwargs) in separate.items():
-        alone = _task(batch_size=3).run(vlm, {variant: build_variant(variant, **kwargs)})
+        alone = _engine(batch_size=3).run(vlm, {variant: build_variant(variant, **kwargs)})
         assert torch.equal(together.metrics[name].confusion, alone.metrics[variant].confusion), name
     assert "val/ovss/synthetic/miou_full@n_prototypes:4" in together.scores()
     with pytest.raises(ValueError, match=r"expected <variant>@<key>:<value>"):
@@ -281,9 +281,9 @@ def test_a_missing_dataset_or_prior_model_fails_before_the_encoder_loads(
 
 
 def test_too_many_prototypes_for_a_batch_name_the_variant_and_the_batch_of_images():
-    task = _task(batch_size=4)  # 10 images of 48 x 64 px (3 x 4 patches): batches 4, 4, 2
+    engine = _engine(batch_size=4)  # 10 images of 48 x 64 px (3 x 4 patches): batches 4, 4, 2
     with pytest.raises(ValueError) as err:
-        task.check_variants(build_variants(["full@n_prototypes:97"]), "variants")
+        engine.check_variants(build_variants(["full@n_prototypes:97"]), "variants")
     assert str(err.value) == (
         "variants.full@n_prototypes:97: n_prototypes=97 exceeds the number of points N=96 "
         "(B*Hv*s*Wv*s for B=2 intermediates of 3 x 4, upscale=2); dataset 'synthetic' with "
@@ -317,21 +317,21 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_scored(
     the scores are those of the other batches alone (sklearn's confusion over
     encode_image + predict, image by image). Before the check, Full's whole batch scored
     NaN features as class 0 and a NaN in the intermediates failed the run."""
-    from resireg_train.evaluation.ovss.task import OVSSProtocol
+    from resireg_train.evaluation.ovss.task import OVSSTask
 
-    task = _task(batch_size=3)
-    batches = task.dataset.batches(3)
+    engine = _engine(batch_size=3)
+    batches = engine.dataset.batches(3)
     _poison_call(monkeypatch, vlm, 1, field)
     variants = build_variants(["bb", "full"], {"full": FULL})
-    result = task.run(vlm, variants)
+    result = engine.run(vlm, variants)
     monkeypatch.undo()
     poisoned = batches[1]
     assert result.images == 10 - len(poisoned) and result.batch_sizes == {1: 1, 3: 2}
-    ds = task.dataset
+    ds = engine.dataset
     assert [s.file for s in result.skipped_samples] == [ds.describe(i) for i in poisoned]
     for s in result.skipped_samples:
         assert s.reason.startswith(f"encoder output {field} holds 1 non-finite value")
-    protos = task.prototypes(vlm)
+    protos = engine.prototypes(vlm)
     for name, kwargs in (("bb", {}), ("full", FULL)):
         expected = np.zeros((8, 8), dtype=np.int64)
         for batch in batches:
@@ -344,10 +344,10 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_scored(
                 pred = predict(dense[j : j + 1], protos, tuple(label.shape))
                 expected += confusion_matrix(label.flatten(), pred.flatten(), labels=range(8))
         assert np.array_equal(result.metrics[name].confusion.numpy(), expected), name
-    protocol = OVSSProtocol.__new__(OVSSProtocol)  # results() reads only its cache
-    protocol.cache = None
+    task = OVSSTask.__new__(OVSSTask)  # results() reads only its cache
+    task.cache = None
     with caplog.at_level("WARNING"):
-        record = protocol.results(result)
+        record = task.results(result)
     assert record["skipped"] == 3 and record["batch_sizes"] == {"1": 1, "3": 2}
     assert [s["file"] for s in record["skipped_samples"]] == [ds.describe(i) for i in poisoned]
     assert f"skipped 3 of 10 images ({ds.describe(poisoned[0])}: encoder output" in caplog.text

@@ -314,9 +314,9 @@ def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatc
     from hydra import compose, initialize_config_dir
 
     from resireg.errors import ConfigError
+    from resireg_train.checks.train import validate
     from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.config.machine import check_devices
-    from resireg_train.config.train import validate
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         stage1 = compose("train", overrides=["experiment=vlm25m_stage1", "model.text.weights=null"])
@@ -344,9 +344,9 @@ def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatc
 def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.eval import with_export_settings
     from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.evaluation.ovss.settings import save_settings
+    from resireg_train.jobs.eval import with_export_settings
 
     save_settings(tmp_path, {"variants": ["bb", "full"], "batch_size": 2, "precision": "32",
                              "full": {"n_prototypes": 12, "alpha": 5.0}, "lite": {}})  # fmt: skip
@@ -371,8 +371,9 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
     gives the counts and the first file, and results.json still names every skipped one."""
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.eval import NothingScoredError, evaluate
+    from resireg_train.cli.eval import evaluate
     from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.evaluation.base import NothingScoredError
 
     bad = poisoned_ade_folder(tmp_path / "ade")
     for sub in ("images", "annotations"):

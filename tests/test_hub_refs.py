@@ -21,7 +21,8 @@ from _fake_hubs import dinotxt_repo, dinov2_repo, offline_hub, radio_repo, radse
 from resireg.models.hub import PINNED_REFS, check_hub_ref, hub_target
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DinoTxtEncoder
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS
-from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadioEncoder, RadSegEncoder
+from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadioEncoder
+from resireg.models.zoo.radseg import RadSegEncoder
 from resireg_train.cli.job import CONFIG_DIR
 
 SHA = re.compile(r"^[0-9a-f]{40}$")

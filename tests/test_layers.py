@@ -33,8 +33,9 @@ def test_every_import_contract_is_kept():
 
 def test_the_layer_contract_sees_an_upward_import(tmp_path):
     """The check can fail: a copy of the packages where the ground floor imports the method,
-    the library imports the training package, and the run records import the evaluation (inside
-    a function: counted too), breaks the three contracts, each naming the import."""
+    the library imports the training package, the run records import the evaluation and the
+    config ground imports a command's check (inside functions: counted too), breaks the three
+    contracts, each naming the import."""
     src = tmp_path / "src"
     for package in ("resireg", "resireg_train"):
         shutil.copytree(ROOT / "src" / package, src / package,
@@ -46,10 +47,15 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
     record = src / "resireg_train" / "runs" / "record.py"
     record.write_text(record.read_text() + "\n\ndef _engine():\n"
                       "    from resireg_train.evaluation import engine\n\n    return engine\n")  # fmt: skip
+    # the ground (config/) reaching up into a command's check: config is the bottom floor
+    moves = src / "resireg_train" / "config" / "moves.py"
+    moves.write_text(moves.read_text() + "\n\ndef _check():\n"
+                     "    from resireg_train.checks import train\n\n    return train\n")  # fmt: skip
     shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
     out = _lint(src, tmp_path / "pyproject.toml")
     assert out.returncode == 1
     assert "Contracts: 0 kept, 3 broken." in out.stdout
+    assert "resireg_train.config.moves -> resireg_train.checks.train" in out.stdout
     assert "resireg_train.runs.record -> resireg_train.evaluation.engine" in out.stdout
     assert "resireg.specs.rules -> resireg.method.full" in out.stdout
     assert "resireg.method.checks -> resireg_train.runs.record" in out.stdout

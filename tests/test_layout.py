@@ -1,8 +1,9 @@
 """The layout by role stays as docs/architecture.md draws it: ``resireg_train``'s top level holds
 packages only, every package's docstring says what may import it, the architecture page stays
 short and names every package, every package of ``resireg_train`` has its floor in the import
-contract, and no module imports itself back through others (imports inside functions
-counted)."""
+contract, no module imports itself back through others (imports inside functions
+counted), every component table is a ``<THING>_SPECS`` of a ``specs`` module, and every module
+over 500 lines says why it is one idea."""
 
 from __future__ import annotations
 
@@ -50,10 +51,19 @@ def test_the_training_package_holds_packages_only():
     assert top == ["__init__.py"], top
 
 
+#: Packages created by two branches at once (issue 52), whose ``__init__`` is one fixed line so
+#: that they merge: what may import them is their floor in the import contract alone
+#: (``test_every_training_package_has_its_floor_in_the_import_contract``).
+ONE_LINE_INITS = ("resireg_train.checks", "resireg_train.jobs")
+
+
 @pytest.mark.parametrize("package", _packages())
 def test_every_package_says_what_lives_there_and_what_may_import_it(package):
     path = SRC.joinpath(*package.split(".")) / "__init__.py"
     doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
+    if package in ONE_LINE_INITS:
+        assert path.read_text(encoding="utf-8").count("\n") == 1, f"{package}: one line"
+        return
     assert len(doc.split()) >= 15, f"{package}: its docstring says too little: {doc!r}"
     assert "imported by" in doc.lower(), f"{package}: its docstring names no importer"
 
@@ -69,8 +79,8 @@ def test_the_architecture_page_is_short_and_names_every_package():
 
 
 def test_every_training_package_has_its_floor_in_the_import_contract():
-    """A new package of resireg_train (or module of its config/) is placed in the layers of
-    ``[tool.importlinter]``, or lint-imports would not check it."""
+    """A new package of resireg_train is placed in the layers of ``[tool.importlinter]``, or
+    lint-imports would not check it; ``config`` (the ground) is one layer, the bottom one."""
     config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     contracts = config["tool"]["importlinter"]["contracts"]
     (layers,) = [
@@ -78,10 +88,9 @@ def test_every_training_package_has_its_floor_in_the_import_contract():
     ]
     placed = {m.strip() for layer in layers for m in re.split(r"[|:]", layer)}
     top = {f"resireg_train.{p.name}" for p in (SRC / "resireg_train").iterdir()
-           if (p / "__init__.py").is_file()} - {"resireg_train.config"}  # fmt: skip
-    config_modules = {f"resireg_train.config.{p.stem}" for p in (SRC / "resireg_train" / "config").glob("*.py")
-                      if p.stem != "__init__"}  # fmt: skip
-    assert top | config_modules <= placed, sorted((top | config_modules) - placed)
+           if (p / "__init__.py").is_file()}  # fmt: skip
+    assert top <= placed, sorted(top - placed)
+    assert layers[-1] == "resireg_train.config", layers[-1]
 
 
 def _imports(modules: dict[str, Path]) -> dict[str, set[str]]:
@@ -170,3 +179,156 @@ def test_the_circle_check_finds_a_circle_through_a_function(tmp_path):
     (pkg / "e.py").write_text("from pkg import a\n")
     circles = _circles(_imports(_modules(tmp_path)))
     assert sorted(circles) == [["pkg.a", "pkg.b"], ["pkg.c", "pkg.sub"]]
+
+
+# ------------------------------------------------------------------ one naming pattern for tables
+#: A component table is a ``SpecTable`` named ``<THING>_SPECS`` in a module named ``specs.py``
+#: or in a ``specs`` package (``resireg/specs/``) (docs/architecture.md#spec-tables), so one search finds them all.
+_TABLE_NAME = re.compile(r"[A-Z][A-Z0-9]*(_[A-Z0-9]+)*_SPECS")
+#: Tables another engineer of issue 52 moves into the pattern (H4: the trackers' table to
+#: ``record/trackers/specs.py``); the integrator empties this set when the branches merge.
+KNOWN_PENDING_TABLES = {"resireg_train.runs.trackers.TRACKER_SPECS"}
+
+
+def _names_spec_table(node: ast.expr | None) -> bool:
+    """``SpecTable``, ``x.SpecTable`` or ``SpecTable[...]`` (a call's callee or an annotation)."""
+    if isinstance(node, ast.Subscript):
+        node = node.value
+    return (isinstance(node, ast.Name) and node.id == "SpecTable") or (
+        isinstance(node, ast.Attribute) and node.attr == "SpecTable"
+    )
+
+
+def _spec_tables(src: Path = SRC) -> dict[str, list[str]]:
+    """``module -> the names it binds, at module level, to a SpecTable``: assigned a
+    ``SpecTable(...)`` call or annotated ``SpecTable[...]``."""
+    found: dict[str, list[str]] = {}
+    for module, path in _modules(src).items():
+        text = path.read_text(encoding="utf-8")
+        if "SpecTable" not in text:
+            continue
+        for node in ast.parse(text).body:
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                targets, value, note = [node.target], node.value, node.annotation
+            elif isinstance(node, ast.Assign):
+                targets, value, note = node.targets, node.value, None
+            else:
+                continue
+            call = isinstance(value, ast.Call) and _names_spec_table(value.func)
+            if call or _names_spec_table(note):
+                found.setdefault(module, []).extend(
+                    t.id for t in targets if isinstance(t, ast.Name)
+                )
+    return found
+
+
+def _table_problems(tables: dict[str, list[str]]) -> list[str]:
+    """``module.NAME`` of every table off the pattern (its name or its module)."""
+    return sorted(
+        f"{module}.{name}"
+        for module, names in tables.items()
+        for name in names
+        if not _TABLE_NAME.fullmatch(name)
+        or "specs" not in module.split(".")  # specs.py, or a module of a specs package
+    )
+
+
+def test_every_component_table_is_a_spec_table_named_specs_in_a_specs_module():
+    """Issue 52 item 4: every SpecTable of both packages (found by an AST scan of src/, then
+    imported) is a ``<THING>_SPECS`` of a ``specs`` module; a table named otherwise fails."""
+    import importlib
+
+    from resireg.specs.table import SpecTable
+
+    tables = _spec_tables()
+    flat = {f"{m}.{n}" for m, names in tables.items() for n in names}
+    assert {  # the scan finds the tables of both packages (it is not vacuous)
+        "resireg.specs.encoders.ENCODER_SPECS", "resireg.specs.variants.VARIANT_SPECS",
+        "resireg_train.data.specs.DATASET_SPECS", "resireg_train.evaluation.specs.TASK_SPECS",
+        "resireg_train.training.specs.TEACHER_SPECS", "resireg_train.report.specs.SECTION_SPECS",
+    } <= flat  # fmt: skip
+    for module, names in tables.items():
+        loaded = importlib.import_module(module)
+        for name in names:
+            assert isinstance(getattr(loaded, name), SpecTable), f"{module}.{name}"
+        # a table the scan did not see (built by a helper) is a module-level SpecTable too
+        bound = {n for n, v in vars(loaded).items() if isinstance(v, SpecTable)
+                 and getattr(v, "__module__", module) == module}  # fmt: skip
+        own = {t.id for node in ast.parse(Path(loaded.__file__).read_text(encoding="utf-8")).body
+               for t in getattr(node, "targets", [getattr(node, "target", None)])
+               if isinstance(t, ast.Name)}  # fmt: skip
+        assert bound & own <= set(names), f"{module}: tables {sorted(bound & own - set(names))}"
+    assert sorted(set(_table_problems(tables)) - KNOWN_PENDING_TABLES) == []
+
+
+def test_the_table_check_fails_on_a_table_named_otherwise(tmp_path):
+    """The check can fail: a table under another name, or in a module not named ``specs``, is
+    reported; ``<THING>_SPECS`` in ``specs.py`` (plain or annotated) is not."""
+    pkg = tmp_path / "pkg"
+    (pkg / "specs").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "specs" / "__init__.py").write_text("")
+    (pkg / "sections.py").write_text(
+        "from t import SpecTable\nREPORT_SECTIONS = SpecTable('s', [])\n"
+    )
+    (pkg / "report.py").write_text("import t\nSECTION_SPECS = t.SpecTable('s', [])\n")
+    (pkg / "specs" / "text.py").write_text("sections: SpecTable[int] = make()\n")
+    (pkg / "specs" / "good.py").write_text("GOOD_SPECS: SpecTable[int] = SpecTable('g', [])\n")
+    (pkg / "specs.py").write_text("OTHER_SPECS = SpecTable('o', [])\nNOT_A_TABLE = dict()\n")
+    tables = _spec_tables(tmp_path)
+    assert tables == {"pkg.sections": ["REPORT_SECTIONS"], "pkg.report": ["SECTION_SPECS"],
+                      "pkg.specs.text": ["sections"], "pkg.specs.good": ["GOOD_SPECS"],
+                      "pkg.specs": ["OTHER_SPECS"]}  # fmt: skip
+    problems = _table_problems(tables)
+    assert problems == ["pkg.report.SECTION_SPECS", "pkg.sections.REPORT_SECTIONS",
+                        "pkg.specs.text.sections"]  # fmt: skip
+
+
+# ------------------------------------------------------------------ files of one idea
+#: A module longer than this says in its docstring, in a paragraph starting ``One idea:``, why
+#: it is one idea (issue 52 item 5).
+LONG_MODULE = 500
+#: Long modules the other engineers of issue 52 split or explain on their branches (H1: the
+#: map; H2: the node; H3: the job wrapper; H4: the run record and the run tools). The
+#: integrator empties this set when the branches merge; a new long module is never in it.
+KNOWN_PENDING = {
+    "resireg.mapping.compact", "resireg.mapping.semantic_map", "resireg.mapping.voxels",
+    "resireg.ros2.node", "resireg.ros2.pipeline",
+    "resireg_train.cli.job",
+    "resireg_train.replay.rerun", "resireg_train.runs.loggers", "resireg_train.runs.provenance",
+    "resireg_train.runs.record",
+}  # fmt: skip
+
+
+def _says_one_idea(doc: str) -> bool:
+    """A paragraph of ``doc`` (blank-line separated) starts with ``One idea:``."""
+    return any(p.strip().startswith("One idea:") for p in re.split(r"\n[ \t]*\n", doc))
+
+
+def _long_without_reason(src: Path = SRC) -> list[str]:
+    """The modules over :data:`LONG_MODULE` lines whose docstring has no ``One idea:`` paragraph."""
+    out = []
+    for module, path in _modules(src).items():
+        text = path.read_text(encoding="utf-8")
+        if len(text.splitlines()) > LONG_MODULE:
+            if not _says_one_idea(ast.get_docstring(ast.parse(text)) or ""):
+                out.append(module)
+    return sorted(out)
+
+
+def test_every_long_module_says_why_it_is_one_idea():
+    assert sorted(set(_long_without_reason()) - KNOWN_PENDING) == []
+
+
+def test_the_long_module_check_fails_on_a_new_long_module(tmp_path):
+    """The check can fail: a module of 501 lines without the paragraph (or with the words
+    inside another paragraph) is reported; 500 lines, or the paragraph, pass."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    body = "x = 1\n"
+    (pkg / "__init__.py").write_text("")
+    (pkg / "bare.py").write_text('"""Several things."""\n' + body * 500)  # 501 lines
+    (pkg / "inline.py").write_text('"""Several things. One idea: no."""\n' + body * 500)
+    (pkg / "short.py").write_text('"""Several things."""\n' + body * 499)  # 500 lines
+    (pkg / "said.py").write_text('"""Sums.\n\nOne idea: the sums, written once."""\n' + body * 500)
+    assert _long_without_reason(tmp_path) == ["pkg.bare", "pkg.inline"]

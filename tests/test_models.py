@@ -300,7 +300,7 @@ def _hub_load_forbidden(*args, **kwargs):
 
 
 def test_radseg_teacher_gets_radsegs_offline_checks(tmp_path, monkeypatch):
-    """The teacher loads through the one RADSeg loader (resireg.models.zoo.radio.load_radseg):
+    """The teacher loads through the one RADSeg loader (resireg.models.zoo.radseg.load_radseg):
     with a local RADSeg clone but RADIO's code (which RADSeg torch.hub.loads itself) or its
     checkpoint neither cached nor reachable, it fails at once, before torch.hub.load."""
     repo = radseg_repo(tmp_path / "RADSeg")
@@ -325,7 +325,8 @@ def test_radseg_teacher_is_radsegs_language_map(tmp_path, monkeypatch):
     import torch.nn.functional as F
     from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 
-    from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadSegEncoder
+    from resireg.models.zoo.radio import RADIO_CHECKPOINTS
+    from resireg.models.zoo.radseg import RadSegEncoder
 
     offline_hub(monkeypatch, tmp_path / "hub", RADIO_CHECKPOINTS.values(), radio_code=True)
     repo = radseg_repo(tmp_path / "RADSeg")

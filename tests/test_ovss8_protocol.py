@@ -22,8 +22,8 @@ from PIL import Image
 from resireg.method.variants import build_variants
 from resireg.models import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import SegmentationMetric
-from resireg_train.data.seg_protocol import SegmentationProtocol, protocol_conf, rescaled_size
 from resireg_train.data.segmentation import SegmentationSet
+from resireg_train.data.windows import WindowRules, rescaled_size, window_rules
 from resireg_train.evaluation.ovss.engine import OVSSEngine
 from resireg_train.evaluation.ovss.slide import (
     classify,
@@ -43,14 +43,14 @@ def test_resize_is_mmcvs_keep_ratio_rescale_with_the_longer_side_capped():
     assert rescaled_size((100, 1000), 336, 2048) == (205, 2048)  # capped: 2.048 -> 204.8 -> 205
     assert rescaled_size((1024, 2048), 560, 2048) == (560, 1120)  # Cityscapes
     assert rescaled_size((7, 9), None, None) == (7, 9)
-    ovss8, paper = protocol_conf("ovss8"), protocol_conf("paper")
+    ovss8, paper = window_rules("ovss8"), window_rules("paper")
     assert ovss8.resized_size((333, 500), 336, 16) == (336, 505)  # windows: any size
     # the whole image: sides rounded to the patch, as the paper's rule (patch_grid_size)
     from resireg.models.images import patch_grid_size
 
     for size in ((375, 500), (333, 500), (480, 640), (17, 900)):
         assert paper.resized_size(size, 576, 14) == patch_grid_size(size, 576, 14)
-    capped = SegmentationProtocol(2048, False, None, None, "bilinear", None, None)
+    capped = WindowRules(2048, False, None, None, "bilinear", None, None)
     assert capped.resized_size((100, 1000), 336, 16) == (208, 2048)  # 204.8 -> 13 patches
 
 
@@ -91,9 +91,9 @@ def test_background_threshold_and_synonyms_by_hand():
 
 
 def test_the_protocols_impossible_combinations_name_their_keys():
-    spec = {**{k: v for k, v in vars(protocol_conf("ovss8")).items() if k != "name"},
+    spec = {**{k: v for k, v in vars(window_rules("ovss8")).items() if k != "name"},
             "protocol": "ovss8"}  # fmt: skip
-    assert SegmentationProtocol.from_spec(spec, patch_size=16).sliding
+    assert WindowRules.from_spec(spec, patch_size=16).sliding
     bad = [({"slide_stride": None}, r"dataset\.slide_crop=224, dataset\.slide_stride=None: set both"),
            ({"slide_stride": 300}, r"dataset\.slide_stride=300: expected at most dataset\.slide_crop=224"),
            ({"upsample": "nearest"}, r"dataset\.upsample='nearest': sliding windows average"),
@@ -104,7 +104,7 @@ def test_the_protocols_impossible_combinations_name_their_keys():
             r"of the encoder's patch size 16")]  # fmt: skip
     for change, message in bad:
         with pytest.raises(ValueError, match=message):
-            SegmentationProtocol.from_spec({**spec, **change}, patch_size=16)
+            WindowRules.from_spec({**spec, **change}, patch_size=16)
 
 
 # -------------------------------------------------- the slide, against mmseg's own loop
@@ -205,10 +205,10 @@ def test_the_engines_slide_equals_mmsegs_slide_inference_and_the_peers_postproce
     VOC configs, ``slide_crop=0``): the whole input's logits, bilinear to the input, then to the
     label (NACLIP's ``forward_feature`` and ``predict``)."""
     scenes = [_scene(s) for s in range(3)]
-    protocol = SegmentationProtocol(None, False, crop, crop and 16, "bilinear", 0.5, 40.0, "ovss8")
+    protocol = WindowRules(None, False, crop, crop and 16, "bilinear", 0.5, 40.0, "ovss8")
     ds = SegmentationSet("colours", [c[0] for c in CLASSES], lambda i: scenes[i],
                          lambda i: (48, 80), 3, short_side=40, patch_size=8,
-                         protocol=protocol, names=CLASSES)  # fmt: skip
+                         windows=protocol, names=CLASSES)  # fmt: skip
     encoder = MeanColour().eval()
     variants = build_variants(["bb"], {})
     engine = OVSSEngine(ds, batch_size=1, num_workers=0)

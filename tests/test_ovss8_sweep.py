@@ -1,6 +1,6 @@
 """`resireg-eval sweep=ovss8` end to end: the eight benchmarks written in their real layouts
 (tests/_ovss8_fixtures.py) under one paths.data_dir, a tiny export scored with BB, Calib, Lite
-and Full on each, every figure in the job's tracker (logger=csv) and in `resireg-report`'s
+and Full on each, every figure in the job's tracker (tracker=csv) and in `resireg-report`'s
 ovss8 table, beside the published peers of conf/paper/ovss8.yaml."""
 
 import csv
@@ -42,7 +42,7 @@ def test_ovss8_sweep_scores_eight_benchmarks_and_reports_them_beside_the_peers(
     data, logs = tmp_path / "datasets", tmp_path / "logs"
     write_all(data)
     run("resireg-eval", "sweep=ovss8", f"model_path={tiny_export}", f"paths.data_dir={data}",
-        f"paths.log_dir={logs}", "num_workers=0", "logger=csv", "full.n_prototypes=4",
+        f"paths.log_dir={logs}", "num_workers=0", "tracker=csv", "full.n_prototypes=4",
         "calib.n_neighbors=3", "dataset.short_side=48", "dataset.slide_crop=32",
         "dataset.slide_stride=16", timeout=900)  # fmt: skip
     (sweep,) = (logs / "ovss8" / "multirun").iterdir()

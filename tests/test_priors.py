@@ -288,7 +288,7 @@ def test_prior_configuration_names():
 
 def test_a_prior_configuration_without_a_prior_is_a_config_error():
     from resireg.errors import ConfigError
-    from resireg_train.config.eval import validate_eval
+    from resireg_train.checks.eval import validate_eval
 
     cfg = {"model_path": "x", "encoder": {"kind": "resireg_vlm", "name": "ours",
            "third_party": False}, "variants": ["full", "full+prior"]}  # fmt: skip
@@ -310,7 +310,7 @@ def test_the_config_check_and_the_provider_reject_a_setting_alike(tiny_sam, name
     """One rule per SAM setting: resireg-eval's config check fails fast with the message the
     provider itself would give (so neither accepts what the other rejects)."""
     from resireg.errors import ConfigError
-    from resireg_train.config.eval import validate_eval
+    from resireg_train.checks.eval import validate_eval
 
     cfg = {"model_path": "x", "encoder": {"kind": "resireg_vlm", "name": "ours",
            "third_party": False}, "variants": ["full+prior"]}  # fmt: skip

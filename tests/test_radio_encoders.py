@@ -25,7 +25,8 @@ from _fake_hubs import radio_repo as _radio_repo
 from _fake_hubs import radseg_repo as _radseg_repo
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
-from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RADIO_REF, RadioEncoder, RadSegEncoder
+from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RADIO_REF, RadioEncoder
+from resireg.models.zoo.radseg import RadSegEncoder
 
 NORM_MEAN, NORM_STD = (0.45, 0.40, 0.35), (0.27, 0.26, 0.28)  # the fake checkpoint's conditioner
 TEXTS = ["a photo of a cat", "the sky", "Grass_field"]

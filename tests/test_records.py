@@ -4,7 +4,7 @@
 - a dirty checkout with planted secrets (an untracked .env and token file, a git-ignored file,
   a tracking URI with a password, an environment variable), a dangling symbolic link, bulk and
   binary untracked files: resireg-train, resireg-eval and resireg-map under umask 077 with
-  logger=mlflow on a real `mlflow server`; no secret in any file of the run folders, the MLflow
+  tracker=mlflow on a real `mlflow server`; no secret in any file of the run folders, the MLflow
   store or the console; every file and folder private; code.diff capped and 0600;
 - code.diff under umask 022 is 0600, binary and secret-looking changes never inlined;
 - an unreachable tracker refuses the run in one line (or, on request, the run completes with
@@ -118,7 +118,7 @@ def test_a_dirty_checkout_with_secrets_leaves_none_in_any_record(
     edited.write_text(edited.read_text() + "\n# a local edit\n")
     env = _env(repo, RESIREG_TEST_TOKEN=SECRETS["environment"])
     uri = f"http://user:{SECRETS['password']}@127.0.0.1:{port}"
-    common = ["logger=mlflow", f"logger.mlflow.tracking_uri={uri}",
+    common = ["tracker=mlflow", f"tracker.mlflow.tracking_uri={uri}",
               "provenance.untracked_content=[*]", "provenance.diff_max_bytes=1048576"]  # fmt: skip
     runs = tmp_path / "runs"
     old = os.umask(0o077)
@@ -153,7 +153,7 @@ def test_a_dirty_checkout_with_secrets_leaves_none_in_any_record(
 
     client = MlflowClient(tracking_uri=f"http://127.0.0.1:{port}")
     tracked = client.get_run(record["tracking"]["mlflow_run_id"])
-    assert tracked.data.params["logger.mlflow.tracking_uri"] == f"http://user:***@127.0.0.1:{port}"
+    assert tracked.data.params["tracker.mlflow.tracking_uri"] == f"http://user:***@127.0.0.1:{port}"
     assert tracked.info.status == "FINISHED"
 
     # untracked files by name, size and SHA-256; the link as a link; never their content
@@ -260,33 +260,33 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
     evaluation = [f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
                   "num_workers=0", "variants=[bb]"]  # fmt: skip
     cases = {
-        "eval": ("resireg-eval", *evaluation, "logger=mlflow"),
+        "eval": ("resireg-eval", *evaluation, "tracker=mlflow"),
         "train": ("resireg-train", "experiment=smoke", "trainer.max_epochs=1",
-                  "data.steps_per_epoch=2", "logger=mlflow"),
+                  "data.steps_per_epoch=2", "tracker=mlflow"),
     }  # fmt: skip
     for name, (script, *args) in cases.items():
         out = tmp_path / name
-        proc = run(script, *args, f"logger.mlflow.tracking_uri={uri}",
-                   "logger.mlflow.check_timeout=2",
+        proc = run(script, *args, f"tracker.mlflow.tracking_uri={uri}",
+                   "tracker.mlflow.check_timeout=2",
                    f"hydra.run.dir={out}", check=False, timeout=120, threads=1)  # fmt: skip
         assert proc.returncode == 1, proc.stderr[-2000:]
         said = [line for line in proc.stderr.splitlines() if "cannot reach" in line]
         assert len(said) == 1 and (f"resireg_train.runs.trackers.TrackerUnreachable: "
-                                   f"logger.mlflow: cannot reach http://user:***@127.0.0.1:"
+                                   f"tracker.mlflow: cannot reach http://user:***@127.0.0.1:"
                                    f"{port} (") in said[0], proc.stderr[-2000:]  # fmt: skip
         assert "Traceback" not in proc.stderr and SECRETS["password"] not in proc.stderr
         record = json.loads((out / "results.json").read_text())
         assert (
-            record["status"] == "failed" and "TrackerUnreachable: logger.mlflow" in record["error"]
+            record["status"] == "failed" and "TrackerUnreachable: tracker.mlflow" in record["error"]
         )
         assert not (out / "checkpoints").exists()  # refused before any work
     # unreachable=warn, in a two-job multirun (its job folders are named after the overrides,
     # escaped by Hydra's sweeper): both complete, and no password in a file, a folder name or
     # the console
     sweep = tmp_path / "warn"
-    proc = run("resireg-eval", "-m", *evaluation, "full.alpha=5,10", "logger=mlflow",
-               f"logger.mlflow.tracking_uri={uri}", "logger.mlflow.unreachable=warn",
-               "logger.mlflow.check_timeout=2", f"hydra.sweep.dir={sweep}", timeout=300,
+    proc = run("resireg-eval", "-m", *evaluation, "full.alpha=5,10", "tracker=mlflow",
+               f"tracker.mlflow.tracking_uri={uri}", "tracker.mlflow.unreachable=warn",
+               "tracker.mlflow.check_timeout=2", f"hydra.sweep.dir={sweep}", timeout=300,
                threads=1)  # fmt: skip
     jobs = sorted(p.parent for p in sweep.glob("*/results.json"))
     assert len(jobs) == 2
@@ -295,7 +295,7 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
         assert record["status"] == "completed" and record["final"]
         assert list(record["tracking"]["unreachable"]) == ["mlflow"]
         assert r"user\:masked@127.0.0.1" in job.name  # (Hydra escapes the ':')
-    assert (proc.stdout + proc.stderr).count("logger.mlflow: cannot reach") == 2
+    assert (proc.stdout + proc.stderr).count("tracker.mlflow: cannot reach") == 2
     assert SECRETS["password"] not in proc.stdout + proc.stderr
     for path in [*sweep.rglob("*"), *_files(sweep)]:
         assert SECRETS["password"] not in str(path)
@@ -304,20 +304,20 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
     env = {**os.environ, "WANDB_BASE_URL": f"http://127.0.0.1:{port}", "WANDB_MODE": "online",
            "WANDB_CONFIG_DIR": str(tmp_path / "wandb"), "WANDB_API_KEY": "x" * 40}  # fmt: skip
     pytest.importorskip("wandb")
-    proc = run("resireg-eval", *evaluation, "logger=wandb", "logger.wandb.check_timeout=2",
+    proc = run("resireg-eval", *evaluation, "tracker=wandb", "tracker.wandb.check_timeout=2",
                f"hydra.run.dir={tmp_path / 'wandb_run'}", check=False, timeout=120, env=env,
                threads=1)  # fmt: skip
     assert proc.returncode == 1
     said = [line for line in proc.stderr.splitlines() if "cannot reach" in line]
-    assert len(said) == 1 and f"TrackerUnreachable: logger.wandb: cannot reach http://127.0.0.1:"\
+    assert len(said) == 1 and f"TrackerUnreachable: tracker.wandb: cannot reach http://127.0.0.1:"\
         f"{port} (" in said[0], proc.stderr[-2000:]  # fmt: skip
     assert json.loads((tmp_path / "wandb_run" / "results.json").read_text())["status"] == "failed"
     # W&B offline beside the unreachable MLflow (left out): W&B's config, its record of the
     # command line and its console capture keep no password either
     env = {**env, "WANDB_MODE": "offline", "WANDB_SILENT": "true"}
     out = tmp_path / "offline"
-    run("resireg-eval", *evaluation, "logger=[wandb,mlflow]", f"logger.mlflow.tracking_uri={uri}",
-        "logger.mlflow.unreachable=warn", "logger.mlflow.check_timeout=2", f"hydra.run.dir={out}",
+    run("resireg-eval", *evaluation, "tracker=[wandb,mlflow]", f"tracker.mlflow.tracking_uri={uri}",
+        "tracker.mlflow.unreachable=warn", "tracker.mlflow.check_timeout=2", f"hydra.run.dir={out}",
         timeout=300, env=env, threads=1)  # fmt: skip
     assert list(out.glob("wandb/offline-run-*/run-*.wandb"))
     for path in _files(out):
@@ -369,7 +369,7 @@ class _Toy:
 
 
 def test_every_tracker_is_one_table_entry_and_one_conf_file(tmp_path):
-    """TRACKER_SPECS names exactly the conf/logger/ files, each a block of its own name whose
+    """TRACKER_SPECS names exactly the conf/tracker/ files, each a block of its own name whose
     own keys pass the entry's rules; an unknown name is refused with the closest; a tracker
     added as a table entry is driven by the record (begin, end with the final record)."""
     from omegaconf import OmegaConf
@@ -378,7 +378,7 @@ def test_every_tracker_is_one_table_entry_and_one_conf_file(tmp_path):
     from resireg_train.runs.record import RunRecord
     from resireg_train.runs.trackers import TRACKER_SPECS, Tracker, TrackerSpec
 
-    files = sorted(p.stem for p in (ROOT / "conf" / "logger").glob("*.yaml"))
+    files = sorted(p.stem for p in (ROOT / "conf" / "tracker").glob("*.yaml"))
     assert sorted(TRACKER_SPECS.names()) == files == ["csv", "mlflow", "tensorboard", "wandb"]
     for name, spec in TRACKER_SPECS.items():
         block = yaml.safe_load((ROOT / spec.config).read_text())
@@ -401,19 +401,19 @@ def test_every_tracker_is_one_table_entry_and_one_conf_file(tmp_path):
     rules = {"colour": (lambda v: v in ("red", "blue"), "red|blue")}
     TRACKER_SPECS["toy"] = TrackerSpec("toy", f"{__name__}:_Toy", "a test's own", rules)
     try:
-        cfg = OmegaConf.create({"name": "n", "logger": {"toy": {"colour": "red"}}})
+        cfg = OmegaConf.create({"name": "n", "tracker": {"toy": {"colour": "red"}}})
         record = RunRecord(tmp_path)
         record.start(cfg)
         record.finish()
         assert seen == [("begin", "running"), ("end", "completed", False, "red")]
         assert RunRecord.read(tmp_path)["tracking"] == {"toy": "done"}
-        bad = OmegaConf.create({"name": "n", "logger": {"toy": {"colour": "green"}}})
-        with pytest.raises(ConfigError, match=r"logger.toy.colour='green': expected red\|blue"):
+        bad = OmegaConf.create({"name": "n", "tracker": {"toy": {"colour": "green"}}})
+        with pytest.raises(ConfigError, match=r"tracker.toy.colour='green': expected red\|blue"):
             RunRecord(tmp_path / "b").start(bad)
     finally:
         del TRACKER_SPECS["toy"]
     with pytest.raises(ConfigError, match="did you mean 'mlflow'"):
-        cfg = OmegaConf.create({"name": "n", "logger": {"mlflo": {"tracking_uri": "x"}}})
+        cfg = OmegaConf.create({"name": "n", "tracker": {"mlflo": {"tracking_uri": "x"}}})
         RunRecord(tmp_path / "c").start(cfg)
 
 
@@ -565,22 +565,22 @@ def test_a_password_is_masked_where_urllib_cannot_take_the_url_apart():
     """Hydra's override_dirname joins overrides with ',' (urllib then sees one URL up to the
     next space, '[' in its host part): every password in it is masked all the same."""
     from resireg.secrets import mask_text
-    from resireg_train.cli.job import safe_dirname
+    from resireg_train.jobs.resolvers import safe_dirname
 
-    dirname = ("logger.mlflow.tracking_uri=http://user:pw1@127.0.0.1:5000,provenance."
+    dirname = ("tracker.mlflow.tracking_uri=http://user:pw1@127.0.0.1:5000,provenance."
                "untracked_content=[*],storage=postgresql+psycopg://u:pw2@db/x")  # fmt: skip
     assert mask_text(dirname) == (
-        "logger.mlflow.tracking_uri=http://user:***@127.0.0.1:5000,provenance."
+        "tracker.mlflow.tracking_uri=http://user:***@127.0.0.1:5000,provenance."
         "untracked_content=[*],storage=postgresql+psycopg://u:***@db/x"
     )
     # a sweep job's folder is named after its overrides: no password in a path either
     assert safe_dirname(dirname) == (
-        "logger.mlflow.tracking_uri=http:__user:masked@127.0.0.1:5000,provenance."
+        "tracker.mlflow.tracking_uri=http:__user:masked@127.0.0.1:5000,provenance."
         "untracked_content=[*],storage=postgresql+psycopg:__u:masked@db_x"
     )
     # a multirun job's overrides escape ':' (Hydra's sweeper): masked as well
-    escaped = r"logger.mlflow.tracking_uri=http\://user\:pw3@127.0.0.1\:5000"
-    assert mask_text(escaped) == r"logger.mlflow.tracking_uri=http\://user\:***@127.0.0.1\:5000"
+    escaped = r"tracker.mlflow.tracking_uri=http\://user\:pw3@127.0.0.1\:5000"
+    assert mask_text(escaped) == r"tracker.mlflow.tracking_uri=http\://user\:***@127.0.0.1\:5000"
     assert (
-        safe_dirname(escaped) == r"logger.mlflow.tracking_uri=http\:__user\:masked@127.0.0.1\:5000"
+        safe_dirname(escaped) == r"tracker.mlflow.tracking_uri=http\:__user\:masked@127.0.0.1\:5000"
     )

@@ -25,7 +25,8 @@ from _sweeps import make_job as _job
 from resireg.method.full import ReSiRegFull
 from resireg.method.heuristic import PrototypeHeuristic
 from resireg_train.cli import report as report_cli
-from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point, safe_dirname
+from resireg_train.cli.job import CONFIG_DIR, hydra_entry_point
+from resireg_train.jobs.resolvers import safe_dirname
 from resireg_train.report import (
     DPI,
     collect,
@@ -452,7 +453,7 @@ def test_the_job_counts_the_readme_and_the_sweep_files_state_are_the_sweeps_own(
     after every `sweep=table1` / `sweep=table2 model_path=...` command of the README and the
     sweep files (`# 10 encoders x 2 datasets`, `# 10 x 2 = 20 jobs`, `# Table 2: 10 jobs`)
     matches the sweep's own axes."""
-    from resireg_train.config import eval as _eval_checks  # noqa: F401  registers ${resireg_encoders:}
+    from resireg_train.checks import eval as _eval_checks  # noqa: F401  registers ${resireg_encoders:}
 
     readme = (CONFIG_DIR.parent / "README.md").read_text().splitlines()
     for name, datasets in (("table1", None), ("table2", 1)):  # table2: ScanNet alone
@@ -507,8 +508,8 @@ def test_every_evaluation_sweep_names_its_report_and_the_config_check_knows_the_
     """Each `conf/sweep/` file of resireg-eval names its sections (composed as a user composes
     it), every name is one the report writes, and a wrong one is refused naming the key."""
     from resireg.errors import ConfigError
-    from resireg_train.config.eval import validate_eval
-    from resireg_train.report.sections import section_names
+    from resireg_train.checks.eval import validate_eval
+    from resireg_train.report.specs import section_names
 
     eval_sweeps = [p.stem for p in (CONFIG_DIR / "sweep").glob("*.yaml")
                    if p.stem != "train_hparams"]  # fmt: skip
@@ -528,14 +529,14 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
     sweeps are the encoder table sections."""
     import inspect
 
-    from resireg_train.report.sections import (
+    from resireg_train.report.specs import (
         ENCODER_SWEEPS,
-        REPORT_SECTIONS,
         SECTION_INPUTS,
+        SECTION_SPECS,
         section_names,
     )
 
-    for name, spec in REPORT_SECTIONS.items():
+    for name, spec in SECTION_SPECS.items():
         for function in (spec.load(), spec.detector()):
             if function is not None:
                 assert set(inspect.signature(function).parameters) <= set(SECTION_INPUTS), name
@@ -546,11 +547,11 @@ def test_every_report_section_loads_and_takes_what_the_report_gives():
 
 
 def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypatch):
-    """The recipe of resireg_train.report.sections: one writer and one entry; a sweep config
+    """The recipe of resireg_train.report.specs: one writer and one entry; a sweep config
     naming it (report: [...]) gets its file and its summary.md lines, in table order, and
     the config check accepts the name."""
-    import resireg_train.report.sections as sections
-    from resireg_train.config.eval import EVAL_RULES
+    import resireg_train.report.specs as sections
+    from resireg_train.checks.eval import EVAL_RULES
 
     def count_section(jobs, out):
         path = out / "count.txt"
@@ -561,7 +562,7 @@ def test_a_report_section_added_through_the_table_is_written(tmp_path, monkeypat
     module.count_section = count_section
     monkeypatch.setitem(sys.modules, "count_section_module", module)
     entry = sections.SectionSpec("count", "count_section_module:count_section", "the job count")
-    monkeypatch.setitem(sections.REPORT_SECTIONS, "count", entry)
+    monkeypatch.setitem(sections.SECTION_SPECS, "count", entry)
     sweep = tmp_path / "sweep"
     for n in range(3):
         _saved_config(_job(sweep, n, {"seed": n}, {"status": "completed", "final": {}}),

@@ -239,17 +239,17 @@ def test_a_masked_secret_is_never_rebuilt_from_the_record(tmp_path):
     from resireg_train.replay.rerun import RerunRefused, _recorded_overrides
     from resireg_train.runs.index import read_run
 
-    uri = "logger.mlflow.tracking_uri=http://ana:***@mlflow.lab:5000"
-    run = read_run(_fake_eval_run(tmp_path / "a", ["dataset=synthetic", "logger=mlflow", uri]))
+    uri = "tracker.mlflow.tracking_uri=http://ana:***@mlflow.lab:5000"
+    run = read_run(_fake_eval_run(tmp_path / "a", ["dataset=synthetic", "tracker=mlflow", uri]))
     kept = _recorded_overrides(run, "eval", [])
-    assert kept == ["dataset=synthetic", "logger=mlflow",
-                    "logger.mlflow.tracking_uri=http://ana@mlflow.lab:5000"]  # fmt: skip
+    assert kept == ["dataset=synthetic", "tracker=mlflow",
+                    "tracker.mlflow.tracking_uri=http://ana@mlflow.lab:5000"]  # fmt: skip
     # given again on the command line, the user's value replaces the record's
-    assert _recorded_overrides(run, "eval", ["logger.mlflow.tracking_uri=sqlite:///x.db"]) == [
-        "dataset=synthetic", "logger=mlflow"]  # fmt: skip
-    query = 'logger.mlflow.tracking_uri="http://mlflow.lab:5000/?token=***"'
-    run = read_run(_fake_eval_run(tmp_path / "b", ["logger=mlflow", query]))
-    with pytest.raises(RerunRefused, match="masked secret.*logger.mlflow.tracking_uri=..."):
+    assert _recorded_overrides(run, "eval", ["tracker.mlflow.tracking_uri=sqlite:///x.db"]) == [
+        "dataset=synthetic", "tracker=mlflow"]  # fmt: skip
+    query = 'tracker.mlflow.tracking_uri="http://mlflow.lab:5000/?token=***"'
+    run = read_run(_fake_eval_run(tmp_path / "b", ["tracker=mlflow", query]))
+    with pytest.raises(RerunRefused, match="masked secret.*tracker.mlflow.tracking_uri=..."):
         _recorded_overrides(run, "eval", [])
 
 

@@ -229,8 +229,8 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     # The whole run, the cut one and the refused one are independent: started side by side,
     # one torch thread each (the resume below too, so whole and cut + resume compute alike).
     proc, _, refused = run_side_by_side(
-        ("resireg-map", *common, f"hydra.run.dir={whole}", f"rerun.save={whole}/map.rrd",
-         "rerun.query=a chair", "ply.colour_by=rgb"),
+        ("resireg-map", *common, f"hydra.run.dir={whole}", f"viewer.save={whole}/map.rrd",
+         "viewer.query=a chair", "ply.colour_by=rgb"),
         ("resireg-map", *common, f"hydra.run.dir={cut}", "source.limit=4"),
         ("resireg-map", *common, "source.colour_topic=/nope", f"hydra.run.dir={tmp_path}/x"),
         check=(True, True, False),
@@ -399,7 +399,7 @@ def test_resireg_map_bad_stamps_sizes_depth_corrupt_tf(tmp_path, room12, tiny_ex
     one CameraInfo message of garbage. The map must equal the one computed here from the
     known frames 0, 1, 3..7 (their own colour, their corner without depth): voxel keys exact,
     bb features to 1e-6; the skips counted by kind with both sizes named; the corrupt messages
-    counted by topic; rerun.save=map.rrd under the run folder, recorded absolute; the map's
+    counted by topic; viewer.save=map.rrd under the run folder, recorded absolute; the map's
     files with the umask's mode."""
     import os
 
@@ -433,7 +433,7 @@ def test_resireg_map_bad_stamps_sizes_depth_corrupt_tf(tmp_path, room12, tiny_ex
     out = tmp_path / "run"
     proc = run("resireg-map", f"model_path={tiny_export}", "device=cpu", f"source.path={bag}",
                *CLI_TOPICS, "configuration=bb", "window=4", f"voxel_size={VOXEL}",
-               f"hydra.run.dir={out}", "rerun.save=map.rrd", threads=2)  # fmt: skip
+               f"hydra.run.dir={out}", "viewer.save=map.rrd", threads=2)  # fmt: skip
     results = json.loads((out / "results.json").read_text())
     frames = results["frames"]
     assert frames["used"] == 7, proc.stdout

@@ -60,8 +60,8 @@ def test_a_resumed_training_continues_its_mlflow_run(tmp_path):
     from mlflow import MlflowClient
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    crashed, resumed = _crash_then_resume(tmp_path / "run", "logger=mlflow",
-                                          f"logger.mlflow.tracking_uri={uri}")  # fmt: skip
+    crashed, resumed = _crash_then_resume(tmp_path / "run", "tracker=mlflow",
+                                          f"tracker.mlflow.tracking_uri={uri}")  # fmt: skip
     run_id = crashed["tracking"]["mlflow_run_id"]
     assert resumed["tracking"]["mlflow_run_id"] == run_id  # the same run, not a new one
     client = MlflowClient(tracking_uri=uri)
@@ -94,7 +94,7 @@ def test_a_resumed_training_continues_its_wandb_run_offline(tmp_path, monkeypatc
                        "WANDB_CACHE_DIR": str(tmp_path)}.items():  # fmt: skip
         monkeypatch.setenv(key, value)
     out = tmp_path / "run"
-    crashed, resumed = _crash_then_resume(out, "logger=wandb")
+    crashed, resumed = _crash_then_resume(out, "tracker=wandb")
     run_id = crashed["tracking"]["wandb_run_id"]
     assert resumed["tracking"]["wandb_run_id"] == run_id
     import wandb

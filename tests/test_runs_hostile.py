@@ -363,7 +363,7 @@ def test_register_checks_the_name_and_the_registry_before_writing(tmp_path, tiny
     err = _refused(["register", str(tiny_export), "--name", "ok", "--tracking-uri",
                     f"http://127.0.0.1:{port}"], capsys)  # fmt: skip
     assert f"cannot reach the model registry http://127.0.0.1:{port}" in err
-    assert "logger.mlflow.check_timeout" in err
+    assert "tracker.mlflow.check_timeout" in err
     assert _digests(tiny_export) == before
 
 
@@ -417,7 +417,7 @@ def test_a_registration_that_fails_midway_is_marked_failed(tmp_path, tiny_export
 def test_a_library_load_from_an_unreachable_registry_fails_at_once(tmp_path, monkeypatch):
     """``ResiregVLM.from_pretrained("models:/NAME@ALIAS")`` (resireg-segment's and the ROS 2
     node's path, without resireg_train) with MLFLOW_TRACKING_URI on a closed port: refused by
-    the trackers' connection check within ``logger.mlflow.check_timeout`` (2 s here), one
+    the trackers' connection check within ``tracker.mlflow.check_timeout`` (2 s here), one
     error naming the URI (password masked) and the settings to change, instead of minutes of
     MLflow's retries. The bound on the time is a bound on a hang, not a speed test."""
     pytest.importorskip("mlflow")
@@ -427,8 +427,8 @@ def test_a_library_load_from_an_unreachable_registry_fails_at_once(tmp_path, mon
     from resireg.models.vlm.registry import RegistryError
 
     conf = tmp_path / "conf"
-    (conf / "logger").mkdir(parents=True)
-    (conf / "logger" / "mlflow.yaml").write_text("mlflow:\n  check_timeout: 2\n")
+    (conf / "tracker").mkdir(parents=True)
+    (conf / "tracker" / "mlflow.yaml").write_text("mlflow:\n  check_timeout: 2\n")
     monkeypatch.setenv("RESIREG_CONFIG_DIR", str(conf))
     port = _closed_port()
     monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://someone:hunter2@127.0.0.1:{port}")
@@ -443,7 +443,7 @@ def test_a_library_load_from_an_unreachable_registry_fails_at_once(tmp_path, mon
     assert "hunter2" not in message
     assert f"'models:/x@a': cannot reach the model registry http://someone:***@127.0.0.1:{port}" \
         in message  # fmt: skip
-    assert "MLFLOW_TRACKING_URI" in message and "(the wait, 2 s: logger.mlflow.check_timeout)" \
+    assert "MLFLOW_TRACKING_URI" in message and "(the wait, 2 s: tracker.mlflow.check_timeout)" \
         in message  # fmt: skip
     assert not (tmp_path / "cache").exists()  # nothing downloaded, no folder made
 

@@ -244,9 +244,9 @@ def test_too_many_prototypes_for_a_batch_name_the_variant_and_the_batch_of_frame
     frames = _frames(root, room)
     h, w = frames.grid_size()
     n = 4 * h * w * 4 + 1  # one more than 4 frames upsampled by s = 2 have points
-    task = MappingEngine(frames, batch_size=4, voxel_size=VOXEL)
+    engine = MappingEngine(frames, batch_size=4, voxel_size=VOXEL)
     with pytest.raises(ValueError) as err:
-        task.check_variants(build_variants([f"full@n_prototypes:{n}"]), "variants")
+        engine.check_variants(build_variants([f"full@n_prototypes:{n}"]), "variants")
     assert str(err.value).startswith(f"variants.full@n_prototypes:{n}: n_prototypes={n} exceeds")
     tail = rf"; dataset '{frames.name}' with batch_size=4 has a batch of \d frames of {h} x {w} px$"
     assert re.search(tail, str(err.value)), str(err.value)
@@ -259,11 +259,11 @@ def test_ground_truth_voxels_match_numpy_and_the_box_geometry(root, room):
     where a single class is in reach)."""
     frames = _frames(root, room)
     assert frames.classes == ROOM_CLASSES
-    task = MappingEngine(frames, batch_size=4, voxel_size=VOXEL, gt_unlabelled="vote",
+    engine = MappingEngine(frames, batch_size=4, voxel_size=VOXEL, gt_unlabelled="vote",
                        lattice="floor")  # fmt: skip
-    state = task._start_scene(0, {}, torch.device("cpu"))
-    for batch in task.loader():
-        task._map_batch(_ClassFromColour(), batch, {}, state, lambda s: _null())
+    state = engine._start_scene(0, {}, torch.device("cpu"))
+    for batch in engine.loader():
+        engine._map_batch(_ClassFromColour(), batch, {}, state, lambda s: _null())
     centres, labels = state["gt"].labels()
     labels = torch.where(labels >= len(ROOM_CLASSES), 255, labels)
     got = {tuple(i): int(c) for i, c in zip(state["gt"].indices.tolist(), labels, strict=True)}
@@ -297,14 +297,14 @@ class _null:
 def test_oracle_features_give_miou_one_and_constant_features_the_hand_value(root, room):
     frames = _frames(root, room)
     variants = build_variants(["bb"])
-    task = MappingEngine(frames, batch_size=3, voxel_size=VOXEL)
-    oracle = task.run(_ClassFromColour(), variants)
+    engine = MappingEngine(frames, batch_size=3, voxel_size=VOXEL)
+    oracle = engine.run(_ClassFromColour(), variants)
     scores = oracle.scores()
     prefix = "val/scannet3d/scannet"
     for name in ("miou", "fmiou", "acc", "pooled_miou", "pooled_fmiou", "pooled_acc"):
         assert scores[f"{prefix}/{name}_bb"] == 1.0
     assert oracle.frames == {SCENE: 9} and len(oracle.dropped_samples) == 1
-    bf16 = task.run(_ClassFromColour(), variants, precision="bf16").scores()
+    bf16 = engine.run(_ClassFromColour(), variants, precision="bf16").scores()
     assert bf16 == scores  # one-hot features are exact in bf16; the geometry runs in fp32/fp64
 
     # constant "floor" (vote ground truth, floor lattice: the numpy reference above):
@@ -344,14 +344,14 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room,
     and the map is that of the other 6 frames: the scored ground-truth voxels are the numpy
     reference's without those frames, and the oracle still scores 1. Before the check the
     batch was fused (a NaN voxel feature) and counted as mapped."""
-    from resireg_train.evaluation.mapping.task import ScanNet3DProtocol
+    from resireg_train.evaluation.mapping.task import ScanNet3DTask
 
     frames = _frames(root, room)
     variants = build_variants(["bb", "full"], {"full": {"n_prototypes": 4}})
-    task = MappingEngine(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
+    engine = MappingEngine(frames, batch_size=3, voxel_size=VOXEL, gt_unlabelled="vote",
                        lattice="floor")  # fmt: skip
     poisoned = frames.batches(3)[1]
-    result = task.run(_NaNOnCall(1), variants)
+    result = engine.run(_NaNOnCall(1), variants)
     assert result.frames == {SCENE: 6}
     names = [frames.describe(i) for i in poisoned]
     assert [s.file for s in result.skipped_samples] == names
@@ -362,10 +362,10 @@ def test_a_non_finite_encoder_batch_is_skipped_counted_and_not_fused(root, room,
     assert result.voxels[SCENE] == sum(c != 255 for c in reference.values())
     assert result.voxels[SCENE] < sum(c != 255 for c in _reference_gt(root, room, VOXEL).values())
     assert result.scores()["val/scannet3d/scannet/miou_bb"] == 1.0
-    protocol = ScanNet3DProtocol.__new__(ScanNet3DProtocol)  # results() needs out and data
-    protocol.dataset, protocol.out = frames, tmp_path
+    task = ScanNet3DTask.__new__(ScanNet3DTask)  # results() needs out and data
+    task.dataset, task.out = frames, tmp_path
     with caplog.at_level("WARNING"):
-        record = protocol.results(result)
+        record = task.results(result)
     assert record["skipped"] == 3 and record["frames"] == {SCENE: 6}
     assert [s["file"] for s in record["skipped_samples"]][-3:] == names
     assert f"{names[0]}: encoder output language holds" in caplog.text
@@ -514,8 +514,8 @@ def test_3d_sweeps_are_the_papers_settings_and_bad_values_name_the_key():
     from hydra import compose, initialize_config_dir
 
     from resireg.errors import ConfigError
+    from resireg_train.checks.eval import validate_eval
     from resireg_train.cli.job import CONFIG_DIR
-    from resireg_train.config.eval import validate_eval
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         ablation = compose("eval", ["sweep=prototype_batch_3d"], return_hydra_config=True)

@@ -31,11 +31,11 @@ def test_a_urls_password_and_credential_parameters_are_masked(url, masked):
 
 def test_urls_inside_a_command_line_are_masked_and_the_rest_kept():
     line = (
-        "resireg-train logger=mlflow logger.mlflow.tracking_uri=http://ann:hunter2@h:5000 "
+        "resireg-train tracker=mlflow tracker.mlflow.tracking_uri=http://ann:hunter2@h:5000 "
         "'hparams_search.storage=postgresql+psycopg://bo:pw@db/x' seed=3"
     )
     assert mask_text(line) == (
-        "resireg-train logger=mlflow logger.mlflow.tracking_uri=http://ann:***@h:5000 "
+        "resireg-train tracker=mlflow tracker.mlflow.tracking_uri=http://ann:***@h:5000 "
         "'hparams_search.storage=postgresql+psycopg://bo:***@db/x' seed=3"
     )
 

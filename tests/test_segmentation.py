@@ -11,11 +11,8 @@ from PIL import Image
 
 from resireg.models import WeightsUnavailableError
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
-from resireg_train.data.segmentation import (
-    build_segmentation_set,
-    collate_segmentation,
-    orad3d_label,
-)
+from resireg_train.data.orad3d import orad3d_label
+from resireg_train.data.segmentation import build_segmentation_set, collate_segmentation
 from resireg_train.data.specs import dataset_conf
 from resireg_train.data.synthetic import SyntheticScenes
 

@@ -18,8 +18,8 @@ from resireg.errors import ConfigError
 from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
+from resireg_train.checks.eval import sweep_config_errors, validate_eval
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.eval import sweep_config_errors, validate_eval
 
 
 def _eval_config(*overrides):
@@ -149,7 +149,7 @@ def test_the_sweeps_over_every_encoder_resolve_to_the_table(monkeypatch, tmp_pat
     no list to edit."""
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.job import register_resolvers
+    from resireg_train.jobs.resolvers import register_resolvers
 
     register_resolvers()
     on_disk = sorted(p.stem for p in (CONFIG_DIR / "encoder").glob("*.yaml"))
@@ -314,7 +314,7 @@ def test_every_dataset_entry_holds_its_kinds_keys_and_conf_is_their_one_source()
     64). The caption sources of conf/data/ hold every key their kind requires."""
     from resireg_train.data.segmentation import build_segmentation_set
     from resireg_train.data.specs import CAPTION_SOURCE_KEYS, DATASET_SPECS, dataset_conf
-    from resireg_train.evaluation.tasks import TASK_SPECS
+    from resireg_train.evaluation.specs import TASK_SPECS
 
     files = sorted((CONFIG_DIR / "dataset").glob("*.yaml"))
     assert {p.stem for p in files} == {c for d in DATASET_SPECS.values() for c in d.configs}

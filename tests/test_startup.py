@@ -9,7 +9,7 @@ def test_entry_point_modules_import_no_heavy_library():
     code = (
         "import sys\n"
         "import resireg_train.cli.train, resireg_train.cli.eval, resireg_train.cli.report\n"
-        "import resireg_train.config.eval, resireg_train.config.train, resireg_train.runs.record, resireg.specs.variants\n"
+        "import resireg_train.checks.eval, resireg_train.checks.train, resireg_train.runs.record, resireg.specs.variants\n"
         "import resireg_train.cli.playground, resireg_train.playground.examples\n"
         "import resireg_train.cli.map\n"
         "heavy = ('torch', 'lightning', 'open_clip', 'timm', 'datasets', 'pandas', 'matplotlib',\n"
@@ -26,7 +26,7 @@ def test_a_bad_value_is_reported_without_loading_torch(tmp_path):
         "from hydra import compose, initialize_config_dir\n"
         "from resireg_train.cli.job import CONFIG_DIR\n"
         "from resireg.errors import ConfigError\n"
-        "from resireg_train.config.train import validate\n"
+        "from resireg_train.checks.train import validate\n"
         "with initialize_config_dir(str(CONFIG_DIR), version_base='1.3'):\n"
         "    cfg = compose('train', overrides=['experiment=smoke', 'model.optimizer.lr=-1'])\n"
         "try:\n"

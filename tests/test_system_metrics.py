@@ -247,7 +247,7 @@ def _stats(path: Path) -> list[tuple[float, dict[str, float]]]:
 def test_an_evaluation_records_its_system_metrics_in_csv_mlflow_and_wandb(
     tmp_path, tiny_export, monkeypatch
 ):
-    """One resireg-eval with logger=[csv,mlflow,wandb] (a local MLflow store, W&B offline):
+    """One resireg-eval with tracker=[csv,mlflow,wandb] (a local MLflow store, W&B offline):
     system.csv's rows, results.json's peaks (the rows' maxima), MLflow's own system metrics
     series in its run, W&B's system panel at the configured interval with the same peak
     memory, and `wandb sync --dry-run` (the documented command) finding the offline run."""
@@ -266,9 +266,9 @@ def test_an_evaluation_records_its_system_metrics_in_csv_mlflow_and_wandb(
     import wandb
 
     try:
-        evaluate_export(tiny_export, out, "logger=[csv,mlflow,wandb]", "dataset.size=12",
-                        f"logger.mlflow.tracking_uri={store}", "system_metrics.interval=0.2",
-                        f"logger.wandb.save_dir={out}")  # fmt: skip
+        evaluate_export(tiny_export, out, "tracker=[csv,mlflow,wandb]", "dataset.size=12",
+                        f"tracker.mlflow.tracking_uri={store}", "system_metrics.interval=0.2",
+                        f"tracker.wandb.save_dir={out}")  # fmt: skip
     finally:  # the W&B service this process started stops, and WANDB_SERVICE (which the
         wandb.teardown()  # later tests' subprocesses would inherit) leaves the environment
     record = json.loads((out / "results.json").read_text())
@@ -307,7 +307,7 @@ def test_an_evaluation_records_its_system_metrics_in_csv_mlflow_and_wandb(
 
 @pytest.mark.slow
 def test_a_training_run_sends_system_metrics_to_its_mlflow_run(tmp_path):
-    """The smoke training with logger=mlflow: the run Lightning logs its curves to also holds
+    """The smoke training with tracker=mlflow: the run Lightning logs its curves to also holds
     MLflow's system metrics, and results.json's peaks are system.csv's maxima."""
     pytest.importorskip("mlflow")
     from mlflow import MlflowClient
@@ -317,7 +317,7 @@ def test_a_training_run_sends_system_metrics_to_its_mlflow_run(tmp_path):
     store = f"sqlite:///{tmp_path}/mlflow.db"
     out = tmp_path / "train"
     run("resireg-train", "experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",
-        "export=false", "logger=mlflow", f"logger.mlflow.tracking_uri={store}",
+        "export=false", "tracker=mlflow", f"tracker.mlflow.tracking_uri={store}",
         "system_metrics.interval=0.5", f"hydra.run.dir={out}", threads=1)  # fmt: skip
     record = json.loads((out / "results.json").read_text())
     rows = read_system_csv(out)

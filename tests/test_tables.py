@@ -17,8 +17,8 @@ from resireg.specs.table import SpecTable, UnknownNameError, conf_dir
 from resireg.specs.text import TEXT_SPECS
 from resireg.specs.variants import VARIANT_SPECS
 from resireg_train.data.specs import DATASET_SPECS
-from resireg_train.evaluation.tasks import TASK_SPECS
-from resireg_train.report.sections import REPORT_SECTIONS
+from resireg_train.evaluation.specs import TASK_SPECS
+from resireg_train.report.specs import SECTION_SPECS
 from resireg_train.training.specs import TEACHER_SPECS
 
 TABLES = {
@@ -30,7 +30,7 @@ TABLES = {
     "tasks": TASK_SPECS,
     "text towers": TEXT_SPECS,
     "teachers": TEACHER_SPECS,
-    "report sections": REPORT_SECTIONS,
+    "report sections": SECTION_SPECS,
 }
 try:  # the map sources' table lands with resireg.sources
     from resireg.specs.sources import SOURCE_SPECS
@@ -45,7 +45,7 @@ def _takes_what_it_is_given(kind, entry, target):
     class it must have, a signature that binds the call's arguments (a TypeError names the
     argument it does not take)."""
     from resireg.models.interface import DenseEncoder
-    from resireg_train.evaluation.base import TaskProtocol
+    from resireg_train.evaluation.base import EvalTask
 
     def takes(*args, **kwargs):
         inspect.signature(target).bind_partial(*args, **kwargs)
@@ -69,7 +69,7 @@ def _takes_what_it_is_given(kind, entry, target):
         else:
             takes({}, 16, "dataset")
     elif kind == "tasks":  # resireg_train.cli.eval: load()(spec, cfg, params, out)
-        assert inspect.isclass(target) and issubclass(target, TaskProtocol), target
+        assert inspect.isclass(target) and issubclass(target, EvalTask), target
         takes(entry, None, {}, None)
     elif kind == "sources":  # resireg_train.jobs.map: load()(**entry.arguments(block))
         takes(**dict.fromkeys([*entry.common, *entry.keys]))
@@ -83,7 +83,7 @@ def _takes_what_it_is_given(kind, entry, target):
             else:
                 takes(device="cpu", **keys)
     elif kind == "report sections":  # report.writer: writer(**the inputs it names), detector
-        from resireg_train.report.sections import SECTION_INPUTS  # (the same)
+        from resireg_train.report.specs import SECTION_INPUTS  # (the same)
 
         for function in (target, entry.detector()):
             if function is not None:

@@ -1,4 +1,4 @@
-"""resireg-eval's task protocol (resireg_train.evaluation.tasks, resireg_train.evaluation.base): a task
+"""resireg-eval's tasks (resireg_train.evaluation.specs, resireg_train.evaluation.base): a task
 registered through the table runs through the eval entry point; the 2D and 3D tasks share one
 class-prototype text path; the fields every task writes (elbo_prototypes) are written by the
 3D task too."""
@@ -16,14 +16,14 @@ from hydra import compose, initialize_config_dir
 from resireg.errors import ConfigError
 from resireg.method.variants import build_variants
 from resireg.ovss import average_prompts, class_prompts
+from resireg_train.checks.eval import validate_eval
 from resireg_train.cli.eval import evaluate
 from resireg_train.cli.job import CONFIG_DIR
-from resireg_train.config.eval import validate_eval
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import DATASET_SPECS, dataset_conf
-from resireg_train.evaluation.base import TaskProtocol, require_task
+from resireg_train.evaluation.base import EvalTask, require_task
 from resireg_train.evaluation.engine import ClassPrototypes, eval_loader
-from resireg_train.evaluation.tasks import TASK_SPECS, TaskSpec
+from resireg_train.evaluation.specs import TASK_SPECS, TaskSpec
 
 SYNTHETIC = dataset_conf("synthetic", size=5, image_size=[32, 48], seed=3, short_side=32)
 
@@ -48,7 +48,7 @@ class _LabelFrequencies:
         return {"share": (self.counts / self.counts.sum()).tolist()}
 
 
-class _FrequencyProtocol(TaskProtocol):
+class _FrequencyTask(EvalTask):
     """A task outside the project's two: the labels' class frequencies of a segmentation set,
     read through the shared loader (no encoder pass)."""
 
@@ -77,7 +77,7 @@ class _FrequencyProtocol(TaskProtocol):
 def test_a_task_registered_through_the_table_runs_through_resireg_eval(
     monkeypatch, tmp_path, tiny_export
 ):
-    """One entry in resireg_train.evaluation.tasks.TASK_SPECS (a protocol class outside the project), and
+    """One entry in resireg_train.evaluation.specs.TASK_SPECS (a task class outside the project), and
     its name among the tasks of the dataset table's entry it scores (resireg_train.data.specs),
     are all resireg-eval needs: the config check accepts the task, the entry point runs its
     check/build/run/results, and results.json holds its scores (compared with the class
@@ -96,7 +96,7 @@ def test_a_task_registered_through_the_table_runs_through_resireg_eval(
         ConfigError, match=r"task='frequency': expected one of \['ovss', 'scannet3d'\]"
     ):
         require_task("frequency")
-    target = f"{__name__}:{_FrequencyProtocol.__name__}"
+    target = f"{__name__}:{_FrequencyTask.__name__}"
     monkeypatch.setitem(TASK_SPECS, "frequency", TaskSpec(
         "frequency", target, "image", prior=False, layers=False, summary="class frequencies",
     ))  # fmt: skip

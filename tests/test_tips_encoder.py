@@ -36,14 +36,8 @@ from _fake_hubs import (
     write_tips_release,
 )
 from resireg.models.hub import WeightsUnavailableError
-from resireg.models.zoo.tips import (
-    TIPS_TOKENIZER_URL,
-    TIPS_VARIANTS,
-    TIPS_WEIGHTS_URL,
-    TipsEncoder,
-    TipsTextEncoder,
-    TipsVisionTransformer,
-)
+from resireg.models.zoo.tips import TIPS_TOKENIZER_URL, TIPS_WEIGHTS_URL, TipsEncoder
+from resireg.models.zoo.tips_towers import TIPS_VARIANTS, TipsTextEncoder, TipsVisionTransformer
 
 # The tiny release of tests/_fake_hubs.py under this module's short names.
 P, WIDTH, GRID, STEM, TINY = TIPS_P, TIPS_WIDTH, TIPS_GRID, TIPS_STEM, TIPS_TINY

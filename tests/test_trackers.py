@@ -34,7 +34,7 @@ def test_mlflow_server_gets_train_eval_multirun_and_map(tmp_path, tiny_export, m
     uri = mlflow_server.uri
     from mlflow import MlflowClient
 
-    track = ["logger=mlflow", f"logger.mlflow.tracking_uri={uri}"]
+    track = ["tracker=mlflow", f"tracker.mlflow.tracking_uri={uri}"]
     train = tmp_path / "train"
     evals = tmp_path / "evals"
     mapped = tmp_path / "map"
@@ -96,7 +96,7 @@ def test_eval_tensorboard_and_csv_record_the_final_metrics(tmp_path, tiny_export
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     out = tmp_path / "eval"
-    final = evaluate_export(tiny_export, out, "logger=[tensorboard,csv]",
+    final = evaluate_export(tiny_export, out, "tracker=[tensorboard,csv]",
                             "dataset.size=6", "variants=[bb,full]")  # fmt: skip
     events = EventAccumulator(str(out / "tensorboard"))
     events.Reload()
@@ -159,8 +159,8 @@ def test_eval_in_process_leaves_no_credential_uri_run_or_service_behind(
         assert before[1:] == (mine, caller.info.run_id, None)
         export = _digests(tiny_export)
         url = mlflow_server.uri.replace("http://", "http://someone:s3cret@")
-        runs = {"mlflow": ["logger=mlflow", f"logger.mlflow.tracking_uri={url}"],
-                "wandb": ["logger=wandb"]}  # fmt: skip
+        runs = {"mlflow": ["tracker=mlflow", f"tracker.mlflow.tracking_uri={url}"],
+                "wandb": ["tracker=wandb"]}  # fmt: skip
         for name, tracker in runs.items():
             out = tmp_path / name
             record = evaluate(f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
@@ -183,7 +183,7 @@ def test_eval_in_process_leaves_no_credential_uri_run_or_service_behind(
 
 def test_a_sqlite_store_keeps_the_artifacts_next_to_its_database(tmp_path, tiny_export,
                                                                   monkeypatch):  # fmt: skip
-    """Issue 51, item 13: with logger.mlflow.tracking_uri=sqlite:///<db> and no artifact
+    """Issue 51, item 13: with tracker.mlflow.tracking_uri=sqlite:///<db> and no artifact
     location, the run's files go to mlartifacts/ next to the database, never to ./mlruns of
     the folder the call started from (which stays empty)."""
     from mlflow import MlflowClient
@@ -197,7 +197,7 @@ def test_a_sqlite_store_keeps_the_artifacts_next_to_its_database(tmp_path, tiny_
     out = tmp_path / "eval"
     record = evaluate(f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
                       "num_workers=0", "full.n_prototypes=4", f"paths.output_dir={out}",
-                      "logger=mlflow", f"logger.mlflow.tracking_uri=sqlite:///{db}")  # fmt: skip
+                      "tracker=mlflow", f"tracker.mlflow.tracking_uri=sqlite:///{db}")  # fmt: skip
     assert record["status"] == "completed"
     assert list(here.iterdir()) == []
     tracked = json.loads((out / "results.json").read_text())["tracking"]
@@ -212,7 +212,7 @@ def test_a_sqlite_store_keeps_the_artifacts_next_to_its_database(tmp_path, tiny_
 
 
 def test_an_mlflow_store_that_cannot_be_made_is_refused_in_one_line(tmp_path, tiny_export):
-    """Issue 51, item 14: resireg-eval with logger=mlflow on a SQLite store whose folder cannot
+    """Issue 51, item 14: resireg-eval with tracker=mlflow on a SQLite store whose folder cannot
     be made (under /proc, under a regular file) stops before any work in the one line the
     closed-port case gives, naming the tracker, the store and why; the export and the file in
     the way are unchanged."""
@@ -224,13 +224,13 @@ def test_an_mlflow_store_that_cannot_be_made_is_refused_in_one_line(tmp_path, ti
               "file": (f"{blocker}/mlflow.db", f"{blocker} is a file, not a folder")}  # fmt: skip
     before = _digests(tmp_path), _digests(tiny_export)
     procs = run_side_by_side(*(
-        ("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic", "logger=mlflow",
-         f"logger.mlflow.tracking_uri=sqlite:///{db}", f"hydra.run.dir={tmp_path / 'runs' / n}")
+        ("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic", "tracker=mlflow",
+         f"tracker.mlflow.tracking_uri=sqlite:///{db}", f"hydra.run.dir={tmp_path / 'runs' / n}")
         for n, (db, _) in stores.items()
     ), check=False)  # fmt: skip
     for (name, (db, why)), proc in zip(stores.items(), procs, strict=True):
-        line = (f"resireg_train.runs.trackers.TrackerUnreachable: logger.mlflow: cannot reach "
-                f"sqlite:///{db} ({why}); fix its address, or set logger.mlflow.unreachable=warn "
+        line = (f"resireg_train.runs.trackers.TrackerUnreachable: tracker.mlflow: cannot reach "
+                f"sqlite:///{db} ({why}); fix its address, or set tracker.mlflow.unreachable=warn "
                 "to run with local records only")  # fmt: skip
         assert proc.returncode == 1, proc.stderr[-2000:]
         assert "Traceback" not in proc.stdout + proc.stderr, name
@@ -256,7 +256,7 @@ def test_the_artifact_location_of_each_kind_of_store(tmp_path, monkeypatch):
     assert artifact_location(f"sqlite:///{tmp_path}/a/m.db") == (
         tmp_path / "a" / "mlartifacts").as_uri()  # fmt: skip
     assert artifact_location("http://user:pw@host:5000") is None
-    with pytest.raises(ConfigError, match=r"^logger\.mlflow\.artifact_location: required with the "
+    with pytest.raises(ConfigError, match=r"^tracker\.mlflow\.artifact_location: required with the "
                        r"database store 'postgresql://u:\*\*\*@db/mlflow'") as err:  # fmt: skip
         artifact_location("postgresql://u:pw@db/mlflow")
     assert "pw" not in str(err.value).replace("postgresql", "")

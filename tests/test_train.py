@@ -18,9 +18,10 @@ from omegaconf import OmegaConf
 from _run import evaluate_export, run, run_side_by_side
 from resireg.errors import ConfigError
 from resireg.models import ResiregVLM
+from resireg_train.checks.train import validate
 from resireg_train.cli.job import CONFIG_DIR, optimized_value
-from resireg_train.cli.train import build, train
-from resireg_train.config.train import validate
+from resireg_train.cli.train import train
+from resireg_train.jobs.train import build
 from resireg_train.training.module import ResiregModule
 
 
@@ -306,12 +307,12 @@ def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
 
 
 def test_tensorboard_and_mlflow_trackers(tmp_path):
-    """`logger=[tensorboard,mlflow]` adds both trackers; metrics.csv is still written."""
+    """`tracker=[tensorboard,mlflow]` adds both trackers; metrics.csv is still written."""
     pytest.importorskip("tensorboard")
     mlflow = pytest.importorskip("mlflow")
     out = tmp_path / "run"
     train(_compose("experiment=smoke", f"paths.output_dir={out}", f"paths.log_dir={tmp_path}",
-                   "logger=[tensorboard,mlflow]", "trainer.max_epochs=1", "data.steps_per_epoch=2",
+                   "tracker=[tensorboard,mlflow]", "trainer.max_epochs=1", "data.steps_per_epoch=2",
                    "~callbacks.progress_bar"))  # fmt: skip
     assert (out / "metrics.csv").is_file()
     assert list((out / "tensorboard").glob("events.out.tfevents.*"))

@@ -27,7 +27,8 @@ from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from _fake_hubs import offline_hub
 from resireg.models import WeightsUnavailableError, build_encoder
 from resireg.models import hub as hub_module
-from resireg.models.zoo.radio import RadioEncoder, RadSegEncoder
+from resireg.models.zoo.radio import RadioEncoder
+from resireg.models.zoo.radseg import RadSegEncoder
 
 RADIO = os.environ.get("RESIREG_RADIO_REPO")
 RADSEG = os.environ.get("RESIREG_RADSEG_REPO")

@@ -1,4 +1,4 @@
-"""logger=wandb offline: one W&B run per job of a multirun, each finished, with the job's
+"""tracker=wandb offline: one W&B run per job of a multirun, each finished, with the job's
 config and results.json's final metrics, read back from the offline run files."""
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def _read_run(path):
 def test_offline_runs_one_per_job_with_config_and_final_metrics(tmp_path):
     env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true",
            "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip
-    run("resireg-train", "-m", "experiment=smoke", "logger=wandb", "trainer.max_epochs=1",
+    run("resireg-train", "-m", "experiment=smoke", "tracker=wandb", "trainer.max_epochs=1",
         "data.steps_per_epoch=2", "~callbacks.progress_bar", "export=false",
         "model.optimizer.lr=1e-3,2e-3", f"paths.log_dir={tmp_path}", env=env)  # fmt: skip
     (sweep,) = (tmp_path / "smoke" / "multirun").iterdir()
@@ -93,12 +93,12 @@ def test_offline_runs_one_per_job_with_config_and_final_metrics(tmp_path):
 
 @pytest.mark.slow
 def test_eval_multirun_logs_one_finished_run_per_job(tmp_path, tiny_export):
-    """resireg-eval logger=wandb: a two-job grid gets two finished runs, each with its job's
+    """resireg-eval tracker=wandb: a two-job grid gets two finished runs, each with its job's
     config (the swept alpha) and its results.json scores as final/<metric>."""
     env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true",
            "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip
     run("resireg-eval", "-m", f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=4",
-        "num_workers=0", "variants=[bb,full]", "full.n_prototypes=4", "logger=wandb",
+        "num_workers=0", "variants=[bb,full]", "full.n_prototypes=4", "tracker=wandb",
         "full.alpha=5.0,10.0", f"paths.log_dir={tmp_path}", env=env)  # fmt: skip
     (sweep,) = (tmp_path / "eval" / "multirun").iterdir()
     jobs = sorted(p for p in sweep.iterdir() if (p / "results.json").is_file())
@@ -117,7 +117,7 @@ def test_eval_multirun_logs_one_finished_run_per_job(tmp_path, tiny_export):
 
 @pytest.mark.slow
 def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
-    """resireg-map logger=wandb: one finished run with the config and the map's counts
+    """resireg-map tracker=wandb: one finished run with the config and the map's counts
     (map/voxels, frames/used...) equal to results.json's."""
     from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
     from resireg_train.runs.trackers import map_counts
@@ -129,7 +129,7 @@ def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
     run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source=rosbag",
         f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
         f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
-        "configuration=bb", "window=2", "logger=wandb", f"hydra.run.dir={out}", env=env)  # fmt: skip
+        "configuration=bb", "window=2", "tracker=wandb", f"hydra.run.dir={out}", env=env)  # fmt: skip
     (file,) = out.glob("wandb/offline-run-*/run-*.wandb")
     name, group, config, summary, exit_code = _read_run(file)
     assert exit_code == 0 and not group and name.startswith("map-")

@@ -14,6 +14,11 @@ squared-distance matrix all of them use.
 Everything runs on the input's device with matrix products and scatter ops only: the
 clustering sits inside a GPU forward pass, and moving tens of thousands of points to the host
 per batch would cost more than the clustering itself (``benchmarks/bench_reconstruct.py``).
+
+One idea: k-means. The seeding, the bounded Lloyd iterations and the nested counts are one
+algorithm whose parts share private state and invariants (the bounds that let an iteration skip
+a point hold only with this module's tolerance rule, rounding bound and assignment order), so
+they stay in one module rather than leak those internals across several.
 """
 
 from __future__ import annotations

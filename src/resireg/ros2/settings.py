@@ -20,7 +20,7 @@ One source per default. ``resireg-ros2`` takes the names and defaults of ``resir
   ``source.depth_scale``) and, under their own names, the pairing's (``max_wait``,
   ``buffer_size``, ``camera_offset``, ``qos``), checked by the source table's rules
   (:data:`resireg.specs.sources.LIVE_RULES`);
-- ``rerun.save``, ``rerun.spawn``, ``rerun.query``, ``rerun.map_every``: ``conf/map.yaml``;
+- ``rerun.save``, ``rerun.spawn``, ``rerun.query``, ``rerun.map_every``: ``conf/map.yaml``'s ``viewer`` block;
 - the node's own (queue, keyframes, rates, the live Rerun stream): ``conf/ros2.yaml``.
 
 As ROS parameters they keep their dotted YAML paths (``-p source.tolerance:=0.05``,
@@ -247,9 +247,9 @@ def parameters(conf: Path | None = None) -> dict[str, Parameter]:
     for key in LIVE_KEYS:
         value, file = source[key]
         out[key] = Parameter(key, value, f"{file}:{key}", LIVE_RULES[key])
-    rerun = map_cfg.get("rerun") or {}
+    rerun = map_cfg.get("viewer") or {}
     for key in RERUN_KEYS:
-        out[f"rerun.{key}"] = Parameter(f"rerun.{key}", rerun.get(key), f"map.yaml:rerun.{key}",
+        out[f"rerun.{key}"] = Parameter(f"rerun.{key}", rerun.get(key), f"map.yaml:viewer.{key}",
                                         _RERUN_RULES[key])  # fmt: skip
     for name, value in flatten(_yaml(conf / NODE_FILE)).items():
         rule = _RERUN_RULES[name.split(".", 1)[1]] if name.startswith("rerun.") else None

@@ -18,9 +18,9 @@ an unknown name with the closest ones, lazy ``"module:Class"`` targets, ``config
   ``conf/model/text/``.
 
 The training package keeps four more tables of the same type beside what they describe:
-``resireg_train.evaluation.tasks.TASK_SPECS``, ``resireg_train.data.specs.DATASET_SPECS``,
+``resireg_train.evaluation.specs.TASK_SPECS``, ``resireg_train.data.specs.DATASET_SPECS``,
 ``resireg_train.training.specs.TEACHER_SPECS`` and
-``resireg_train.report.sections.REPORT_SECTIONS``. Each table module's docstring holds its
+``resireg_train.report.specs.SECTION_SPECS``. Each table module's docstring holds its
 "adding a ..." recipe.
 
 This package imports nothing of ``resireg`` above it (:mod:`resireg.errors` only; the import

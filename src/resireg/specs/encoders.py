@@ -1,7 +1,7 @@
 """The dense encoders by ``kind``: one entry each, the only list of them.
 
 Every reader takes the kinds from here: :func:`resireg.models.build_encoder` (the builder),
-``resireg_train.config.eval`` (``encoder.kind`` and the modules each kind imports), the config
+``resireg_train.checks.eval`` (``encoder.kind`` and the modules each kind imports), the config
 check of the sweeps over every encoder (``conf/sweep/table1.yaml``, ``table2.yaml``: their
 ``encoder`` axis is generated from the table: ``${resireg_encoders:}``), the tests. The
 ``conf/encoder/<name>.yaml`` files of a kind are found by scanning ``conf/encoder/`` for their
@@ -116,7 +116,7 @@ ENCODER_SPECS: SpecTable[EncoderSpec] = SpecTable(
              Needs("transformers", "transformers", _SIGLIP, lambda e: e.get("adaptor") != "clip")),
         ),
         EncoderSpec(
-            "radseg", "resireg.models.zoo.radio:RadSegEncoder",
+            "radseg", "resireg.models.zoo.radseg:RadSegEncoder",
             (Needs("segment_anything", "segment-anything", "RADSeg hubconf.py, radseg/radseg.py"),
              Needs("skimage", "scikit-image", "RADSeg radseg/sam_utils.py"),
              Needs("typing_extensions", "typing-extensions", "RADSeg radseg/base.py, radseg.py"),

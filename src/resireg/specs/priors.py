@@ -1,7 +1,7 @@
 """The segmentation priors by ``kind`` (``conf/prior/<kind>.yaml``): one entry each, their
 provider classes, settings and the rules of those settings, without importing torch.
 
-The evaluation's config checks (``resireg_train.config.eval``) read them before anything heavy
+The evaluation's config checks (``resireg_train.checks.eval``) read them before anything heavy
 is loaded, so a bad ``prior.<name>`` value is reported at once; :class:`resireg.priors.SamPrior`
 checks its keywords against the same rules.
 

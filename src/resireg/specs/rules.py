@@ -1,6 +1,6 @@
 """Parameter rules, without importing torch: ``(check, expectation)`` pairs.
 
-A rule is read twice from one place: the config checks (``resireg_train.config.train`` and ``.eval``) report
+A rule is read twice from one place: the config checks (``resireg_train.checks.train`` and ``.eval``) report
 ``key=value: expected <expectation>`` for a bad config value before anything heavy loads, and
 the classes (:class:`resireg.method.full.ReSiRegFull`, ...) raise
 ``<name> must be <expectation>, got <value>`` for a bad keyword from Python

@@ -3,7 +3,7 @@
 
 :meth:`resireg.models.vlm.text.FrozenTextTower.from_spec` builds a tower from its config (or
 from an export's ``config.json``) by looking its ``kind`` up here and calling the entry's
-builder with the other keys; the config check (``resireg_train.config.train``) reads the kinds
+builder with the other keys; the config check (``resireg_train.checks.train``) reads the kinds
 and :data:`CACHE_SIZE` before torch loads.
 
 Adding a text tower:

@@ -3,7 +3,7 @@ configuration syntax that names them (``full+prior@n_prototypes:24``).
 
 Every reader takes the names, classes and parameter rules from :data:`VARIANT_SPECS`:
 :func:`resireg.method.variants.build_variant` (the class), the classes' ``__init__`` (the rules),
-``resireg_train.config.eval`` (``full.alpha=...`` and ``variants=[...]`` checks), the training
+``resireg_train.checks.eval`` (``full.alpha=...`` and ``variants=[...]`` checks), the training
 callback and ``resireg-eval`` (which settings are a variant's), the report (labels, order,
 the baseline of the deltas) and the playground (titles). Defaults live in
 ``conf/resireg/default.yaml`` (one block per variant with parameters); the classes' own

@@ -24,7 +24,8 @@ from omegaconf import DictConfig
 from resireg.errors import ConfigError
 from resireg_train.checks.map import MERGE as PROG
 from resireg_train.checks.map import check_merge_out, merge_names
-from resireg_train.cli.job import error_text, hydra_entry_point, run_task
+from resireg_train.cli.job import hydra_entry_point, run_task
+from resireg_train.jobs.console import error_text
 from resireg_train.jobs.map_merge import merge_job
 
 __all__ = ["PROG", "MergeFolderCheck", "hydra_arguments", "main", "run_merge"]

@@ -52,8 +52,8 @@ def _prior(kind: str, model: str | None, device: str):
     from omegaconf import OmegaConf
 
     from resireg.priors import build_prior
-    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.config.errors import config_path
+    from resireg_train.config.paths import CONFIG_DIR
 
     spec = OmegaConf.to_container(OmegaConf.load(CONFIG_DIR / "prior" / f"{kind}.yaml"))
     if model:

@@ -1,6 +1,6 @@
 """Reading a composed config key by key: the value at a dotted key, the keys left ``???``, the
 rules a value breaks, and the keys nothing would read. What the config checks
-(:mod:`resireg_train.config.train`, :mod:`resireg_train.config.eval`,
+(:mod:`resireg_train.checks.train`, :mod:`resireg_train.checks.eval`,
 :mod:`resireg_train.config.machine`) share; OmegaConf only, no torch."""
 
 from __future__ import annotations
@@ -61,11 +61,11 @@ def rule_errors(cfg: DictConfig, rules: dict[str, Rule]) -> list[str]:
     return errors
 
 
-#: Where a ``+key=value`` override may add a key (a new callback or logger, a Lightning
+#: Where a ``+key=value`` override may add a key (a new callback or tracker, a Lightning
 #: ``Trainer`` or optimizer argument: their constructors reject unknown ones; the stage-2 start,
 #: README "Stage 2"), per entry point; ``_CLOSED`` parts of them are read key by key.
 ADDABLE = {
-    "train": ("callbacks.", "logger.", "trainer.", "model.optimizer.", "model.init_from"),
+    "train": ("callbacks.", "tracker.", "trainer.", "model.optimizer.", "model.init_from"),
     "eval": (),
 }
 _CLOSED = ("callbacks.resireg_eval.",)

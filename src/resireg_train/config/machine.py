@@ -1,8 +1,8 @@
 """What a config asks of this machine, checked before torch and the models load: the devices
 (:func:`check_devices`), and the files and packages it names (:func:`check_available`).
 
-Separate from the config checks (:func:`resireg_train.config.train.validate`,
-:func:`resireg_train.config.eval.validate_eval`): a valid config names devices, files and
+Separate from the config checks (:func:`resireg_train.checks.train.validate`,
+:func:`resireg_train.checks.eval.validate_eval`): a valid config names devices, files and
 packages that another machine may have. Torch is imported only to ask about a GPU or MPS.
 """
 

@@ -42,6 +42,11 @@ the RGB-D resolution, labels resized like depth (RayFronts: labels at ``rgb_reso
 ``depth_resolution``); ``label`` = the label file's own size; or ``[H, W]`` (the
 prototype/batch ablation: ``[228, 308]``). The depth is resized to it by the same ``resize``
 rule and its intrinsics scaled by the ``intrinsics`` rule.
+
+One idea: the ScanNet reader. Its layout, classes, frame selection, resolution and ground truth
+are the one protocol of RayFronts' ``ScanNetDataset`` (above), read by one dataset class and
+its checks; Replica and TartanAir, which yield the same items, build on
+:mod:`resireg_train.data.posed3d`.
 """
 
 from __future__ import annotations

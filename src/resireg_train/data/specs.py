@@ -2,9 +2,9 @@
 entry each, the only place a kind's builder, keys and task are written (docs/architecture.md#spec-tables).
 
 Torch-free, like the spec tables of :mod:`resireg.specs` and the task table
-(:mod:`resireg_train.evaluation.tasks`): the config check (:func:`resireg_train.config.eval.validate_eval`)
+(:mod:`resireg_train.evaluation.specs`): the config check (:func:`resireg_train.checks.eval.validate_eval`)
 reads the kinds, their keys and the task that scores each before anything heavy loads; the
-task table derives each task's kinds from here (:attr:`resireg_train.evaluation.tasks.TaskSpec.
+task table derives each task's kinds from here (:attr:`resireg_train.evaluation.specs.TaskSpec.
 dataset_kinds`); the builders (:func:`resireg_train.data.segmentation.build_segmentation_set`,
 :func:`resireg_train.data.scannet.build_scannet`) check an entry's keys with
 :func:`dataset_key_errors` and load the entry's builder, named lazily as ``"module:function"``.
@@ -19,8 +19,13 @@ Adding a dataset: one builder (``(name, spec, common) -> SegmentationSet`` for a
 one ``conf/dataset/<name>.yaml`` file with its ``kind`` and every key (found by scanning
 ``conf/dataset/``). ``resireg-eval dataset=<name>`` then builds and checks it;
 ``tests/test_tables.py`` checks the entry against its file. The training captions (``conf/data/``) are not evaluation datasets: their source
-keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.captions.
+keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.caption_sources.
 open_caption_source`.
+
+One idea: the dataset table. Every kind's entry sits beside the value rules of its keys (the
+ScanNet, posed-frames and segmentation rules), so a kind's keys, rules and tasks are read in
+one place, torch-free, by the config check and the builders alike; splitting the rules from the
+entries would write a kind in two files.
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ __all__ = [
     "CLASS_NAMES",
     "DATASET_SPECS",
     "SEGMENTATION_KEYS",
-    "SEGMENTATION_PROTOCOL_KEYS",
+    "WINDOW_RULE_KEYS",
     "SEGMENTATION_RULES",
     "UPSAMPLES",
     "DatasetSpec",
@@ -95,7 +100,7 @@ CLASS_NAMES = ("label_map", "nyu40")
 METRICS = VOXEL_METRICS
 
 #: The 3D protocol's value rules of a ScanNet entry (conf/dataset/scannet.yaml, docs/protocol.md
-#: section 4), by key; checked by :func:`resireg_train.config.eval.validate_eval` for that kind
+#: section 4), by key; checked by :func:`resireg_train.checks.eval.validate_eval` for that kind
 #: only (2D entries may use some of the names).
 _SCANNET_RULES: dict[str, Rule] = {
     "scenes": (
@@ -152,16 +157,16 @@ _POSED_RULES["scenes"] = (
 UPSAMPLES = ("nearest", "bilinear")
 
 #: The 2D protocol's keys every segmentation entry holds beside ``short_side``
-#: (``conf/protocol/paper.yaml`` / ``ovss8.yaml`` give them; :mod:`resireg_train.data.
-#: seg_protocol` reads them): the longer side's cap, the resize's antialiasing, the sliding window,
+#: (``conf/protocol/paper.yaml`` / ``ovss8.yaml`` give them; :mod:`resireg_train.data.windows`
+#: reads them): the longer side's cap, the resize's antialiasing, the sliding window,
 #: the upsampling, the background rule of the with-background sets and the protocol's name.
-SEGMENTATION_PROTOCOL_KEYS = (
+WINDOW_RULE_KEYS = (
     "long_side", "antialias", "slide_crop", "slide_stride", "upsample",
     "background_threshold", "background_logit_scale", "protocol",
 )  # fmt: skip
 #: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task): a kind
 #: outside the project names them first (``(*SEGMENTATION_KEYS, "its", "own")``).
-SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *SEGMENTATION_PROTOCOL_KEYS)
+SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *WINDOW_RULE_KEYS)
 _SEGMENTATION = SEGMENTATION_KEYS
 
 
@@ -205,13 +210,13 @@ class DatasetSpec:
             files are the defaults), except those of ``optional``.
         optional: the keys an entry may leave out (``name``: the kind, or the name the entry is
             listed under).
-        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.evaluation.tasks.TASK_SPECS`).
+        tasks: the ``resireg-eval`` tasks that score it (:data:`resireg_train.evaluation.specs.TASK_SPECS`).
         check: ``"module:function"`` ``(spec, key) -> None`` raising the errors its build
             would on a missing source, run before the encoder loads; ``None``: none.
         summary: one line for errors and docs.
         rules: the value rules of its keys, ``key -> (check, expectation)``
             (:mod:`resireg.specs.rules`), checked by the config check
-            (:func:`resireg_train.config.eval.validate_eval`, as ``dataset.<key>=<value>:
+            (:func:`resireg_train.checks.eval.validate_eval`, as ``dataset.<key>=<value>:
             expected <expectation>``); keys without one are checked for presence only.
     """
 
@@ -256,20 +261,20 @@ DATASET_SPECS: SpecTable[DatasetSpec] = SpecTable(
         ),
         DatasetSpec(
             "ade20k",
-            "resireg_train.data.segmentation:ade20k_source",
+            "resireg_train.data.ade20k:ade20k_source",
             (*_SEGMENTATION, "path", "config", "revision", "split", "image", "label"),
             ("ovss",),
             "ADE20K-150 validation (hub parquet or ADEChallengeData2016 folder; Table 1)",
-            check="resireg_train.data.segmentation:check_ade20k_source",
+            check="resireg_train.data.ade20k:check_ade20k_source",
             rules=SEGMENTATION_RULES,
         ),
         DatasetSpec(
             "orad3d",
-            "resireg_train.data.segmentation:orad3d_source",
+            "resireg_train.data.orad3d:orad3d_source",
             (*_SEGMENTATION, "path", "split", "polygon_tags", "gt_image_classes"),
             ("ovss",),
             "ORAD-3D validation from its local layout (Table 1)",
-            check="resireg_train.data.segmentation:check_orad3d_source",
+            check="resireg_train.data.orad3d:check_orad3d_source",
             rules=SEGMENTATION_RULES,
         ),
         DatasetSpec(

@@ -1,5 +1,5 @@
-"""``resireg-eval``: the task table (:mod:`.tasks`: what ``task=`` picks, torch-free), the
-protocol base class and the results writing (:mod:`.base`), the shared engine (:mod:`.engine`:
+"""``resireg-eval``: the task table (:mod:`.specs`: what ``task=`` picks, torch-free), the
+task base class ``EvalTask`` and the results writing (:mod:`.base`), the shared engine (:mod:`.engine`:
 batches, class prototypes, autocast), the protocol record (:mod:`.protocol`), the feature cache
 (:mod:`.cache`), and one subpackage per task's engine: :mod:`.ovss` (2D, and the training
 callback) and :mod:`.mapping` (3D).

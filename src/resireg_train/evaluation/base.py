@@ -1,7 +1,7 @@
 """What ``resireg-eval``'s tasks share (docs/architecture.md#adding-a-task); torch-free (the engines'
 shared parts, which import torch, are :mod:`resireg_train.evaluation.engine`).
 
-The task table (:data:`resireg_train.evaluation.tasks.TASK_SPECS`) names one :class:`TaskProtocol`
+The task table (:data:`resireg_train.evaluation.specs.TASK_SPECS`) names one :class:`EvalTask`
 subclass per ``task``; :func:`resireg_train.cli.eval.evaluate` drives it: ``check`` (source
 checks before the encoder loads), ``build`` (dataset and engine), ``run`` (the scoring pass),
 ``results`` (the task's own ``results.json`` fields), and :func:`write_results` writes what
@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from resireg.errors import ConfigError, ResiregError
 from resireg_train.config.errors import config_path
-from resireg_train.evaluation.tasks import TaskSpec, find_task, task_names
+from resireg_train.evaluation.specs import TaskSpec, find_task, task_names
 from resireg_train.runs.record import RunRecord
 
 if TYPE_CHECKING:
@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "NothingScoredError",
-    "TaskProtocol",
+    "EvalTask",
     "elbo_counts",
     "require_scored",
     "require_task",
@@ -42,17 +42,17 @@ log = logging.getLogger(__name__)
 
 
 def require_task(name: Any, key: str = "task") -> TaskSpec:
-    """The table entry of task ``name`` (:data:`resireg_train.evaluation.tasks.TASK_SPECS`); an unknown
+    """The table entry of task ``name`` (:data:`resireg_train.evaluation.specs.TASK_SPECS`); an unknown
     one is a :class:`ConfigError` naming ``<key>=<name>`` and the known tasks."""
     spec = find_task(name)
     if spec is None:
         raise ConfigError(f"{key}={name!r}: expected one of {task_names()} (the tasks of "
-                          "resireg_train.evaluation.tasks.TASK_SPECS)")  # fmt: skip
+                          "resireg_train.evaluation.specs.TASK_SPECS)")  # fmt: skip
     return spec
 
 
-class TaskProtocol(ABC):
-    """One ``resireg-eval`` task (an entry of :data:`resireg_train.evaluation.tasks.TASK_SPECS` names
+class EvalTask(ABC):
+    """One ``resireg-eval`` task (an entry of :data:`resireg_train.evaluation.specs.TASK_SPECS` names
     its subclass). :func:`resireg_train.cli.eval.evaluate` calls, in this order:
 
     - :meth:`check` before the encoder loads: the sources a build would fail on;
@@ -115,31 +115,31 @@ class TaskProtocol(ABC):
 
 def write_results(
     record: RunRecord,
-    protocol: TaskProtocol,
+    task: EvalTask,
     result: Any,
     variants: Mapping[str, nn.Module],
     timer: StageTimer,
 ) -> dict[str, Any]:
     """Record a finished pass in the run's record (``results.json``): ``final`` (the scores, logged),
     ``per_class_iou`` (by class name), ``images``, the task's fields
-    (:meth:`TaskProtocol.results`), ``elbo_prototypes`` (:func:`elbo_counts`) and ``seconds``;
+    (:meth:`EvalTask.results`), ``elbo_prototypes`` (:func:`elbo_counts`) and ``seconds``;
     then fail if nothing was scored (:func:`require_scored`), else mark it ``completed``.
     Returns the record."""
     scores = result.scores()
     for name, value in scores.items():
         log.info("%s = %.4f", name, value)
-    classes = protocol.classes
+    classes = task.classes
     fields = record.update(
         final=scores,
         per_class_iou={
             v: dict(zip(classes, ious, strict=True)) for v, ious in result.per_class_iou().items()
         },  # fmt: skip
         images=result.images,
-        **protocol.results(result),
+        **task.results(result),
         **elbo_counts(variants),
         seconds={k: round(v, 4) for k, v in sorted(timer.seconds.items())},
     )
-    require_scored(fields, protocol.spec.unit)
+    require_scored(fields, task.spec.unit)
     return record.update(status="completed")
 
 

@@ -24,7 +24,7 @@ from resireg.method.checks import NonFiniteError, check_features
 from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, average_prompts, class_prompts
 from resireg.specs.rules import check_batch_size
-from resireg_train.evaluation.tasks import PRECISIONS
+from resireg_train.evaluation.specs import PRECISIONS
 
 __all__ = [
     "ClassPrototypes",

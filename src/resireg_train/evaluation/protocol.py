@@ -3,9 +3,9 @@ printed by ``resireg-report`` under each table (docs/protocol.md).
 
 :func:`protocol_record` is the one rule that picks, from a run's parameters, the settings a
 score depends on beyond the model: the dataset entry's keys its task records (the task table's
-:attr:`~resireg_train.evaluation.tasks.TaskSpec.protocol_keys`: for ``task=scannet3d`` those of
+:attr:`~resireg_train.evaluation.specs.TaskSpec.protocol_keys`: for ``task=scannet3d`` those of
 ``conf/dataset/scannet.yaml``; for ``task=ovss`` the shorter side, the resize rule, ...), the
-run parameters it records (:attr:`~resireg_train.evaluation.tasks.TaskSpec.protocol_params`: ``ovss``'s
+run parameters it records (:attr:`~resireg_train.evaluation.specs.TaskSpec.protocol_params`: ``ovss``'s
 softmax temperature), what the built dataset fills where the entry has none (its
 ``reduce_zero_label``, class list and prompt templates) and (where the encoder config has one)
 the encoder's ``dense_path``. Its name is the dataset entry's ``protocol`` key (or the task and
@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from resireg_train.evaluation.tasks import find_task
+from resireg_train.evaluation.specs import find_task
 
 __all__ = ["protocol_record", "protocol_text"]
 

@@ -100,11 +100,11 @@ def _identity(cfg: DictConfig, smap: Any, weights: str | None = None) -> dict[st
 
 
 def _viewer_file(cfg: DictConfig, out: Path) -> Path | None:
-    """The Rerun recording to save (``rerun.save``): under the run folder unless absolute;
+    """The Rerun recording to save (``viewer.save``): under the run folder unless absolute;
     recorded absolute."""
-    if not cfg.rerun.save:
+    if not cfg.viewer.save:
         return None
-    rrd = Path(str(cfg.rerun.save)).expanduser()
+    rrd = Path(str(cfg.viewer.save)).expanduser()
     return (rrd if rrd.is_absolute() else out / rrd).resolve()
 
 
@@ -159,10 +159,10 @@ def map_job(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     if resumed:
         log.info("resuming %s: %d frames, %d voxels", folder, smap.frames, len(smap))
     view = None
-    if rrd is not None or cfg.rerun.spawn:
+    if rrd is not None or cfg.viewer.spawn:
         from resireg.mapping.viewer import RerunView
 
-        view = RerunView(str(rrd) if rrd else None, bool(cfg.rerun.spawn), cfg.rerun.query)
+        view = RerunView(str(rrd) if rrd else None, bool(cfg.viewer.spawn), cfg.viewer.query)
     counts = FrameCounts()
     _fuse(cfg, spec, source, smap, folder, view, counts, timer)
     return _finish(cfg, record, source, smap, folder, view, rrd, counts, timer)
@@ -219,7 +219,7 @@ def _fuse(cfg: DictConfig, spec: dict[str, Any], source: Any, smap: Any, folder:
             if view is not None:
                 t0 = time.perf_counter()
                 view.log_window(batch, base + batch["first"])
-                if added % max(1, int(cfg.rerun.map_every)) == 0:
+                if added % max(1, int(cfg.viewer.map_every)) == 0:
                     view.log_map(smap)
                 timer["rerun"] += time.perf_counter() - t0
             if save_every and added % save_every == 0:

@@ -88,7 +88,7 @@ JOBS: dict[str, tuple[str, str]] = {
 #: a search sets for its jobs (the rerun is one run, not a trial of the study).
 _LEFT_OUT = ("hparams_search.workers", "hparams_search.storage", "hparams_search.trial")
 #: Keys whose difference changes nothing a run computes (its trackers, what its record keeps).
-_UNCOMPARED = ("logger", "provenance")
+_UNCOMPARED = ("tracker", "provenance")
 #: What ``final`` holds that is not a score: timings and system metrics.
 _NOT_SCORES = ("time/", "system/", "perf/")
 
@@ -134,13 +134,14 @@ def _unmasked(index: int, override: str, path: Path) -> str:
 def _recorded_overrides(run: Run, job: str, given: Sequence[str]) -> list[str]:
     """The run's overrides, checked (module docstring), less those left out or given again."""
     from resireg_train.config.keys import ADDABLE
+    from resireg_train.config.moves import current_overrides
     from resireg_train.sweeps.workers import SearchRecordError, check_overrides
 
     path = run.path / ".hydra" / "overrides.yaml"
     if not path.is_file():
         raise RerunRefused(f"{run.path}: no .hydra/overrides.yaml, so not a run of a resireg-* "
                            "command that can be rebuilt (a run started from Python?)")  # fmt: skip
-    recorded = run.overrides
+    recorded = current_overrides(job, run.overrides)  # a renamed key in today's spelling
     if run.problems:  # not a YAML list of strings
         raise RerunRefused(run.problems[0])
     addable = frozenset(k for k in ADDABLE.get(job, ()) if not k.endswith("."))
@@ -182,7 +183,7 @@ def compose_job(job: str, overrides: Sequence[str]) -> Any:
     """``conf/<job>.yaml`` composed with ``overrides`` (Hydra's compose API)."""
     from hydra import compose
 
-    import resireg_train.config.eval  # noqa: F401  the resireg_encoders resolver
+    import resireg_train.checks.eval  # noqa: F401  the resireg_encoders resolver
     from resireg_train.config.paths import composing
     from resireg_train.sweeps.space import register_search_resolvers
 
@@ -359,7 +360,7 @@ def config_drift(run: Run, cfg: Any, given: set[str]) -> list[str]:
     the command line sets, and its trackers and record settings), or ``[]`` without one."""
     from omegaconf import OmegaConf
 
-    from resireg_train.config.moves import current_targets
+    from resireg_train.config.moves import check_stored_targets, current_spelling, current_targets
     from resireg_train.runs.record import masked_tree
 
     path = run.path / ".hydra" / "config.yaml"
@@ -373,7 +374,9 @@ def config_drift(run: Run, cfg: Any, given: set[str]) -> list[str]:
         return [f"config: {path} is not a YAML mapping"]
     now = OmegaConf.to_container(cfg, resolve=False)
     now.pop("hydra", None)
-    rows = differences(masked_tree(current_targets(recorded)), masked_tree(now), _UNCOMPARED)
+    recorded = current_spelling(current_targets(recorded))  # (a gone class: refused, named)
+    check_stored_targets(recorded, str(path), (run.provenance.get("code") or {}).get("version"))
+    rows = differences(masked_tree(recorded), masked_tree(now), _UNCOMPARED)
     return [f"config.{key}: {_short(a)} -> {_short(b)}" for key, a, b in rows
             if not _given(key, given) and not key.startswith(_LEFT_OUT)]  # fmt: skip
 

@@ -6,7 +6,7 @@ Reads every job folder of the sweep (``<n>_<overrides>/``): its overrides
 with its status and error. Which sections beyond the summary it writes, the sweep config names
 (``report: [table1]`` etc. in ``conf/sweep/``, saved in every job's ``.hydra/config.yaml``); an
 ad hoc ``-m`` sweep, which names none, gets those its jobs show (:func:`report_sections`). The
-sections are the entries of one table, :data:`resireg_train.report.sections.REPORT_SECTIONS`
+sections are the entries of one table, :data:`resireg_train.report.specs.SECTION_SPECS`
 (its docstring: adding a section). Writes, into the sweep folder (or ``--out``):
 
 - ``summary.csv`` and ``summary.md``: one row per job; the overrides that vary across
@@ -34,9 +34,9 @@ sections are the entries of one table, :data:`resireg_train.report.sections.REPO
 An explicit metric must be one the sweep's results hold (a ``final`` or ``best`` key of
 some job); anything else is a :class:`ValueError` that lists them.
 
-The package: :mod:`~resireg_train.report.writer` (:func:`report`), :mod:`.sections` (the
+The package: :mod:`~resireg_train.report.writer` (:func:`report`), :mod:`.specs` (the
 section table), :mod:`.jobs` (a sweep's job folders), :mod:`.summary`, :mod:`.tables` (Tables 1
-and 2, the layer sweep, the Markdown renderer), :mod:`.prototypes` (the batch x prototype
+and 2, the layer sweep, the Markdown renderer), :mod:`.prototype_batch` (the batch x prototype
 grid, the heuristic), :mod:`.figures`, :mod:`.paper` (the published figures beside ours),
 :mod:`.ovss8` (the eight OVSS benchmarks beside the published peers).
 Imported by the CLIs (``resireg-report``) and by ``resireg_train.sweeps`` (its search report
@@ -59,7 +59,7 @@ _NAMES = {
     **dict.fromkeys(("is_ovss8_sweep", "ovss8_table", "write_ovss8_table"),
                     "resireg_train.report.ovss8"),
     **dict.fromkeys(("elbo_table", "fit_heuristic", "grid_statuses", "is_prototype_sweep",
-                     "prototype_grid"), "resireg_train.report.prototypes"),
+                     "prototype_grid"), "resireg_train.report.prototype_batch"),
     "summary_table": "resireg_train.report.summary",
     **dict.fromkeys(("LAYER_SWEEP_FILES", "encoder_table", "is_encoder_sweep", "is_layer_sweep",
                      "is_mapping_sweep", "layer_sweep_table", "mapping_table", "markdown",

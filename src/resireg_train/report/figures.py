@@ -190,7 +190,7 @@ def has_history(jobs: list[Job]) -> bool:
 def curves_section(
     jobs: list[Job], out: Path, metric: str | None
 ) -> tuple[dict[str, Path], list[str]]:
-    """The report section ``curves`` (:mod:`resireg_train.report.sections`): ``curves.png``,
+    """The report section ``curves`` (:mod:`resireg_train.report.specs`): ``curves.png``,
     ``metric`` per epoch of every run (:func:`plot_curves`), when there is a metric and a run
     has it."""
     curves = out / "curves.png"

@@ -369,7 +369,7 @@ def write_ovss8_table(jobs: list[Job], out: Path) -> dict[str, Path]:
 
 
 def ovss8_section(jobs: list[Job], out: Path) -> tuple[dict[str, Path], list[str]]:
-    """The report section ``ovss8`` (:mod:`resireg_train.report.sections`):
+    """The report section ``ovss8`` (:mod:`resireg_train.report.specs`):
     :func:`write_ovss8_table` and the line of ``summary.md`` naming its table."""
     files = write_ovss8_table(jobs, out)
     return files, ["", f"The eight OVSS benchmarks, beside the published peers: "

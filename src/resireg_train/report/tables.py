@@ -13,7 +13,7 @@ import pandas as pd
 from resireg.method.variants import parse_variant
 from resireg.specs.metrics import SCORE_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
-from resireg_train.evaluation.tasks import TASK_SPECS
+from resireg_train.evaluation.specs import TASK_SPECS
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
 from resireg_train.report.paper import (
@@ -22,7 +22,7 @@ from resireg_train.report.paper import (
     paper_lines,
     protocol_differences,
 )
-from resireg_train.report.sections import ENCODER_SWEEPS
+from resireg_train.report.specs import ENCODER_SWEEPS
 from resireg_train.runs.record import flat
 
 __all__ = [
@@ -67,7 +67,7 @@ def protocol_lines(jobs: list[Job]) -> list[str]:
 
 def table_tasks(table: str) -> list[str]:
     """The tasks whose sweeps feed report table ``table`` (``table1``, ``table2``: the task
-    table's :attr:`~resireg_train.evaluation.tasks.TaskSpec.report`)."""
+    table's :attr:`~resireg_train.evaluation.specs.TaskSpec.report`)."""
     return [t.name for t in TASK_SPECS.values() if t.report == table]
 
 
@@ -237,7 +237,7 @@ def is_table2(jobs: list[Job]) -> bool:
 
 
 def _named(files: dict[str, Path], what: str, key: str) -> tuple[dict[str, Path], list[str]]:
-    """A report section's result (:mod:`resireg_train.report.sections`): its ``files`` and the
+    """A report section's result (:mod:`resireg_train.report.specs`): its ``files`` and the
     line of ``summary.md`` that names its Markdown file ``files[key]``."""
     return files, ["", f"{what}: `{files[key].name}`."]
 

@@ -1,5 +1,5 @@
 """One sweep's report (``resireg-report SWEEP_DIR``): the summary, then each section of the
-section table (:data:`resireg_train.report.sections.REPORT_SECTIONS`) the sweep names or shows,
+section table (:data:`resireg_train.report.specs.SECTION_SPECS`) the sweep names or shows,
 then the jobs that did not complete (module docstring of :mod:`resireg_train.report`)."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from resireg_train.report.jobs import (
     varying_keys,
 )
 from resireg_train.report.paper import DEFAULT_TOLERANCE
-from resireg_train.report.sections import REPORT_SECTIONS, SECTION_INPUTS
+from resireg_train.report.specs import SECTION_INPUTS, SECTION_SPECS
 from resireg_train.report.summary import summary_table
 from resireg_train.report.tables import markdown
 from resireg_train.runs.record import flat
@@ -46,7 +46,7 @@ def report_sections(jobs: list[Job]) -> list[str]:
     named = named_sections(jobs)
     if named is not None:
         return named
-    return [name for name, spec in REPORT_SECTIONS.items()
+    return [name for name, spec in SECTION_SPECS.items()
             if not spec.always and spec.detect and call_section(spec.detector(), {"jobs": jobs})]  # fmt: skip
 
 
@@ -87,7 +87,7 @@ def report(
     inputs = {"jobs": jobs, "out": out, "sweep_dir": sweep_dir, "metric": metric,
               "paper_tolerance": paper_tolerance}  # fmt: skip
     chosen = report_sections(jobs)
-    for name, spec in REPORT_SECTIONS.items():
+    for name, spec in SECTION_SPECS.items():
         if name in chosen or (spec.always and call_section(spec.detector(), inputs)):
             written, added = call_section(spec.load(), inputs)
             files.update(written)

@@ -4,7 +4,7 @@
   writer of a run folder's ``results.json`` for the run's whole life (start, fields, final
   status), and its reader for many records;
 - :mod:`~resireg_train.runs.provenance`: what produced a run (code, data, models, machine);
-- :mod:`~resireg_train.runs.trackers`: the tracker table (``TRACKER_SPECS``, ``logger=``) and
+- :mod:`~resireg_train.runs.trackers`: the tracker table (``TRACKER_SPECS``, ``tracker=``) and
   the trackers of one run, driven by its record; :mod:`~resireg_train.runs.loggers`: the four
   trackers' code; :mod:`~resireg_train.runs.epochs`: what training records every epoch;
 - :mod:`~resireg_train.runs.index` (``resireg-runs``) and :mod:`~resireg_train.runs.cards`

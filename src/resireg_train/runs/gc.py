@@ -12,7 +12,7 @@ run without the metric (failed before it logged it) is outside the best N.
 
 Never touched: a run whose record says ``running`` (from another host too; a run whose
 process is gone on this host is ``died``, not running), and a run folder whose lock
-(``.run.lock``, held by the job writing it: :class:`resireg_train.cli.job.RunFolderLock`)
+(``.run.lock``, held by the job writing it: :class:`resireg_train.jobs.run_folder.RunFolderLock`)
 another process holds. The lock is taken while its checkpoints are removed, so a job cannot
 start resuming that folder halfway. A symbolic link is removed, never followed. ``--dry-run``
 lists the same decisions and the bytes they would free, and removes nothing.
@@ -41,8 +41,8 @@ __all__ = ["CHECKPOINTS", "Decision", "collect", "command", "folder_bytes", "hum
 
 #: The folder of a run's checkpoints (conf/callbacks/default.yaml's model_checkpoint.dirpath).
 CHECKPOINTS = "checkpoints"
-#: The run folder's lock (resireg_train.cli.job.LOCK_FILE; that module is a CLI's, not
-#: imported here).
+#: The run folder's lock (resireg_train.jobs.run_folder.LOCK_FILE; that module is a job's, above
+#: runs/, so not imported here).
 LOCK_FILE = ".run.lock"
 
 

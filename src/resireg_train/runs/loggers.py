@@ -1,15 +1,15 @@
-"""The four trackers of :data:`resireg_train.runs.trackers.TRACKER_SPECS` (``logger=<name>``,
-``conf/logger/<name>.yaml``): what each sends to its store. Nothing heavy is imported here:
+"""The four trackers of :data:`resireg_train.runs.trackers.TRACKER_SPECS` (``tracker=<name>``,
+``conf/tracker/<name>.yaml``): what each sends to its store. Nothing heavy is imported here:
 each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it is used.
 
 - **csv**: ``metrics.csv``. Training always writes it (every step and epoch, continued on
   resume: :class:`~resireg_train.runs.epochs.ResumableCSVLogger`); an evaluation or a map with
-  ``logger=csv`` writes its final metrics as one row.
+  ``tracker=csv`` writes its final metrics as one row.
 - **tensorboard**: training's curves (Lightning's ``TensorBoardLogger``); an evaluation or a
   map writes its final metrics as scalars and its provenance as text under ``<run>/tensorboard``.
 - **mlflow** (default store: one SQLite database under ``paths.log_dir``, ``mlflow ui
   --backend-store-uri sqlite:///outputs/mlflow.db``; a server:
-  ``logger.mlflow.tracking_uri=http://host:5000``): one MLflow run per job (a training run's is
+  ``tracker.mlflow.tracking_uri=http://host:5000``): one MLflow run per job (a training run's is
   the one Lightning's ``MLFlowLogger`` logged its curves to), with the flattened config as
   parameters, the provenance block as ``provenance.*`` tags, every finite final metric, the
   per-class IoU as a table artifact (``per_class_iou.json``) and the run's files as artifacts
@@ -116,7 +116,7 @@ class CsvTracker(Tracker):
 
     @classmethod
     def always(cls, cfg: Any, record: Any) -> CsvTracker:
-        """The CSV tracker of a training run whose ``logger`` does not name ``csv``: its
+        """The CSV tracker of a training run whose ``tracker`` does not name ``csv``: its
         ``metrics.csv`` is written all the same."""
         return cls(TRACKER_SPECS.get("csv"), {}, cfg, record)
 
@@ -250,7 +250,7 @@ class MlflowTracker(Tracker):
         try:
             logger.experiment.update_run(logger.run_id, status="RUNNING")
         except Exception as err:  # deleted, or another store: a new run, said once
-            log.warning("logger.mlflow: cannot continue MLflow run %s (%s); this resume "
+            log.warning("tracker.mlflow: cannot continue MLflow run %s (%s); this resume "
                         "logs to a new run", run_id, mask_text(str(err)).splitlines()[0])  # fmt: skip
             return None
         return logger
@@ -297,7 +297,7 @@ ARTIFACTS_FOLDER = "mlartifacts"
 
 def artifact_location(tracking_uri: str, given: Any = None) -> str | None:
     """Where a new experiment of the store ``tracking_uri`` keeps its runs' files: ``given``
-    (``logger.mlflow.artifact_location``) when set; for a SQLite store, the folder
+    (``tracker.mlflow.artifact_location``) when set; for a SQLite store, the folder
     :data:`ARTIFACTS_FOLDER` next to its database (a ``file:`` URI); else ``None``: a server
     store (``http(s)://``) chooses its own. Another database store (``postgresql://``,
     ``mysql://``...) needs one given: MLflow would write into ``./mlruns`` of whatever folder
@@ -314,7 +314,7 @@ def artifact_location(tracking_uri: str, given: Any = None) -> str | None:
         from resireg.errors import ConfigError
 
         raise ConfigError(
-            f"logger.mlflow.artifact_location: required with the database store "
+            f"tracker.mlflow.artifact_location: required with the database store "
             f"{mask_text(tracking_uri)!r} (where the runs' files go: a folder, or an s3:// ... "
             "URI); MLflow would otherwise write them into ./mlruns of the current folder"
         )
@@ -351,7 +351,7 @@ def to_mlflow(
     settings: dict[str, Any], cfg: Any, out: Path, record: dict[str, Any], run_id: str | None
 ) -> str:
     """Log the run in ``out`` (its record ``record``) to MLflow (module docstring);
-    ``settings``: the ``logger.mlflow`` block (``tracking_uri``, ``experiment_name``,
+    ``settings``: the ``tracker.mlflow`` block (``tracking_uri``, ``experiment_name``,
     ``run_name``); ``run_id``: the run Lightning logged to or the one opened at the start
     (:func:`open_mlflow_run`), if any. Returns the MLflow run id."""
     from mlflow import MlflowClient
@@ -446,7 +446,7 @@ def _stats_settings(logger: Any, cfg: Any) -> None:
 
     init = getattr(logger, "_wandb_init", None)
     if not isinstance(init, dict) or "settings" in init:
-        return  # not Lightning's WandbLogger, or settings given in conf/logger/wandb.yaml
+        return  # not Lightning's WandbLogger, or settings given in conf/tracker/wandb.yaml
     import wandb
 
     enabled, interval = system_settings(cfg)
@@ -471,7 +471,7 @@ def wandb_run_name(name: str) -> tuple[str, str | None]:
 
 
 def wandb_logger(name: str, project: str = "resireg", **kwargs: Any) -> Any:
-    """Lightning's ``WandbLogger`` (``conf/logger/wandb.yaml``'s ``_target_``) with this job's
+    """Lightning's ``WandbLogger`` (``conf/tracker/wandb.yaml``'s ``_target_``) with this job's
     run name and group (:func:`wandb_run_name`); ``WANDB_MODE=offline`` logs without a
     network."""
     from lightning.pytorch.loggers import WandbLogger

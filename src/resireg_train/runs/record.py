@@ -455,13 +455,13 @@ class RunRecord:
     # -- the run's life ---------------------------------------------------------------------
     def start(self, cfg: Any, *, fresh: bool = False) -> None:
         """Start the run of the composed config ``cfg``: its trackers are read from
-        ``cfg.logger`` (:class:`resireg_train.runs.trackers.RunTrackers`); the writer then
+        ``cfg.tracker`` (:class:`resireg_train.runs.trackers.RunTrackers`); the writer then
         sets an earlier record aside (``fresh``: a job that never resumes), writes ``name``,
         ``status: running`` and the provenance's start (a resumed run keeps its run id), masks
         the URL passwords in the config files Hydra saved, and starts the trackers: one that
-        needs a network is checked first (``logger.<name>.check_timeout``) and refused
+        needs a network is checked first (``tracker.<name>.check_timeout``) and refused
         (:class:`~resireg_train.runs.trackers.TrackerUnreachable`) or, with
-        ``logger.<name>.unreachable=warn``, left out with a warning. Then the system metrics
+        ``tracker.<name>.unreachable=warn``, left out with a warning. Then the system metrics
         are sampled until :meth:`finish` (``system_metrics``: :mod:`resireg_train.runs.system`)."""
         import logging
 
@@ -542,7 +542,7 @@ def mask_saved_configs(folder: Path) -> None:
     (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and, for a multirun job, in
     its sweep's ``multirun.yaml``: a tracking URI given on the command line would otherwise
     keep its password there. A resume compares configs with their URLs masked
-    (:func:`resireg_train.cli.train.check_resume`)."""
+    (:func:`resireg_train.checks.resume.check_resume`)."""
     files = sorted((folder / ".hydra").glob("*.yaml"))
     try:
         from hydra.core.hydra_config import HydraConfig

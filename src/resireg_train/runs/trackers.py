@@ -1,4 +1,4 @@
-"""The trackers by name (``logger=<name>``, ``conf/logger/<name>.yaml``): one table,
+"""The trackers by name (``tracker=<name>``, ``conf/tracker/<name>.yaml``): one table,
 :data:`TRACKER_SPECS`, read before anything heavy loads, and the trackers of one run
 (:class:`RunTrackers`), which its :class:`~resireg_train.runs.record.RunRecord` drives.
 
@@ -6,8 +6,8 @@ A tracker does up to four things, each a method of its :class:`Tracker` class
 (:mod:`resireg_train.runs.loggers` holds the four built in):
 
 - :meth:`Tracker.address`: the network address it needs, checked before any work
-  (:func:`resireg.network.reach`, ``logger.<name>.check_timeout`` seconds): an unreachable tracker refuses
-  the run in one line (:class:`TrackerUnreachable`) or, with ``logger.<name>.unreachable=warn``,
+  (:func:`resireg.network.reach`, ``tracker.<name>.check_timeout`` seconds): an unreachable tracker refuses
+  the run in one line (:class:`TrackerUnreachable`) or, with ``tracker.<name>.unreachable=warn``,
   is left out with a warning and the run completes with its local records (``results.json``'s
   ``tracking.unreachable`` names it);
 - :meth:`Tracker.begin`: at the run's start (W&B: its run, given the resolved config);
@@ -29,10 +29,10 @@ Adding a tracker:
 2. a :class:`TrackerSpec` entry below: its name, the class as ``"module:Class"``, one line of
    what it records, and the rules of its own keys (those that are not its Lightning logger's
    keywords: ``check_timeout``, ``unreachable``, ``filename``...);
-3. ``conf/logger/<name>.yaml`` holding one block, ``<name>:``, with its Lightning logger's
+3. ``conf/tracker/<name>.yaml`` holding one block, ``<name>:``, with its Lightning logger's
    ``_target_`` and keywords (a training run instantiates it) and its own keys' defaults.
 
-``logger=<name>`` then runs it for ``resireg-train``, ``resireg-eval`` and ``resireg-map``;
+``tracker=<name>`` then runs it for ``resireg-train``, ``resireg-eval`` and ``resireg-map``;
 ``tests/test_records.py`` checks that every table entry has its conf file and every conf file
 its entry.
 """
@@ -79,9 +79,9 @@ _NETWORK: dict[str, Rule] = {
 
 @dataclass(frozen=True)
 class TrackerSpec:
-    """One tracker: its name (the key under ``logger:``), its :class:`Tracker` class
+    """One tracker: its name (the key under ``tracker:``), its :class:`Tracker` class
     (``"module:Class"``), what it records, and the rules of its own keys in
-    ``conf/logger/<name>.yaml`` (the keys its Lightning logger does not take)."""
+    ``conf/tracker/<name>.yaml`` (the keys its Lightning logger does not take)."""
 
     name: str
     target: str
@@ -91,7 +91,7 @@ class TrackerSpec:
     @property
     def config(self) -> str:
         """Its defaults' file."""
-        return f"conf/logger/{self.name}.yaml"
+        return f"conf/tracker/{self.name}.yaml"
 
     def load(self) -> type[Tracker]:
         """The :class:`Tracker` class (imported now)."""
@@ -161,7 +161,7 @@ class Tracker:
 
     Args:
         spec: its table entry.
-        settings: its ``logger.<name>`` block (plain values).
+        settings: its ``tracker.<name>`` block (plain values).
         cfg: the run's composed config.
         record: the run's :class:`~resireg_train.runs.record.RunRecord`.
     """
@@ -179,9 +179,9 @@ class Tracker:
         return "trainer" in self.cfg
 
     def own(self, key: str) -> Any:
-        """One of its own keys (``logger.<name>.<key>``); conf/logger/<name>.yaml sets each."""
+        """One of its own keys (``tracker.<name>.<key>``); conf/tracker/<name>.yaml sets each."""
         if key not in self.settings:
-            raise ConfigError(f"logger.{self.spec.name}.{key}: missing ({self.spec.config} "
+            raise ConfigError(f"tracker.{self.spec.name}.{key}: missing ({self.spec.config} "
                               "sets it)")  # fmt: skip
         return self.settings[key]
 
@@ -302,7 +302,7 @@ class ProcessState:
 
 
 class RunTrackers:
-    """The trackers of one run: those ``cfg.logger`` names, in its order, built from
+    """The trackers of one run: those ``cfg.tracker`` names, in its order, built from
     :data:`TRACKER_SPECS` (an unknown name is a :class:`ConfigError` naming the closest),
     their own keys checked by the entry's rules. Driven by the run's record. What they change
     in the process (:class:`ProcessState`) is put back when they finish."""
@@ -316,16 +316,16 @@ class RunTrackers:
         self.unreachable: dict[str, str] = {}
         self._begun: list[Tracker] = []
         self._before: ProcessState | None = None  # read at start, put back at finish
-        loggers = cfg.get("logger") or {}
-        for name, settings in loggers.items():
+        chosen = cfg.get("tracker") or {}
+        for name, settings in chosen.items():
             if not settings:
                 continue
             spec = TRACKER_SPECS.find(name)
             if spec is None:
-                raise ConfigError(TRACKER_SPECS.unknown(name, setting="logger"))
+                raise ConfigError(TRACKER_SPECS.unknown(name, setting="tracker"))
             plain = OmegaConf.to_container(settings, resolve=True) if OmegaConf.is_config(
                 settings) else dict(settings)  # fmt: skip
-            errors = [f"logger.{name}.{key}={plain[key]!r}: expected {expected}"
+            errors = [f"tracker.{name}.{key}={plain[key]!r}: expected {expected}"
                       for key, (check, expected) in spec.params.items()
                       if key in plain and not check(plain[key])]  # fmt: skip
             if errors:
@@ -351,8 +351,8 @@ class RunTrackers:
                 if why is not None:
                     name = tracker.spec.name
                     start = "" if urlsplit(url).hostname is None else "start it, "
-                    line = (f"logger.{name}: cannot reach {mask_url(url)} ({why}); {start}"
-                            f"fix its address, or set logger.{name}.unreachable=warn to run "
+                    line = (f"tracker.{name}: cannot reach {mask_url(url)} ({why}); {start}"
+                            f"fix its address, or set tracker.{name}.unreachable=warn to run "
                             "with local records only")  # fmt: skip
                     if tracker.own("unreachable") != "warn":
                         raise TrackerUnreachable(line)
@@ -395,7 +395,7 @@ class RunTrackers:
                 try:
                     added.update(tracker.end(record, failed) or {})
                 except Exception as err:  # a tracker down must not fail a finished run
-                    log.warning("logger.%s: could not record the run in %s: %s",
+                    log.warning("tracker.%s: could not record the run in %s: %s",
                                 tracker.spec.name, self.record.folder,
                                 mask_text(str(err)))  # fmt: skip
         finally:

@@ -38,6 +38,7 @@ from typing import Any
 
 from resireg.errors import ResiregError
 from resireg.secrets import mask_text
+from resireg_train.config.moves import current_overrides
 from resireg_train.sweeps.storage import STORAGE_ENV, recorded_storage, storage_override
 
 __all__ = [
@@ -191,6 +192,7 @@ def read_record(sweep_dir: str | Path) -> SearchRecord:
         raise SearchRecordError(f"{path}: storage={storage!r} is not a URL or null")
     if not isinstance(name, str) or not name:
         raise SearchRecordError(f"{path}: study_name={name!r} is not a name")
+    overrides = current_overrides(job, overrides)  # a renamed key's old spelling: today's
     check_overrides(path, job, overrides)
     return SearchRecord(job, tuple(overrides), storage, name)
 

@@ -50,7 +50,7 @@ _NOISE_WARNINGS = (
      "loss is already the global batch's on every rank"),
     (r"Checkpoint directory .* exists and is not empty",
      "a resume writes into its own run's checkpoints/ (a new run never takes a folder that "
-     "holds a run: resireg_train.cli.train refuses it)"),
+     "holds a run: resireg_train.jobs.train.RunFolderCheck refuses it)"),
 )  # fmt: skip
 #: Log records (logger name, message start) silenced the same way.
 _NOISE_RECORDS = (("lightning", "💡 Tip:"),)  # an advertisement for a cloud logger

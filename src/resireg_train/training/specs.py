@@ -4,7 +4,7 @@ one entry each, the only list of them, without importing torch.
 The training module (:class:`resireg_train.training.module.ResiregModule`) builds the teacher
 of its config in each process (:func:`resireg_train.training.teacher.build_teacher`: the
 entry's class called with the other keys and the process's ``device``); the config check
-(:func:`resireg_train.config.train.validate`) reads the kinds before torch loads.
+(:func:`resireg_train.checks.train.validate`) reads the kinds before torch loads.
 
 Adding a teacher:
 

@@ -43,7 +43,7 @@ from torch import Tensor, nn
 
 from resireg.errors import parameters
 from resireg.models.frozen import FrozenModule
-from resireg.models.zoo.radio import load_radseg
+from resireg.models.zoo.radseg import load_radseg
 from resireg_train.config.errors import config_path
 from resireg_train.training.specs import TEACHER_SPECS
 
@@ -75,7 +75,7 @@ class RadSegTeacher(FrozenTeacher):
         device: where RADSeg builds and runs RADIO (default: CPU); inputs are moved there
             and outputs moved back to the input's device.
         config_key: the config prefix named in errors.
-        **radseg: the keywords of the one RADSeg loader, :func:`resireg.models.zoo.radio.
+        **radseg: the keywords of the one RADSeg loader, :func:`resireg.models.zoo.radseg.
             load_radseg`, with its defaults (those of conf/encoder/radseg.yaml and
             conf/model/teacher/radseg.yaml): ``repo`` (``owner/name`` on GitHub, or a local
             clone with ``source="local"``), ``source``, ``model_version`` (RADIO's),

@@ -22,7 +22,7 @@ The registry is the one MLflow's own settings name (``MLFLOW_REGISTRY_URI``, els
 ``MLFLOW_TRACKING_URI``; credentials in ``MLFLOW_TRACKING_USERNAME`` /
 ``MLFLOW_TRACKING_PASSWORD``), else MLflow's default (``sqlite:///mlflow.db`` in the working
 folder). Before MLflow is asked anything, a registry server must accept a connection within
-``logger.mlflow.check_timeout`` seconds (:func:`check_registry`: the trackers' check,
+``tracker.mlflow.check_timeout`` seconds (:func:`check_registry`: the trackers' check,
 :func:`resireg.network.reach`), not after MLflow's minutes of retries. MLflow is imported only
 here and only for a ``models:/`` source (the ``tracking`` extra); without it the error names
 the extra.
@@ -101,16 +101,16 @@ def _uris() -> tuple[str, str]:
 
 
 def registry_timeout(cfg: Any = None) -> float:
-    """How long to wait for the model registry's server: ``logger.mlflow.check_timeout``
-    (``cfg``'s when it has one, else ``conf/logger/mlflow.yaml``'s): the one setting of how long
+    """How long to wait for the model registry's server: ``tracker.mlflow.check_timeout``
+    (``cfg``'s when it has one, else ``conf/tracker/mlflow.yaml``'s): the one setting of how long
     resireg waits for an MLflow server, its tracker's and its registry's."""
     from resireg.specs.table import compose_conf, conf_dir
 
     own = None
     if cfg is not None and hasattr(cfg, "get"):
-        own = ((cfg.get("logger") or {}).get("mlflow") or {}).get("check_timeout")
+        own = ((cfg.get("tracker") or {}).get("mlflow") or {}).get("check_timeout")
     if own is None:
-        own = compose_conf(conf_dir() / "logger", "mlflow")["mlflow"][0]["check_timeout"]
+        own = compose_conf(conf_dir() / "tracker", "mlflow")["mlflow"][0]["check_timeout"]
     return float(own)
 
 
@@ -128,7 +128,7 @@ def check_registry(uri: str | None = None, timeout: float | None = None, what: s
         raise RegistryError(
             f"{what + ': ' if what else ''}cannot reach the model registry {mask_url(uri)} "
             f"({why}); start it or set MLFLOW_TRACKING_URI (MLFLOW_REGISTRY_URI) to the one "
-            f"that holds the model (the wait, {timeout:g} s: logger.mlflow.check_timeout)"
+            f"that holds the model (the wait, {timeout:g} s: tracker.mlflow.check_timeout)"
         )
 
 

@@ -9,7 +9,8 @@ table's names) and, for RADSeg's loader, ``resireg_train.training``; tests and b
 from resireg.models.zoo.clip import CLIP_MODELS, ClipEncoder
 from resireg.models.zoo.dinotxt import DinoTxtEncoder
 from resireg.models.zoo.otas import OtasEncoder
-from resireg.models.zoo.radio import RadioEncoder, RadSegEncoder
+from resireg.models.zoo.radio import RadioEncoder
+from resireg.models.zoo.radseg import RadSegEncoder
 from resireg.models.zoo.tips import TipsEncoder
 
 __all__ = [

@@ -1,10 +1,10 @@
 """``resireg-eval task=scannet3d``: 3D semantic mapping of ScanNet, Replica or TartanAir scenes
-(the dataset table's kinds scored by ``scannet3d``, each read by its own builder) as a task protocol
-(:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``scannet3d`` of
-:data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine
+(the dataset table's kinds scored by ``scannet3d``, each read by its own builder) as an evaluation task
+(:class:`resireg_train.evaluation.base.EvalTask`; the entry ``scannet3d`` of
+:data:`resireg_train.evaluation.specs.TASK_SPECS`) over the engine
 :class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
-:meth:`~resireg_train.evaluation.mapping.engine.MappingResult.write_csv`), ``frames`` and
+:meth:`~resireg_train.evaluation.mapping.result.MappingResult.write_csv`), ``frames`` and
 ``frames_dropped``."""
 
 from __future__ import annotations
@@ -17,17 +17,18 @@ from torch import nn
 
 from resireg.models import DenseEncoder
 from resireg_train.data.specs import check_dataset_keys
-from resireg_train.evaluation.base import TaskProtocol
+from resireg_train.evaluation.base import EvalTask
 from resireg_train.evaluation.engine import StageTimer
-from resireg_train.evaluation.mapping.engine import MappingEngine, MappingResult, MappingSettings
+from resireg_train.evaluation.mapping.engine import MappingEngine, MappingSettings
+from resireg_train.evaluation.mapping.result import MappingResult
 from resireg_train.evaluation.protocol import protocol_record
 
-__all__ = ["ScanNet3DProtocol"]
+__all__ = ["ScanNet3DTask"]
 
 log = logging.getLogger(__name__)
 
 
-class ScanNet3DProtocol(TaskProtocol):
+class ScanNet3DTask(EvalTask):
     """3D semantic mapping of the configured ScanNet scenes (module docstring)."""
 
     def check(self, variants: Mapping[str, nn.Module]) -> None:

@@ -95,23 +95,23 @@ class ReSiRegEval(L.Callback):
         self.num_workers = int(num_workers)
         self.precision = str(precision)
         self.temperature = float(temperature)
-        self.tasks: dict[str, OVSSEngine] = {}
+        self.engines: dict[str, OVSSEngine] = {}
         #: ``{dataset: [{"file", "reason"}, ...]}`` of the last pass (the same on every rank).
         self.skipped_samples: dict[str, list[dict[str, str]]] = {}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        """Build each dataset's task and check every variant against its batches now, so a
+        """Build each dataset's engine and check every variant against its batches now, so a
         bad setting fails before training rather than at the first evaluation."""
-        if self.tasks:
+        if self.engines:
             return
         patch = pl_module.vlm.input_rule.patch_size
         for name, spec in self.dataset_specs.items():
             dataset = build_segmentation_set(spec, patch, key=f"{_KEY}.datasets.{name}", name=name)
-            task = OVSSEngine(
+            engine = OVSSEngine(
                 dataset, self.batch_size, self.num_workers, temperature=self.temperature
             )
-            task.check_variants(self.variants, key=_KEY)
-            self.tasks[name] = task
+            engine.check_variants(self.variants, key=_KEY)
+            self.engines[name] = engine
 
     def due(self, trainer: L.Trainer) -> bool:
         epoch = trainer.current_epoch + 1
@@ -121,8 +121,8 @@ class ReSiRegEval(L.Callback):
         """Score every dataset now (sharded across ranks, then reduced); returns the scores
         and the skipped counts (``val/ovss/<dataset>/skipped``)."""
         scores: dict[str, float] = {}
-        for task in self.tasks.values():
-            result = task.run(
+        for engine in self.engines.values():
+            result = engine.run(
                 pl_module.vlm,
                 self.variants,
                 rank=trainer.global_rank,
@@ -176,7 +176,7 @@ class ReSiRegEval(L.Callback):
     @property
     def tower_calls(self) -> int:
         """Text-feature calls made for class prompts so far (once per dataset per run)."""
-        return sum(task.tower_calls for task in self.tasks.values())
+        return sum(engine.tower_calls for engine in self.engines.values())
 
 
 def _all_gather_object(obj: Any) -> list[Any]:

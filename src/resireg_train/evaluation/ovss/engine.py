@@ -34,8 +34,8 @@ from resireg.models import DenseEncoder, DenseOutput
 from resireg.ovss import TEMPLATES, SegmentationMetric, class_similarity, predict_grid
 from resireg.specs.metrics import METRIC_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
-from resireg_train.data.seg_protocol import protocol_conf
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
+from resireg_train.data.windows import window_rules
 from resireg_train.evaluation.engine import (  # shared with the 3D engine; importable from here too
     ClassPrototypes,
     EvalEngine,
@@ -54,7 +54,7 @@ from resireg_train.evaluation.ovss.slide import (
     window_logits,
     window_shape,
 )
-from resireg_train.evaluation.tasks import TASK_SPECS
+from resireg_train.evaluation.specs import TASK_SPECS
 
 if TYPE_CHECKING:
     from resireg_train.evaluation.cache import FeatureCache
@@ -71,7 +71,7 @@ __all__ = [
 ]
 
 #: What the scores' names start with, ``val/ovss/``: the task table's
-#: (:attr:`resireg_train.evaluation.tasks.TaskSpec.metric_prefix`), also the training callback's.
+#: (:attr:`resireg_train.evaluation.specs.TaskSpec.metric_prefix`), also the training callback's.
 METRIC_PREFIX = TASK_SPECS["ovss"].metric_prefix
 #: The variants that read the intermediates: all but the backbone alone (the @layer: error).
 _INTERMEDIATE_VARIANTS = tuple(v for v in VARIANTS if v != BASELINE)
@@ -237,7 +237,7 @@ class OVSSEngine(EvalEngine):
         self.name_class = torch.tensor([k for k, n in enumerate(names) for _ in n])
         if len(self.name_class) != len(dataset.classes):
             self.text = ClassPrototypes([x for n in names for x in n], templates, prompt_batch_size)
-        self.protocol = getattr(dataset, "protocol", None) or protocol_conf("paper")
+        self.windows = getattr(dataset, "windows", None) or window_rules("paper")
 
     def batch_shapes(self) -> list[tuple[int, int, int]]:
         """``(inputs, height, width)`` of every encoder pass: a batch's images (one size), or
@@ -247,8 +247,8 @@ class OVSSEngine(EvalEngine):
         shapes = []
         for b in self.dataset.batches(self.batch_size):
             h, w = sizes[b[0]]
-            if self.protocol.sliding:
-                crop, stride = self.protocol.slide_crop, self.protocol.slide_stride
+            if self.windows.sliding:
+                crop, stride = self.windows.slide_crop, self.windows.slide_stride
                 n = len(window_boxes(h, w, crop, stride))
                 shapes.append((len(b) * n, *window_shape(h, w, crop, self.dataset.patch_size)))
             else:
@@ -297,7 +297,7 @@ class OVSSEngine(EvalEngine):
                 f"{list(cache.layers)}, the configurations run on {list(layers)}: build its key "
                 "with FeatureCache.key_for(..., layers=requested_layers(encoder, variants))"
             )
-        if cache is not None and self.protocol.sliding:
+        if cache is not None and self.windows.sliding:
             raise ValueError(
                 "feature_cache stores whole images' encoder outputs; the dataset's "
                 "protocol slides windows (dataset.slide_crop): run without a cache"
@@ -366,11 +366,11 @@ class OVSSEngine(EvalEngine):
         non-finite encoder output, :func:`nonfinite_output`) or ``None``."""
         layer_of = layer_of or dict.fromkeys(variants)
         boxes = None
-        if self.protocol.sliding:  # every window of every image, one encoder pass
+        if self.windows.sliding:  # every window of every image, one encoder pass
             h, w = batch["image"].shape[-2:]
-            boxes = window_boxes(h, w, self.protocol.slide_crop, self.protocol.slide_stride)
+            boxes = window_boxes(h, w, self.windows.slide_crop, self.windows.slide_stride)
             batch = {**batch, "image": crop_windows(batch["image"], boxes,
-                                                    self.protocol.slide_crop,
+                                                    self.windows.slide_crop,
                                                     self.dataset.patch_size)}  # fmt: skip
         out, bad = self._encode(encoder, batch, timed, cache, _blocks(layer_of))
         if bad is not None:
@@ -391,7 +391,7 @@ class OVSSEngine(EvalEngine):
             with timed(f"reconstruction/{name}"):
                 dense = apply_variant(variant, inter, out.language, s, shared=shared[layer])
             with timed("metric"):
-                if self.protocol.upsample == "bilinear":
+                if self.windows.upsample == "bilinear":
                     self._score_logits(dense, batch, protos, metrics[name], boxes)
                     continue
                 grid = tuple(dense.shape[-2:])
@@ -406,7 +406,7 @@ class OVSSEngine(EvalEngine):
         """The paper's path: labels ``[B, h, w]`` at the feature grid (softmax with the
         temperature, argmax; each class by its best name; the background rule on the grid's
         probabilities when the entry sets one)."""
-        rule = self.protocol
+        rule = self.windows
         if len(self.name_class) == len(self.dataset.classes) and rule.background_threshold is None:
             return predict_grid(dense, protos, self.temperature)  # one name per class
         logits = class_similarity(dense, protos)
@@ -417,7 +417,7 @@ class OVSSEngine(EvalEngine):
         """The OVSS field's path (:mod:`resireg_train.evaluation.ovss.slide`): per image, the logits
         bilinear to each window (or the whole input), the windows averaged, bilinear to the
         label, then each class's best name, the argmax and the background threshold."""
-        rule = self.protocol
+        rule = self.windows
         size = tuple(batch["image"].shape[-2:])  # the windows' (padded) or the input's size
         per_image = len(boxes) if boxes else 1
         for i, label in enumerate(batch["label"]):

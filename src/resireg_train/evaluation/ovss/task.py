@@ -1,6 +1,6 @@
-"""``resireg-eval task=ovss``: 2D open-vocabulary segmentation as a task protocol
-(:class:`resireg_train.evaluation.base.TaskProtocol`; the entry ``ovss`` of
-:data:`resireg_train.evaluation.tasks.TASK_SPECS`) over the engine :class:`~resireg_train.evaluation.ovss.engine.OVSSEngine`,
+"""``resireg-eval task=ovss``: 2D open-vocabulary segmentation as an evaluation task
+(:class:`resireg_train.evaluation.base.EvalTask`; the entry ``ovss`` of
+:data:`resireg_train.evaluation.specs.TASK_SPECS`) over the engine :class:`~resireg_train.evaluation.ovss.engine.OVSSEngine`,
 with the feature cache (``feature_cache``) and the segmentation prior (``+prior``
 configurations, ``prior=``) that only this task takes."""
 
@@ -16,17 +16,17 @@ from resireg.models import DenseEncoder
 from resireg.specs.variants import takes_prior
 from resireg_train.config.errors import config_path
 from resireg_train.data.segmentation import build_segmentation_set, check_segmentation_source
-from resireg_train.evaluation.base import TaskProtocol
+from resireg_train.evaluation.base import EvalTask
 from resireg_train.evaluation.engine import StageTimer
 from resireg_train.evaluation.ovss.engine import OVSSEngine, OVSSResult, requested_layers
 from resireg_train.evaluation.protocol import protocol_record
 
-__all__ = ["OVSSProtocol"]
+__all__ = ["OVSSTask"]
 
 log = logging.getLogger(__name__)
 
 
-class OVSSProtocol(TaskProtocol):
+class OVSSTask(EvalTask):
     """2D OVSS of one segmentation dataset (module docstring)."""
 
     def check(self, variants: Mapping[str, nn.Module]) -> None:

@@ -9,7 +9,7 @@ finds it, named or not (the training curves, an Optuna search's trials). The wri
 (:func:`resireg_train.report.writer.report`) goes through the entries in table order.
 
 Torch- and pandas-free, like the other tables: the config check
-(:func:`resireg_train.config.eval.validate_eval`, ``report: [...]``) reads the names before
+(:func:`resireg_train.checks.eval.validate_eval`, ``report: [...]``) reads the names before
 anything heavy loads; an entry names its code lazily (``"module:function"``).
 
 Adding a report section:
@@ -34,7 +34,7 @@ from typing import Any
 
 from resireg.specs.table import SpecTable
 
-__all__ = ["ENCODER_SWEEPS", "REPORT_SECTIONS", "SECTION_INPUTS", "SectionSpec", "section_names"]
+__all__ = ["ENCODER_SWEEPS", "SECTION_SPECS", "SECTION_INPUTS", "SectionSpec", "section_names"]
 
 #: What a section's writer and detector may take, by name (:func:`resireg_train.report.writer.
 #: report` passes the ones their signature names).
@@ -80,7 +80,7 @@ class SectionSpec:
 _TABLES = "resireg_train.report.tables"
 
 #: The sections, in the order the report writes them (``summary.md`` follows it).
-REPORT_SECTIONS: SpecTable[SectionSpec] = SpecTable(
+SECTION_SPECS: SpecTable[SectionSpec] = SpecTable(
     "report section",
     (
         SectionSpec(
@@ -100,10 +100,10 @@ REPORT_SECTIONS: SpecTable[SectionSpec] = SpecTable(
             detect="resireg_train.report.mapping3d:is_table3d",
         ),
         SectionSpec(
-            "prototype_grid", "resireg_train.report.prototypes:prototype_grid_section",
+            "prototype_grid", "resireg_train.report.prototype_batch:prototype_grid_section",
             "batch size x prototype count of ReSiReg Full (heatmap.png) and the fitted "
             "prototype heuristic (prototype_heuristic.json)",
-            detect="resireg_train.report.prototypes:is_prototype_sweep",
+            detect="resireg_train.report.prototype_batch:is_prototype_sweep",
         ),
         SectionSpec(
             "curves", "resireg_train.report.figures:curves_section",
@@ -127,15 +127,15 @@ REPORT_SECTIONS: SpecTable[SectionSpec] = SpecTable(
             detect="resireg_train.sweeps.report:is_optuna_sweep", always=True,
         ),
     ),
-    where="resireg_train.report.sections",
+    where="resireg_train.report.specs",
 )  # fmt: skip
 
 
 def section_names() -> tuple[str, ...]:
     """The names a sweep config may list in ``report: [...]`` (the sections not ``always``)."""
-    return tuple(name for name, spec in REPORT_SECTIONS.items() if not spec.always)
+    return tuple(name for name, spec in SECTION_SPECS.items() if not spec.always)
 
 
 #: The sweeps (``conf/sweep/``, also their run ``name``) over every encoder: those named after
 #: an encoder table section (their report is that table).
-ENCODER_SWEEPS: tuple[str, ...] = tuple(n for n, s in REPORT_SECTIONS.items() if s.encoders)
+ENCODER_SWEEPS: tuple[str, ...] = tuple(n for n, s in SECTION_SPECS.items() if s.encoders)

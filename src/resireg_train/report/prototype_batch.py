@@ -157,7 +157,7 @@ def elbo_table(jobs: list[Job], metric: str, grid: pd.DataFrame,
 def prototype_grid_section(
     jobs: list[Job], out: Path, metric: str | None
 ) -> tuple[dict[str, Path], list[str]]:
-    """The report section ``prototype_grid`` (:mod:`resireg_train.report.sections`), for
+    """The report section ``prototype_grid`` (:mod:`resireg_train.report.specs`), for
     ``metric`` (none: nothing): ``heatmap.png`` and the grid in ``summary.md``, then, where a
     cell has a value, ``prototype_heuristic.json`` (:func:`fit_heuristic`) and the ELBO's
     counts beside it (:func:`elbo_table`)."""

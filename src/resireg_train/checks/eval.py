@@ -4,8 +4,8 @@
 :func:`validate_eval` reports every violation at once, each as ``key=value: expected ...``:
 ReSiReg's parameters (the ``resireg`` config group; the variant table's rules, which the
 classes check too), the pass settings (:func:`pass_rules`, shared with the training callback's
-check in :mod:`resireg_train.config.train`), the encoder, the prior, the task and its dataset
-(the task and dataset tables, :data:`resireg_train.evaluation.tasks.TASK_SPECS` and
+check in :mod:`resireg_train.checks.train`), the encoder, the prior, the task and its dataset
+(the task and dataset tables, :data:`resireg_train.evaluation.specs.TASK_SPECS` and
 :data:`resireg_train.data.specs.DATASET_SPECS`) and the report's sections. It reads the tables,
 OmegaConf and nothing else: no torch.
 """
@@ -43,8 +43,8 @@ from resireg.specs.variants import (
 from resireg_train.config.keys import MISSING, config_errors, optional_str, value_at
 from resireg_train.config.machine import needs_model_path
 from resireg_train.data.specs import dataset_key_errors, dataset_value_errors, find_dataset
-from resireg_train.evaluation.tasks import PRECISIONS, TASK_SPECS, task_config_errors
-from resireg_train.report.sections import ENCODER_SWEEPS, section_names
+from resireg_train.evaluation.specs import PRECISIONS, TASK_SPECS, task_config_errors
+from resireg_train.report.specs import ENCODER_SWEEPS, section_names
 
 __all__ = [
     "EVAL_RULES",
@@ -56,7 +56,7 @@ __all__ = [
     "validate_eval",
 ]
 
-#: resireg-eval's tasks (the table :data:`resireg_train.evaluation.tasks.TASK_SPECS`;
+#: resireg-eval's tasks (the table :data:`resireg_train.evaluation.specs.TASK_SPECS`;
 #: docs/architecture.md#adding-a-task).
 TASKS = tuple(TASK_SPECS)
 
@@ -132,9 +132,9 @@ EVAL_RULES: dict[str, Rule] = {
     **{f"prior.{name}": rule for name, rule in SAM_RULES.items()},  # resireg.specs.priors
     "task": (
         lambda v: v in TASK_SPECS,
-        f"one of {list(TASK_SPECS)} (resireg_train.evaluation.tasks)",
+        f"one of {list(TASK_SPECS)} (resireg_train.evaluation.specs)",
     ),
-    # resireg-report's sections (resireg_train.report.sections)
+    # resireg-report's sections (resireg_train.report.specs)
     "report": (
         lambda v: v is None or (isinstance(v, list) and all(x in section_names() for x in v)),
         f"null or a list of {list(section_names())}",
@@ -168,7 +168,7 @@ def validate_eval(
             f"prior=None: variants {with_prior} take a segmentation prior; choose one "
             "(prior=sam2, conf/prior/) or drop +prior"
         )
-    # the task's dataset kinds and configurations (resireg_train.evaluation.tasks; an unknown
+    # the task's dataset kinds and configurations (resireg_train.evaluation.specs; an unknown
     # task is the "task" rule's error)
     on_layer = [v for v in variants if _on_layer(v)] if isinstance(variants, list) else []
     if (task := "ovss" if task is MISSING else task) in TASK_SPECS:
@@ -178,7 +178,7 @@ def validate_eval(
 
 
 #: The ``encoder`` axis of a sweep over every encoder: the resolver (registered by the CLIs,
-#: :func:`resireg_train.cli.job.register_resolvers`) joins the encoder table's configurations.
+#: :func:`resireg_train.jobs.resolvers.register_resolvers`) joins the encoder table's configurations.
 EVERY_ENCODER = "${resireg_encoders:}"
 
 

@@ -2,18 +2,18 @@
 them (docs/architecture.md#adding-a-task).
 
 Torch-free, like the spec tables of :mod:`resireg.specs`: the config check
-(:func:`resireg_train.config.eval.validate_eval`) reads the task names and each task's
+(:func:`resireg_train.checks.eval.validate_eval`) reads the task names and each task's
 configuration rules from here before anything heavy loads (the dataset kinds a task scores are
 the dataset table's, :data:`resireg_train.data.specs.DATASET_SPECS`, each entry naming its
 tasks); the protocol record (:func:`resireg_train.evaluation.protocol.protocol_record`) and the report
 (:mod:`resireg_train.report.tables`) read a task's recorded keys, metric prefix and report
 table from its entry. ``resireg-eval``
 (:func:`resireg_train.cli.eval.evaluate`, through
-:func:`resireg_train.evaluation.base.require_task`) builds the entry's protocol class
-(:class:`resireg_train.evaluation.base.TaskProtocol`: ``check``, ``build``, ``run``, ``results``),
+:func:`resireg_train.evaluation.base.require_task`) builds the entry's task class
+(:class:`resireg_train.evaluation.base.EvalTask`: ``check``, ``build``, ``run``, ``results``),
 named lazily as ``"module:Class"``.
 
-Adding a task: one protocol class (a :class:`resireg_train.evaluation.base.TaskProtocol`:
+Adding a task: one task class (a :class:`resireg_train.evaluation.base.EvalTask`:
 ``check``, ``build``, ``run``, ``results``), one :class:`TaskSpec` below, and the dataset
 kinds it scores naming it in their ``tasks`` (:data:`resireg_train.data.specs.DATASET_SPECS`).
 """
@@ -50,8 +50,8 @@ class TaskSpec:
 
     Attributes:
         name: the ``task`` value.
-        target: its protocol, ``"module:Class"``: a subclass of
-            :class:`resireg_train.evaluation.base.TaskProtocol` (loaded after the config check).
+        target: its class, ``"module:Class"``: a subclass of
+            :class:`resireg_train.evaluation.base.EvalTask` (loaded after the config check).
         unit: what it scores and ``results.json``'s ``images`` counts (``image``, ``frame``).
         prior: whether it scores ``+prior`` configurations (a segmentation prior).
         layers: whether it scores ``@layer:`` configurations (an encoder block's intermediates).
@@ -89,7 +89,7 @@ class TaskSpec:
         return f"val/{self.name}/"
 
     def load(self) -> type:
-        """The protocol class (imports torch and the task's engine)."""
+        """The task class (imports torch and the task's engine)."""
         from resireg.specs.table import load
 
         return load(self.target)
@@ -101,7 +101,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
     (
         TaskSpec(
             "ovss",
-            "resireg_train.evaluation.ovss.task:OVSSProtocol",
+            "resireg_train.evaluation.ovss.task:OVSSTask",
             "image",
             prior=True,
             layers=True,
@@ -128,7 +128,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
         ),
         TaskSpec(
             "scannet3d",
-            "resireg_train.evaluation.mapping.task:ScanNet3DProtocol",
+            "resireg_train.evaluation.mapping.task:ScanNet3DTask",
             "frame",
             prior=False,
             layers=False,
@@ -162,7 +162,7 @@ TASK_SPECS: SpecTable[TaskSpec] = SpecTable(
             report="table2",
         ),
     ),
-    where="resireg_train.evaluation.tasks",
+    where="resireg_train.evaluation.specs",
 )
 
 
@@ -188,7 +188,7 @@ def task_config_errors(
     ``+prior`` / ``@layer:`` configurations a task does not score."""
     spec = find_task(name)
     if spec is None:
-        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.evaluation.tasks)"]
+        return [f"{TASK_SPECS.unknown(name, setting=key)} (resireg_train.evaluation.specs)"]
     errors = []
     dataset = find_dataset(kind)
     if dataset is not None and spec.name not in dataset.tasks:

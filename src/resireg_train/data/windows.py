@@ -1,8 +1,8 @@
-"""The 2D protocol of a segmentation entry: how an image is resized, which windows the encoder
-sees, how predictions reach the label's resolution and which pixels fall back to background
-(docs/protocol.md sections 1 and 6).
+"""The resize and window rules of a segmentation entry (the keys its 2D protocol sets): how an
+image is resized, which windows the encoder sees, how predictions reach the label's resolution
+and which pixels fall back to background (docs/protocol.md sections 1 and 6).
 
-Every 2D entry holds the keys (:data:`resireg_train.data.specs.SEGMENTATION_PROTOCOL_KEYS`);
+Every 2D entry holds the keys (:data:`resireg_train.data.specs.WINDOW_RULE_KEYS`);
 ``conf/protocol/paper.yaml`` gives the paper's values (one pass over the whole image at shorter
 side 576, argmax at the feature grid, nearest upsampling), ``conf/protocol/ovss8.yaml`` the OVSS
 field's (shorter side 336 capped at 2048 on the longer side, 224 px windows every 112 px, logits
@@ -19,12 +19,12 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from resireg_train.data.specs import (
-    SEGMENTATION_PROTOCOL_KEYS,
     SEGMENTATION_RULES,
+    WINDOW_RULE_KEYS,
     missing_keys_error,
 )
 
-__all__ = ["SegmentationProtocol", "protocol_conf", "rescaled_size"]
+__all__ = ["WindowRules", "window_rules", "rescaled_size"]
 
 
 def rescaled_size(
@@ -47,8 +47,8 @@ def rescaled_size(
 
 
 @dataclass(frozen=True)
-class SegmentationProtocol:
-    """The protocol keys of one 2D entry, checked (:meth:`from_spec`).
+class WindowRules:
+    """The resize and window rules of one 2D entry, checked (:meth:`from_spec`).
 
     Attributes:
         long_side: cap on the longer side after the shorter side's resize (``None``: none).
@@ -81,19 +81,19 @@ class SegmentationProtocol:
     @classmethod
     def from_spec(
         cls, spec: Mapping[str, Any], key: str = "dataset", patch_size: int | None = None
-    ) -> SegmentationProtocol:
-        """The protocol of entry ``spec``; a ValueError naming ``<key>.<name>`` for a missing
+    ) -> WindowRules:
+        """The rules of entry ``spec``; a ValueError naming ``<key>.<name>`` for a missing
         key, a value against its rule, or a combination that cannot run: a window without a
         stride (or the reverse), a stride larger than the window, windows with ``nearest``
         upsampling (windows are averaged at pixel resolution), a threshold without its scale,
         a window not a multiple of the encoder's ``patch_size``."""
-        missing = [k for k in SEGMENTATION_PROTOCOL_KEYS if k not in spec]
+        missing = [k for k in WINDOW_RULE_KEYS if k not in spec]
         if missing:
             raise ValueError(missing_keys_error(key, missing, "conf/protocol/ (paper.yaml, "
                                                 "ovss8.yaml, merged by its defaults)"))  # fmt: skip
         errors = [
             f"{key}.{name}={spec[name]!r}: expected {SEGMENTATION_RULES[name][1]}"
-            for name in SEGMENTATION_PROTOCOL_KEYS
+            for name in WINDOW_RULE_KEYS
             if not SEGMENTATION_RULES[name][0](spec[name])
         ]
         crop, stride = spec["slide_crop"], spec["slide_stride"]
@@ -154,8 +154,8 @@ class SegmentationProtocol:
 
 
 @functools.cache
-def protocol_conf(name: str) -> SegmentationProtocol:
-    """The protocol of ``conf/protocol/<name>.yaml`` (``paper``, ``ovss8``): what a
+def window_rules(name: str) -> WindowRules:
+    """The rules of the protocol ``conf/protocol/<name>.yaml`` (``paper``, ``ovss8``): what a
     :class:`~resireg_train.data.segmentation.SegmentationSet` built in Python without an entry
     (a test's, a benchmark's) follows (``paper``), read from conf/ rather than typed again."""
     import yaml
@@ -165,4 +165,4 @@ def protocol_conf(name: str) -> SegmentationProtocol:
     path = CONFIG_DIR / "protocol" / f"{name}.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"protocol {name!r}: no {path}")
-    return SegmentationProtocol.from_spec(yaml.safe_load(path.read_text()), f"protocol/{name}.yaml")
+    return WindowRules.from_spec(yaml.safe_load(path.read_text()), f"protocol/{name}.yaml")

@@ -3,7 +3,7 @@
 Hydra/OmegaConf check structure; they do not know that a learning rate must be positive or that
 ``min_lr`` must not exceed ``lr``. :func:`validate` does, and reports every violation at once,
 each as ``key=value: expected ...``: the data, model, loss, trainer keys, the training
-callback's evaluation (the pass rules of :func:`resireg_train.config.eval.pass_rules`, under
+callback's evaluation (the pass rules of :func:`resireg_train.checks.eval.pass_rules`, under
 ``callbacks.resireg_eval.``, and its datasets by the dataset table), the teacher's and text
 tower's kinds by their tables (:data:`resireg_train.training.specs.TEACHER_SPECS`,
 :data:`resireg.specs.text.TEXT_SPECS`), and the cross-field rules. OmegaConf and the tables only: no torch.
@@ -19,7 +19,7 @@ from resireg.errors import ConfigError
 from resireg.specs.rules import BATCH_SIZE, Rule, integer, is_int, is_num, number
 from resireg.specs.text import CACHE_SIZE, TEXT_SPECS
 from resireg.specs.variants import takes_prior
-from resireg_train.config.eval import pass_rules
+from resireg_train.checks.eval import pass_rules
 from resireg_train.config.keys import MISSING, config_errors, optional_str, value_at
 from resireg_train.data.specs import dataset_key_errors, missing_keys_error
 from resireg_train.training.specs import TEACHER_SPECS
