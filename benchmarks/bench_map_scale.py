@@ -299,7 +299,7 @@ def one(size: int, storage: str, threads: int, peak_only: bool = False) -> dict:
         out["save_extra_mb"] = probe.extra
         out["file_mb"] = sum(p.stat().st_size for p in (folder / "map").iterdir()) / 2**20
         voxels = len(smap)
-        smap.voxels = smap.colours = None  # the map's memory back before the load
+        smap.store.voxels = smap.store.colours = None  # the map's memory back before the load
         import gc
 
         gc.collect()

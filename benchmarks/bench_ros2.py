@@ -199,7 +199,7 @@ def _big_map(encoder, voxels, seed=0):
     grid = torch.stack(torch.meshgrid(*[torch.arange(side)] * 3, indexing="ij"), -1)
     points = (grid.reshape(-1, 3)[:voxels].float() + 0.5) * 0.05
     smap = SemanticMap(encoder, "bb", 0.05, colour=False)
-    smap.voxels = VoxelMap(0.05, dim)
+    smap.store.voxels = VoxelMap(0.05, dim)  # the storage's feature map, filled directly
     feats = torch.nn.functional.normalize(torch.randn(voxels, dim, generator=g), dim=1)
     smap.voxels.add(points, feats)
     return smap

@@ -17,7 +17,7 @@ from resireg.errors import MapError
 from resireg.integrity import IntegrityError
 from resireg.mapping import SemanticMap
 from resireg.mapping.compact import CompactVoxelMap
-from resireg.mapping.semantic_map import MapFormatWarning
+from resireg.mapping.map_file import MapFormatWarning
 from test_semantic_map import VOXEL, encoder, room  # noqa: F401  (module fixtures)
 
 FIXTURES = Path(__file__).parent / "fixtures" / "maps"
@@ -296,7 +296,7 @@ def _rewrite(folder, edit):
     """Edit map.json and recompute its digests, as anyone editing the files would."""
     import hashlib
 
-    from resireg.mapping.semantic_map import _record_digest
+    from resireg.mapping.map_file import record_digest as _record_digest
 
     path = folder / "map.json"
     record = json.loads(path.read_text())

@@ -22,7 +22,7 @@ OUTSIDE_THE_BASE = {
     # ResiregError (a bad input) must not swallow it
     "resireg_train.sweeps.pruning.TrialPrunedStop": "a control-flow signal, not an error",
     # a warning (an old map format loaded), raised only by warnings.warn: nothing catches it
-    "resireg.mapping.semantic_map.MapFormatWarning": "a warning category, not an error",
+    "resireg.mapping.map_file.MapFormatWarning": "a warning category, not an error",
 }
 
 
@@ -67,7 +67,7 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg.errors import ConfigError as TrainConfigError
     from resireg.errors import WriteError
     from resireg.integrity import IntegrityError
-    from resireg.mapping.semantic_map import MapFullError
+    from resireg.mapping.fusion import MapFullError
     from resireg.method.checks import NonFiniteError
     from resireg.models.hub import WeightsUnavailableError
     from resireg.specs.table import UnknownNameError

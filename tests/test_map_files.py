@@ -20,8 +20,9 @@ import torch
 
 from resireg.integrity import IntegrityError
 from resireg.mapping import SemanticMap, map_folder
-from resireg.mapping.semantic_map import load_basis, remove_partial_saves
-from resireg.mapping.store import write_tensors
+from resireg.mapping.basis import load_basis
+from resireg.mapping.map_file import remove_partial_saves
+from resireg.mapping.tensor_file import write_tensors
 from test_compact_map import _rewrite, frames, unit
 
 COMPACT = {"dim": 8, "basis_rows": 10}

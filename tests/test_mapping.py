@@ -19,6 +19,7 @@ from resireg.mapping import (
     scale_intrinsics,
     transfer_labels,
     unproject,
+    voxel_indices,
 )
 from resireg.mapping import voxels as voxels_module
 
@@ -503,5 +504,5 @@ def test_coordinates_beyond_int64_are_refused_before_packing():
         with pytest.raises(ValueError, match="voxel indices beyond"):
             vmap.add(torch.tensor([[far, 0.0, 0.0]]), torch.ones(1, 2))
         with pytest.raises(ValueError, match="voxel indices beyond"):
-            voxels_module.voxel_indices(torch.tensor([[0.0, -far, 0.0]], dtype=torch.float64), 0.05)
+            voxel_indices(torch.tensor([[0.0, -far, 0.0]], dtype=torch.float64), 0.05)
     assert vmap.indices.tolist() == [[20, 40, 60]]

@@ -589,12 +589,12 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
 
     from hydra import compose, initialize_config_dir
 
-    from resireg.mapping import semantic_map
+    from resireg.mapping import map_file
     from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.cli.map import run_map
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
-    real = semantic_map.write_tensors  # the map's tensor-file writer (resireg.mapping.store)
+    real = map_file.write_tensors  # the map's tensor-file writer (resireg.mapping.tensor_file)
     calls = []
 
     def full_disk(filename, tensors):
@@ -605,7 +605,7 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
             f.write(b"\0" * 100)
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(semantic_map, "write_tensors", full_disk)
+    monkeypatch.setattr(map_file, "write_tensors", full_disk)
     out = tmp_path / "run"
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"model_path={tiny_export}", "device=cpu",

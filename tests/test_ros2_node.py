@@ -23,7 +23,7 @@ rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
 
 from resireg.mapping import SemanticMap  # noqa: E402
-from resireg.mapping.semantic_map import diverging_ramp  # noqa: E402
+from resireg.mapping.colours import diverging_ramp  # noqa: E402
 from resireg.ros2.bag_player import BagPlayer, frame_messages, offset_parameter  # noqa: E402
 from resireg.ros2.clouds import read_cloud  # noqa: E402
 from resireg_train.data.room_bag import (  # noqa: E402

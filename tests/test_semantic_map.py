@@ -233,7 +233,7 @@ def test_python_defaults_are_the_configs():
 
     import yaml
 
-    from resireg.mapping.semantic_map import POINTS
+    from resireg.specs.mapping import POINTS
     from resireg_train.evaluation.mapping.engine import POINTS as TASK_POINTS
 
     conf = yaml.safe_load((Path(__file__).parents[1] / "conf" / "map.yaml").read_text())

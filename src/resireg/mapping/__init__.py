@@ -1,11 +1,14 @@
 """3D semantic mapping with dense vision-language features (torch, numpy, scipy, scikit-learn).
 
-Patch points from depth, intrinsics and pose (:mod:`.geometry`), every pixel at its patch's
-depth as (patch, voxel, count) pairs (:mod:`.lifting`), sparse voxel maps of running feature
-sums and of ground-truth class votes (:mod:`.voxels`), and queries: cosine classification
-(optionally with RayFronts' prediction threshold and prompt denoising) and k-nearest-neighbour
-label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`) puts them together
-into the object a robot feeds with posed RGB-D windows and queries by text (docs/method.md#robot-maps-semanticmap). Conventions: docs/method.md#the-voxel-map.
+The lattice and the packed voxel keys (:mod:`.keys`), patch points and every pixel at its patch's
+depth as (patch, voxel, count) pairs (:mod:`.lifting`, on the camera geometry of :mod:`.geometry`),
+sparse voxel maps of running feature sums (:mod:`.voxels`), of low-precision unit features
+(:mod:`.compact`) and of ground-truth class votes (:mod:`.labels`), and queries: cosine
+classification (optionally with RayFronts' prediction threshold and prompt denoising) and
+k-nearest-neighbour label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`)
+puts them together, over one storage interface (:mod:`.storage`), into the object a robot feeds
+with posed RGB-D windows and queries by text (docs/method.md#robot-maps-semanticmap); its files:
+:mod:`.map_file`. Conventions: docs/method.md#the-voxel-map.
 
 Typical online use, one batch of frames at a time::
 
@@ -27,32 +30,23 @@ the 3D task); it imports the method, ``resireg.ovss``, ``resireg.specs`` and
 ``resireg.integrity`` (the encoder and the prior it is given are built by its callers).
 """
 
+from resireg.mapping.colours import pca_colours, write_ply
 from resireg.mapping.compact import CompactSettings, CompactVoxelMap
+from resireg.mapping.fusion import MapFullError
 from resireg.mapping.geometry import (
     nearest_downsample,
     nearest_indices,
-    patch_points,
     scale_intrinsics,
     unproject,
 )
-from resireg.mapping.lifting import pixel_pairs, pixel_points
+from resireg.mapping.keys import LATTICES, voxel_centres, voxel_indices
+from resireg.mapping.labels import LabelVoxelMap
+from resireg.mapping.lifting import LiftedPoints, patch_points, pixel_pairs, pixel_points
+from resireg.mapping.map_file import MapFormatWarning, map_folder
 from resireg.mapping.query import classify, nearest, transfer_labels, transfer_labels_by_voxel
-from resireg.mapping.semantic_map import (
-    MapFormatWarning,
-    MapFullError,
-    SemanticMap,
-    TopK,
-    map_folder,
-    pca_colours,
-    write_ply,
-)
-from resireg.mapping.voxels import (
-    LATTICES,
-    LabelVoxelMap,
-    VoxelMap,
-    voxel_centres,
-    voxel_indices,
-)
+from resireg.mapping.semantic_map import SemanticMap
+from resireg.mapping.top_k import TopK
+from resireg.mapping.voxels import VoxelMap
 
 __all__ = [
     "scale_intrinsics",
@@ -62,6 +56,7 @@ __all__ = [
     "patch_points",
     "pixel_points",
     "pixel_pairs",
+    "LiftedPoints",
     "LATTICES",
     "VoxelMap",
     "LabelVoxelMap",

@@ -4,7 +4,7 @@
 ``float16`` (or ``bfloat16``), the mean's length (``float32``), the number of points it saw
 (``int32``) and, with ``colour=True``, its mean colour (``uint8``) and that colour's count:
 ``2 k + 8`` bytes of features and weights for ``k`` channels (``k = 128``: 264), ``+ 7`` of
-colour, beside the key index's ``8 + 5.7..11.4`` (:mod:`resireg.mapping.voxels`).
+colour, beside the key index's ``8 + 5.7..11.4`` (:mod:`resireg.mapping.keys`).
 
 Why not a low-precision running mean: a ``float16`` mean updated with each new point stalls once
 the update ``(x - mean) / n`` falls below half a unit in the last place (``n`` in the hundreds
@@ -25,6 +25,13 @@ Reading: :meth:`CompactVoxelMap.features` (unit features, ``float32``), :meth:`m
 :attr:`counts`, :meth:`mean_colours`; scoring for queries without a pass in ``float64``
 (:meth:`approx_scores`, :meth:`exact_scores`). Saving: :meth:`tensors` (row order, blocks as
 they are) and :meth:`from_tensors`.
+
+One idea: the compact voxel map, one data structure. Its accumulation (stored unit means in
+low precision, float32 blocks of the hot voxels, the folds between them) and its scoring (the
+low-precision products with their error bound, the float64 re-scoring, the classify rule over
+stored and hot rows) read the same private layout of rows, blocks and weights; split, each half
+would reach into the other's internals. Its settings (:class:`CompactSettings`) and the storage
+that uses it (:mod:`resireg.mapping.storage.compact`: the basis, the waiting windows) live apart.
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from resireg.mapping.voxels import SparseVoxels
+from resireg.mapping.sparse import SparseVoxels
 from resireg.specs.mapping import COMPACT_DTYPES
 
 __all__ = ["STORED_DTYPES", "CompactSettings", "CompactVoxelMap", "half_mv_error"]
@@ -125,7 +132,7 @@ class CompactVoxelMap(SparseVoxels):
         voxel_size: voxel edge in metres (> 0).
         dim: channels ``k`` of the stored features.
         device: where the map's tensors live.
-        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.voxels`).
+        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.keys`).
         dtype: ``torch.float16`` or ``torch.bfloat16``.
         colour: also keep a mean colour per voxel.
         hot_voxels: the most voxels whose points wait in ``float32`` blocks.

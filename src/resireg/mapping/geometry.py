@@ -1,4 +1,5 @@
-"""Camera geometry for 3D mapping: intrinsics scaling, depth downsampling, unprojection.
+"""Camera geometry for 3D mapping: intrinsics scaling, depth downsampling, unprojection
+(the lifting of feature grids that uses them: :mod:`resireg.mapping.lifting`).
 
 Conventions (docs/method.md#the-voxel-map):
 
@@ -26,7 +27,6 @@ __all__ = [
     "nearest_indices",
     "nearest_downsample",
     "unproject",
-    "patch_points",
 ]
 
 
@@ -184,33 +184,3 @@ def unproject(depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor) -> tuple[
     # Rotation and translation only; a finite pose never spreads NaN to valid points.
     world = cam @ pose[:, :3, :3].transpose(1, 2) + pose[:, None, :3, 3]
     return world.reshape(b, h, w, 3).to(torch.float32), valid
-
-
-def patch_points(
-    depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor, grid: tuple[int, int]
-) -> tuple[Tensor, Tensor]:
-    """World points of the patch centres of a feature grid, from full-resolution depth.
-
-    The depth is nearest-downsampled to ``grid`` (:func:`nearest_downsample`: each patch takes
-    the depth pixel containing its centre), the intrinsics are scaled from the depth image to
-    the grid (:func:`scale_intrinsics`), and the grid is unprojected (:func:`unproject`). The
-    depth image must show the same field of view as the image the features came from.
-
-    Args:
-        depth: ``[B, H, W]`` depth in metres.
-        intrinsics: ``[3, 3]`` or ``[B, 3, 3]`` intrinsics of the ``H x W`` depth image.
-        cam_to_world: ``[B, 4, 4]`` poses.
-        grid: ``(h, w)`` feature grid.
-
-    Returns:
-        ``points`` ``[B, h, w, 3]`` float32 and ``valid`` ``[B, h, w]`` bool, as
-        :func:`unproject`.
-    """
-    if not isinstance(depth, Tensor) or depth.ndim != 3:
-        shape = tuple(depth.shape) if isinstance(depth, Tensor) else type(depth)
-        raise ValueError(f"depth of shape {shape}: expected a [B, H, W] tensor")
-    grid = check_hw("grid", grid)
-    small = nearest_downsample(depth, grid)
-    check_intrinsics(intrinsics)
-    k = scale_intrinsics(intrinsics, tuple(depth.shape[-2:]), grid)
-    return unproject(small, k, cam_to_world)

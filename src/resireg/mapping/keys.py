@@ -6,14 +6,44 @@ search their voxels by, and that the pixel lifting (:mod:`.lifting`) and the lab
 stored as ``i + 2**20`` in ``KEY_BITS = 21`` bits, the three axes in 63 bits of a
 non-negative int64, so the order of the keys is the lexicographic order of the ``(i, j, k)``
 index tuples.
+
+A point ``p`` (metres) falls in the voxel of an integer index per axis, by one of two lattices
+(:data:`LATTICES`, docs/method.md#the-voxel-map):
+
+- ``"round"`` (the default): index ``round(p / voxel_size)`` (half to even, as ``torch.round``),
+  centre ``index * voxel_size``: RayFronts' ``geometry3d.pointcloud_to_sparse_voxels``, whose
+  evaluation (``scripts/semseg_eval.py``) the paper's Table 2 follows;
+- ``"floor"``: index ``floor(p / voxel_size)``, centre ``(index + 0.5) * voxel_size``.
+
+The index is computed in float64 (``points.double() / voxel_size``) (:func:`voxel_indices`,
+:func:`voxel_centres`, :func:`transform_keys`: the lattice is the first half of a key, its
+packing the second). :class:`KeyIndex` finds the row of a key in a sparse map.
 """
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
-__all__ = ["KEY_BITS", "MAX_INDEX", "pack_keys", "unpack_keys"]
+from resireg.specs.mapping import LATTICES
+
+__all__ = [
+    "KEY_BITS",
+    "LATTICES",
+    "MAX_INDEX",
+    "KeyIndex",
+    "check_lattice",
+    "check_voxel_size",
+    "lattice_index",
+    "lattice_transform",
+    "pack_keys",
+    "transform_keys",
+    "unpack_keys",
+    "voxel_centres",
+    "voxel_indices",
+]
 
 #: bits per axis of a packed key (three axes: 63 bits, a non-negative int64)
 KEY_BITS = 21
@@ -223,3 +253,94 @@ class KeyIndex:
             if not index._valid_table():
                 raise ValueError("slots: the hash table does not hold each key at its row")
         return index
+
+
+# ----------------------------------------------------------------------------- the lattice
+def check_lattice(lattice: str) -> str:
+    if lattice not in LATTICES:
+        raise ValueError(f"lattice={lattice!r}: expected one of {LATTICES}")
+    return lattice
+
+
+def lattice_index(scaled: Tensor, lattice: str = "round") -> Tensor:
+    """Integer voxel indices of coordinates already divided by the voxel size (float64):
+    ``round`` (half to even) or ``floor``, as int64."""
+    op = torch.round if check_lattice(lattice) == "round" else torch.floor
+    index = op(scaled)
+    # Refused before the int64 cast: a float beyond int64's range casts to -2**63 (or
+    # wraps), which would pass a range check on the integers and pack into a wrong voxel.
+    if index.numel() and not bool((index.abs() <= MAX_INDEX).all()):
+        bad = index[~(index.abs() <= MAX_INDEX)]
+        raise ValueError(
+            f"voxel indices beyond +-{MAX_INDEX} (up to {float(bad.abs().max()):g}, or "
+            f"non-finite; keys pack {KEY_BITS} bits per axis): points that far (e.g. from "
+            "out-of-range depth) cannot be mapped; drop them first"
+        )
+    return index.to(torch.int64)
+
+
+def voxel_indices(points: Tensor, voxel_size: float, lattice: str = "round") -> Tensor:
+    """Integer voxel indices ``[N, 3]`` int64 of ``points`` ``[N, 3]``: ``round(points /
+    voxel_size)`` or ``floor(...)`` by ``lattice`` (float64 division; module docstring)."""
+    return lattice_index(points.to(torch.float64) / voxel_size, lattice)
+
+
+def voxel_centres(index: Tensor, voxel_size: float, lattice: str = "round") -> Tensor:
+    """``[M, 3]`` float32 centres of voxel indices ``[M, 3]``.
+
+    ``round``: ``index * voxel_size`` computed in float32 (``float32(index) * voxel_size``), as
+    RayFronts' ``pointcloud_to_sparse_voxels`` computes its centres, so the two give the same
+    float32 values and nearest-neighbour ties between lattice points resolve alike.
+    ``floor``: ``(index + 0.5) * voxel_size`` in float64, then rounded to float32.
+    """
+    if check_lattice(lattice) == "round":
+        return index.to(torch.float32) * voxel_size
+    return ((index.to(torch.float64) + 0.5) * voxel_size).to(torch.float32)
+
+
+def lattice_transform(transform, voxel_size: float) -> tuple[Tensor, Tensor] | None:
+    """``(R, t)`` (int64 ``[3, 3]``, ``[3]``) when the rigid ``transform`` ``[4, 4]`` keeps the
+    voxel lattice: its rotation a signed permutation (multiples of 90 degrees about the axes,
+    determinant +1) and its translation whole voxels (within 1e-6 of a voxel); else ``None``."""
+    t = torch.as_tensor(transform, dtype=torch.float64)
+    if t.shape != (4, 4) or not bool(torch.isfinite(t).all()):
+        raise ValueError(f"transform of shape {tuple(t.shape)}: expected a finite [4, 4] matrix")
+    rot, shift = t[:3, :3], t[:3, 3] / voxel_size
+    r = rot.round()
+    perm = (r.abs().sum(0) == 1).all() and (r.abs().sum(1) == 1).all()
+    whole = (shift - shift.round()).abs().max() <= 1e-6
+    if not (perm and whole and (rot - r).abs().max() <= 1e-9 and torch.det(r) > 0):
+        return None
+    return r.to(torch.int64), shift.round().to(torch.int64)
+
+
+def transform_keys(keys: Tensor, transform, voxel_size: float, lattice: str = "round") -> Tensor:
+    """The key of each voxel (``[M]`` packed keys) after the rigid ``transform`` ``[4, 4]``.
+
+    A transform that keeps the lattice (:func:`lattice_transform`) maps each voxel onto one
+    voxel, computed on the integers: ``R i + t`` (``round`` lattice), ``R i + t + (R 1 - 1) /
+    2`` (``floor``: the centre ``i + 1/2`` turned). Any other moves the voxel's centre (float64)
+    and takes the voxel it falls in (an approximation of transforming the points themselves)."""
+    index = unpack_keys(keys)
+    exact = lattice_transform(transform, voxel_size)
+    if exact is not None:
+        r, t = (x.to(keys.device) for x in exact)
+        moved = index @ r.T + t
+        if check_lattice(lattice) == "floor":
+            moved = moved + (r.sum(dim=1) - 1) // 2
+        return pack_keys(moved)
+    m = torch.as_tensor(transform, dtype=torch.float64, device=keys.device)
+    shift = 0.0 if check_lattice(lattice) == "round" else 0.5
+    centres = (index.to(torch.float64) + shift) * voxel_size
+    return pack_keys(voxel_indices(centres @ m[:3, :3].T + m[:3, 3], voxel_size, lattice))
+
+
+def check_voxel_size(voxel_size: float) -> float:
+    """``voxel_size`` as a float when it is a finite number > 0 (metres); else a ValueError."""
+    try:
+        v = float(voxel_size)
+    except (TypeError, ValueError):
+        v = math.nan
+    if not (math.isfinite(v) and v > 0) or isinstance(voxel_size, bool):
+        raise ValueError(f"voxel_size={voxel_size!r}: expected a finite number > 0 (metres)")
+    return v

@@ -1,6 +1,13 @@
-"""Feature lifting under the literal reading of the paper: every pixel with its patch's feature.
+"""Feature lifting: a window's feature grid placed in 3D, in the two modes of ``points``.
 
-The paper's sentence: "patch centres are unprojected with the depth camera model; depth is
+The modes (:data:`~resireg.specs.mapping.POINTS`): ``patch`` (:func:`patch_points`, one point
+per patch centre, OTAS's code) and ``pixel`` (:func:`pixel_pairs`, every pixel at its patch's
+depth, below). :func:`lift_grid` computes either for a window's depth and poses (a
+:class:`LiftedGrid`, shared by maps fed the same frames) and :meth:`LiftedGrid.with_features`
+joins a window's features to it: a :class:`LiftedPoints`, what a map's storage adds
+(:meth:`LiftedPoints.add_to`).
+
+**The literal reading of the paper**: every pixel with its patch's feature. The paper's sentence: "patch centres are unprojected with the depth camera model; depth is
 aggregated per patch by nearest downsampling to feature resolution and back to the depth grid".
 OTAS's code (``src/model.py``, ``batch_embed_rgbd``), which the sentence describes, unprojects one
 point per patch (:func:`resireg.mapping.patch_points` is that reading). Read literally, the
@@ -22,6 +29,9 @@ then proportional to the pairs (a small multiple of the patches), not to the ~55
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
 import torch
 from torch import Tensor
 
@@ -30,12 +40,27 @@ from resireg.mapping.geometry import (
     check_intrinsics,
     nearest_downsample,
     nearest_indices,
+    scale_intrinsics,
     unproject,
 )
-from resireg.mapping.keys import MAX_INDEX, pack_keys, unpack_keys
-from resireg.mapping.voxels import check_lattice, check_voxel_size
+from resireg.mapping.keys import (
+    MAX_INDEX,
+    check_lattice,
+    check_voxel_size,
+    pack_keys,
+    unpack_keys,
+    voxel_indices,
+)
+from resireg.specs.mapping import POINTS
 
-__all__ = ["pixel_pairs", "pixel_points"]
+__all__ = [
+    "LiftedGrid",
+    "LiftedPoints",
+    "lift_grid",
+    "patch_points",
+    "pixel_pairs",
+    "pixel_points",
+]
 
 # Pixels per chunk in pixel_pairs: its two float64 per-pixel buffers (2 x 1 MB) are reused by
 # the allocator from chunk to chunk; whole-frame buffers (2 x 4.4 MB at 640 x 864) were
@@ -50,7 +75,7 @@ _TWO52_BITS = int(torch.tensor(float(_TWO52), dtype=torch.float64).view(torch.in
 
 def _lattice_op(scaled: Tensor, lattice: str) -> Tensor:
     """``round`` (half to even) or ``floor`` of coordinates in voxel units, still float64 (the
-    operations of :func:`resireg.mapping.voxels.lattice_index`)."""
+    operations of :func:`resireg.mapping.keys.lattice_index`)."""
     return torch.round(scaled) if lattice == "round" else torch.floor(scaled)
 
 
@@ -158,7 +183,7 @@ def pixel_pairs(
         cam_to_world: ``[B, 4, 4]`` poses.
         grid: ``(h, w)`` feature grid.
         voxel_size: voxel edge in metres.
-        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.voxels`).
+        lattice: ``"round"`` or ``"floor"`` (:mod:`resireg.mapping.keys`).
 
     Returns:
         ``index`` ``[M, 3]`` int64 voxel indices, ``patch`` ``[M]`` int64 flat patch indices
@@ -309,3 +334,121 @@ def pixel_pairs(
         empty = torch.empty(0, dtype=torch.int64, device=dev)
         return empty.reshape(0, 3), empty, empty
     return torch.cat(out_index), torch.cat(out_patch), torch.cat(out_count)
+
+
+@dataclass(frozen=True)
+class LiftedPoints:
+    """One window's features placed in 3D (:meth:`LiftedGrid.with_features`), as a map's
+    storage adds them (:meth:`add_to`).
+
+    ``patch`` mode: one world point per feature row (``points``). ``pixel`` mode: the
+    (voxel, patch, count) pairs of :func:`pixel_pairs` over the grid's feature rows
+    (``index``, ``patch``, ``count``); ``points`` is then ``None``, and the pairs are ``None``
+    in ``patch`` mode."""
+
+    mode: str  #: ``"patch"`` or ``"pixel"`` (:data:`~resireg.specs.mapping.POINTS`)
+    features: Tensor  #: ``[N, D]`` float32 feature rows
+    colours: Tensor | None  #: ``[N, 3]`` the mean colour of each row's patch, or ``None``
+    points: Tensor | None = None  #: ``patch``: ``[N, 3]`` float32 world points, one per row
+    index: Tensor | None = None  #: ``pixel``: ``[P, 3]`` int64 voxel index of each pair
+    patch: Tensor | None = None  #: ``pixel``: ``[P]`` int64 feature row of each pair
+    count: Tensor | None = None  #: ``pixel``: ``[P]`` int64 pixels of each pair
+
+    def voxel_index(self, voxel_size: float, lattice: str) -> Tensor:
+        """``[P, 3]`` int64 voxel indices the window touches (repeats kept)."""
+        if self.points is None:
+            return self.index
+        return voxel_indices(self.points, voxel_size, lattice)
+
+    def distinct_features(self) -> Tensor:
+        """The window's feature rows, each lifted row once (a basis is fitted on them)."""
+        if self.patch is None:
+            return self.features
+        return self.features[torch.unique(self.patch)]
+
+    def projected(self, basis: Tensor | None) -> LiftedPoints:
+        """The same points with their features projected by ``basis`` ``[D, k]`` (``None``:
+        unchanged)."""
+        return self if basis is None else replace(self, features=self.features @ basis)
+
+    def add_to(self, target, values: Tensor, *more: Tensor | None) -> None:
+        """Add ``values`` (``[N, C]``: the features, or the colours) to a sparse map:
+        ``target.add(points, values, *more)`` (``patch``) or ``target.add_pairs(index, count,
+        values, patch, *more)`` (``pixel``)."""
+        if self.points is not None:
+            target.add(self.points, values, *more)
+        else:
+            target.add_pairs(self.index, self.count, values, self.patch, *more)
+
+
+class LiftedGrid(NamedTuple):
+    """Where a window's feature grid lands (:func:`lift_grid`), before its features join it."""
+
+    mode: str  #: ``"patch"`` or ``"pixel"``
+    points: Tensor | None  #: ``patch``: ``[B, h, w, 3]`` float32 world points of the patch centres
+    valid: Tensor | None  #: ``patch``: ``[B, h, w]`` bool, the points with a depth and a pose
+    index: Tensor | None  #: ``pixel``: ``[P, 3]`` voxel index of each pair
+    patch: Tensor | None  #: ``pixel``: ``[P]`` flat patch ``b h w + i w + j`` of each pair
+    count: Tensor | None  #: ``pixel``: ``[P]`` pixels of each pair
+
+    def with_features(self, features: Tensor, colours: Tensor | None) -> LiftedPoints:
+        """The window's ``[B, h, w, D]`` features (and ``[B, h, w, 3]`` colours, or ``None``)
+        placed on this grid's points."""
+        if self.mode == "patch":
+            valid = self.valid
+            rgb = None if colours is None else colours[valid]
+            return LiftedPoints("patch", features[valid], rgb, points=self.points[valid])
+        rgb = None if colours is None else colours.reshape(-1, 3)
+        return LiftedPoints("pixel", features.reshape(-1, features.shape[-1]), rgb,
+                            index=self.index, patch=self.patch, count=self.count)  # fmt: skip
+
+
+def lift_grid(
+    mode: str,
+    depth: Tensor,
+    intrinsics: Tensor,
+    cam_to_world: Tensor,
+    grid: tuple[int, int],
+    voxel_size: float,
+    lattice: str = "round",
+) -> LiftedGrid:
+    """A window's feature grid ``(h, w)`` in 3D by ``mode`` (:data:`~resireg.specs.mapping.POINTS`):
+    :func:`patch_points` or :func:`pixel_pairs` (``voxel_size`` and ``lattice``: the pairs'
+    voxels)."""
+    if mode not in POINTS:
+        raise ValueError(f"points={mode!r}: expected one of {POINTS}")
+    if mode == "patch":
+        points, valid = patch_points(depth, intrinsics, cam_to_world, grid)
+        return LiftedGrid("patch", points, valid, None, None, None)
+    index, patch, count = pixel_pairs(depth, intrinsics, cam_to_world, grid, voxel_size, lattice)
+    return LiftedGrid("pixel", None, None, index, patch, count)
+
+
+def patch_points(
+    depth: Tensor, intrinsics: Tensor, cam_to_world: Tensor, grid: tuple[int, int]
+) -> tuple[Tensor, Tensor]:
+    """World points of the patch centres of a feature grid, from full-resolution depth.
+
+    The depth is nearest-downsampled to ``grid`` (:func:`nearest_downsample`: each patch takes
+    the depth pixel containing its centre), the intrinsics are scaled from the depth image to
+    the grid (:func:`scale_intrinsics`), and the grid is unprojected (:func:`unproject`). The
+    depth image must show the same field of view as the image the features came from.
+
+    Args:
+        depth: ``[B, H, W]`` depth in metres.
+        intrinsics: ``[3, 3]`` or ``[B, 3, 3]`` intrinsics of the ``H x W`` depth image.
+        cam_to_world: ``[B, 4, 4]`` poses.
+        grid: ``(h, w)`` feature grid.
+
+    Returns:
+        ``points`` ``[B, h, w, 3]`` float32 and ``valid`` ``[B, h, w]`` bool, as
+        :func:`unproject`.
+    """
+    if not isinstance(depth, Tensor) or depth.ndim != 3:
+        shape = tuple(depth.shape) if isinstance(depth, Tensor) else type(depth)
+        raise ValueError(f"depth of shape {shape}: expected a [B, H, W] tensor")
+    grid = check_hw("grid", grid)
+    small = nearest_downsample(depth, grid)
+    check_intrinsics(intrinsics)
+    k = scale_intrinsics(intrinsics, tuple(depth.shape[-2:]), grid)
+    return unproject(small, k, cam_to_world)

@@ -106,7 +106,7 @@ def open_map(
     elsewhere: str = "use a new run folder",
 ) -> OpenedMap:
     """The map a run builds in ``folder`` (a map folder, or a run folder holding one in
-    ``map/``: :func:`~resireg.mapping.semantic_map.map_folder`'s rule).
+    ``map/``: :func:`~resireg.mapping.map_file.map_folder`'s rule).
 
     No saved map there: ``fresh`` (an empty map of today's settings) with ``identity`` and no
     frame kept in its ``meta``. A saved map and ``resume``: the saved map, loaded with

@@ -359,7 +359,7 @@ class ResiregMapNode(Node):
         from geometry_msgs.msg import Pose, PoseArray
         from visualization_msgs.msg import Marker, MarkerArray
 
-        from resireg.mapping.semantic_map import diverging_ramp
+        from resireg.mapping.colours import diverging_ramp
 
         with self.worker.lock:
             smap = self.worker.smap

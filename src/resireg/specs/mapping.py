@@ -25,7 +25,7 @@ __all__ = [
 ]
 
 #: Voxel lattices: voxel ``i`` covers ``[(i - 1/2) v, (i + 1/2) v)`` (``round``, RayFronts)
-#: or ``[i v, (i + 1) v)`` (``floor``) (:mod:`resireg.mapping.voxels`).
+#: or ``[i v, (i + 1) v)`` (``floor``) (:mod:`resireg.mapping.keys`).
 LATTICES = ("round", "floor")
 #: How features are lifted to 3D: one point per patch centre, or every pixel at its patch's
 #: depth (:class:`resireg.mapping.SemanticMap`).

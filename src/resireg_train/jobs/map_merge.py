@@ -42,7 +42,7 @@ def merge_job(cfg: DictConfig, record: RunRecord) -> dict[str, Any]:
     ``results.json`` content. ``--out`` was checked before the record started
     (:func:`~resireg_train.checks.map.check_merge_out`)."""
     from resireg.mapping import SemanticMap
-    from resireg.mapping.semantic_map import remove_partial_saves
+    from resireg.mapping.map_file import remove_partial_saves
 
     out = record.folder
     names = merge_names(cfg)

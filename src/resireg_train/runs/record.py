@@ -265,7 +265,7 @@ def enclosing_run(path: str | os.PathLike) -> Path | None:
     """The folder above ``path`` that holds a run's record (a ``results.json`` that is a run
     record) or a saved map (``map.json``), else ``None``: a new run's folder never lies inside
     another run's (its ``.hydra/``, its map). Another tool's ``results.json`` is no run's."""
-    from resireg.mapping.semantic_map import MAP_JSON
+    from resireg.mapping.map_file import MAP_JSON
 
     for above in Path(path).resolve().parents:
         try:

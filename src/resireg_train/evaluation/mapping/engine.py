@@ -99,7 +99,7 @@ class MappingSettings:
 
     Attributes:
         voxel_size: voxel edge in metres (feature maps and ground truth).
-        lattice: ``round`` or ``floor`` (:mod:`resireg.mapping.voxels`).
+        lattice: ``round`` or ``floor`` (:mod:`resireg.mapping.keys`).
         gt_unlabelled: :data:`GT_RULES`.
         points: :data:`POINTS`.
         storage: the feature maps' storage (:data:`resireg.specs.mapping.STORAGES`;
