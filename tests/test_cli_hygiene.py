@@ -123,7 +123,7 @@ def test_two_resireg_map_runs_into_one_folder_one_is_refused(tmp_path, tiny_expo
     common = [f"model_path={tiny_export}", "device=cpu", "source=rosbag",
               f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
               f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
-              "configuration=full@n_prototypes:4", "window=2", "voxel_size=0.2",
+              "variant=full@n_prototypes:4", "window=2", "voxel_size=0.2",
               f"hydra.run.dir={out}"]  # fmt: skip
     procs = run_side_by_side(("resireg-map", *common, "seed=1"), ("resireg-map", *common, "seed=2"),
                              check=False)  # fmt: skip
@@ -267,7 +267,7 @@ def test_resireg_map_prints_its_summary_once(tmp_path, tiny_export):
     proc = run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source=rosbag",
                f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
                f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
-               "configuration=full@n_prototypes:4", "window=4", f"hydra.run.dir={out}")  # fmt: skip
+               "variant=full@n_prototypes:4", "window=4", f"hydra.run.dir={out}")  # fmt: skip
     printed = proc.stdout + proc.stderr
     assert printed.count("unpaired colour messages:") == 1, printed
     assert (out / "map.log").read_text().count("unpaired colour messages:") == 1

@@ -201,7 +201,7 @@ def test_the_multi_session_recipe_through_the_commands(tmp_path, export_512):
     bag = write_bag(tmp_path / "room", room_frames(6))
     common = [f"model_path={export_512}", "device=cpu", "source=rosbag", f"source.path={bag}",
               f"source.colour_topic={TOPICS['colour']}", f"source.depth_topic={TOPICS['depth']}",
-              f"source.camera_info_topic={TOPICS['info']}", "configuration=bb", "window=2",
+              f"source.camera_info_topic={TOPICS['info']}", "variant=bb", "window=2",
               "voxel_size=0.2", "storage=compact", "ply.colour_by=rgb"]  # fmt: skip
     run1, run2, out = tmp_path / "run1", tmp_path / "run2", tmp_path / "merged"
     run("resireg-map", *common, "source.limit=3", f"hydra.run.dir={run1}", threads=1)

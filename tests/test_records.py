@@ -131,7 +131,7 @@ def test_a_dirty_checkout_with_secrets_leaves_none_in_any_record(
                 "dataset.size=4", "num_workers=0", "variants=[bb]",
                 f"hydra.run.dir={runs / 'eval'}", *common, env=env, threads=1),
             run("resireg-map", f"model_path={tiny_export}", "device=cpu", *_room_bag(tmp_path),
-                "configuration=bb", "window=2", f"hydra.run.dir={runs / 'map'}", *common,
+                "variant=bb", "window=2", f"hydra.run.dir={runs / 'map'}", *common,
                 env=env, threads=1),
         ]  # fmt: skip
     finally:

@@ -170,7 +170,7 @@ def test_an_evaluation_and_a_map_rerun_identical(project, tmp_path, tiny_export,
     bag, topics = room_bag
     mapped = tmp_path / "map"
     _run(env, "resireg_train.cli.map", f"model_path={tiny_export}", "device=cpu",
-         "source=rosbag", f"source.path={bag}", *topics, "configuration=full", "window=2",
+         "source=rosbag", f"source.path={bag}", *topics, "variant=full", "window=2",
          f"hydra.run.dir={mapped}", threads=1)  # fmt: skip
     proc = _rerun(env, mapped, "--out", tmp_path / "map2", check=0)
     assert _verdict(proc).startswith("verdict: identical")

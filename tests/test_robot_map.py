@@ -223,7 +223,7 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     bag = write_bag(tmp_path / "room", room)
     common = [f"model_path={tiny_export}", "device=cpu", "source=rosbag", f"source.path={bag}",
               f"source.colour_topic={TOPICS['colour']}", f"source.depth_topic={TOPICS['depth']}",
-              f"source.camera_info_topic={TOPICS['info']}", "configuration=full@n_prototypes:4",
+              f"source.camera_info_topic={TOPICS['info']}", "variant=full@n_prototypes:4",
               "window=2", f"voxel_size={VOXEL}", "save_every=1"]  # fmt: skip
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     # The whole run, the cut one and the refused one are independent: started side by side,
@@ -432,7 +432,7 @@ def test_resireg_map_bad_stamps_sizes_depth_corrupt_tf(tmp_path, room12, tiny_ex
     bag = rewrite_bag(clean, tmp_path / "faulty", damage)
     out = tmp_path / "run"
     proc = run("resireg-map", f"model_path={tiny_export}", "device=cpu", f"source.path={bag}",
-               *CLI_TOPICS, "configuration=bb", "window=4", f"voxel_size={VOXEL}",
+               *CLI_TOPICS, "variant=bb", "window=4", f"voxel_size={VOXEL}",
                f"hydra.run.dir={out}", "viewer.save=map.rrd", threads=2)  # fmt: skip
     results = json.loads((out / "results.json").read_text())
     frames = results["frames"]
@@ -489,7 +489,7 @@ def test_resireg_map_resume_inside_a_window_and_another_model(tmp_path, room12, 
     other = tmp_path / "other_export"
     torch.manual_seed(1)
     ResiregVLM.build(TINY_BACKBONE, TINY_HEAD, TINY_TEXT).save_pretrained(other)
-    common = [f"model_path={tiny_export}", "device=cpu", *CLI_TOPICS, "configuration=bb",
+    common = [f"model_path={tiny_export}", "device=cpu", *CLI_TOPICS, "variant=bb",
               "window=4", f"voxel_size={VOXEL}"]  # fmt: skip
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     run_side_by_side(("resireg-map", *common, f"source.path={bag}", f"hydra.run.dir={whole}"),
@@ -547,7 +547,7 @@ def test_resireg_map_damaged_bags_and_a_non_finite_encoder(tmp_path, room12, tin
         model.backbone.model.patch_embed.proj.bias.fill_(float("nan"))
     model.save_pretrained(nan_export)
     clean = write_bag(tmp_path / "clean", room12)
-    common = ["device=cpu", *CLI_TOPICS, "configuration=bb", "window=4", f"voxel_size={VOXEL}"]
+    common = ["device=cpu", *CLI_TOPICS, "variant=bb", "window=4", f"voxel_size={VOXEL}"]
     outs = [tmp_path / f"run{i}" for i in range(4)]
     procs = run_side_by_side(
         ("resireg-map", *common, f"model_path={tiny_export}", f"source.path={ros1}",
@@ -609,7 +609,7 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
     out = tmp_path / "run"
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"model_path={tiny_export}", "device=cpu",
-                                        f"source.path={bag}", *CLI_TOPICS, "configuration=bb",
+                                        f"source.path={bag}", *CLI_TOPICS, "variant=bb",
                                         "window=4", "save_every=1", f"voxel_size={VOXEL}",
                                         f"paths.output_dir={out}"])  # fmt: skip
     with pytest.raises(OSError) as info:

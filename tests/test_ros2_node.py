@@ -104,7 +104,7 @@ def reference_map(bag, encoder, frames_window=WINDOW, extra=()):
     from resireg_train.jobs.map import build_source, make_map
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("map", overrides=[f"configuration={CONFIG}", f"window={frames_window}",
+        cfg = compose("map", overrides=[f"variant={CONFIG}", f"window={frames_window}",
                                         f"voxel_size={VOXEL}", f"source.path={bag}",
                                         f"source.colour_topic={TOPICS['colour']}",
                                         f"source.depth_topic={TOPICS['depth']}",

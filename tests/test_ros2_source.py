@@ -92,7 +92,7 @@ def map_live(helpers, out, export, *extra):
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=[f"model_path={export}", "device=cpu", "source=ros2",
                                         *keys, "source.idle=1.0",
-                                        f"configuration={helpers.CONFIG}",
+                                        f"variant={helpers.CONFIG}",
                                         f"window={helpers.WINDOW}", f"voxel_size={helpers.VOXEL}",
                                         f"paths.output_dir={out}", *extra])  # fmt: skip
     run_map(cfg)

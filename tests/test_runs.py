@@ -262,7 +262,7 @@ def test_lineage_stage1_stage2_export_eval_and_map(tmp_path, room_bag_path):
     assert used["training_run"]["run_id"] == s2["run_id"]
     mapped = logs / "map"
     run("resireg-map", f"model_path={export}", "device=cpu", "source=rosbag",
-        f"source.path={room_bag_path[0]}", *room_bag_path[1], "configuration=bb", "window=2",
+        f"source.path={room_bag_path[0]}", *room_bag_path[1], "variant=bb", "window=2",
         f"hydra.run.dir={mapped}", threads=2)  # fmt: skip
     lines = _runs_cli("lineage", evaluation, "--root", logs).splitlines()
     s1 = json.loads((stage1 / "results.json").read_text())["provenance"]

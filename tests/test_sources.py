@@ -300,7 +300,7 @@ def test_resireg_map_source_nerfstudio(tmp_path, room, tiny_export):
     folder = write_nerfstudio(tmp_path / "ns", room)
     out = tmp_path / "run"
     run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source=nerfstudio",
-        f"source.path={folder}", "configuration=bb", "window=4", f"voxel_size={VOXEL}",
+        f"source.path={folder}", "variant=bb", "window=4", f"voxel_size={VOXEL}",
         f"hydra.run.dir={out}", threads=2)  # fmt: skip
     results = json.loads((out / "results.json").read_text())
     assert (

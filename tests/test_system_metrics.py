@@ -342,7 +342,7 @@ def test_a_map_run_records_its_system_metrics(tmp_path, tiny_export):
     run("resireg-map", f"model_path={tiny_export}", "device=cpu", f"source.path={bag}",
         "source=rosbag", f"source.colour_topic={TOPICS['colour']}",
         f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
-        "configuration=bb", "window=2", "system_metrics.interval=0.1", f"hydra.run.dir={out}",
+        "variant=bb", "window=2", "system_metrics.interval=0.1", f"hydra.run.dir={out}",
         threads=1)  # fmt: skip
     record = json.loads((out / "results.json").read_text())
     rows = read_system_csv(out)

@@ -44,7 +44,7 @@ def test_mlflow_server_gets_train_eval_multirun_and_map(tmp_path, tiny_export, m
         "num_workers=0", "variants=[bb,full]", "full.n_prototypes=4,6", *track,
         f"hydra.sweep.dir={evals}", threads=1)  # fmt: skip
     run("resireg-map", f"model_path={tiny_export}", "device=cpu", *_room_bag(tmp_path),
-        "configuration=bb", "window=2", f"hydra.run.dir={mapped}", *track, threads=1)  # fmt: skip
+        "variant=bb", "window=2", f"hydra.run.dir={mapped}", *track, threads=1)  # fmt: skip
 
     client = MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("resireg")

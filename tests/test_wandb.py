@@ -129,7 +129,7 @@ def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
     run("resireg-map", f"model_path={tiny_export}", "device=cpu", "source=rosbag",
         f"source.path={bag}", f"source.colour_topic={TOPICS['colour']}",
         f"source.depth_topic={TOPICS['depth']}", f"source.camera_info_topic={TOPICS['info']}",
-        "configuration=bb", "window=2", "tracker=wandb", f"hydra.run.dir={out}", env=env)  # fmt: skip
+        "variant=bb", "window=2", "tracker=wandb", f"hydra.run.dir={out}", env=env)  # fmt: skip
     (file,) = out.glob("wandb/offline-run-*/run-*.wandb")
     name, group, config, summary, exit_code = _read_run(file)
     assert exit_code == 0 and not group and name.startswith("map-")

@@ -73,6 +73,8 @@ RENAMED_KEYS: dict[str, RenamedKey] = {
     "logger": RenamedKey("logger", "tracker", "0.2.0", "0.3.0",
                          ("train", "eval", "map", "map_merge")),  # fmt: skip
     "rerun": RenamedKey("rerun", "viewer", "0.2.0", "0.3.0", ("map",)),
+    # resireg-map's one ReSiReg variant: what resireg-eval's variants= lists
+    "configuration": RenamedKey("configuration", "variant", "0.2.0", "0.3.0", ("map",)),
 }
 
 #: ``_target_`` in an earlier release's conf/ -> today's

@@ -82,7 +82,7 @@ def make_map(cfg: DictConfig, encoder: Any, prior: Any = None):
         compact = OmegaConf.to_container(cfg.compact, resolve=True)
         compact["basis"] = local_path(compact.get("basis"))
     try:
-        return SemanticMap(encoder, str(cfg.configuration), float(cfg.voxel_size), params=params,
+        return SemanticMap(encoder, str(cfg.variant), float(cfg.voxel_size), params=params,
                            prior=prior, points=str(cfg.points), lattice=str(cfg.lattice),
                            sum_dtype=str(cfg.sum_dtype), max_voxels=cfg.max_voxels,
                            short_side=cfg.short_side, storage=storage, compact=compact)  # fmt: skip
@@ -121,7 +121,7 @@ def _encoder_and_prior(cfg: DictConfig) -> tuple[Any, Any]:
     entry = encoder_kwargs(OmegaConf.to_container(cfg.encoder, resolve=True))
     with config_path("encoder", encoder_arguments(entry)):
         encoder = build_encoder(**entry, device=resolve_device(str(cfg.device)))
-    if not takes_prior(str(cfg.configuration)):
+    if not takes_prior(str(cfg.variant)):
         return encoder, None
     from resireg.priors import build_prior
 
