@@ -71,10 +71,10 @@ def test_bad_values_are_one_line_naming_them():
                  "full.alpha=-1.0: expected a number > 0 (finite)",
                  "qos='fast': expected one of ['sensor_data', 'reliable']"):  # fmt: skip
         assert part in text
-    settings.check({**values, "configuration": "lite@alpha:5.0"}, table)
+    settings.check({**values, "variant": "lite@alpha:5.0"}, table)
     for bad in ("full+prior", "lite@layer:3", "nope", "full@n_prototypes:0"):
-        with pytest.raises(settings.SettingsError, match="configuration="):
-            settings.check({**values, "configuration": bad}, table)
+        with pytest.raises(settings.SettingsError, match="variant="):
+            settings.check({**values, "variant": bad}, table)
 
 
 def test_a_bad_parameter_exits_2_with_one_line(tmp_path):

@@ -62,7 +62,7 @@ def node_parameters(tmp_path, prefix="", **extra):
     from rclpy.parameter import Parameter
 
     topics = player_topics(prefix)
-    values = {"configuration": CONFIG, "window": WINDOW, "voxel_size": VOXEL, "device": "cpu",
+    values = {"variant": CONFIG, "window": WINDOW, "voxel_size": VOXEL, "device": "cpu",
               "source.colour_topic": topics["colour"], "source.depth_topic": topics["depth"],
               "source.camera_info_topic": topics["info"], "source.pose_topic": topics["pose"],
               "camera_offset": offset_parameter(OFFSET), "keyframe.translation": 0.0,
@@ -181,8 +181,8 @@ def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
     context, test_node, spinner = ros
     folder = tmp_path_factory.mktemp("ros2")
     node = ResiregMapNode(parameter_overrides=node_parameters(
-        folder, model_path=str(tiny_export), **{"rerun.save": str(folder / "live.rrd"),
-                                                "rerun.map_every": 1}), context=context)  # fmt: skip
+        folder, model_path=str(tiny_export), **{"viewer.save": str(folder / "live.rrd"),
+                                                "viewer.map_every": 1}), context=context)  # fmt: skip
     pub = BagPlayer(PLAYER_TOPICS, context=context)
     spinner.add(node)
     spinner.add(pub)
@@ -222,7 +222,7 @@ def test_live_map_equals_resireg_map_over_shared_memory(mapped, room, encoder, t
 
 
 def test_live_rerun_stream_logs_resireg_map_entities(mapped):
-    """The node's Rerun recording (rerun.save here; rerun.serve / rerun.connect stream the same)
+    """The node's Rerun recording (viewer.save here; viewer.serve / viewer.connect stream the same)
     holds resireg-map's entities: each frame's camera, image and depth, the path, the map."""
     from rerun.chunk import RrdReader
 
