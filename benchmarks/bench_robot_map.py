@@ -6,7 +6,7 @@ Setting. The ray-cast room of :mod:`resireg_train.data.room_bag` recorded as a R
 ``--frames`` frames. Models: the tests' tiny VLM and the 25M architecture (EUPE ViT-S/16 +
 the head of ``conf/model/vlm25m.yaml``), both with random weights (``_common.build_model``),
 ReSiReg's parameters from ``conf/resireg/default.yaml``, the map's from ``conf/map.yaml``
-(``configuration: full``, voxel 0.05 m, ``points: patch``, float64 sums).
+(``variant: full``, voxel 0.05 m, ``points: patch``, float64 sums).
 
 1. Bag decoding alone: iterating :class:`resireg.sources.rosbag.BagSource` (both passes:
    stamps and poses, then PNG colour and depth decoding, tf lookups), frames per second.
@@ -63,7 +63,7 @@ def _map(model, cfg):
     from resireg.mapping import SemanticMap
 
     params = {k: resireg_defaults()[k] for k in ("calib", "lite", "full")}
-    return SemanticMap(model, cfg["configuration"], cfg["voxel_size"], params=params,
+    return SemanticMap(model, cfg["variant"], cfg["voxel_size"], params=params,
                        points=cfg["points"], lattice=cfg["lattice"], sum_dtype=cfg["sum_dtype"])  # fmt: skip
 
 

@@ -22,8 +22,8 @@ unless ``--model-path`` names a trained export: with them the PCA and similarity
 the structure of the features, not semantics. The PNG is saved with a ``--colours`` palette
 (its largest colour error against the full-colour figure is printed; ``--colours 0``: exact).
 
-``--rrd`` also saves the node's live Rerun recording of the same run (``rerun.save``,
-``rerun.map_every`` 1, ``rerun.query`` the query; open it with ``rerun <file>``). The process
+``--rrd`` also saves the node's live Rerun recording of the same run (``viewer.save``,
+``viewer.map_every`` 1, ``viewer.query`` the query; open it with ``rerun <file>``). The process
 is checked to hold no UDP socket.
 
     python benchmarks/render_live_map.py [--out docs/images/live_map.png] [--query "a chair"]
@@ -94,8 +94,8 @@ def make_node(context, model_path, folder, voxel, rrd, query):
               "queue_size": 64, "buffer_size": 136, "max_wait": 2.0, "window_timeout": 2.0,
               "output_dir": str(folder), "publish_rate": 5.0}  # fmt: skip
     if rrd:
-        values.update({"rerun.save": str(Path(rrd).resolve()), "rerun.map_every": 1,
-                       "rerun.query": query})  # fmt: skip
+        values.update({"viewer.save": str(Path(rrd).resolve()), "viewer.map_every": 1,
+                       "viewer.query": query})  # fmt: skip
     return ResiregMapNode(node_name=NODE, context=context,
                           parameter_overrides=[Parameter(k, value=v) for k, v in values.items()])  # fmt: skip
 

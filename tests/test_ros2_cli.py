@@ -71,10 +71,10 @@ def test_bad_values_are_one_line_naming_them():
                  "full.alpha=-1.0: expected a number > 0 (finite)",
                  "qos='fast': expected one of ['sensor_data', 'reliable']"):  # fmt: skip
         assert part in text
-    settings.check({**values, "configuration": "lite@alpha:5.0"}, table)
+    settings.check({**values, "variant": "lite@alpha:5.0"}, table)
     for bad in ("full+prior", "lite@layer:3", "nope", "full@n_prototypes:0"):
-        with pytest.raises(settings.SettingsError, match="configuration="):
-            settings.check({**values, "configuration": bad}, table)
+        with pytest.raises(settings.SettingsError, match="variant="):
+            settings.check({**values, "variant": bad}, table)
 
 
 def test_a_bad_parameter_exits_2_with_one_line(tmp_path):
@@ -144,3 +144,136 @@ def test_rgb_packing_is_rviz_bits():
     bits = pack_rgb(c).view(np.uint32)
     assert bits.tolist() == [0xFF0000, 0x010203, 0x0000FF]
     np.testing.assert_array_equal(unpack_rgb(pack_rgb(c)), c)
+
+
+# the node's parameters renamed with resireg-map's keys in 0.2.0 (issue 52): the old names run
+# as the new ones, with one warning line, until 0.3.0
+WARNING = "{old!r} is now {new!r} (renamed in 0.2.0; the old name goes in 0.3.0): read {read}"
+
+
+@pytest.mark.parametrize(("flag", "old", "new"), [
+    ("-p", "configuration:=lite@alpha:5.0", "variant:=lite@alpha:5.0"),
+    ("--param", "configuration:=bb", "variant:=bb"),
+    *[("-p", f"rerun.{k}:=1", f"viewer.{k}:=1")
+      for k in ("save", "spawn", "query", "map_every", "serve", "connect")],
+    ("--param", "resireg_map:rerun.save:=m.rrd", "resireg_map:viewer.save:=m.rrd"),
+])  # fmt: skip
+def test_an_old_parameter_name_runs_as_the_new_one(flag, old, new, tmp_path):
+    lines = []
+    argv = ["resireg-ros2", "--ros-args", "-p", "window:=2", flag, old, "-r", "__node:=x"]
+    out = settings.current_arguments(argv, lines.append, tmp_path)
+    assert out == ["resireg-ros2", "--ros-args", "-p", "window:=2", flag, new, "-r", "__node:=x"]
+    head = old.rpartition(":=")[0].rpartition(":")[2].partition(".")[0]
+    assert lines == [WARNING.format(old=head, new={"configuration": "variant",
+                                                   "rerun": "viewer"}[head],
+                                    read=f"{old} -> {new}")]  # fmt: skip
+    # words outside --ros-args (the program's own) and today's names are left alone
+    plain = ["resireg-ros2", "-p", "configuration:=bb", "--ros-args", "-p", "variant:=bb"]
+    assert settings.current_arguments(plain, lines.append, tmp_path) == plain
+    assert len(lines) == 1
+
+
+def test_old_and_new_name_together_exit_2_before_anything_starts(monkeypatch, capsys):
+    from resireg.ros2 import cli
+
+    def started(*args):
+        raise AssertionError("the node was started")
+
+    monkeypatch.setattr(cli, "_run", started)
+    for given in (["configuration:=lite", "variant:=full"],
+                  ["viewer.spawn:=true", "rerun.save:=m.rrd"]):  # fmt: skip
+        argv = ["--ros-args", "-p", given[0], "--param", given[1]]
+        assert cli.main(argv) == 2
+        captured = capsys.readouterr()
+        old, new = ("configuration", "variant") if "variant" in given[1] else ("rerun", "viewer")
+        assert captured.err == (
+            f"resireg-ros2: error: {given[0]} {given[1]}: {old!r} and {new!r} name one "
+            f"parameter ({old!r} is the old name of {new!r}): give it once, as {new!r}\n"
+        )
+        assert captured.out == ""
+
+
+def _params_file(path, params):
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": params}}))
+    return path
+
+
+def test_a_params_file_with_old_names_is_read_in_the_new_ones(tmp_path):
+    import hashlib
+
+    src = _params_file(tmp_path / "robot.yaml", {"configuration": "lite", "window": 2,
+                                                 "rerun": {"save": "m.rrd", "map_every": 3},
+                                                 "rerun.serve": True})  # fmt: skip
+    digest = hashlib.sha256(src.read_bytes()).hexdigest()
+    copies = tmp_path / "copies"
+    copies.mkdir()
+    lines = []
+    out = settings.current_arguments(["resireg-ros2", "--ros-args", "--params-file", str(src)],
+                                     lines.append, copies)  # fmt: skip
+    assert out[:3] == ["resireg-ros2", "--ros-args", "--params-file"]
+    assert Path(out[3]).parent == copies
+    assert yaml.safe_load(Path(out[3]).read_text()) == {"/**": {"ros__parameters": {
+        "variant": "lite", "window": 2, "viewer": {"save": "m.rrd", "map_every": 3},
+        "viewer.serve": True}}}  # fmt: skip
+    assert lines == [
+        WARNING.format(old="configuration", new="variant", read=f"configuration -> variant in {src}"),
+        WARNING.format(old="rerun", new="viewer",
+                       read=f"rerun -> viewer in {src}, rerun.serve -> viewer.serve in {src}"),
+    ]  # fmt: skip
+    assert hashlib.sha256(src.read_bytes()).hexdigest() == digest  # the user's file: as it was
+    # a file in today's names is passed as it is, without a word
+    new = _params_file(tmp_path / "new.yaml", {"variant": "bb"})
+    argv = ["resireg-ros2", "--ros-args", "--params-file", str(new)]
+    assert settings.current_arguments(argv, lines.append, copies) == argv and len(lines) == 2
+    both = _params_file(tmp_path / "both.yaml", {"rerun": {"save": "a.rrd"}, "viewer.spawn": True})
+    with pytest.raises(settings.SettingsError) as err:
+        settings.current_arguments(["x", "--ros-args", "--params-file", str(both)], print, copies)
+    assert str(err.value) == (f"{both}: rerun viewer.spawn: 'rerun' and 'viewer' name one "
+                              "parameter ('rerun' is the old name of 'viewer'): give it once, "
+                              "as 'viewer'")  # fmt: skip
+
+
+def test_the_real_command_reads_old_names_as_the_new_ones(tmp_path):
+    """A fresh process (rclpy's parameters): ``-p configuration:=`` and a params file's
+    ``rerun.map_every`` reach the node as ``variant`` and ``viewer.map_every`` (their bad values
+    are refused under the new names), after one warning line each; the file is unchanged."""
+    params = _params_file(tmp_path / "robot.yaml", {"rerun": {"map_every": 0}})
+    text = params.read_text()
+    proc = subprocess.run([sys.executable, "-m", "resireg.ros2.cli", "--ros-args", "-p",
+                           "configuration:=nope", "--params-file", str(params), "-p",
+                           f"output_dir:={tmp_path}"], capture_output=True, text=True,
+                          env=ros_env(), timeout=300)  # fmt: skip
+    lines = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert proc.returncode == 2, proc.stderr
+    assert lines[:2] == [
+        "resireg-ros2: warning: " + WARNING.format(
+            old="rerun", new="viewer", read=f"rerun -> viewer in {params}"),
+        "resireg-ros2: warning: " + WARNING.format(
+            old="configuration", new="variant", read="configuration:=nope -> variant:=nope"),
+    ], proc.stderr  # fmt: skip
+    assert len(lines) == 3 and lines[2].startswith("resireg-ros2: error: variant='nope': "
+                                                   "expected one of "), proc.stderr  # fmt: skip
+    assert lines[2].endswith("; viewer.map_every=0: expected an integer >= 1"), proc.stderr
+    assert params.read_text() == text
+
+
+def test_the_parameter_list_has_the_new_names(capsys):
+    from resireg.ros2 import cli
+
+    assert cli.main(["--parameters"]) == 0
+    names = [row.split("`")[1] for row in capsys.readouterr().out.splitlines()[2:]]
+    assert "variant" in names and "configuration" not in names
+    assert sorted(n for n in names if n.partition(".")[0] in ("viewer", "rerun")) == [
+        f"viewer.{k}" for k in sorted(("save", "spawn", "query", "map_every", "serve", "connect"))
+    ]
+
+
+def test_the_node_renames_agree_with_the_hydra_commands():
+    """The node's table (resireg cannot import resireg_train) and resireg-map's renamed keys
+    name the same renames of the keys they share."""
+    from resireg_train.config.moves import RENAMED_KEYS
+
+    assert set(settings.RENAMED_PARAMETERS) == {"configuration", "rerun"}
+    for old, (new, since, removed) in settings.RENAMED_PARAMETERS.items():
+        r = RENAMED_KEYS[old]
+        assert "map" in r.configs and (r.new, r.since, r.removed) == (new, since, removed)

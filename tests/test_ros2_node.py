@@ -62,7 +62,7 @@ def node_parameters(tmp_path, prefix="", **extra):
     from rclpy.parameter import Parameter
 
     topics = player_topics(prefix)
-    values = {"configuration": CONFIG, "window": WINDOW, "voxel_size": VOXEL, "device": "cpu",
+    values = {"variant": CONFIG, "window": WINDOW, "voxel_size": VOXEL, "device": "cpu",
               "source.colour_topic": topics["colour"], "source.depth_topic": topics["depth"],
               "source.camera_info_topic": topics["info"], "source.pose_topic": topics["pose"],
               "camera_offset": offset_parameter(OFFSET), "keyframe.translation": 0.0,
@@ -181,8 +181,8 @@ def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
     context, test_node, spinner = ros
     folder = tmp_path_factory.mktemp("ros2")
     node = ResiregMapNode(parameter_overrides=node_parameters(
-        folder, model_path=str(tiny_export), **{"rerun.save": str(folder / "live.rrd"),
-                                                "rerun.map_every": 1}), context=context)  # fmt: skip
+        folder, model_path=str(tiny_export), **{"viewer.save": str(folder / "live.rrd"),
+                                                "viewer.map_every": 1}), context=context)  # fmt: skip
     pub = BagPlayer(PLAYER_TOPICS, context=context)
     spinner.add(node)
     spinner.add(pub)
@@ -222,7 +222,7 @@ def test_live_map_equals_resireg_map_over_shared_memory(mapped, room, encoder, t
 
 
 def test_live_rerun_stream_logs_resireg_map_entities(mapped):
-    """The node's Rerun recording (rerun.save here; rerun.serve / rerun.connect stream the same)
+    """The node's Rerun recording (viewer.save here; viewer.serve / viewer.connect stream the same)
     holds resireg-map's entities: each frame's camera, image and depth, the path, the map."""
     from rerun.chunk import RrdReader
 
@@ -375,12 +375,15 @@ def test_overload_stays_bounded_and_answers_queries(ros, room, encoder, tmp_path
         test_node.destroy_subscription(answers.sub)
 
 
-def _start_node(tmp_path, export, *extra):
+def _start_node(tmp_path, export, *extra, old_names=False):
+    """resireg-ros2 in a subprocess; ``old_names``: ``variant`` given by its name before 0.2.0
+    (``-p configuration:=``)."""
     args = [sys.executable, "-m", "resireg.ros2.cli", "--ros-args"]
     for p in node_parameters(tmp_path, "/sigint", model_path=str(export)):
         value = p.value
         text = json.dumps(value) if isinstance(value, list) else str(value)
-        args += ["-p", f"{p.name}:={text}"]
+        name = "configuration" if old_names and p.name == "variant" else p.name
+        args += ["-p", f"{name}:={text}"]
     args += [x for kv in extra for x in ("-p", kv)]
     args += ["-r", "__node:=resireg_sigint"]  # apart from the module's in-process node
     return started(args, env=ros_env(), threads=1, stderr=subprocess.PIPE)
@@ -393,7 +396,8 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
     voxels), without the "publisher's context is invalid" of a context ended first; started
     again with resume:=true it continues with the last two and stops the same way on SIGTERM
     (``kill``, a service manager): the map equals resireg-map's of all six. Neither process
-    opened a UDP socket."""
+    opened a UDP socket. The second is given the variant by its old name (``configuration``):
+    it runs as ``variant`` (the resume would be refused for another variant), with one warning."""
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import String
 
@@ -406,7 +410,7 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
     clouds = Inbox(test_node, PointCloud2, "/resireg_sigint/map/rgb")
     try:
         for start, stop, extra in ((0, 4, ()), (4, FRAMES, ("resume:=true",))):
-            with _start_node(tmp_path, tiny_export, *extra) as proc:
+            with _start_node(tmp_path, tiny_export, *extra, old_names=start > 0) as proc:
                 status.clear()
                 wait_for(lambda: status and len(status[-1]["subscribed"]) == 3, timeout=120,
                          what="the node's subscriptions")  # fmt: skip
@@ -421,6 +425,8 @@ def test_sigint_saves_and_resume_continues(ros, room, encoder, tiny_export, tmp_
             out, err = proc.stdout, proc.stderr
             assert f"map saved to {tmp_path / 'map'}" in out, out + err
             assert "context is invalid" not in err and "Traceback" not in err, err[-3000:]
+            renamed = [x for x in err.splitlines() if "'configuration' is now 'variant'" in x]
+            assert len(renamed) == (start > 0), err[-3000:]
             assert err.index("map saved to") < err.index("published the final map"), err[-3000:]
             saved = SemanticMap.load(tmp_path / "map", encoder)
             assert saved.frames == stop

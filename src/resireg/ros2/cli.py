@@ -10,11 +10,18 @@ publishes it once more, then ends the ROS context (rclpy's own signal handlers, 
 context first, are not installed: the final publish needs it). Exit status: 0,
 2 for a bad parameter or a missing ``robot`` extra (one line on stderr), 1 for a failure of
 the mapping thread.
+
+A parameter given by its old name (``-p configuration:=full``, ``-p rerun.save:=m.rrd``, the
+same keys in a ``--params-file``) runs as the new one (``variant``, ``viewer.*``) with one
+warning line until the release that removes the old name
+(:data:`resireg.ros2.settings.RENAMED_PARAMETERS`); the old and the new name given together exit
+2 with one line naming both, before anything starts.
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 
 __all__ = ["main"]
 
@@ -41,6 +48,28 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: error: {err}", file=sys.stderr)
             return 2
         return 0
+    import tempfile
+    from pathlib import Path
+
+    from resireg.ros2.settings import SettingsError, current_arguments
+
+    # parameters given by an old name (-p configuration:=..., a params file's rerun.*) take the
+    # new one before rclpy reads them; the renamed files' copies live until rclpy.init read them
+    renamed = tempfile.TemporaryDirectory(prefix="resireg-ros2-")
+    try:
+        try:
+            argv = current_arguments(argv, lambda line: print(f"{PROG}: warning: {line}",
+                                     file=sys.stderr), Path(renamed.name))  # fmt: skip
+        except SettingsError as err:
+            print(f"{PROG}: error: {err}", file=sys.stderr)
+            return 2
+        return _run(argv, renamed.cleanup)
+    finally:
+        renamed.cleanup()
+
+
+def _run(argv: list[str], parsed: Callable[[], None]) -> int:
+    """The node of ``argv`` (today's names); ``parsed`` is called once rclpy has read them."""
     missing = missing_rclpy()
     if missing is not None:
         print(f"{PROG}: error: needs the 'robot' extra ({missing} not installed): pip install "
@@ -61,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     # SIGINT and SIGTERM end the spin in this thread; the node then closes in order (save,
     # publish) while the context is valid, and only then is the context shut down.
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    parsed()  # rcl has read the parameter files
     previous = signal.signal(signal.SIGTERM, stop)
     node = None
     try:

@@ -35,7 +35,7 @@ mapping waits only for the copy. ``~/clear_map`` empties the map and republishes
 output empty. ``resume:=true`` continues a saved map (refused, naming the settings, if they
 differ: the map's, the source's, the window, the encoder entry or its weights' digest:
 :func:`resireg.mapping.opening.open_map`, as ``resireg-map``).
-``rerun.*``: the live Rerun stream (:class:`RerunView`), the same entities as ``resireg-map``'s
+``viewer.*``: the live Rerun stream (:class:`RerunView`), the same entities as ``resireg-map``'s
 recording.
 """
 
@@ -137,7 +137,7 @@ class ResiregMapNode(Node):
         self._output.start()
         self.get_logger().info(
             f"mapping {v['source.depth_topic']} + {v['source.colour_topic']} into "
-            f"{self.world_frame} ({v['configuration']}, window {v['window']}, voxel "
+            f"{self.world_frame} ({v['variant']}, window {v['window']}, voxel "
             f"{v['voxel_size']} m); map folder {self.folder}"
         )
 
@@ -158,12 +158,12 @@ class ResiregMapNode(Node):
 
     def _rerun(self) -> Any:
         v = self.values
-        if not (v["rerun.save"] or v["rerun.spawn"] or v["rerun.serve"] or v["rerun.connect"]):
+        if not (v["viewer.save"] or v["viewer.spawn"] or v["viewer.serve"] or v["viewer.connect"]):
             return None
         from resireg.mapping.viewer import RerunView
 
-        view = RerunView(v["rerun.save"], v["rerun.spawn"], v["rerun.query"],
-                         connect=v["rerun.connect"], serve=v["rerun.serve"],
+        view = RerunView(v["viewer.save"], v["viewer.spawn"], v["viewer.query"],
+                         connect=v["viewer.connect"], serve=v["viewer.serve"],
                          application="resireg-ros2")  # fmt: skip
         if view.url:
             self.get_logger().info(f"Rerun stream: rerun --connect {view.url}")
@@ -292,7 +292,7 @@ class ResiregMapNode(Node):
             self.worker.smap.meta["kept_frames"] = self.worker.smap.frames
             if self.view is not None:
                 self.view.log_window(batch, self.worker.smap.frames - len(batch["name"]))
-                if self.worker.windows % v["rerun.map_every"] == 0:
+                if self.worker.windows % v["viewer.map_every"] == 0:
                     self.view.log_map(self.worker.smap)
             due = v["save_every"] and self.worker.windows % v["save_every"] == 0
         if due:

@@ -90,7 +90,7 @@ class MapSession:
 
         v = self.values
         try:
-            return SemanticMap(self.encoder, v["configuration"], float(v["voxel_size"]),
+            return SemanticMap(self.encoder, v["variant"], float(v["voxel_size"]),
                                params=variant_params(v), points=v["points"],
                                lattice=v["lattice"], sum_dtype=v["sum_dtype"],
                                max_voxels=v["max_voxels"], short_side=v["short_side"],

@@ -4,7 +4,7 @@ checked with the project's rules (no rclpy, no torch: a bad value is reported in
 One source per default. ``resireg-ros2`` takes the names and defaults of ``resireg-map``
 (``conf/map.yaml``) for what the two share, and adds its own in ``conf/ros2.yaml``:
 
-- the map's keys (``configuration``, ``window``, ``voxel_size``, ``points``, ``lattice``,
+- the map's keys (``variant``, ``window``, ``voxel_size``, ``points``, ``lattice``,
   ``sum_dtype``, ``storage`` and the ``compact.*`` block, ``max_voxels``, ``short_side``,
   ``model_path``, ``device``, ``seed``, ``save_every``, ``resume``) and ``encoder`` (a
   ``conf/encoder/<name>.yaml`` file, the ``encoder`` entry of map.yaml's defaults list):
@@ -20,7 +20,8 @@ One source per default. ``resireg-ros2`` takes the names and defaults of ``resir
   ``source.depth_scale``) and, under their own names, the pairing's (``max_wait``,
   ``buffer_size``, ``camera_offset``, ``qos``), checked by the source table's rules
   (:data:`resireg.specs.sources.LIVE_RULES`);
-- ``rerun.save``, ``rerun.spawn``, ``rerun.query``, ``rerun.map_every``: ``conf/map.yaml``'s ``viewer`` block;
+- ``viewer.save``, ``viewer.spawn``, ``viewer.query``, ``viewer.map_every``: ``conf/map.yaml``'s
+  ``viewer`` block (``viewer.serve``, ``viewer.connect``: ``conf/ros2.yaml``'s);
 - the node's own (queue, keyframes, rates, the live Rerun stream): ``conf/ros2.yaml``.
 
 As ROS parameters they keep their dotted YAML paths (``-p source.tolerance:=0.05``,
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ __all__ = [
     "MAP_BLOCKS",
     "MAP_KEYS",
     "NODE_FILE",
+    "RENAMED_PARAMETERS",
     "SOURCE_FILE",
     "SOURCE_KEYS",
     "Parameter",
@@ -58,6 +60,7 @@ __all__ = [
     "check",
     "compact_settings",
     "config_dir",
+    "current_arguments",
     "encoder_entry",
     "parameter_table",
     "parameters",
@@ -66,7 +69,7 @@ __all__ = [
 #: The node's own parameters (the file is read at start).
 NODE_FILE = "ros2.yaml"
 #: The map keys of ``conf/map.yaml`` the node takes (with ``encoder``, the defaults list's).
-MAP_KEYS = ("configuration", "window", "voxel_size", "points", "lattice", "sum_dtype",
+MAP_KEYS = ("variant", "window", "voxel_size", "points", "lattice", "sum_dtype",
             "storage", "max_voxels", "short_side", "model_path", "device", "seed", "save_every",
             "resume")  # fmt: skip
 #: The block of ``conf/map.yaml`` the node takes key by key (``-p compact.dim:=64``).
@@ -80,8 +83,19 @@ SOURCE_KEYS = ("tolerance", "max_pose_gap", "max_depth", "colour_topic", "depth_
 LIVE_KEYS = ("max_wait", "buffer_size", "camera_offset", "qos")
 #: The file (under ``conf/``) of the source keys and :data:`LIVE_KEYS`: the live source's.
 SOURCE_FILE = "source/ros2.yaml"
-#: The Rerun keys of ``conf/map.yaml`` the node takes.
-RERUN_KEYS = ("save", "spawn", "query", "map_every")
+#: The Rerun viewer's keys of ``conf/map.yaml`` the node takes (``-p viewer.save:=map.rrd``).
+VIEWER_KEYS = ("save", "spawn", "query", "map_every")
+
+#: The node's renamed parameters by their old name (issue 52: one word per meaning), a dotted
+#: name's first part (``rerun`` is every ``rerun.<key>``): the new name, the release that renamed
+#: it and the one that removes the old name, which until then is read with one warning line
+#: (:func:`current_arguments`). The same renames of ``resireg-map``'s keys for the Hydra commands
+#: are ``resireg_train.config.moves.RENAMED_KEYS`` (``resireg`` does not import
+#: ``resireg_train``: a test checks that the two tables agree).
+RENAMED_PARAMETERS: dict[str, tuple[str, str, str]] = {
+    "configuration": ("variant", "0.2.0", "0.3.0"),
+    "rerun": ("viewer", "0.2.0", "0.3.0"),
+}
 
 
 class SettingsError(ConfigError):
@@ -129,7 +143,7 @@ def _optional_text(v: Any) -> bool:
     return v is None or isinstance(v, str)
 
 
-def _configuration_ok(v: Any) -> bool:
+def _variant_ok(v: Any) -> bool:
     from resireg.specs.variants import parse_variant, takes_prior, variant_layer
 
     if not isinstance(v, str) or takes_prior(v):
@@ -152,8 +166,8 @@ def _configuration_ok(v: Any) -> bool:
 
 
 _MAP_RULES: dict[str, Rule] = {
-    "configuration": (
-        _configuration_ok,
+    "variant": (
+        _variant_ok,
         f"one of {list(VARIANT_SPECS)}, optionally with parameter overrides "
         "(full@n_prototypes:24); +prior and @layer: are not run by the live node",
     ),
@@ -179,7 +193,7 @@ _SOURCE_RULES: dict[str, Rule] = {
     "camera_frame": (_optional_text, "null (the depth image's frame) or a frame name"),
     "depth_scale": number(0, strict=True, finite=True),
 }
-_RERUN_RULES: dict[str, Rule] = {
+_VIEWER_RULES: dict[str, Rule] = {
     "save": (_optional_text, "null or a .rrd file"),
     "spawn": (lambda v: isinstance(v, bool), "true or false"),
     "query": (_optional_text, "null or a text"),
@@ -247,12 +261,12 @@ def parameters(conf: Path | None = None) -> dict[str, Parameter]:
     for key in LIVE_KEYS:
         value, file = source[key]
         out[key] = Parameter(key, value, f"{file}:{key}", LIVE_RULES[key])
-    rerun = map_cfg.get("viewer") or {}
-    for key in RERUN_KEYS:
-        out[f"rerun.{key}"] = Parameter(f"rerun.{key}", rerun.get(key), f"map.yaml:viewer.{key}",
-                                        _RERUN_RULES[key])  # fmt: skip
+    viewer = map_cfg.get("viewer") or {}
+    for key in VIEWER_KEYS:
+        out[f"viewer.{key}"] = Parameter(f"viewer.{key}", viewer.get(key), f"map.yaml:viewer.{key}",
+                                        _VIEWER_RULES[key])  # fmt: skip
     for name, value in flatten(_yaml(conf / NODE_FILE)).items():
-        rule = _RERUN_RULES[name.split(".", 1)[1]] if name.startswith("rerun.") else None
+        rule = _VIEWER_RULES[name.split(".", 1)[1]] if name.startswith("viewer.") else None
         rule = _NODE_RULES.get(name, rule)
         if rule is None:
             raise SettingsError(f"{conf / NODE_FILE}: {name!r} is no node parameter")
@@ -338,3 +352,109 @@ def parameter_table(conf: Path | None = None) -> str:
             default = str(default).lower()
         rows.append(f"| `{p.name}` | `{default}` | `conf/{p.origin}` |")
     return "\n".join(rows)
+
+
+def _renamed(name: str) -> tuple[str, str | None]:
+    """``name`` (a parameter's, or a params file's top-level key) in today's spelling, and the
+    old name it was given in (``None``: not renamed)."""
+    head, dot, rest = name.partition(".")
+    if head not in RENAMED_PARAMETERS:
+        return name, None
+    return f"{RENAMED_PARAMETERS[head][0]}{dot}{rest}", head
+
+
+def _warning(old: str, read: list[str]) -> str:
+    new, since, removed = RENAMED_PARAMETERS[old]
+    return (f"{old!r} is now {new!r} (renamed in {since}; the old name goes in {removed}): "
+            f"read {', '.join(read)}")  # fmt: skip
+
+
+def _both(old: str, given: list[str], where: str = "") -> SettingsError:
+    new = RENAMED_PARAMETERS[old][0]
+    return SettingsError(
+        f"{where}{' '.join(given)}: {old!r} and {new!r} name one parameter "
+        f"({old!r} is the old name of {new!r}): give it once, as {new!r}"
+    )
+
+
+def _current_file(path: Path, folder: Path, warn: Callable[[str], None]) -> Path:
+    """A ``--params-file`` in today's names: ``path`` itself when it uses no old name, else a
+    copy with the old names renamed, written to ``folder`` (one warning line per old name; a
+    node's parameters holding an old name and its new one: :class:`SettingsError`)."""
+    import yaml
+
+    try:
+        tree = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):  # rcl reports it in its own words
+        return path
+    if not isinstance(tree, dict):
+        return path
+    read: dict[str, list[str]] = {}
+    for node in tree.values():
+        params = node.get("ros__parameters") if isinstance(node, dict) else None
+        if not isinstance(params, dict):
+            continue
+        heads = {k.partition(".")[0] for k in params if isinstance(k, str)}
+        renamed = {}
+        for key, value in params.items():
+            new, old = _renamed(key) if isinstance(key, str) else (key, None)
+            if old is not None:
+                if RENAMED_PARAMETERS[old][0] in heads:
+                    given = sorted(
+                        k
+                        for k in params
+                        if isinstance(k, str)
+                        and k.partition(".")[0] in (old, RENAMED_PARAMETERS[old][0])
+                    )
+                    raise _both(old, given, f"{path}: ")
+                read.setdefault(old, []).append(f"{key} -> {new} in {path}")
+            renamed[new] = value
+        params.clear()
+        params.update(renamed)
+    if not read:
+        return path
+    for old, words in read.items():
+        warn(_warning(old, words))
+    out = folder / f"{len(list(folder.iterdir()))}-{path.name}"
+    out.write_text(yaml.safe_dump(tree, sort_keys=False))
+    return out
+
+
+def current_arguments(argv: list[str], warn: Callable[[str], None], folder: Path) -> list[str]:
+    """``resireg-ros2``'s command line (before ``rclpy.init``) with every parameter given by an
+    old name (:data:`RENAMED_PARAMETERS`) renamed: ``-p configuration:=full`` / ``--param
+    rerun.save:=m.rrd`` (also ``-p node:name:=value``) and a ``--params-file``'s keys (the
+    file's copy in today's names is written to ``folder``, which must outlive ``rclpy.init``);
+    ``warn`` gets one line per old name, naming the new one.
+
+    Raises :class:`SettingsError` (one line naming both) when an old name and its new one are
+    given together on the command line, or in one node's parameters of one file."""
+    out = list(argv)
+    rules: list[tuple[int, str, str | None]] = []  # argv index, name, old name
+    ros = False
+    for i, word in enumerate(argv):
+        if word == "--ros-args":
+            ros = True
+        elif word == "--":
+            ros = False
+        elif ros and i > 0 and argv[i - 1] in ("-p", "--param") and ":=" in word:
+            target, _, value = word.partition(":=")
+            prefix, _, name = target.rpartition(":")
+            new, old = _renamed(name)
+            rules.append((i, name, old))
+            out[i] = f"{prefix}:{new}:={value}" if prefix else f"{new}:={value}"
+        elif ros and i > 0 and argv[i - 1] == "--params-file":
+            out[i] = str(_current_file(Path(word), folder, warn))
+    heads = {name.partition(".")[0] for _, name, _ in rules}
+    read: dict[str, list[str]] = {}
+    for i, _, old in rules:
+        if old is None:
+            continue
+        new = RENAMED_PARAMETERS[old][0]
+        if new in heads:
+            given = [argv[j] for j, n, _ in rules if n.partition(".")[0] in (old, new)]
+            raise _both(old, given)
+        read.setdefault(old, []).append(f"{argv[i]} -> {out[i]}")
+    for old, words in read.items():
+        warn(_warning(old, words))
+    return out
