@@ -133,7 +133,7 @@ def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
     (file,) = out.glob("wandb/offline-run-*/run-*.wandb")
     name, group, config, summary, exit_code = _read_run(file)
     assert exit_code == 0 and not group and name.startswith("map-")
-    assert config["configuration"] == "bb" and config["window"] == 2
+    assert config["variant"] == "bb" and config["window"] == 2
     counts = map_counts(json.loads((out / "results.json").read_text()))
     assert counts["map/voxels"] > 0
     assert {k: summary[k] for k in counts} == pytest.approx(counts)
