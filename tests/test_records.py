@@ -195,7 +195,7 @@ _PROBE = textwrap.dedent(
     """
     import json, sys
     from pathlib import Path
-    import resireg_train.runs.provenance as p
+    import resireg_train.record.provenance.block as p
     settings = {**p.provenance_settings(), **json.loads(sys.argv[2])}
     print(json.dumps(p.code_provenance(Path(sys.argv[1]), settings=settings)))
     """
@@ -271,7 +271,7 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
                    f"hydra.run.dir={out}", check=False, timeout=120, threads=1)  # fmt: skip
         assert proc.returncode == 1, proc.stderr[-2000:]
         said = [line for line in proc.stderr.splitlines() if "cannot reach" in line]
-        assert len(said) == 1 and (f"resireg_train.runs.trackers.TrackerUnreachable: "
+        assert len(said) == 1 and (f"resireg_train.record.trackers.base.TrackerUnreachable: "
                                    f"logger.mlflow: cannot reach http://user:***@127.0.0.1:"
                                    f"{port} (") in said[0], proc.stderr[-2000:]  # fmt: skip
         assert "Traceback" not in proc.stderr and SECRETS["password"] not in proc.stderr
@@ -332,7 +332,7 @@ def test_the_final_status_is_written_whenever_the_job_body_returns(tmp_path):
     from omegaconf import OmegaConf
 
     from resireg_train.cli.job import run_task
-    from resireg_train.runs.record import RunRecord
+    from resireg_train.record.run_record import RunRecord
 
     def body(cfg, record):
         record.update(note={"uri": f"postgresql+psycopg://u:{SECRETS['password']}@db/x"})
@@ -375,8 +375,8 @@ def test_every_tracker_is_one_table_entry_and_one_conf_file(tmp_path):
     from omegaconf import OmegaConf
 
     from resireg.errors import ConfigError
-    from resireg_train.runs.record import RunRecord
-    from resireg_train.runs.trackers import TRACKER_SPECS, Tracker, TrackerSpec
+    from resireg_train.record.run_record import RunRecord
+    from resireg_train.record.trackers.base import TRACKER_SPECS, Tracker, TrackerSpec
 
     files = sorted(p.stem for p in (ROOT / "conf" / "logger").glob("*.yaml"))
     assert sorted(TRACKER_SPECS.names()) == files == ["csv", "mlflow", "tensorboard", "wandb"]
@@ -518,8 +518,8 @@ def test_two_card_adds_at_once_both_land(tmp_path, tiny_export):
     the card slowly): both evaluations are in the card, none lost."""
     from huggingface_hub import ModelCard
 
-    from resireg_train.runs.cards import write_export_card
-    from resireg_train.runs.record import RunRecord
+    from resireg_train.record.cards import write_export_card
+    from resireg_train.record.run_record import RunRecord
 
     export = tmp_path / "train" / "export"
     shutil.copytree(tiny_export, export)

@@ -1,4 +1,4 @@
-"""The search's records under hostile files and faults (resireg_train.sweeps): a worker runs no
+"""The search's records under hostile files and faults (resireg_train.search): a worker runs no
 command line read from ``search.json`` and refuses every override that could make it one; the
 storage's password is in no file of the sweep folder and not on the console; a torn journal is
 repaired and a damaged one named; under ``umask 077`` everything a search writes is private.
@@ -43,7 +43,7 @@ def _worker(sweep, *args):
     """``resireg-search worker <sweep> args...`` as a command (the console script, or its
     module where the installed one is missing)."""
     exe = shutil.which("resireg-search")
-    start = [exe] if exe else [sys.executable, "-m", "resireg_train.sweeps.search"]
+    start = [exe] if exe else [sys.executable, "-m", "resireg_train.cli.search"]
     return [*start, "worker", str(sweep), *map(str, args)]
 
 
@@ -59,13 +59,13 @@ def _run(command, cwd=None, env=None, umask=None, timeout=600):
 
 
 def _study(sweep, storage=None):
-    from resireg_train.sweeps.storage import load_study
+    from resireg_train.search.storage import load_study
 
     return load_study(sweep, storage, "resireg_optuna")
 
 
 def _counted(study):
-    from resireg_train.sweeps.trials import counted_trials
+    from resireg_train.search.trials import counted_trials
 
     return counted_trials(study.get_trials())
 
@@ -136,8 +136,8 @@ def test_each_kind_of_recorded_override_is_refused(tmp_path, capsys, entry, why)
     a key the composed config lacks, a group option outside conf/, an interpolation, a
     deletion): exit 2, one line naming search.json, the entry and why. The same record
     without the entry passes the check (the refusal is the entry's)."""
-    from resireg_train.sweeps.search import worker_main
-    from resireg_train.sweeps.workers import read_record
+    from resireg_train.cli.search import worker_main
+    from resireg_train.search.workers import read_record
 
     sweep = tmp_path / "sweep"
     _record(sweep, GOOD)
@@ -165,7 +165,7 @@ def test_a_record_other_than_a_search_of_train_or_eval_is_refused(tmp_path, caps
     """The job kind is checked against the fixed table (resireg-train, resireg-eval); an entry
     of the wrong kind, or one the format does not have (a working folder to run in), is
     refused naming search.json and the entry."""
-    from resireg_train.sweeps.search import worker_main
+    from resireg_train.cli.search import worker_main
 
     sweep = tmp_path / "sweep"
     _record(sweep, GOOD)
@@ -182,7 +182,7 @@ def test_a_record_other_than_a_search_of_train_or_eval_is_refused(tmp_path, caps
 def _made_journal(folder, n, worker=None):
     """A journal study named like the eval search's, of ``n`` told trials (Optuna's API);
     ``worker``: the ``{worker_host, worker_pid}`` a search's worker marks its trials with."""
-    from resireg_train.sweeps.storage import open_storage
+    from resireg_train.search.storage import open_storage
 
     study = optuna.create_study(storage=open_storage(None, folder), study_name="resireg_optuna",
                                 direction="maximize", sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
@@ -204,7 +204,7 @@ def test_a_torn_last_line_is_recovered_and_the_study_goes_on(tmp_path, caplog, d
     entry (cut off) or a whole entry that lost its newline (kept). Opening the study warns
     naming the journal, keeps every finished trial, and what is appended next is readable:
     one more trial, and the study reopens with all of them (no JSONDecodeError)."""
-    from resireg_train.sweeps.storage import open_storage
+    from resireg_train.search.storage import open_storage
 
     before = _made_journal(tmp_path, 3)
     journal = tmp_path / "optuna.journal"
@@ -361,7 +361,7 @@ def test_a_lost_trial_result_is_named_on_the_console_when_the_search_resumes(tmp
     every complete entry of the journal is kept byte for byte, and the finished trials too."""
     import socket
 
-    from resireg_train.sweeps.trials import ATTR_HOST, ATTR_PID
+    from resireg_train.search.trials import ATTR_HOST, ATTR_PID
 
     gone = subprocess.Popen([sys.executable, "-c", ""])  # the worker, ended since
     gone.wait()
@@ -387,7 +387,7 @@ def test_a_lost_trial_result_is_named_on_the_console_when_the_search_resumes(tmp
     assert {t.number: (t.value, t.params) for t in study.get_trials()
             if t.number < 2} == {n: before[n] for n in (0, 1)}  # fmt: skip
     assert study.trials[2].state != TrialState.COMPLETE  # its result is not made up
-    from resireg_train.sweeps.report import trials_table
+    from resireg_train.search.report import trials_table
 
     table = trials_table(study, []).set_index("trial")  # the search report says it the same
     assert table.loc[2, "error"] == (f"its result was lost: the last line of {journal}, which "

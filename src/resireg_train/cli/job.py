@@ -1,6 +1,6 @@
 """What the Hydra mains share: where the configs live, the run-folder name resolver, and
 the task wrapper that gives every job its run record
-(:class:`~resireg_train.runs.record.RunRecord`: status, provenance, trackers, final status),
+(:class:`~resireg_train.record.run_record.RunRecord`: status, provenance, trackers, final status),
 records a failure in it and in the run's log file, and returns the value a sweeper optimises.
 
 How a failure is reported (docs/guide.md#run-records-and-faults): ``results.json`` gets the status and
@@ -40,7 +40,7 @@ from resireg.errors import ConfigError, IntegrityError, ResiregError, WriteError
 from resireg.secrets import MASK, SecretFilter, mask_text
 from resireg_train.config.machine import check_cluster, config_rank, process_rank
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
-from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
+from resireg_train.record.run_record import RecordError, RunRecord, flat, job_records
 
 __all__ = [
     "CONFIG_DIR",
@@ -150,7 +150,7 @@ def register_resolvers() -> None:
             == 0 else None,
         )  # fmt: skip
     import resireg_train.config.eval  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
-    from resireg_train.sweeps.space import register_search_resolvers
+    from resireg_train.search.space import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
 
@@ -243,7 +243,7 @@ def run_task(
     fresh: bool = False,
 ) -> dict[str, Any]:
     """Run ``body(cfg, record)`` with the run's record (a
-    :class:`~resireg_train.runs.record.RunRecord` of ``paths.output_dir``), which the body
+    :class:`~resireg_train.record.run_record.RunRecord` of ``paths.output_dir``), which the body
     adds its fields to; returns the final record (on ranks other than 0: the body's result).
 
     The record starts the run (:meth:`RunRecord.start`: ``running``, provenance, trackers;
@@ -380,10 +380,10 @@ def _reported_types() -> tuple[type[BaseException], ...]:
     types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy,
                                         IntegrityError]  # fmt: skip
     for module, name in (
-        ("resireg_train.runs.trackers", "TrackerUnreachable"),
+        ("resireg_train.record.trackers.base", "TrackerUnreachable"),
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation.base", "NothingScoredError"),
-        ("resireg_train.sweeps.ranks", "TrialRankFailed"),
+        ("resireg_train.search.ranks", "TrialRankFailed"),
         ("resireg.models.hub", "WeightsUnavailableError"),
         ("resireg.models.vlm.registry", "RegistryError"),
     ):

@@ -39,7 +39,7 @@ from resireg.specs.sources import SOURCE_SPECS, source_errors
 from resireg.specs.tree import MISSING, differences
 from resireg_train.cli.job import hydra_entry_point, run_task
 from resireg_train.config.errors import block_errors, config_path, encoder_arguments
-from resireg_train.runs.record import RunRecord
+from resireg_train.record.run_record import RunRecord
 
 __all__ = ["SOURCES", "build_source", "check_map_config", "make_map", "main"]
 

@@ -17,7 +17,7 @@ naming what differs, before anything is written. The result is saved to ``<out>/
 (``--out``: the run folder, Hydra's ``hydra.run.dir``), with ``map.ply``; ``results.json``
 records the maps merged (folder, voxels, frames, their files' SHA-256), the result and the
 seconds per stage, through the run's record of every command
-(:class:`~resireg_train.runs.record.RunRecord`: status, provenance, trackers).
+(:class:`~resireg_train.record.run_record.RunRecord`: status, provenance, trackers).
 
 ``--out`` is checked before anything is written into it (:class:`MergeFolderCheck`, before
 Hydra writes its ``.hydra/`` files and the log): a folder that holds a map, or the record of
@@ -40,7 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, DataError, MapError
 from resireg_train.cli.job import error_text, hydra_entry_point, run_task
-from resireg_train.runs.record import RecordError, RunRecord, enclosing_run
+from resireg_train.record.run_record import RecordError, RunRecord, enclosing_run
 
 __all__ = ["PROG", "MergeFolderCheck", "check_out", "hydra_arguments", "main"]
 

@@ -3,7 +3,7 @@
 ``resireg-search worker <sweep>`` runs one more worker of the search in ``<sweep>`` (e.g. one
 per SLURM array task, the sweep folder on a shared file system or the study in a database):
 it starts the search's own entry point with the overrides ``<sweep>/search.json`` records,
-once they are checked (:mod:`resireg_train.sweeps.workers`), and pulls trials until the study
+once they are checked (:mod:`resireg_train.search.workers`), and pulls trials until the study
 holds ``hparams_search.n_trials``. A database URL's password is never recorded: the worker
 takes the whole URL from ``--storage`` or the environment variable ``RESIREG_SEARCH_STORAGE``.
 """
@@ -18,8 +18,8 @@ from pathlib import Path
 
 from resireg.errors import ConfigError
 from resireg.secrets import mask_text, mask_url
-from resireg_train.sweeps.storage import STORAGE_ENV, storage_url
-from resireg_train.sweeps.workers import (
+from resireg_train.search.storage import STORAGE_ENV, storage_url
+from resireg_train.search.workers import (
     SearchRecordError,
     read_record,
     sigterm_ends,
@@ -88,5 +88,5 @@ def main() -> None:
     sys.exit(worker_main())
 
 
-if __name__ == "__main__":  # python -m resireg_train.sweeps.search worker <sweep>
+if __name__ == "__main__":  # python -m resireg_train.cli.search worker <sweep>
     main()

@@ -24,11 +24,15 @@ __all__ = ["MOVED_TARGETS", "current_keys", "current_targets"]
 MOVED_TARGETS: dict[str, str] = {
     # 0.1 -> the layout by role (resireg_train.ovss -> evaluation/ovss, tracking -> runs/)
     "resireg_train.ovss.callback.ReSiRegEval": "resireg_train.evaluation.ovss.callback.ReSiRegEval",
-    "resireg_train.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
+    "resireg_train.tracking.wandb_logger": "resireg_train.record.trackers.wandb.wandb_logger",
     # the trackers' table (resireg_train.runs.trackers): W&B's logger factory with the others
-    "resireg_train.runs.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
+    "resireg_train.runs.tracking.wandb_logger": "resireg_train.record.trackers.wandb.wandb_logger",
     # the pruning glue joins the search (resireg_train.training.pruning -> sweeps/pruning)
-    "resireg_train.training.pruning.OptunaPruning": "resireg_train.sweeps.pruning.OptunaPruning",
+    "resireg_train.training.pruning.OptunaPruning": "resireg_train.search.pruning.OptunaPruning",
+    # the run record apart from the run tools, sweeps/ -> search/ (issue 52: record/trackers/
+    # holds one module per tracker; "sweep" is a Hydra multirun, the Optuna search is search/)
+    "resireg_train.runs.loggers.wandb_logger": "resireg_train.record.trackers.wandb.wandb_logger",
+    "resireg_train.sweeps.pruning.OptunaPruning": "resireg_train.search.pruning.OptunaPruning",
 }
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from resireg.integrity import atomic_write
-from resireg_train.runs.record import RecordError, RunRecord
+from resireg_train.record.run_record import RecordError, RunRecord
 
 try:  # POSIX; where it is missing (Windows) cards are not locked
     import fcntl

@@ -1,7 +1,7 @@
 """What a training run records every epoch (Lightning): :class:`ResultsTracker`, the callback
-that keeps the run's :class:`~resireg_train.runs.record.RunRecord` up to date, the epoch-level
+that keeps the run's :class:`~resireg_train.record.run_record.RunRecord` up to date, the epoch-level
 values it takes (:func:`epoch_metrics`), and :class:`ResumableCSVLogger`, the ``metrics.csv``
-that survives a resume (the ``csv`` tracker's Lightning logger, :mod:`resireg_train.runs.loggers`).
+that survives a resume (the ``csv`` tracker's Lightning logger, :mod:`resireg_train.record.trackers.mlflow`).
 
 ``results.json`` is rewritten at the end of every epoch, so an interrupted or failed run still
 reports how far it got::
@@ -15,7 +15,7 @@ reports how far it got::
 "Best" is the minimum for losses and the maximum for accuracies, retrieval and IoU metrics;
 other values (learning rate, logit scale, skip counts) are reported as final only. The file is
 strict JSON: a NaN or infinite value is written as ``null`` and listed under ``non_finite``
-(:mod:`resireg_train.runs.record`).
+(:mod:`resireg_train.record.run_record`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import lightning as L
 from lightning.pytorch.loggers import CSVLogger
 from lightning.pytorch.loggers.csv_logs import ExperimentWriter
 
-from resireg_train.runs.record import RunRecord, metric_mode
+from resireg_train.record.run_record import RunRecord, metric_mode
 
 __all__ = ["ResumableCSVLogger", "ResultsTracker", "epoch_metrics"]
 
@@ -116,7 +116,7 @@ def _skipped_samples(trainer: L.Trainer) -> dict[str, Any]:
 class ResultsTracker(L.Callback):
     """Records every epoch's metrics in the run's record (rank 0): ``final``, ``best``,
     ``history``, ``epoch`` and ``global_step``. The record's final status is the job's
-    (:meth:`RunRecord.finish <resireg_train.runs.record.RunRecord.finish>`).
+    (:meth:`RunRecord.finish <resireg_train.record.run_record.RunRecord.finish>`).
 
     Its history is part of the checkpoint, so a resumed run reports the best values of
     the epochs before the interruption too.

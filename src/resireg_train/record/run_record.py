@@ -70,7 +70,7 @@ _REASON = (
     "strict JSON has no NaN or infinity, so these values are null in this file. NaN is an "
     "undefined value, 0/0: e.g. the IoU of a class that neither the ground truth nor the "
     "prediction holds (excluded from the mIoU), or a score over no image. Keys are JSON "
-    "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.runs.record.RunRecord.read "
+    "Pointers (RFC 6901; ~1 stands for / in a key); resireg_train.record.run_record.RunRecord.read "
     "restores the numbers"
 )
 
@@ -455,19 +455,19 @@ class RunRecord:
     # -- the run's life ---------------------------------------------------------------------
     def start(self, cfg: Any, *, fresh: bool = False) -> None:
         """Start the run of the composed config ``cfg``: its trackers are read from
-        ``cfg.logger`` (:class:`resireg_train.runs.trackers.RunTrackers`); the writer then
+        ``cfg.logger`` (:class:`resireg_train.record.trackers.base.RunTrackers`); the writer then
         sets an earlier record aside (``fresh``: a job that never resumes), writes ``name``,
         ``status: running`` and the provenance's start (a resumed run keeps its run id), masks
         the URL passwords in the config files Hydra saved, and starts the trackers: one that
         needs a network is checked first (``logger.<name>.check_timeout``) and refused
-        (:class:`~resireg_train.runs.trackers.TrackerUnreachable`) or, with
+        (:class:`~resireg_train.record.trackers.base.TrackerUnreachable`) or, with
         ``logger.<name>.unreachable=warn``, left out with a warning. Then the system metrics
-        are sampled until :meth:`finish` (``system_metrics``: :mod:`resireg_train.runs.system`)."""
+        are sampled until :meth:`finish` (``system_metrics``: :mod:`resireg_train.record.system`)."""
         import logging
 
-        from resireg_train.runs.provenance import provenance_settings, start_provenance
-        from resireg_train.runs.system import SystemSampler, system_settings
-        from resireg_train.runs.trackers import RunTrackers
+        from resireg_train.record.provenance.block import provenance_settings, start_provenance
+        from resireg_train.record.system import SystemSampler, system_settings
+        from resireg_train.record.trackers.base import RunTrackers
 
         self.trackers = RunTrackers(cfg, self)
         if not self.writer:
@@ -502,8 +502,8 @@ class RunRecord:
         if self._heartbeat is not None:  # before the final status: no beat after it
             self._heartbeat.stop()
             self._heartbeat = None
-        from resireg_train.runs.provenance import finish_provenance
-        from resireg_train.runs.system import merge_blocks
+        from resireg_train.record.provenance.block import finish_provenance
+        from resireg_train.record.system import merge_blocks
 
         fields: dict[str, Any] = {"status": status, "error": error}
         try:

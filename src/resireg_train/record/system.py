@@ -1,7 +1,7 @@
 """System metrics of a run: CPU, resident memory, disk and GPU use over time, sampled by a
 background thread for the whole life of every training, evaluation and map run
 (:class:`SystemSampler`, started and stopped by the run's
-:class:`~resireg_train.runs.record.RunRecord`), every ``system_metrics.interval`` seconds
+:class:`~resireg_train.record.run_record.RunRecord`), every ``system_metrics.interval`` seconds
 (``conf/system_metrics/default.yaml``, 10 s).
 
 - ``<run>/system.csv``: one row per sample (the local record, beside ``metrics.csv``);
@@ -11,7 +11,7 @@ background thread for the whole life of every training, evaluation and map run
 - the trackers through their own facilities: MLflow's system-metrics monitor
   (``mlflow.system_metrics``: ``system/...`` metrics in the run's "System metrics" tab) and W&B's
   system panel (its ``x_stats_sampling_interval``), at the same interval
-  (:mod:`resireg_train.runs.loggers`).
+  (:mod:`resireg_train.record.trackers.mlflow`).
 
 What a row holds (the run's processes: the job's own process and its children, such as data
 loader workers and DDP ranks it started):

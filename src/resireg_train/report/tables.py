@@ -23,7 +23,7 @@ from resireg_train.report.paper import (
     protocol_differences,
 )
 from resireg_train.report.sections import ENCODER_SWEEPS
-from resireg_train.runs.record import flat
+from resireg_train.record.run_record import flat
 
 __all__ = [
     "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "OVSS_PREFIX",

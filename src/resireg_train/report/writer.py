@@ -22,7 +22,7 @@ from resireg_train.report.paper import DEFAULT_TOLERANCE
 from resireg_train.report.sections import REPORT_SECTIONS, SECTION_INPUTS
 from resireg_train.report.summary import summary_table
 from resireg_train.report.tables import markdown
-from resireg_train.runs.record import flat
+from resireg_train.record.run_record import flat
 
 __all__ = ["call_section", "report", "report_sections"]
 

@@ -3,15 +3,15 @@ multirun jobs, search trials: any folder with a ``results.json``), one row each,
 sorted, shown, compared and followed through its lineage.
 
 A row reads only the run's ``results.json`` (:meth:`RunRecord.read
-<resireg_train.runs.record.RunRecord.read>`) and ``.hydra/overrides.yaml`` (the resolved
+<resireg_train.record.run_record.RunRecord.read>`) and ``.hydra/overrides.yaml`` (the resolved
 ``.hydra/config.yaml`` only when a filter or a column names a config key), so a thousand runs
 list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
 whose process is gone is shown as ``died``: on this host, its PID is not alive; on another
-host (a shared file system), its heartbeat is stale (:func:`~resireg_train.runs.record.
+host (a shared file system), its heartbeat is stale (:func:`~resireg_train.record.run_record.
 heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A heartbeat that
 cannot tell (a ``time`` that is no time, or more than ``provenance.heartbeat_skew`` seconds ahead
 of this machine's clock, or a ``stale_after`` that is not a number > 0) is shown as ``unknown``, named once in the run's
-problems (:func:`~resireg_train.runs.record.heartbeat_doubt`). A file that is not what
+problems (:func:`~resireg_train.record.run_record.heartbeat_doubt`). A file that is not what
 it should be (a record that is not a run record, an overrides file that is not a YAML list) is
 named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other
 runs are listed.
@@ -33,8 +33,8 @@ from typing import Any
 import yaml
 
 from resireg.specs.tree import flatten
-from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import (
+from resireg_train.record.provenance.block import EXPORT_PROVENANCE
+from resireg_train.record.run_record import (
     RESULTS_FILE,
     RecordError,
     RunRecord,
@@ -65,7 +65,7 @@ _HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
 
 
 #: The status of a ``running`` record of another host whose heartbeat cannot tell whether its
-#: job still runs (:func:`~resireg_train.runs.record.heartbeat_doubt`).
+#: job still runs (:func:`~resireg_train.record.run_record.heartbeat_doubt`).
 UNKNOWN = "unknown"
 
 
@@ -73,7 +73,7 @@ UNKNOWN = "unknown"
 def _settings(key: str) -> float:
     """``provenance.heartbeat_stale`` (for a record whose heartbeat does not say its own) or
     ``provenance.heartbeat_skew`` (conf/provenance/default.yaml)."""
-    from resireg_train.runs.provenance import provenance_settings
+    from resireg_train.record.provenance.block import provenance_settings
 
     return float(provenance_settings()[key])
 
@@ -237,7 +237,7 @@ def _run_folders(root: Path) -> Iterator[Path]:
 
 
 def read_run(folder: Path) -> Run:
-    """The run in ``folder``; :class:`~resireg_train.runs.record.RecordError` (a
+    """The run in ``folder``; :class:`~resireg_train.record.run_record.RecordError` (a
     ``ValueError`` naming the file) when its record cannot be read or is not a run record."""
     try:
         return Run(folder, RunRecord.read(folder))

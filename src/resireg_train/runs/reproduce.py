@@ -215,7 +215,7 @@ def preflight(jobs: RowJobs, given: Sequence[str]) -> list[str]:
     from resireg.errors import ConfigError
     from resireg_train.config.machine import check_available, check_devices
     from resireg_train.data.specs import DATASET_SPECS
-    from resireg_train.replay.rerun import compose_job
+    from resireg_train.runs.rerun.plan import compose_job
 
     problems: list[str] = []
     for dataset in jobs.datasets:
@@ -313,7 +313,7 @@ def reproduce(
     from tabulate import tabulate
 
     from resireg.specs.metrics import SCORE_SPECS
-    from resireg_train.replay.rerun import hydra_value
+    from resireg_train.runs.rerun.plan import hydra_value
     from resireg_train.report.paper import PAPER_FILE, protocol_differences
 
     path = Path(paper) if paper else PAPER_FILE

@@ -35,7 +35,7 @@ def plot_search(folder: str | Path, out: str | Path) -> PlotResult:
     import optuna.visualization as ovp
     from optuna.visualization import matplotlib as ovm
 
-    from resireg_train.sweeps.report import optuna_study, readable_axes, short_param
+    from resireg_train.search.report import optuna_study, readable_axes, short_param
 
     study = optuna_study(folder)
     complete = [t for t in study.get_trials(deepcopy=False)

@@ -259,7 +259,7 @@ def open_journal(path: str | os.PathLike) -> Any:
         held, result_of = _lost(storage, path, cut)
         _say(f"{path}: its last line was cut mid-write (a process stopped while writing): "
              f"removed ({len(cut)} bytes){held}; every complete entry is kept")  # fmt: skip
-        if result_of is not None:  # so that failing it says why (resireg_train.sweeps.trials)
+        if result_of is not None:  # so that failing it says why (resireg_train.search.trials)
             try:
                 storage.set_trial_system_attr(result_of, ATTR_LOST, str(path))
             except Exception as err:  # (finished meanwhile by another process: nothing to say)

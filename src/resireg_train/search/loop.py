@@ -25,16 +25,16 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, ResiregError
 from resireg.secrets import mask_url
-from resireg_train.sweeps.journal import JournalError
-from resireg_train.sweeps.space import check_metric, distributions, format_value
-from resireg_train.sweeps.storage import (
+from resireg_train.search.journal import JournalError
+from resireg_train.search.space import check_metric, distributions, format_value
+from resireg_train.search.storage import (
     STORAGE_ENV,
     open_storage,
     quiet_optuna,
     storage_override,
     storage_url,
 )
-from resireg_train.sweeps.trials import (
+from resireg_train.search.trials import (
     ATTR_HOST,
     ATTR_PID,
     Heartbeat,
@@ -43,7 +43,7 @@ from resireg_train.sweeps.trials import (
     outcome,
     output_dir,
 )
-from resireg_train.sweeps.workers import (
+from resireg_train.search.workers import (
     WORKER_ENV,
     SearchRecordError,
     read_record,
@@ -258,7 +258,7 @@ def run_search(config: DictConfig, settings: DictConfig, arguments: list[str], r
         space = distributions(params)
         check_metric(config)
         if "trainer" in config:
-            from resireg_train.sweeps.ranks import trial_nodes_problem
+            from resireg_train.search.ranks import trial_nodes_problem
 
             problem = trial_nodes_problem(OmegaConf.to_container(config.trainer, resolve=True))
             if problem:

@@ -1,5 +1,5 @@
 """Pruning of an Optuna search's training trials (``hparams_search=stage1_optuna``;
-resireg_train.sweeps.loop): the trial's optimised metric is reported to the study after every
+resireg_train.search.loop): the trial's optimised metric is reported to the study after every
 validation (the ReSiRegEval callback's, at the end of a training epoch), and when the study's
 pruner says so the run stops at the end of that epoch (its metrics and checkpoint written as
 for any epoch) and ends with :class:`TrialPrunedStop`: the search records the trial PRUNED (its
@@ -21,8 +21,8 @@ from typing import Any
 import lightning as L
 import optuna
 
-from resireg_train.runs.epochs import epoch_metrics
-from resireg_train.sweeps.storage import open_storage, quiet_optuna
+from resireg_train.record.epochs import epoch_metrics
+from resireg_train.search.storage import open_storage, quiet_optuna
 
 __all__ = ["ATTR_PRUNED", "OptunaPruning", "TrialPrunedStop"]
 

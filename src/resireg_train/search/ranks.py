@@ -12,7 +12,7 @@ own; the worker watches them: the first rank that exits with an error stops the 
 (SIGTERM, SIGKILL after :data:`GRACE` seconds) and is named in the trial's error, ranks still
 running :data:`GRACE` seconds after rank 0 ended are stopped, and whatever happens (Ctrl-C,
 SIGTERM to the worker) no rank outlives the trial. Global rank 0 alone asks the study,
-reports and decides pruning (:class:`~resireg_train.sweeps.pruning.OptunaPruning`, which
+reports and decides pruning (:class:`~resireg_train.search.pruning.OptunaPruning`, which
 broadcasts its decision to every rank).
 
 A trial on several nodes (``trainer.num_nodes`` > 1) needs a launcher that starts the ranks
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from resireg.errors import ResiregError
-from resireg_train.sweeps.workers import sigterm_ends
+from resireg_train.search.workers import sigterm_ends
 
 __all__ = [
     "GRACE",

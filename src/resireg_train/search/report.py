@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
-from resireg_train.runs.record import flat
-from resireg_train.sweeps.storage import STUDY_FILE, load_study
-from resireg_train.sweeps.trials import ATTR_STALE, stale_reason
-from resireg_train.sweeps.workers import SEARCH_FILE, study_location
+from resireg_train.record.run_record import flat
+from resireg_train.search.storage import STUDY_FILE, load_study
+from resireg_train.search.trials import ATTR_STALE, stale_reason
+from resireg_train.search.workers import SEARCH_FILE, study_location
 
 if TYPE_CHECKING:  # the report package imports this module: no import back at run time
     from resireg_train.report.jobs import Job

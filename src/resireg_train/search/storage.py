@@ -88,14 +88,14 @@ def storage_url(storage: str | None) -> str | None:
 
 def open_storage(storage: str | None, sweep_dir: str | Path) -> Any:
     """The study's storage: the journal file in ``sweep_dir`` (``storage`` unset or
-    ``journal``; :func:`resireg_train.sweeps.journal.open_journal`, which recovers a torn last
+    ``journal``; :func:`resireg_train.search.journal.open_journal`, which recovers a torn last
     line and refuses a damaged one), or Optuna's RDBStorage for a database URL
     (:func:`storage_url`). A database that cannot be reached is a ConfigError naming the key,
     its password masked."""
     optuna = quiet_optuna()
     url = storage_url(storage)
     if url is None:
-        from resireg_train.sweeps.journal import open_journal
+        from resireg_train.search.journal import open_journal
 
         folder = Path(str(sweep_dir))
         folder.mkdir(parents=True, exist_ok=True)

@@ -19,8 +19,8 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
-from resireg_train.sweeps.journal import ATTR_LOST
-from resireg_train.sweeps.storage import quiet_optuna
+from resireg_train.search.journal import ATTR_LOST
+from resireg_train.search.storage import quiet_optuna
 
 __all__ = [
     "ATTR_HEARTBEAT",
@@ -91,7 +91,7 @@ def fail_stale_trials(study: Any, grace_period: float, retries: int = 0) -> list
 
 def stale_reason(trial: Any) -> str:
     """Why a RUNNING trial was failed as stale: its result lost with a journal line cut
-    mid-write (:data:`~resireg_train.sweeps.journal.ATTR_LOST`: its worker had ended it), else
+    mid-write (:data:`~resireg_train.search.journal.ATTR_LOST`: its worker had ended it), else
     its worker died mid-trial."""
     if journal := trial.system_attrs.get(ATTR_LOST):
         return (f"its result was lost: the last line of {journal}, which held it, was cut "

@@ -38,7 +38,7 @@ from typing import Any
 
 from resireg.errors import ResiregError
 from resireg.secrets import mask_text
-from resireg_train.sweeps.storage import STORAGE_ENV, recorded_storage, storage_override
+from resireg_train.search.storage import STORAGE_ENV, recorded_storage, storage_override
 
 __all__ = [
     "CLASS_TARGETS",
@@ -374,7 +374,7 @@ def worker_command(sweep_dir: Path, record: SearchRecord | None = None) -> list[
 
 def worker_env(storage: str | None = None) -> dict[str, str]:
     """A worker's environment: this one, marked as a worker, with the storage's whole URL
-    (:data:`~resireg_train.sweeps.storage.STORAGE_ENV`) when given."""
+    (:data:`~resireg_train.search.storage.STORAGE_ENV`) when given."""
     env = {**os.environ, WORKER_ENV: "1"}
     if storage:
         env[STORAGE_ENV] = storage

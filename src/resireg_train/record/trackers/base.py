@@ -1,9 +1,9 @@
 """The trackers by name (``logger=<name>``, ``conf/logger/<name>.yaml``): one table,
 :data:`TRACKER_SPECS`, read before anything heavy loads, and the trackers of one run
-(:class:`RunTrackers`), which its :class:`~resireg_train.runs.record.RunRecord` drives.
+(:class:`RunTrackers`), which its :class:`~resireg_train.record.run_record.RunRecord` drives.
 
 A tracker does up to four things, each a method of its :class:`Tracker` class
-(:mod:`resireg_train.runs.loggers` holds the four built in):
+(:mod:`resireg_train.record.trackers.mlflow` holds the four built in):
 
 - :meth:`Tracker.address`: the network address it needs, checked before any work
   (:func:`resireg.network.reach`, ``logger.<name>.check_timeout`` seconds): an unreachable tracker refuses
@@ -25,7 +25,7 @@ called from Python leaves its caller's process as it found it.
 Adding a tracker:
 
 1. a :class:`Tracker` subclass (its ``address``, ``begin``, ``lightning_logger``, ``end``:
-   those it needs), e.g. in :mod:`resireg_train.runs.loggers`;
+   those it needs), e.g. in :mod:`resireg_train.record.trackers.mlflow`;
 2. a :class:`TrackerSpec` entry below: its name, the class as ``"module:Class"``, one line of
    what it records, and the rules of its own keys (those that are not its Lightning logger's
    keywords: ``check_timeout``, ``unreachable``, ``filename``...);
@@ -101,21 +101,21 @@ class TrackerSpec:
 
 
 TRACKER_SPECS: SpecTable[TrackerSpec] = SpecTable("tracker", [
-    TrackerSpec("csv", "resireg_train.runs.loggers:CsvTracker",
+    TrackerSpec("csv", "resireg_train.record.trackers.mlflow:CsvTracker",
                 "metrics.csv: training's every step and epoch (always written), an evaluation's "
                 "or a map's final metrics as one row", {"filename": (
                     lambda v: isinstance(v, str) and bool(v) and "/" not in v,
                     "a file name (no folder)")}),
-    TrackerSpec("tensorboard", "resireg_train.runs.loggers:TensorBoardTracker",
+    TrackerSpec("tensorboard", "resireg_train.record.trackers.mlflow:TensorBoardTracker",
                 "<run>/tensorboard: training's curves; an evaluation's or a map's final "
                 "metrics as scalars and its provenance as text"),
-    TrackerSpec("mlflow", "resireg_train.runs.loggers:MlflowTracker",
+    TrackerSpec("mlflow", "resireg_train.record.trackers.mlflow:MlflowTracker",
                 "one MLflow run per job (a sweep's jobs under one parent): config, provenance "
                 "tags, final metrics, per-class IoU table, the run's files", dict(_NETWORK)),
-    TrackerSpec("wandb", "resireg_train.runs.loggers:WandbTracker",
+    TrackerSpec("wandb", "resireg_train.record.trackers.mlflow:WandbTracker",
                 "one W&B run per job (a sweep's jobs in one group): config, curves, "
                 "results.json's summary", dict(_NETWORK)),
-], where="resireg_train.runs.trackers")  # fmt: skip
+], where="resireg_train.record.trackers.base")  # fmt: skip
 
 
 class TrackerUnreachable(ResiregError, RuntimeError):
@@ -163,7 +163,7 @@ class Tracker:
         spec: its table entry.
         settings: its ``logger.<name>`` block (plain values).
         cfg: the run's composed config.
-        record: the run's :class:`~resireg_train.runs.record.RunRecord`.
+        record: the run's :class:`~resireg_train.record.run_record.RunRecord`.
     """
 
     def __init__(self, spec: TrackerSpec, settings: dict[str, Any], cfg: Any, record: Any):

@@ -1,9 +1,9 @@
-"""The four trackers of :data:`resireg_train.runs.trackers.TRACKER_SPECS` (``logger=<name>``,
+"""The four trackers of :data:`resireg_train.record.trackers.base.TRACKER_SPECS` (``logger=<name>``,
 ``conf/logger/<name>.yaml``): what each sends to its store. Nothing heavy is imported here:
 each tracker imports its library (Lightning, MLflow, W&B, TensorBoard) when it is used.
 
 - **csv**: ``metrics.csv``. Training always writes it (every step and epoch, continued on
-  resume: :class:`~resireg_train.runs.epochs.ResumableCSVLogger`); an evaluation or a map with
+  resume: :class:`~resireg_train.record.epochs.ResumableCSVLogger`); an evaluation or a map with
   ``logger=csv`` writes its final metrics as one row.
 - **tensorboard**: training's curves (Lightning's ``TensorBoardLogger``); an evaluation or a
   map writes its final metrics as scalars and its provenance as text under ``<run>/tensorboard``.
@@ -50,8 +50,8 @@ from urllib.parse import unquote, urlsplit, urlunsplit
 
 from resireg.secrets import mask_text
 from resireg.specs.tree import flatten
-from resireg_train.runs.record import masked_tree
-from resireg_train.runs.trackers import (
+from resireg_train.record.run_record import masked_tree
+from resireg_train.record.trackers.base import (
     TRACKER_SPECS,
     Tracker,
     map_counts,
@@ -122,7 +122,7 @@ class CsvTracker(Tracker):
 
     def lightning_logger(self, resume_step: int | None) -> Any:
         if self._logger is None:
-            from resireg_train.runs.epochs import ResumableCSVLogger
+            from resireg_train.record.epochs import ResumableCSVLogger
 
             self._logger = ResumableCSVLogger(self.record.folder, resume_step=resume_step)
         return self._logger
@@ -161,7 +161,7 @@ class MlflowTracker(Tracker):
     A ``tracking_uri`` with a user part (``http://user:pass@host:5000``) is given to MLflow
     without it, the user and password through MLflow's own ``MLFLOW_TRACKING_USERNAME`` /
     ``MLFLOW_TRACKING_PASSWORD`` (unless the environment sets them already) while the run
-    lasts (:class:`~resireg_train.runs.trackers.RunTrackers` puts the process's environment
+    lasts (:class:`~resireg_train.record.trackers.base.RunTrackers` puts the process's environment
     back at its end): MLflow then never prints, stores or logs the password (it prints each
     run's URL, from its tracking URI).
 
@@ -205,7 +205,7 @@ class MlflowTracker(Tracker):
     def running(self) -> None:
         """MLflow's own system-metrics monitor (``mlflow.system_metrics``: ``system/...``
         metrics, the run's "System metrics" tab) at ``system_metrics.interval``."""
-        from resireg_train.runs.system import system_settings
+        from resireg_train.record.system import system_settings
 
         enabled, interval = system_settings(self.cfg)
         run_id = getattr(self._logger, "run_id", None) or self._run_id
@@ -442,7 +442,7 @@ def _stats_settings(logger: Any, cfg: Any) -> None:
     """W&B's own system panel (its ``wandb-core`` process samples the run's process tree) at
     ``system_metrics.interval``, or off with ``system_metrics.enabled=false``: settings of the
     ``wandb.init`` the logger's first use calls."""
-    from resireg_train.runs.system import system_settings
+    from resireg_train.record.system import system_settings
 
     init = getattr(logger, "_wandb_init", None)
     if not isinstance(init, dict) or "settings" in init:

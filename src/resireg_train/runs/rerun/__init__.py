@@ -1,13 +1,13 @@
-"""Runs done again: ``resireg-runs rerun`` and ``resireg-runs reproduce``.
+"""``resireg-runs rerun``: a run rebuilt from its record (its job, its recorded overrides
+checked as a search worker checks them, its seed and inputs), refused or recorded where the
+code, data or models drifted, run in a new folder and compared with the original: one verdict
+(identical, within tolerance, differs).
 
-- :mod:`~resireg_train.replay.rerun`: a run rebuilt from its record (its job, its recorded
-  overrides checked as a search worker checks them, its seed and inputs), refused or recorded
-  where the code, data or models drifted, run in a new folder and compared with the original:
-  one verdict (identical, within tolerance, differs);
-- :mod:`~resireg_train.replay.reproduce`: the jobs behind one row of the paper's tables, the
-  figures beside the paper's.
+- :mod:`.plan`: the job to run again, its overrides and command;
+- :mod:`.drift`: what changed since (code, config, data, models);
+- :mod:`.verdict`: the two runs' scores and outputs compared;
+- :mod:`.command`: the command itself (plan, check the drift, run, compare, record).
 
-They start other commands as subprocesses and read the records those write, so they sit just
-under the CLIs: imported by ``resireg_train.cli.runs`` only; they import the config checks, the
-search's override check, the report's paper figures, the run record and the data table.
+Imported by ``resireg_train.cli.runs`` and :mod:`resireg_train.runs.reproduce` (its job
+composition); imports the record, the index, the search's override check and the config.
 """

@@ -7,7 +7,7 @@ a file:
 - the job kind from ``provenance.cli`` (``resireg-train``, ``resireg-eval``, ``resireg-map``),
   run through that command's own entry point (:data:`JOBS`) with this interpreter;
 - the overrides of ``.hydra/overrides.yaml``, each checked as a search's worker checks a
-  recorded one (:func:`resireg_train.sweeps.workers.check_overrides`: no class to
+  recorded one (:func:`resireg_train.search.workers.check_overrides`: no class to
   instantiate, no Hydra setting, no interpolation, no key the job's config lacks; a run's
   ``+model.init_from`` is kept); ``ckpt_path=last`` and the keys only a search sets are left
   out (the rerun trains from the start, as one run); the overrides given on the command line
@@ -59,7 +59,7 @@ from resireg.secrets import MASK, mask_text
 from resireg.specs.exports import REGISTRY_PREFIX
 from resireg.specs.tree import MISSING, differences, flatten
 from resireg_train.runs.index import Run, diff_runs, find_run
-from resireg_train.runs.record import RunRecord, target_problem
+from resireg_train.record.run_record import RunRecord, target_problem
 
 __all__ = [
     "JOBS",
@@ -134,7 +134,7 @@ def _unmasked(index: int, override: str, path: Path) -> str:
 def _recorded_overrides(run: Run, job: str, given: Sequence[str]) -> list[str]:
     """The run's overrides, checked (module docstring), less those left out or given again."""
     from resireg_train.config.keys import ADDABLE
-    from resireg_train.sweeps.workers import SearchRecordError, check_overrides
+    from resireg_train.search.workers import SearchRecordError, check_overrides
 
     path = run.path / ".hydra" / "overrides.yaml"
     if not path.is_file():
@@ -184,7 +184,7 @@ def compose_job(job: str, overrides: Sequence[str]) -> Any:
 
     import resireg_train.config.eval  # noqa: F401  the resireg_encoders resolver
     from resireg_train.config.paths import composing
-    from resireg_train.sweeps.space import register_search_resolvers
+    from resireg_train.search.space import register_search_resolvers
 
     register_search_resolvers()
     with composing():
@@ -360,7 +360,7 @@ def config_drift(run: Run, cfg: Any, given: set[str]) -> list[str]:
     from omegaconf import OmegaConf
 
     from resireg_train.config.moves import current_targets
-    from resireg_train.runs.record import masked_tree
+    from resireg_train.record.run_record import masked_tree
 
     path = run.path / ".hydra" / "config.yaml"
     if not path.is_file():
@@ -382,7 +382,7 @@ def drift(run: Run, cfg: Any, out: Path, given: set[str] = frozenset()) -> list[
     """What differs between what ``run`` ran with and what its rerun (config ``cfg``, folder
     ``out``; ``given``: the keys the command line sets) would run with, one line each: the
     code, the data identity of every dataset, the inputs' digests, the config."""
-    from resireg_train.runs.provenance import (
+    from resireg_train.record.provenance.block import (
         code_provenance,
         input_provenance,
         provenance_settings,
@@ -480,7 +480,7 @@ def _number(value: Any) -> bool:
 def scores(record: Mapping[str, Any]) -> dict[str, float]:
     """A record's scores (module docstring): ``final/<k>``, ``best/<k>`` and its epoch,
     ``per_class_iou/<variant>/<class>`` and a map's counts; NaN where the record holds one."""
-    from resireg_train.runs.trackers import map_counts
+    from resireg_train.record.trackers.base import map_counts
 
     found: dict[str, float] = {}
     for key, value in (record.get("final") or {}).items():
@@ -504,7 +504,7 @@ def outputs(record: Mapping[str, Any], folder: Path) -> dict[str, str]:
     (``export/<file>``), a map's tensors (``map/tensors[<n>]``: their names are drawn per
     save, their content is the map) and ``map.ply``."""
     from resireg.integrity import sha256_file
-    from resireg_train.runs.provenance import export_identity
+    from resireg_train.record.provenance.block import export_identity
 
     found = {}
     export = record.get("export")
@@ -649,7 +649,7 @@ def rerun(
     job failed (its record and log say why). Raises :class:`RerunRefused` (a ``ValueError``)
     before anything is written when the run cannot be rerun as it ran."""
     from resireg_train.runs.index import read_run
-    from resireg_train.runs.provenance import provenance_settings
+    from resireg_train.record.provenance.block import provenance_settings
 
     run = find_run(spec, roots)
     folder = Path(out) if out else default_out(run)
