@@ -236,8 +236,8 @@ def test_a_recorded_override_is_checked_as_a_search_worker_checks_it(tmp_path, c
 def test_a_masked_secret_is_never_rebuilt_from_the_record(tmp_path):
     """The record masks a URL's password; the rerun drops the mask (the tracker takes the
     password from the environment) and refuses any other masked value."""
-    from resireg_train.runs.rerun.plan import RerunRefused, _recorded_overrides
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.plan import RerunRefused, _recorded_overrides
 
     uri = "logger.mlflow.tracking_uri=http://ana:***@mlflow.lab:5000"
     run = read_run(_fake_eval_run(tmp_path / "a", ["dataset=synthetic", "logger=mlflow", uri]))
@@ -331,8 +331,8 @@ def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, the
     """compare() on two records that differ in one score by a chosen amount: the verdict is
     the one math.isclose (relative to the larger magnitude, no absolute floor) gives, the
     unchanged score is not listed, and the moved score's printed change is the difference."""
-    from resireg_train.runs.rerun.plan import compare
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.plan import compare
 
     a = read_run(_scored_run(tmp_path / "a", {"ovss/synthetic/miou_bb": then, "loss": 1.25}))
     b = read_run(_scored_run(tmp_path / "b", {"ovss/synthetic/miou_bb": now, "loss": 1.25}))
@@ -351,8 +351,8 @@ def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, the
 
 
 def test_a_failed_rerun_differs_whatever_its_scores(tmp_path):
-    from resireg_train.runs.rerun.plan import compare
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.plan import compare
 
     a = read_run(_scored_run(tmp_path / "a", {"loss": 1.0}))
     b = read_run(_scored_run(tmp_path / "b", {"loss": 1.0}, status="failed"))

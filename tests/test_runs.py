@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from resireg_train.runs.index import diff_runs, find_run, scan
 from resireg_train.record.provenance.block import data_identity, package_versions
+from resireg_train.runs.index import diff_runs, find_run, scan
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 _PROBE = textwrap.dedent(

@@ -329,8 +329,8 @@ def test_reproduce_refuses_a_paper_file_that_is_not_yaml_in_one_line(tmp_path, c
 
 
 def test_the_papers_own_figures_file_fits_the_schema():
-    from resireg_train.runs.reproduce import paper_problems
     from resireg_train.report.paper import paper_results
+    from resireg_train.runs.reproduce import paper_problems
 
     assert paper_problems(paper_results()) == []
 

@@ -57,8 +57,8 @@ from resireg_train.config.machine import check_available, check_devices
 from resireg_train.config.paths import composing
 from resireg_train.evaluation.base import NothingScoredError, require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
-from resireg_train.report.sections import ENCODER_SWEEPS
 from resireg_train.record.run_record import RunRecord
+from resireg_train.report.sections import ENCODER_SWEEPS
 
 if TYPE_CHECKING:
     pass

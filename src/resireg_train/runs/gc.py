@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from resireg_train.runs.index import Run, scan
 from resireg_train.record.run_record import metric_mode
+from resireg_train.runs.index import Run, scan
 
 try:  # POSIX; without it (Windows) no run is touched: its lock cannot be checked
     import fcntl

@@ -121,8 +121,8 @@ def register(
     from resireg.models.vlm.model import read_config
     from resireg.specs.exports import export_source_problem
     from resireg_train.record.cards import CARD_FILE
-    from resireg_train.record.trackers.mlflow import artifact_location
     from resireg_train.record.trackers.base import mlflow_key
+    from resireg_train.record.trackers.mlflow import artifact_location
 
     check_name(name, alias)  # nothing is written for a name the registry refuses
     folder = Path(export).expanduser().resolve()

@@ -313,8 +313,8 @@ def reproduce(
     from tabulate import tabulate
 
     from resireg.specs.metrics import SCORE_SPECS
-    from resireg_train.runs.rerun.plan import hydra_value
     from resireg_train.report.paper import PAPER_FILE, protocol_differences
+    from resireg_train.runs.rerun.plan import hydra_value
 
     path = Path(paper) if paper else PAPER_FILE
     jobs = row_jobs(spec, path)

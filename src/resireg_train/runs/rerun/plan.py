@@ -58,8 +58,8 @@ from resireg.errors import ResiregError
 from resireg.secrets import MASK, mask_text
 from resireg.specs.exports import REGISTRY_PREFIX
 from resireg.specs.tree import MISSING, differences, flatten
-from resireg_train.runs.index import Run, diff_runs, find_run
 from resireg_train.record.run_record import RunRecord, target_problem
+from resireg_train.runs.index import Run, diff_runs, find_run
 
 __all__ = [
     "JOBS",
@@ -648,8 +648,8 @@ def rerun(
     verdict on ``stream`` (module docstring). Returns the verdict, ``None`` when the rerun's
     job failed (its record and log say why). Raises :class:`RerunRefused` (a ``ValueError``)
     before anything is written when the run cannot be rerun as it ran."""
-    from resireg_train.runs.index import read_run
     from resireg_train.record.provenance.block import provenance_settings
+    from resireg_train.runs.index import read_run
 
     run = find_run(spec, roots)
     folder = Path(out) if out else default_out(run)
