@@ -42,7 +42,8 @@ from pathlib import Path
 from omegaconf import OmegaConf
 from resireg_train.record.provenance.block import start_provenance
 try:
-    from resireg_train.record.run_record import RunRecord, mask_saved_configs
+    from resireg_train.record.masking import mask_saved_configs
+    from resireg_train.record.run_record import RunRecord
     def write(out, **fields):
         return RunRecord(out).update(**fields)
     def saved(out):

@@ -18,7 +18,8 @@ from hydra import compose, initialize_config_dir
 
 from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.cli.train import train
-from resireg_train.record.run_record import Heartbeat, RunRecord, heartbeat_stale
+from resireg_train.record.heartbeat import Heartbeat, heartbeat_stale
+from resireg_train.record.run_record import RunRecord
 from resireg_train.runs.index import scan
 
 STEPS = 2  # steps per epoch

@@ -54,7 +54,8 @@ from resireg_train.config.machine import (
 )
 from resireg_train.config.moves import current_keys, current_targets
 from resireg_train.config.train import validate
-from resireg_train.record.run_record import RunRecord, flat, masked_tree
+from resireg_train.record.masking import masked_tree
+from resireg_train.record.run_record import RunRecord, flat
 from resireg_train.search.ranks import TRIAL_RANK_ENV
 
 if TYPE_CHECKING:

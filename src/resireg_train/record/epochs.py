@@ -1,7 +1,7 @@
 """What a training run records every epoch (Lightning): :class:`ResultsTracker`, the callback
 that keeps the run's :class:`~resireg_train.record.run_record.RunRecord` up to date, the epoch-level
 values it takes (:func:`epoch_metrics`), and :class:`ResumableCSVLogger`, the ``metrics.csv``
-that survives a resume (the ``csv`` tracker's Lightning logger, :mod:`resireg_train.record.trackers.mlflow`).
+that survives a resume (the ``csv`` tracker's Lightning logger, :mod:`resireg_train.record.trackers.csv`).
 
 ``results.json`` is rewritten at the end of every epoch, so an interrupted or failed run still
 reports how far it got::

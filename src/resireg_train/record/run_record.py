@@ -21,49 +21,41 @@ Every string is written with the password of any URL in it masked
 (:func:`resireg.secrets.mask_text`): a command line or a config value holding
 ``http://user:pass@host`` is recorded as ``http://user:***@host``.
 
-While the run runs, a background thread of the job (:class:`Heartbeat`) rewrites the record's
-``heartbeat`` (``{"time": <UTC>, "host", "interval", "stale_after"}``) every
-``provenance.heartbeat_interval`` seconds, so a reader on another host (a run index on a
-cluster's shared file system) can tell a running job from one that died:
-:func:`heartbeat_stale`. Writes from the job's threads are serialised (one lock per folder).
+While the run runs, a background thread of the job rewrites the record's ``heartbeat``
+(:mod:`resireg_train.record.heartbeat`). Writes from the job's threads are serialised (one lock
+per folder).
 """
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import math
 import os
-import socket
 import sys
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from resireg.errors import ResiregError
 from resireg.integrity import atomic_write
 from resireg.secrets import mask_text
+from resireg_train.record.heartbeat import HEARTBEAT, Heartbeat
+from resireg_train.record.masking import mask_saved_configs
 
 __all__ = [
-    "HEARTBEAT",
     "NON_FINITE",
     "RESULTS_FILE",
     "RecordError",
-    "Heartbeat",
     "RunRecord",
     "enclosing_run",
     "flat",
-    "heartbeat_doubt",
-    "heartbeat_stale",
     "metric_mode",
     "strict_json",
     "target_problem",
 ]
 
 RESULTS_FILE = "results.json"
-#: The record's field a running job refreshes (:class:`Heartbeat`).
-HEARTBEAT = "heartbeat"
 #: The record's field that lists the non-finite values written as ``null``.
 NON_FINITE = "non_finite"
 _REASON = (
@@ -210,33 +202,6 @@ def _lock(path: Path) -> threading.Lock:
         return _LOCKS.setdefault(str(path.resolve()), threading.Lock())
 
 
-def _utc_now() -> _dt.datetime:
-    return _dt.datetime.now(_dt.timezone.utc)
-
-
-def heartbeat_stale(
-    record: Mapping[str, Any], stale_after: float, now: _dt.datetime | None = None
-) -> bool | None:
-    """Whether the running job of ``record`` has stopped beating: its ``heartbeat.time`` is
-    more than ``heartbeat.stale_after`` seconds old (the job's own setting; ``stale_after``
-    when it recorded none). ``None`` when the record has no heartbeat (a release before it).
-    Compared with this machine's clock: hosts of one cluster agree to far less than the
-    minutes a heartbeat may age."""
-    beat = record.get(HEARTBEAT)
-    if not isinstance(beat, Mapping) or not isinstance(beat.get("time"), str):
-        return None
-    try:
-        when = _dt.datetime.fromisoformat(beat["time"])
-    except ValueError:
-        return None
-    if when.tzinfo is None:
-        when = when.replace(tzinfo=_dt.timezone.utc)
-    limit = beat.get("stale_after")
-    limit = limit if isinstance(limit, (int, float)) and not isinstance(limit, bool) else None
-    age = ((now or _utc_now()) - when).total_seconds()
-    return age > float(limit if limit is not None else stale_after)
-
-
 def target_problem(path: Path, folder: bool) -> str | None:
     """Why a command cannot write its output at ``path`` (``None`` when it can), checked
     before any work: a new run's folder (``folder``) must be absent or empty (another run's
@@ -274,75 +239,6 @@ def enclosing_run(path: str | os.PathLike) -> Path | None:
         except (RecordError, OSError):  # another tool's results.json, an unreadable one
             continue
     return None
-
-
-def heartbeat_doubt(
-    record: Mapping[str, Any], skew: float, now: _dt.datetime | None = None
-) -> str | None:
-    """Why the heartbeat of ``record`` cannot tell whether its job still runs, or ``None``:
-    a ``heartbeat.time`` that is not an ISO 8601 time (it would never age) or is more than
-    ``skew`` seconds ahead of this machine's clock (another host's clock is wrong: the beat
-    would look fresh for as long), or a ``heartbeat.stale_after`` that is not a finite number
-    > 0 (never stale)."""
-    beat = record.get(HEARTBEAT)
-    if not isinstance(beat, Mapping):
-        return None
-    limit = beat.get("stale_after")
-    if limit is not None and not (isinstance(limit, (int, float)) and not isinstance(limit, bool)
-                                  and math.isfinite(limit) and limit > 0):  # fmt: skip
-        return f"heartbeat.stale_after={limit!r} is not a number of seconds > 0"
-    try:
-        when = _dt.datetime.fromisoformat(beat["time"])
-    except (KeyError, TypeError, ValueError):
-        return f"heartbeat.time={beat.get('time')!r} is not a time (ISO 8601)"
-    if when.tzinfo is None:
-        when = when.replace(tzinfo=_dt.timezone.utc)
-    ahead = (when - (now or _utc_now())).total_seconds()
-    if ahead > skew:
-        return (f"heartbeat.time={beat['time']} is {_span(ahead)} ahead of this machine's clock "
-                f"(more than provenance.heartbeat_skew={skew:g} s)")  # fmt: skip
-    return None
-
-
-def _span(seconds: float) -> str:
-    for unit, size in (("days", 86400), ("hours", 3600), ("minutes", 60)):
-        if seconds >= 2 * size:
-            return f"{seconds / size:.1f} {unit}"
-    return f"{seconds:.0f} s"
-
-
-class Heartbeat:
-    """A daemon thread that writes ``heartbeat.time`` into a running job's record every
-    ``interval`` seconds until :meth:`stop` (module docstring). A write that fails (a full
-    disk, a file system gone) is skipped: the next one tries again, the run goes on."""
-
-    def __init__(self, record: RunRecord, interval: float, stale_after: float) -> None:
-        self.record = record
-        self.interval = float(interval)
-        self.fields = {"host": socket.gethostname(), "interval": self.interval,
-                       "stale_after": float(stale_after)}  # fmt: skip
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="resireg-heartbeat", daemon=True)
-
-    def beat(self) -> dict[str, Any]:
-        """The heartbeat field as of now."""
-        return {"time": _utc_now().isoformat(timespec="milliseconds"), **self.fields}
-
-    def start(self) -> Heartbeat:
-        self._thread.start()
-        return self
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval):
-            try:
-                self.record.update(**{HEARTBEAT: self.beat()})
-            except (OSError, ValueError):
-                continue
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join()
 
 
 class RunRecord:
@@ -537,31 +433,6 @@ class RunRecord:
         return record
 
 
-def mask_saved_configs(folder: Path) -> None:
-    """Mask URL passwords in the config files Hydra saved for the run in ``folder``
-    (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and, for a multirun job, in
-    its sweep's ``multirun.yaml``: a tracking URI given on the command line would otherwise
-    keep its password there. A resume compares configs with their URLs masked
-    (:func:`resireg_train.cli.train.check_resume`)."""
-    files = sorted((folder / ".hydra").glob("*.yaml"))
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
-            files.append(Path(str(HydraConfig.get().sweep.dir)) / "multirun.yaml")
-    except ImportError:  # pragma: no cover (Hydra is the train extra's)
-        pass
-    for path in files:
-        try:
-            text = path.read_text()
-        except OSError:
-            continue
-        masked = mask_text(text)
-        if masked != text:
-            atomic_write(path, masked, what="saved config", mode=path.stat().st_mode & 0o777)
-
-
 def job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
     """Every job record of the sweep folder ``sweep`` (``<sweep>/<job>/results.json``), by
     job folder: (mtime ns, size), as the file system gives them."""
@@ -575,11 +446,3 @@ def job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
     return records
 
 
-def masked_tree(tree: Any) -> Any:
-    """A copy of a config tree (mappings and lists) with the URL passwords of its strings
-    masked: what records, trackers and the resume check compare and show."""
-    if isinstance(tree, Mapping):
-        return {k: masked_tree(v) for k, v in tree.items()}
-    if isinstance(tree, (list, tuple)):
-        return [masked_tree(v) for v in tree]
-    return mask_text(tree) if isinstance(tree, str) else tree

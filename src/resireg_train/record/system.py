@@ -11,7 +11,7 @@ background thread for the whole life of every training, evaluation and map run
 - the trackers through their own facilities: MLflow's system-metrics monitor
   (``mlflow.system_metrics``: ``system/...`` metrics in the run's "System metrics" tab) and W&B's
   system panel (its ``x_stats_sampling_interval``), at the same interval
-  (:mod:`resireg_train.record.trackers.mlflow`).
+  (:mod:`resireg_train.record.trackers.mlflow`, :mod:`resireg_train.record.trackers.wandb`).
 
 What a row holds (the run's processes: the job's own process and its children, such as data
 loader workers and DDP ranks it started):

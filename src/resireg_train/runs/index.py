@@ -7,11 +7,11 @@ A row reads only the run's ``results.json`` (:meth:`RunRecord.read
 ``.hydra/config.yaml`` only when a filter or a column names a config key), so a thousand runs
 list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
 whose process is gone is shown as ``died``: on this host, its PID is not alive; on another
-host (a shared file system), its heartbeat is stale (:func:`~resireg_train.record.run_record.
+host (a shared file system), its heartbeat is stale (:func:`~resireg_train.record.heartbeat.
 heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A heartbeat that
 cannot tell (a ``time`` that is no time, or more than ``provenance.heartbeat_skew`` seconds ahead
 of this machine's clock, or a ``stale_after`` that is not a number > 0) is shown as ``unknown``, named once in the run's
-problems (:func:`~resireg_train.record.run_record.heartbeat_doubt`). A file that is not what
+problems (:func:`~resireg_train.record.heartbeat.heartbeat_doubt`). A file that is not what
 it should be (a record that is not a run record, an overrides file that is not a YAML list) is
 named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other
 runs are listed.
@@ -33,14 +33,9 @@ from typing import Any
 import yaml
 
 from resireg.specs.tree import flatten
+from resireg_train.record.heartbeat import heartbeat_doubt, heartbeat_stale
 from resireg_train.record.provenance.block import EXPORT_PROVENANCE
-from resireg_train.record.run_record import (
-    RESULTS_FILE,
-    RecordError,
-    RunRecord,
-    heartbeat_doubt,
-    heartbeat_stale,
-)
+from resireg_train.record.run_record import RESULTS_FILE, RecordError, RunRecord
 
 __all__ = [
     "COLUMNS",
@@ -65,7 +60,7 @@ _HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
 
 
 #: The status of a ``running`` record of another host whose heartbeat cannot tell whether its
-#: job still runs (:func:`~resireg_train.record.run_record.heartbeat_doubt`).
+#: job still runs (:func:`~resireg_train.record.heartbeat.heartbeat_doubt`).
 UNKNOWN = "unknown"
 
 

@@ -234,7 +234,7 @@ def code_provenance(
         import resireg
 
         version = resireg.__version__
-    package_dir = package_dir or Path(__file__).resolve().parents[1]  # resireg_train/
+    package_dir = package_dir or Path(__file__).resolve().parents[2]  # resireg_train/
     root = _checkout_root(package_dir)
     if root is None:
         return {"version": version, "git": None}

@@ -1,9 +1,12 @@
-"""The trackers by name (``logger=<name>``, ``conf/logger/<name>.yaml``): one table,
-:data:`TRACKER_SPECS`, read before anything heavy loads, and the trackers of one run
-(:class:`RunTrackers`), which its :class:`~resireg_train.record.run_record.RunRecord` drives.
+"""What every tracker shares: the :class:`Tracker` base class, the trackers of one run
+(:class:`RunTrackers`, built from :data:`~resireg_train.record.trackers.specs.TRACKER_SPECS`
+and driven by its :class:`~resireg_train.record.run_record.RunRecord`), the process state they
+put back, and the metrics and keys they show.
 
 A tracker does up to four things, each a method of its :class:`Tracker` class
-(:mod:`resireg_train.record.trackers.mlflow` holds the four built in):
+(one module per tracker: :mod:`~resireg_train.record.trackers.csv`,
+:mod:`~resireg_train.record.trackers.tensorboard`, :mod:`~resireg_train.record.trackers.mlflow`,
+:mod:`~resireg_train.record.trackers.wandb`):
 
 - :meth:`Tracker.address`: the network address it needs, checked before any work
   (:func:`resireg.network.reach`, ``logger.<name>.check_timeout`` seconds): an unreachable tracker refuses
@@ -22,19 +25,8 @@ What the trackers change in the process that runs them (its environment, MLflow'
 and active run, W&B's service) is put back when they finish (:class:`ProcessState`): a run
 called from Python leaves its caller's process as it found it.
 
-Adding a tracker:
-
-1. a :class:`Tracker` subclass (its ``address``, ``begin``, ``lightning_logger``, ``end``:
-   those it needs), e.g. in :mod:`resireg_train.record.trackers.mlflow`;
-2. a :class:`TrackerSpec` entry below: its name, the class as ``"module:Class"``, one line of
-   what it records, and the rules of its own keys (those that are not its Lightning logger's
-   keywords: ``check_timeout``, ``unreachable``, ``filename``...);
-3. ``conf/logger/<name>.yaml`` holding one block, ``<name>:``, with its Lightning logger's
-   ``_target_`` and keywords (a training run instantiates it) and its own keys' defaults.
-
-``logger=<name>`` then runs it for ``resireg-train``, ``resireg-eval`` and ``resireg-map``;
-``tests/test_records.py`` checks that every table entry has its conf file and every conf file
-its entry.
+Every value a tracker receives has the passwords of its URLs masked
+(:func:`resireg.secrets.mask_text`); adding a tracker: :mod:`~resireg_train.record.trackers.specs`.
 """
 
 from __future__ import annotations
@@ -45,77 +37,30 @@ import os
 import re
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlsplit
 
 from resireg.errors import ConfigError, ResiregError
 from resireg.network import reach
 from resireg.secrets import mask_text, mask_url
-from resireg.specs.rules import Rule, number, one_of
-from resireg.specs.table import SpecTable
+from resireg_train.record.masking import masked_tree
+from resireg_train.record.trackers.specs import TRACKER_SPECS, TrackerSpec
 
 __all__ = [
-    "TRACKER_SPECS",
     "ProcessState",
     "RunTrackers",
     "Tracker",
-    "TrackerSpec",
     "TrackerUnreachable",
     "map_counts",
     "mlflow_key",
+    "note_tracking",
+    "recorded_id",
+    "resolved_config",
     "run_metrics",
 ]
 
 log = logging.getLogger(__name__)
-
-#: The own keys of a tracker that needs a network: how long to wait for it, and what to do
-#: when it cannot be reached.
-_NETWORK: dict[str, Rule] = {
-    "check_timeout": number(0, strict=True, finite=True),
-    "unreachable": one_of(("refuse", "warn")),
-}
-
-
-@dataclass(frozen=True)
-class TrackerSpec:
-    """One tracker: its name (the key under ``logger:``), its :class:`Tracker` class
-    (``"module:Class"``), what it records, and the rules of its own keys in
-    ``conf/logger/<name>.yaml`` (the keys its Lightning logger does not take)."""
-
-    name: str
-    target: str
-    summary: str
-    params: dict[str, Rule] = field(default_factory=dict)
-
-    @property
-    def config(self) -> str:
-        """Its defaults' file."""
-        return f"conf/logger/{self.name}.yaml"
-
-    def load(self) -> type[Tracker]:
-        """The :class:`Tracker` class (imported now)."""
-        from resireg.specs.table import load
-
-        return load(self.target)
-
-
-TRACKER_SPECS: SpecTable[TrackerSpec] = SpecTable("tracker", [
-    TrackerSpec("csv", "resireg_train.record.trackers.mlflow:CsvTracker",
-                "metrics.csv: training's every step and epoch (always written), an evaluation's "
-                "or a map's final metrics as one row", {"filename": (
-                    lambda v: isinstance(v, str) and bool(v) and "/" not in v,
-                    "a file name (no folder)")}),
-    TrackerSpec("tensorboard", "resireg_train.record.trackers.mlflow:TensorBoardTracker",
-                "<run>/tensorboard: training's curves; an evaluation's or a map's final "
-                "metrics as scalars and its provenance as text"),
-    TrackerSpec("mlflow", "resireg_train.record.trackers.mlflow:MlflowTracker",
-                "one MLflow run per job (a sweep's jobs under one parent): config, provenance "
-                "tags, final metrics, per-class IoU table, the run's files", dict(_NETWORK)),
-    TrackerSpec("wandb", "resireg_train.record.trackers.mlflow:WandbTracker",
-                "one W&B run per job (a sweep's jobs in one group): config, curves, "
-                "results.json's summary", dict(_NETWORK)),
-], where="resireg_train.record.trackers.base")  # fmt: skip
 
 
 class TrackerUnreachable(ResiregError, RuntimeError):
@@ -153,6 +98,32 @@ def run_metrics(record: Mapping[str, Any]) -> dict[str, float]:
     map, its counts (:func:`map_counts`)."""
     metrics = {k: float(v) for k, v in (record.get("final") or {}).items() if _number(v)}
     return {**metrics, **map_counts(record)}
+
+
+def resolved_config(cfg: Any) -> dict[str, Any]:
+    """The run's config as plain values (resolved where it can be), URL passwords masked:
+    what a tracker is given."""
+    from omegaconf import OmegaConf
+
+    try:
+        config = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # an interpolation only Hydra's runtime resolves
+        config = OmegaConf.to_container(cfg, resolve=False)
+    return masked_tree(config)
+
+
+def note_tracking(record: Any, key: str, value: Any) -> None:
+    """Add ``key: value`` to the record's ``tracking`` (the job's writer only)."""
+    if record.writer and value is not None:
+        tracking = record.get("tracking") or {}
+        if tracking.get(key) != value:
+            record.update(tracking={**tracking, key: value})
+
+
+def recorded_id(record: Any, key: str) -> str | None:
+    """``tracking.<key>`` of the run's record, the id a resumed run continues."""
+    value = (record.get("tracking") or {}).get(key) if record.writer else None
+    return value if isinstance(value, str) and value else None
 
 
 # ------------------------------------------------------------------------------- trackers
@@ -221,6 +192,7 @@ class Tracker:
 
 
 _MLFLOW_URI = "mlflow.tracking._tracking_service.utils"  # holds the URI set_tracking_uri set
+
 _WANDB_SETUP = "wandb.sdk.wandb_setup"  # holds W&B's singleton (its service connection)
 
 

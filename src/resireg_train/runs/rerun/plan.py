@@ -360,7 +360,7 @@ def config_drift(run: Run, cfg: Any, given: set[str]) -> list[str]:
     from omegaconf import OmegaConf
 
     from resireg_train.config.moves import current_targets
-    from resireg_train.record.run_record import masked_tree
+    from resireg_train.record.masking import masked_tree
 
     path = run.path / ".hydra" / "config.yaml"
     if not path.is_file():
