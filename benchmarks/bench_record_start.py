@@ -58,7 +58,7 @@ sys.argv = ["resireg-eval", "logger=mlflow",
 cfg = OmegaConf.create({"name": "bench", "seed": 0, "dataset": {"path": "synthetic", "size": 8},
                         "logger": {"mlflow": {"tracking_uri": "http://user:pw@127.0.0.1:5000"}}})
 try:  # this tree: every provenance key (the opt-in one changed)
-    from resireg_train.record.provenance.block import provenance_settings
+    from resireg_train.record.settings import provenance_settings
     opted = OmegaConf.merge(cfg, {"provenance": {**provenance_settings(),
                                                  "untracked_content": ["*"]}})
 except ImportError:  # before: untracked text under 1 MiB was always inlined

@@ -195,8 +195,9 @@ _PROBE = textwrap.dedent(
     """
     import json, sys
     from pathlib import Path
-    import resireg_train.record.provenance.block as p
-    settings = {**p.provenance_settings(), **json.loads(sys.argv[2])}
+    import resireg_train.record.provenance.code as p
+    from resireg_train.record.settings import provenance_settings
+    settings = {**provenance_settings(), **json.loads(sys.argv[2])}
     print(json.dumps(p.code_provenance(Path(sys.argv[1]), settings=settings)))
     """
 )

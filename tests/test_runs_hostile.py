@@ -133,7 +133,7 @@ def _remote(root: Path, name: str, ahead_s: float, stale_after) -> Path:
 
 
 def test_ls_reports_a_heartbeat_from_the_future_or_never_stale_as_unknown(tmp_path, capsys):
-    from resireg_train.record.provenance.block import provenance_settings
+    from resireg_train.record.settings import provenance_settings
 
     skew = float(provenance_settings()["heartbeat_skew"])
     assert 0 < skew <= 300  # conf/provenance/default.yaml: five minutes at most

@@ -34,7 +34,7 @@ import yaml
 
 from resireg.specs.tree import flatten
 from resireg_train.record.heartbeat import heartbeat_doubt, heartbeat_stale
-from resireg_train.record.provenance.block import EXPORT_PROVENANCE
+from resireg_train.record.provenance.inputs import EXPORT_PROVENANCE
 from resireg_train.record.run_record import RESULTS_FILE, RecordError, RunRecord
 
 __all__ = [
@@ -68,7 +68,7 @@ UNKNOWN = "unknown"
 def _settings(key: str) -> float:
     """``provenance.heartbeat_stale`` (for a record whose heartbeat does not say its own) or
     ``provenance.heartbeat_skew`` (conf/provenance/default.yaml)."""
-    from resireg_train.record.provenance.block import provenance_settings
+    from resireg_train.record.settings import provenance_settings
 
     return float(provenance_settings()[key])
 

@@ -33,7 +33,7 @@ from typing import Any
 from resireg.models.vlm.registry import DIGESTS_TAG, check_registry
 from resireg.secrets import mask_text, mask_url
 from resireg.specs.tree import flatten
-from resireg_train.record.provenance.block import EXPORT_PROVENANCE
+from resireg_train.record.provenance.inputs import EXPORT_PROVENANCE
 from resireg_train.record.run_record import RecordError, RunRecord
 
 __all__ = ["check_name", "command", "register"]

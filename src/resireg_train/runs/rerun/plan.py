@@ -382,11 +382,9 @@ def drift(run: Run, cfg: Any, out: Path, given: set[str] = frozenset()) -> list[
     """What differs between what ``run`` ran with and what its rerun (config ``cfg``, folder
     ``out``; ``given``: the keys the command line sets) would run with, one line each: the
     code, the data identity of every dataset, the inputs' digests, the config."""
-    from resireg_train.record.provenance.block import (
-        code_provenance,
-        input_provenance,
-        provenance_settings,
-    )
+    from resireg_train.record.provenance.code import code_provenance
+    from resireg_train.record.provenance.inputs import input_provenance
+    from resireg_train.record.settings import provenance_settings
 
     then = run.provenance
     plain = _plain(cfg, out)
@@ -504,7 +502,7 @@ def outputs(record: Mapping[str, Any], folder: Path) -> dict[str, str]:
     (``export/<file>``), a map's tensors (``map/tensors[<n>]``: their names are drawn per
     save, their content is the map) and ``map.ply``."""
     from resireg.integrity import sha256_file
-    from resireg_train.record.provenance.block import export_identity
+    from resireg_train.record.provenance.inputs import export_identity
 
     found = {}
     export = record.get("export")
@@ -648,7 +646,7 @@ def rerun(
     verdict on ``stream`` (module docstring). Returns the verdict, ``None`` when the rerun's
     job failed (its record and log say why). Raises :class:`RerunRefused` (a ``ValueError``)
     before anything is written when the run cannot be rerun as it ran."""
-    from resireg_train.record.provenance.block import provenance_settings
+    from resireg_train.record.settings import provenance_settings
     from resireg_train.runs.index import read_run
 
     run = find_run(spec, roots)
