@@ -332,7 +332,7 @@ def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, the
     the one math.isclose (relative to the larger magnitude, no absolute floor) gives, the
     unchanged score is not listed, and the moved score's printed change is the difference."""
     from resireg_train.runs.index import read_run
-    from resireg_train.runs.rerun.plan import compare
+    from resireg_train.runs.rerun.verdict import compare
 
     a = read_run(_scored_run(tmp_path / "a", {"ovss/synthetic/miou_bb": then, "loss": 1.25}))
     b = read_run(_scored_run(tmp_path / "b", {"ovss/synthetic/miou_bb": now, "loss": 1.25}))
@@ -352,7 +352,7 @@ def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, the
 
 def test_a_failed_rerun_differs_whatever_its_scores(tmp_path):
     from resireg_train.runs.index import read_run
-    from resireg_train.runs.rerun.plan import compare
+    from resireg_train.runs.rerun.verdict import compare
 
     a = read_run(_scored_run(tmp_path / "a", {"loss": 1.0}))
     b = read_run(_scored_run(tmp_path / "b", {"loss": 1.0}, status="failed"))

@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if args.command in ("rerun", "reproduce"):  # their own modules (runs/rerun/, runs/reproduce.py)
         from resireg_train.runs import reproduce
-        from resireg_train.runs.rerun import plan as rerun
+        from resireg_train.runs.rerun import command as rerun
 
         args.overrides += extra
         args.root = getattr(args, "root", None) or [DEFAULT_ROOT]
