@@ -41,6 +41,12 @@ import json, statistics, sys, tempfile, time
 from pathlib import Path
 from omegaconf import OmegaConf
 from resireg_train.record.provenance.block import start_provenance
+try:  # the settings read once from the config (RecordSettings), then the block
+    from resireg_train.record.settings import RecordSettings
+    def begin(cfg, out):
+        return start_provenance(RecordSettings.from_config(cfg), out)
+except ImportError:  # before: start_provenance read the config itself
+    begin = start_provenance
 try:
     from resireg_train.record.masking import mask_saved_configs
     from resireg_train.record.run_record import RunRecord
@@ -73,13 +79,13 @@ for _ in range(repeats):
         (out / ".hydra" / "overrides.yaml").write_text(
             "- logger.mlflow.tracking_uri=http://user:pw@127.0.0.1:5000\n" * 3)
         t0 = time.perf_counter()
-        write(out, name="bench", status="running", provenance=start_provenance(cfg, out))
+        write(out, name="bench", status="running", provenance=begin(cfg, out))
         saved(out)
         starts.append(time.perf_counter() - t0)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         t0 = time.perf_counter()
-        write(out, name="bench", status="running", provenance=start_provenance(opted, out))
+        write(out, name="bench", status="running", provenance=begin(opted, out))
         inlined.append(time.perf_counter() - t0)
         write(out, history=history, final=history[-1])
         t0 = time.perf_counter()

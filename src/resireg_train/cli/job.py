@@ -41,6 +41,7 @@ from resireg.secrets import MASK, SecretFilter, mask_text
 from resireg_train.config.machine import check_cluster, config_rank, process_rank
 from resireg_train.config.paths import CONFIG_DIR, RUN_ID
 from resireg_train.record.run_record import RecordError, RunRecord, flat, job_records
+from resireg_train.record.settings import RecordSettings
 
 __all__ = [
     "CONFIG_DIR",
@@ -303,7 +304,7 @@ def _run_recorded(
     fresh: bool,
 ) -> dict[str, Any]:
     try:
-        record.start(cfg, fresh=fresh)
+        record.start(RecordSettings.from_config(cfg), fresh=fresh)
         result = body(cfg, record)
     except KeyboardInterrupt:
         error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"

@@ -42,6 +42,7 @@ from resireg.integrity import atomic_write
 from resireg.secrets import mask_text
 from resireg_train.record.heartbeat import HEARTBEAT, Heartbeat
 from resireg_train.record.masking import mask_saved_configs
+from resireg_train.record.settings import RecordSettings
 
 __all__ = [
     "NON_FINITE",
@@ -349,9 +350,10 @@ class RunRecord:
         return kept
 
     # -- the run's life ---------------------------------------------------------------------
-    def start(self, cfg: Any, *, fresh: bool = False) -> None:
-        """Start the run of the composed config ``cfg``: its trackers are read from
-        ``cfg.logger`` (:class:`resireg_train.record.trackers.base.RunTrackers`); the writer then
+    def start(self, settings: RecordSettings, *, fresh: bool = False) -> None:
+        """Start the run whose settings, read once from its composed config, are ``settings``
+        (:meth:`RecordSettings.from_config <resireg_train.record.settings.RecordSettings.from_config>`):
+        its trackers are those it names (:class:`resireg_train.record.trackers.base.RunTrackers`); the writer then
         sets an earlier record aside (``fresh``: a job that never resumes), writes ``name``,
         ``status: running`` and the provenance's start (a resumed run keeps its run id), masks
         the URL passwords in the config files Hydra saved, and starts the trackers: one that
@@ -361,11 +363,11 @@ class RunRecord:
         are sampled until :meth:`finish` (``system_metrics``: :mod:`resireg_train.record.system`)."""
         import logging
 
-        from resireg_train.record.provenance.block import provenance_settings, start_provenance
-        from resireg_train.record.system import SystemSampler, system_settings
+        from resireg_train.record.provenance.block import start_provenance
+        from resireg_train.record.system import SystemSampler
         from resireg_train.record.trackers.base import RunTrackers
 
-        self.trackers = RunTrackers(cfg, self)
+        self.trackers = RunTrackers(settings, self)
         if not self.writer:
             return
         if fresh and (kept := self.set_aside()) is not None:
@@ -373,17 +375,17 @@ class RunRecord:
                 "%s held an earlier run's record: kept as %s", self.folder, kept.name
             )
         previous = self.get("provenance")  # a resumed run keeps its run id
-        settings = provenance_settings(cfg)
-        heartbeat = Heartbeat(self, settings["heartbeat_interval"], settings["heartbeat_stale"])
-        self.update(name=cfg.get("name"), status="running", error=None,
+        beat = settings.provenance
+        heartbeat = Heartbeat(self, beat["heartbeat_interval"], beat["heartbeat_stale"])
+        self.update(name=settings.name, status="running", error=None,
                     output_dir=str(self.folder),
-                    provenance=start_provenance(cfg, self.folder, previous),
+                    provenance=start_provenance(settings, self.folder, previous),
                     **{HEARTBEAT: heartbeat.beat()})  # fmt: skip
         self._heartbeat = heartbeat.start()
         mask_saved_configs(self.folder)
-        enabled, interval = system_settings(cfg)  # a bad interval fails before any work
+        enabled, interval = settings.system_metrics  # checked when the settings were read
         self.trackers.start()
-        if enabled:  # system.csv and results.json's system block (runs/system.py)
+        if enabled:  # system.csv and results.json's system block (record/system.py)
             self.sampler = SystemSampler(self.folder, interval).start(fresh=fresh)
 
     def finish(self, status: str = "completed", error: str | None = None) -> dict[str, Any]:
@@ -444,5 +446,3 @@ def job_records(sweep: Path) -> dict[Path, tuple[int, int]]:
             continue
         records[path.parent] = (stat.st_mtime_ns, stat.st_size)
     return records
-
-

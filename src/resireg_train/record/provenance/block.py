@@ -42,7 +42,6 @@ from resireg.secrets import mask_text
 from resireg_train.record.provenance.code import code_provenance
 from resireg_train.record.provenance.inputs import (
     EXPORT_PROVENANCE,
-    config_digest,
     guarded,
     input_provenance,
     seeds,
@@ -53,7 +52,7 @@ from resireg_train.record.provenance.machine import (
     machine_provenance,
     package_versions,
 )
-from resireg_train.record.settings import provenance_settings
+from resireg_train.record.settings import RecordSettings
 
 __all__ = ["finish_provenance", "start_provenance", "write_export_provenance"]
 
@@ -75,27 +74,26 @@ def _cli() -> str | None:
     return f"resireg-{HydraConfig.get().job.config_name}"
 
 
-def start_provenance(cfg: Any, out: Path, previous: Mapping[str, Any] | None = None) -> dict:
-    """The provenance block written when a run starts (module docstring). ``previous``: the
-    block of the run this one resumes (its ``run_id`` is kept). The command line is recorded
-    with every URL's password masked; environment variables are never recorded."""
-    from omegaconf import OmegaConf
-
-    try:
-        plain = OmegaConf.to_container(cfg, resolve=True)
-    except Exception:
-        plain = OmegaConf.to_container(cfg, resolve=False)
+def start_provenance(
+    run: RecordSettings, out: Path, previous: Mapping[str, Any] | None = None
+) -> dict:
+    """The provenance block written when a run starts (module docstring), from the run's
+    settings ``run`` (its resolved config, its ``provenance`` settings, its config's digest).
+    ``previous``: the block of the run this one resumes (its ``run_id`` is kept). The command
+    line is recorded with every URL's password masked; environment variables are never
+    recorded."""
+    plain = run.config
     run_id = (previous or {}).get("run_id") or uuid.uuid4().hex[:12]
     _CPU_AT_START[str(Path(out).resolve())] = cpu_seconds()
     return {
         "run_id": run_id,
         "cli": _cli(),
-        "code": guarded(lambda: code_provenance(out, settings=provenance_settings(cfg))),
+        "code": guarded(lambda: code_provenance(out, settings=run.provenance)),
         "environment": {
             "python": platform.python_version(),
             # every URL's password masked (a search's storage, a tracking URI)
             "command": mask_text(shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])),
-            "config_sha256": config_digest(cfg),
+            "config_sha256": run.config_sha256,
             "packages": package_versions(),
         },
         "machine": machine_provenance(),

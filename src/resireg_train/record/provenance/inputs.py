@@ -135,21 +135,21 @@ def data_identity(entry: Mapping[str, Any]) -> dict[str, Any]:
     return {"kind": "unknown", "settings": dict(spec)}
 
 
-def _datasets(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _datasets(plain: Mapping[str, Any]) -> dict[str, Any]:
     """Every dataset entry a run reads: ``dataset`` (resireg-eval), ``source``
     (resireg-map), ``data.sources.*`` (training captions) and the validation sets of the
     ReSiReg callback (``callbacks.resireg_eval.datasets.*``)."""
     found: dict[str, Any] = {}
     for key in ("dataset", "source"):
-        if isinstance(cfg.get(key), Mapping):
-            found[key] = cfg[key]
+        if isinstance(plain.get(key), Mapping):
+            found[key] = plain[key]
     sources = (
-        (cfg.get("data") or {}).get("sources") if isinstance(cfg.get("data"), Mapping) else None
+        (plain.get("data") or {}).get("sources") if isinstance(plain.get("data"), Mapping) else None
     )
     for name, entry in (sources or {}).items():
         if isinstance(entry, Mapping):
             found[f"data.sources.{name}"] = entry
-    callbacks = cfg.get("callbacks") or {}
+    callbacks = plain.get("callbacks") or {}
     evaluation = callbacks.get("resireg_eval") if isinstance(callbacks, Mapping) else None
     for name, entry in ((evaluation or {}).get("datasets") or {}).items():
         if isinstance(entry, Mapping):
@@ -198,24 +198,24 @@ def export_identity(path: str | os.PathLike) -> dict[str, Any]:
     return record
 
 
-def _models(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _models(plain: Mapping[str, Any]) -> dict[str, Any]:
     from resireg.integrity import sha256_file
 
     models: dict[str, Any] = {}
-    if cfg.get("model_path"):
-        models["export"] = export_identity(str(cfg["model_path"]))
-    model = cfg.get("model")
+    if plain.get("model_path"):
+        models["export"] = export_identity(str(plain["model_path"]))
+    model = plain.get("model")
     init_from = model.get("init_from") if isinstance(model, Mapping) else None
     if init_from:
         path = Path(str(init_from)).expanduser()
         models["init_from"] = {"path": str(path.resolve()),
                                "sha256": sha256_file(path) if path.is_file() else None}  # fmt: skip
-    ckpt_path = cfg.get("ckpt_path")
+    ckpt_path = plain.get("ckpt_path")
     if ckpt_path not in (None, "last"):  # a checkpoint file another run wrote
         path = Path(str(ckpt_path)).expanduser()
         models["ckpt_path"] = {"path": str(path.resolve()),
                                "sha256": sha256_file(path) if path.is_file() else None}  # fmt: skip
-    encoder = cfg.get("encoder")
+    encoder = plain.get("encoder")
     if isinstance(encoder, Mapping):
         models["encoder"] = {k: v for k, v in encoder.items()
                              if isinstance(v, (str, int, float, bool)) or v is None}  # fmt: skip

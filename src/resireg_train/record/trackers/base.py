@@ -44,7 +44,7 @@ from urllib.parse import urlsplit
 from resireg.errors import ConfigError, ResiregError
 from resireg.network import reach
 from resireg.secrets import mask_text, mask_url
-from resireg_train.record.masking import masked_tree
+from resireg_train.record.settings import RecordSettings
 from resireg_train.record.trackers.specs import TRACKER_SPECS, TrackerSpec
 
 __all__ = [
@@ -56,7 +56,6 @@ __all__ = [
     "mlflow_key",
     "note_tracking",
     "recorded_id",
-    "resolved_config",
     "run_metrics",
 ]
 
@@ -100,18 +99,6 @@ def run_metrics(record: Mapping[str, Any]) -> dict[str, float]:
     return {**metrics, **map_counts(record)}
 
 
-def resolved_config(cfg: Any) -> dict[str, Any]:
-    """The run's config as plain values (resolved where it can be), URL passwords masked:
-    what a tracker is given."""
-    from omegaconf import OmegaConf
-
-    try:
-        config = OmegaConf.to_container(cfg, resolve=True)
-    except Exception:  # an interpolation only Hydra's runtime resolves
-        config = OmegaConf.to_container(cfg, resolve=False)
-    return masked_tree(config)
-
-
 def note_tracking(record: Any, key: str, value: Any) -> None:
     """Add ``key: value`` to the record's ``tracking`` (the job's writer only)."""
     if record.writer and value is not None:
@@ -133,21 +120,23 @@ class Tracker:
     Args:
         spec: its table entry.
         settings: its ``logger.<name>`` block (plain values).
-        cfg: the run's composed config.
+        run: the run's settings (:class:`~resireg_train.record.settings.RecordSettings`).
         record: the run's :class:`~resireg_train.record.run_record.RunRecord`.
     """
 
-    def __init__(self, spec: TrackerSpec, settings: dict[str, Any], cfg: Any, record: Any):
+    def __init__(
+        self, spec: TrackerSpec, settings: dict[str, Any], run: RecordSettings, record: Any
+    ):
         self.spec = spec
         self.settings = settings
-        self.cfg = cfg
+        self.run = run
         self.record = record
         self._logger: Any = None
 
     @property
     def training(self) -> bool:
         """Whether the run trains (Lightning logs its curves through :meth:`lightning_logger`)."""
-        return "trainer" in self.cfg
+        return self.run.training
 
     def own(self, key: str) -> Any:
         """One of its own keys (``logger.<name>.<key>``); conf/logger/<name>.yaml sets each."""
@@ -274,35 +263,29 @@ class ProcessState:
 
 
 class RunTrackers:
-    """The trackers of one run: those ``cfg.logger`` names, in its order, built from
+    """The trackers of one run: those its settings name (``logger``, in its order:
+    :attr:`~resireg_train.record.settings.RecordSettings.trackers`), built from
     :data:`TRACKER_SPECS` (an unknown name is a :class:`ConfigError` naming the closest),
     their own keys checked by the entry's rules. Driven by the run's record. What they change
     in the process (:class:`ProcessState`) is put back when they finish."""
 
-    def __init__(self, cfg: Any, record: Any) -> None:
-        from omegaconf import OmegaConf
-
-        self.cfg = cfg
+    def __init__(self, run: RecordSettings, record: Any) -> None:
+        self.run = run
         self.record = record
         self.trackers: list[Tracker] = []
         self.unreachable: dict[str, str] = {}
         self._begun: list[Tracker] = []
         self._before: ProcessState | None = None  # read at start, put back at finish
-        loggers = cfg.get("logger") or {}
-        for name, settings in loggers.items():
-            if not settings:
-                continue
+        for name, plain in run.trackers.items():
             spec = TRACKER_SPECS.find(name)
             if spec is None:
                 raise ConfigError(TRACKER_SPECS.unknown(name, setting="logger"))
-            plain = OmegaConf.to_container(settings, resolve=True) if OmegaConf.is_config(
-                settings) else dict(settings)  # fmt: skip
             errors = [f"logger.{name}.{key}={plain[key]!r}: expected {expected}"
                       for key, (check, expected) in spec.params.items()
                       if key in plain and not check(plain[key])]  # fmt: skip
             if errors:
                 raise ConfigError("; ".join(errors))
-            self.trackers.append(spec.load()(spec, plain, cfg, record))
+            self.trackers.append(spec.load()(spec, plain, run, record))
 
     def names(self) -> list[str]:
         return [t.spec.name for t in self.trackers]
@@ -339,7 +322,7 @@ class RunTrackers:
         for tracker in self.trackers:
             tracker.begin()
             self._begun.append(tracker)
-        if "trainer" not in self.cfg:  # a training run's trackers run once its loggers exist
+        if not self.run.training:  # a training run's trackers run once its loggers exist
             for tracker in self.trackers:
                 tracker.running()
 
@@ -348,7 +331,7 @@ class RunTrackers:
         training's own record), then each tracker's (:meth:`Tracker.lightning_logger`)."""
         csv_tracker = TRACKER_SPECS.get("csv").load()  # the table's entry, loaded lazily
         csv = next((t for t in self.trackers if isinstance(t, csv_tracker)), None)
-        csv = csv or csv_tracker.always(self.cfg, self.record)
+        csv = csv or csv_tracker.always(self.run, self.record)
         loggers = [csv.lightning_logger(resume_step)]
         for tracker in self.trackers:
             if tracker is not csv and (made := tracker.lightning_logger(resume_step)) is not None:

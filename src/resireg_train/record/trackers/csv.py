@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 from typing import Any
 
+from resireg_train.record.settings import RecordSettings
 from resireg_train.record.trackers.base import Tracker, run_metrics
 from resireg_train.record.trackers.specs import TRACKER_SPECS
 
@@ -18,10 +19,10 @@ class CsvTracker(Tracker):
     """``metrics.csv`` (module docstring)."""
 
     @classmethod
-    def always(cls, cfg: Any, record: Any) -> CsvTracker:
+    def always(cls, run: RecordSettings, record: Any) -> CsvTracker:
         """The CSV tracker of a training run whose ``logger`` does not name ``csv``: its
         ``metrics.csv`` is written all the same."""
-        return cls(TRACKER_SPECS.get("csv"), {}, cfg, record)
+        return cls(TRACKER_SPECS.get("csv"), {}, run, record)
 
     def lightning_logger(self, resume_step: int | None) -> Any:
         if self._logger is None:

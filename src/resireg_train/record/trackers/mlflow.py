@@ -25,12 +25,12 @@ from urllib.parse import unquote, urlsplit, urlunsplit
 
 from resireg.secrets import mask_text
 from resireg.specs.tree import flatten
+from resireg_train.record.settings import RecordSettings
 from resireg_train.record.trackers.base import (
     Tracker,
     mlflow_key,
     note_tracking,
     recorded_id,
-    resolved_config,
     run_metrics,
 )
 
@@ -100,14 +100,12 @@ class MlflowTracker(Tracker):
     def begin(self) -> None:
         settings = self._without_credentials()  # a store without an artifact location: refused
         if not self.training:  # open the run now: it shows the run's system metrics live
-            self._run_id = open_mlflow_run(settings, self.cfg)
+            self._run_id = open_mlflow_run(settings, self.run)
 
     def running(self) -> None:
         """MLflow's own system-metrics monitor (``mlflow.system_metrics``: ``system/...``
         metrics, the run's "System metrics" tab) at ``system_metrics.interval``."""
-        from resireg_train.record.system import system_settings
-
-        enabled, interval = system_settings(self.cfg)
+        enabled, interval = self.run.system_metrics
         run_id = getattr(self._logger, "run_id", None) or self._run_id
         if not enabled or run_id is None or self._monitor is not None:
             return
@@ -162,7 +160,7 @@ class MlflowTracker(Tracker):
         if run_id is None:
             run_id = (record.get("tracking") or {}).get("mlflow_run_id")
         settings = self._without_credentials()
-        return {"mlflow_run_id": to_mlflow(settings, self.cfg, self.record.folder, record,
+        return {"mlflow_run_id": to_mlflow(settings, self.run, self.record.folder, record,
                                            run_id)}  # fmt: skip
 
 
@@ -229,18 +227,19 @@ def _experiment_id(client: Any, settings: dict[str, Any]) -> str:
     return client.create_experiment(name, artifact_location=settings.get("artifact_location"))
 
 
-def open_mlflow_run(settings: dict[str, Any], cfg: Any) -> str:
-    """A new MLflow run (status RUNNING) for the job of ``cfg``, named after the run (a
-    multirun job: ``<name>-<job>``), with the flattened config as parameters; its id."""
+def open_mlflow_run(settings: dict[str, Any], run: RecordSettings) -> str:
+    """A new MLflow run (status RUNNING) for the job of the settings ``run``, named after the
+    run (a multirun job: ``<name>-<job>``), with the flattened config (its URL passwords
+    masked) as parameters; its id."""
     from mlflow import MlflowClient
     from mlflow.entities import Param
 
     client = MlflowClient(tracking_uri=str(settings.get("tracking_uri")))
     job, _ = _group()
-    run_name = str(settings.get("run_name") or cfg.name)
+    run_name = str(settings.get("run_name") or run.name)
     run_id = client.create_run(_experiment_id(client, settings), run_name=run_name if job is None
                                else f"{run_name}-{job}").info.run_id  # fmt: skip
-    config = flatten(resolved_config(cfg))
+    config = flatten(run.masked_config)
     params = [Param(mlflow_key(k)[:250], str(v)[:6000]) for k, v in config.items()]
     for i in range(0, len(params), 100):  # log_batch takes at most 100 params per call
         client.log_batch(run_id, params=params[i : i + 100])
@@ -248,11 +247,16 @@ def open_mlflow_run(settings: dict[str, Any], cfg: Any) -> str:
 
 
 def to_mlflow(
-    settings: dict[str, Any], cfg: Any, out: Path, record: dict[str, Any], run_id: str | None
+    settings: dict[str, Any],
+    run: RecordSettings,
+    out: Path,
+    record: dict[str, Any],
+    run_id: str | None,
 ) -> str:
     """Log the run in ``out`` (its record ``record``) to MLflow (module docstring);
     ``settings``: the ``logger.mlflow`` block (``tracking_uri``, ``experiment_name``,
-    ``run_name``); ``run_id``: the run Lightning logged to or the one opened at the start
+    ``run_name``); ``run``: the run's settings (its name names the sweep's parent run);
+    ``run_id``: the run Lightning logged to or the one opened at the start
     (:func:`open_mlflow_run`), if any. Returns the MLflow run id."""
     from mlflow import MlflowClient
     from mlflow.entities import Metric, RunTag
@@ -262,10 +266,10 @@ def to_mlflow(
     job, sweep = _group()
     tags = {"resireg.run_dir": str(out.resolve())}
     if sweep:
-        tags["mlflow.parentRunId"] = _parent_run(client, experiment_id, sweep, str(cfg.name))
+        tags["mlflow.parentRunId"] = _parent_run(client, experiment_id, sweep, str(run.name))
         tags["resireg.job"] = job
     if run_id is None:
-        run_id = open_mlflow_run(settings, cfg)
+        run_id = open_mlflow_run(settings, run)
     provenance = flatten(record.get("provenance") or {}, "provenance")
     tags.update({mlflow_key(k)[:250]: mask_text(str(v))[:5000] for k, v in provenance.items()})
     tags["resireg.status"] = str(record.get("status"))

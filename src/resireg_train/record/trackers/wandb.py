@@ -20,7 +20,6 @@ from resireg_train.record.trackers.base import (
     map_counts,
     note_tracking,
     recorded_id,
-    resolved_config,
 )
 
 __all__ = ["WandbTracker", "wandb_logger", "wandb_run_name", "wandb_summary"]
@@ -41,14 +40,14 @@ class WandbTracker(Tracker):
 
     def begin(self) -> None:
         recorded = recorded_id(self.record, "wandb_run_id")
-        if self.training and self.cfg.get("ckpt_path") is not None and recorded is not None:
+        if self.training and self.run.resuming and recorded is not None:
             # a resumed training run continues its W&B run (WandbLogger resumes an id it is
             # given: wandb.init(id=..., resume="allow")); Lightning logs trainer/global_step
             import hydra
 
             self._logger = hydra.utils.instantiate(self.logger_settings(), id=recorded)
         logger = self.lightning_logger(None)
-        _stats_settings(logger, self.cfg)
+        _stats_settings(logger, self.run.system_metrics)
         # W&B records the command line (its run metadata's "args"): give it masked URLs
         argv, sys.argv = sys.argv, [mask_text(a) for a in sys.argv]
         try:
@@ -57,7 +56,7 @@ class WandbTracker(Tracker):
             sys.argv = argv
         note_tracking(self.record, "wandb_run_id", getattr(experiment, "id", None))
         if hasattr(experiment, "config"):
-            experiment.config.update(resolved_config(self.cfg), allow_val_change=True)
+            experiment.config.update(self.run.masked_config, allow_val_change=True)
 
     def end(self, record: dict[str, Any], failed: bool) -> None:
         experiment = getattr(self._logger, "experiment", None)
@@ -67,18 +66,17 @@ class WandbTracker(Tracker):
         experiment.finish(exit_code=1 if failed else 0)
 
 
-def _stats_settings(logger: Any, cfg: Any) -> None:
+def _stats_settings(logger: Any, system_metrics: tuple[bool, float]) -> None:
     """W&B's own system panel (its ``wandb-core`` process samples the run's process tree) at
     ``system_metrics.interval``, or off with ``system_metrics.enabled=false``: settings of the
-    ``wandb.init`` the logger's first use calls."""
-    from resireg_train.record.system import system_settings
-
+    ``wandb.init`` the logger's first use calls (``system_metrics``: the run's
+    ``(enabled, interval)``)."""
     init = getattr(logger, "_wandb_init", None)
     if not isinstance(init, dict) or "settings" in init:
         return  # not Lightning's WandbLogger, or settings given in conf/logger/wandb.yaml
     import wandb
 
-    enabled, interval = system_settings(cfg)
+    enabled, interval = system_metrics
     init["settings"] = (wandb.Settings(x_stats_sampling_interval=interval,
                                        x_stats_track_process_tree=True)
                         if enabled else wandb.Settings(x_disable_stats=True))  # fmt: skip

@@ -47,7 +47,16 @@ from resireg.specs.tree import MISSING
 from resireg_train.runs.index import Run
 from resireg_train.runs.rerun.drift import LEFT_OUT, drift, missing_models
 
-__all__ = ["JOBS", "Plan", "RerunRefused", "compose_job", "hydra_value", "job_command", "job_env", "plan"]
+__all__ = [
+    "JOBS",
+    "Plan",
+    "RerunRefused",
+    "compose_job",
+    "hydra_value",
+    "job_command",
+    "job_env",
+    "plan",
+]
 
 #: ``provenance.cli`` -> (the Hydra config name, the module of its console script).
 JOBS: dict[str, tuple[str, str]] = {
@@ -234,5 +243,3 @@ def job_env(p: Plan) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------------------------- main
-
-
