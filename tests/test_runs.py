@@ -23,7 +23,8 @@ import yaml
 
 from resireg_train.record.provenance.inputs import data_identity
 from resireg_train.record.provenance.machine import package_versions
-from resireg_train.runs.index import diff_runs, find_run, scan
+from resireg_train.runs.diff import diff_runs
+from resireg_train.runs.index import find_run, scan
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 _PROBE = textwrap.dedent(

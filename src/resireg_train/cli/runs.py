@@ -251,14 +251,18 @@ def main(argv: list[str] | None = None) -> None:
             print("\n".join(mask_text(line) for line in lines))
         elif args.command == "diff":
             a, b = index.find_run(args.a, roots), index.find_run(args.b, roots)
-            differences = index.diff_runs(a, b)
+            from resireg_train.runs.diff import diff_runs
+
+            differences = diff_runs(a, b)
             print(f"A: {a.run_id} {a.path}\nB: {b.run_id} {b.path}")
             for part in ("config", "provenance", "metrics"):
                 print(f"\n{part}:")
                 print(mask_text(_pairs(differences[part], "A", "B")))
             _say(a.problems + b.problems, said)
         else:
-            for line in index.lineage(args.run, roots):
+            from resireg_train.runs.lineage import lineage
+
+            for line in lineage(args.run, roots):
                 print(mask_text(line))
     except (ValueError, ResiregError) as err:  # bad input, refused (resireg.errors)
         parser.exit(2, f"resireg-runs: error: {mask_text(str(err))}\n")

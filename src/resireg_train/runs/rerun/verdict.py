@@ -19,7 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from resireg.specs.tree import MISSING, flatten
-from resireg_train.runs.index import Run, diff_runs
+from resireg_train.runs.diff import diff_runs
+from resireg_train.runs.index import Run
 from resireg_train.runs.rerun.drift import UNCOMPARED, short
 
 __all__ = ["Verdict", "compare", "outputs", "scores"]
