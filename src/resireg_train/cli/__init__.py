@@ -1,5 +1,5 @@
 """The console entry points (``[project.scripts]`` of pyproject.toml): ``resireg-train``,
-``resireg-eval``, ``resireg-map``, ``resireg-report``, ``resireg-runs``,
+``resireg-eval``, ``resireg-map``, ``resireg-report``, ``resireg-runs``, ``resireg-search``,
 ``resireg-playground``; :mod:`.job` is the wrapper every Hydra command runs in (the run folder's
 lock, its record, the failed-job summary of a sweep, the resolvers of ``conf/``).
 

@@ -5,7 +5,8 @@
   final status), and its reader for many records; :mod:`~resireg_train.record.settings`: the
   settings a record starts with, read once from the job's config (``RecordSettings``);
 - :mod:`~resireg_train.record.heartbeat`: the heartbeat a live run touches, and the doubt a
-  reader casts on a run whose heartbeat went stale;
+  reader casts on a run whose heartbeat went stale; :mod:`~resireg_train.record.masking`: the
+  config as a run's files and trackers keep it (URL passwords masked);
 - :mod:`~resireg_train.record.provenance`: what produced a run, one module per idea (the code's
   git state, the inputs' identities, the machine) and the block that joins them;
 - :mod:`~resireg_train.record.trackers`: the tracker table (``TRACKER_SPECS``, ``logger=``),
