@@ -108,7 +108,7 @@ def test_a_smoke_training_rerun_is_bitwise_identical_then_drift_and_a_moved_metr
     assert overrides == yaml.safe_load((run / ".hydra" / "overrides.yaml").read_text())
 
     # A tracked file changes: refused, naming it, nothing written.
-    changed = repo / "src" / "resireg_train" / "runs" / "cards.py"
+    changed = repo / "src" / "resireg_train" / "record" / "cards.py"
     text = changed.read_text()
     changed.write_text(text + "\n# a local experiment\n")
     try:
