@@ -5,12 +5,12 @@ Builds a journal study through Optuna's API (``--trials`` trials, each with two 
 median of ``--repeats`` runs in this process:
 
 - Optuna's own open (``JournalStorage(JournalFileBackend(path))``: it replays every entry);
-- :func:`resireg_train.sweeps.journal.open_journal` on the intact file (the tail check first);
+- :func:`resireg_train.search.journal.open_journal` on the intact file (the tail check first);
 - ``open_journal`` on the file with a torn last line (the repair under the lock, then the open);
 - the two steps ``open_journal`` adds, alone, 50 times as often: the tail check of an intact
   file, and the repair of a torn one (lock, cut, fsync);
 
-and the check of a ``search.json`` (:func:`resireg_train.sweeps.workers.read_record`: the job's
+and the check of a ``search.json`` (:func:`resireg_train.search.workers.read_record`: the job's
 config composed with Hydra's compose API, every override checked), once per worker start:
 
     python benchmarks/bench_journal.py --trials 500 --reports 10 --repeats 5
@@ -29,7 +29,7 @@ from pathlib import Path
 def make_journal(folder: Path, trials: int, reports: int) -> Path:
     import optuna
 
-    from resireg_train.sweeps.storage import open_storage
+    from resireg_train.search.storage import open_storage
 
     study = optuna.create_study(storage=open_storage(None, folder), study_name="bench",
                                 sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
@@ -64,9 +64,9 @@ def main() -> None:
     import optuna
     from optuna.storages.journal import JournalFileBackend
 
-    from resireg_train.sweeps import journal as checks
-    from resireg_train.sweeps.journal import open_journal
-    from resireg_train.sweeps.workers import read_record, write_record
+    from resireg_train.search import journal as checks
+    from resireg_train.search.journal import open_journal
+    from resireg_train.search.workers import read_record, write_record
 
     with tempfile.TemporaryDirectory() as tmp:
         path = make_journal(Path(tmp), args.trials, args.reports)

@@ -40,15 +40,28 @@ _PROBE = r"""
 import json, statistics, sys, tempfile, time
 from pathlib import Path
 from omegaconf import OmegaConf
-from resireg_train.runs.provenance import start_provenance
+try:  # the settings read once from the config (RecordSettings), then the block
+    from resireg_train.record.provenance.block import start_provenance
+    from resireg_train.record.settings import RecordSettings
+    def begin(cfg, out):
+        return start_provenance(RecordSettings.from_config(cfg), out)
+except ImportError:  # before the record's package (issue 52): start_provenance read the config
+    from resireg_train.runs.provenance import start_provenance as begin
 try:
-    from resireg_train.runs.record import RunRecord, mask_saved_configs
+    from resireg_train.record.masking import mask_saved_configs
+    from resireg_train.record.run_record import RunRecord
+except ImportError:  # before the record's package (issue 52)
+    try:
+        from resireg_train.record.run_record import RunRecord, mask_saved_configs
+    except ImportError:  # the code before RunRecord
+        RunRecord = None
+if RunRecord is not None:
     def write(out, **fields):
         return RunRecord(out).update(**fields)
     def saved(out):
         mask_saved_configs(out)
-except ImportError:  # the code before RunRecord
-    from resireg_train.runs.record import update_results as write
+else:
+    from resireg_train.record.run_record import update_results as write
     def saved(out):
         pass
 repeats = int(sys.argv[1])
@@ -57,7 +70,10 @@ sys.argv = ["resireg-eval", "tracker=mlflow",
 cfg = OmegaConf.create({"name": "bench", "seed": 0, "dataset": {"path": "synthetic", "size": 8},
                         "tracker": {"mlflow": {"tracking_uri": "http://user:pw@127.0.0.1:5000"}}})
 try:  # this tree: every provenance key (the opt-in one changed)
-    from resireg_train.runs.provenance import provenance_settings
+    try:
+        from resireg_train.record.settings import provenance_settings
+    except ImportError:  # before the record's package (issue 52)
+        from resireg_train.runs.provenance import provenance_settings
     opted = OmegaConf.merge(cfg, {"provenance": {**provenance_settings(),
                                                  "untracked_content": ["*"]}})
 except ImportError:  # before: untracked text under 1 MiB was always inlined
@@ -72,13 +88,13 @@ for _ in range(repeats):
         (out / ".hydra" / "overrides.yaml").write_text(
             "- tracker.mlflow.tracking_uri=http://user:pw@127.0.0.1:5000\n" * 3)
         t0 = time.perf_counter()
-        write(out, name="bench", status="running", provenance=start_provenance(cfg, out))
+        write(out, name="bench", status="running", provenance=begin(cfg, out))
         saved(out)
         starts.append(time.perf_counter() - t0)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
         t0 = time.perf_counter()
-        write(out, name="bench", status="running", provenance=start_provenance(opted, out))
+        write(out, name="bench", status="running", provenance=begin(opted, out))
         inlined.append(time.perf_counter() - t0)
         write(out, history=history, final=history[-1])
         t0 = time.perf_counter()

@@ -37,7 +37,7 @@ def search(sweep: Path, trials: int, epochs: int, pruner: list[str]) -> float:
 
 def epochs_run(sweep: Path) -> tuple[int, dict[str, int]]:
     """Epochs trained over the study's trials, and the trials per state."""
-    from resireg_train.sweeps.storage import load_study
+    from resireg_train.search.storage import load_study
 
     study = load_study(sweep, None, "stage1_optuna")
     states: dict[str, int] = {}

@@ -382,7 +382,7 @@ def evaluate(*overrides):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("eval", overrides=[str(o) for o in overrides])

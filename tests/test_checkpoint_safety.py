@@ -16,8 +16,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.cli.train import train
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.jobs.train import build
 from resireg_train.training.checkpoints import (
     AtomicCheckpointIO,

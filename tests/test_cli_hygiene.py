@@ -279,7 +279,7 @@ def test_wandb_logger_does_not_warn_about_the_anonymous_setting(tmp_path):
     the user never gave."""
     pytest.importorskip("wandb")
     code = textwrap.dedent(f"""
-        from resireg_train.runs.loggers import wandb_logger
+        from resireg_train.record.trackers.wandb import wandb_logger
         logger = wandb_logger("t", save_dir={str(tmp_path)!r})
         logger.experiment.finish()
     """)

@@ -24,7 +24,7 @@ from resireg.models.zoo.clip import ClipEncoder
 from resireg.ovss import TEMPLATES
 from resireg.specs.variants import parse_variant, variant_layer
 from resireg_train.checks.eval import validate_eval
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import dataset_conf
 from resireg_train.evaluation.cache import FeatureCache

@@ -107,11 +107,11 @@ def test_a_stored_run_is_read_in_todays_spelling_without_a_word(capsys):
 
 
 def test_a_rerun_reads_a_recorded_old_spelling_as_todays(tmp_path, capsys):
-    """resireg-runs rerun rebuilds a run's command from its overrides.yaml (replay/rerun.py):
+    """resireg-runs rerun rebuilds a run's command from its overrides.yaml (runs/rerun/plan.py):
     an old spelling there comes back in today's, with no warning (it is not the user's
     command)."""
-    from resireg_train.replay.rerun import _recorded_overrides
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.plan import _recorded_overrides
 
     folder = tmp_path / "run"
     (folder / ".hydra").mkdir(parents=True)
@@ -267,7 +267,7 @@ def test_a_training_run_in_the_old_spelling_completes_and_resumes_silently(tmp_p
 def test_a_search_record_in_the_old_spelling_starts_workers_in_todays(tmp_path, capsys):
     """A search's record (``search.json``, written before the rename) gives its workers the
     overrides in today's spelling, silently: a worker's command is not the user's."""
-    from resireg_train.sweeps.workers import RECORD_FORMAT, SEARCH_FILE, read_record, worker_command
+    from resireg_train.search.workers import RECORD_FORMAT, SEARCH_FILE, read_record, worker_command
 
     (tmp_path / SEARCH_FILE).write_text(json.dumps(
         {"format": RECORD_FORMAT, "job": "train", "storage": None, "study_name": "s",

@@ -15,7 +15,7 @@ from resireg.errors import ConfigError
 from resireg.models import ENCODERS, build_encoder
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg_train.checks.eval import sweep_config_errors, validate_eval
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 
 TEST_CONF = Path(__file__).parent / "conf"
 

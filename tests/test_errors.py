@@ -20,7 +20,7 @@ OUTSIDE_THE_BASE = {
     "resireg_train.data.scannet._FrameError": "private: one frame's failure, caught in the module",
     # not an error: optuna's signal that the pruner stopped the trial; code that catches
     # ResiregError (a bad input) must not swallow it
-    "resireg_train.sweeps.pruning.TrialPrunedStop": "a control-flow signal, not an error",
+    "resireg_train.search.pruning.TrialPrunedStop": "a control-flow signal, not an error",
     # a warning (an old map format loaded), raised only by warnings.warn: nothing catches it
     "resireg.mapping.map_file.MapFormatWarning": "a warning category, not an error",
 }
@@ -74,9 +74,9 @@ def test_each_error_has_its_kind_and_keeps_its_builtin_base():
     from resireg_train.evaluation.base import NothingScoredError
     from resireg_train.jobs.run_folder import RunFolderBusy
     from resireg_train.playground.core import PlaygroundError
-    from resireg_train.sweeps.journal import JournalError
-    from resireg_train.sweeps.loop import SearchError
-    from resireg_train.sweeps.workers import SearchRecordError
+    from resireg_train.search.journal import JournalError
+    from resireg_train.search.loop import SearchError
+    from resireg_train.search.workers import SearchRecordError
     from resireg_train.training.checkpoints import CheckpointError, UnsafeCheckpointError
 
     assert TrainConfigError is ConfigError  # one class, re-exported where it always was
@@ -272,7 +272,7 @@ def test_resireg_eval_names_the_encoder_key_of_a_library_error(tmp_path):
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     weights = str(tmp_path / "absent.bin")
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

@@ -199,7 +199,7 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
 
     from resireg.errors import ConfigError
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("eval", overrides=["model_path=x", "precision=fp8", "variants=[bb,mid]",
@@ -267,7 +267,7 @@ def test_a_missing_dataset_or_prior_model_fails_before_the_encoder_loads(
 
     import resireg.models
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     def no_encoder(*args, **kwargs):
         raise AssertionError("the encoder was built before the sources were checked")

@@ -12,8 +12,8 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 from resireg.errors import ConfigError
-from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.config.machine import ENCODER_IMPORTS, check_available
+from resireg_train.config.paths import CONFIG_DIR
 
 if sys.version_info >= (3, 11):
     import tomllib

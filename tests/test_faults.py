@@ -315,8 +315,8 @@ def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatc
 
     from resireg.errors import ConfigError
     from resireg_train.checks.train import validate
-    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.config.machine import check_devices
+    from resireg_train.config.paths import CONFIG_DIR
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         stage1 = compose("train", overrides=["experiment=vlm25m_stage1", "model.text.weights=null"])
@@ -344,7 +344,7 @@ def test_text_weights_null_and_a_missing_gpu_name_the_key_and_the_fix(monkeypatc
 def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
     from resireg_train.evaluation.ovss.settings import save_settings
     from resireg_train.jobs.eval import with_export_settings
 
@@ -372,7 +372,7 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
     from hydra import compose, initialize_config_dir
 
     from resireg_train.cli.eval import evaluate
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
     from resireg_train.evaluation.base import NothingScoredError
 
     bad = poisoned_ade_folder(tmp_path / "ade")

@@ -23,7 +23,7 @@ from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DinoTxtEncoder
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS
 from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RadioEncoder
 from resireg.models.zoo.radseg import RadSegEncoder
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 
 SHA = re.compile(r"^[0-9a-f]{40}$")
 CONF = Path(CONFIG_DIR)

@@ -2,7 +2,7 @@
 ``lint-imports``: ``resireg`` never imports ``resireg_train``, Lightning, Hydra or
 ``datasets``, and inside ``resireg`` and inside ``resireg_train`` every import points down the
 layer list (``resireg.specs`` imports nothing of ``resireg`` but :mod:`resireg.errors`; the
-run records sit below the evaluation and the sweeps, the CLIs on top). Anyone can run
+run records sit below the evaluation and the search, the CLIs on top). Anyone can run
 ``lint-imports`` in the checkout for the same report."""
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
     rules = src / "resireg" / "specs" / "rules.py"
     rules.write_text(rules.read_text() + "\nfrom resireg.method.full import ReSiRegFull\n")
     checks = src / "resireg" / "method" / "checks.py"
-    checks.write_text(checks.read_text() + "\nimport resireg_train.runs.record\n")
-    record = src / "resireg_train" / "runs" / "record.py"
+    checks.write_text(checks.read_text() + "\nimport resireg_train.record.run_record\n")
+    record = src / "resireg_train" / "record" / "run_record.py"
     record.write_text(record.read_text() + "\n\ndef _engine():\n"
                       "    from resireg_train.evaluation import engine\n\n    return engine\n")  # fmt: skip
     # the ground (config/) reaching up into a command's check: config is the bottom floor
@@ -55,10 +55,9 @@ def test_the_layer_contract_sees_an_upward_import(tmp_path):
     out = _lint(src, tmp_path / "pyproject.toml")
     assert out.returncode == 1
     assert "Contracts: 0 kept, 3 broken." in out.stdout
-    assert "resireg_train.config.moves -> resireg_train.checks.train" in out.stdout
-    assert "resireg_train.runs.record -> resireg_train.evaluation.engine" in out.stdout
+    assert "resireg_train.record.run_record -> resireg_train.evaluation.engine" in out.stdout
     assert "resireg.specs.rules -> resireg.method.full" in out.stdout
-    assert "resireg.method.checks -> resireg_train.runs.record" in out.stdout
+    assert "resireg.method.checks -> resireg_train.record.run_record" in out.stdout
 
 
 @pytest.mark.parametrize("module", ["resireg.specs", "resireg.errors", "resireg.network"])
@@ -128,7 +127,7 @@ def _private_imports(path, module: str, root) -> list[str]:
 
 def test_no_module_uses_another_ones_private_names(tmp_path):
     """Helpers one module needs from another are public (resireg.method.checks' check_variant_inputs,
-    resireg.mapping.keys, resireg_train.sweeps.search.quiet_optuna, ...): an AST scan of src/resireg
+    resireg.mapping.keys, resireg_train.cli.search.quiet_optuna, ...): an AST scan of src/resireg
     and src/resireg_train finds no import or attribute use of another module's private name.
     The scanner itself is checked on planted uses."""
     root = ROOT / "src"
@@ -137,7 +136,7 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     for path in files:
         name = ".".join(path.relative_to(root).with_suffix("").parts)
         modules[name.removesuffix(".__init__")] = path
-    assert {"resireg.method.pca", "resireg.mapping.keys", "resireg_train.sweeps.search"} <= set(
+    assert {"resireg.method.pca", "resireg.mapping.keys", "resireg_train.cli.search"} <= set(
         modules
     )
     found = [hit for name, path in modules.items() for hit in _private_imports(path, name, root)]
@@ -147,12 +146,12 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     planted.parent.mkdir(parents=True)
     for name in ("keys", "voxels"):
         (planted.parent / f"{name}.py").write_text("")
-    for name in ("resireg/method/kmeans", "resireg_train/sweeps/search",
+    for name in ("resireg/method/kmeans", "resireg_train/cli/search",
                  "resireg_train/evaluation/engine"):  # fmt: skip
         (tmp_path / f"{name}.py").parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / f"{name}.py").write_text("")
     planted.write_text(
-        "from resireg_train.sweeps.search import _optuna\nimport resireg_train.evaluation.engine as eng\n"
+        "from resireg_train.cli.search import _optuna\nimport resireg_train.evaluation.engine as eng\n"
         "eng._no_timer\nimport resireg_train\nresireg_train.evaluation.engine._no_timer\n"
         "import resireg.method.kmeans as km\nimport resireg.mapping.voxels\n"
         "from resireg.method.kmeans import _lloyd, kmeans\nfrom .keys import _OFFSET, pack_keys\n"
@@ -164,7 +163,7 @@ def test_no_module_uses_another_ones_private_names(tmp_path):
     assert sorted(hit.split(": ", 1)[1] for hit in hits) == [
         "from resireg.mapping.keys import _OFFSET",
         "from resireg.method.kmeans import _lloyd",
-        "from resireg_train.sweeps.search import _optuna",
+        "from resireg_train.cli.search import _optuna",
         "resireg.mapping.voxels._check",
         "resireg.mapping.voxels._x",
         "resireg.method.kmeans._tolerance",

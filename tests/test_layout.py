@@ -185,9 +185,6 @@ def test_the_circle_check_finds_a_circle_through_a_function(tmp_path):
 #: A component table is a ``SpecTable`` named ``<THING>_SPECS`` in a module named ``specs.py``
 #: or in a ``specs`` package (``resireg/specs/``) (docs/architecture.md#spec-tables), so one search finds them all.
 _TABLE_NAME = re.compile(r"[A-Z][A-Z0-9]*(_[A-Z0-9]+)*_SPECS")
-#: Tables another engineer of issue 52 moves into the pattern (H4: the trackers' table to
-#: ``record/trackers/specs.py``); the integrator empties this set when the branches merge.
-KNOWN_PENDING_TABLES = {"resireg_train.runs.trackers.TRACKER_SPECS"}
 
 
 def _names_spec_table(node: ast.expr | None) -> bool:
@@ -258,7 +255,7 @@ def test_every_component_table_is_a_spec_table_named_specs_in_a_specs_module():
                for t in getattr(node, "targets", [getattr(node, "target", None)])
                if isinstance(t, ast.Name)}  # fmt: skip
         assert bound & own <= set(names), f"{module}: tables {sorted(bound & own - set(names))}"
-    assert sorted(set(_table_problems(tables)) - KNOWN_PENDING_TABLES) == []
+    assert sorted(_table_problems(tables)) == []
 
 
 def test_the_table_check_fails_on_a_table_named_otherwise(tmp_path):
@@ -288,16 +285,6 @@ def test_the_table_check_fails_on_a_table_named_otherwise(tmp_path):
 #: A module longer than this says in its docstring, in a paragraph starting ``One idea:``, why
 #: it is one idea (issue 52 item 5).
 LONG_MODULE = 500
-#: Long modules the other engineers of issue 52 split or explain on their branches (H1: the
-#: map; H2: the node; H3: the job wrapper; H4: the run record and the run tools). The
-#: integrator empties this set when the branches merge; a new long module is never in it.
-KNOWN_PENDING = {
-    "resireg.mapping.compact", "resireg.mapping.semantic_map", "resireg.mapping.voxels",
-    "resireg.ros2.node", "resireg.ros2.pipeline",
-    "resireg_train.cli.job",
-    "resireg_train.replay.rerun", "resireg_train.runs.loggers", "resireg_train.runs.provenance",
-    "resireg_train.runs.record",
-}  # fmt: skip
 
 
 def _says_one_idea(doc: str) -> bool:
@@ -317,7 +304,7 @@ def _long_without_reason(src: Path = SRC) -> list[str]:
 
 
 def test_every_long_module_says_why_it_is_one_idea():
-    assert sorted(set(_long_without_reason()) - KNOWN_PENDING) == []
+    assert sorted(_long_without_reason()) == []
 
 
 def test_the_long_module_check_fails_on_a_new_long_module(tmp_path):

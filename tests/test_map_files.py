@@ -334,7 +334,7 @@ def test_a_merge_refuses_a_map_it_is_made_of(tmp_path):
 def other_runs(tmp_path):
     """Two other runs' folders as their commands leave them: an evaluation (its record,
     .hydra files, log) and a resireg-map run (the same, and its map)."""
-    from resireg_train.runs.record import RunRecord
+    from resireg_train.record.run_record import RunRecord
 
     runs = {}
     for name in ("eval", "map"):
@@ -357,7 +357,7 @@ def test_merge_out_onto_another_run_is_refused_before_anything_is_written(tmp_pa
     keeps its bytes and no file is added (not even the lock file). A merge of A B that did
     not complete (killed: its record 'running') is taken again in its own folder."""
     from _run import run_side_by_side
-    from resireg_train.runs.record import RunRecord
+    from resireg_train.record.run_record import RunRecord
 
     a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
     runs = other_runs(tmp_path)

@@ -1,4 +1,4 @@
-"""Optuna searches (hparams_search=..., resireg_train.sweeps and the project's Hydra sweeper) on
+"""Optuna searches (hparams_search=..., resireg_train.search and the project's Hydra sweeper) on
 the synthetic set: pruning of a bad training trial, workers sharing one study (journal file and
 PostgreSQL), a worker killed mid-trial, a whole search killed and run again, two searches started
 at once on one folder, a metric the validation data never logs, the report and optuna-dashboard.
@@ -45,13 +45,13 @@ def _eval_search(export, sweep, n_trials, *extra):
 
 
 def _study(sweep, name="resireg_optuna", storage=None):
-    from resireg_train.sweeps.storage import load_study
+    from resireg_train.search.storage import load_study
 
     return load_study(sweep, storage, name)
 
 
 def _counted(study):
-    from resireg_train.sweeps.trials import counted_trials
+    from resireg_train.search.trials import counted_trials
 
     return counted_trials(study.get_trials())
 
@@ -124,7 +124,7 @@ def test_shipped_search_spaces_are_exact_and_warn_nothing(name, caplog):
     divisible" warnings); building the spaces warns nothing."""
     from omegaconf import OmegaConf
 
-    from resireg_train.sweeps.space import distributions
+    from resireg_train.search.space import distributions
 
     params = OmegaConf.load(CONF / "hparams_search" / f"{name}.yaml").hydra.sweeper.params
     params = OmegaConf.to_container(params)
@@ -253,7 +253,7 @@ def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_
     with _started(_eval_search(tiny_export, sweep, 5), tmp_path / "a.log") as search:
         _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json", alive=[search])
         with started([shutil.which("resireg-search") or sys.executable, *(
-            [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+            [] if shutil.which("resireg-search") else ["-m", "resireg_train.cli.search"]),
             "worker", sweep], stdout=tmp_path / "b.log", threads=1) as worker:  # fmt: skip
 
             def victim_trial():
@@ -297,7 +297,7 @@ def test_sigterm_to_a_search_or_a_worker_ends_the_processes_it_started(tmp_path,
     with _started(command, tmp_path / "a.log") as search:
         _wait_for(lambda: (sweep / "search.json").is_file(), what="search.json", alive=[search])
         with started([shutil.which("resireg-search") or sys.executable, *(
-            [] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+            [] if shutil.which("resireg-search") else ["-m", "resireg_train.cli.search"]),
             "worker", sweep], stdout=tmp_path / "b.log", threads=1) as worker:  # fmt: skip
             _wait_for(lambda: _trial_processes(sweep, worker.pid) and _trial_processes(
                 sweep, search.pid) - {search.pid}, what="trials of both workers",
@@ -353,7 +353,7 @@ def test_two_searches_started_at_once_on_one_folder_cooperate(tmp_path, tiny_exp
 def _made_study(sweep, n):
     """A journal study of ``n`` trials (values from a quadratic) made through Optuna's API in
     the sweep folder, with the search record the report reads."""
-    from resireg_train.sweeps.storage import open_storage
+    from resireg_train.search.storage import open_storage
 
     study = optuna.create_study(storage=open_storage(None, sweep), study_name="made",
                                 direction="maximize", sampler=optuna.samplers.RandomSampler(0))  # fmt: skip
@@ -376,7 +376,7 @@ def test_the_report_of_a_large_search_is_readable(tmp_path):
     matplotlib.use("Agg")
     from optuna.visualization import matplotlib as ov
 
-    from resireg_train.sweeps.report import readable_axes, write_optuna_report
+    from resireg_train.search.report import readable_axes, write_optuna_report
 
     warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
     study = _made_study(tmp_path, 120)
@@ -445,7 +445,7 @@ def test_a_job_scoring_nan_fails_its_trial(stored):
     from omegaconf import OmegaConf
 
     from resireg_train.cli.job import optimized_value
-    from resireg_train.sweeps.trials import outcome
+    from resireg_train.search.trials import outcome
 
     cfg = OmegaConf.create({"optimized_metric": "miou_full"})
     with pytest.raises(ValueError, match=r"optimized_metric='miou_full' is .*not finite"):
@@ -509,8 +509,8 @@ def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path)
     older than the grace period is FAIL, one with a recent heartbeat is not; one of this host
     whose process has exited is FAIL at once; with retries, Optuna's RetryHeartbeatStaleTrialCallback
     enqueues the failed trial's parameters again."""
-    from resireg_train.sweeps.storage import open_storage
-    from resireg_train.sweeps.trials import (
+    from resireg_train.search.storage import open_storage
+    from resireg_train.search.trials import (
         ATTR_HEARTBEAT,
         ATTR_HOST,
         ATTR_PID,
@@ -652,7 +652,7 @@ def test_a_worker_whose_trainer_differs_from_the_study_is_refused(tmp_path):
         "hparams_search.n_trials=0", f"hydra.sweep.dir={sweep}", threads=1)  # fmt: skip
     proc = subprocess.run(
         [shutil.which("resireg-search") or sys.executable,
-         *([] if shutil.which("resireg-search") else ["-m", "resireg_train.sweeps.search"]),
+         *([] if shutil.which("resireg-search") else ["-m", "resireg_train.cli.search"]),
          "worker", str(sweep), "trainer.max_epochs=3", "trainer.devices=2"],
         capture_output=True, text=True, timeout=300,
         env={**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"},

@@ -15,7 +15,7 @@ import yaml
 
 from _sweeps import make_job
 from resireg_train.cli import report as report_cli
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.report import ovss8, report
 
 LABELS = ["VOC21", "PC60", "Object", "VOC20", "PC59", "Stuff", "City", "ADE"]

@@ -13,7 +13,7 @@ import yaml
 
 from _ovss8_fixtures import write_all
 from _run import report, run
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 
 
 def test_the_sweep_lists_the_data_files_benchmarks():

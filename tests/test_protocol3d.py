@@ -616,7 +616,7 @@ def test_gt_resolution_and_the_option_checks(rooms):
 
     from resireg.errors import ConfigError
     from resireg_train.checks.eval import validate_eval
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     bad = ["dataset.resize=area", "dataset.intrinsics=shift", "dataset.lattice=ceil",
            "dataset.points=voxel", "dataset.knn=-1", "dataset.prediction_threshold=2",
@@ -707,7 +707,7 @@ def test_the_classes_check_values_by_the_dataset_table(rooms, monkeypatch):
 
     from resireg.errors import ConfigError
     from resireg_train.checks.eval import validate_eval
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     for task, config, key, value, words in (
         ("ovss", "synthetic", "image_size", "[0,8]", r"\[height, width\]"),

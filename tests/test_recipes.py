@@ -234,7 +234,7 @@ import json, numpy as np, torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from resireg.errors import ConfigError
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.checks.train import validate
 from resireg_train.training.teacher import build_teacher
 with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
@@ -302,7 +302,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from resireg.models import ResiregVLM
 from resireg.models.vlm.text import FrozenTextTower
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.checks.train import validate
 with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
     cfg = compose("train", overrides=["experiment=smoke", "model/text=small"])

@@ -195,8 +195,9 @@ _PROBE = textwrap.dedent(
     """
     import json, sys
     from pathlib import Path
-    import resireg_train.runs.provenance as p
-    settings = {**p.provenance_settings(), **json.loads(sys.argv[2])}
+    import resireg_train.record.provenance.code as p
+    from resireg_train.record.settings import provenance_settings
+    settings = {**provenance_settings(), **json.loads(sys.argv[2])}
     print(json.dumps(p.code_provenance(Path(sys.argv[1]), settings=settings)))
     """
 )
@@ -271,7 +272,7 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
                    f"hydra.run.dir={out}", check=False, timeout=120, threads=1)  # fmt: skip
         assert proc.returncode == 1, proc.stderr[-2000:]
         said = [line for line in proc.stderr.splitlines() if "cannot reach" in line]
-        assert len(said) == 1 and (f"resireg_train.runs.trackers.TrackerUnreachable: "
+        assert len(said) == 1 and (f"resireg_train.record.trackers.base.TrackerUnreachable: "
                                    f"tracker.mlflow: cannot reach http://user:***@127.0.0.1:"
                                    f"{port} (") in said[0], proc.stderr[-2000:]  # fmt: skip
         assert "Traceback" not in proc.stderr and SECRETS["password"] not in proc.stderr
@@ -332,7 +333,7 @@ def test_the_final_status_is_written_whenever_the_job_body_returns(tmp_path):
     from omegaconf import OmegaConf
 
     from resireg_train.cli.job import run_task
-    from resireg_train.runs.record import RunRecord
+    from resireg_train.record.run_record import RunRecord
 
     def body(cfg, record):
         record.update(note={"uri": f"postgresql+psycopg://u:{SECRETS['password']}@db/x"})
@@ -375,8 +376,10 @@ def test_every_tracker_is_one_table_entry_and_one_conf_file(tmp_path):
     from omegaconf import OmegaConf
 
     from resireg.errors import ConfigError
-    from resireg_train.runs.record import RunRecord
-    from resireg_train.runs.trackers import TRACKER_SPECS, Tracker, TrackerSpec
+    from resireg_train.record.run_record import RunRecord
+    from resireg_train.record.settings import RecordSettings
+    from resireg_train.record.trackers.base import Tracker
+    from resireg_train.record.trackers.specs import TRACKER_SPECS, TrackerSpec
 
     files = sorted(p.stem for p in (ROOT / "conf" / "tracker").glob("*.yaml"))
     assert sorted(TRACKER_SPECS.names()) == files == ["csv", "mlflow", "tensorboard", "wandb"]
@@ -403,28 +406,29 @@ def test_every_tracker_is_one_table_entry_and_one_conf_file(tmp_path):
     try:
         cfg = OmegaConf.create({"name": "n", "tracker": {"toy": {"colour": "red"}}})
         record = RunRecord(tmp_path)
-        record.start(cfg)
+        record.start(RecordSettings.from_config(cfg))
         record.finish()
         assert seen == [("begin", "running"), ("end", "completed", False, "red")]
         assert RunRecord.read(tmp_path)["tracking"] == {"toy": "done"}
         bad = OmegaConf.create({"name": "n", "tracker": {"toy": {"colour": "green"}}})
         with pytest.raises(ConfigError, match=r"tracker.toy.colour='green': expected red\|blue"):
-            RunRecord(tmp_path / "b").start(bad)
+            RunRecord(tmp_path / "b").start(RecordSettings.from_config(bad))
     finally:
         del TRACKER_SPECS["toy"]
     with pytest.raises(ConfigError, match="did you mean 'mlflow'"):
         cfg = OmegaConf.create({"name": "n", "tracker": {"mlflo": {"tracking_uri": "x"}}})
-        RunRecord(tmp_path / "c").start(cfg)
+        RunRecord(tmp_path / "c").start(RecordSettings.from_config(cfg))
 
 
-def test_no_module_outside_runs_reads_or_writes_results_json():
-    """RunRecord is results.json's one owner: outside resireg_train/runs/ no module imports the
-    record's file name or its old free functions, nor names the file in code (docstrings and
-    messages aside)."""
+def test_no_module_outside_the_record_and_the_run_tools_reads_or_writes_results_json():
+    """RunRecord is results.json's one owner: outside resireg_train/record/ (its writer) and
+    resireg_train/runs/ (the tools that read finished runs) no module imports the record's file
+    name or its old free functions, nor names the file in code (docstrings and messages
+    aside)."""
     private = {"RESULTS_FILE", "read_results", "update_results", "strict_json", "NON_FINITE"}
     offenders = []
     for path in sorted((ROOT / "src").rglob("*.py")):
-        if "resireg_train/runs/" in path.as_posix():
+        if any(f"resireg_train/{package}/" in path.as_posix() for package in ("record", "runs")):
             continue
         tree = ast.parse(path.read_text())
         docstrings = {id(n.body[0].value) for n in ast.walk(tree)
@@ -518,8 +522,8 @@ def test_two_card_adds_at_once_both_land(tmp_path, tiny_export):
     the card slowly): both evaluations are in the card, none lost."""
     from huggingface_hub import ModelCard
 
-    from resireg_train.runs.cards import write_export_card
-    from resireg_train.runs.record import RunRecord
+    from resireg_train.record.cards import write_export_card
+    from resireg_train.record.run_record import RunRecord
 
     export = tmp_path / "train" / "export"
     shutil.copytree(tiny_export, export)
@@ -584,3 +588,60 @@ def test_a_password_is_masked_where_urllib_cannot_take_the_url_apart():
     assert (
         safe_dirname(escaped) == r"tracker.mlflow.tracking_uri=http\:__user\:masked@127.0.0.1\:5000"
     )
+
+
+# ------------------------------------------------------------------- the record's settings
+def test_record_settings_are_read_once_from_the_config():
+    """RecordSettings.from_config: the trackers' blocks in their order (unset ones left out)
+    as plain resolved values, the flags, the provenance block over conf/provenance's values,
+    the system metrics; the config as plain values with its URL passwords, which only
+    masked_config (a tracker's copy) and the repr leave out; the digest equals the SHA-256 of
+    the resolved YAML computed here."""
+    from omegaconf import OmegaConf
+
+    from resireg_train.record.settings import RecordSettings
+
+    defaults = yaml.safe_load((ROOT / "conf" / "provenance" / "default.yaml").read_text())
+    url = f"http://user:{SECRETS['password']}@127.0.0.1:5000"
+    cfg = OmegaConf.create({
+        "name": "n", "seed": 3, "seen": "${seed}", "trainer": {"max_epochs": 1},
+        "ckpt_path": "last", "provenance": {"heartbeat_interval": 7},
+        "system_metrics": {"enabled": True, "interval": 2.5},
+        "tracker": {"wandb": {"project": "p"}, "csv": None, "mlflow": {"tracking_uri": url}},
+    })  # fmt: skip
+    settings = RecordSettings.from_config(cfg)
+    assert list(settings.trackers) == ["wandb", "mlflow"]
+    assert settings.trackers["mlflow"] == {"tracking_uri": url}
+    assert (settings.name, settings.training, settings.resuming) == ("n", True, True)
+    assert settings.provenance == {**defaults, "heartbeat_interval": 7}
+    assert settings.system_metrics == (True, 2.5)
+    assert (
+        settings.config["seen"] == 3 and settings.config["tracker"]["mlflow"]["tracking_uri"] == url
+    )
+    masked = settings.masked_config["tracker"]["mlflow"]["tracking_uri"]
+    assert masked == "http://user:***@127.0.0.1:5000"
+    assert SECRETS["password"] not in repr(settings)
+    resolved = OmegaConf.to_yaml(cfg, resolve=True, sort_keys=True)
+    assert settings.config_sha256 == hashlib.sha256(resolved.encode()).hexdigest()
+    bare = RecordSettings.from_config(OmegaConf.create({"name": "m"}))
+    assert (bare.trackers, bare.training, bare.resuming, bare.system_metrics) == (
+        {}, False, False, (False, 0.0))  # fmt: skip
+    assert bare.provenance == defaults
+
+
+def test_no_part_of_the_record_reads_the_config_but_its_settings():
+    """The composed config enters the record in one place: outside the settings' readers
+    (record/settings.py, system_settings, config_digest) no function under
+    resireg_train/record/ takes a parameter named cfg (the record, its trackers and its
+    provenance take RecordSettings)."""
+    allowed = {("settings.py", "provenance_settings"), ("settings.py", "from_config"),
+               ("system.py", "system_settings"), ("inputs.py", "config_digest")}  # fmt: skip
+    found = []
+    for path in sorted((ROOT / "src" / "resireg_train" / "record").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                names = [a.arg for a in (*node.args.posonlyargs, *node.args.args,
+                                         *node.args.kwonlyargs)]  # fmt: skip
+                if "cfg" in names and (path.name, node.name) not in allowed:
+                    found.append(f"{path.name}:{node.lineno} {node.name}")
+    assert found == []

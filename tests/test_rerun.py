@@ -108,7 +108,7 @@ def test_a_smoke_training_rerun_is_bitwise_identical_then_drift_and_a_moved_metr
     assert overrides == yaml.safe_load((run / ".hydra" / "overrides.yaml").read_text())
 
     # A tracked file changes: refused, naming it, nothing written.
-    changed = repo / "src" / "resireg_train" / "runs" / "cards.py"
+    changed = repo / "src" / "resireg_train" / "record" / "cards.py"
     text = changed.read_text()
     changed.write_text(text + "\n# a local experiment\n")
     try:
@@ -120,7 +120,7 @@ def test_a_smoke_training_rerun_is_bitwise_identical_then_drift_and_a_moved_metr
 def _refused_then_drift_and_moved(env, run, original, tmp_path):
     refused = tmp_path / "refused"
     proc = _rerun(env, run, "--out", refused, check=2)
-    assert "refused" in proc.stderr and "src/resireg_train/runs/cards.py" in proc.stderr
+    assert "refused" in proc.stderr and "src/resireg_train/record/cards.py" in proc.stderr
     assert "--allow-drift" in proc.stderr and not refused.exists()
     # ... accepted with --allow-drift and a setting changed: the drift recorded, the verdict
     # "differs" with the moved metrics
@@ -129,10 +129,10 @@ def _refused_then_drift_and_moved(env, run, original, tmp_path):
     assert _verdict(proc).startswith("verdict: differs")
     record = _record(moved)
     drift = record["rerun"]["drift"]
-    assert any("src/resireg_train/runs/cards.py" in line for line in drift), drift
+    assert any("src/resireg_train/record/cards.py" in line for line in drift), drift
     assert record["rerun"]["allowed_drift"] is True
     assert record["provenance"]["code"]["git"]["changes"][0]["path"] == (
-        "src/resireg_train/runs/cards.py")  # fmt: skip
+        "src/resireg_train/record/cards.py")  # fmt: skip
     loss = record["rerun"]["moved"]["final/train/loss"]
     assert loss == {"run": original["final"]["train/loss"], "rerun": record["final"]["train/loss"],
                     "change": loss["change"]}  # fmt: skip
@@ -236,8 +236,8 @@ def test_a_recorded_override_is_checked_as_a_search_worker_checks_it(tmp_path, c
 def test_a_masked_secret_is_never_rebuilt_from_the_record(tmp_path):
     """The record masks a URL's password; the rerun drops the mask (the tracker takes the
     password from the environment) and refuses any other masked value."""
-    from resireg_train.replay.rerun import RerunRefused, _recorded_overrides
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.plan import RerunRefused, _recorded_overrides
 
     uri = "tracker.mlflow.tracking_uri=http://ana:***@mlflow.lab:5000"
     run = read_run(_fake_eval_run(tmp_path / "a", ["dataset=synthetic", "tracker=mlflow", uri]))
@@ -331,8 +331,8 @@ def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, the
     """compare() on two records that differ in one score by a chosen amount: the verdict is
     the one math.isclose (relative to the larger magnitude, no absolute floor) gives, the
     unchanged score is not listed, and the moved score's printed change is the difference."""
-    from resireg_train.replay.rerun import compare
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.verdict import compare
 
     a = read_run(_scored_run(tmp_path / "a", {"ovss/synthetic/miou_bb": then, "loss": 1.25}))
     b = read_run(_scored_run(tmp_path / "b", {"ovss/synthetic/miou_bb": now, "loss": 1.25}))
@@ -351,8 +351,8 @@ def test_the_verdict_of_two_records_follows_the_relative_tolerance(tmp_path, the
 
 
 def test_a_failed_rerun_differs_whatever_its_scores(tmp_path):
-    from resireg_train.replay.rerun import compare
     from resireg_train.runs.index import read_run
+    from resireg_train.runs.rerun.verdict import compare
 
     a = read_run(_scored_run(tmp_path / "a", {"loss": 1.0}))
     b = read_run(_scored_run(tmp_path / "b", {"loss": 1.0}, status="failed"))

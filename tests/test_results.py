@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from resireg_train.runs.record import NON_FINITE, RunRecord
+from resireg_train.record.run_record import NON_FINITE, RunRecord
 
 
 def _strict_load(text):

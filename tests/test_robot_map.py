@@ -590,8 +590,8 @@ def test_full_disk_during_a_map_save(tmp_path, room, tiny_export, monkeypatch):
     from hydra import compose, initialize_config_dir
 
     from resireg.mapping import map_file
-    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.cli.map import run_map
+    from resireg_train.config.paths import CONFIG_DIR
 
     bag = write_bag(tmp_path / "room", room, decoys=False)
     real = map_file.write_tensors  # the map's tensor-file writer (resireg.mapping.tensor_file)

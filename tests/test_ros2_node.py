@@ -100,7 +100,7 @@ def reference_map(bag, encoder, frames_window=WINDOW, extra=()):
     from hydra import compose, initialize_config_dir
 
     from resireg.sources.frames import FrameCounts, windows
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
     from resireg_train.jobs.map import build_source, make_map
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):

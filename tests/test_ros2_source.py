@@ -84,8 +84,8 @@ def map_live(helpers, out, export, *extra):
     """resireg-map source=ros2 in this process (map.yaml composed, run_map); results.json."""
     from hydra import compose, initialize_config_dir
 
-    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.cli.map import run_map
+    from resireg_train.config.paths import CONFIG_DIR
 
     keys = [f"source.{k}={'[' + ','.join(map(repr, v)) + ']' if isinstance(v, list) else v}"
             for k, v in source_keys(helpers).items()]  # fmt: skip

@@ -16,10 +16,11 @@ import lightning as L
 import pytest
 from hydra import compose, initialize_config_dir
 
-from resireg_train.cli.job import CONFIG_DIR
 from resireg_train.cli.train import train
+from resireg_train.config.paths import CONFIG_DIR
+from resireg_train.record.heartbeat import Heartbeat, heartbeat_stale
+from resireg_train.record.run_record import RunRecord
 from resireg_train.runs.index import scan
-from resireg_train.runs.record import Heartbeat, RunRecord, heartbeat_stale
 
 STEPS = 2  # steps per epoch
 
@@ -195,3 +196,45 @@ def test_a_real_job_records_its_heartbeat_settings(tmp_path, tiny_export):
     assert beat["host"] == socket.gethostname()
     started = dt.datetime.fromisoformat(results["provenance"]["time"]["start"])
     assert abs((dt.datetime.fromisoformat(beat["time"]) - started).total_seconds()) < 60
+
+
+def test_a_training_run_written_before_the_record_split_resumes(tmp_path):
+    """A run folder whose .hydra/config.yaml the code before issue 52's move wrote (commit
+    439e7f0; tests/fixtures/runs/before-record-split, composed there from `experiment=smoke
+    logger=wandb hparams_search=stage1_optuna`) names resireg_train.runs.loggers.wandb_logger
+    and resireg_train.sweeps.pruning.OptunaPruning: the resume check finds no difference with
+    today's composition of the same command (config.moves.MOVED_TARGETS maps each old path to
+    the one today's conf/ files name), and every path the table maps to imports."""
+    import shutil
+
+    import yaml
+    from hydra.utils import get_object
+
+    from resireg_train.checks.resume import check_resume
+    from resireg_train.config.moves import (
+        MOVED_TARGETS,
+        current_overrides,
+        current_spelling,
+        current_targets,
+    )
+
+    fixture = CONFIG_DIR.parent / "tests" / "fixtures" / "runs" / "before-record-split"
+    folder = tmp_path / "run"
+    shutil.copytree(fixture, folder)
+    overrides = yaml.safe_load((folder / ".hydra" / "overrides.yaml").read_text())
+    assert "logger=wandb" in overrides  # the group's old spelling, read as tracker= today
+    overrides = current_overrides("train", overrides)
+    with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
+        today = compose("train", overrides=overrides)
+    check_resume(folder, today)  # a ConfigError naming the keys that differ otherwise
+
+    stored = yaml.safe_load((folder / ".hydra" / "config.yaml").read_text())
+    assert stored["logger"]["wandb"]["_target_"] == "resireg_train.runs.loggers.wandb_logger"
+    moved = current_spelling(current_targets(stored))
+    wandb = yaml.safe_load((CONFIG_DIR / "tracker" / "wandb.yaml").read_text())
+    search = yaml.safe_load((CONFIG_DIR / "hparams_search" / "stage1_optuna.yaml").read_text())
+    assert moved["tracker"]["wandb"]["_target_"] == wandb["wandb"]["_target_"]
+    assert (moved["callbacks"]["optuna_pruning"]["_target_"]
+            == search["callbacks"]["optuna_pruning"]["_target_"])  # fmt: skip
+    for new in set(MOVED_TARGETS.values()):
+        assert callable(get_object(new)), new

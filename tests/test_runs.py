@@ -1,4 +1,4 @@
-"""Provenance (resireg_train.runs.provenance) and the run index (resireg-runs): the code's commit and
+"""Provenance (resireg_train.record.provenance) and the run index (resireg-runs): the code's commit and
 uncommitted change from a real git checkout of the project, package versions, data
 fingerprints, a stage 1 -> stage 2 -> export -> eval / map lineage, and ls / show / diff on
 generated run folders (one of them killed)."""
@@ -21,16 +21,19 @@ from pathlib import Path
 import pytest
 import yaml
 
-from resireg_train.runs.index import diff_runs, find_run, scan
-from resireg_train.runs.provenance import data_identity, package_versions
+from resireg_train.record.provenance.inputs import data_identity
+from resireg_train.record.provenance.machine import package_versions
+from resireg_train.runs.diff import diff_runs
+from resireg_train.runs.index import find_run, scan
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 _PROBE = textwrap.dedent(
     """
     import json, sys
     from pathlib import Path
-    import resireg_train.runs.provenance as p
-    settings = {**p.provenance_settings(), **json.loads(sys.argv[2])}
+    import resireg_train.record.provenance.code as p
+    from resireg_train.record.settings import provenance_settings
+    settings = {**provenance_settings(), **json.loads(sys.argv[2])}
     print(json.dumps({"file": p.__file__,
                       "code": p.code_provenance(Path(sys.argv[1]), settings=settings)}))
     """

@@ -94,7 +94,7 @@ def test_a_rerun_into_a_folder_inside_another_run_or_map_is_refused(tmp_path, ti
     """rerun --out <a new folder inside another run's folder> (its .hydra/) or inside a map
     folder: refused in one line naming the folder it lies in, nothing written; a folder under
     another tool's results.json (no run record) is not another run's."""
-    from resireg_train.runs.record import target_problem
+    from resireg_train.record.run_record import target_problem
 
     other = _eval_run(tmp_path / "other", ["dataset=synthetic"])
     run = _eval_run(tmp_path / "run", ["dataset=synthetic", f"model_path={tiny_export}"])
@@ -133,7 +133,7 @@ def _remote(root: Path, name: str, ahead_s: float, stale_after) -> Path:
 
 
 def test_ls_reports_a_heartbeat_from_the_future_or_never_stale_as_unknown(tmp_path, capsys):
-    from resireg_train.runs.provenance import provenance_settings
+    from resireg_train.record.settings import provenance_settings
 
     skew = float(provenance_settings()["heartbeat_skew"])
     assert 0 < skew <= 300  # conf/provenance/default.yaml: five minutes at most
@@ -329,8 +329,8 @@ def test_reproduce_refuses_a_paper_file_that_is_not_yaml_in_one_line(tmp_path, c
 
 
 def test_the_papers_own_figures_file_fits_the_schema():
-    from resireg_train.replay.reproduce import paper_problems
     from resireg_train.report.paper import paper_results
+    from resireg_train.runs.reproduce import paper_problems
 
     assert paper_problems(paper_results()) == []
 
@@ -371,7 +371,7 @@ def test_register_keeps_its_files_beside_a_sqlite_store(tmp_path, tiny_export, m
                                                       capsys):  # fmt: skip
     """``resireg-runs register`` into ``sqlite:///<folder>/registry.db`` started from another
     folder: the registration's files go to ``<folder>/mlartifacts`` (the trackers' rule,
-    ``resireg_train.runs.loggers.artifact_location``), nothing into the current folder."""
+    ``resireg_train.record.trackers.mlflow.artifact_location``), nothing into the current folder."""
     pytest.importorskip("mlflow")
     from mlflow import MlflowClient
 

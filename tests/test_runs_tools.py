@@ -178,8 +178,8 @@ def test_a_search_folder_plots_optunas_own_figures(tmp_path):
     optuna = pytest.importorskip("optuna")
     from PIL import Image
 
-    from resireg_train.sweeps.plots import plot_search
-    from resireg_train.sweeps.storage import open_storage
+    from resireg_train.runs.search_plots import plot_search
+    from resireg_train.search.storage import open_storage
 
     study = optuna.create_study(study_name="search", direction="maximize",
                                 storage=open_storage(None, tmp_path))  # fmt: skip

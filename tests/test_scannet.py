@@ -515,7 +515,7 @@ def test_3d_sweeps_are_the_papers_settings_and_bad_values_name_the_key():
 
     from resireg.errors import ConfigError
     from resireg_train.checks.eval import validate_eval
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         ablation = compose("eval", ["sweep=prototype_batch_3d"], return_hydra_config=True)

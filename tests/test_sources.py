@@ -40,7 +40,7 @@ def compose_map(*overrides):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from resireg_train.cli.job import CONFIG_DIR
+    from resireg_train.config.paths import CONFIG_DIR
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         cfg = compose("map", overrides=list(overrides))

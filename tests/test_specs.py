@@ -19,7 +19,7 @@ from resireg.specs import load
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg.specs.variants import PARAM_VARIANTS, VARIANT_SPECS, VARIANTS
 from resireg_train.checks.eval import sweep_config_errors, validate_eval
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 
 
 def _eval_config(*overrides):

@@ -9,7 +9,7 @@ def test_entry_point_modules_import_no_heavy_library():
     code = (
         "import sys\n"
         "import resireg_train.cli.train, resireg_train.cli.eval, resireg_train.cli.report\n"
-        "import resireg_train.checks.eval, resireg_train.checks.train, resireg_train.runs.record, resireg.specs.variants\n"
+        "import resireg_train.checks.eval, resireg_train.checks.train, resireg_train.record.run_record, resireg.specs.variants\n"
         "import resireg_train.cli.playground, resireg_train.playground.examples\n"
         "import resireg_train.cli.map\n"
         "heavy = ('torch', 'lightning', 'open_clip', 'timm', 'datasets', 'pandas', 'matplotlib',\n"

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from resireg.errors import ConfigError
-from resireg_train.runs.system import (
+from resireg_train.record.system import (
     SYSTEM_FILE,
     SystemSampler,
     merge_blocks,

@@ -18,7 +18,7 @@ from resireg.method.variants import build_variants
 from resireg.ovss import average_prompts, class_prompts
 from resireg_train.checks.eval import validate_eval
 from resireg_train.cli.eval import evaluate
-from resireg_train.cli.job import CONFIG_DIR
+from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.data.segmentation import build_segmentation_set
 from resireg_train.data.specs import DATASET_SPECS, dataset_conf
 from resireg_train.evaluation.base import EvalTask, require_task

@@ -361,8 +361,8 @@ def test_config_entry_keys_are_constructor_arguments(tmp_path):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from resireg_train.cli.job import CONFIG_DIR
     from resireg_train.config.errors import config_path, encoder_arguments
+    from resireg_train.config.paths import CONFIG_DIR
 
     with initialize_config_dir(str(CONFIG_DIR), version_base="1.3"):
         composed = compose("eval", overrides=["encoder=tipsv2", f"paths.data_dir={tmp_path}"])

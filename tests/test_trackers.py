@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from _run import evaluate_export, run
-from resireg_train.runs.trackers import mlflow_key, run_metrics
+from resireg_train.record.trackers.base import mlflow_key, run_metrics
 
 pytest.importorskip("mlflow")
 
@@ -229,7 +229,7 @@ def test_an_mlflow_store_that_cannot_be_made_is_refused_in_one_line(tmp_path, ti
         for n, (db, _) in stores.items()
     ), check=False)  # fmt: skip
     for (name, (db, why)), proc in zip(stores.items(), procs, strict=True):
-        line = (f"resireg_train.runs.trackers.TrackerUnreachable: tracker.mlflow: cannot reach "
+        line = (f"resireg_train.record.trackers.base.TrackerUnreachable: tracker.mlflow: cannot reach "
                 f"sqlite:///{db} ({why}); fix its address, or set tracker.mlflow.unreachable=warn "
                 "to run with local records only")  # fmt: skip
         assert proc.returncode == 1, proc.stderr[-2000:]
@@ -248,7 +248,7 @@ def test_the_artifact_location_of_each_kind_of_store(tmp_path, monkeypatch):
     it); a server chooses its own; another database store needs one given, refused naming the
     key with its password masked."""
     from resireg.errors import ConfigError
-    from resireg_train.runs.loggers import artifact_location
+    from resireg_train.record.trackers.mlflow import artifact_location
 
     monkeypatch.chdir(tmp_path)
     assert artifact_location("sqlite:///db/m.db", "s3://bucket/x") == "s3://bucket/x"

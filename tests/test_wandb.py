@@ -120,7 +120,7 @@ def test_map_logs_one_finished_run_with_its_counts(tmp_path, tiny_export):
     """resireg-map tracker=wandb: one finished run with the config and the map's counts
     (map/voxels, frames/used...) equal to results.json's."""
     from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
-    from resireg_train.runs.trackers import map_counts
+    from resireg_train.record.trackers.base import map_counts
 
     env = {**os.environ, "WANDB_MODE": "offline", "WANDB_SILENT": "true",
            "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"), "WANDB_CACHE_DIR": str(tmp_path)}  # fmt: skip

@@ -3,7 +3,7 @@ only: the ground floor, importable without torch, MLflow or ``resireg_train``).
 
 :func:`reach` says, within a given number of seconds, whether a URL's server accepts a TCP
 connection (or whether a local store's folder can be written), instead of a client's own
-minutes of retries: the trackers (``resireg_train.runs.trackers``, ``tracker.<name>.check_timeout``),
+minutes of retries: the trackers (``resireg_train.record.trackers.base``, ``tracker.<name>.check_timeout``),
 the model registry (``resireg-runs register``, ``model_path=models:/...`` of the commands, and
 :mod:`resireg.models.vlm.registry` for ``ResiregVLM.from_pretrained``, ``resireg-segment``,
 the ROS 2 node) and the weight hubs (:func:`resireg.models.hub.require_online`) all ask it.

@@ -1,12 +1,13 @@
-"""Training, evaluation and sweeps for ReSiReg (Lightning + Hydra). Imports `resireg`, never the reverse.
+"""Training, evaluation and searches for ReSiReg (Lightning + Hydra). Imports `resireg`, never the reverse.
 
 Its libraries are the ``train`` extra (``pip install -e ".[train]"``; ``dev`` includes it); the
 core install (``resireg``'s inference) does not carry them, so a missing one is named here, once
 (by a ``resireg-*`` console script in one line, no traceback),
 instead of surfacing as a bare ``ModuleNotFoundError`` deep inside a command.
 
-Its subpackages (the top level holds no other module): ``cli``, ``config``, ``training``,
-``sweeps``, ``report``, ``playground``, ``evaluation``, ``runs``, ``data`` (docs/architecture.md).
+Its subpackages (the top level holds no other module): ``cli``, ``runs``, ``config``,
+``training``, ``search``, ``report``, ``playground``, ``evaluation``, ``record``, ``data``
+(docs/architecture.md).
 May be imported by the Hydra sweeper plugin, the benchmarks and the tests; never by ``resireg``.
 """
 

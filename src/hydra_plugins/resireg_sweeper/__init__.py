@@ -1,7 +1,8 @@
 """The project's Optuna sweeper for Hydra (``hydra/sweeper=resireg_optuna``, set by
-``hparams_search=<name>``). Hydra instantiates sweepers only from the ``hydra_plugins``
-package; the search itself lives in :mod:`resireg_train.sweeps` (this plugin only calls
-:func:`resireg_train.sweeps.loop.run_search`).
+``hparams_search=<name>``); "sweeper" is Hydra's word for it (it implements Hydra's
+``Sweeper`` interface), the project's is "search". Hydra instantiates sweepers only from the
+``hydra_plugins`` package; the search itself lives in :mod:`resireg_train.search` (this plugin only calls
+:func:`resireg_train.search.loop.run_search`).
 
-May be imported by Hydra only (its plugin discovery); it imports :mod:`resireg_train.sweeps`.
+May be imported by Hydra only (its plugin discovery); it imports :mod:`resireg_train.search`.
 """

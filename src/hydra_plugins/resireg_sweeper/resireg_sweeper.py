@@ -1,6 +1,6 @@
-"""Hydra's ``Sweeper`` interface over :func:`resireg_train.sweeps.loop.run_search`: each trial
+"""Hydra's ``Sweeper`` interface over :func:`resireg_train.search.loop.run_search`: each trial
 one job of Hydra's configured launcher (its own run folder). A door, no more: the search's
-settings, checks, record, workers and loop live in :mod:`resireg_train.sweeps`. Imports
+settings, checks, record, workers and loop live in :mod:`resireg_train.search`. Imports
 nothing heavy at module level (Hydra imports every plugin module when it starts)."""
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ class ResiregOptunaSweeper(Sweeper):
         )
 
     def sweep(self, arguments: list[str]) -> Any:
-        from resireg_train.sweeps.loop import REFUSALS, run_search
+        from resireg_train.search.loop import REFUSALS, run_search
 
         assert self.config is not None
 

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from resireg.errors import ConfigError
 from resireg.specs.sources import source_errors
 from resireg_train.config.errors import block_errors
-from resireg_train.runs.record import RecordError, RunRecord, enclosing_run
+from resireg_train.record.run_record import RecordError, RunRecord, enclosing_run
 
 __all__ = ["MERGE", "check_map_config", "check_merge_out", "check_source", "merge_folders",
            "merge_names"]  # fmt: skip

@@ -27,7 +27,8 @@ from resireg_train.config.moves import (
     current_spelling,
     current_targets,
 )
-from resireg_train.runs.record import RunRecord, masked_tree
+from resireg_train.record.masking import masked_tree
+from resireg_train.record.run_record import RunRecord
 
 __all__ = ["check_resume", "hydra_quoted", "refuse_occupied", "resume_command"]
 

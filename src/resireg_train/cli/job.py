@@ -1,7 +1,7 @@
 """The door every Hydra main of ``resireg_train`` goes through: :func:`hydra_entry_point`
 (Hydra composes ``conf/<name>.yaml``, the task runs, the sweeper gets its value) and
 :func:`run_task`, the wrapper that gives every job its run record
-(:class:`~resireg_train.runs.record.RunRecord`: status, provenance, trackers, final status),
+(:class:`~resireg_train.record.run_record.RunRecord`: status, provenance, trackers, final status),
 records a failure in it and in the run's log file, and returns the value a sweeper optimises.
 
 What a job shows of a failure is :mod:`resireg_train.jobs.console`'s; a multirun ends with one
@@ -38,7 +38,8 @@ from resireg_train.jobs.console import (
 from resireg_train.jobs.resolvers import register_resolvers
 from resireg_train.jobs.run_folder import hold_run_folder, release_run_folder
 from resireg_train.jobs.summary import SWEEP, sweep_summary
-from resireg_train.runs.record import RunRecord
+from resireg_train.record.run_record import RunRecord
+from resireg_train.record.settings import RecordSettings
 
 __all__ = [
     "CONFIG_DIR",
@@ -60,7 +61,7 @@ def run_task(
     fresh: bool = False,
 ) -> dict[str, Any]:
     """Run ``body(cfg, record)`` with the run's record (a
-    :class:`~resireg_train.runs.record.RunRecord` of ``paths.output_dir``), which the body
+    :class:`~resireg_train.record.run_record.RunRecord` of ``paths.output_dir``), which the body
     adds its fields to; returns the final record (on ranks other than 0: the body's result).
 
     The record starts the run (:meth:`RunRecord.start`: ``running``, provenance, trackers;
@@ -120,7 +121,7 @@ def _run_recorded(
     fresh: bool,
 ) -> dict[str, Any]:
     try:
-        record.start(cfg, fresh=fresh)
+        record.start(RecordSettings.from_config(cfg), fresh=fresh)
         result = body(cfg, record)
     except KeyboardInterrupt:
         error = "KeyboardInterrupt: interrupted by the user (Ctrl-C)"

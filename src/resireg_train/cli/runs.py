@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> None:
     two.add_argument("b", metavar="RUN_B")
     two.add_argument("--root", action="append", metavar="ROOT")
     # register, plot, gc: their logic in resireg_train.runs.registry, .plots (a search's:
-    # resireg_train.sweeps.plots), .gc
+    # resireg_train.runs.search_plots), .gc
     reg = sub.add_parser("register", help="an export into MLflow's model registry "
                          "(model_path=models:/NAME@ALIAS loads it)")  # fmt: skip
     reg.add_argument("export", metavar="EXPORT")
@@ -171,8 +171,9 @@ def main(argv: list[str] | None = None) -> None:
     args, extra = parser.parse_known_args(argv)
     if extra and (args.command not in ("rerun", "reproduce") or any(e[:1] == "-" for e in extra)):
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    if args.command in ("rerun", "reproduce"):  # their own modules (replay/rerun.py, reproduce.py)
-        from resireg_train.replay import reproduce, rerun
+    if args.command in ("rerun", "reproduce"):  # their own modules (runs/rerun/, runs/reproduce.py)
+        from resireg_train.runs import reproduce
+        from resireg_train.runs.rerun import command as rerun
 
         args.overrides += extra
         args.root = getattr(args, "root", None) or [DEFAULT_ROOT]
@@ -210,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
         if args.command == "card":
             from pathlib import Path
 
-            from resireg_train.runs.cards import CARD_FILE, add_evaluation
+            from resireg_train.record.cards import CARD_FILE, add_evaluation
 
             for run in args.add:
                 add_evaluation(args.export, run)
@@ -250,14 +251,18 @@ def main(argv: list[str] | None = None) -> None:
             print("\n".join(mask_text(line) for line in lines))
         elif args.command == "diff":
             a, b = index.find_run(args.a, roots), index.find_run(args.b, roots)
-            differences = index.diff_runs(a, b)
+            from resireg_train.runs.diff import diff_runs
+
+            differences = diff_runs(a, b)
             print(f"A: {a.run_id} {a.path}\nB: {b.run_id} {b.path}")
             for part in ("config", "provenance", "metrics"):
                 print(f"\n{part}:")
                 print(mask_text(_pairs(differences[part], "A", "B")))
             _say(a.problems + b.problems, said)
         else:
-            for line in index.lineage(args.run, roots):
+            from resireg_train.runs.lineage import lineage
+
+            for line in lineage(args.run, roots):
                 print(mask_text(line))
     except (ValueError, ResiregError) as err:  # bad input, refused (resireg.errors)
         parser.exit(2, f"resireg-runs: error: {mask_text(str(err))}\n")
@@ -265,11 +270,11 @@ def main(argv: list[str] | None = None) -> None:
 
 def _plot(args: Any) -> None:
     """``resireg-runs plot``: a search folder alone draws its study's plots
-    (:mod:`resireg_train.sweeps.plots`), else the runs' curves of each ``--metric``
+    (:mod:`resireg_train.runs.search_plots`), else the runs' curves of each ``--metric``
     (:mod:`resireg_train.runs.plots`); prints each file written."""
     from resireg_train.runs.plots import plot_runs, runs_of
-    from resireg_train.sweeps.plots import plot_search
-    from resireg_train.sweeps.report import is_optuna_sweep
+    from resireg_train.runs.search_plots import plot_search
+    from resireg_train.search.report import is_optuna_sweep
 
     if not args.metric:
         if len(args.runs) != 1 or not is_optuna_sweep(args.runs[0]):

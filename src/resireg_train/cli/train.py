@@ -35,7 +35,7 @@ from resireg_train.checks.resume import refuse_occupied, resume_command
 from resireg_train.cli.job import hydra_entry_point, run_task
 from resireg_train.config.machine import config_rank
 from resireg_train.jobs.train import fit, run_trial_ranks, trial_ranks_needed
-from resireg_train.sweeps.ranks import TRIAL_RANK_ENV
+from resireg_train.search.ranks import TRIAL_RANK_ENV
 
 if TYPE_CHECKING:
     import lightning as L
@@ -72,7 +72,7 @@ def train(cfg: DictConfig, callbacks: Sequence[L.Callback] = ()) -> dict[str, An
     try:
         return run_task(cfg, body, rank_zero=rank_zero, resume_hint=f"resume with {command}")
     except Exception as exc:
-        # A rank of a search trial started by its worker (resireg_train.sweeps.ranks): a
+        # A rank of a search trial started by its worker (resireg_train.search.ranks): a
         # pruned trial is recorded (run_task) and the worker tells the study; exit 0
         if getattr(exc, "run_status", None) == "pruned" and os.environ.get(TRIAL_RANK_ENV):
             log.info("%s", exc)

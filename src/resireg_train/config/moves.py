@@ -81,15 +81,19 @@ RENAMED_KEYS: dict[str, RenamedKey] = {
 MOVED_TARGETS: dict[str, str] = {
     # 0.1 -> the layout by role (resireg_train.ovss -> evaluation/ovss, tracking -> runs/)
     "resireg_train.ovss.callback.ReSiRegEval": "resireg_train.evaluation.ovss.callback.ReSiRegEval",
-    "resireg_train.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
+    "resireg_train.tracking.wandb_logger": "resireg_train.record.trackers.wandb.wandb_logger",
     # the trackers' table (resireg_train.runs.trackers): W&B's logger factory with the others
-    "resireg_train.runs.tracking.wandb_logger": "resireg_train.runs.loggers.wandb_logger",
-    # the pruning glue joins the search (resireg_train.training.pruning -> sweeps/pruning)
-    "resireg_train.training.pruning.OptunaPruning": "resireg_train.sweeps.pruning.OptunaPruning",
-    # issue 52, H3: the Hydra callbacks leave the CLI's door for the jobs (cli/job.py split by idea)
+    "resireg_train.runs.tracking.wandb_logger": "resireg_train.record.trackers.wandb.wandb_logger",
+    # issue 52: the Hydra callbacks leave the CLI's door for the jobs (cli/job.py split by idea)
     "resireg_train.cli.job.RunFolderLock": "resireg_train.jobs.run_folder.RunFolderLock",
     "resireg_train.cli.job.SweepRecords": "resireg_train.jobs.summary.SweepRecords",
     "resireg_train.cli.train.RunFolderCheck": "resireg_train.jobs.train.RunFolderCheck",
+    # issue 52: the pruning glue joined the search (training/pruning -> sweeps/ -> search/)
+    "resireg_train.training.pruning.OptunaPruning": "resireg_train.search.pruning.OptunaPruning",
+    # the run record apart from the run tools, sweeps/ -> search/ (issue 52: record/trackers/
+    # holds one module per tracker; "sweep" is a Hydra multirun, the Optuna search is search/)
+    "resireg_train.runs.loggers.wandb_logger": "resireg_train.record.trackers.wandb.wandb_logger",
+    "resireg_train.sweeps.pruning.OptunaPruning": "resireg_train.search.pruning.OptunaPruning",
 }
 
 

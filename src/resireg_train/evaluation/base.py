@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 from resireg.errors import ConfigError, ResiregError
 from resireg_train.config.errors import config_path
 from resireg_train.evaluation.specs import TaskSpec, find_task, task_names
-from resireg_train.runs.record import RunRecord
+from resireg_train.record.run_record import RunRecord
 
 if TYPE_CHECKING:
     from torch import nn

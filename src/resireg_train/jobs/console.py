@@ -58,10 +58,10 @@ def reported_types() -> tuple[type[BaseException], ...]:
     types: list[type[BaseException]] = [ConfigError, WriteError, FileExistsError, RunFolderBusy,
                                         IntegrityError]  # fmt: skip
     for module, name in (
-        ("resireg_train.runs.trackers", "TrackerUnreachable"),
+        ("resireg_train.record.trackers.base", "TrackerUnreachable"),
         ("resireg_train.training.checkpoints", "CheckpointError"),
         ("resireg_train.evaluation.base", "NothingScoredError"),
-        ("resireg_train.sweeps.ranks", "TrialRankFailed"),
+        ("resireg_train.search.ranks", "TrialRankFailed"),
         ("resireg.models.hub", "WeightsUnavailableError"),
         ("resireg.models.vlm.registry", "RegistryError"),
     ):

@@ -23,8 +23,8 @@ from resireg_train.config.paths import CONFIG_DIR, composing
 from resireg_train.evaluation.base import require_task, write_results
 from resireg_train.evaluation.ovss.settings import SETTING_KEYS, SETTINGS_FILE, load_settings
 from resireg_train.jobs.overrides import added_keys, top_level_keys
+from resireg_train.record.run_record import RunRecord
 from resireg_train.report.specs import ENCODER_SWEEPS
-from resireg_train.runs.record import RunRecord
 
 __all__ = ["evaluate_body", "with_export_settings"]
 

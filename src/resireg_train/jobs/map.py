@@ -36,7 +36,7 @@ from resireg.specs.encoders import encoder_kwargs
 from resireg.specs.sources import SOURCE_SPECS
 from resireg_train.checks.map import check_map_config, check_source
 from resireg_train.config.errors import config_path, encoder_arguments
-from resireg_train.runs.record import RunRecord
+from resireg_train.record.run_record import RunRecord
 
 __all__ = ["SOURCES", "build_source", "make_map", "map_job"]
 

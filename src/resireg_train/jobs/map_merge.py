@@ -14,7 +14,7 @@ naming what differs, before anything is written. The result is saved to ``<out>/
 (``--out``: the run folder, Hydra's ``hydra.run.dir``), with ``map.ply``; ``results.json``
 records the maps merged (folder, voxels, frames, their files' SHA-256), the result and the
 seconds per stage, through the run's record of every command
-(:class:`~resireg_train.runs.record.RunRecord`: status, provenance, trackers).
+(:class:`~resireg_train.record.run_record.RunRecord`: status, provenance, trackers).
 
 Imported by :mod:`resireg_train.cli.map_merge`.
 """
@@ -30,7 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from resireg.errors import ConfigError, DataError, MapError
 from resireg_train.checks.map import merge_folders, merge_names
-from resireg_train.runs.record import RunRecord
+from resireg_train.record.run_record import RunRecord
 
 __all__ = ["merge_job"]
 

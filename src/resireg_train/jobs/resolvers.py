@@ -47,7 +47,7 @@ def register_resolvers() -> None:
             == 0 else None,
         )  # fmt: skip
     import resireg_train.checks.eval  # noqa: F401  registers resireg_encoders (conf/sweep/table*.yaml)
-    from resireg_train.sweeps.space import register_search_resolvers
+    from resireg_train.search.space import register_search_resolvers
 
     register_search_resolvers()  # conf/hparams_search/: the metric follows val_data=
 

@@ -11,7 +11,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from resireg_train.jobs.console import mask_log_handlers
-from resireg_train.runs.record import RecordError, RunRecord, flat, job_records
+from resireg_train.record.run_record import RecordError, RunRecord, flat, job_records
 
 __all__ = ["SWEEP", "SweepRecords", "sweep_summary"]
 

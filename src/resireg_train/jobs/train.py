@@ -35,8 +35,8 @@ from resireg_train.config.machine import (
 from resireg_train.jobs.console import error_text
 from resireg_train.jobs.overrides import added_keys, instantiate_group, top_level_keys
 from resireg_train.jobs.run_folder import hold_run_folder, release_run_folder
-from resireg_train.runs.record import RunRecord, flat
-from resireg_train.sweeps.ranks import TRIAL_RANK_ENV
+from resireg_train.record.run_record import RunRecord, flat
+from resireg_train.search.ranks import TRIAL_RANK_ENV
 
 if TYPE_CHECKING:
     import lightning as L
@@ -71,20 +71,20 @@ def trial_ranks_needed(cfg: DictConfig) -> bool:
         return False
     if os.environ.get(TRIAL_RANK_ENV):
         return False
-    from resireg_train.sweeps.ranks import relaunches
+    from resireg_train.search.ranks import relaunches
 
     return relaunches(OmegaConf.to_container(cfg.trainer, resolve=True))
 
 
 def run_trial_ranks(cfg: DictConfig, out: Path) -> dict[str, Any]:
-    """Run this search trial's ranks (:func:`resireg_train.sweeps.ranks.run_ranks`): each
+    """Run this search trial's ranks (:func:`resireg_train.search.ranks.run_ranks`): each
     one ``resireg-train`` alone (``hydra.mode=RUN``) in the trial's folder with the trial's
     overrides, the search's ``hydra.sweeper`` settings and its sweep folder; then the trial's
     outcome from its record: its results (completed), :class:`TrialPrunedStop` (pruned), or
     an error naming the first rank that failed (recorded as the run's error) or the record's
     own error."""
-    from resireg_train.sweeps.pruning import TrialPrunedStop
-    from resireg_train.sweeps.ranks import (
+    from resireg_train.search.pruning import TrialPrunedStop
+    from resireg_train.search.ranks import (
         TRIAL_LAUNCHER_ENV,
         TrialRankFailed,
         local_processes,
@@ -171,9 +171,9 @@ def fit(cfg: DictConfig, record: RunRecord, callbacks: Sequence[L.Callback]) -> 
     from lightning.pytorch.callbacks import ProgressBar
 
     from resireg_train.evaluation.ovss.callback import ReSiRegEval
-    from resireg_train.runs.cards import write_export_card
-    from resireg_train.runs.epochs import ResultsTracker
-    from resireg_train.runs.provenance import write_export_provenance
+    from resireg_train.record.cards import write_export_card
+    from resireg_train.record.epochs import ResultsTracker
+    from resireg_train.record.provenance.block import write_export_provenance
     from resireg_train.training.checkpoints import AtomicCheckpointIO, resolve_checkpoint
     from resireg_train.training.console import (
         EpochLog,

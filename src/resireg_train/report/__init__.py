@@ -39,7 +39,7 @@ section table), :mod:`.jobs` (a sweep's job folders), :mod:`.summary`, :mod:`.ta
 and 2, the layer sweep, the Markdown renderer), :mod:`.prototype_batch` (the batch x prototype
 grid, the heuristic), :mod:`.figures`, :mod:`.paper` (the published figures beside ours),
 :mod:`.ovss8` (the eight OVSS benchmarks beside the published peers).
-Imported by the CLIs (``resireg-report``) and by ``resireg_train.sweeps`` (its search report
+Imported by the CLIs (``resireg-report``) and by ``resireg_train.search`` (its search report
 reads the jobs); it imports ``resireg_train.evaluation``'s torch-free task table and protocol
 record, ``runs`` and ``config``. The names below load on first use (PEP 562), so reading the
 section table (the config check) loads neither pandas nor matplotlib.

@@ -12,7 +12,7 @@ import pandas as pd
 import yaml
 
 from resireg.specs.variants import BASELINE, VARIANT_SPECS, VARIANTS
-from resireg_train.runs.record import RecordError, RunRecord, metric_mode
+from resireg_train.record.run_record import RecordError, RunRecord, metric_mode
 
 __all__ = [
     "BATCH_KEY", "METHODS", "METHOD_NAMES", "PROTOTYPES_KEY", "STATUSES", "Job", "check_metric",

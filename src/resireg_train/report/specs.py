@@ -122,9 +122,9 @@ SECTION_SPECS: SpecTable[SectionSpec] = SpecTable(
             detect="resireg_train.report.ovss8:is_ovss8_sweep",
         ),
         SectionSpec(
-            "optuna", "resireg_train.sweeps.report:write_optuna_report",
+            "optuna", "resireg_train.search.report:write_optuna_report",
             "an Optuna search's trials (optuna_trials.csv), best trial and plots",
-            detect="resireg_train.sweeps.report:is_optuna_sweep", always=True,
+            detect="resireg_train.search.report:is_optuna_sweep", always=True,
         ),
     ),
     where="resireg_train.report.specs",

@@ -14,6 +14,7 @@ from resireg.method.variants import parse_variant
 from resireg.specs.metrics import SCORE_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, takes_prior, variant_layer
 from resireg_train.evaluation.specs import TASK_SPECS
+from resireg_train.record.run_record import flat
 from resireg_train.report.figures import DPI, layer_sweep_figure
 from resireg_train.report.jobs import METHOD_NAMES, METHODS, Job, per_encoder, varying_keys
 from resireg_train.report.paper import (
@@ -23,7 +24,6 @@ from resireg_train.report.paper import (
     protocol_differences,
 )
 from resireg_train.report.specs import ENCODER_SWEEPS
-from resireg_train.runs.record import flat
 
 __all__ = [
     "ENCODER_SWEEPS", "LAYER_SWEEP_FILES", "MAPPING_COLUMNS", "MAPPING_PREFIX", "OVSS_PREFIX",

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from resireg_train.record.run_record import flat
 from resireg_train.report.jobs import (
     Job,
     check_metric,
@@ -22,7 +23,6 @@ from resireg_train.report.paper import DEFAULT_TOLERANCE
 from resireg_train.report.specs import SECTION_INPUTS, SECTION_SPECS
 from resireg_train.report.summary import summary_table
 from resireg_train.report.tables import markdown
-from resireg_train.runs.record import flat
 
 __all__ = ["call_section", "report", "report_sections"]
 

@@ -1,23 +1,17 @@
-"""A run's record: ``results.json`` and what surrounds it.
+"""The tools for finished runs: ``resireg-runs``' commands, which read what
+:mod:`resireg_train.record` wrote.
 
-- :mod:`~resireg_train.runs.record`: :class:`~resireg_train.runs.record.RunRecord`, the one
-  writer of a run folder's ``results.json`` for the run's whole life (start, fields, final
-  status), and its reader for many records;
-- :mod:`~resireg_train.runs.provenance`: what produced a run (code, data, models, machine);
-- :mod:`~resireg_train.runs.trackers`: the tracker table (``TRACKER_SPECS``, ``tracker=``) and
-  the trackers of one run, driven by its record; :mod:`~resireg_train.runs.loggers`: the four
-  trackers' code; :mod:`~resireg_train.runs.epochs`: what training records every epoch;
-- :mod:`~resireg_train.runs.index` (``resireg-runs``) and :mod:`~resireg_train.runs.cards`
-  (model cards of exports);
-- :mod:`~resireg_train.runs.system`: the system metrics every run samples (``system.csv``,
-  the peaks in ``results.json``);
-- ``resireg-runs``' commands that act on runs: :mod:`~resireg_train.runs.registry`
-  (``register``: an export into MLflow's model registry), :mod:`~resireg_train.runs.plots`
-  (``plot``; a search folder's plots: :mod:`resireg_train.sweeps.plots`) and
-  :mod:`~resireg_train.runs.gc` (``gc``). ``rerun`` and ``reproduce`` run other commands:
-  :mod:`resireg_train.replay`, above the layers they use.
+- :mod:`~resireg_train.runs.index`: the runs under a root (``ls``, ``show``, ``diff``,
+  ``lineage``);
+- :mod:`~resireg_train.runs.plots` (``plot``) and :mod:`~resireg_train.runs.search_plots` (a
+  search folder's plots);
+- :mod:`~resireg_train.runs.gc` (``gc``) and :mod:`~resireg_train.runs.registry` (``register``:
+  an export into MLflow's model registry);
+- :mod:`~resireg_train.runs.rerun`: a run again from its record (``rerun``: plan, drift,
+  verdict) and :mod:`~resireg_train.runs.reproduce` (``reproduce``: a paper row's jobs).
 
-Imported by the CLIs, the evaluation, the training, the sweeps and the replay; it imports only
-``resireg``, ``resireg_train.config``'s lower modules, ``resireg_train.data`` and (inside
-functions) the trackers' libraries.
+``rerun`` and ``reproduce`` start other commands as subprocesses and read the records those
+write, so this package sits just under the CLIs: imported by ``resireg_train.cli.runs`` only;
+it imports the config checks, the search's override check, the report's paper figures, the run
+record and the data table.
 """

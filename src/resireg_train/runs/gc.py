@@ -4,7 +4,7 @@ checkpoints take, keeping those of its best runs.
 The runs under the folders (a multirun's or a search's sweep folder; several are ranked
 together) are ranked by ``METRIC``: a run's best value when its record tracks one (training),
 else its final value (``min`` for losses, ``max`` for scores, as
-:func:`resireg_train.runs.record.metric_mode` says; ``--mode`` for any other metric). The best
+:func:`resireg_train.record.run_record.metric_mode` says; ``--mode`` for any other metric). The best
 ``N`` keep everything. Every other run loses its ``checkpoints/`` folder (what
 ``ckpt_path=last`` would resume from) and nothing else: its record (``results.json``,
 ``metrics.csv``, ``system.csv``, ``.hydra/``), its export and the export's model card stay. A
@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from resireg_train.record.run_record import metric_mode
 from resireg_train.runs.index import Run, scan
-from resireg_train.runs.record import metric_mode
 
 try:  # POSIX; without it (Windows) no run is touched: its lock cannot be checked
     import fcntl

@@ -1,17 +1,18 @@
 """The run index behind ``resireg-runs``: every run folder under some roots (single runs,
 multirun jobs, search trials: any folder with a ``results.json``), one row each, filtered,
-sorted, shown, compared and followed through its lineage.
+sorted and shown; two compared: :mod:`resireg_train.runs.diff`, one followed through its
+lineage: :mod:`resireg_train.runs.lineage`.
 
 A row reads only the run's ``results.json`` (:meth:`RunRecord.read
-<resireg_train.runs.record.RunRecord.read>`) and ``.hydra/overrides.yaml`` (the resolved
+<resireg_train.record.run_record.RunRecord.read>`) and ``.hydra/overrides.yaml`` (the resolved
 ``.hydra/config.yaml`` only when a filter or a column names a config key), so a thousand runs
 list in well under two seconds (``benchmarks/bench_runs.py``). A run still marked ``running``
 whose process is gone is shown as ``died``: on this host, its PID is not alive; on another
-host (a shared file system), its heartbeat is stale (:func:`~resireg_train.runs.record.
+host (a shared file system), its heartbeat is stale (:func:`~resireg_train.record.heartbeat.
 heartbeat_stale`: older than ``provenance.heartbeat_stale`` seconds). A heartbeat that
 cannot tell (a ``time`` that is no time, or more than ``provenance.heartbeat_skew`` seconds ahead
 of this machine's clock, or a ``stale_after`` that is not a number > 0) is shown as ``unknown``, named once in the run's
-problems (:func:`~resireg_train.runs.record.heartbeat_doubt`). A file that is not what
+problems (:func:`~resireg_train.record.heartbeat.heartbeat_doubt`). A file that is not what
 it should be (a record that is not a run record, an overrides file that is not a YAML list) is
 named once in :attr:`Run.problems` / :func:`scan`'s ``bad`` list, never a traceback: the other
 runs are listed.
@@ -24,7 +25,7 @@ import operator
 import os
 import re
 import socket
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from functools import cache, cached_property
 from pathlib import Path
@@ -33,22 +34,14 @@ from typing import Any
 import yaml
 
 from resireg.specs.tree import flatten
-from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import (
-    RESULTS_FILE,
-    RecordError,
-    RunRecord,
-    heartbeat_doubt,
-    heartbeat_stale,
-)
+from resireg_train.record.heartbeat import heartbeat_doubt, heartbeat_stale
+from resireg_train.record.run_record import RESULTS_FILE, RecordError, RunRecord
 
 __all__ = [
     "COLUMNS",
     "Run",
-    "diff_runs",
     "filter_runs",
     "find_run",
-    "lineage",
     "parse_where",
     "read_run",
     "scan",
@@ -65,7 +58,7 @@ _HEADLINE = ("/miou_full", "/miou_lite", "/miou_bb", "train/loss")
 
 
 #: The status of a ``running`` record of another host whose heartbeat cannot tell whether its
-#: job still runs (:func:`~resireg_train.runs.record.heartbeat_doubt`).
+#: job still runs (:func:`~resireg_train.record.heartbeat.heartbeat_doubt`).
 UNKNOWN = "unknown"
 
 
@@ -73,7 +66,7 @@ UNKNOWN = "unknown"
 def _settings(key: str) -> float:
     """``provenance.heartbeat_stale`` (for a record whose heartbeat does not say its own) or
     ``provenance.heartbeat_skew`` (conf/provenance/default.yaml)."""
-    from resireg_train.runs.provenance import provenance_settings
+    from resireg_train.record.settings import provenance_settings
 
     return float(provenance_settings()[key])
 
@@ -237,7 +230,7 @@ def _run_folders(root: Path) -> Iterator[Path]:
 
 
 def read_run(folder: Path) -> Run:
-    """The run in ``folder``; :class:`~resireg_train.runs.record.RecordError` (a
+    """The run in ``folder``; :class:`~resireg_train.record.run_record.RecordError` (a
     ``ValueError`` naming the file) when its record cannot be read or is not a run record."""
     try:
         return Run(folder, RunRecord.read(folder))
@@ -350,98 +343,3 @@ def find_run(spec: str, roots: Iterable[str | os.PathLike]) -> Run:
     raise ValueError(f"run id {spec!r} is ambiguous: {', '.join(r.run_id for r in hits)}")
 
 
-def _compare(a: Mapping[str, Any], b: Mapping[str, Any]) -> list[tuple[str, Any, Any]]:
-    keys = sorted(set(a) | set(b))
-    return [(k, a.get(k), b.get(k)) for k in keys if a.get(k) != b.get(k)]
-
-
-#: Provenance fields that differ between any two runs and say nothing about the result.
-_VOLATILE = ("provenance.run_id", "provenance.time.", "provenance.machine.pid",
-             "provenance.environment.command", "provenance.environment.config_sha256")  # fmt: skip
-
-
-def diff_runs(a: Run, b: Run) -> dict[str, list[tuple[str, Any, Any]]]:
-    """``{"config", "provenance", "metrics"}``: each differing key with A's and B's value
-    (provenance without what differs for every pair of runs: ids, times, PIDs)."""
-    prov = [row for row in _compare(flatten(a.provenance, "provenance"),
-                                    flatten(b.provenance, "provenance"))
-            if not row[0].startswith(_VOLATILE)]  # fmt: skip
-    return {
-        "config": _compare(a.config, b.config),
-        "provenance": prov,
-        "metrics": _compare(a.metrics, b.metrics),
-    }
-
-
-def _same_path(a: Any, b: str) -> bool:
-    try:
-        return a is not None and Path(str(a)).expanduser().resolve() == Path(b).resolve()
-    except OSError:
-        return False
-
-
-def lineage(spec: str, roots: Iterable[str | os.PathLike]) -> list[str]:
-    """The chain of a run or an export, oldest first: its data, the training runs it descends
-    from (``model.init_from``'s run, an export's training run), itself, its export and the
-    evaluations and maps under ``roots`` that used that export. One line each."""
-    roots = list(roots)
-    path = Path(spec).expanduser()
-    if (path / EXPORT_PROVENANCE).is_file() or (path / "config.json").is_file() and not (
-            RunRecord.exists(path)):  # fmt: skip
-        run = read_run(path.parent) if RunRecord.exists(path.parent) else None
-        export = path.resolve()
-    else:
-        run = find_run(spec, roots)
-        export = Path(run.results["export"]).resolve() if run.results.get("export") else None
-    chain: list[str] = []
-    seen: set[Path] = set()
-
-    def ancestors(r: Run) -> None:
-        if r.path.resolve() in seen:
-            return
-        seen.add(r.path.resolve())
-        models = r.provenance.get("models") or {}
-        parent_ckpt = (models.get("init_from") or {}).get("path")
-        parent_export = (models.get("export") or {}).get("path")
-        if parent_ckpt:
-            folder = Path(parent_ckpt).parent.parent  # <run>/checkpoints/<file>.ckpt
-            if RunRecord.exists(folder):
-                ancestors(read_run(folder))
-            sha = (models.get("init_from") or {}).get("sha256")
-            chain.append(f"checkpoint {parent_ckpt} (sha256 {str(sha)[:12]})")
-        elif parent_export and RunRecord.exists(Path(parent_export).parent):
-            folder = Path(parent_export).parent
-            ancestors(read_run(folder))
-            chain.append(f"export {parent_export}")
-        else:
-            for key, data in (r.provenance.get("data") or {}).items():
-                chain.append(f"data {key}: {_data_text(data)}")
-        chain.append(_run_text(r))
-
-    if run is not None:
-        ancestors(run)
-    if export is not None:
-        chain.append(f"export {export}")
-        for other in sorted(scan(roots), key=lambda r: r.start or ""):
-            used = ((other.provenance.get("models") or {}).get("export") or {}).get("path")
-            if _same_path(used, str(export)) and other.path.resolve() not in seen:
-                chain.append(f"  used by {_run_text(other)}")
-    return chain
-
-
-def _run_text(run: Run) -> str:
-    metric, value = run.headline
-    score = f", {metric}={value:.4f}" if metric is not None and value is not None else ""
-    commit = ((run.provenance.get("code") or {}).get("git") or {}).get("commit")
-    code = f", commit {commit[:10]}" if commit else ""
-    return f"{run.cli or 'run'} {run.run_id} [{run.status}] {run.path}{code}{score}"
-
-
-def _data_text(data: Mapping[str, Any]) -> str:
-    kind = data.get("kind")
-    if kind == "hub":
-        return f"hub {data.get('repo')} {data.get('config')}/{data.get('split')}@{data.get('revision')}"
-    if kind == "local":
-        return (f"local {data.get('path')} ({data.get('files')} files, fingerprint "
-                f"{str(data.get('fingerprint'))[:12]})")  # fmt: skip
-    return f"{kind} {data.get('settings')}"

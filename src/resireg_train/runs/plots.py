@@ -9,7 +9,7 @@
   shows it as a dashed level. ``--html`` also writes the same curves as an interactive plotly
   page (plotly: the ``optuna`` extra).
 - **A search folder** (an Optuna search's sweep folder): Optuna's own plots,
-  :mod:`resireg_train.sweeps.plots` (the sweeps sit above the runs).
+  :mod:`resireg_train.runs.search_plots` (the sweeps sit above the runs).
 
 Matplotlib draws without a display (Agg).
 """
@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from resireg_train.record.run_record import target_problem
 from resireg_train.runs.index import Run
-from resireg_train.runs.record import target_problem
 
 __all__ = [
     "LIMIT",
@@ -298,8 +298,8 @@ def _runs_html(curves: dict[str, dict[str, Any]], path: Path) -> Path:
 def runs_of(specs: list[str], roots: list[str]) -> list[Run]:
     """The runs the command line names: a run folder or run id (:func:`index.find_run`), or a
     folder holding runs (a sweep: each of its runs, in folder order)."""
+    from resireg_train.record.run_record import RunRecord
     from resireg_train.runs import index
-    from resireg_train.runs.record import RunRecord
 
     runs: list[Run] = []
     for spec in specs:

@@ -20,7 +20,7 @@ The registry is ``--tracking-uri`` when given, else the one MLflow's own setting
 (``MLFLOW_TRACKING_URI``, ``MLFLOW_REGISTRY_URI``; default ``sqlite:///mlflow.db``), the same
 rule the loader follows, so ``models:/`` finds what was registered. A new experiment keeps the
 registrations' files where the trackers' runs keep theirs
-(:func:`resireg_train.runs.loggers.artifact_location`: beside a SQLite database, in
+(:func:`resireg_train.record.trackers.mlflow.artifact_location`: beside a SQLite database, in
 ``mlartifacts/``), never in ``./mlruns`` of the current folder.
 """
 
@@ -33,8 +33,8 @@ from typing import Any
 from resireg.models.vlm.registry import DIGESTS_TAG, check_registry
 from resireg.secrets import mask_text, mask_url
 from resireg.specs.tree import flatten
-from resireg_train.runs.provenance import EXPORT_PROVENANCE
-from resireg_train.runs.record import RecordError, RunRecord
+from resireg_train.record.provenance.inputs import EXPORT_PROVENANCE
+from resireg_train.record.run_record import RecordError, RunRecord
 
 __all__ = ["check_name", "command", "register"]
 
@@ -120,9 +120,9 @@ def register(
     from resireg.integrity import IntegrityError, sha256_file
     from resireg.models.vlm.model import read_config
     from resireg.specs.exports import export_source_problem
-    from resireg_train.runs.cards import CARD_FILE
-    from resireg_train.runs.loggers import artifact_location
-    from resireg_train.runs.trackers import mlflow_key
+    from resireg_train.record.cards import CARD_FILE
+    from resireg_train.record.trackers.base import mlflow_key
+    from resireg_train.record.trackers.mlflow import artifact_location
 
     check_name(name, alias)  # nothing is written for a name the registry refuses
     folder = Path(export).expanduser().resolve()

@@ -25,7 +25,7 @@ from lightning.pytorch.callbacks import ModelSummary as _ModelSummary
 from lightning.pytorch.callbacks import RichProgressBar
 from lightning.pytorch.utilities.model_summary.model_summary import _format_summary_table
 
-from resireg_train.runs.epochs import epoch_metrics
+from resireg_train.record.epochs import epoch_metrics
 
 __all__ = ["EpochLog", "ModelSummary", "ProgressBar", "bar_metrics", "epoch_line", "on_terminal",
            "quiet_library_noise"]  # fmt: skip

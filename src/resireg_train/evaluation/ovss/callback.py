@@ -31,7 +31,7 @@ class ReSiRegEval(L.Callback):
     Runs at the end of every ``every_n_epochs``-th training epoch (and the last one) -
     the run's validation epoch: the caption data has no held-out split. It logs
     ``val/ovss/<dataset>/miou_<variant>`` and ``.../fmiou_<variant>`` (epoch level), which
-    :class:`~resireg_train.runs.epochs.ResultsTracker` records per epoch and keeps the best of
+    :class:`~resireg_train.record.epochs.ResultsTracker` records per epoch and keeps the best of
     in ``results.json``.
 
     Under DDP each rank scores a disjoint share of the batches and the confusion matrices
