@@ -132,19 +132,3 @@ def _content(folder: Path) -> str:
     record = _record(folder)
     name = record["tensors"]
     return (record.get("sha256") or {}).get(name) or sha256_file(folder / name)
-
-
-def _record(folder: Path) -> dict[str, Any]:
-    import json
-
-    return json.loads((folder / "map.json").read_text())
-
-
-def _content(folder: Path) -> str:
-    """The SHA-256 of a saved map's tensor file: the one its record holds (verified when the
-    map loaded), or, for a map saved before maps recorded it, computed."""
-    from resireg.integrity import sha256_file
-
-    record = _record(folder)
-    name = record["tensors"]
-    return (record.get("sha256") or {}).get(name) or sha256_file(folder / name)
