@@ -42,7 +42,9 @@ def slug(heading: str) -> str:
 
 def _inline_text(token) -> str:
     """The text a heading shows (code spans and link texts kept, markup dropped)."""
-    return "".join(child.content for child in token.children or [] if child.type in ("text", "code_inline"))
+    return "".join(
+        child.content for child in token.children or [] if child.type in ("text", "code_inline")
+    )
 
 
 def anchors(text: str) -> set[str]:
@@ -85,7 +87,11 @@ def dead_links(page: Path) -> list[str]:
         if not dest.exists():
             dead.append(f"{page.name}: {target} (no file {path_part})")
             continue
-        if anchor and dest.suffix == ".md" and anchor not in anchors(dest.read_text(encoding="utf-8")):
+        if (
+            anchor
+            and dest.suffix == ".md"
+            and anchor not in anchors(dest.read_text(encoding="utf-8"))
+        ):
             dead.append(f"{page.name}: {target} (no heading #{anchor} in {dest.name})")
     return dead
 
@@ -116,7 +122,11 @@ def test_every_doc_reference_in_code_and_configs_resolves() -> None:
     dead = []
     for root in REFERENCE_ROOTS:
         for path in sorted((ROOT / root).rglob("*")):
-            if path.is_file() and path.suffix in REFERENCE_SUFFIXES and "__pycache__" not in path.parts:
+            if (
+                path.is_file()
+                and path.suffix in REFERENCE_SUFFIXES
+                and "__pycache__" not in path.parts
+            ):
                 if path == Path(__file__).resolve():  # this file's examples of dead references
                     continue
                 dead += dead_references(path)
@@ -127,7 +137,8 @@ def test_no_page_of_docs_is_over_the_limit() -> None:
     long = {
         page.name: n
         for page in DOCS.glob("*.md")
-        if (n := len(page.read_text(encoding="utf-8").splitlines())) > MAX_PAGE_LINES and page.name not in LONG_PAGES
+        if (n := len(page.read_text(encoding="utf-8").splitlines())) > MAX_PAGE_LINES
+        and page.name not in LONG_PAGES
     }
     assert long == {}
 
@@ -135,7 +146,10 @@ def test_no_page_of_docs_is_over_the_limit() -> None:
 def test_slug_follows_githubs_rule() -> None:
     # the anchors GitHub gives these headings (read off rendered pages of this repository)
     assert slug("Training the 25M VLM (`resireg-train`)") == "training-the-25m-vlm-resireg-train"
-    assert slug("Dense encoders (`resireg.models.DenseEncoder`)") == "dense-encoders-resiregmodelsdenseencoder"
+    assert (
+        slug("Dense encoders (`resireg.models.DenseEncoder`)")
+        == "dense-encoders-resiregmodelsdenseencoder"
+    )
     assert slug("Rerun and reproduce (`resireg-runs rerun`, `resireg-runs reproduce`)") == (
         "rerun-and-reproduce-resireg-runs-rerun-resireg-runs-reproduce"
     )
@@ -171,7 +185,8 @@ def test_a_dead_reference_in_code_is_found(tmp_path: Path) -> None:
     (docs / "guide.md").write_text("# Guide\n\n## Resume\n", encoding="utf-8")
     module = tmp_path / "mod.py"
     module.write_text(
-        '"""See docs/guide.md#resume, docs/guide.md#gone and docs/nothing.md."""\n', encoding="utf-8"
+        '"""See docs/guide.md#resume, docs/guide.md#gone and docs/nothing.md."""\n',
+        encoding="utf-8",
     )
     assert dead_references(module, docs) == [
         f"{module}: docs/guide.md#gone (no heading #gone)",
