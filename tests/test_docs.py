@@ -99,13 +99,14 @@ def dead_links(page: Path) -> list[str]:
 def dead_references(path: Path, docs: Path = DOCS) -> list[str]:
     """``file: docs/page.md#anchor (why)`` for each plain-text doc reference that does not resolve."""
     dead = []
+    name = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
     for match in DOC_REFERENCE.finditer(path.read_text(encoding="utf-8", errors="replace")):
         page, anchor = match.group(1), match.group(2)
         dest = docs / page
         if not dest.is_file():
-            dead.append(f"{path}: {match.group(0)} (no file)")
+            dead.append(f"{name}: {match.group(0)} (no file)")
         elif anchor and anchor not in anchors(dest.read_text(encoding="utf-8")):
-            dead.append(f"{path}: {match.group(0)} (no heading #{anchor})")
+            dead.append(f"{name}: {match.group(0)} (no heading #{anchor})")
     return dead
 
 
