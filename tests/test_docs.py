@@ -145,7 +145,7 @@ def test_no_page_of_docs_is_over_the_limit() -> None:
 
 
 def test_slug_follows_githubs_rule() -> None:
-    # the anchors GitHub gives these headings (read off rendered pages of this repository)
+    # the anchors the docs linked before the split (written against GitHub), and underscores kept
     assert slug("Training the 25M VLM (`resireg-train`)") == "training-the-25m-vlm-resireg-train"
     assert (
         slug("Dense encoders (`resireg.models.DenseEncoder`)")
