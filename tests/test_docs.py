@@ -145,16 +145,18 @@ def test_no_page_of_docs_is_over_the_limit() -> None:
 
 
 def test_slug_follows_githubs_rule() -> None:
-    # the anchors the docs linked before the split (written against GitHub), and underscores kept
-    assert slug("Training the 25M VLM (`resireg-train`)") == "training-the-25m-vlm-resireg-train"
+    # anchors the docs linked before the split (written against GitHub's rendering); the last
+    # one: GitHub keeps underscores (they are word characters)
+    assert slug("Dense encoders (`resireg.models.DenseEncoder`)") == (
+        "dense-encoders-resiregmodelsdenseencoder"
+    )
+    assert slug(
+        "Deployment: ONNX and TensorRT, the Hugging Face Hub, one image (`resireg.deploy`)"
+    ) == ("deployment-onnx-and-tensorrt-the-hugging-face-hub-one-image-resiregdeploy")
     assert (
-        slug("Dense encoders (`resireg.models.DenseEncoder`)")
-        == "dense-encoders-resiregmodelsdenseencoder"
+        slug("resireg-map on live topics (source=ros2)") == "resireg-map-on-live-topics-sourceros2"
     )
-    assert slug("Rerun and reproduce (`resireg-runs rerun`, `resireg-runs reproduce`)") == (
-        "rerun-and-reproduce-resireg-runs-rerun-resireg-runs-reproduce"
-    )
-    assert slug("Merging maps") == "merging-maps"
+    assert slug("Your robot's recordings (`resireg-map`)") == "your-robots-recordings-resireg-map"
     assert slug("resireg_train's run_record") == "resireg_trains-run_record"
 
 
