@@ -21,7 +21,7 @@ fewer FLOP at the protocol's size; the faster graph on onnxruntime's CPU provide
 docs/benchmarks.md). Both keep ``B N^2`` elements in memory at once on onnxruntime's CPU
 provider. ReSiReg Full stays in torch: its
 k-means is data-dependent (iterations until convergence); run it on the image graph's
-``intermediates`` and ``language`` (docs/guide.md, "Deployment").
+``intermediates`` and ``language`` (docs/deployment.md).
 
 A manifest ``<out>.json`` beside the graphs records what a runtime needs to feed them: the
 input size (or that it is dynamic), the normalisation (mean, std), the patch size, the output

@@ -7,8 +7,8 @@ sparse voxel maps of running feature sums (:mod:`.voxels`), of low-precision uni
 classification (optionally with RayFronts' prediction threshold and prompt denoising) and
 k-nearest-neighbour label transfer (:mod:`.query`); :class:`SemanticMap` (:mod:`.semantic_map`)
 puts them together, over one storage interface (:mod:`.storage`), into the object a robot feeds
-with posed RGB-D windows and queries by text (docs/method.md#robot-maps-semanticmap); its files:
-:mod:`.map_file`. Conventions: docs/method.md#the-voxel-map.
+with posed RGB-D windows and queries by text (docs/maps.md#robot-maps-semanticmap); its files:
+:mod:`.map_file`. Conventions: docs/maps.md#the-voxel-map.
 
 Typical online use, one batch of frames at a time::
 

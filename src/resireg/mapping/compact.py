@@ -1,4 +1,4 @@
-"""Compact voxel storage: low-precision unit features, accumulated without drift (docs/method.md#compact-storage).
+"""Compact voxel storage: low-precision unit features, accumulated without drift (docs/maps.md#compact-storage).
 
 :class:`CompactVoxelMap` keeps, per occupied voxel, the *direction* of its mean feature in
 ``float16`` (or ``bfloat16``), the mean's length (``float32``), the number of points it saw

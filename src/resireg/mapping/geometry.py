@@ -1,7 +1,7 @@
 """Camera geometry for 3D mapping: intrinsics scaling, depth downsampling, unprojection
 (the lifting of feature grids that uses them: :mod:`resireg.mapping.lifting`).
 
-Conventions (docs/method.md#the-voxel-map):
+Conventions (docs/maps.md#the-voxel-map):
 
 - **Pixel centres at integers.** Pixel ``(u, v)`` (column ``u``, row ``v``) covers
   ``[u - 0.5, u + 0.5] x [v - 0.5, v + 0.5]`` and its centre is the point ``(u, v)``; the image of

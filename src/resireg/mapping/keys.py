@@ -8,7 +8,7 @@ non-negative int64, so the order of the keys is the lexicographic order of the `
 index tuples.
 
 A point ``p`` (metres) falls in the voxel of an integer index per axis, by one of two lattices
-(:data:`LATTICES`, docs/method.md#the-voxel-map):
+(:data:`LATTICES`, docs/maps.md#the-voxel-map):
 
 - ``"round"`` (the default): index ``round(p / voxel_size)`` (half to even, as ``torch.round``),
   centre ``index * voxel_size``: RayFronts' ``geometry3d.pointcloud_to_sparse_voxels``, whose

@@ -12,7 +12,7 @@ aggregated per patch by nearest downsampling to feature resolution and back to t
 OTAS's code (``src/model.py``, ``batch_embed_rgbd``), which the sentence describes, unprojects one
 point per patch (:func:`resireg.mapping.patch_points` is that reading). Read literally, the
 patch depth brought back to the depth grid puts *every* pixel of a patch on its own ray at the
-patch's depth, all carrying the patch's feature (docs/method.md#the-voxel-map):
+patch's depth, all carrying the patch's feature (docs/maps.md#the-voxel-map):
 
 - the depth ``[B, H, W]`` is nearest-downsampled to the feature grid ``(h, w)``
   (:func:`resireg.mapping.nearest_downsample`) and nearest-upsampled back (the same rule), so

@@ -1,4 +1,4 @@
-"""The 3D task's metric: a voxel confusion matrix and its two definitions (docs/method.md#scannet-evaluation).
+"""The 3D task's metric: a voxel confusion matrix and its two definitions (docs/maps.md#scannet-evaluation).
 
 The confusion matrix is ``[K, K + 1]``: rows are the ground-truth class of the scored voxels
 (labelled ones only), columns the predicted class, the last column "no prediction" (RayFronts'

@@ -1,4 +1,4 @@
-"""A language-queryable 3D map a robot feeds with posed RGB-D windows (docs/method.md#robot-maps-semanticmap).
+"""A language-queryable 3D map a robot feeds with posed RGB-D windows (docs/maps.md#robot-maps-semanticmap).
 
 :class:`SemanticMap` holds one dense encoder, one ReSiReg variant (``bb``, ``lite``, ``full``,
 ``full@n_prototypes:24``, ``lite+prior``...) and one map storage. :meth:`SemanticMap.add`

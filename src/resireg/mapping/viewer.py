@@ -1,5 +1,5 @@
 """A live 3D view of a mapping run with Rerun (``rerun-sdk``, the ``robot`` extra, imported when a
-view is made; docs/method.md#robot-maps-semanticmap): ``resireg-map``'s recording and ``resireg-ros2``'s
+view is made; docs/maps.md#robot-maps-semanticmap): ``resireg-map``'s recording and ``resireg-ros2``'s
 live stream log the same entities.
 
 Entities (world frame, metres; Rerun's ``Pinhole`` takes OpenCV camera axes, RDF, by default)::

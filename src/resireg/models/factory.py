@@ -16,7 +16,7 @@ The kinds and their classes are one table, :data:`resireg.specs.encoders.ENCODER
   are the backbone-only references of the paper's Table 1.
 
 What each gives ReSiReg (intermediates, language tokens, resolution, text path, source) is
-tabulated in docs/method.md#models-and-encoders.
+tabulated in docs/models.md#models-and-encoders.
 """
 
 from __future__ import annotations

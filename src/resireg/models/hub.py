@@ -4,7 +4,7 @@ Without a network a hub request can stall for close to a minute (name look-ups a
 retried) before it fails. Every loader in :mod:`resireg.models` checks, before it asks a
 hub for anything, that what it needs is cached or that the host serving it can be reached,
 so an offline user gets an immediate error that names the local alternative (the argument
-to set). The checks, one helper per kind of source (docs/method.md#models-and-encoders):
+to set). The checks, one helper per kind of source (docs/models.md#models-and-encoders):
 
 - :func:`check_hub_source`: a ``torch.hub`` repo / source pair (a local clone, or GitHub),
 - :func:`require_hub_repo`: a GitHub repo's code in torch's hub cache, or GitHub reachable

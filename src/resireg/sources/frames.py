@@ -1,5 +1,5 @@
 """The frame record of a posed RGB-D source, what a source is, and the windows the map takes
-(docs/method.md#robot-maps-semanticmap).
+(docs/maps.md#robot-maps-semanticmap).
 
 A source (:class:`~resireg.sources.rosbag.BagSource`, :class:`~resireg.sources.tum.TumSource`,
 :class:`~resireg.sources.scannet.ScanNetSource`,

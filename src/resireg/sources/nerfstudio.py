@@ -1,5 +1,5 @@
 """Posed RGB-D frames of a Nerfstudio folder (``transforms.json``, the Nerfstudio data format),
-for ``resireg-map`` (docs/method.md#robot-maps-semanticmap). OTAS's tooling exports and imports this
+for ``resireg-map`` (docs/maps.md#robot-maps-semanticmap). OTAS's tooling exports and imports this
 format too. The file::
 
     {"fl_x": 525.0, "fl_y": 525.0, "cx": 319.5, "cy": 239.5, "w": 640, "h": 480,

@@ -1,6 +1,6 @@
 """Posed RGB-D frames from a ROS 2 bag (sqlite3 or MCAP) or a ROS 1 bag, read with ``rosbags``
 (pure Python, no ROS install; ``rosbags.highlevel.AnyReader``), for ``resireg-map``
-(docs/method.md#robot-maps-semanticmap).
+(docs/maps.md#robot-maps-semanticmap).
 
 Topics (:class:`BagTopics`; :func:`open_bag` takes them as keywords, the keys of
 ``conf/source/rosbag.yaml`` that the live source shares, :class:`RosKeys`), decoded by

@@ -1,5 +1,5 @@
 """Posed RGB-D frames of one ScanNet scene folder, as ScanNet's ``SensReader`` exports it, for
-``resireg-map`` (docs/method.md#robot-maps-semanticmap); and the file readers the ScanNet *evaluation*
+``resireg-map`` (docs/maps.md#robot-maps-semanticmap); and the file readers the ScanNet *evaluation*
 dataset (``resireg_train.data.scannet``) shares with it. Layout (no labels needed)::
 
     <path>/color/<i>.jpg                    RGB

@@ -1,5 +1,5 @@
 """Posed RGB-D frames from a sequence in the TUM RGB-D benchmark's layout, for ``resireg-map``
-(docs/method.md#robot-maps-semanticmap). The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
+(docs/maps.md#robot-maps-semanticmap). The layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
 
     <path>/rgb.txt            "timestamp filename" per line (# comments), e.g. 1305031102.175304 rgb/1305031102.175304.png
     <path>/depth.txt          the same for depth/*.png: uint16, 5000 units per metre (0 = none)

@@ -103,7 +103,7 @@ _BPE = "facebookresearch/dinov2 dinov2/thirdparty/CLIP (the dino.txt BPE tokeniz
 # facebookresearch/dinov2 ``hubconf.py`` and ``dinov2/``). The ``encoders`` extra installs them
 # all (pyproject.toml lists them beside each encoder). ``clip`` and ``resireg_vlm`` need only
 # the core.
-#: ``kind -> spec``, in the order of docs/method.md#models-and-encoders.
+#: ``kind -> spec``, in the order of docs/models.md#models-and-encoders.
 ENCODER_SPECS: SpecTable[EncoderSpec] = SpecTable(
     "encoder kind",
     (

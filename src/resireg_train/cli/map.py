@@ -1,5 +1,5 @@
 """``resireg-map``: a language-queryable voxel map from a posed RGB-D recording (Hydra main;
-``conf/map.yaml``, docs/method.md#robot-maps-semanticmap). The job's steps:
+``conf/map.yaml``, docs/maps.md#robot-maps-semanticmap). The job's steps:
 :mod:`resireg_train.jobs.map`.
 
     resireg-map source=rosbag source.path=run.bag model_path=<export> source.world_frame=odom

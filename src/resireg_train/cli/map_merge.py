@@ -1,5 +1,5 @@
 """``resireg-map-merge``: one map of several mapping runs (Hydra main; ``conf/map_merge.yaml``,
-docs/guide.md#merging-maps). The merge itself: :mod:`resireg_train.jobs.map_merge`.
+docs/mapping.md#merging-maps). The merge itself: :mod:`resireg_train.jobs.map_merge`.
 
     resireg-map-merge A B --out C            # A, B: map folders or resireg-map run folders
     resireg-map-merge A B --out C 'transform=[[0,-1,0,2.0],[1,0,0,0],[0,0,1,0],[0,0,0,1]]'

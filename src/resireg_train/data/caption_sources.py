@@ -1,5 +1,5 @@
 """Caption sources on Hugging Face ``datasets``: each configured source opened as one
-``{image, caption}`` stream, and the sources mixed into one (docs/guide.md#caption-data; the
+``{image, caption}`` stream, and the sources mixed into one (docs/training.md#caption-data; the
 stream's batches are :mod:`resireg_train.data.captions`).
 
 1. Each configured source is opened in streaming mode (a hub id, a local folder of

@@ -1,6 +1,6 @@
 """Caption data on Hugging Face ``datasets``: sources -> one ``{image, caption}`` stream -> batches.
 
-Pipeline (docs/guide.md#caption-data):
+Pipeline (docs/training.md#caption-data):
 
 1. Each configured source is opened in streaming mode and reduced to
    ``{"image": bytes, "caption": [str, ...]}`` (:mod:`resireg_train.data.caption_sources`).
@@ -217,7 +217,7 @@ class _EpochDataLoader(DataLoader):
 
 
 class CaptionDataModule(L.LightningDataModule):
-    """Image-caption training data (docs/guide.md#caption-data).
+    """Image-caption training data (docs/training.md#caption-data).
 
     Args:
         sources: ``{name: spec}``; see :func:`~resireg_train.data.caption_sources.open_caption_source`. Each spec holds a

@@ -1,5 +1,5 @@
 """A ray-cast box room recorded as a ROS bag (rosbags' own writers): the test and benchmark
-recording of ``resireg-map``, and a way to try it without a robot (docs/method.md#robot-maps-semanticmap).
+recording of ``resireg-map``, and a way to try it without a robot (docs/maps.md#robot-maps-semanticmap).
 
     python -m resireg_train.data.room_bag OUT [--frames 6] [--ros1] [--mcap]
     resireg-map source=rosbag source.path=OUT source.colour_topic=/cam/color \

@@ -1,4 +1,4 @@
-"""ScanNet v2 frames for the 3D semantic-mapping task (docs/method.md#scannet-evaluation).
+"""ScanNet v2 frames for the 3D semantic-mapping task (docs/maps.md#scannet-evaluation).
 
 Layout read (the ScanNet ``SensReader`` export plus the ``2d-label-filt`` archive)::
 

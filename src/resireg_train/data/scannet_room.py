@@ -1,5 +1,5 @@
 """A procedural ScanNet-format scene: a room of labelled axis-aligned boxes, written in the
-exported ScanNet v2 layout (tests and benchmarks of the 3D task, docs/method.md#3d-semantic-mapping).
+exported ScanNet v2 layout (tests and benchmarks of the 3D task, docs/maps.md#3d-semantic-mapping).
 
 The world is z-up, in metres. The room ``[0, X] x [0, Y] x [0, Z]`` is closed by six slabs
 (floor, ceiling, four walls) and holds a few objects (bed, table, chair, sofa, cabinet, a

@@ -4,7 +4,7 @@ One job per ReSiReg setting is sometimes unavoidable (a SLURM array over setting
 of ``lite.alpha``): every job would re-run the backbone on the whole dataset although
 nothing upstream of ReSiReg changed. With ``feature_cache=<dir>`` the first job stores each
 image's ``intermediates`` and ``language`` tokens, later jobs read them instead of encoding
-(docs/guide.md#run-records-and-faults).
+(docs/runs.md#run-records-and-faults).
 
 **Key.** A cache folder is ``<dir>/<digest>``, the digest of everything the outputs depend
 on: the encoder's config entry, a fingerprint of its weights (a hash of every parameter and

@@ -2,7 +2,7 @@
 streams and the log handlers), an error as one line (``module.Type: message``), and which errors
 are the whole report (their message says what to do: no traceback on the console).
 
-How a failure is reported (docs/guide.md#run-records-and-faults): ``results.json`` gets the
+How a failure is reported (docs/runs.md#run-records-and-faults): ``results.json`` gets the
 status and the one-line error, the run's log file (``train.log`` / ``eval.log``) the error with
 its traceback, and the console either Hydra's traceback (an unexpected crash) or, for an error
 whose message says everything (a bad config value, a refused resume, a file that cannot be

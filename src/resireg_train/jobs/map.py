@@ -1,5 +1,5 @@
 """``resireg-map``'s job: a language-queryable voxel map from a posed RGB-D recording (its door:
-:mod:`resireg_train.cli.map`; ``conf/map.yaml``, docs/method.md#robot-maps-semanticmap).
+:mod:`resireg_train.cli.map`; ``conf/map.yaml``, docs/maps.md#robot-maps-semanticmap).
 
 The steps, in order (:func:`map_job`): the config checked (:mod:`resireg_train.checks.map`);
 the source (``source=<kind>``: ``conf/source/<kind>.yaml``, a kind of the table

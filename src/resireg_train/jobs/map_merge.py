@@ -1,5 +1,5 @@
 """``resireg-map-merge``'s job: one map of several mapping runs (its door:
-:mod:`resireg_train.cli.map_merge`; ``conf/map_merge.yaml``, docs/guide.md#merging-maps).
+:mod:`resireg_train.cli.map_merge`; ``conf/map_merge.yaml``, docs/mapping.md#merging-maps).
 
 A map argument is a map folder or a run folder holding one in ``map/``
 (:func:`resireg.mapping.map_folder`, the rule ``compact.basis`` follows too). The same map

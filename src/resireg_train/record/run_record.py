@@ -8,7 +8,7 @@ network is checked first), the job body adds its fields through :meth:`RunRecord
 :meth:`RunRecord.finish` writes the final status (``completed`` whenever the body returns) and
 the provenance's end, then hands the record to the trackers. Nothing else writes the file;
 readers of many records (``resireg-runs``, ``resireg-report``) use :meth:`RunRecord.read`.
-The fields are listed in docs/guide.md#run-records-and-faults.
+The fields are listed in docs/runs.md#run-records-and-faults.
 
 The file is strict JSON (RFC 8259), which has no NaN or infinity: Python's ``json`` would
 write them as bare ``NaN`` / ``Infinity``, which strict parsers (``jq``, JavaScript's

@@ -1,4 +1,4 @@
-"""The search loop (``hparams_search=<name>``, docs/guide.md#run-records-and-faults, Optuna
+"""The search loop (``hparams_search=<name>``, docs/runs.md#run-records-and-faults, Optuna
 searches): what the project's Hydra sweeper (``hydra/sweeper=resireg_optuna``) runs in every
 process of a search, the first one and each worker.
 

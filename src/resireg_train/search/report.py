@@ -1,4 +1,4 @@
-"""The report of an Optuna search (``hparams_search=...``; docs/guide.md#run-records-and-faults, Optuna
+"""The report of an Optuna search (``hparams_search=...``; docs/runs.md#run-records-and-faults, Optuna
 searches): the trials table (each trial's state, value, last reported epoch and value as
 Optuna recorded them, beside its run folder, status and error), the best trial, and Optuna's
 own matplotlib plots (optimisation history, intermediate values, parameter importances),

@@ -46,7 +46,7 @@ _NOISE_WARNINGS = (
      "Lightning's own use of a torch API, nothing a user can change"),
     (r"It is recommended to use `self\.log\('[^']*', \.\.\., sync_dist=True\)`",
      "no metric is logged with sync_dist on purpose: every cross-rank value is reduced "
-     "explicitly by all ranks at one point (docs/guide.md#run-records-and-faults), and the contrastive "
+     "explicitly by all ranks at one point (docs/runs.md#run-records-and-faults), and the contrastive "
      "loss is already the global batch's on every rank"),
     (r"Checkpoint directory .* exists and is not empty",
      "a resume writes into its own run's checkpoints/ (a new run never takes a folder that "

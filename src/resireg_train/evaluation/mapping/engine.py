@@ -1,4 +1,4 @@
-"""The 3D semantic-mapping task (paper Table 2, Fig. 4b; docs/method.md#scannet-evaluation).
+"""The 3D semantic-mapping task (paper Table 2, Fig. 4b; docs/maps.md#scannet-evaluation).
 
 Per scene, batches of consecutive kept frames (:meth:`ScanNetFrames.batches`; ReSiReg Full's
 batch = scene is a video window). Per batch the encoder runs once (``encode``) and every

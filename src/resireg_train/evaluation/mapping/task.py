@@ -2,7 +2,7 @@
 (the dataset table's kinds scored by ``scannet3d``, each read by its own builder) as an evaluation task
 (:class:`resireg_train.evaluation.base.EvalTask`; the entry ``scannet3d`` of
 :data:`resireg_train.evaluation.specs.TASK_SPECS`) over the engine
-:class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/method.md#3d-semantic-mapping). Beside the
+:class:`~resireg_train.evaluation.mapping.engine.MappingEngine` (docs/maps.md#3d-semantic-mapping). Beside the
 fields every task writes, ``results.json`` holds ``per_scene``, ``per_scene_csv`` (the CSVs of
 :meth:`~resireg_train.evaluation.mapping.result.MappingResult.write_csv`), ``frames`` and
 ``frames_dropped``."""
