@@ -1,4 +1,4 @@
-"""Callbacks that DDP tests load into real runs (``+callbacks.<name>._target_=_ddp.<Class>``,
+"""Callbacks that DDP tests load into real runs (``+callbacks.<name>._target_=helpers.ddp.<Class>``,
 tests/ on PYTHONPATH): what each rank read, and a rank that dies."""
 
 import json

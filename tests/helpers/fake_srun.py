@@ -1,4 +1,4 @@
-"""Stands in for ``srun`` where tests have no SLURM: ``python _fake_srun.py <tasks> <command>``
+"""Stands in for ``srun`` where tests have no SLURM: ``python tests/helpers/fake_srun.py <tasks> <command>``
 starts ``<tasks>`` copies of the command on this machine with the variables SLURM gives the
 tasks of a job step on as many nodes, one task each (``SLURM_PROCID``, ``SLURM_NODEID``,
 ``SLURM_NTASKS``...), and ends the step as ``srun --kill-on-bad-exit`` does: the first task that

@@ -1,5 +1,5 @@
 """A Lightning callback that pauses a real training job once it has started (its run folder
-locked, its files written), until a file appears: tests/test_cli_hygiene.py's first job."""
+locked, its files written), until a file appears: tests/project/test_cli_hygiene.py's first job."""
 
 import sys
 import time

@@ -1,5 +1,5 @@
 """Tiny Replica and TartanAir scenes written exactly as each dataset is downloaded (file names,
-image formats, depth encodings, pose files, label encodings), for tests/test_posed3d.py.
+image formats, depth encodings, pose files, label encodings), for tests/resireg_train/data/test_posed3d.py.
 
 The scene is the synthetic room of :mod:`resireg_train.data.scannet_room` (labelled boxes,
 exact ray-cast depth, known camera-to-world poses with OpenCV camera axes), enlarged so that

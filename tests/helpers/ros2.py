@@ -12,7 +12,9 @@ import threading
 import time
 from pathlib import Path
 
-PROFILE = Path(__file__).resolve().parent / "fastdds_shm.xml"
+from helpers.paths import TESTS
+
+PROFILE = TESTS / "fastdds_shm.xml"
 
 
 def ros_env(env=None):

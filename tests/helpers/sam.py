@@ -6,7 +6,7 @@ input, Hiera stages [1, 2, 2, 1] of width 8..64, 32-d neck and decoder (about 12
 parameters; built and saved in well under a second). ``SamPrior(model=<dir>)`` loads it
 offline by path, so tests and notebooks run the real pipeline without the hub.
 
-    python tests/_sam.py /tmp/tiny-sam2      # or: from _sam import save_tiny_sam
+    python tests/helpers/sam.py /tmp/tiny-sam2      # or: from helpers.sam import save_tiny_sam
 """
 
 from __future__ import annotations

@@ -3,11 +3,11 @@
 ``conf/model/text/tiny.yaml``), so the tests build the smoke run's model and no copy of its
 values exists (they were once library constants, ``resireg.models.TINY_*``)."""
 
-from pathlib import Path
-
 import yaml
 
-_MODEL = Path(__file__).resolve().parents[1] / "conf" / "model"
+from helpers.paths import ROOT
+
+_MODEL = ROOT / "conf" / "model"
 
 
 def _load(path):

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import importlib.util
 import itertools
-from pathlib import Path
 
 import pytest
 import torch
@@ -19,11 +18,12 @@ from PIL import Image
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.utils.flop_counter import FlopCounterMode
 
+from helpers.paths import ROOT
 from resireg.method.full import ReSiRegFull
 from resireg.method.lite import ReSiRegLite
 from resireg.models import EUPEBackbone, LanguageHead
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_throughput.py"
+_PATH = ROOT / "benchmarks" / "bench_throughput.py"
 _spec = importlib.util.spec_from_file_location("bench_throughput", _PATH)
 bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench)

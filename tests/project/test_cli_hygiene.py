@@ -14,9 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from _run import _command, run, run_side_by_side, started
-
-ROOT = Path(__file__).resolve().parents[1]
+from helpers.paths import ROOT, TESTS
+from helpers.run import _command, run, run_side_by_side, started
 
 
 @contextlib.contextmanager
@@ -81,12 +80,12 @@ def test_a_running_training_job_keeps_its_folder_until_killed(tmp_path, tiny_exp
     (resume=true, the same hydra.run.dir) are refused naming its PID and change none of its
     files; after kill -9 the lock is free."""
     out = tmp_path / "run"
-    tests = str(Path(__file__).parent)
+    tests = str(TESTS)
     env = {**os.environ,
            "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")])}  # fmt: skip
     with started(_command("resireg-train", [
         "experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",
-        "+callbacks.hold._target_=_hold.WaitFor", f"+callbacks.hold.path={tmp_path / 'go'}",
+        "+callbacks.hold._target_=helpers.hold.WaitFor", f"+callbacks.hold.path={tmp_path / 'go'}",
         # the job's own writers that keep running while it is held (the system-metrics rows
         # every 10 s, the heartbeat every 30 s) are off: the files compared are the refused
         # commands' doing only

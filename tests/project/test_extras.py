@@ -4,13 +4,13 @@ import importlib
 import importlib.metadata
 import importlib.util
 import sys
-from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
+from helpers.paths import ROOT
 from resireg.errors import ConfigError
 from resireg_train.config.machine import ENCODER_IMPORTS, check_available
 from resireg_train.config.paths import CONFIG_DIR
@@ -20,7 +20,7 @@ if sys.version_info >= (3, 11):
 else:  # pytest's own dependency before Python 3.11
     import tomli as tomllib
 
-PYPROJECT = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 EXTRAS = PYPROJECT["project"]["optional-dependencies"]
 LISTED = sorted({n.module for needs in ENCODER_IMPORTS.values() for n in needs})
 
@@ -95,7 +95,7 @@ def _imported_distributions(package, module_level=True, skip=()):
     ``skip``: subpackages left out."""
     import ast
 
-    root = Path(__file__).parents[1] / "src" / package
+    root = ROOT / "src" / package
     top = set()
     for path in root.rglob("*.py"):
         if path.relative_to(root).parts[0] in skip:
@@ -165,7 +165,7 @@ def test_the_live_node_imports_the_core_and_the_robot_extra():
     if not any(name.startswith("ros-jazzy-") for name in robot):
         pytest.skip("no ROS 2 wheels for this Python / platform (the robot extra's marker)")
     allowed = core | _installed_with(robot)
-    root = Path(__file__).parents[1] / "src" / "resireg"
+    root = ROOT / "src" / "resireg"
     for module, dists in _imported_distributions("resireg").items():
         if dists & core:
             continue

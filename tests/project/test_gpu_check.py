@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-_BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from helpers.paths import ROOT
+
+_BENCH = ROOT / "benchmarks"
 
 
 @pytest.fixture

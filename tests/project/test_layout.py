@@ -2,24 +2,28 @@
 packages only, every package's docstring says what may import it, the architecture page stays
 short and names every package, every package of ``resireg_train`` has its floor in the import
 contract, no module imports itself back through others (imports inside functions
-counted), every component table is a ``<THING>_SPECS`` of a ``specs`` module, and every module
-over 500 lines says why it is one idea."""
+counted), every component table is a ``<THING>_SPECS`` of a ``specs`` module, every module
+over 500 lines says why it is one idea, and ``tests/`` mirrors the packages (issue 53): no test
+file directly under ``tests/``, every test folder a package of ``src/`` (or ``project/``), the
+shared helpers only in ``tests/helpers/``, every test file's name unique."""
 
 from __future__ import annotations
 
 import ast
 import re
 import sys
+from collections import Counter
 from pathlib import Path
 
 import pytest
+
+from helpers.paths import ROOT, TESTS
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pytest's own dependency before Python 3.11
     import tomli as tomllib
 
-ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
 
 
@@ -319,3 +323,62 @@ def test_the_long_module_check_fails_on_a_new_long_module(tmp_path):
     (pkg / "short.py").write_text('"""Several things."""\n' + body * 499)  # 500 lines
     (pkg / "said.py").write_text('"""Sums.\n\nOne idea: the sums, written once."""\n' + body * 500)
     assert _long_without_reason(tmp_path) == ["pkg.bare", "pkg.inline"]
+
+
+# ------------------------------------------------------------------ tests/ mirrors the packages
+#: The folders of tests/ that mirror no package: the project's own checks and the shared helpers.
+TEST_OWN = ("project", "helpers")
+#: The folders of tests/ that hold data, not tests (read by the tests, left as they are).
+TEST_DATA = ("data", "fixtures", "conf")
+
+
+def _test_layout_problems(tests: Path = TESTS, src: Path = SRC) -> list[str]:
+    """What breaks the mirror in ``tests``: a test file directly under it, a folder that is no
+    package of ``src`` (nor ``project/``, ``helpers/`` or a data folder), a Python module outside
+    ``helpers/`` that is no test file (the root's ``conftest.py`` excepted), two test files of
+    one name (pytest imports each by its name)."""
+    problems, names = [], Counter()
+    for path in sorted(tests.rglob("*")):
+        rel = path.relative_to(tests)
+        if rel.parts[0] in TEST_DATA or "__pycache__" in rel.parts or rel.parts[0].startswith("."):
+            continue
+        if path.is_dir():
+            if rel.parts[0] not in TEST_OWN and not (src / rel / "__init__.py").is_file():
+                problems.append(f"tests/{rel.as_posix()}/ mirrors no package of src/")
+            continue
+        if path.suffix != ".py" or rel.parts[0] == "helpers" or rel.as_posix() == "conftest.py":
+            continue
+        if not path.name.startswith("test_"):
+            problems.append(f"tests/{rel.as_posix()}: a helper outside tests/helpers/")
+        elif len(rel.parts) == 1:
+            problems.append(f"tests/{rel.as_posix()}: a test file directly under tests/")
+        else:
+            names[path.name] += 1
+    problems += [f"{name}: {n} test files of this name" for name, n in names.items() if n > 1]
+    return problems
+
+
+def test_the_tests_mirror_the_packages():
+    assert _test_layout_problems() == []
+
+
+def test_the_mirror_check_fails_on_each_kind_of_misplaced_file(tmp_path):
+    """The check can fail: a flat test file, a folder of no package, a helper outside
+    ``helpers/`` and a name used twice are each reported; the mirrored, project, helper and
+    data files pass."""
+    src, tests = tmp_path / "src", tmp_path / "tests"
+    for rel in ("pkg/__init__.py", "pkg/sub/__init__.py"):
+        (src / rel).parent.mkdir(parents=True, exist_ok=True)
+        (src / rel).write_text("")
+    for rel in ("conftest.py", "pkg/sub/test_a.py", "pkg/test_b.py", "project/test_c.py",
+                "helpers/__init__.py", "helpers/run.py", "data/x/make.py", "test_flat.py",
+                "pkg/other/test_d.py", "_run.py", "pkg/util.py", "project/test_a.py"):  # fmt: skip
+        (tests / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tests / rel).write_text("")
+    assert _test_layout_problems(tests, src) == [
+        "tests/_run.py: a helper outside tests/helpers/",
+        "tests/pkg/other/ mirrors no package of src/",
+        "tests/pkg/util.py: a helper outside tests/helpers/",
+        "tests/test_flat.py: a test file directly under tests/",
+        "test_a.py: 2 test files of this name",
+    ]

@@ -1,12 +1,13 @@
 """Both notebooks execute top to bottom on artefacts made in this test session."""
 
 import os
-from pathlib import Path
 
 import nbformat
 from nbclient import NotebookClient
 
-NOTEBOOKS = Path(__file__).resolve().parents[1] / "notebooks"
+from helpers.paths import ROOT
+
+NOTEBOOKS = ROOT / "notebooks"
 
 
 def _execute(name, tmp_path, **env):

@@ -15,10 +15,11 @@ import optuna
 import pytest
 import yaml
 
-from _run import run
+from helpers.paths import TESTS
+from helpers.run import run
 from resireg_train.config.paths import CONFIG_DIR
 
-FIXTURE = Path(__file__).parent / "data" / "runs_before_house_v2"
+FIXTURE = TESTS / "data" / "runs_before_house_v2"
 TEXT = {".yaml", ".json", ".journal", ".csv", ".log", ".md"}
 
 pytestmark = pytest.mark.slow

@@ -8,9 +8,9 @@ new component then runs through ``resireg-eval`` with no other edit.
 - a text tower: its builder's module, its table entry, its conf file (3 files).
 
 The encoder recipe (module, entry point, conf file) is followed from outside the project in
-``tests/test_specs.py``, the task and dataset recipes in ``tests/test_tasks.py``, the map
-source recipe in ``tests/test_sources.py``, the report section recipe in
-``tests/test_report.py``."""
+``tests/resireg/specs/test_specs.py``, the task and dataset recipes in ``tests/resireg_train/evaluation/test_tasks.py``, the map
+source recipe in ``tests/resireg/sources/test_sources.py``, the report section recipe in
+``tests/resireg_train/report/test_report.py``."""
 
 from __future__ import annotations
 
@@ -24,10 +24,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from _run import run
+from helpers.paths import ROOT, TESTS
+from helpers.run import run
 
-ROOT = Path(__file__).resolve().parents[1]
-TEST_CONF = Path(__file__).parent / "conf"
+TEST_CONF = TESTS / "conf"
 pytestmark = pytest.mark.slow
 
 

@@ -1,4 +1,4 @@
-"""The suite's own handling of the processes its tests start (tests/_run.py ``started``): a child
+"""The suite's own handling of the processes its tests start (tests/helpers/run.py ``started``): a child
 takes Ctrl-C even when the suite runs in the background (SIGINT ignored, as ``nohup ... &`` and
 some CI runners start it), a read never blocks past its timeout, and nothing a child started
 outlives its test unnoticed."""
@@ -14,10 +14,10 @@ from pathlib import Path
 import psutil
 import pytest
 
-import _run
-from _run import started
+from helpers import run as _run
+from helpers.paths import ROOT
+from helpers.run import started
 
-ROOT = Path(__file__).resolve().parents[1]
 WAIT = "import time\nprint('ready', flush=True)\ntime.sleep(600)"
 
 
@@ -94,7 +94,7 @@ def test_the_playground_launch_test_passes_with_sigint_ignored(tmp_path, sigint_
     ignores SIGINT as a background job does: it passes and leaves no process (before, it
     failed after 60 s and left Gradio serving, orphaned)."""
     pytest.importorskip("gradio")
-    test = "tests/test_cli_hygiene.py::test_playground_launch_prints_its_address_and_no_share_hint"
+    test = "tests/project/test_cli_hygiene.py::test_playground_launch_prints_its_address_and_no_share_hint"
     cmd = [sys.executable, "-m", "pytest", "-n", "0", "-q", "-p", "no:cacheprovider",
            f"--basetemp={tmp_path / 'inner'}", test]  # fmt: skip
     with started(cmd, cwd=ROOT, preexec=_ignore_sigint) as inner:

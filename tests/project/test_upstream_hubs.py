@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 
-from _fake_hubs import offline_hub
+from helpers.fake_hubs.common import offline_hub
 from resireg.models import WeightsUnavailableError, build_encoder
 from resireg.models import hub as hub_module
 from resireg.models.zoo.radio import RadioEncoder

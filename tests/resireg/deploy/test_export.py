@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import torch
 
+from helpers.paths import ROOT
 from resireg.integrity import IntegrityError, verify_digests
 from resireg.method.lite import ReSiRegLite
 from resireg.models import ResiregVLM
@@ -27,11 +28,8 @@ from resireg.models import ResiregVLM
 onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
-
 from resireg.deploy import open_graph  # noqa: E402
 from resireg.deploy.onnx_export import export_onnx  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _sha256(path):
@@ -52,7 +50,7 @@ def export_copy(tiny_export, tmp_path):
 
 # ------------------------------------------------------------------ integrity (issue 34 item 4)
 def test_export_records_each_files_sha256_and_follows_the_umask(tmp_path):
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 
     old = os.umask(0o022)
     try:
@@ -127,7 +125,7 @@ def test_an_export_without_digests_loads_with_a_warning(tiny_export, export_copy
 
 
 def test_resireg_eval_on_a_damaged_export_fails_naming_the_file(export_copy, tmp_path):
-    from _run import run
+    from helpers.run import run
 
     _overwrite_4k(export_copy / "model.safetensors")
     out = tmp_path / "eval"
@@ -184,7 +182,7 @@ def test_an_export_naming_weights_outside_itself_is_refused(export_copy, tmp_pat
 def test_resireg_export_on_an_export_naming_weights_outside_fails_in_one_line(
     export_copy, tmp_path
 ):
-    from _run import run
+    from helpers.run import run
 
     name = _frozen_outside(export_copy, tmp_path, absolute=False)
     out = tmp_path / "graphs" / "model.onnx"
@@ -366,7 +364,7 @@ def _one_line(proc):
 
 
 def test_resireg_export_checks_the_export_and_out_before_it_starts(tiny_export, tmp_path):
-    from _run import run
+    from helpers.run import run
 
     (tmp_path / "file").write_text("x")
     (tmp_path / "out" / "m.text.onnx").mkdir(parents=True)
@@ -616,7 +614,7 @@ def test_a_backbone_file_outside_the_export_is_taken_only_as_an_argument(export_
     resireg-export refuse it in one line naming the field, reading nothing; passed by the user
     (external=), the file is what the backbone holds, and a re-save embeds it (no outside path,
     its digest recorded); a name inside the export that the digests do not cover is refused."""
-    from _run import run
+    from helpers.run import run
 
     outside, backbone = _backbone_outside(export_copy, tmp_path)
     before = {p.name: _sha256(p) for p in [*export_copy.iterdir(), outside]}
@@ -658,7 +656,7 @@ def test_a_backbone_file_given_to_resireg_eval_is_in_the_provenance_with_its_dig
     """resireg-eval's encoder.external.backbone.weights (the user's argument) loads the export
     whose config.json names a file outside it; the run's provenance records that file with
     its SHA-256, beside the export's own files."""
-    from _run import evaluate
+    from helpers.run import evaluate
 
     outside, _ = _backbone_outside(export_copy, tmp_path)
     out = tmp_path / "eval"

@@ -213,7 +213,7 @@ def _one_line(proc):
              "limit of 89,478,485")],  # PIL only warns here: refused from the header
 )  # fmt: skip
 def test_resireg_segment_refuses_an_image_bomb_in_one_line(tmp_path, side, said):
-    from _run import run
+    from helpers.run import run
 
     bomb = _png(tmp_path / "bomb.png", side, side, pixels=False)
     assert bomb.stat().st_size < 100
@@ -264,7 +264,7 @@ def test_a_large_jpeg_is_decoded_small_and_matches_the_photo(photo, tmp_path):
 
 
 def test_resireg_segment_writes_a_large_image_at_the_limits_size(tiny_export, tmp_path):
-    from _run import run
+    from helpers.run import run
 
     png = _png(tmp_path / "wide.png", 4000, 3000)  # 12 MP
     out = tmp_path / "seg.png"

@@ -7,20 +7,20 @@ safetensors and the numbers the code that wrote them read back."""
 
 import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from test_semantic_map import VOXEL, encoder, room  # noqa: F401  (module fixtures)
 
+from helpers.paths import ROOT, TESTS
 from resireg.errors import MapError
 from resireg.integrity import IntegrityError
 from resireg.mapping import SemanticMap
 from resireg.mapping.compact import CompactVoxelMap
 from resireg.mapping.map_file import MapFormatWarning
-from test_semantic_map import VOXEL, encoder, room  # noqa: F401  (module fixtures)
 
-FIXTURES = Path(__file__).parent / "fixtures" / "maps"
+FIXTURES = TESTS / "fixtures" / "maps"
 
 
 def frames(n, seed, dim=16, size=(48, 64), grid=(12, 16), span=2.0):
@@ -492,7 +492,7 @@ def test_map_settings_are_one_table_and_conf_holds_the_defaults():
     scannet = DATASET_SPECS["scannet"].rules
     for key in ("voxel_size", "lattice", "points", "storage"):
         assert scannet[key] is MAP_RULES[key], key
-    conf = yaml.safe_load((Path(__file__).parents[1] / "conf" / "map.yaml").read_text())
+    conf = yaml.safe_load((ROOT / "conf" / "map.yaml").read_text())
     assert asdict(CompactSettings()) == conf["compact"] == compact_defaults()
     assert inspect.signature(SemanticMap).parameters["storage"].default == conf["storage"]
     bad = OmegaConf.create({**{k: v for k, v in conf.items() if k != "defaults"},
@@ -511,7 +511,7 @@ def test_resireg_map_merge_writes_a_run_record_and_refuses_other_maps(tmp_path):
     SemanticMap.merge of the two, C/results.json is the run's record (completed, the inputs,
     the result); maps of another voxel size: exit 1, one line naming voxel_size, the record
     failed, no map written."""
-    from _run import run
+    from helpers.run import run
 
     windows = frames(2, 7)
     for name, part in (("a", windows[:1]), ("b/map", windows[1:])):

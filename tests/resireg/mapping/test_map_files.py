@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_compact_map import _rewrite, frames, unit
 
 from resireg.integrity import IntegrityError
 from resireg.mapping import SemanticMap, map_folder
 from resireg.mapping.basis import load_basis
 from resireg.mapping.map_file import remove_partial_saves
 from resireg.mapping.tensor_file import write_tensors
-from test_compact_map import _rewrite, frames, unit
 
 COMPACT = {"dim": 8, "basis_rows": 10}
 
@@ -125,7 +125,7 @@ def test_a_hostile_map_is_refused_in_one_line_before_it_allocates(tmp_path):
     wrong type or size, digests recomputed: an IntegrityError of one line naming map.json and
     the field; through resireg-map-merge, one line on stderr and no traceback. No file of a
     map changes."""
-    from _run import run
+    from helpers.run import run
 
     hostile = hostile_map(tmp_path / "hostile")
     kept = digests(hostile)
@@ -157,7 +157,7 @@ def test_a_hostile_map_is_refused_in_one_line_before_it_allocates(tmp_path):
 def export_512(tmp_path_factory):
     """A tiny ResiregVLM export whose dense features are 512-d (random init): a compact map
     (compact.dim 128) fits a basis for it."""
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     torch.manual_seed(0)
@@ -195,7 +195,7 @@ def test_the_multi_session_recipe_through_the_commands(tmp_path, export_512):
     and the count-weighted mean of their features (numpy, from the two maps' own files), the
     first run's basis (by SHA-256) and every frame; the runs' files keep their bytes."""
     pytest.importorskip("rosbags")
-    from _run import run
+    from helpers.run import run
     from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
 
     bag = write_bag(tmp_path / "room", room_frames(6))
@@ -303,7 +303,7 @@ def test_a_merge_refuses_a_map_it_is_made_of(tmp_path):
     line naming both maps and the shared part, nothing written, every input keeping its
     bytes. A map saved before maps recorded their parts (no parts field) merges; merged again
     with what holds it, it is refused naming its tensor file's SHA-256."""
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
 
     a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
     old = strip_parts(saved(tmp_path / "old", seed=3))
@@ -356,7 +356,7 @@ def test_merge_out_onto_another_run_is_refused_before_anything_is_written(tmp_pa
     file of those folders (their .hydra files, results.json, log, map) and of the inputs
     keeps its bytes and no file is added (not even the lock file). A merge of A B that did
     not complete (killed: its record 'running') is taken again in its own folder."""
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
     from resireg_train.record.run_record import RunRecord
 
     a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
@@ -394,7 +394,7 @@ def test_merge_out_inside_another_run_or_map_is_refused(tmp_path):
     folder>: each refused in one line naming the folder it lies in; every file of those runs
     keeps its bytes and nothing is added. A results.json above --out that is no run record
     (another tool's file) does not stop a merge."""
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
 
     a, b = saved(tmp_path / "a", seed=1), saved(tmp_path / "b", seed=2)
     runs = other_runs(tmp_path)
@@ -425,7 +425,7 @@ def test_a_map_merged_with_itself_is_refused_and_a_killed_save_is_cleaned(tmp_pa
     killed save left in --out/map (its process gone) is removed by the next merge into that
     folder, which completes; SemanticMap.save removes one too, and leaves a running
     process's."""
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
 
     run_a = tmp_path / "run-a"
     a = saved(run_a / "map", seed=1)

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
+from test_compact_map import frames, unit
 
 from resireg.errors import ConfigError
 from resireg.mapping import SemanticMap
 from resireg.mapping.opening import map_identity, open_map
-from test_compact_map import frames, unit
 
 SOURCE = {"kind": "rosbag", "path": "run.bag", "limit": 6, "idle": 2.0, "tolerance": 0.02}
 ENCODER = {"kind": "export", "path": "model"}

@@ -8,7 +8,8 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial.transform import Rotation
 
-from _optional import open3d
+from helpers.optional import open3d
+from helpers.paths import ROOT
 from resireg.mapping import (
     LabelVoxelMap,
     VoxelMap,
@@ -473,9 +474,8 @@ def test_bench_mapping_smoke_and_its_room_is_the_box():
     """benchmarks/bench_mapping.py: sections 1 and 4 run, and its ray-cast depth lies on the
     room."""
     import importlib.util
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_mapping.py"
+    path = ROOT / "benchmarks" / "bench_mapping.py"
     spec = importlib.util.spec_from_file_location("bench_mapping", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)

@@ -10,8 +10,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from _optional import open3d
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.optional import open3d
+from helpers.paths import ROOT
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.mapping import MapFullError, SemanticMap, patch_points
 from resireg.models import ResiregVLM
 from resireg_train.data.scannet_room import NYU40_COLOURS, SyntheticRoom
@@ -229,14 +230,13 @@ def test_python_defaults_are_the_configs():
     """One source per default: SemanticMap's keyword defaults equal conf/map.yaml's keys (the
     Python API a robot calls and resireg-map agree), and its POINTS are the 3D task's."""
     import inspect
-    from pathlib import Path
 
     import yaml
 
     from resireg.specs.mapping import POINTS
     from resireg_train.evaluation.mapping.engine import POINTS as TASK_POINTS
 
-    conf = yaml.safe_load((Path(__file__).parents[1] / "conf" / "map.yaml").read_text())
+    conf = yaml.safe_load((ROOT / "conf" / "map.yaml").read_text())
     params = inspect.signature(SemanticMap).parameters
     for name in ("points", "lattice", "sum_dtype", "max_voxels", "short_side"):
         assert params[name].default == conf[name], name

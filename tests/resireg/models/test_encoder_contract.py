@@ -3,7 +3,7 @@
 One test per property, parametrised over every kind, each built through ``build_encoder``
 from its config entry with same-architecture random weights (a tiny ResiregVLM export, a
 seeded random open_clip ViT-B/16, TIPS release files written here) or the local fake hub
-repos of ``tests/_fake_hubs.py`` (RADIO, RADSeg, dino.txt, OTAS's DINOv2):
+repos of ``tests/helpers/fake_hubs/`` (RADIO, RADSeg, dino.txt, OTAS's DINOv2):
 
 - the dense output: dtypes (float32), shapes (``[B, D, H/p, W/p]`` for both maps on the
   patch grid of the input, ``[B, De]`` or no embedding), unit-norm text queries in the
@@ -30,20 +30,12 @@ import torch
 from huggingface_hub import constants as hf_constants
 
 import resireg.models.hub as hub_module
-from _fake_hubs import (
-    DINOTXT_VOCAB,
-    TIPS_STEM,
-    TIPS_TINY,
-    dinotxt_repo,
-    dinov2_repo,
-    drop_dinov2_modules,
-    offline_hub,
-    radio_repo,
-    radseg_repo,
-    restore_dinov2_modules,
-    train_sentencepiece,
-    write_tips_release,
-)
+from helpers.fake_hubs.common import offline_hub
+from helpers.fake_hubs.dinotxt import DINOTXT_VOCAB, dinotxt_repo
+from helpers.fake_hubs.dinov2 import dinov2_repo, drop_dinov2_modules, restore_dinov2_modules
+from helpers.fake_hubs.radio import radio_repo
+from helpers.fake_hubs.radseg import radseg_repo
+from helpers.fake_hubs.tips import TIPS_STEM, TIPS_TINY, train_sentencepiece, write_tips_release
 from resireg.models import WeightsUnavailableError
 from resireg.models.factory import ENCODERS, build_encoder
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS

@@ -1,5 +1,5 @@
 """Hub code is pinned: each hub encoder's conf names a git ref, torch.hub loads
-``"owner/name:<ref>"`` (from its cache here: the fake repositories of ``tests/_fake_hubs.py``
+``"owner/name:<ref>"`` (from its cache here: the fake repositories of ``tests/helpers/fake_hubs/``
 at ``<hub>/owner_name_<ref>``, the network failing the test), and results.json records it.
 
 Before, ``torch.hub.load("NVlabs/RADIO", ...)`` (and RADSeg's, DINOv2's) followed each
@@ -17,7 +17,11 @@ import torch
 import yaml
 from hydra import compose, initialize_config_dir
 
-from _fake_hubs import dinotxt_repo, dinov2_repo, offline_hub, radio_repo, radseg_repo
+from helpers.fake_hubs.common import offline_hub
+from helpers.fake_hubs.dinotxt import dinotxt_repo
+from helpers.fake_hubs.dinov2 import dinov2_repo
+from helpers.fake_hubs.radio import radio_repo
+from helpers.fake_hubs.radseg import radseg_repo
 from resireg.models.hub import PINNED_REFS, check_hub_ref, hub_target
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DinoTxtEncoder
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS
@@ -117,7 +121,8 @@ def test_radseg_pins_its_own_code_and_the_radio_it_loads_itself(tmp_path, monkey
 
 
 def test_dinov2_encoders_load_the_pinned_commit(tmp_path, monkeypatch, calls):
-    from _fake_hubs import DINOTXT_VOCAB, drop_dinov2_modules, restore_dinov2_modules
+    from helpers.fake_hubs.dinotxt import DINOTXT_VOCAB
+    from helpers.fake_hubs.dinov2 import drop_dinov2_modules, restore_dinov2_modules
     from resireg.models.zoo.otas import OtasEncoder
 
     ref = _ref("encoder/dinotxt.yaml")

@@ -8,8 +8,10 @@ import torch
 from PIL import Image
 from safetensors.torch import save_file
 
-from _fake_hubs import offline_hub, radio_repo, radseg_repo
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.fake_hubs.common import offline_hub
+from helpers.fake_hubs.radio import radio_repo
+from helpers.fake_hubs.radseg import radseg_repo
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import (
     EUPEBackbone,
     FrozenTextTower,
@@ -318,7 +320,7 @@ def test_radseg_teacher_gets_radsegs_offline_checks(tmp_path, monkeypatch):
 
 
 def test_radseg_teacher_is_radsegs_language_map(tmp_path, monkeypatch):
-    """Against RADSeg's structure (tests/_fake_hubs.py FAKE_RADSEG): the teacher's features are
+    """Against RADSeg's structure (tests/helpers/fake_hubs/ FAKE_RADSEG): the teacher's features are
     RADSeg's own language-aligned map of the un-normalised images (a second load, RADSeg's
     documented API), resized to the student's grid; and the same as the dense encoder's
     language tokens (both over the one loader)."""

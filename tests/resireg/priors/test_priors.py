@@ -1,7 +1,7 @@
 """The SAM 2.1 segmentation prior (resireg.priors) and ReSiReg Full / Lite with a prior.
 
 The provider runs transformers' real SAM 2 classes and mask-generation pipeline on a tiny
-random-initialised SAM 2 saved to disk (tests/_sam.py), offline. References are computed
+random-initialised SAM 2 saved to disk (tests/helpers/sam.py), offline. References are computed
 independently: the pipeline called directly plus a numpy implementation of the overlap rule,
 and a dense float64 softmax of Lite's stated formula.
 """
@@ -14,8 +14,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from _run import run
-from _sam import save_tiny_sam
+from helpers.run import run
+from helpers.sam import save_tiny_sam
 
 pytest.importorskip("transformers")
 
@@ -171,7 +171,7 @@ def test_offline_without_cached_weights_names_prior_model(monkeypatch):
 
 # ----------------------------------------------------------------------------- with ReSiReg
 def _encoder():
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     torch.manual_seed(0)

@@ -11,11 +11,10 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from _ros2 import ros_env
+from helpers.paths import ROOT
+from helpers.ros2 import ros_env
 from resireg.ros2 import settings
 from resireg.ros2.clouds import pack_rgb, unpack_rgb
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_without_rclpy_the_command_names_the_robot_extra(monkeypatch, capsys):

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from _ros2 import Spinner, ros_env, udp_sockets, wait_for  # sets the DDS environment first
-from _run import started
+from helpers.ros2 import Spinner, ros_env, udp_sockets, wait_for  # sets the DDS environment first
+from helpers.run import started
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from _ros2 import udp_sockets, wait_for  # sets the DDS environment first
+from helpers.ros2 import udp_sockets, wait_for  # sets the DDS environment first
 from resireg.errors import ConfigError
 
 THREAD = "resireg-live-source"
@@ -25,11 +25,12 @@ PREFIX = "/source"
 
 @pytest.fixture(scope="module")
 def live():
-    """A bag-playing node in its own context, and tests/test_ros2_node.py's room, topics and
+    """A bag-playing node in its own context, and tests/resireg/ros2/test_ros2_node.py's room, topics and
     comparisons (skipped without rclpy or rosbags)."""
     rclpy = pytest.importorskip("rclpy")
     pytest.importorskip("rosbags")
     import test_ros2_node as helpers
+
     from resireg.ros2.bag_player import BagPlayer
 
     context = rclpy.Context()

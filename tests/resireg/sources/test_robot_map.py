@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.mapping import SemanticMap, VoxelMap, patch_points
 from resireg.models import ResiregVLM
 from resireg.sources.frames import FrameCounts, RGBDFrame, SkippedFrame, windows
@@ -215,7 +215,7 @@ def test_resireg_map_cli_bag_rerun_and_resume(tmp_path, room, tiny_export):
     """resireg-map on a bag: results.json counts, the saved map and PLY, the Rerun recording read
     back with rerun.chunk.RrdReader (entities, the map's point count); a run cut by
     source.limit and resumed equals one uninterrupted run."""
-    from _run import run, run_side_by_side
+    from helpers.run import run, run_side_by_side
 
     pytest.importorskip("rerun")
     from rerun.chunk import RrdReader
@@ -403,7 +403,7 @@ def test_resireg_map_bad_stamps_sizes_depth_corrupt_tf(tmp_path, room12, tiny_ex
     files with the umask's mode."""
     import os
 
-    from _run import run
+    from helpers.run import run
 
     pytest.importorskip("rerun")
     r, written = room12
@@ -481,8 +481,8 @@ def test_resireg_map_resume_inside_a_window_and_another_model(tmp_path, room12, 
     given by another path: refused, naming only what differs (encoder.path, weights)."""
     import shutil
 
-    from _run import run, run_side_by_side
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.run import run, run_side_by_side
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     bag = write_bag(tmp_path / "bag", room12, decoys=False)
@@ -526,8 +526,8 @@ def test_resireg_map_damaged_bags_and_a_non_finite_encoder(tmp_path, room12, tin
     why per kind, in results.json and on stderr."""
     import os
 
-    from _run import run_side_by_side
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.run import run_side_by_side
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     ros1 = write_bag(tmp_path / "room.bag", room12, ros1=True)

@@ -273,7 +273,7 @@ def bag_map(encoder, bag):
 def test_nerfstudio_maps_as_the_bag_of_the_same_frames(tmp_path, room):
     """The same room as a bag and as a Nerfstudio folder: the same map (voxel keys exact,
     features to 1e-6)."""
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.mapping import SemanticMap
     from resireg.models import ResiregVLM
     from resireg.sources.nerfstudio import NerfstudioSource
@@ -293,7 +293,7 @@ def test_nerfstudio_maps_as_the_bag_of_the_same_frames(tmp_path, room):
 def test_resireg_map_source_nerfstudio(tmp_path, room, tiny_export):
     """resireg-map source=nerfstudio: the map of the bag of the same frames (voxel keys exact,
     features to 1e-6); results.json records the frames."""
-    from _run import run
+    from helpers.run import run
     from resireg.mapping import SemanticMap
     from resireg.models import ResiregVLM
 

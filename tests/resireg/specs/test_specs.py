@@ -86,7 +86,7 @@ def test_one_rule_per_parameter_read_by_the_class_and_the_config_check(variant, 
     cls = VARIANT_SPECS[variant].load()
     base = {"encoder": {"kind": "clip", "name": "c", "third_party": True}, "variants": ["bb"]}
     for value in good:
-        if value != "auto":  # "auto" resolves a heuristic file (tests/test_reconstruct.py)
+        if value != "auto":  # "auto" resolves a heuristic file (tests/resireg/method/test_reconstruct.py)
             cls(**{key: value})
         validate_eval({**base, variant: {key: value}})
     for value in bad:
@@ -220,7 +220,7 @@ def test_an_encoder_registered_through_the_table_runs_through_resireg_eval(tmp_p
     import os
     import sys
 
-    from _run import run
+    from helpers.run import run
 
     site = tmp_path / "site"
     (site / "resireg_toy-0.1.dist-info").mkdir(parents=True)

@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from _run import run
+from helpers.paths import TESTS
+from helpers.run import run
 from resireg.errors import ConfigError
 from resireg_train.config import moves
 from resireg_train.config.moves import (
@@ -28,7 +29,7 @@ from resireg_train.config.moves import (
 )
 from resireg_train.config.paths import CONFIG_DIR
 
-FIXTURE = Path(__file__).parent / "data" / "run_before_layout"
+FIXTURE = TESTS / "data" / "run_before_layout"
 
 
 def _respelled(config_name, argv):

@@ -1,6 +1,6 @@
 """The readers of the OVSS field's benchmarks (VOC21/VOC20, PC60/PC59, COCO-Stuff, COCO-Object,
 Cityscapes, ADE20K from ADEChallengeData2016): each on a tiny copy in its real on-disk layout and
-label encoding (tests/_ovss8_fixtures.py), read back to the exact labels it wrote; the Context
+label encoding (tests/helpers/ovss8_fixtures.py), read back to the exact labels it wrote; the Context
 conversion from trainval_merged.json; the class-name files; the errors naming the folder and what
 it lacks."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from _ovss8_fixtures import (
+from helpers.ovss8_fixtures import (
     COCO_IDS,
     write_ade,
     write_cityscapes,
@@ -203,7 +203,7 @@ def test_a_split_list_naming_a_missing_image_or_listing_none_is_one_line_at_resi
     """Issue 51, item 8: resireg-eval over a VOC folder whose split list names an image that is
     not there, or lists none, ends in the reader's one line (no traceback), before any model
     loads; the dataset's files and another run's folder are as they were."""
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
 
     roots = {}
     for case in ("missing", "empty"):

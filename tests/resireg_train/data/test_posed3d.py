@@ -1,5 +1,5 @@
 """Replica (NICE-SLAM + HOV-SG ground truth; Semantic-NeRF) and TartanAir v2 as 3D benchmarks:
-tiny scenes written in each download's layout (tests/_posed3d_fixtures.py) read back to the
+tiny scenes written in each download's layout (tests/helpers/posed3d_fixtures.py) read back to the
 known geometry, ground-truth voxels against a numpy recomputation from the files, scores of
 test encoders against values computed from that reference, and every bad input named."""
 
@@ -12,7 +12,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from _posed3d_fixtures import (
+from helpers.paths import TESTS
+from helpers.posed3d_fixtures import (
     COLOURS,
     NICE_SCALE,
     REPLICA_CLASSES,
@@ -530,12 +531,12 @@ def test_replica3d_sweep_runs_through_resireg_eval_and_the_report_shows_it(nice,
     could not transcribe."""
     import json
 
-    from _run import run
+    from helpers.run import run
     from resireg_train.report import report
 
     root, _ = nice
     logs = tmp_path / "logs"
-    conf = Path(__file__).parent / "conf"
+    conf = TESTS / "conf"
     run("resireg-eval", "sweep=replica3d", "encoder=tiny_vlm", f"model_path={tiny_export}",
         f"dataset.path={root / 'nice'}", f"dataset.gt_path={root / 'gt'}",
         "dataset.scenes=[office0]", "dataset.frame_skip=1", f"dataset.image_size=[{SIZE[0]},{SIZE[1]}]",

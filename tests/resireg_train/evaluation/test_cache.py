@@ -6,8 +6,8 @@ import os
 import pytest
 import torch
 
-from _run import evaluate, run
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.run import evaluate, run
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.method.variants import build_variants
 from resireg.models import ResiregVLM
 from resireg.models.factory import weights_fingerprint

@@ -3,21 +3,21 @@ sweep as a real multirun with its report."""
 
 import json
 import math
-from pathlib import Path
 
 import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import report, run
+from helpers.paths import TESTS
+from helpers.run import report, run
 from resireg.errors import ConfigError
 from resireg.models import ENCODERS, build_encoder
 from resireg.specs.encoders import ENCODER_SPECS
 from resireg_train.checks.eval import sweep_config_errors, validate_eval
 from resireg_train.config.paths import CONFIG_DIR
 
-TEST_CONF = Path(__file__).parent / "conf"
+TEST_CONF = TESTS / "conf"
 
 
 def test_every_encoder_config_names_a_known_kind_and_builds_its_class_arguments():

@@ -15,12 +15,12 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-
-from _run import evaluate, run, run_side_by_side
-from resireg_train.training.checkpoints import CheckpointError, resolve_checkpoint
 from test_segmentation import poisoned_ade_folder
 
-TESTS = Path(__file__).parent
+from helpers.paths import TESTS
+from helpers.run import evaluate, run, run_side_by_side
+from resireg_train.training.checkpoints import CheckpointError, resolve_checkpoint
+
 SMOKE = ("experiment=smoke", "data.steps_per_epoch=4", "callbacks.resireg_eval.num_workers=0")
 
 
@@ -29,7 +29,7 @@ def _train(out, *overrides, check=True, **kwargs):
 
 
 def _env_with_tests():
-    """This environment, with tests/ importable (the fault callbacks of _faults.py)."""
+    """This environment, with tests/ importable (the fault callbacks of helpers/faults.py)."""
     return {**os.environ,
             "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
 
@@ -109,7 +109,7 @@ def test_ctrl_c_is_recorded_as_interrupted_and_the_printed_command_resumes_it(tm
     written, naming the differing keys; the printed command, run verbatim, completes the run."""
     out = tmp_path / "run"
     env = _env_with_tests()
-    stop = ["+callbacks.stop._target_=_faults.SigintAt", "+callbacks.stop.epoch=1"]
+    stop = ["+callbacks.stop._target_=helpers.faults.SigintAt", "+callbacks.stop.epoch=1"]
     proc = _train(out, "trainer.max_epochs=3", *stop, check=False, env=env)
     assert proc.returncode == 130, proc.stderr[-2000:]
     results = _results(out)
@@ -433,7 +433,7 @@ def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed
         assert _results(job)["status"] == "failed"
 
     out = tmp_path / "crash"
-    proc = _train(out, "trainer.max_epochs=1", "+callbacks.crash._target_=_faults.RaiseAt",
+    proc = _train(out, "trainer.max_epochs=1", "+callbacks.crash._target_=helpers.faults.RaiseAt",
                   check=False, env=_env_with_tests())  # fmt: skip
     assert proc.returncode == 1 and "RuntimeError: injected crash" in proc.stderr
     log = (out / "train.log").read_text()

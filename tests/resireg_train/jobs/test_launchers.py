@@ -12,7 +12,7 @@ import json
 
 import pytest
 
-from _run import run
+from helpers.run import run
 
 pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="the slurm extra")
 

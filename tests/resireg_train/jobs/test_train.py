@@ -5,7 +5,6 @@ import json
 import math
 import re
 import shutil
-from pathlib import Path
 
 import lightning as L
 import numpy as np
@@ -15,7 +14,8 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from _run import evaluate_export, run, run_side_by_side
+from helpers.paths import TESTS
+from helpers.run import evaluate_export, run, run_side_by_side
 from resireg.errors import ConfigError
 from resireg.models import ResiregVLM
 from resireg_train.checks.train import validate
@@ -465,7 +465,7 @@ def test_a_run_folder_written_before_the_layout_by_role_still_resumes(tmp_path):
     modules moved: its stored config names ``resireg_train.ovss.callback.ReSiRegEval``. The
     resume check maps the old class paths (resireg_train.config.moves), so the same command
     resumes it from its checkpoint instead of refusing a changed ``_target_``."""
-    fixture = Path(__file__).parent / "data" / "run_before_layout"
+    fixture = TESTS / "data" / "run_before_layout"
     logs = tmp_path / "logs"
     out = logs / "smoke" / "run"
     shutil.copytree(fixture, out)

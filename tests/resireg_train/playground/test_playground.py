@@ -22,10 +22,10 @@ import torch
 import yaml
 from PIL import Image
 
-from _run import Child, started
+from helpers.paths import ROOT
+from helpers.run import Child, started
 from resireg import ReSiRegFull, ReSiRegLite
 
-ROOT = Path(__file__).resolve().parents[1]
 TINY_VLM = ROOT / "tests" / "conf" / "encoder" / "tiny_vlm.yaml"
 DEFAULTS = yaml.safe_load((ROOT / "conf" / "resireg" / "default.yaml").read_text())
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
@@ -110,7 +110,7 @@ def test_slider_values_reach_the_variants(playground, model):
 
 def test_full_with_the_sam_prior_is_the_reference_on_the_encoded_image(tmp_path, model):
     pytest.importorskip("transformers", reason="the SAM 2 prior needs transformers")
-    from _sam import save_tiny_sam
+    from helpers.sam import save_tiny_sam
     from resireg.models.images import pil_to_tensor, resize_to_patch_grid
     from resireg.priors import SamPrior
     from resireg_train.playground.core import Playground, resireg_defaults
@@ -246,7 +246,7 @@ def _wait_until_serving(url: str, proc: Child, log: Path, timeout: float = 120):
 @contextlib.contextmanager
 def _serving(export: Path, port: int, log: Path):
     """``resireg-playground`` on the tiny VLM export at 127.0.0.1:``port`` for the ``with``
-    block (output to ``log``; see :func:`_run.started`)."""
+    block (output to ``log``; see :func:`helpers.run.started`)."""
     cmd = [sys.executable, "-m", "resireg_train.cli.playground", "--encoder", TINY_VLM,
            "--model-path", export, "--host", "127.0.0.1", "--port", port, "--device", "cpu",
            "--short-side", "96"]  # fmt: skip

@@ -30,9 +30,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from _run import run
+from helpers.paths import ROOT
+from helpers.run import run
 
-ROOT = Path(__file__).resolve().parents[1]
 SECRETS = {
     "key": "wJalrPLANTEDKEY0001",  # an untracked .env's AWS_SECRET_ACCESS_KEY
     "token": "ghp_PLANTEDTOKEN0002",  # notes/token.txt

@@ -255,7 +255,7 @@ def test_an_evaluation_records_its_system_metrics_in_csv_mlflow_and_wandb(
     pytest.importorskip("wandb")
     from mlflow import MlflowClient
 
-    from _run import evaluate_export
+    from helpers.run import evaluate_export
 
     for key, value in {"WANDB_MODE": "offline", "WANDB_SILENT": "true",
                        "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"),
@@ -312,7 +312,7 @@ def test_a_training_run_sends_system_metrics_to_its_mlflow_run(tmp_path):
     pytest.importorskip("mlflow")
     from mlflow import MlflowClient
 
-    from _run import run
+    from helpers.run import run
 
     store = f"sqlite:///{tmp_path}/mlflow.db"
     out = tmp_path / "train"
@@ -334,7 +334,7 @@ def test_a_map_run_records_its_system_metrics(tmp_path, tiny_export):
     """resireg-map (a 4-frame room bag) samples its system metrics as training and evaluation
     do: system.csv's rows, and results.json's system block with as many samples and, for each
     column, the rows' maximum as its peak."""
-    from _run import run
+    from helpers.run import run
     from resireg_train.data.room_bag import TOPICS, room_frames, write_bag
 
     bag = write_bag(tmp_path / "room", room_frames(4))

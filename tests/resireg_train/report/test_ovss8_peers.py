@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from _sweeps import make_job
+from helpers.sweeps import make_job
 from resireg_train.cli import report as report_cli
 from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.report import ovss8, report

@@ -12,7 +12,7 @@ import sys
 import pytest
 import yaml
 
-from _sweeps import make_job as _job
+from helpers.sweeps import make_job as _job
 from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.report import report
 

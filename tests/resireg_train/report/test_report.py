@@ -19,9 +19,9 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from PIL import Image
 
-from _run import report as report_stdout
-from _run import run, run_side_by_side
-from _sweeps import make_job as _job
+from helpers.run import report as report_stdout
+from helpers.run import run, run_side_by_side
+from helpers.sweeps import make_job as _job
 from resireg.method.full import ReSiRegFull
 from resireg.method.heuristic import PrototypeHeuristic
 from resireg_train.cli import report as report_cli

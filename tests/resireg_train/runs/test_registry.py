@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from _run import evaluate_export, run
+from helpers.run import evaluate_export, run
 from resireg.integrity import IntegrityError
 from resireg.specs.exports import export_source_problem, registry_model
 from resireg_train.cli.runs import main as runs_main

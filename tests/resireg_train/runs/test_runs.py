@@ -21,12 +21,13 @@ from pathlib import Path
 import pytest
 import yaml
 
+from helpers.paths import ROOT
 from resireg_train.record.provenance.inputs import data_identity
 from resireg_train.record.provenance.machine import package_versions
 from resireg_train.runs.diff import diff_runs
 from resireg_train.runs.index import find_run, scan
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+SRC = ROOT / "src"
 _PROBE = textwrap.dedent(
     """
     import json, sys
@@ -237,7 +238,7 @@ def test_runs_diff_shows_config_provenance_and_metric_differences(tmp_path):
 def test_lineage_stage1_stage2_export_eval_and_map(tmp_path, room_bag_path):
     """data -> stage 1 -> stage 2 (+model.init_from) -> export -> an evaluation and a map:
     every run's provenance links to the one before, and resireg-runs lineage prints it."""
-    from _run import evaluate_export, run
+    from helpers.run import evaluate_export, run
 
     logs = tmp_path / "outputs"
     short = ["experiment=smoke", "trainer.max_epochs=1", "data.steps_per_epoch=2",

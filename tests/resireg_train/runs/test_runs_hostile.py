@@ -15,9 +15,10 @@ from pathlib import Path
 import pytest
 import yaml
 
+from helpers.paths import ROOT
 from resireg_train.cli.runs import main
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+SRC = ROOT / "src"
 
 
 def _digests(*roots: Path) -> dict[str, str]:
@@ -456,7 +457,7 @@ def test_a_registered_model_path_fails_in_one_line(tmp_path, tiny_export, capsys
     pytest.importorskip("mlflow")
     from mlflow import MlflowClient
 
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
 
     uri = f"sqlite:///{tmp_path / 'registry.db'}"
     client = MlflowClient(tracking_uri=uri, registry_uri=uri)

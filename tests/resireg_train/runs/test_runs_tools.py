@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from _run import run
+from helpers.run import run
 from resireg_train.cli.runs import main as runs_main
 
 METRIC = "val/ovss/synthetic/miou_full"
@@ -164,7 +164,7 @@ def test_gc_keeps_the_best_runs_checkpoints_and_removes_only_checkpoints(sweep, 
 
 
 def test_gc_refuses_an_unknown_direction_and_a_metric_nobody_logged(tmp_path, capsys):
-    from _sweeps import make_job
+    from helpers.sweeps import make_job
 
     make_job(tmp_path, 0, {"x": 1}, {"status": "completed", "final": {"my/score": 1.0}})
     for args, message in ((["--by", "my/score"], "give --mode min or --mode max"),

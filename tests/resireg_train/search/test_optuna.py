@@ -23,15 +23,16 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from _postgres import postgres_server
-from _run import _command, report, run, run_side_by_side, started
+from helpers.paths import ROOT, TESTS
+from helpers.postgres import postgres_server
+from helpers.run import _command, report, run, run_side_by_side, started
 
 optuna = pytest.importorskip("optuna")
 
 from optuna.trial import TrialState  # noqa: E402
 
 METRIC = "val/ovss/synthetic/miou_full"
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = ROOT / "conf"
 
 
 def _eval_search(export, sweep, n_trials, *extra):
@@ -83,7 +84,7 @@ def _check_total(sweep, n_trials, storage=None):
 
 def _started(command, log):
     """``command`` (``(script, *args)``) started in its own process group, output to the file
-    ``log`` (see :func:`_run.started`)."""
+    ``log`` (see :func:`helpers.run.started`)."""
     script, *args = command
     return started(_command(script, args), stdout=log, threads=1)
 
@@ -221,7 +222,7 @@ def test_two_workers_share_one_journal_study(tmp_path, tiny_export):
 
 @pytest.fixture
 def postgres():
-    """A PostgreSQL server of its own (tests/_postgres.py); yields the environment (PGHOST /
+    """A PostgreSQL server of its own (tests/helpers/postgres.py); yields the environment (PGHOST /
     PGPORT / PGUSER) that reaches it."""
     with postgres_server() as env:
         yield env
@@ -544,11 +545,10 @@ def test_stale_trials_are_those_of_dead_processes_or_silent_heartbeats(tmp_path)
 
 
 # ----------------------------------------------------------------------------- DDP trials
-TESTS = Path(__file__).parent
 
 
 def _with_tests(env=None):
-    """This environment with tests/ importable (_ddp.py: a pruner and a dying rank)."""
+    """This environment with tests/ importable (helpers/ddp.py: a pruner and a dying rank)."""
     env = dict(os.environ if env is None else env)
     env["PYTHONPATH"] = os.pathsep.join([str(TESTS), env.get("PYTHONPATH", "")])
     return env
@@ -557,11 +557,11 @@ def _with_tests(env=None):
 def _ddp_search(sweep, strategy, *extra, n_trials=3):
     """A stage-1 search of ``n_trials`` on the smoke experiment, 2 epochs of 2 steps, each
     trial on 2 CPU processes over gloo with ``strategy``; the pruner prunes trial 2 at its
-    first report (_ddp.PruneNumber: whatever the scores)."""
+    first report (helpers.ddp.PruneNumber: whatever the scores)."""
     return ("resireg-train", "experiment=smoke", "hparams_search=stage1_optuna",
             f"hparams_search.n_trials={n_trials}", "trainer.max_epochs=2", "data.steps_per_epoch=2",
             "callbacks.resireg_eval.batch_size=3", f"+trainer.strategy={strategy}",
-            "trainer.devices=2", "hydra.sweeper.pruner._target_=_ddp.PruneNumber",
+            "trainer.devices=2", "hydra.sweeper.pruner._target_=helpers.ddp.PruneNumber",
             "+hydra.sweeper.pruner.number=2", "~hydra.sweeper.pruner.n_startup_trials",
             "~hydra.sweeper.pruner.n_warmup_steps", f"hydra.sweep.dir={sweep}", *extra)  # fmt: skip
 
@@ -612,9 +612,9 @@ def test_a_search_of_ddp_trials_prunes_on_every_rank_and_survives_a_dead_rank(tm
     rank 0, rank 1 stopped (not left waiting for the rendezvous). No rank of any trial is
     left running."""
     sweep = tmp_path / "sweep"
-    die = ("+callbacks.die._target_=_ddp.DieAt", "+callbacks.die.rank=1",
+    die = ("+callbacks.die._target_=helpers.ddp.DieAt", "+callbacks.die.rank=1",
            "+callbacks.die.trial=1", "+callbacks.die.number=${hparams_search.trial}",
-           "+callbacks.lost._target_=_ddp.DieAt", "+callbacks.lost.rank=0",
+           "+callbacks.lost._target_=helpers.ddp.DieAt", "+callbacks.lost.rank=0",
            "+callbacks.lost.batch=null", "+callbacks.lost.trial=3",
            "+callbacks.lost.number=${hparams_search.trial}")  # fmt: skip
     proc = run(*_ddp_search(sweep, "ddp", *die, n_trials=4), env=_with_tests(), threads=1,
@@ -686,7 +686,7 @@ def test_a_trial_launcher_that_is_no_program_is_refused_before_the_first_trial(t
 @pytest.mark.slow
 def test_a_search_of_trials_on_two_nodes_through_a_launcher(tmp_path):
     """trainer.num_nodes=2 under a search: refused before the first trial without a launcher;
-    with one (RESIREG_SEARCH_TRIAL_LAUNCHER: here _fake_srun.py, which starts each trial's 2
+    with one (RESIREG_SEARCH_TRIAL_LAUNCHER: here helpers/fake_srun.py, which starts each trial's 2
     tasks with SLURM's variables as srun starts one task per node) each trial runs on its 2
     "nodes" (Lightning's SLURM environment), trial 1 is pruned on both, trial 0 completes."""
     sweep = tmp_path / "sweep"
@@ -698,7 +698,7 @@ def test_a_search_of_trials_on_two_nodes_through_a_launcher(tmp_path):
     assert refused.returncode != 0 and "Traceback" not in refused.stderr
     assert ("refused before the first trial: trainer.num_nodes=2: a trial on several nodes "
             "needs a launcher") in refused.stderr  # fmt: skip
-    launcher = f"{sys.executable} {TESTS / '_fake_srun.py'} 2"
+    launcher = f"{sys.executable} {TESTS / 'helpers' / 'fake_srun.py'} 2"
     env = _with_tests({**os.environ, "RESIREG_SEARCH_TRIAL_LAUNCHER": launcher})
     run(*search, env=env, threads=1, timeout=1500)
     assert not _processes_of(sweep)

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from _postgres import postgres_server
-from _run import _command, _env, report
+from helpers.postgres import postgres_server
+from helpers.run import _command, _env, report
 
 optuna = pytest.importorskip("optuna")
 
@@ -299,7 +299,7 @@ def test_a_search_and_a_worker_moved_with_its_folder_write_only_private_files(tm
 # ----------------------------------------------------------------------------- the password
 @pytest.fixture
 def postgres_with_password():
-    """A PostgreSQL server of its own that asks for a password (tests/_postgres.py); yields
+    """A PostgreSQL server of its own that asks for a password (tests/helpers/postgres.py); yields
     the environment (PGHOST / PGPORT / PGUSER) that reaches it, without the password
     (:data:`PASSWORD`)."""
     with postgres_server(PASSWORD) as env:

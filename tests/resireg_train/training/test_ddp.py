@@ -6,7 +6,6 @@ import json
 import os
 import socket
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,11 +13,11 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from _run import _command, evaluate_export, run, started
+from helpers.paths import TESTS
+from helpers.run import _command, evaluate_export, run, started
 from resireg_train.training.losses import ContrastiveLoss
 
 WORLD = 2
-TESTS = Path(__file__).parent
 
 
 def _free_port():
@@ -109,7 +108,7 @@ def _caption_folder(folder, n):
 def _node_env(node, port, **extra):
     """The environment of node ``node`` of 2 (one process each) as a launcher sets it
     (Lightning's variables: NODE_RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR / MASTER_PORT),
-    tests/ importable (the callbacks of _ddp.py)."""
+    tests/ importable (the callbacks of helpers/ddp.py)."""
     return {**os.environ, "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port),
             "NODE_RANK": str(node), "WORLD_SIZE": "2", "LOCAL_RANK": "0",
             "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
@@ -136,7 +135,7 @@ def test_two_nodes_share_one_run_folder_and_split_the_caption_stream(tmp_path):
             "data.sources.textcaps.caption=text", "data.sources.textcaps.probability=1.0",
             "~data.sources.localized_narratives", "~data.sources.coco_caption",
             "~data.sources.pexels")  # fmt: skip
-    args = [*NODES, *data, "+callbacks.seen._target_=_ddp.SeenCaptions",
+    args = [*NODES, *data, "+callbacks.seen._target_=helpers.ddp.SeenCaptions",
             f"+callbacks.seen.folder={seen}", f"hydra.run.dir={out}"]  # fmt: skip
     port = _free_port()
     with contextlib.ExitStack() as stack:

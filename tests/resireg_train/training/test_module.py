@@ -9,7 +9,7 @@ import torch
 from timm.data import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
 from torch.utils.data import DataLoader
 
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg_train.data.synthetic import SyntheticScenes
 from resireg_train.training.module import ResiregModule
 

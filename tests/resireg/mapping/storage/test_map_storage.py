@@ -7,19 +7,19 @@ import ast
 import dataclasses
 import json
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from helpers.paths import ROOT
 from resireg.mapping import SemanticMap
 from resireg.mapping.lifting import LiftedPoints, lift_grid
 from resireg.mapping.storage import STORAGE_TYPES
 from resireg.mapping.storage.base import MapStorage
 from resireg.specs.mapping import STORAGES
 
-MAPPING = Path(__file__).resolve().parents[1] / "src" / "resireg" / "mapping"
+MAPPING = ROOT / "src" / "resireg" / "mapping"
 B, D, H, W = 2, 8, 4, 6  # frames, channels, feature grid (= depth image, so no resampling)
 
 

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.models import ResiregVLM
 from resireg.models.vlm.eupe import EUPEBackbone
 from resireg.models.vlm.head import LanguageHead

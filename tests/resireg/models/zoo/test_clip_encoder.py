@@ -9,7 +9,6 @@ the model's ``ln_post`` / ``proj``, or with plain torch ops on the parameters.
 """
 
 import time
-from pathlib import Path
 
 import open_clip
 import pytest
@@ -20,6 +19,7 @@ from huggingface_hub import constants as hf_constants
 from PIL import Image
 from safetensors.torch import save_file
 
+from helpers.paths import ROOT
 from resireg.method.lite import ReSiRegLite
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
@@ -226,7 +226,7 @@ def test_the_two_dense_paths_differ_and_maskclip_is_the_blocks_output_without_at
 def test_dense_path_is_checked_and_in_the_config():
     with pytest.raises(ValueError, match=r"^dense_path='clearclip'.*value.*maskclip"):
         ClipEncoder(B16, weights=None, dense_path="clearclip")
-    conf = Path(__file__).resolve().parents[1] / "conf" / "encoder"
+    conf = ROOT / "conf" / "encoder"
     for name in ("clip_vit_b16", "clip_vit_l14_336"):
         entry = yaml.safe_load((conf / f"{name}.yaml").read_text())
         assert entry["dense_path"] == "value", name  # the protocol's default (docs/protocol.md)

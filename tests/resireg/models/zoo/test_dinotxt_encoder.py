@@ -1,6 +1,6 @@
 """DinoTxtEncoder offline: a local torch.hub repo laid out like facebookresearch/dinov2.
 
-The fake repo (``tests/_fake_hubs.py``: ``DINOTXT_FILES``) has the same entry point name, package layout and class/attribute layout as
+The fake repo (``tests/helpers/fake_hubs/``: ``DINOTXT_FILES``) has the same entry point name, package layout and class/attribute layout as
 dino.txt's hub code (``hubconf.py`` -> ``dinov2.hub.dinotxt``; ``DinoTxt`` with
 ``visual_model`` = ``VisionTower(DINOv2Wrapper(ViT), VisionHead)``, ``text_model``,
 ``model_config``, ``encode_image`` / ``encode_text`` / ``get_visual_class_and_patch_tokens``;
@@ -17,15 +17,9 @@ import torch
 import torch.nn.functional as F
 
 import resireg.models.hub as hub_module
-from _fake_hubs import (
-    DINOTXT_VOCAB,
-    build_offline,
-    dinotxt_repo,
-    drop_dinov2_modules,
-    offline_hub,
-    restore_dinov2_modules,
-    token_grid,
-)
+from helpers.fake_hubs.common import build_offline, offline_hub, token_grid
+from helpers.fake_hubs.dinotxt import DINOTXT_VOCAB, dinotxt_repo
+from helpers.fake_hubs.dinov2 import drop_dinov2_modules, restore_dinov2_modules
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.dinotxt import DINOTXT_CHECKPOINTS, DINOTXT_ENTRY_POINT, DinoTxtEncoder
 

@@ -1,6 +1,6 @@
 """OtasEncoder offline: a local torch.hub repo for DINOv2 and a random-init open_clip ViT-B/16.
 
-The fake hub repo's ``hubconf.py`` (``tests/_fake_hubs.py``: ``DINOV2_HUBCONF``) exposes ``dinov2_vits14_reg`` like facebookresearch/dinov2:
+The fake hub repo's ``hubconf.py`` (``tests/helpers/fake_hubs/``: ``DINOV2_HUBCONF``) exposes ``dinov2_vits14_reg`` like facebookresearch/dinov2:
 it takes ``pretrained`` and keyword overrides and returns a ``DinoVisionTransformer`` with
 the real attribute layout (``patch_size``, ``embed_dim``, ``num_register_tokens``,
 ``interpolate_antialias`` / ``interpolate_offset`` read at every call, ``pos_embed`` on a
@@ -28,14 +28,16 @@ from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 
 import resireg.models.hub as hub_module
-from _fake_hubs import build_offline, dinov2_repo, offline_hub
+from helpers.fake_hubs.common import build_offline, offline_hub
+from helpers.fake_hubs.dinov2 import dinov2_repo
+from helpers.paths import ROOT
 from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.otas import OTAS_CHECKPOINTS, OTAS_ENTRY_POINT, OtasEncoder
 
 WIDTH = 32  # fake DINOv2 width
 EMBED = 512  # CLIP ViT-B/16 embedding
 CLIP_SIDE = 64  # CLIP's native side here (4 x 4 positional grid) and OTAS's CLIP input side
-CONF = Path(__file__).resolve().parents[1] / "conf" / "encoder" / "otas.yaml"
+CONF = ROOT / "conf" / "encoder" / "otas.yaml"
 _CACHED = [OTAS_CHECKPOINTS[OTAS_ENTRY_POINT]]  # the DINOv2 weights in the hub cache
 
 

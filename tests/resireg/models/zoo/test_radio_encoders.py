@@ -1,6 +1,6 @@
 """RADIO and RADSeg dense encoders through local torch.hub repositories (no network).
 
-The fake repositories (``tests/_fake_hubs.py``: ``FAKE_RADIO``, ``FAKE_RADSEG``) expose the real entry points (``radio_model`` of NVlabs/RADIO,
+The fake repositories (``tests/helpers/fake_hubs/``: ``FAKE_RADIO``, ``FAKE_RADSEG``) expose the real entry points (``radio_model`` of NVlabs/RADIO,
 ``radseg_encoder`` of RADSeg-OVSS/RADSeg) with their signatures, and return tiny random
 modules with the real attribute layout and output structure: ``RADIOModel`` with
 ``input_conditioner``, ``make_preprocessor_external``, ``min_resolution_step``,
@@ -20,9 +20,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from _fake_hubs import offline_hub
-from _fake_hubs import radio_repo as _radio_repo
-from _fake_hubs import radseg_repo as _radseg_repo
+from helpers.fake_hubs.common import offline_hub
+from helpers.fake_hubs.radio import radio_repo as _radio_repo
+from helpers.fake_hubs.radseg import radseg_repo as _radseg_repo
 from resireg.models import WeightsUnavailableError
 from resireg.models import hub as hub_module
 from resireg.models.zoo.radio import RADIO_CHECKPOINTS, RADIO_REF, RadioEncoder

@@ -29,7 +29,9 @@ import torch.nn.functional as F
 import yaml
 from PIL import Image
 from sklearn.neighbors import BallTree
+from test_scannet import _ClassFromColour
 
+from helpers.paths import ROOT
 from resireg.mapping import (
     VoxelMap,
     classify,
@@ -56,9 +58,8 @@ from resireg_train.evaluation.mapping.engine import (
     MappingSettings,
     ground_truth_labels,
 )
-from test_scannet import _ClassFromColour
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
+CONF = ROOT / "conf" / "dataset"
 IMAGE = (64, 86)  # the rooms' 48 x 64 frames resized by 4/3, as ScanNet's 480 x 640 to 640 x 864
 
 

@@ -14,7 +14,8 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from _run import run
+from helpers.paths import TESTS
+from helpers.run import run
 from resireg.method.variants import build_variants
 from resireg.models.interface import DenseEncoder, DenseOutput, InputRule
 from resireg.ovss import NYU40_CLASSES, SCANNET_CLASSES
@@ -27,7 +28,7 @@ from resireg_train.data.scannet_room import (
 )
 from resireg_train.evaluation.mapping.engine import MappingEngine
 
-TEST_CONF = Path(__file__).parent / "conf"
+TEST_CONF = TESTS / "conf"
 SCENE = "synthetic0000_00"
 VOXEL = 0.1
 K = len(SCANNET_CLASSES)
@@ -431,7 +432,7 @@ def test_table2_sweep_end_to_end_results_and_report(root, room, tiny_export, tmp
     export's scores equal the engine's run in-process on the same settings; the report's
     Table 2 shows model, parameters, mIoU and f-mIoU as the results hold them (x100).
     (CLIP's text tower is too slow for a test here: 37 classes x 80 prompts.)"""
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM, count_parameters
 
     torch.manual_seed(1)

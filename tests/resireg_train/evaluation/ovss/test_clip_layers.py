@@ -15,8 +15,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from PIL import Image
 
-from _sweeps import make_job as _job
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.sweeps import make_job as _job
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.errors import ConfigError
 from resireg.method.variants import build_variants
 from resireg.models import ResiregVLM

@@ -5,7 +5,7 @@ import pytest
 import torch
 from sklearn.metrics import confusion_matrix, jaccard_score
 
-from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
 from resireg.method.variants import build_variant, build_variants
 from resireg.models import ResiregVLM
 from resireg.ovss import predict, text_prototypes

@@ -1,5 +1,5 @@
 """`resireg-eval sweep=ovss8` end to end: the eight benchmarks written in their real layouts
-(tests/_ovss8_fixtures.py) under one paths.data_dir, a tiny export scored with BB, Calib, Lite
+(tests/helpers/ovss8_fixtures.py) under one paths.data_dir, a tiny export scored with BB, Calib, Lite
 and Full on each, every figure in the job's tracker (tracker=csv) and in `resireg-report`'s
 ovss8 table, beside the published peers of conf/paper/ovss8.yaml."""
 
@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from _ovss8_fixtures import write_all
-from _run import report, run
+from helpers.ovss8_fixtures import write_all
+from helpers.run import report, run
 from resireg_train.config.paths import CONFIG_DIR
 
 

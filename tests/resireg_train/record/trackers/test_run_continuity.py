@@ -185,7 +185,7 @@ def test_the_heartbeat_thread_refreshes_the_record_and_stops_with_it(tmp_path):
 
 def test_a_real_job_records_its_heartbeat_settings(tmp_path, tiny_export):
     """A run's record carries its heartbeat and the two config keys it was started with."""
-    from _run import evaluate
+    from helpers.run import evaluate
 
     out = tmp_path / "eval"
     results = evaluate(f"model_path={tiny_export}", "dataset=synthetic", "dataset.size=2",

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from _run import evaluate_export, run
+from helpers.run import evaluate_export, run
 from resireg_train.record.trackers.base import mlflow_key, run_metrics
 
 pytest.importorskip("mlflow")
@@ -145,7 +145,7 @@ def test_eval_in_process_leaves_no_credential_uri_run_or_service_behind(
     import mlflow
     from wandb.sdk import wandb_setup
 
-    from _run import evaluate
+    from helpers.run import evaluate
 
     monkeypatch.setenv("WANDB_MODE", "offline")
     for key in ("MLFLOW_TRACKING_USERNAME", "MLFLOW_TRACKING_PASSWORD", "MLFLOW_TRACKING_URI"):
@@ -188,7 +188,7 @@ def test_a_sqlite_store_keeps_the_artifacts_next_to_its_database(tmp_path, tiny_
     the folder the call started from (which stays empty)."""
     from mlflow import MlflowClient
 
-    from _run import evaluate
+    from helpers.run import evaluate
 
     here = tmp_path / "started_here"
     here.mkdir()
@@ -216,7 +216,7 @@ def test_an_mlflow_store_that_cannot_be_made_is_refused_in_one_line(tmp_path, ti
     be made (under /proc, under a regular file) stops before any work in the one line the
     closed-port case gives, naming the tracker, the store and why; the export and the file in
     the way are unchanged."""
-    from _run import run_side_by_side
+    from helpers.run import run_side_by_side
 
     blocker = tmp_path / "afile"
     blocker.write_text("not a folder")

@@ -9,7 +9,7 @@ import struct
 
 import pytest
 
-from _run import run
+from helpers.run import run
 
 pytest.importorskip("wandb")
 from wandb.proto import wandb_internal_pb2  # noqa: E402

@@ -4,7 +4,7 @@ then run with --allow-drift and recorded; a changed setting reported as "differs
 metric that moved; a masked secret and a hostile override refused; a fixture paper row
 reproduced on synthetic data, and a missing dataset or model refused before any job starts.
 
-The runs happen in a git copy of the project's packages (as tests/test_runs.py makes one), so
+The runs happen in a git copy of the project's packages (as tests/resireg_train/runs/test_runs.py makes one), so
 the code the record names is the copy's, which this test alone changes."""
 
 from __future__ import annotations
@@ -22,7 +22,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+from helpers.paths import ROOT
+
+SRC = ROOT / "src"
 CONF = SRC.parent / "conf"
 pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
 
@@ -367,7 +369,7 @@ def test_a_rerun_after_the_model_changed_is_refused_then_allowed(project, tmp_pa
     it and records the drift in the new run."""
     import torch
 
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     _, env = project
