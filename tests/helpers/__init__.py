@@ -10,6 +10,8 @@ runs a test starts that load a callback from here), imported as ``from helpers.r
 - ``fake_hubs``: fake torch.hub repositories of the encoder zoo, one module per upstream repo;
 - ``sam``: a tiny random SAM 2 saved in transformers' format (also a script);
 - ``ovss8_fixtures``, ``posed3d_fixtures``: tiny benchmark folders in their downloaded layouts;
+- ``ade20k``: tiny ADE20K validation folders, clean or with one sample of each fault;
+- ``wandb_log``: the records of W&B's offline run file, read by hand;
 - ``ros2``: Fast DDS on shared memory, a spinning executor, the no-UDP check;
 - ``postgres``: a PostgreSQL server of a test's own;
 - ``optional``: optional references whose import can fail for other reasons (open3d);

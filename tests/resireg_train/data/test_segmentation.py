@@ -9,17 +9,13 @@ import pytest
 import torch
 from PIL import Image
 
+from helpers.ade20k import ade_folder, poisoned_ade_folder, save_image
 from resireg.models import WeightsUnavailableError
 from resireg.ovss import ADE20K_CLASSES, ORAD3D_CLASSES
 from resireg_train.data.orad3d import orad3d_label
 from resireg_train.data.segmentation import build_segmentation_set, collate_segmentation
 from resireg_train.data.specs import dataset_conf
 from resireg_train.data.synthetic import SyntheticScenes
-
-
-def _save(array, path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(array).save(path)
 
 
 def test_synthetic_set_resizes_images_and_keeps_full_resolution_masks():
@@ -60,24 +56,8 @@ def test_batches_share_one_size_cover_every_image_once_and_shard_disjointly():
         ds.batches(0)
 
 
-def _ade_folder(root, n=3, corrupt=True):
-    rng = np.random.default_rng(0)
-    labels = []
-    for i in range(n):
-        h, w = (40, 56) if i % 2 == 0 else (56, 40)
-        image = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
-        label = rng.integers(0, 151, (h, w), dtype=np.uint8)
-        _save(image, root / "images/validation" / f"ADE_val_{i:08d}.jpg")
-        _save(label, root / "annotations/validation" / f"ADE_val_{i:08d}.png")
-        labels.append(label)
-    if corrupt:
-        (root / "images/validation/ADE_val_99999999.jpg").write_bytes(b"not a jpeg")
-        _save(np.zeros((8, 8), np.uint8), root / "annotations/validation/ADE_val_99999999.png")
-    return labels
-
-
 def test_ade20k_local_folder_reduces_zero_label_and_skips_corrupt_images(tmp_path):
-    labels = _ade_folder(tmp_path / "ADEChallengeData2016")
+    labels = ade_folder(tmp_path / "ADEChallengeData2016")
     ds = build_segmentation_set(
         dataset_conf("ade20k", path=str(tmp_path / "ADEChallengeData2016"), short_side=32),
         patch_size=16,
@@ -96,7 +76,7 @@ def test_ade20k_local_folder_reduces_zero_label_and_skips_corrupt_images(tmp_pat
 def test_ade20k_hub_layout_from_a_local_parquet_folder(tmp_path):
     """The hub's parquet conversion (image / annotation columns) read from a local copy."""
     datasets = pytest.importorskip("datasets")
-    labels = _ade_folder(tmp_path / "src", n=2, corrupt=False)
+    labels = ade_folder(tmp_path / "src", n=2, corrupt=False)
     files = sorted((tmp_path / "src/images/validation").glob("*.jpg"))
     table = datasets.Dataset.from_dict(
         {
@@ -131,8 +111,8 @@ def test_ade20k_from_the_hub_offline_fails_at_once_naming_the_key():
 
 def _orad_sequence(root, seq, stem, base, shapes):
     folder = root / "validation" / seq
-    _save(np.zeros((*base.shape[:2], 3), np.uint8) + 90, folder / "image_data" / f"{stem}.png")
-    _save(base, folder / "gt_image" / f"{stem}_fillcolor.png")
+    save_image(np.zeros((*base.shape[:2], 3), np.uint8) + 90, folder / "image_data" / f"{stem}.png")
+    save_image(base, folder / "gt_image" / f"{stem}_fillcolor.png")
     (folder / "gt_image_multi_seg").mkdir(parents=True, exist_ok=True)
     (folder / "gt_image_multi_seg" / f"{stem}.json").write_text(json.dumps({"shapes": shapes}))
 
@@ -195,39 +175,6 @@ def test_orad3d_unknown_polygon_tag_is_an_error_naming_the_mapping(tmp_path):
 def test_bad_dataset_specs_name_the_key(spec, message):
     with pytest.raises((ValueError, FileNotFoundError), match=message):
         build_segmentation_set(spec, patch_size=16)
-
-
-def poisoned_ade_folder(root):
-    """An ADEChallengeData2016 folder of 48 x 64 images: five good ones (one ``.JPG``) and one
-    of each fault: a label id past 150, an RGB label, a label of another size, a truncated
-    image. Returns ``{file name: expected reason regex}`` of the bad ones."""
-    rng = np.random.default_rng(0)
-
-    def pair(stem, ext=".jpg", label=None):
-        _save(
-            rng.integers(0, 255, (48, 64, 3), dtype=np.uint8),
-            root / f"images/validation/{stem}{ext}",
-        )
-        label = rng.integers(0, 151, (48, 64), dtype=np.uint8) if label is None else label
-        _save(label, root / f"annotations/validation/{stem}.png")
-
-    for i in range(4):
-        pair(f"ADE_val_{i:08d}")
-    out_of_range = rng.integers(0, 151, (48, 64), dtype=np.uint8)
-    out_of_range[5, 7] = 200
-    pair("ADE_val_00000010", label=out_of_range)
-    pair("ADE_val_00000011", label=rng.integers(0, 151, (48, 64, 3), dtype=np.uint8))
-    pair("ADE_val_00000012", label=rng.integers(0, 151, (40, 64), dtype=np.uint8))
-    pair("ADE_val_00000013")
-    jpeg = root / "images/validation/ADE_val_00000013.jpg"
-    jpeg.write_bytes(jpeg.read_bytes()[: jpeg.stat().st_size // 2])
-    pair("ADE_val_00000014", ext=".JPG")
-    return {
-        "ADE_val_00000010.jpg": r"class id 200; valid ids are 0\.\.150",
-        "ADE_val_00000011.jpg": r"shape \(48, 64, 3\).*not a colour image",
-        "ADE_val_00000012.jpg": r"label is 40 x 64 px but its image is 48 x 64 px",
-        "ADE_val_00000013.jpg": r"unreadable: image file is truncated",
-    }
 
 
 def test_bad_ade20k_samples_are_skipped_naming_file_and_reason(tmp_path):

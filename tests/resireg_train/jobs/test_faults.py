@@ -15,8 +15,8 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from test_segmentation import poisoned_ade_folder
 
+from helpers.ade20k import poisoned_ade_folder
 from helpers.paths import TESTS
 from helpers.run import evaluate, run, run_side_by_side
 from resireg_train.training.checkpoints import CheckpointError, resolve_checkpoint

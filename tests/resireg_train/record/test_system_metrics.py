@@ -232,10 +232,10 @@ def test_a_bad_setting_is_named(block, message):
 
 def _stats(path: Path) -> list[tuple[float, dict[str, float]]]:
     """The system-panel samples (``stats`` records) of an offline W&B run file."""
-    from test_wandb import _records
+    from helpers.wandb_log import records
 
     out = []
-    for record in _records(path):
+    for record in records(path):
         if record.WhichOneof("record_type") == "stats":
             values = {i.key: json.loads(i.value_json) for i in record.stats.item}
             out.append((record.stats.timestamp.seconds + record.stats.timestamp.nanos / 1e9,

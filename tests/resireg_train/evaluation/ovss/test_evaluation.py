@@ -181,9 +181,9 @@ def test_variant_names_and_modes_are_checked(vlm):
 
 
 def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tmp_path):
-    from test_segmentation import _ade_folder
+    from helpers.ade20k import ade_folder
 
-    _ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
+    ade_folder(tmp_path / "ade")  # 3 images + 1 file that is not an image
     spec = dataset_conf("ade20k", path=str(tmp_path / "ade"), short_side=32)
     engine = OVSSEngine(build_segmentation_set(spec, patch_size=16), batch_size=2)
     single = engine.run(vlm, build_variants(["bb"]))

@@ -88,7 +88,7 @@ def test_a_resumed_training_continues_its_mlflow_run(tmp_path):
 @pytest.mark.slow
 def test_a_resumed_training_continues_its_wandb_run_offline(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
-    from test_wandb import _records
+    from helpers.wandb_log import records
 
     for key, value in {"WANDB_MODE": "offline", "WANDB_SILENT": "true",
                        "WANDB_CONFIG_DIR": str(tmp_path / "wandb_config"),
@@ -109,7 +109,7 @@ def test_a_resumed_training_continues_its_wandb_run_offline(tmp_path, monkeypatc
     for folder in folders:
         (file,) = folder.glob(f"run-{run_id}.wandb")
         ids, steps = set(), []
-        for record in _records(file):
+        for record in records(file):
             kind = record.WhichOneof("record_type")
             if kind == "run":
                 ids.add(record.run.run_id)
