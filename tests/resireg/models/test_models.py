@@ -320,7 +320,7 @@ def test_radseg_teacher_gets_radsegs_offline_checks(tmp_path, monkeypatch):
 
 
 def test_radseg_teacher_is_radsegs_language_map(tmp_path, monkeypatch):
-    """Against RADSeg's structure (tests/helpers/fake_hubs/ FAKE_RADSEG): the teacher's features are
+    """Against RADSeg's structure (tests/helpers/fake_hubs/radseg.py FAKE_RADSEG): the teacher's features are
     RADSeg's own language-aligned map of the un-normalised images (a second load, RADSeg's
     documented API), resized to the student's grid; and the same as the dense encoder's
     language tokens (both over the one loader)."""

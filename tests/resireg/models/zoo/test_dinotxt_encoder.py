@@ -1,6 +1,6 @@
 """DinoTxtEncoder offline: a local torch.hub repo laid out like facebookresearch/dinov2.
 
-The fake repo (``tests/helpers/fake_hubs/``: ``DINOTXT_FILES``) has the same entry point name, package layout and class/attribute layout as
+The fake repo (``tests/helpers/fake_hubs/dinotxt.py``: ``DINOTXT_FILES``) has the same entry point name, package layout and class/attribute layout as
 dino.txt's hub code (``hubconf.py`` -> ``dinov2.hub.dinotxt``; ``DinoTxt`` with
 ``visual_model`` = ``VisionTower(DINOv2Wrapper(ViT), VisionHead)``, ``text_model``,
 ``model_config``, ``encode_image`` / ``encode_text`` / ``get_visual_class_and_patch_tokens``;

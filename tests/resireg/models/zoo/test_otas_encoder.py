@@ -1,6 +1,6 @@
 """OtasEncoder offline: a local torch.hub repo for DINOv2 and a random-init open_clip ViT-B/16.
 
-The fake hub repo's ``hubconf.py`` (``tests/helpers/fake_hubs/``: ``DINOV2_HUBCONF``) exposes ``dinov2_vits14_reg`` like facebookresearch/dinov2:
+The fake hub repo's ``hubconf.py`` (``tests/helpers/fake_hubs/dinov2.py``: ``DINOV2_HUBCONF``) exposes ``dinov2_vits14_reg`` like facebookresearch/dinov2:
 it takes ``pretrained`` and keyword overrides and returns a ``DinoVisionTransformer`` with
 the real attribute layout (``patch_size``, ``embed_dim``, ``num_register_tokens``,
 ``interpolate_antialias`` / ``interpolate_offset`` read at every call, ``pos_embed`` on a

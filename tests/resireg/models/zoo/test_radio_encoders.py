@@ -1,6 +1,6 @@
 """RADIO and RADSeg dense encoders through local torch.hub repositories (no network).
 
-The fake repositories (``tests/helpers/fake_hubs/``: ``FAKE_RADIO``, ``FAKE_RADSEG``) expose the real entry points (``radio_model`` of NVlabs/RADIO,
+The fake repositories (``tests/helpers/fake_hubs/radio.py`` and ``radseg.py``: ``FAKE_RADIO``, ``FAKE_RADSEG``) expose the real entry points (``radio_model`` of NVlabs/RADIO,
 ``radseg_encoder`` of RADSeg-OVSS/RADSeg) with their signatures, and return tiny random
 modules with the real attribute layout and output structure: ``RADIOModel`` with
 ``input_conditioner``, ``make_preprocessor_external``, ``min_resolution_step``,

@@ -38,7 +38,7 @@ from resireg.models.hub import WeightsUnavailableError
 from resireg.models.zoo.tips import TIPS_TOKENIZER_URL, TIPS_WEIGHTS_URL, TipsEncoder
 from resireg.models.zoo.tips_towers import TIPS_VARIANTS, TipsTextEncoder, TipsVisionTransformer
 
-# The tiny release of tests/helpers/fake_hubs/ under this module's short names.
+# The tiny release of tests/helpers/fake_hubs/tips.py under this module's short names.
 P, WIDTH, GRID, STEM, TINY = TIPS_P, TIPS_WIDTH, TIPS_GRID, TIPS_STEM, TIPS_TINY
 WordTokenizer, _write_release = TipsWordTokenizer, write_tips_release
 
