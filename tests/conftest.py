@@ -129,7 +129,7 @@ def _mlflow_tracking_uri_kept():
 @pytest.fixture
 def mlflow_server(tmp_path):
     """``mlflow server`` on 127.0.0.1 (a SQLite store and the artifacts in ``tmp_path/store``),
-    started through ``tests/_run.started`` as every long-lived process of a test; its
+    started through ``helpers.run.started`` as every long-lived process of a test; its
     ``uri``, ``port`` and ``store`` (``server.db``, ``artifacts/``, ``server.log``). Leaving
     the test kills the server's process group (its uvicorn and job workers): a graceful stop is
     not what the tests using it are about, and took over 30 s on a loaded machine."""

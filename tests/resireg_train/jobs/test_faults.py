@@ -438,7 +438,7 @@ def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed
     assert proc.returncode == 1 and "RuntimeError: injected crash" in proc.stderr
     log = (out / "train.log").read_text()
     assert re.search(r"\[ERROR\] - run failed: RuntimeError: injected crash\nTraceback \(most "
-                     r"recent call last\):\n(.*\n)*.*_faults\.py.*on_train_start", log), log  # fmt: skip
+                     r"recent call last\):\n(.*\n)*.*helpers/faults\.py.*on_train_start", log), log  # fmt: skip
 
 
 # --------------------------------- a final status that cannot be written (issue 22, case 11)
