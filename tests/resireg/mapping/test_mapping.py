@@ -1,4 +1,7 @@
-"""resireg.mapping against independent references (numpy, scipy, hand computations)."""
+"""resireg.mapping against independent references (numpy, scipy, hand computations).
+
+One idea: the geometry under every map (unprojection, voxel means, label votes, nearest
+neighbours, classify), each step against an independent numpy / scipy / open3d reference."""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""ReSiReg Full / Lite against plain-loop references of the docs/method.md#resireg equations."""
+"""ReSiReg Full / Lite against plain-loop references of the docs/method.md#resireg equations.
+
+One idea: Full and Lite against plain-loop references of the same equations; the references
+are shared by the tests of both variants."""
 
 import math
 import subprocess

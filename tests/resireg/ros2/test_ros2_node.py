@@ -2,7 +2,10 @@
 room over Fast DDS restricted to shared memory (tests/fastdds_shm.xml; no UDP socket is opened,
 checked per process), the node maps it with the tiny random-initialised VLM, and its map equals
 resireg-map's on a bag of the same frames (voxel keys exact, features to 1e-6). Queries, save
-and clear through ROS; overload; SIGINT and resume in a subprocess."""
+and clear through ROS; overload; SIGINT and resume in a subprocess.
+
+One idea: the live node against resireg-map on the same frames; every test shares the DDS
+settings, the room and the node's publishers."""
 
 import json
 import os

@@ -1,7 +1,10 @@
 """Replica (NICE-SLAM + HOV-SG ground truth; Semantic-NeRF) and TartanAir v2 as 3D benchmarks:
 tiny scenes written in each download's layout (tests/helpers/posed3d_fixtures.py) read back to the
 known geometry, ground-truth voxels against a numpy recomputation from the files, scores of
-test encoders against values computed from that reference, and every bad input named."""
+test encoders against values computed from that reference, and every bad input named.
+
+One idea: the two posed 3D benchmarks' readers against the same fixture scenes
+(``helpers/posed3d_fixtures.py``) and the one numpy reference of their ground truth."""
 
 import shutil
 from pathlib import Path

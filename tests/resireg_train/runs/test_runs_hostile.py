@@ -1,7 +1,10 @@
 """`resireg-runs` under hostile input (issue 51, items 5, 6, 7, 9 and 10): each bad input is
 handed to the real command (``resireg_train.cli.runs.main``, or the command in a process where
 the error must reach the console) and refused in one line, without a traceback, and every
-file of the inputs and of the other runs keeps its SHA-256."""
+file of the inputs and of the other runs keeps its SHA-256.
+
+One idea: ``resireg-runs`` under hostile input, each case refused in one line with every
+input file's digest unchanged (one check shared by all cases)."""
 
 from __future__ import annotations
 

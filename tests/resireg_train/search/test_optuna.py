@@ -2,7 +2,10 @@
 the synthetic set: pruning of a bad training trial, workers sharing one study (journal file and
 PostgreSQL), a worker killed mid-trial, a whole search killed and run again, two searches started
 at once on one folder, a metric the validation data never logs, the report and optuna-dashboard.
-Every count is read back from Optuna's own storage and the jobs' results.json files."""
+Every count is read back from Optuna's own storage and the jobs' results.json files.
+
+One idea: an Optuna search as a user runs it, end to end; every test reads its counts back
+from the same storage and the same shared fixtures (the tiny export, the PostgreSQL server)."""
 
 from __future__ import annotations
 

@@ -13,7 +13,10 @@ so that float rounding of the inputs does not enter the comparison: points are u
 float64 and rounded to float32 (RayFronts computes them in float32 on the GPU; the project in
 float64), and the voxel index divides in float64. The generated scenes have no lost-tracking
 pose (RayFronts unprojects such frames to non-finite points; the project drops them).
-"""
+
+One idea: the 3D protocol checked against one reference, RayFronts' evaluation re-written
+here; the reference and the cases that compare with it are read together, so they stay in one
+file."""
 
 from __future__ import annotations
 

@@ -1,7 +1,10 @@
 """The 3D semantic-mapping task on the synthetic ScanNet-format room: the reader's frame rules,
 ground-truth voxels against the boxes' geometry, oracle and constant encoders through the
 engine, the Hydra entry point with a tiny encoder, the 3D prototype/batch sweep and its
-report, and the errors naming config keys."""
+report, and the errors naming config keys.
+
+One idea: the 3D task on the one synthetic ScanNet-format room, from its reader to the
+report of its sweep; the tests share the room and its reference voxels."""
 
 import json
 import re
