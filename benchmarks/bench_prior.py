@@ -4,7 +4,7 @@ Two random-initialised SAM 2 models in transformers format, saved to a temporary
 loaded by path (the weights do not change the model's cost; they change how many masks
 survive the filters, hence the post-processing cost, see below):
 
-- ``tiny``: the test model of ``tests/_sam.py`` (128 px input, ~126k parameters),
+- ``tiny``: the test model of ``tests/helpers/sam.py`` (128 px input, ~126k parameters),
 - ``hiera-t``: the Hiera-T architecture of ``facebook/sam2.1-hiera-tiny`` (``Sam2Config()``'s
   defaults: Hiera stages [1, 2, 7, 2], widths 96..768, heads 1..8, global attention in
   blocks 5, 7, 9, window sizes [8, 4, 14, 7]; 256-d FPN neck and two-way mask decoder;
@@ -36,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from _sam import save_tiny_sam  # noqa: E402
+from helpers.sam import save_tiny_sam  # noqa: E402
 from resireg.priors import SamPrior, masks_to_instances  # noqa: E402
 
 

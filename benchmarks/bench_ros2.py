@@ -40,7 +40,7 @@ from _common import build_model
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from _ros2 import Spinner, wait_for  # noqa: E402  (sets the shared-memory DDS environment)
+from helpers.ros2 import Spinner, wait_for  # noqa: E402  (sets the shared-memory DDS environment)
 
 
 def _room(frames, size):

@@ -33,7 +33,7 @@ FLOP convention: 1 multiply-add = 2 FLOP; only matrix products (linear layers, c
 attention's two products, matmul / einsum) are counted; normalisations, softmax, GELU, RoPE,
 interpolation, ``index_add_`` and Full's ``D x D`` float64 ``eigh`` are left out (each is
 memory-bound or small). These are the ops ``torch.utils.flop_counter.FlopCounterMode`` counts
-(it lacks formulas for ``mv`` and the in-place ``addmm_`` of ``pca.gram``), and ``tests/test_bench_throughput.py`` checks
+(it lacks formulas for ``mv`` and the in-place ``addmm_`` of ``pca.gram``), and ``tests/project/test_bench_throughput.py`` checks
 every formula against it, exactly, on the real modules.
 
 - Backbone (ViT, ``P = H*W/p^2`` patches, ``N = P + 1 + R`` tokens with R = 4 registers, width

@@ -30,7 +30,7 @@ not a crash):
 
 Writes ``<out>/gpu_check.json`` (every figure) and ``<out>/gpu_check.md`` (the tables).
 ``--dry-run`` runs every section at tiny size on the CPU (tiny models, 64 x 96 canvas), so
-the script is known to work before a GPU is lent (tests/test_gpu_check.py).
+the script is known to work before a GPU is lent (tests/project/test_gpu_check.py).
 """
 
 from __future__ import annotations

@@ -46,7 +46,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from _ros2 import Spinner, udp_sockets, wait_for  # noqa: E402  (sets the shared-memory DDS env)
+from helpers.ros2 import Spinner, udp_sockets, wait_for  # noqa: E402  (sets the shared-memory DDS env)
 
 NODE = "resireg_map"
 TOPICS = {"rgb": f"/{NODE}/map/rgb", "pca": f"/{NODE}/map/pca",
@@ -69,7 +69,7 @@ def tiny_export(folder: Path) -> Path:
     """The tests' tiny ResiregVLM (``tests/conftest.py``'s ``tiny_export``: seed 0, random)."""
     import torch
 
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     torch.manual_seed(0)

@@ -60,7 +60,7 @@ def _descendants() -> set[int]:
 def _kill_left_behind(pids, what: str) -> None:
     """Fail ``what`` naming the processes of ``pids`` still running (not zombies, not shared
     helpers) after a grace period, once killed."""
-    from _run import GRACE
+    from helpers.run import GRACE
 
     left = []
     for pid in pids:
@@ -129,7 +129,7 @@ def _mlflow_tracking_uri_kept():
 @pytest.fixture
 def mlflow_server(tmp_path):
     """``mlflow server`` on 127.0.0.1 (a SQLite store and the artifacts in ``tmp_path/store``),
-    started through ``tests/_run.started`` as every long-lived process of a test; its
+    started through ``helpers.run.started`` as every long-lived process of a test; its
     ``uri``, ``port`` and ``store`` (``server.db``, ``artifacts/``, ``server.log``). Leaving
     the test kills the server's process group (its uvicorn and job workers): a graceful stop is
     not what the tests using it are about, and took over 30 s on a loaded machine."""
@@ -139,7 +139,7 @@ def mlflow_server(tmp_path):
     import urllib.request
     from types import SimpleNamespace
 
-    from _run import started
+    from helpers.run import started
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -168,7 +168,7 @@ def mlflow_server(tmp_path):
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory):
     """An exported tiny ResiregVLM (random init: same architectures, no training)."""
-    from _tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
+    from helpers.tiny import TINY_BACKBONE, TINY_HEAD, TINY_TEXT
     from resireg.models import ResiregVLM
 
     torch.manual_seed(0)
@@ -182,7 +182,7 @@ def prototype_sweep(tmp_path_factory, tiny_export):
     """A real `resireg-eval sweep=prototype_batch_jobs` multirun (one job per setting) on a
     reduced grid (2 batch sizes x 3 prototype counts on the synthetic set); 1000 prototypes
     exceed the points of a batch, so those two jobs fail. Returns (sweep folder, process)."""
-    from _run import run
+    from helpers.run import run
 
     logs = tmp_path_factory.mktemp("sweeps")
     proc = run("resireg-eval", f"model_path={tiny_export}", "dataset=synthetic",

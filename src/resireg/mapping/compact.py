@@ -14,7 +14,7 @@ recently), and a block is folded into the stored mean, with one rounding to ``fl
 when it holds as many points as the stored mean (``b >= n``): a voxel seen ``n`` times is
 rounded ``~log2(n)`` times, each rounding's error shrunk by the later folds (``n / (n + b) <=
 1/2`` each), so its stored direction stays within about one ``float16`` unit of the exact
-``float64`` mean however long it is watched (``tests/test_compact_map.py``: 10,000 updates, a
+``float64`` mean however long it is watched (``tests/resireg/mapping/test_compact_map.py``: 10,000 updates, a
 cosine above 0.9999). A new voxel folds at the end of its first call. The block buffer holds
 at most ``hot_voxels`` voxels; past it, the blocks that are largest relative to what their
 voxel holds are folded first (they lose least). Queries read a hot voxel as stored mean and

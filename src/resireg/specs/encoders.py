@@ -17,7 +17,7 @@ Adding an encoder: one module with the :class:`~resireg.models.DenseEncoder` sub
 builder function), one :class:`EncoderSpec` below (its builder and the modules it imports beyond
 the core install, which the ``encoders`` extra in ``pyproject.toml`` installs), one
 ``conf/encoder/<name>.yaml`` file with its ``kind``. The Table 1 / Table 2 sweeps, the config
-checks and ``tests/test_tables.py`` pick it up from here.
+checks and ``tests/resireg/specs/test_tables.py`` pick it up from here.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from here.
 Every scorer returns a dict with its :attr:`MetricSpec.keys`.
 
 Adding a metric: the scorer (returning its keys), one :class:`MetricSpec` below; a new score
-key also gets one :class:`ScoreSpec` (label, direction). ``tests/test_tables.py`` runs every
+key also gets one :class:`ScoreSpec` (label, direction). ``tests/resireg/specs/test_tables.py`` runs every
 scorer once and checks it returns exactly its keys.
 """
 

@@ -39,7 +39,7 @@ Adding a map source:
 3. one ``conf/source/<kind>.yaml``: ``defaults: [_common, _self_]``, ``kind: <kind>`` and its
    own keys with their defaults and a comment each.
 
-``tests/test_sources.py`` checks every entry against its file and its rules; ``resireg-map
+``tests/resireg/sources/test_sources.py`` checks every entry against its file and its rules; ``resireg-map
 source=<kind>`` then works.
 
 Torch-free: this module imports nothing but :mod:`resireg.specs` (the readers load with

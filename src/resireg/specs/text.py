@@ -17,7 +17,7 @@ Adding a text tower:
 3. one ``conf/model/text/<name>.yaml``: ``kind: <kind>``, the builder's keywords and
    ``cache_size``. ``model/text=<name>`` then selects it.
 
-``tests/test_tables.py`` checks the entry (its builder loads, its file is found by scanning).
+``tests/resireg/specs/test_tables.py`` checks the entry (its builder loads, its file is found by scanning).
 """
 
 from __future__ import annotations

@@ -7,13 +7,13 @@ Every reader takes the names, classes and parameter rules from :data:`VARIANT_SP
 callback and ``resireg-eval`` (which settings are a variant's), the report (labels, order,
 the baseline of the deltas) and the playground (titles). Defaults live in
 ``conf/resireg/default.yaml`` (one block per variant with parameters); the classes' own
-keyword defaults equal them (tests/test_specs.py composes the config and compares).
+keyword defaults equal them (tests/resireg/specs/test_specs.py composes the config and compares).
 
 Adding a variant: a module with the class (``variant(intermediates, language, prior=None) ->
 [B, Dl, h, w]``, checking its keywords with :func:`check_variant_kwargs`), one
 :class:`VariantSpec` below (its parameter rules), one block of defaults under its name in
 ``conf/resireg/default.yaml``. The factory (:func:`resireg.method.variants.build_variant`), the config
-checks, the report and the playground then know it; ``tests/test_tables.py`` checks the entry.
+checks, the report and the playground then know it; ``tests/resireg/specs/test_tables.py`` checks the entry.
 
 The configuration syntax (:func:`parse_variant`) is read by the config checks before torch
 loads, so a bad ``variants=`` value is reported in a fraction of a second.

@@ -18,7 +18,7 @@ Adding a dataset: one builder (``(name, spec, common) -> SegmentationSet`` for a
 :class:`DatasetSpec` below (its keys, the tasks that score it, the value rules of its keys),
 one ``conf/dataset/<name>.yaml`` file with its ``kind`` and every key (found by scanning
 ``conf/dataset/``). ``resireg-eval dataset=<name>`` then builds and checks it;
-``tests/test_tables.py`` checks the entry against its file. The training captions (``conf/data/``) are not evaluation datasets: their source
+``tests/resireg/specs/test_tables.py`` checks the entry against its file. The training captions (``conf/data/``) are not evaluation datasets: their source
 keys are :data:`CAPTION_SOURCE_KEYS`, read by :func:`resireg_train.data.caption_sources.
 open_caption_source`.
 

@@ -23,7 +23,7 @@ Adding a report section:
 2. a :class:`SectionSpec` below;
 3. the sweep config that asks for it: ``report: [<name>]`` in ``conf/sweep/<sweep>.yaml``.
 
-``tests/test_report.py`` checks every entry (its writer and detector load and take only those
+``tests/resireg_train/report/test_report.py`` checks every entry (its writer and detector load and take only those
 names; every ``report:`` of ``conf/sweep/`` names entries).
 """
 

@@ -17,7 +17,7 @@ Adding a teacher:
 3. one ``conf/model/teacher/<name>.yaml``: ``kind: <kind>`` and every keyword;
    ``model/teacher=<name>`` then selects it (``model.loss.distill.scale`` > 0 loads it).
 
-``tests/test_tables.py`` checks the entry (its class loads, its file is found by scanning).
+``tests/resireg/specs/test_tables.py`` checks the entry (its class loads, its file is found by scanning).
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ from resireg.specs.text import CACHE_SIZE, TEXT_SPECS
 __all__ = ["CAPTION_CACHE_SIZE", "FrozenTextTower", "TextProjection", "dense_text_half"]
 
 #: Captions whose tower outputs a :class:`FrozenTextTower` keeps (LRU) unless told otherwise:
-#: ``cache_size`` of ``conf/model/text/*.yaml`` (tests/test_specs.py holds the two equal).
+#: ``cache_size`` of ``conf/model/text/*.yaml`` (tests/resireg/specs/test_specs.py holds the two equal).
 CAPTION_CACHE_SIZE = 200_000
 
 _OFFLINE_HINT = (

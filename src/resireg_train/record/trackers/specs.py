@@ -14,7 +14,7 @@ Adding a tracker:
    ``_target_`` and keywords (a training run instantiates it) and its own keys' defaults.
 
 ``tracker=<name>`` then runs it for ``resireg-train``, ``resireg-eval`` and ``resireg-map``;
-``tests/test_records.py`` checks that every table entry has its conf file and every conf file
+``tests/resireg_train/record/test_records.py`` checks that every table entry has its conf file and every conf file
 its entry.
 """
 
