@@ -285,7 +285,11 @@ def test_an_unreachable_tracker_refuses_the_run_in_one_line_or_is_left_out(tmp_p
     # escaped by Hydra's sweeper): both complete, and no password in a file, a folder name or
     # the console
     sweep = tmp_path / "warn"
-    proc = run("resireg-eval", "-m", *evaluation, "full.alpha=5,10", "tracker=mlflow",
+    # the export by a short relative name (the test runs in tmp_path), so that the job folder's
+    # name, cut at 200 characters, still reaches the tracking URI whatever tmp_path's length
+    (tmp_path / "m").symlink_to(tiny_export)
+    proc = run("resireg-eval", "-m", "model_path=m", *evaluation[1:], "full.alpha=5,10",
+               "tracker=mlflow",
                f"tracker.mlflow.tracking_uri={uri}", "tracker.mlflow.unreachable=warn",
                "tracker.mlflow.check_timeout=2", f"hydra.sweep.dir={sweep}", timeout=300,
                threads=1)  # fmt: skip
