@@ -36,10 +36,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from resireg.models.images import patch_grid_size, pil_to_tensor, resize_to_patch_grid
+from resireg.models.images import pil_to_tensor, resize_to_patch_grid
 from resireg.sources.scannet import FrameFileError, read_image, resize_rgb
-from resireg.specs.rules import check_batch_size
-from resireg_train.data.scannet import resize_nearest, scale_camera
+from resireg_train.data.scannet import SceneFrames, resize_nearest, scale_camera
 from resireg_train.data.segmentation import IGNORE_INDEX, SkippedSample
 from resireg_train.data.specs import check_dataset_keys, check_dataset_values
 
@@ -141,7 +140,7 @@ class PosedFrame:
     pose: np.ndarray
 
 
-class PosedFrames(torch.utils.data.Dataset, abc.ABC):
+class PosedFrames(SceneFrames, abc.ABC):
     """The kept frames of the chosen scenes, scene by scene in frame order (module docstring).
 
     A reader subclasses it: its ``__init__`` calls this one, then :meth:`add_scene` per scene
@@ -237,25 +236,6 @@ class PosedFrames(torch.utils.data.Dataset, abc.ABC):
         raise TypeError(f"{type(self).__name__} lifts its ground truth from frames")
 
     # ------------------------------------------------------------------ dataset
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def describe(self, index: int) -> str:
-        return str(self.frames[index].color)
-
-    def grid_size(self) -> tuple[int, int]:
-        """``(H, W)`` of the encoder input (``image_size`` after the input rule)."""
-        return patch_grid_size(self.image_size, self.short_side, self.patch_size)
-
-    def batches(self, batch_size: int) -> list[list[int]]:
-        """Consecutive frames of one scene per batch (ReSiReg Full's window)."""
-        check_batch_size(batch_size)
-        return [
-            items[i : i + batch_size]
-            for items in self.frames_per_scene
-            for i in range(0, len(items), batch_size)
-        ]
-
     def _load(self, frame: PosedFrame) -> dict[str, Any]:
         colour = read_image(frame.color, "colour", pil_to_tensor)
         size = tuple(colour.shape[-2:])

@@ -45,8 +45,8 @@ rule and its intrinsics scaled by the ``intrinsics`` rule.
 
 One idea: the ScanNet reader. Its layout, classes, frame selection, resolution and ground truth
 are the one protocol of RayFronts' ``ScanNetDataset`` (above), read by one dataset class and
-its checks; Replica and TartanAir, which yield the same items, build on
-:mod:`resireg_train.data.posed3d`.
+its checks, with :class:`SceneFrames`, what every 3D set of posed frames shares; Replica and
+TartanAir, which yield the same items, build on :mod:`resireg_train.data.posed3d`.
 """
 
 from __future__ import annotations
@@ -94,6 +94,7 @@ __all__ = [
     "LABEL_MAP_FILE",
     "RESIZES",
     "ScanNetFrames",
+    "SceneFrames",
     "build_scannet",
     "check_scannet_spec",
     "collate_frames",
@@ -247,7 +248,35 @@ class _Frame:
     pose: np.ndarray
 
 
-class ScanNetFrames(torch.utils.data.Dataset):
+class SceneFrames(torch.utils.data.Dataset):
+    """What every 3D evaluation set of posed frames shares (:class:`ScanNetFrames`,
+    :class:`resireg_train.data.posed3d.PosedFrames`): its length, a frame's name, the encoder's
+    grid and the batches of consecutive frames of one scene. A subclass sets ``frames`` (each
+    with its ``color`` path), ``frames_per_scene`` (item indices, scene by scene),
+    ``image_size``, ``short_side`` and ``patch_size``."""
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def describe(self, index: int) -> str:
+        return str(self.frames[index].color)
+
+    def grid_size(self) -> tuple[int, int]:
+        """``(H, W)`` of the encoder input (``image_size`` after the input rule)."""
+        return patch_grid_size(self.image_size, self.short_side, self.patch_size)
+
+    def batches(self, batch_size: int) -> list[list[int]]:
+        """Consecutive frames of one scene per batch (a scene's last batch may be smaller):
+        ReSiReg Full's batch = scene is a video window."""
+        check_batch_size(batch_size)
+        return [
+            items[i : i + batch_size]
+            for items in self.frames_per_scene
+            for i in range(0, len(items), batch_size)
+        ]
+
+
+class ScanNetFrames(SceneFrames):
     """The kept frames of the chosen scenes, scene by scene in frame order.
 
     Item ``i`` (:meth:`__getitem__`) is a dict of tensors, or a :class:`SkippedSample`
@@ -376,26 +405,6 @@ class ScanNetFrames(torch.utils.data.Dataset):
         if not items:
             log.warning("%s: no usable frames in scene %s", self.name, scene)
         return items
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def describe(self, index: int) -> str:
-        return str(self.frames[index].color)
-
-    def grid_size(self) -> tuple[int, int]:
-        """``(H, W)`` of the encoder input (``image_size`` after the input rule)."""
-        return patch_grid_size(self.image_size, self.short_side, self.patch_size)
-
-    def batches(self, batch_size: int) -> list[list[int]]:
-        """Consecutive frames of one scene per batch (a scene's last batch may be smaller):
-        ReSiReg Full's batch = scene is a video window."""
-        check_batch_size(batch_size)
-        return [
-            items[i : i + batch_size]
-            for items in self.frames_per_scene
-            for i in range(0, len(items), batch_size)
-        ]
 
     def _load(self, frame: _Frame) -> dict[str, Any]:
         k = torch.from_numpy(self.intrinsics[frame.scene])
