@@ -72,6 +72,15 @@ def _token_index(
     return token, (hl, wl) == (h, w) and torch.equal(token, block)
 
 
+def _promoted(intermediates: Tensor, language: Tensor) -> tuple[Tensor, Tensor]:
+    """Both inputs of the factorised form (eager and traced) in their common dtype, at least
+    float32 (bfloat16 and float16 products and ``exp`` are no faster on the CPU)."""
+    dtype = torch.promote_types(
+        torch.promote_types(intermediates.dtype, language.dtype), torch.float32
+    )
+    return intermediates.to(dtype), language.to(dtype)
+
+
 class ReSiRegLite(nn.Module):
     """ReSiReg Lite: every patch is its own prototype (one attention step, no clustering).
 
@@ -180,11 +189,7 @@ class ReSiRegLite(nn.Module):
         Computed in at least float32 (bfloat16 and float16 inputs are promoted: on the CPU
         their products and ``exp`` are no faster). Returns ``[B, Dl, s h, s w]``.
         """
-        dtype = torch.promote_types(
-            torch.promote_types(intermediates.dtype, language.dtype), torch.float32
-        )
-        x = intermediates.to(dtype)
-        lang = language.to(dtype)
+        x, lang = _promoted(intermediates, language)
         b, dv, hv, wv = x.shape
         dl, hl, wl = lang.shape[1:]
         s, alpha = self.upscale, self.alpha
@@ -256,11 +261,7 @@ class ReSiRegLite(nn.Module):
         Exported without a prior (a ValueError otherwise: its instance count is data)."""
         if prior is not None:
             raise ValueError("factorised Lite in a traced graph takes no prior")
-        dtype = torch.promote_types(
-            torch.promote_types(intermediates.dtype, language.dtype), torch.float32
-        )
-        x = intermediates.to(dtype)
-        lang = language.to(dtype)
+        x, lang = _promoted(intermediates, language)
         b, dv, hv, wv = x.shape
         dl, hl, wl = lang.shape[1:]
         s, alpha = self.upscale, self.alpha
@@ -284,7 +285,7 @@ class ReSiRegLite(nn.Module):
         sums = self._graph_token_sums(weights, (hv, wv, s), (hl, wl))  # [B, N, hl wl]
         if self.tau > 0:  # gate: lambda = w / Z >= tau, then the sums again
             norm = weights.sum(dim=(2, 3), keepdim=True)
-            weights = weights * (weights >= self.tau * norm).to(dtype)
+            weights = weights * (weights >= self.tau * norm).to(x.dtype)
             sums = self._graph_token_sums(weights, (hv, wv, s), (hl, wl))
         tokens = lang.reshape(b, dl, hl * wl).transpose(1, 2)  # [B, hl wl, Dl]
         out = F.normalize(sums @ tokens, dim=2)  # [B, N, Dl]
