@@ -111,6 +111,25 @@ def dead_references(path: Path, docs: Path = DOCS) -> list[str]:
     return dead
 
 
+#: A repository path written in a page (``tests/resireg/deploy/test_export.py``,
+#: ``src/resireg/method/lite.py``, ``conf/map.yaml``): a file that must exist. Placeholders
+#: (``conf/encoder/<name>.yaml``), globs and an upstream repository's files (``src/model.py``
+#: of OTAS) do not match.
+REPO_PATH = re.compile(
+    r"(?<![\w/.<-])((?:src/(?:resireg|resireg_train|hydra_plugins)|tests|benchmarks|conf|notebooks)"
+    r"/[\w./-]*\w\.(?:py|yaml|md|ipynb|json|txt))"
+)
+
+
+def missing_files(page: Path, root: Path = ROOT) -> list[str]:
+    """``page: path`` for each repository path the page names that is no file under ``root``
+    (a test or module moved since the page was written)."""
+    name = page.relative_to(root) if page.is_relative_to(root) else page
+    text = page.read_text(encoding="utf-8")
+    return [f"{name}: {m}" for m in sorted(set(REPO_PATH.findall(text)))
+            if not (root / m).is_file()]  # fmt: skip
+
+
 def _pages() -> list[Path]:
     return [*sorted(DOCS.glob("*.md")), ROOT / "README.md"]
 
@@ -118,6 +137,20 @@ def _pages() -> list[Path]:
 @pytest.mark.parametrize("page", _pages(), ids=lambda p: p.name)
 def test_every_link_and_anchor_of_the_docs_resolves(page: Path) -> None:
     assert dead_links(page) == []
+
+
+@pytest.mark.parametrize("page", _pages(), ids=lambda p: p.name)
+def test_every_file_a_page_names_exists(page: Path) -> None:
+    assert missing_files(page) == []
+
+
+def test_a_page_naming_a_moved_test_is_found(tmp_path: Path) -> None:
+    (tmp_path / "tests" / "resireg" / "deploy").mkdir(parents=True)
+    (tmp_path / "tests" / "resireg" / "deploy" / "test_export.py").write_text("")
+    page = tmp_path / "page.md"
+    page.write_text("Tested (`tests/resireg/deploy/test_export.py`, `tests/test_export.py::t`);\n"
+                    "a recipe: `conf/encoder/<name>.yaml`.\n")  # fmt: skip
+    assert missing_files(page, tmp_path) == ["page.md: tests/test_export.py"]
 
 
 def test_every_doc_reference_in_code_and_configs_resolves() -> None:
