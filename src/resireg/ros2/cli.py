@@ -20,6 +20,7 @@ warning line until the release that removes the old name
 
 from __future__ import annotations
 
+import re
 import sys
 from collections.abc import Callable
 
@@ -68,6 +69,14 @@ def main(argv: list[str] | None = None) -> int:
         renamed.cleanup()
 
 
+def _rcl_message(err: BaseException) -> str:
+    """rcl's message in one line, without the C source locations it appends
+    (``, at /project/src/parse.c:782``) and its "failed to initialize rcl: " prefix."""
+    text = " ".join(str(err).split())
+    text = re.sub(r", at \S+:\d+", "", text)
+    return text.removeprefix("failed to initialize rcl: ")
+
+
 def _run(argv: list[str], parsed: Callable[[], None]) -> int:
     """The node of ``argv`` (today's names); ``parsed`` is called once rclpy has read them."""
     missing = missing_rclpy()
@@ -89,8 +98,13 @@ def _run(argv: list[str], parsed: Callable[[], None]) -> int:
 
     # SIGINT and SIGTERM end the spin in this thread; the node then closes in order (save,
     # publish) while the context is valid, and only then is the context shut down.
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    parsed()  # rcl has read the parameter files
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as err:  # rcl's RCLError: a params file missing or not YAML, a bad -r
+        print(f"{PROG}: error: {_rcl_message(err)}", file=sys.stderr)
+        return 2
+    finally:
+        parsed()  # rcl has read the parameter files (or failed to)
     previous = signal.signal(signal.SIGTERM, stop)
     node = None
     try:

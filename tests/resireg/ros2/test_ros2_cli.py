@@ -276,3 +276,23 @@ def test_the_node_renames_agree_with_the_hydra_commands():
     for old, (new, since, removed) in settings.RENAMED_PARAMETERS.items():
         r = RENAMED_KEYS[old]
         assert "map" in r.configs and (r.new, r.since, r.removed) == (new, since, removed)
+
+
+@pytest.mark.parametrize("kind", ["missing", "truncated"])
+def test_a_params_file_rcl_cannot_read_ends_in_one_line_naming_it(tmp_path, kind):
+    """A ``--params-file`` that does not exist, or whose YAML is cut mid-flow, is refused with
+    exit 2 and one line of ours naming the file (rcl's own log line may precede it), never
+    rclpy's traceback; the node starts nothing and writes nothing."""
+    params = tmp_path / "robot.yaml"
+    if kind == "truncated":
+        params.write_text("resireg_map:\n  ros__parameters:\n    window: [4,\n")
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "resireg.ros2.cli", "--ros-args",
+                           "--params-file", str(params), "-p", f"output_dir:={out}"],
+                          capture_output=True, text=True, env=ros_env(), timeout=300)  # fmt: skip
+    lines = [x for x in proc.stderr.splitlines() if x.strip()]
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert lines[-1].startswith(f"resireg-ros2: error: Couldn't parse params file: "
+                                f"'--params-file {params}'"), proc.stderr  # fmt: skip
+    assert ", at /" not in lines[-1] and not out.exists()
