@@ -25,6 +25,8 @@ import psutil  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
+from helpers import warm_start  # noqa: E402, F401  (its BASE_ENV: the environment before any test)
+
 
 @pytest.fixture(autouse=True)
 def _seed():
@@ -35,7 +37,8 @@ def _seed():
 #: Python's shared helper processes, started once and kept for the life of this process: not
 #: a test's to stop (matched in their command lines).
 _SHARED_HELPERS = ("multiprocessing.resource_tracker", "multiprocessing.forkserver",
-                   "_inductor/compile_worker", "_inductor.compile_worker")  # fmt: skip
+                   "_inductor/compile_worker", "_inductor.compile_worker",
+                   "helpers/warm_start.py")  # fmt: skip
 
 
 def _descendants() -> set[int]:

@@ -44,7 +44,10 @@ def _ctrl_c_as_in_a_terminal() -> None:
 
 
 def _command(script, args):
-    exe = shutil.which(script)
+    # this interpreter's own console script first (a version manager's shim on PATH would
+    # start another process to find it)
+    own = Path(sys.executable).with_name(script)
+    exe = str(own) if own.is_file() else shutil.which(script)
     return [*([exe] if exe else [sys.executable, "-m", *_MODULES[script].split()]), *map(str, args)]
 
 
@@ -244,10 +247,31 @@ class Child:
         self.popen.wait()
 
 
+def _warm(cmd, env, cwd):
+    """``cmd`` started warm (:mod:`helpers.warm_start`), or None where it cannot be: not a
+    console script of this interpreter, an environment the warm interpreter cannot take on, or
+    ``RESIREG_TEST_COLD_START`` set."""
+    from helpers import warm_start
+
+    if os.environ.get("RESIREG_TEST_COLD_START") or not os.path.isabs(cmd[0]):
+        return None
+    try:
+        with open(cmd[0], "rb") as script:
+            first = script.readline().strip()
+    except OSError:
+        return None
+    if not first.startswith(b"#!") or \
+            os.path.realpath(first[2:].decode()) != os.path.realpath(sys.executable):  # fmt: skip
+        return None
+    server = warm_start.server(warm_start.BASE_ENV)
+    why = server.refusal(env)
+    return None if why else server.start(cmd, env, cwd)
+
+
 @contextlib.contextmanager
 def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, terminal=False,
-            preexec=None):  # fmt: skip
+            preexec=None, warm=False):  # fmt: skip
     """``cmd`` (a list) started for the ``with`` block, as every long-lived subprocess of a test
     is: SIGINT and SIGTERM at their default (whatever this process ignores), its own process
     group (session), offline (``env``, ``threads`` as :func:`run`'s), stdin from /dev/null
@@ -258,7 +282,12 @@ def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
 
     Leaving the block kills whatever of its process group still runs. When the block ends
     without an error and the command had exited, processes of its group still running
-    ``GRACE`` seconds later fail the test, named (a command must not leave processes behind)."""
+    ``GRACE`` seconds later fail the test, named (a command must not leave processes behind).
+
+    ``warm``: a console script of this interpreter starts in a process forked from a warm one
+    (:mod:`helpers.warm_start`) where it can (stdin from /dev/null, stdout and stderr pipes, no
+    terminal, no ``preexec``, an environment it allows); otherwise, or with
+    ``RESIREG_TEST_COLD_START=1``, in a fresh interpreter."""
     opened, out, err = [], None, None
 
     def target(where):
@@ -277,8 +306,12 @@ def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
 
         master, slave = pty.openpty()
         stdin = stdout = stderr = slave
+    popen = None
+    if warm and not terminal and preexec is None and stdin == subprocess.DEVNULL and \
+            stdout == subprocess.PIPE and stderr == subprocess.PIPE:  # fmt: skip
+        popen = _warm([str(c) for c in cmd], _env(env, threads), cwd)
     try:
-        popen = subprocess.Popen(
+        popen = popen or subprocess.Popen(
             [str(c) for c in cmd], stdin=stdin, stdout=target(stdout), stderr=target(stderr),
             env=_env(env, threads), cwd=cwd, start_new_session=True, preexec_fn=before_exec,
         )  # fmt: skip
@@ -343,7 +376,7 @@ def run_side_by_side(*commands, timeout=600, check=True, env=None, threads=1, pr
     with contextlib.ExitStack() as stack:
         children = [
             stack.enter_context(started(_command(script, args), env=env, threads=threads,
-                                        stderr=subprocess.PIPE, preexec=preexec))
+                                        stderr=subprocess.PIPE, preexec=preexec, warm=True))
             for script, *args in commands
         ]  # fmt: skip
         for child in children:
