@@ -44,9 +44,9 @@ def _ctrl_c_as_in_a_terminal() -> None:
 
 
 def _command(script, args):
-    # this interpreter's own console script first (a version manager's shim on PATH would
-    # start another process to find it)
-    own = Path(sys.executable).with_name(script)
+    # a path as given; else this interpreter's own console script first (a version manager's
+    # shim on PATH would start another process to find it)
+    own = Path(script) if os.path.isabs(script) else Path(sys.executable).with_name(script)
     exe = str(own) if own.is_file() else shutil.which(script)
     return [*([exe] if exe else [sys.executable, "-m", *_MODULES[script].split()]), *map(str, args)]
 
@@ -249,20 +249,25 @@ class Child:
 
 def _warm(cmd, env, cwd):
     """``cmd`` started warm (:mod:`helpers.warm_start`), or None where it cannot be: not a
-    console script of this interpreter, an environment the warm interpreter cannot take on, or
+    console script, ``python -m`` or ``python -c`` of this interpreter, an environment the warm interpreter cannot take on, or
     ``RESIREG_TEST_COLD_START`` set."""
     from helpers import warm_start
 
     if os.environ.get("RESIREG_TEST_COLD_START") or not os.path.isabs(cmd[0]):
         return None
-    try:
-        with open(cmd[0], "rb") as script:
-            first = script.readline().strip()
-    except OSError:
-        return None
-    if not first.startswith(b"#!") or \
-            os.path.realpath(first[2:].decode()) != os.path.realpath(sys.executable):  # fmt: skip
-        return None
+    if os.path.realpath(cmd[0]) == os.path.realpath(sys.executable):
+        if cmd[1:2] not in (["-m"], ["-c"]) or len(cmd) < 3:
+            return None
+        cmd = [sys.executable, *cmd[1:]]
+    else:
+        try:
+            with open(cmd[0], "rb") as script:
+                first = script.readline().strip()
+        except OSError:
+            return None
+        if not first.startswith(b"#!") or \
+                os.path.realpath(first[2:].decode()) != os.path.realpath(sys.executable):  # fmt: skip
+            return None
     server = warm_start.server(warm_start.BASE_ENV)
     why = server.refusal(env)
     return None if why else server.start(cmd, env, cwd)

@@ -5,8 +5,8 @@ machines, most of what a short command costs).
 
 The forked process is a real process as :func:`helpers.run.started` makes one: its own PID and
 session (process group), SIGINT and SIGTERM at a fresh interpreter's defaults, stdin from
-/dev/null, stdout and stderr pipes, the command's argv, environment, working folder and
-``sys.path`` (its script's folder, then ``PYTHONPATH``), its exit code as Python gives it (an
+/dev/null, stdout and stderr pipes, the command's argv, environment, working folder, the tests'
+process's umask and resource limits, and ``sys.path`` (its script's folder, then ``PYTHONPATH``), its exit code as Python gives it (an
 uncaught exception: 1; ``sys.exit(x)``: as the interpreter reads ``x``; Ctrl-C: killed by
 SIGINT), its non-daemon threads joined and its ``atexit`` functions run before it exits. What the
 imports printed on stderr (warnings) is printed again at its start, as a fresh interpreter
@@ -14,8 +14,8 @@ would print it.
 
 What a warm start cannot give, and then a command starts fresh (:func:`helpers.run.started`
 decides; ``RESIREG_TEST_COLD_START=1`` starts every command fresh): an environment that differs
-from the server's in a variable some pre-imported library reads when it is imported (only the
-variables in :data:`_SAFE_TO_CHANGE` may differ), a ``PYTHONPATH`` folder shadowing a
+from the server's in a variable some pre-imported library reads when it is imported (one of
+:data:`_READ_AT_IMPORT`), a ``PYTHONPATH`` folder shadowing a
 pre-imported package, a terminal, a ``preexec`` function, input on stdin. Tests about the
 process start itself (start-up time, imports) start their interpreters with ``subprocess``.
 
@@ -27,6 +27,7 @@ argv, environment and file descriptors)."""
 import contextlib
 import json
 import os
+import resource
 import select
 import signal
 import socket
@@ -42,22 +43,32 @@ import threading
 PRELOADED = ("torch", "numpy", "PIL.Image", "torchvision", "torchmetrics", "hydra", "omegaconf",
              "timm", "open_clip")  # fmt: skip
 
-#: Environment variables that no pre-imported library reads when imported: a command whose
-#: environment differs from the server's in these only starts warm. (OMP_NUM_THREADS and
-#: MKL_NUM_THREADS, which the OpenMP runtime reads when loaded, are applied through
-#: ``torch.set_num_threads``; PYTHONPATH through ``sys.path``.)
-_SAFE_TO_CHANGE = ("RESIREG_", "MLFLOW_", "WANDB_", "PG", "SLURM_", "MASTER_ADDR", "MASTER_PORT",
-                   "WORLD_SIZE", "RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK",
-                   "LOCAL_WORLD_SIZE", "OPTUNA_", "HYDRA_FULL_ERROR", "PATH", "PYTHONPATH",
-                   "OMP_NUM_THREADS", "MKL_NUM_THREADS", "COLUMNS", "LINES", "NO_COLOR",
-                   "FORCE_COLOR", "TMPDIR", "PYTEST_CURRENT_TEST")  # fmt: skip
+#: Environment variables (prefixes) the interpreter or a pre-imported library reads when it
+#: starts or is imported: a command whose environment differs from the server's in one of them
+#: starts cold. Any other variable (what a test sets, what a library sets in the tests' process
+#: as it runs) is read when used, in the command's own process.
+_READ_AT_IMPORT = ("PYTHON", "HF_", "HUGGINGFACE_", "TRANSFORMERS_", "USE_TORCH", "USE_TF",
+                   "USE_JAX", "TORCH", "PYTORCH_", "CUDA_", "NVIDIA_", "TRITON_", "OMP_", "MKL_",
+                   "OPENBLAS_", "GOTO", "TIMM_", "MPL", "XDG_", "HOME", "LANG", "LC_", "TZ",
+                   "NUMPY_", "SCIPY_", "LD_", "TF_", "JAX_", "XLA_", "SAFETENSORS_",
+                   "TOKENIZERS_")  # fmt: skip
+#: ... except these: applied in the forked process (the thread counts through
+#: ``torch.set_num_threads``, PYTHONPATH through ``sys.path``), or read when used (the rest: set
+#: by libraries in the tests' process as tests run).
+_APPLIED_OR_READ_WHEN_USED = ("PYTHONPATH", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                              "TORCHINDUCTOR_CACHE_DIR", "PYTORCH_NVML_BASED_CUDA_CHECK",
+                              "TOKENIZERS_PARALLELISM")  # fmt: skip
+
+
+#: The resource limits a child inherits from the tests' process (with its umask), applied in the
+#: forked process.
+_LIMITS = ("RLIMIT_FSIZE", "RLIMIT_NOFILE", "RLIMIT_AS", "RLIMIT_DATA", "RLIMIT_CORE",
+           "RLIMIT_CPU", "RLIMIT_STACK")  # fmt: skip
 
 
 def _safe(name: str) -> bool:
-    """Whether ``name`` is in :data:`_SAFE_TO_CHANGE` (an entry ending in ``_``, and ``PG``, is a
-    prefix)."""
-    return any(name.startswith(s) if s.endswith("_") or s == "PG" else name == s
-               for s in _SAFE_TO_CHANGE)  # fmt: skip
+    """Whether a command may start warm with ``name`` set otherwise than in the server."""
+    return name in _APPLIED_OR_READ_WHEN_USED or not name.startswith(_READ_AT_IMPORT)
 
 
 #: The environment of the tests' process when it started (before any test changed it): the
@@ -82,6 +93,7 @@ def _run_child(request, fds, import_stderr: bytes, base_path: list[str]) -> None
     """In the forked process: become the command, run its script as ``__main__``, exit."""
     import runpy
     import tempfile
+    import types
 
     import numpy
     import torch
@@ -95,25 +107,39 @@ def _run_child(request, fds, import_stderr: bytes, base_path: list[str]) -> None
         os.dup2(fd, target)
         os.close(fd)
     os.chdir(request["cwd"])
+    os.umask(request["umask"])  # what a child inherits from the tests' process
+    for name, limits in request["limits"].items():
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(getattr(resource, name), tuple(limits))
     os.environ.clear()
     os.environ.update(request["env"])
     if "OMP_NUM_THREADS" in os.environ:
         torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     tempfile.tempdir = None  # found again from this environment's TMPDIR
     numpy.random.seed()  # a fresh interpreter seeds its own (Python's random reseeds at fork)
-    script = request["argv"][0]
+    argv = list(request["argv"])
     extra = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
-    sys.path[:] = [os.path.dirname(script), *extra, *base_path]
-    sys.argv = list(request["argv"])
+    form = argv[1] if argv[0] == sys.executable and argv[1:2] in (["-m"], ["-c"]) else "script"
+    # sys.path[0] and sys.argv as the interpreter sets them for `python -m`, `-c` and a script
+    first = {"-m": os.getcwd(), "-c": "", "script": os.path.dirname(argv[0])}[form]
+    sys.path[:] = [first, *extra, *base_path]
+    sys.argv = {"-m": argv[2:], "-c": ["-c", *argv[3:]], "script": argv}[form]
     os.write(2, import_stderr)
     code, interrupted = 0, False
     try:
-        runpy.run_path(script, run_name="__main__")
+        if form == "-m":
+            runpy.run_module(argv[2], run_name="__main__", alter_sys=True)
+        elif form == "-c":
+            main = sys.modules["__main__"] = types.ModuleType("__main__")
+            exec(compile(argv[2], "<string>", "exec"), main.__dict__)
+        else:
+            runpy.run_path(argv[0], run_name="__main__")
     except SystemExit as exit:
         code = _exit_code(exit)
     except BaseException as error:
-        tb = error.__traceback__  # from the script's frame on, as a fresh interpreter shows it
-        while tb is not None and tb.tb_frame.f_code.co_filename != script:
+        tb = error.__traceback__  # from the command's own frames on, as a fresh one shows it
+        while tb is not None and (tb.tb_frame.f_code.co_filename == __file__ or
+                                  tb.tb_frame.f_code.co_filename.startswith("<frozen runpy")):  # fmt: skip
             tb = tb.tb_next
         error = error.with_traceback(tb or error.__traceback__)
         sys.excepthook(type(error), error, error.__traceback__)
@@ -286,7 +312,11 @@ class Server:
         err_r, err_w = os.pipe()
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         with open(os.devnull, "rb") as stdin:
-            request = {"argv": list(argv), "env": dict(env), "cwd": str(cwd or os.getcwd())}
+            umask = os.umask(0)
+            os.umask(umask)
+            request = {"argv": list(argv), "env": dict(env), "cwd": str(cwd or os.getcwd()),
+                       "umask": umask, "limits": {name: resource.getrlimit(getattr(resource, name))
+                                                  for name in _LIMITS}}  # fmt: skip
             with self._lock:
                 socket.send_fds(self._control, [json.dumps(request).encode()],
                                 [stdin.fileno(), out_w, err_w, theirs.fileno()])  # fmt: skip

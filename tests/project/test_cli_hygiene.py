@@ -258,8 +258,7 @@ def test_resireg_map_prints_its_summary_once(tmp_path, tiny_export):
     """resireg-map on the demo bag: the summary line once on the console, once in map.log."""
     pytest.importorskip("rosbags")
     bag = tmp_path / "room"
-    subprocess.run([sys.executable, "-m", "resireg_train.data.room_bag", str(bag)], check=True,
-                   capture_output=True, timeout=300)  # fmt: skip
+    run(sys.executable, "-m", "resireg_train.data.room_bag", bag, timeout=300)
     from resireg_train.data.room_bag import TOPICS
 
     out = tmp_path / "run"

@@ -19,7 +19,8 @@ _SCRIPT = textwrap.dedent("""\
     mode = sys.argv[1]
     print("argv", sys.argv[1:], "cwd", os.getcwd(), "path0", sys.path[0] == os.path.dirname(
           os.path.abspath(__file__)), "extra", os.environ["PYTHONPATH"] in sys.path,
-          "var", os.environ.get("RESIREG_PROBE"), "main", __name__, flush=True)
+          "var", os.environ.get("RESIREG_PROBE"), "main", __name__, "umask", oct(os.umask(0)),
+          flush=True)
     atexit.register(lambda: print("atexit ran", flush=True))
     if mode == "thread":  # a non-daemon thread outliving main is joined before the exit
         threading.Thread(target=lambda: (time.sleep(0.3), print("thread done"))).start()
@@ -50,7 +51,7 @@ def _both(cmd, monkeypatch, **kwargs):
 @pytest.mark.parametrize("mode", ["ok", "thread", "code", "message", "raise", "ctrl-c"])
 def test_a_script_ends_warm_as_it_ends_cold(tmp_path, monkeypatch, mode):
     """Exit code (sys.exit's int and message, an exception, Ctrl-C's death by SIGINT), stdout,
-    stderr, argv, working folder, sys.path and environment of a console script of this
+    stderr, argv, working folder, umask, sys.path and environment of a console script of this
     interpreter: the same warm and cold."""
     script = tmp_path / "bin" / "probe"
     script.parent.mkdir()
@@ -59,12 +60,16 @@ def test_a_script_ends_warm_as_it_ends_cold(tmp_path, monkeypatch, mode):
     (tmp_path / "work").mkdir()
     env = {**os.environ, "RESIREG_PROBE": "seen", "PYTHONPATH": str(tmp_path / "lib")}
     (tmp_path / "lib").mkdir()
-    warm, cold = _both([script, mode, "x y"], monkeypatch, env=env, cwd=tmp_path / "work")
+    before = os.umask(0o027)  # the tests' process's umask reaches the command
+    try:
+        warm, cold = _both([script, mode, "x y"], monkeypatch, env=env, cwd=tmp_path / "work")
+    finally:
+        os.umask(before)
     assert warm == cold
     code = {"ok": 0, "thread": 0, "code": 3, "message": 1, "raise": 1, "ctrl-c": -2}[mode]
     assert warm[0] == code, warm
     assert warm[1].startswith(f"argv ['{mode}', 'x y'] cwd {tmp_path / 'work'} path0 True extra "
-                              "True var seen main __main__\n")  # fmt: skip
+                              "True var seen main __main__ umask 0o27\n")  # fmt: skip
     assert "atexit ran" in warm[1] and ("thread done" in warm[1]) == (mode == "thread")
 
 

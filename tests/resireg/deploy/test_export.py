@@ -21,6 +21,7 @@ import pytest
 import torch
 
 from helpers.paths import ROOT
+from helpers.run import run
 from resireg.integrity import IntegrityError, verify_digests
 from resireg.method.lite import ReSiRegLite
 from resireg.models import ResiregVLM
@@ -268,12 +269,8 @@ def tiny_model(tiny_export):
 def dynamic_cli(tiny_export, tmp_path_factory):
     """``resireg-export onnx --lite --dynamic`` in a fresh process, as a user runs it."""
     out = tmp_path_factory.mktemp("onnx") / "model.onnx"
-    proc = subprocess.run(
-        [sys.executable, "-m", "resireg.deploy.cli", "export", "onnx", str(tiny_export),
-         "--out", str(out), "--lite", "--dynamic"],
-        capture_output=True, text=True, timeout=600, env={**os.environ, "HF_HUB_OFFLINE": "1"},
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = run(sys.executable, "-m", "resireg.deploy.cli", "export", "onnx", tiny_export,
+               "--out", out, "--lite", "--dynamic")  # fmt: skip
     return out, proc.stdout
 
 

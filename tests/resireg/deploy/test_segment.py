@@ -2,7 +2,6 @@
 from the model's own passes with numpy, and ``resireg-segment`` on a scikit-image photograph
 with the smoke (tiny) export: label map, overlay (size, legend) and similarity maps."""
 
-import os
 import subprocess
 import sys
 
@@ -12,6 +11,7 @@ import torch
 from PIL import Image
 
 import resireg
+from helpers.run import run
 from resireg.models import ResiregVLM
 from resireg.ovss import TEMPLATES
 
@@ -106,12 +106,8 @@ def test_resireg_segment_writes_label_map_overlay_and_similarity_maps(tiny_expor
     image = tmp_path / "astronaut.jpg"
     Image.fromarray(photo).save(image, quality=95)
     out = tmp_path / "seg" / "seg.png"
-    proc = subprocess.run(
-        [sys.executable, "-m", "resireg.deploy.cli", "segment", str(image), "--labels",
-         ",".join(LABELS), "--model-path", str(tiny_export), "--variant", "lite", "--out", str(out)],
-        capture_output=True, text=True, timeout=600, env={**os.environ, "HF_HUB_OFFLINE": "1"},
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = run(sys.executable, "-m", "resireg.deploy.cli", "segment", image, "--labels",
+               ",".join(LABELS), "--model-path", tiny_export, "--variant", "lite", "--out", out)  # fmt: skip
     with Image.open(image) as im:  # the JPEG as decoded, the command's input
         decoded = np.asarray(im.convert("RGB"))
         expected = resireg.segment(im, LABELS, str(tiny_export), "lite")

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import csv
 import math
-import subprocess
 import sys
 
 import pytest
 import yaml
 
+from helpers.run import run
 from helpers.sweeps import make_job as _job
 from resireg_train.config.paths import CONFIG_DIR
 from resireg_train.report import report
@@ -74,11 +74,11 @@ def test_table1_paper_columns_equal_the_data_file_and_flag_beyond_the_tolerance(
     assert "temperature" not in text.split("Protocol settings that differ")[1].split("\n\n")[1]
     # A wider tolerance flags nothing; the CLI passes it through.
     out = tmp_path / "wide"
-    subprocess.run([sys.executable, "-m", "resireg_train.cli.report", str(sweep), "--out",
-                    str(out), "--paper-tolerance", "2"], check=True, capture_output=True)  # fmt: skip
+    run(sys.executable, "-m", "resireg_train.cli.report", sweep, "--out", out,
+        "--paper-tolerance", "2")  # fmt: skip
     assert "No cell differs from the paper by more." in (out / "table1.md").read_text()
-    bad = subprocess.run([sys.executable, "-m", "resireg_train.cli.report", str(sweep),
-                          "--paper-tolerance", "-1"], capture_output=True, text=True)  # fmt: skip
+    bad = run(sys.executable, "-m", "resireg_train.cli.report", sweep, "--paper-tolerance", "-1",
+              check=False)  # fmt: skip
     assert bad.returncode == 2 and "--paper-tolerance=-1.0: expected a number >= 0" in bad.stderr
 
 

@@ -22,6 +22,7 @@ import pytest
 import yaml
 
 from helpers.paths import ROOT
+from helpers.run import run
 from resireg_train.record.provenance.inputs import data_identity
 from resireg_train.record.provenance.machine import package_versions
 from resireg_train.runs.diff import diff_runs
@@ -65,8 +66,7 @@ def _probe(repo: Path, out: Path, **settings) -> dict:
         "PYTHONPATH": str(repo / "src"),
         "RESIREG_CONFIG_DIR": str(SRC.parent / "conf"),
     }
-    proc = subprocess.run([sys.executable, "-c", _PROBE, str(out), json.dumps(settings)],
-                          env=env, check=True, capture_output=True, text=True)  # fmt: skip
+    proc = run(sys.executable, "-c", _PROBE, out, json.dumps(settings), env=env)
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert Path(result["file"]).resolve().is_relative_to(repo.resolve())  # the copy ran
     return result["code"]

@@ -611,7 +611,6 @@ def test_a_smoke_trained_model_scores_above_chance_on_the_smoke_room(tmp_path):
     the classes and textures the smoke model learned) scored with the export. Accuracy is
     over twice chance (8 classes: 1/8), and every class the model learned is in the vocabulary
     the room's label map gives."""
-    import subprocess
     import sys
 
     from resireg_train.data.synthetic import SYNTHETIC_CLASSES
@@ -621,8 +620,7 @@ def test_a_smoke_trained_model_scores_above_chance_on_the_smoke_room(tmp_path):
         f"paths.log_dir={logs}")  # fmt: skip
     (export,) = logs.glob("smoke/*/export")
     room = tmp_path / "scannet_synthetic"
-    subprocess.run([sys.executable, "-m", "resireg_train.data.scannet_room", str(room)],
-                   check=True, capture_output=True)  # fmt: skip
+    run(sys.executable, "-m", "resireg_train.data.scannet_room", room)
     run("resireg-eval", f"model_path={export}", "task=scannet3d", "dataset=scannet_synthetic",
         f"dataset.path={room}", "variants=[bb,full]", "batch_size=4", "num_workers=0",
         f"paths.log_dir={logs}")  # fmt: skip

@@ -23,6 +23,7 @@ import pytest
 import yaml
 
 from helpers.paths import ROOT
+from helpers.run import run
 
 SRC = ROOT / "src"
 CONF = SRC.parent / "conf"
@@ -52,14 +53,8 @@ def project(tmp_path_factory):
 
 def _run(env, module, *args, check=True, threads=None):
     """``python -m module args`` from the copy (``threads``: OMP_NUM_THREADS)."""
-    env = dict(env)
-    if threads is not None:
-        env["OMP_NUM_THREADS"] = env["MKL_NUM_THREADS"] = str(threads)
-    proc = subprocess.run([sys.executable, "-m", module, *map(str, args)], env=env,
-                          capture_output=True, text=True, timeout=900)  # fmt: skip
-    if check:
-        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc
+    return run(sys.executable, "-m", module, *args, env=env, threads=threads, check=check,
+               timeout=900)  # fmt: skip
 
 
 def _rerun(env, *args, check=None):
@@ -225,10 +220,8 @@ def test_a_recorded_override_is_checked_as_a_search_worker_checks_it(tmp_path, c
         assert reason in err and repr(override) in err, err  # the entry and why, named
         assert not (tmp_path / f"out{i}").exists()  # refused before anything ran
     # the message names the file and the entry (captured through stderr)
-    proc = subprocess.run([sys.executable, "-m", "resireg_train.cli.runs", "rerun",
-                           str(tmp_path / "run0"), "--out", str(tmp_path / "x")],
-                          capture_output=True, text=True, env={**os.environ,
-                                                              "PYTHONPATH": str(SRC)})  # fmt: skip
+    proc = run(sys.executable, "-m", "resireg_train.cli.runs", "rerun", tmp_path / "run0",
+               "--out", tmp_path / "x", check=False, env={**os.environ, "PYTHONPATH": str(SRC)})  # fmt: skip
     assert proc.returncode == 2
     assert (
         "overrides.yaml: overrides[1]='+callbacks.x._target_=os.system' is refused" in proc.stderr
@@ -294,12 +287,10 @@ def test_reproduce_refuses_a_missing_dataset_and_model_before_any_job(tmp_path):
 
     paper = _paper_file(tmp_path, ["orad3d"], {"orad3d": {"bb": 19.85}}, {"short_side": 576})
     out = tmp_path / "sweep"
-    proc = subprocess.run(
-        [sys.executable, "-m", "resireg_train.cli.runs", "reproduce", "table1/resireg_vlm",
-         "--paper", str(paper), "--out", str(out), f"model_path={tmp_path / 'no_export'}",
-         f"paths.data_dir={tmp_path / 'no_data'}"],
-        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(SRC)},
-    )  # fmt: skip
+    proc = run(sys.executable, "-m", "resireg_train.cli.runs", "reproduce", "table1/resireg_vlm",
+               "--paper", paper, "--out", out, f"model_path={tmp_path / 'no_export'}",
+               f"paths.data_dir={tmp_path / 'no_data'}", check=False,
+               env={**os.environ, "PYTHONPATH": str(SRC)})  # fmt: skip
     assert proc.returncode == 2, proc.stderr
     err = proc.stderr
     assert "no job was started" in err and not out.exists()
