@@ -23,6 +23,7 @@ def _jpeg(w, h, seed):
     return buf.getvalue()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("bad", ["undecodable", "truncated", "empty shard"])
 def test_bench_input_skips_and_counts_bad_jpegs_and_empty_shards(bad, tmp_path):
     items = [[(f"{s}{i}", _jpeg(120, 90, 10 * s + i)) for i in range(3)] for s in range(2)]

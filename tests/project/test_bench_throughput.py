@@ -74,6 +74,7 @@ def _table_rows(text: str, header: str) -> list[list[str]]:
     return rows
 
 
+@pytest.mark.slow
 def test_main_prints_tables_and_writes_plot(tmp_path, capsys):
     out = tmp_path / "plots" / "throughput.png"
     result = bench.main([*TINY, "--batch-sizes", "1", "2", "--out", str(out)])
@@ -106,6 +107,7 @@ def test_main_prints_tables_and_writes_plot(tmp_path, capsys):
         assert im.size == (round(bench.FIGSIZE[0] * bench.DPI), round(bench.FIGSIZE[1] * bench.DPI))
 
 
+@pytest.mark.slow
 def test_out_of_memory_is_a_row_not_a_crash(tmp_path, capsys, monkeypatch):
     real = ReSiRegLite.forward
 

@@ -272,6 +272,7 @@ def test_resireg_map_prints_its_summary_once(tmp_path, tiny_export):
     assert "\x1b[" not in printed
 
 
+@pytest.mark.slow
 def test_wandb_logger_does_not_warn_about_the_anonymous_setting(tmp_path):
     """An offline W&B run made by conf/tracker/wandb.yaml's factory: no warning about a setting
     the user never gave."""

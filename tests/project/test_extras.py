@@ -110,6 +110,7 @@ def _imported_distributions(package, module_level=True, skip=()):
     return {module: {canonicalize_name(d) for d in dists.get(module, ())} for module in sorted(top)}
 
 
+@pytest.mark.slow
 def test_the_core_install_is_what_resireg_imports_and_train_carries_the_rest():
     """Issue 23 item 4: `resireg` installs alone (a robot's inference): what its modules import
     at module level is a core dependency, every core dependency is imported by it (torchvision:

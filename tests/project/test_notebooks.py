@@ -3,6 +3,7 @@
 import os
 
 import nbformat
+import pytest
 from nbclient import NotebookClient
 
 from helpers.paths import ROOT
@@ -35,6 +36,7 @@ def _text(notebook):
     )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_demo_notebook_shows_bb_lite_full_similarity_maps(tiny_export, tmp_path):
     notebook = _execute("demo.ipynb", tmp_path, RESIREG_EXPORT=tiny_export)
     text = _text(notebook)
@@ -48,6 +50,7 @@ def test_demo_notebook_shows_bb_lite_full_similarity_maps(tiny_export, tmp_path)
     assert images, "the figure was not drawn"
 
 
+@pytest.mark.slow
 def test_sweep_analysis_notebook_shows_table_failures_and_heatmap(prototype_sweep, tmp_path):
     notebook = _execute("sweep_analysis.ipynb", tmp_path, RESIREG_SWEEP=prototype_sweep[0])
     text = _text(notebook)

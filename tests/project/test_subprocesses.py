@@ -45,6 +45,7 @@ def test_a_child_takes_ctrl_c_when_the_suite_ignores_it(sigint_ignored):
     assert "KeyboardInterrupt" in child.stdout
 
 
+@pytest.mark.slow
 def test_a_line_that_never_comes_fails_in_time_and_the_group_is_killed():
     """readline past its timeout is an AssertionError naming the command (not a hang); leaving
     the block kills the child and the process it started (one process group)."""

@@ -90,6 +90,7 @@ def test_the_warm_start_is_used_and_refused_where_it_must_be(tmp_path):
         assert server.refusal(unset) == "environment variable OMP_NUM_THREADS unset"
 
 
+@pytest.mark.slow
 def test_no_preloaded_library_configures_logging_by_the_root_logger():
     """Every library the server imports sets up its loggers alike whether or not the root
     logger has a handler at its import (Hydra configures logging before a command imports

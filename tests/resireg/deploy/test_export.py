@@ -125,6 +125,7 @@ def test_an_export_without_digests_loads_with_a_warning(tiny_export, export_copy
     assert _same_weights(old, new)
 
 
+@pytest.mark.slow
 def test_resireg_eval_on_a_damaged_export_fails_naming_the_file(export_copy, tmp_path):
     from helpers.run import run
 
@@ -274,6 +275,7 @@ def dynamic_cli(tiny_export, tmp_path_factory):
     return out, proc.stdout
 
 
+@pytest.mark.slow
 def test_the_export_command_writes_checked_graphs_and_reports_the_comparison(dynamic_cli):
     out, stdout = dynamic_cli
     assert sorted(p.name for p in out.parent.iterdir()) == [
@@ -290,12 +292,14 @@ def test_the_export_command_writes_checked_graphs_and_reports_the_comparison(dyn
     assert manifest["lite"] == {"alpha": 10.0, "tau": 0.0, "upscale": 2, "attention": "sdpa"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("batch", "size"), [(1, (48, 64)), (3, (64, 96))])
 def test_dynamic_image_graph_matches_torch(dynamic_cli, tiny_model, batch, size):
     out, _ = dynamic_cli
     _check_fp32(out, tiny_model, torch.randn(batch, 3, *size))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("texts", [["floor"], ["a photo of a chair.", "table", "wall"]])
 def test_dynamic_text_graph_matches_torch(dynamic_cli, tiny_model, texts):
     out, _ = dynamic_cli
@@ -312,12 +316,14 @@ def graphs(dynamic_cli, tmp_path):
     return dest / "model.onnx", dest / "model.text.onnx"
 
 
+@pytest.mark.slow
 def test_open_graph_opens_both_graphs_of_an_intact_export(graphs):
     image, text = graphs
     assert [i.name for i in open_graph(image).get_inputs()] == ["images"]
     assert [o.name for o in open_graph(text, threads=1).get_outputs()] == ["text"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", [0, 1], ids=["image", "text"])
 def test_open_graph_refuses_a_damaged_graph_naming_it(graphs, which):
     graph = graphs[which]
@@ -329,6 +335,7 @@ def test_open_graph_refuses_a_damaged_graph_naming_it(graphs, which):
         open_graph(graph)
 
 
+@pytest.mark.slow
 def test_open_graph_refuses_a_swapped_graph_and_one_without_its_manifest(graphs):
     image, text = graphs
     shutil.copyfile(text, image)  # the text graph where the image graph was
@@ -341,6 +348,7 @@ def test_open_graph_refuses_a_swapped_graph_and_one_without_its_manifest(graphs)
         open_graph(alone)
 
 
+@pytest.mark.slow
 def test_open_graph_refuses_a_manifest_naming_a_file_outside(graphs, tmp_path):
     image, _ = graphs
     manifest = Path(f"{image}.json")
@@ -382,6 +390,7 @@ def test_resireg_export_checks_the_export_and_out_before_it_starts(tiny_export, 
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["file", "m.text.onnx", "out"]
 
 
+@pytest.mark.slow
 def test_a_write_failing_midway_leaves_nothing_at_out(tiny_export, tmp_path):
     """A real failed write: the process may not write files over 4 MB (RLIMIT_FSIZE, as a full
     disk or a quota would refuse); the tiny image graph (~1.4 MB) is written, the text graph
@@ -407,6 +416,7 @@ def test_a_write_failing_midway_leaves_nothing_at_out(tiny_export, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_fixed_graph_batch_3_matches_torch_and_takes_only_its_shape(tiny_model, tmp_path):
     result = export_onnx(tiny_model, tmp_path / "m.onnx", lite=True, height=48, width=64,
                          batch=3, text=False)  # fmt: skip
@@ -417,6 +427,7 @@ def test_fixed_graph_batch_3_matches_torch_and_takes_only_its_shape(tiny_model, 
         _run_onnx(result.image, images=torch.randn(1, 3, 48, 64))
 
 
+@pytest.mark.slow
 def test_fp16_graphs_match_torch_fp32(tiny_model, tmp_path):
     result = export_onnx(tiny_model, tmp_path / "h.onnx", lite=True, fp16=True, height=48, width=64)
     manifest = _check_manifest(result)
@@ -446,6 +457,7 @@ def _own_ops(graph, output, inputs):
     return {n.op_type for n in graph.node if id(n) in above([output]) - shared}
 
 
+@pytest.mark.slow
 def test_factorised_lite_graph_equals_torch_within_1e_5(tiny_model, tmp_path):
     """Lite's factorised form exports (dynamic shapes, no MatMul -> Softmax -> MatMul: the
     graph upsamples the Gram matrix with Resize) and its output equals torch's Lite, both forms

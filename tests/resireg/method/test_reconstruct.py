@@ -295,6 +295,7 @@ def test_lite_attention_is_chosen_by_device():
         ReSiRegLite(attention="flash")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("attention", ATTENTION)
 def test_lite_memory_is_not_quadratic(attention):
     """Peak memory of Lite (tau=0) on N=16384 points stays far below one N x N matrix (1 GiB)."""

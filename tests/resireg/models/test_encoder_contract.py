@@ -134,6 +134,7 @@ def test_every_registry_kind_is_covered():
     assert set(ENCODERS) == set(OFFLINE)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(ENCODERS))
 def test_dense_output_shapes_and_dtypes(kind, built):
     enc, x, out = built[kind]

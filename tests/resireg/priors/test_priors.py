@@ -131,6 +131,7 @@ def test_overlapping_masks_resolve_smaller_wins_then_score_then_order():
 
 
 # ----------------------------------------------------------------------------- the provider
+@pytest.mark.slow
 def test_sam_provider_runs_the_real_pipeline_and_returns_an_instance_map(
     provider, images, prior_maps, reference_maps
 ):

@@ -76,6 +76,7 @@ def test_bad_values_are_one_line_naming_them():
             settings.check({**values, "variant": bad}, table)
 
 
+@pytest.mark.slow
 def test_a_bad_parameter_exits_2_with_one_line(tmp_path):
     """The real command (a fresh process, Fast DDS on shared memory): exit 2, one stderr line."""
     proc = subprocess.run([sys.executable, "-m", "resireg.ros2.cli", "--ros-args", "-p",
@@ -232,6 +233,7 @@ def test_a_params_file_with_old_names_is_read_in_the_new_ones(tmp_path):
                               "as 'viewer'")  # fmt: skip
 
 
+@pytest.mark.slow
 def test_the_real_command_reads_old_names_as_the_new_ones(tmp_path):
     """A fresh process (rclpy's parameters): ``-p configuration:=`` and a params file's
     ``rerun.map_every`` reach the node as ``variant`` and ``viewer.map_every`` (their bad values

@@ -208,6 +208,7 @@ def mapped(ros, room, encoder, tiny_export, tmp_path_factory):
         node.destroy_node()
 
 
+@pytest.mark.slow
 def test_live_map_equals_resireg_map_over_shared_memory(mapped, room, encoder, tmp_path):
     """The node's map equals resireg-map's on a bag of the same frames (the decoys paired and
     left out alike: the same counts); the process holds no UDP socket."""
@@ -312,6 +313,7 @@ def test_query_save_and_clear_through_ros(mapped, ros, encoder):
     test_node.destroy_publisher(query)
 
 
+@pytest.mark.slow
 def test_overload_stays_bounded_and_answers_queries(ros, room, encoder, tmp_path):
     """Frames published at three times the rate the node maps them (each window made to take
     0.25 s): the keyframe queue never holds more than queue_size, the pairing buffers never
@@ -486,6 +488,7 @@ def test_a_compact_live_map_equals_resireg_map_compact(ros, room, encoder, tmp_p
         node.destroy_node()
 
 
+@pytest.mark.slow
 def test_imports_carry_no_lightning_or_hydra():
     """resireg.ros2 (node, CLI, pipeline) and resireg.sources import no Lightning, Hydra,
     datasets, nor resireg_train: checked in a fresh interpreter's sys.modules."""

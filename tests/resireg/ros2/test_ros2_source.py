@@ -107,6 +107,7 @@ def encoder(tiny_export):
     return build_encoder("resireg_vlm", path=str(tiny_export), device="cpu")
 
 
+@pytest.mark.slow
 def test_resireg_map_source_ros2_equals_the_bag(live, room, encoder, tiny_export, tmp_path):
     """resireg-map source=ros2 while the room is published (with write_bag's decoys: a second
     colour image per frame, a colour image far from any depth, a depth image far from any
@@ -137,6 +138,7 @@ def test_resireg_map_source_ros2_equals_the_bag(live, room, encoder, tiny_export
     assert udp_sockets(os.getpid()) == set()
 
 
+@pytest.mark.slow
 def test_a_resumed_live_run_adds_the_frames_it_receives(live, room, encoder, tiny_export,
                                                          tmp_path):  # fmt: skip
     """A live run of the first four frames, then resume=true (source.idle may differ: a stop
@@ -159,6 +161,7 @@ def test_a_resumed_live_run_adds_the_frames_it_receives(live, room, encoder, tin
     h.assert_same_map(smap, ref)
 
 
+@pytest.mark.slow
 def test_the_stream_ends_when_dropped_or_interrupted(live, room):
     """Iterated directly: an iterator dropped after its first frame (as resireg-map's windows
     drop it at source.limit) stops the executor thread and the context at once; with idle=None,

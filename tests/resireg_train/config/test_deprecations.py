@@ -185,6 +185,7 @@ def test_a_stored_config_naming_a_removed_class_is_refused_naming_it_and_the_rel
     assert _digests(out) == before  # nothing of the run changed
 
 
+@pytest.mark.slow
 def test_the_real_train_command_takes_the_old_spellings_and_records_the_new(tmp_path):
     """A multirun over ``logger=csv,tensorboard`` (and ``~logger`` alone) through the real
     resireg-train: one warning line naming ``tracker``; each job's recorded config and

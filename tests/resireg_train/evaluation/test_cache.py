@@ -90,6 +90,7 @@ def test_any_change_of_weights_resolution_or_precision_is_a_new_key(tmp_path, mo
     assert len(folders) == 4
 
 
+@pytest.mark.slow
 def test_new_weights_read_their_own_outputs_not_stale_ones(tmp_path, model):
     dataset, cache = _cache(tmp_path, model)
     engine = OVSSEngine(dataset, batch_size=2)
@@ -150,6 +151,7 @@ def test_bad_feature_cache_value_names_the_key(tmp_path, tiny_export):
     assert proc.returncode != 0 and "feature_cache=3" in proc.stderr + proc.stdout
 
 
+@pytest.mark.slow
 def test_resireg_eval_names_sets_aside_and_re_encodes_a_damaged_shard(tmp_path, tiny_export):
     """A shard overwritten in place (same size: 0xFF over its second half) and, once
     re-encoded, the new shard truncated: each later job names it in a warning and in

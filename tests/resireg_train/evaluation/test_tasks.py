@@ -245,6 +245,7 @@ def test_the_3d_tasks_class_prototypes_are_the_2d_tasks(tmp_path, tiny_export):
 
 
 # ------------------------------------------- the shared results: elbo counts in 3D
+@pytest.mark.slow
 def test_scannet3d_results_hold_the_elbo_prototype_counts(tmp_path, tiny_export):
     """task=scannet3d with a full@n_prototypes:elbo configuration writes elbo_prototypes (the
     count each batch was given), as task=ovss does: equal to the counts of the engine run here

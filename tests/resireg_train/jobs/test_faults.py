@@ -366,6 +366,7 @@ def test_export_settings_fill_only_the_values_left_at_their_default(tmp_path):
 
 
 # ------------------------------------------------- nothing scored (issue 22, case 3)
+@pytest.mark.slow
 def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path, tiny_export):
     """No image scored is no score: the run fails (non-zero exit through Hydra), its error
     gives the counts and the first file, and results.json still names every skipped one."""
@@ -405,6 +406,7 @@ def test_a_dataset_whose_every_image_is_bad_fails_with_the_skip_counts(tmp_path,
 
 
 # ------------------------------------------- errors in the log files (issue 22, case 5)
+@pytest.mark.slow
 def test_a_failed_run_writes_its_error_to_its_log_and_a_sweep_lists_every_failed_job(tmp_path):
     """Config errors of a 3-job training multirun: each job's train.log holds its error, the
     console shows no traceback for them (case 13) and ends with one line per failed job. A

@@ -213,6 +213,7 @@ class _CrashAt(L.Callback):
             raise RuntimeError("simulated crash")
 
 
+@pytest.mark.slow
 def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path):
     def cfg(name, *extra):
         return _compose("experiment=smoke", f"paths.output_dir={tmp_path / name}",
@@ -256,6 +257,7 @@ def test_resume_reaches_the_uninterrupted_weights_schedule_and_metrics(tmp_path)
         optimized_value(cfg("x", "optimized_metric=val/nope"), results)
 
 
+@pytest.mark.slow
 def test_without_the_caption_cache_a_resume_is_bitwise_the_uninterrupted_run(tmp_path):
     """The guarantee a resume keeps (issue 22, case 13): with model.text.cache_size=0 each
     batch embeds its own captions, so a run crashed after epoch 0 and resumed ends bit for
@@ -306,6 +308,7 @@ def test_stage2_starts_from_stage1_weights_without_teacher(tmp_path):
         module.load_trained("nope")
 
 
+@pytest.mark.slow
 def test_tensorboard_and_mlflow_trackers(tmp_path):
     """`tracker=[tensorboard,mlflow]` adds both trackers; metrics.csv is still written."""
     pytest.importorskip("tensorboard")
@@ -339,6 +342,7 @@ class _RecordTokenized(L.Callback):
         text.tokenizer = recording
 
 
+@pytest.mark.slow
 def test_eval_prompts_run_through_the_text_tower_once_per_run_at_the_interval(tmp_path):
     from resireg.ovss import class_prompts
     from resireg_train.data.synthetic import SYNTHETIC_CLASSES
@@ -373,6 +377,7 @@ def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path):
     assert len(errors) == 3  # each run recorded its own failure in its own folder
 
 
+@pytest.mark.slow
 def test_sweeps_started_in_the_same_second_get_their_own_sweep_folders(tmp_path, tiny_export):
     """Two `resireg-eval -m` and two `resireg-train -m` started together (issue 22, case 2):
     every sweep folder carries the run id, so no two share one: each eval job writes its own
@@ -424,6 +429,7 @@ def test_a_new_run_refuses_a_folder_that_holds_another_run(tmp_path):
     assert json.loads((tmp_path / "results.json").read_text())["status"] == "running"
 
 
+@pytest.mark.slow
 def test_keys_nothing_reads_are_errors_naming_the_known_key(tmp_path, tiny_export):
     """Issue 22, case 8: Hydra's hint after `batchsize=4` is `+batchsize=4`; the added key
     is refused (not silently ignored), with the key the user meant, from the command line
@@ -460,6 +466,7 @@ def test_keys_nothing_reads_are_errors_naming_the_known_key(tmp_path, tiny_expor
     ), proc.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_a_run_folder_written_before_the_layout_by_role_still_resumes(tmp_path):
     """tests/data/run_before_layout is a smoke run folder written by the release before the
     modules moved: its stored config names ``resireg_train.ovss.callback.ReSiRegEval``. The

@@ -521,6 +521,7 @@ _ADD = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_two_card_adds_at_once_both_land(tmp_path, tiny_export):
     """Two `resireg-runs card <export> --add <run>` processes released at once (each reading
     the card slowly): both evaluations are in the card, none lost."""

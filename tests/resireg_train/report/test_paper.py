@@ -42,6 +42,7 @@ def _table1(tmp_path, scores, short_side=576):
     return sweep
 
 
+@pytest.mark.slow
 def test_table1_paper_columns_equal_the_data_file_and_flag_beyond_the_tolerance(tmp_path):
     paper = PAPER["table1"]["rows"]
     radio = paper["radseg"]["ade20k"]

@@ -82,6 +82,7 @@ def test_prototype_batch_sweep_is_the_papers_full_factorial():
     assert list(range(start, stop, step)) == counts and jobs.variants == ["full"]
 
 
+@pytest.mark.slow
 def test_prototype_batch_multirun_report_lists_failures_and_fits_the_heuristic(
     prototype_sweep, tmp_path
 ):

@@ -371,6 +371,7 @@ def test_register_checks_the_name_and_the_registry_before_writing(tmp_path, tiny
     assert _digests(tiny_export) == before
 
 
+@pytest.mark.slow
 def test_register_keeps_its_files_beside_a_sqlite_store(tmp_path, tiny_export, monkeypatch,
                                                       capsys):  # fmt: skip
     """``resireg-runs register`` into ``sqlite:///<folder>/registry.db`` started from another

@@ -404,6 +404,7 @@ def test_the_report_of_a_large_search_is_readable(tmp_path):
     assert len(pd.read_csv(files["optuna_csv"])) == 120
 
 
+@pytest.mark.slow
 def test_optuna_dashboard_lists_the_trials_of_a_search(tmp_path):
     """optuna-dashboard <sweep>/optuna.journal on 127.0.0.1: its API (/api/studies,
     /api/studies/<id>) lists the study and every trial with its value."""

@@ -42,6 +42,7 @@ def _rank_loss(rank, port, image, text, scale, out):
         dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_gathered_loss_equals_single_process_loss_on_the_global_batch():
     torch.manual_seed(0)
     image, text, scale = torch.randn(8, 16), torch.randn(8, 16), torch.tensor(10.0)

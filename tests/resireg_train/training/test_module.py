@@ -72,6 +72,7 @@ class _RecordScale(L.Callback):
         self.scales.append(module.logit_scale.exp().item())  # after the previous step's clamp
 
 
+@pytest.mark.slow
 def test_training_reduces_loss_and_clamps_logit_scale(tmp_path):
     # The clamp (12) lies below the initial scale (1/0.07 = 14.3), which training alone
     # keeps near 14: without the clamp every recorded scale would exceed 12.
@@ -174,6 +175,7 @@ def test_checkpoint_excludes_frozen_parts(tmp_path):
     assert torch.equal(restored.vlm.head.proj.weight, m.vlm.head.proj.weight)
 
 
+@pytest.mark.slow
 def test_overfits_a_small_synthetic_set(tmp_path):
     """In-batch image->text retrieval rises far above chance (1/16) within 200 steps."""
     module = _module(

@@ -149,6 +149,7 @@ def test_value_path_is_self_attention_without_residual_or_mlp(enc):
     torch.testing.assert_close(out.language, _grid(by_mha[:, 1:], (14, 14)), rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_other_intermediate_layer_and_seeded_rebuild(enc):
     other = ClipEncoder(B16, weights=None, intermediate_layer=3)
     for (k, a), (_, b) in zip(
@@ -186,6 +187,7 @@ def maskclip_enc():
     return ClipEncoder(B16, weights=None, dense_path="maskclip")  # the same seed: enc's weights
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dense_path", ["value", "maskclip"])
 def test_each_dense_path_matches_open_clips_modules(dense_path, enc, maskclip_enc):
     enc = {"value": enc, "maskclip": maskclip_enc}[dense_path]
@@ -260,6 +262,7 @@ def test_encode_layers_gives_every_requested_block_from_one_pass(enc):
 
 
 # ---------------------------------------------------------------------------- text
+@pytest.mark.slow
 def test_text_queries_match_open_clip(enc):
     texts = ["a photo of a cat.", "a photo of a dog.", "sky"]
     queries = enc.encode_text(texts)
@@ -308,6 +311,7 @@ def test_openai_weights_unreachable_host(tmp_path, monkeypatch):
         ClipEncoder(B16, weights="no-such-tag")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", ["pt", "safetensors"])
 def test_local_checkpoint_file(enc, tmp_path, suffix, no_network):
     path = tmp_path / f"clip.{suffix}"
@@ -326,6 +330,7 @@ def test_local_checkpoint_file(enc, tmp_path, suffix, no_network):
         torch.testing.assert_close(a, b)
 
 
+@pytest.mark.slow
 def test_openai_tag_served_from_the_cache_offline(enc, tmp_path, monkeypatch):
     """A cached tag loads offline: the cache check and open_clip's hub download agree."""
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
@@ -344,6 +349,7 @@ def test_openai_tag_served_from_the_cache_offline(enc, tmp_path, monkeypatch):
 
 
 # ---------------------------------------------------------------------------- integration
+@pytest.mark.slow
 def test_encode_image_lite_and_similarity(enc):
     images = _images(48, 80)
     dense = enc.encode_image(images, "lite", normalized=True)

@@ -392,6 +392,7 @@ def _eval_args(root, *extra, conf=(TEST_CONF,)):
             *extra)  # fmt: skip
 
 
+@pytest.mark.slow
 def test_prototype_batch_3d_sweep_and_report(root, tiny_export, tmp_path):
     """`sweep=prototype_batch_3d` as a real multirun (2 batch sizes x 2 prototype counts, the
     sweep's voxel 0.2 m and 228 x 308 ground truth; every frame kept so batch sizes differ),
@@ -427,6 +428,7 @@ def test_prototype_batch_3d_sweep_and_report(root, tiny_export, tmp_path):
     assert "val/scannet3d/scannet_synthetic/miou_full: batch size x prototypes" in summary
 
 
+@pytest.mark.slow
 def test_table2_sweep_end_to_end_results_and_report(root, room, tiny_export, tmp_path):
     """`resireg-eval sweep=table2` (task=scannet3d through the console script) over two tiny
     encoders (the tiny export and one of another seed, under a test encoder config), BB and

@@ -129,6 +129,7 @@ def test_config_checks_name_the_variants_key():
         validate_eval({**scannet, "variants": ["full@layer:4"]})
 
 
+@pytest.mark.slow
 def test_feature_cache_keys_and_stores_the_blocks(tmp_path, enc, monkeypatch):
     dataset = build_segmentation_set(SPEC, patch_size=16)
     names = ["lite@layer:2", "lite@layer:7", "lite"]

@@ -88,6 +88,7 @@ def test_scores_match_an_independent_per_image_computation(vlm):
         )
 
 
+@pytest.mark.slow
 def test_sharded_passes_reduced_equal_the_single_process_pass(vlm):
     variants = build_variants(["bb", "full"], {"full": FULL})
     single = _engine().run(vlm, variants)
@@ -180,6 +181,7 @@ def test_variant_names_and_modes_are_checked(vlm):
     vlm.eval()
 
 
+@pytest.mark.slow
 def test_unreadable_and_undecodable_images_are_counted_once_across_ranks(vlm, tmp_path):
     from helpers.ade20k import ade_folder
 
@@ -212,6 +214,7 @@ def test_resireg_eval_bad_values_are_listed_by_key_and_recorded(tmp_path):
     assert results["status"] == "failed" and "batch_size=0" in results["error"]
 
 
+@pytest.mark.slow
 def test_many_configurations_in_one_pass_equal_separate_runs(vlm):
     """`full@n_prototypes:<n>` configurations scored on one encoded batch give exactly the
     confusion matrices of one run per configuration, and the encoder runs once per batch."""

@@ -181,6 +181,7 @@ def test_eval_in_process_leaves_no_credential_uri_run_or_service_behind(
         mlflow.end_run()
 
 
+@pytest.mark.slow
 def test_a_sqlite_store_keeps_the_artifacts_next_to_its_database(tmp_path, tiny_export,
                                                                   monkeypatch):  # fmt: skip
     """Issue 51, item 13: with tracker.mlflow.tracking_uri=sqlite:///<db> and no artifact

@@ -255,6 +255,7 @@ def _paper_file(tmp_path, datasets, row, protocol):
     return path
 
 
+@pytest.mark.slow
 def test_reproduce_a_fixture_paper_row_on_synthetic_data(tmp_path, tiny_export):
     paper = _paper_file(tmp_path, ["synthetic"], {"params_m": 1, "synthetic": {"bb": 12.5,
                         "full": 30.0}}, {"short_side": 576, "temperature": 100.0})  # fmt: skip
