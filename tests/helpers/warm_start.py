@@ -261,7 +261,7 @@ class WarmPopen:
         if self.returncode is None:
             try:
                 self._done(self._receive(timeout))
-            except TimeoutError:
+            except (TimeoutError, BlockingIOError):  # a timeout of 0 reads without blocking
                 raise subprocess.TimeoutExpired(self.args, timeout) from None
         return self.returncode
 

@@ -15,6 +15,7 @@ import psutil
 import pytest
 
 from helpers import run as _run
+from helpers import warm_start
 from helpers.paths import ROOT
 from helpers.run import started
 
@@ -80,7 +81,9 @@ def test_a_command_that_exits_leaving_a_process_running_fails_naming_it(monkeypa
 def test_a_timeout_of_run_kills_the_whole_group():
     """run() past its timeout: subprocess.TimeoutExpired, and no process of the command left."""
     # Children this test did not start (multiprocessing's resource tracker, started by an
-    # earlier test of the same worker and living as long as it) are not the command's.
+    # earlier test of the same worker and living as long as it; the warm-start server the
+    # worker's commands share) are not the command's.
+    warm_start.server(warm_start.BASE_ENV)
     before = {p.pid for p in psutil.Process().children(recursive=True)}
     with pytest.raises(subprocess.TimeoutExpired):
         _run.run("resireg-report", "--help", timeout=0.01)
