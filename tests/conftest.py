@@ -129,13 +129,15 @@ def _mlflow_tracking_uri_kept():
         utils.set_tracking_uri(before)
 
 
-@pytest.fixture
-def mlflow_server(tmp_path):
-    """``mlflow server`` on 127.0.0.1 (a SQLite store and the artifacts in ``tmp_path/store``),
+@pytest.fixture(scope="session")
+def mlflow_server(tmp_path_factory):
+    """``mlflow server`` on 127.0.0.1 (a SQLite store and the artifacts in a ``store`` folder),
     started through ``helpers.run.started`` as every long-lived process of a test; its
-    ``uri``, ``port`` and ``store`` (``server.db``, ``artifacts/``, ``server.log``). Leaving
-    the test kills the server's process group (its uvicorn and job workers): a graceful stop is
-    not what the tests using it are about, and took over 30 s on a loaded machine."""
+    ``uri``, ``port`` and ``store`` (``server.db``, ``artifacts/``, ``server.log``). One server
+    per test process (its start takes ~13 s): the tests using it name their runs, folders and
+    models apart. The end of the session kills the server's process group (its uvicorn and job
+    workers): a graceful stop is not what the tests using it are about, and took over 30 s on a
+    loaded machine."""
     import shutil
     import socket
     import time
@@ -147,12 +149,12 @@ def mlflow_server(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    store = tmp_path / "store"
+    store = tmp_path_factory.mktemp("mlflow") / "store"
     store.mkdir()
     exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
     with started([exe, "server", "--backend-store-uri", f"sqlite:///{store}/server.db",
                   "--artifacts-destination", store / "artifacts", "--host", "127.0.0.1",
-                  "--port", port, "--workers", "1"], stdout=store / "server.log") as proc:  # fmt: skip
+                  "--port", port, "--workers", "1"], stdout=store / "server.log", cwd=store) as proc:  # fmt: skip
         uri = f"http://127.0.0.1:{port}"
         deadline = time.monotonic() + 180
         while True:

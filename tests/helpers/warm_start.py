@@ -183,7 +183,8 @@ def _serve(control: socket.socket) -> None:
         os.set_blocking(fd, False)
     signal.set_wakeup_fd(wake_w)
     signal.signal(signal.SIGCHLD, lambda *_: None)
-    control.sendall(json.dumps({"ready": True, "modules": modules}).encode())
+    hello = {"ready": True, "modules": modules, "path": base_path}
+    control.sendall(json.dumps(hello).encode())
     replies: dict[int, socket.socket] = {}
     while True:
         ready, _, _ = select.select([control, wake_r], [], [])
@@ -290,7 +291,9 @@ class Server:
         hello = self._control.recv(1 << 20)
         if not hello:
             raise RuntimeError(f"the warm-start server exited ({self._process.wait()})")
-        self.modules = set(json.loads(hello)["modules"])
+        hello = json.loads(hello)
+        self.modules = set(hello["modules"])
+        self.path = {os.path.realpath(p) for p in hello["path"] if p}
 
     def refusal(self, env: dict) -> str | None:
         """Why a command in ``env`` cannot start warm (None: it can)."""
@@ -301,7 +304,8 @@ class Server:
             if name in self.env and name not in env:
                 return f"environment variable {name} unset"
         for folder in env.get("PYTHONPATH", "").split(os.pathsep):
-            if folder and os.path.isdir(folder):
+            # a folder of the server's own path holds the files it imported from
+            if folder and os.path.isdir(folder) and os.path.realpath(folder) not in self.path:
                 names = {n.removesuffix(".py") for n in os.listdir(folder)}
                 if names & self.modules:
                     return f"PYTHONPATH folder {folder} shadows {sorted(names & self.modules)}"

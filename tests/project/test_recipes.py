@@ -185,11 +185,7 @@ def recall(matrix, metric):
 
 def _in_copy(copy: Path, code: str) -> dict:
     """Run ``code`` (which prints one JSON line last) in a process that imports the copy."""
-    import subprocess
-
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         env=_env(copy), timeout=600)  # fmt: skip
-    assert out.returncode == 0, out.stderr[-3000:]
+    out = run(sys.executable, "-c", code, env=_env(copy), timeout=600)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
