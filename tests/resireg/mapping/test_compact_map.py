@@ -505,7 +505,6 @@ def test_map_settings_are_one_table_and_conf_holds_the_defaults():
     assert "compact.oops: no such setting" in text
 
 
-@pytest.mark.slow
 def test_resireg_map_merge_writes_a_run_record_and_refuses_other_maps(tmp_path):
     """resireg-map-merge A B --out C (A a map folder, B a resireg-map run folder): C/map equals
     SemanticMap.merge of the two, C/results.json is the run's record (completed, the inputs,
