@@ -274,6 +274,8 @@ def run_search(config: DictConfig, settings: DictConfig, arguments: list[str], r
         fixed.append(storage_override(url))
     procs = []
     if os.environ.get(WORKER_ENV) != "1":
+        if url is not None:  # the database's tables, made before any worker opens it
+            open_storage(settings.get("storage"), sweep_dir)
         hydra = OmegaConf.to_container(config.hydra.overrides.hydra)
         task = OmegaConf.to_container(config.hydra.overrides.task)
         write_record(sweep_dir, str(config.hydra.job.config_name),

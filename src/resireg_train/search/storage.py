@@ -103,13 +103,34 @@ def open_storage(storage: str | None, sweep_dir: str | Path) -> Any:
     from resireg.errors import ConfigError
 
     try:
-        return optuna.storages.RDBStorage(url)
+        return _rdb_storage(optuna, url)
     except Exception as err:  # sqlalchemy's errors: a wrong URL, a server that is down
         first = str(err).splitlines()[0] if str(err) else ""
         raise ConfigError(
             f"hparams_search.storage={mask_url(url)!r} cannot be opened: "
             f"{type(err).__name__}: {mask_text(first)}"
         ) from None
+
+
+def _rdb_storage(optuna: Any, url: str, attempts: int = 5) -> Any:
+    """Optuna's RDBStorage of ``url``. Opening it creates Optuna's tables in a new database, and
+    two processes doing so at once race (PostgreSQL: a duplicate key in its catalogue, or "already
+    exists"; optuna/optuna#1092, whose answer is to create them first): the one that loses opens
+    the storage again, finding the tables the other made (``create_all`` skips a table that
+    exists). By hand: neither Optuna nor SQLAlchemy retries a schema creation."""
+    import time
+
+    from sqlalchemy.exc import IntegrityError, ProgrammingError
+
+    for attempt in range(attempts):
+        try:
+            return optuna.storages.RDBStorage(url)
+        except (IntegrityError, ProgrammingError) as err:
+            raced = "duplicate key" in str(err) or "already exists" in str(err)
+            if not raced or attempt == attempts - 1:
+                raise
+            time.sleep(0.2 * (attempt + 1))
+    raise AssertionError("unreachable")
 
 
 def load_study(sweep_dir: str | Path, storage: str | None = None, study_name: str | None = None):

@@ -248,6 +248,37 @@ def test_two_workers_share_one_postgresql_study(tmp_path, tiny_export, postgres,
 
 
 @pytest.mark.slow
+def test_processes_opening_a_new_database_at_once_all_open_it(tmp_path, postgres, monkeypatch):
+    """Optuna makes its tables when a new database is first opened, and two first opens at once
+    race (PostgreSQL: a duplicate key in its catalogue; optuna/optuna#1092): eight opens at once
+    (threads, each its own connection) all succeed and see the one study made after."""
+    import threading
+
+    from resireg_train.search.storage import open_storage
+
+    for key, value in postgres.items():
+        monkeypatch.setenv(key, value)
+    url = "postgresql+psycopg://postgres@/optuna"
+    start, opened, failed = threading.Barrier(8), [], []
+
+    def open_it():
+        start.wait()
+        try:
+            opened.append(open_storage(url, tmp_path))
+        except Exception as err:  # noqa: BLE001  (what the test reports)
+            failed.append(err)
+
+    threads = [threading.Thread(target=open_it) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(120)
+    assert not failed and len(opened) == 8, failed
+    optuna.create_study(storage=opened[0], study_name="one")
+    assert [s.study_name for s in optuna.get_all_study_summaries(opened[-1])] == ["one"]
+
+
+@pytest.mark.slow
 def test_a_worker_killed_mid_trial_fails_its_trial_and_the_search_completes(tmp_path, tiny_export):
     """A search and one more worker (resireg-search worker <sweep>, as a SLURM array task runs
     it), each its own process group; kill -9 of the worker's group while it runs a trial: its
