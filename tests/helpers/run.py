@@ -249,13 +249,17 @@ class Child:
 
 def _warm(cmd, env, cwd):
     """``cmd`` started warm (:mod:`helpers.warm_start`), or None where it cannot be: not a
-    console script, ``python -m`` or ``python -c`` of this interpreter, an environment the warm interpreter cannot take on, or
-    ``RESIREG_TEST_COLD_START`` set."""
+    console script, ``python -m`` or ``python -c`` of this environment's interpreter, an
+    environment the warm interpreter cannot take on, or ``RESIREG_TEST_COLD_START`` set."""
     from helpers import warm_start
+
+    def ours(python: str) -> bool:  # its folder too: another venv's shares the real file
+        return os.path.dirname(python) == os.path.dirname(sys.executable) and \
+            os.path.realpath(python) == os.path.realpath(sys.executable)  # fmt: skip
 
     if os.environ.get("RESIREG_TEST_COLD_START") or not os.path.isabs(cmd[0]):
         return None
-    if os.path.realpath(cmd[0]) == os.path.realpath(sys.executable):
+    if ours(cmd[0]):
         if cmd[1:2] not in (["-m"], ["-c"]) or len(cmd) < 3:
             return None
         cmd = [sys.executable, *cmd[1:]]
@@ -265,8 +269,7 @@ def _warm(cmd, env, cwd):
                 first = script.readline().strip()
         except OSError:
             return None
-        if not first.startswith(b"#!") or \
-                os.path.realpath(first[2:].decode()) != os.path.realpath(sys.executable):  # fmt: skip
+        if not first.startswith(b"#!") or not ours(first[2:].decode()):
             return None
     server = warm_start.server(warm_start.BASE_ENV)
     why = server.refusal(env)

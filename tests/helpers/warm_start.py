@@ -141,7 +141,7 @@ def _run_child(request, fds, import_stderr: bytes, base_path: list[str]) -> None
         while tb is not None and (tb.tb_frame.f_code.co_filename == __file__ or
                                   tb.tb_frame.f_code.co_filename.startswith("<frozen runpy")):  # fmt: skip
             tb = tb.tb_next
-        error = error.with_traceback(tb or error.__traceback__)
+        error = error.with_traceback(tb)  # None: it failed before its code ran (a syntax error)
         sys.excepthook(type(error), error, error.__traceback__)
         code, interrupted = 1, isinstance(error, KeyboardInterrupt)
     # what Py_FinalizeEx does before the process ends: join non-daemon threads, atexit, flush

@@ -21,6 +21,8 @@ _SCRIPT = textwrap.dedent("""\
           os.path.abspath(__file__)), "extra", os.environ["PYTHONPATH"] in sys.path,
           "var", os.environ.get("RESIREG_PROBE"), "main", __name__, "umask", oct(os.umask(0)),
           flush=True)
+    with open(os.environ["RESIREG_PROBE_PARENT"], "a") as parent:
+        parent.write(f"{os.getppid()}\\n")
     atexit.register(lambda: print("atexit ran", flush=True))
     if mode == "thread":  # a non-daemon thread outliving main is joined before the exit
         threading.Thread(target=lambda: (time.sleep(0.3), print("thread done"))).start()
@@ -58,7 +60,9 @@ def test_a_script_ends_warm_as_it_ends_cold(tmp_path, monkeypatch, mode):
     script.write_text(f"#!{sys.executable}\n{_SCRIPT}")
     script.chmod(0o755)
     (tmp_path / "work").mkdir()
-    env = {**os.environ, "RESIREG_PROBE": "seen", "PYTHONPATH": str(tmp_path / "lib")}
+    parents = tmp_path / "parents"
+    env = {**os.environ, "RESIREG_PROBE": "seen", "PYTHONPATH": str(tmp_path / "lib"),
+           "RESIREG_PROBE_PARENT": str(parents)}  # fmt: skip
     (tmp_path / "lib").mkdir()
     before = os.umask(0o027)  # the tests' process's umask reaches the command
     try:
@@ -66,6 +70,9 @@ def test_a_script_ends_warm_as_it_ends_cold(tmp_path, monkeypatch, mode):
     finally:
         os.umask(before)
     assert warm == cold
+    # the first started warm (the server's child), the second cold (this process's)
+    server = warm_start.server(warm_start.BASE_ENV)
+    assert parents.read_text().split() == [str(server._process.pid), str(os.getpid())]
     code = {"ok": 0, "thread": 0, "code": 3, "message": 1, "raise": 1, "ctrl-c": -2}[mode]
     assert warm[0] == code, warm
     assert warm[1].startswith(f"argv ['{mode}', 'x y'] cwd {tmp_path / 'work'} path0 True extra "
