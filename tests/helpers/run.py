@@ -249,8 +249,9 @@ class Child:
 
 def _warm(cmd, env, cwd):
     """``cmd`` started warm (:mod:`helpers.warm_start`), or None where it cannot be: not a
-    console script, ``python -m`` or ``python -c`` of this environment's interpreter, an
-    environment the warm interpreter cannot take on, or ``RESIREG_TEST_COLD_START`` set."""
+    console script, ``python -m``, ``python -c`` or ``python file.py`` of this environment's
+    interpreter, an environment the warm interpreter cannot take on, or
+    ``RESIREG_TEST_COLD_START`` set."""
     from helpers import warm_start
 
     def ours(python: str) -> bool:  # its folder too: another venv's shares the real file
@@ -260,7 +261,8 @@ def _warm(cmd, env, cwd):
     if os.environ.get("RESIREG_TEST_COLD_START") or not os.path.isabs(cmd[0]):
         return None
     if ours(cmd[0]):
-        if cmd[1:2] not in (["-m"], ["-c"]) or len(cmd) < 3:
+        if len(cmd) < 2 or (cmd[1] in ("-m", "-c") and len(cmd) < 3) or \
+                (cmd[1] not in ("-m", "-c") and not cmd[1].endswith(".py")):  # fmt: skip
             return None
         cmd = [sys.executable, *cmd[1:]]
     else:

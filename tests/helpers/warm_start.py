@@ -77,6 +77,7 @@ BASE_ENV = {**os.environ, "HF_HUB_OFFLINE": "1"}
 
 
 # ------------------------------------------------------------------------------------ the server
+_THIS_FILE = __file__  # a command's traceback leaves out this file's frames
 def _exit_code(exit: SystemExit) -> int:
     """The exit status Python gives ``sys.exit(code)`` (Python/pythonrun.c's handling)."""
     code = exit.code
@@ -119,16 +120,25 @@ def _run_child(request, fds, import_stderr: bytes, base_path: list[str]) -> None
     numpy.random.seed()  # a fresh interpreter seeds its own (Python's random reseeds at fork)
     argv = list(request["argv"])
     extra = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
-    form = argv[1] if argv[0] == sys.executable and argv[1:2] in (["-m"], ["-c"]) else "script"
+    if argv[0] == sys.executable:  # `python -m module`, `python -c code`, `python file.py`
+        form = argv[1] if argv[1] in ("-m", "-c") else "script"
+        argv = argv if form != "script" else argv[1:]
+    else:  # a console script (its shebang names this interpreter)
+        form = "script"
     # sys.path[0] and sys.argv as the interpreter sets them for `python -m`, `-c` and a script
-    first = {"-m": os.getcwd(), "-c": "", "script": os.path.dirname(argv[0])}[form]
+    # (its folder, links resolved)
+    first = {"-m": os.getcwd(), "-c": "", "script": os.path.dirname(os.path.realpath(argv[0]))}[
+        form
+    ]
     sys.path[:] = [first, *extra, *base_path]
     sys.argv = {"-m": argv[2:], "-c": ["-c", *argv[3:]], "script": argv}[form]
     os.write(2, import_stderr)
     code, interrupted = 0, False
     try:
-        if form == "-m":
-            runpy.run_module(argv[2], run_name="__main__", alter_sys=True)
+        if form == "-m":  # what `python -m` calls (its two frames show in a traceback), in a
+            # __main__ of its own (it runs the module in the __main__ it finds: this one's)
+            sys.modules["__main__"] = types.ModuleType("__main__")
+            runpy._run_module_as_main(argv[2])
         elif form == "-c":
             main = sys.modules["__main__"] = types.ModuleType("__main__")
             exec(compile(argv[2], "<string>", "exec"), main.__dict__)
@@ -138,8 +148,8 @@ def _run_child(request, fds, import_stderr: bytes, base_path: list[str]) -> None
         code = _exit_code(exit)
     except BaseException as error:
         tb = error.__traceback__  # from the command's own frames on, as a fresh one shows it
-        while tb is not None and (tb.tb_frame.f_code.co_filename == __file__ or
-                                  tb.tb_frame.f_code.co_filename.startswith("<frozen runpy")):  # fmt: skip
+        ours = (_THIS_FILE,) if form == "-m" else (_THIS_FILE, "<frozen runpy>")
+        while tb is not None and tb.tb_frame.f_code.co_filename in ours:
             tb = tb.tb_next
         error = error.with_traceback(tb)  # None: it failed before its code ran (a syntax error)
         sys.excepthook(type(error), error, error.__traceback__)

@@ -5,7 +5,6 @@ figures still printed."""
 from __future__ import annotations
 
 import io
-import subprocess
 import sys
 import tarfile
 
@@ -14,6 +13,7 @@ import pytest
 from PIL import Image
 
 from helpers.paths import ROOT
+from helpers.run import run
 
 
 def _jpeg(w, h, seed):
@@ -41,12 +41,8 @@ def test_bench_input_skips_and_counts_bad_jpegs_and_empty_shards(bad, tmp_path):
                     tar.addfile(info, io.BytesIO(payload))
     if bad == "empty shard":
         (tmp_path / "shard-2.tar").write_bytes(b"")
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "bench_input.py"), "--shards", str(tmp_path),
-         "--no-flops", "--batch", "2", "--crop", "64"],
-        capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = run(sys.executable, ROOT / "benchmarks" / "bench_input.py", "--shards", tmp_path,
+               "--no-flops", "--batch", "2", "--crop", "64")  # fmt: skip
     out = proc.stdout
     n_bad = int(bad != "empty shard")
     assert f"{6 + n_bad} JPEGs" in out

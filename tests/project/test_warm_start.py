@@ -17,8 +17,9 @@ from helpers.run import run, started
 _SCRIPT = textwrap.dedent("""\
     import atexit, os, sys, threading, time
     mode = sys.argv[1]
-    print("argv", sys.argv[1:], "cwd", os.getcwd(), "path0", sys.path[0] == os.path.dirname(
-          os.path.abspath(__file__)), "extra", os.environ["PYTHONPATH"] in sys.path,
+    here = os.path.dirname(os.path.abspath(globals().get("__file__", "-")))  # -c has none
+    print("argv", sys.argv[1:], "cwd", os.getcwd(), "path0", sys.path[0] == here,
+          "extra", os.environ["PYTHONPATH"] in sys.path,
           "var", os.environ.get("RESIREG_PROBE"), "main", __name__, "umask", oct(os.umask(0)),
           flush=True)
     with open(os.environ["RESIREG_PROBE_PARENT"], "a") as parent:
@@ -78,6 +79,25 @@ def test_a_script_ends_warm_as_it_ends_cold(tmp_path, monkeypatch, mode):
     assert warm[1].startswith(f"argv ['{mode}', 'x y'] cwd {tmp_path / 'work'} path0 True extra "
                               "True var seen main __main__ umask 0o27\n")  # fmt: skip
     assert "atexit ran" in warm[1] and ("thread done" in warm[1]) == (mode == "thread")
+
+
+@pytest.mark.parametrize("form", ["file", "-m", "-c"])
+def test_python_file_m_and_c_end_warm_as_they_end_cold(tmp_path, monkeypatch, form):
+    """``python file.py``, ``python -m module`` and ``python -c code``: the same sys.path[0],
+    argv, output and traceback warm and cold, the warm one the server's child."""
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    (lib / "probe.py").write_text(_SCRIPT)
+    (tmp_path / "work").mkdir()
+    parents = tmp_path / "parents"
+    env = {**os.environ, "RESIREG_PROBE": "seen", "PYTHONPATH": str(lib),
+           "RESIREG_PROBE_PARENT": str(parents)}  # fmt: skip
+    given = {"file": [lib / "probe.py"], "-m": ["-m", "probe"], "-c": ["-c", _SCRIPT]}[form]
+    warm, cold = _both([sys.executable, *given, "raise", "x y"], monkeypatch, env=env,
+                       cwd=tmp_path / "work")  # fmt: skip
+    assert warm == cold and warm[0] == 1 and "ValueError: boom" in warm[2], (warm, cold)
+    server = warm_start.server(warm_start.BASE_ENV)
+    assert parents.read_text().split() == [str(server._process.pid), str(os.getpid())]
 
 
 def test_the_warm_start_is_used_and_refused_where_it_must_be(tmp_path):
