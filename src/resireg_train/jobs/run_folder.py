@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +54,7 @@ def hold_run_folder(out: Path) -> bool:
     try:
         fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        handle.seek(0)
-        holder = handle.read().strip() or "unknown (it is starting)"
+        holder = _holder(handle)
         handle.close()
         raise RunFolderBusy(
             f"{out} is in use by another job (PID {holder}, lock file {path}): wait for it to "
@@ -68,6 +68,19 @@ def hold_run_folder(out: Path) -> bool:
     handle.flush()
     _HELD[key] = handle
     return True
+
+
+def _holder(handle: Any, wait: float = 2.0) -> str:
+    """The PID the lock file's holder wrote. It writes it just after taking the lock: a job
+    started at the same moment can find the lock taken and the file still empty, so the file
+    is read again for up to ``wait`` seconds before the holder is said to be starting."""
+    deadline = time.monotonic() + wait
+    while True:
+        handle.seek(0)
+        holder = handle.read().strip()
+        if holder or time.monotonic() >= deadline:
+            return holder or "unknown (it is starting)"
+        time.sleep(0.02)
 
 
 def release_run_folder(out: Path) -> None:
