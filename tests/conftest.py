@@ -28,18 +28,6 @@ import torch  # noqa: E402
 from helpers import warm_start  # noqa: E402, F401  (its BASE_ENV: the environment before any test)
 
 
-def pytest_collection_modifyitems(config, items):
-    """The test files with the most slow test functions first (their parameters counted once;
-    a stable sort: the order within a file and between equals is kept). pytest-xdist hands each
-    worker whole files in this order (``--dist loadfile``): a long file started last would keep
-    one worker busy while the other has finished."""
-    slow: dict = {}
-    for item in items:
-        if item.get_closest_marker("slow") is not None:
-            slow.setdefault(item.path, set()).add(getattr(item, "originalname", item.name))
-    items.sort(key=lambda item: -len(slow.get(item.path, ())))
-
-
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
