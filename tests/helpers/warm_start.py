@@ -280,9 +280,6 @@ class WarmPopen:
         if self.returncode is None:
             os.kill(self.pid, sig)
 
-    def kill(self):
-        self.send_signal(signal.SIGKILL)
-
 
 class Server:
     """One warm interpreter per test process, started at its first warm start."""
