@@ -122,15 +122,14 @@ def _rdb_storage(optuna: Any, url: str, attempts: int = 5) -> Any:
 
     from sqlalchemy.exc import IntegrityError, ProgrammingError
 
-    for attempt in range(attempts):
+    for attempt in range(1, attempts):
         try:
             return optuna.storages.RDBStorage(url)
         except (IntegrityError, ProgrammingError) as err:
-            raced = "duplicate key" in str(err) or "already exists" in str(err)
-            if not raced or attempt == attempts - 1:
+            if "duplicate key" not in str(err) and "already exists" not in str(err):
                 raise
-            time.sleep(0.2 * (attempt + 1))
-    raise AssertionError("unreachable")
+            time.sleep(0.2 * attempt)
+    return optuna.storages.RDBStorage(url)  # the last try: its error is the caller's
 
 
 def load_study(sweep_dir: str | Path, storage: str | None = None, study_name: str | None = None):
