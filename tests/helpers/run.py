@@ -316,14 +316,14 @@ def started(cmd, *, env=None, threads=None, cwd=None, stdin=subprocess.DEVNULL,
 
         master, slave = pty.openpty()
         stdin = stdout = stderr = slave
-    popen = None
+    popen, argv, env = None, [str(c) for c in cmd], _env(env, threads)
     if warm and not terminal and preexec is None and stdin == subprocess.DEVNULL and \
             stdout == subprocess.PIPE and stderr == subprocess.PIPE:  # fmt: skip
-        popen = _warm([str(c) for c in cmd], _env(env, threads), cwd)
+        popen = _warm(argv, env, cwd)
     try:
         popen = popen or subprocess.Popen(
-            [str(c) for c in cmd], stdin=stdin, stdout=target(stdout), stderr=target(stderr),
-            env=_env(env, threads), cwd=cwd, start_new_session=True, preexec_fn=before_exec,
+            argv, stdin=stdin, stdout=target(stdout), stderr=target(stderr), env=env, cwd=cwd,
+            start_new_session=True, preexec_fn=before_exec,
         )  # fmt: skip
     finally:
         for file in opened:  # the child holds its own descriptor
