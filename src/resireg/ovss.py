@@ -16,8 +16,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from resireg.specs.prompts import TEMPLATE_SET, TEMPLATE_SETS
+
 __all__ = [
     "TEMPLATES",
+    "template_set",
+    "template_label",
     "ADE20K_CLASSES",
     "ORAD3D_CLASSES",
     "NYU40_CLASSES",
@@ -36,6 +40,23 @@ __all__ = [
 
 #: The 80 prompt templates of OpenAI's CLIP ImageNet evaluation, as shipped by open_clip.
 TEMPLATES: tuple[Callable[[str], str], ...] = tuple(open_clip.OPENAI_IMAGENET_TEMPLATES)
+
+
+def template_set(name: str, key: str = "templates") -> tuple[Callable[[str], str], ...]:
+    """The templates of set ``name`` (:data:`resireg.specs.prompts.TEMPLATE_SETS`: open_clip's
+    ``openai_imagenet``, the 80 above, or ``simple_imagenet``, 7 of them); a ValueError naming
+    ``key``, the value and the choices otherwise."""
+    check, expected = TEMPLATE_SET
+    if not check(name):
+        raise ValueError(f"{key}={name!r}: expected {expected}")
+    return tuple(getattr(open_clip, TEMPLATE_SETS[name]))
+
+
+def template_label(name: str) -> str:
+    """How a run's protocol record names set ``name``: open_clip's constant and the count,
+    e.g. ``open_clip OPENAI_IMAGENET_TEMPLATES (80)``."""
+    return f"open_clip {TEMPLATE_SETS[name]} ({len(template_set(name))})"
+
 
 #: ADE20K-150 class names in the form used by the training-free OVSS line of work that
 #: RADSeg evaluates with (one name per class, label order 0..149 after reduce_zero_label).

@@ -42,13 +42,13 @@ import torch
 from PIL import Image
 
 from resireg.models.images import pil_to_tensor, resize_to_patch_grid
-from resireg.ovss import label_problem
+from resireg.ovss import label_problem, template_set
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
 from resireg_train.config.errors import key_errors
 from resireg_train.data.specs import check_dataset_keys
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
-from resireg_train.data.windows import WindowRules, window_rules
+from resireg_train.data.windows import WindowRules, protocol_conf, window_rules
 
 __all__ = [
     "IGNORE_INDEX",
@@ -113,6 +113,9 @@ class SegmentationSet(torch.utils.data.Dataset):
             background); ``None``: ``conf/protocol/paper.yaml``'s.
         names: every name of each class (synonyms, ``conf/classes/``); ``None``: each class
             its own name.
+        templates: the prompt template set of the class prototypes (the entry's
+            ``templates``, a name of :data:`resireg.specs.prompts.TEMPLATE_SETS`); ``None``:
+            ``conf/protocol/paper.yaml``'s.
 
     A sample whose image cannot be decoded, or whose label is not a single-channel map of
     the image's size holding valid class ids, is skipped: ``__getitem__`` returns a
@@ -132,6 +135,7 @@ class SegmentationSet(torch.utils.data.Dataset):
         describe: Callable[[int], str] | None = None,
         windows: WindowRules | None = None,
         names: Sequence[Sequence[str]] | None = None,
+        templates: str | None = None,
     ) -> None:
         self.name = name
         self.classes = tuple(classes)
@@ -139,6 +143,8 @@ class SegmentationSet(torch.utils.data.Dataset):
         if len(self.names) != len(self.classes):
             raise ValueError(f"{len(self.names)} name lists for {len(self.classes)} classes")
         self.windows = windows if windows is not None else window_rules("paper")
+        self.templates = templates if templates is not None else protocol_conf("paper")["templates"]
+        template_set(self.templates)  # a ValueError naming the set, before anything is read
         self._load = load
         self._header_size = header_size
         self.length = length
@@ -285,7 +291,9 @@ def _build(spec: Mapping[str, Any], patch_size: int, key: str, name: str | None)
     if short_side is not None and int(short_side) < patch_size:
         raise ValueError(f"{key}.short_side={short_side!r}: expected null or >= {patch_size}")
     windows = WindowRules.from_spec(spec, key, patch_size)
-    common = {"short_side": short_side, "patch_size": patch_size, "windows": windows}
+    template_set(spec["templates"], f"{key}.templates")
+    common = {"short_side": short_side, "patch_size": patch_size, "windows": windows,
+              "templates": spec["templates"]}  # fmt: skip
     dataset = entry.load()(name, spec, key, common)
     limit = spec["limit"]
     if limit is not None:

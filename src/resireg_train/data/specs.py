@@ -36,6 +36,7 @@ from typing import Any
 
 from resireg.specs.mapping import MAP_RULES
 from resireg.specs.metrics import VOXEL_METRICS
+from resireg.specs.prompts import TEMPLATE_SET
 from resireg.specs.rules import Rule, integer, is_int, is_num, number, one_of
 from resireg.specs.table import SpecTable
 
@@ -166,7 +167,7 @@ WINDOW_RULE_KEYS = (
 )  # fmt: skip
 #: The keys of every 2D segmentation entry (``SegmentationSet``; the ``ovss`` task): a kind
 #: outside the project names them first (``(*SEGMENTATION_KEYS, "its", "own")``).
-SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *WINDOW_RULE_KEYS)
+SEGMENTATION_KEYS = ("name", "kind", "short_side", "limit", *WINDOW_RULE_KEYS, "templates")
 _SEGMENTATION = SEGMENTATION_KEYS
 
 
@@ -187,6 +188,7 @@ SEGMENTATION_RULES: dict[str, Rule] = {
     "background_logit_scale": _optional(number(0, strict=True, finite=True)),
     "protocol": (lambda v: v is None or (isinstance(v, str) and bool(v)),
                  "null or a name for the protocol"),
+    "templates": TEMPLATE_SET,
 }  # fmt: skip
 #: The keys of the benchmarks read from a downloaded folder (VOC, Context, COCO, Cityscapes):
 #: the folder, the split, the class-name file and (VOC, Context) whether label 0 is ignored.

@@ -24,7 +24,7 @@ from resireg_train.data.specs import (
     missing_keys_error,
 )
 
-__all__ = ["WindowRules", "window_rules", "rescaled_size"]
+__all__ = ["WindowRules", "protocol_conf", "window_rules", "rescaled_size"]
 
 
 def rescaled_size(
@@ -154,8 +154,8 @@ class WindowRules:
 
 
 @functools.cache
-def window_rules(name: str) -> WindowRules:
-    """The rules of the protocol ``conf/protocol/<name>.yaml`` (``paper``, ``ovss8``): what a
+def protocol_conf(name: str) -> dict[str, Any]:
+    """The settings of the protocol ``conf/protocol/<name>.yaml`` (``paper``, ``ovss8``): what a
     :class:`~resireg_train.data.segmentation.SegmentationSet` built in Python without an entry
     (a test's, a benchmark's) follows (``paper``), read from conf/ rather than typed again."""
     import yaml
@@ -165,4 +165,9 @@ def window_rules(name: str) -> WindowRules:
     path = CONFIG_DIR / "protocol" / f"{name}.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"protocol {name!r}: no {path}")
-    return WindowRules.from_spec(yaml.safe_load(path.read_text()), f"protocol/{name}.yaml")
+    return yaml.safe_load(path.read_text())
+
+
+def window_rules(name: str) -> WindowRules:
+    """The rules of the protocol ``conf/protocol/<name>.yaml`` (:func:`protocol_conf`)."""
+    return WindowRules.from_spec(protocol_conf(name), f"protocol/{name}.yaml")

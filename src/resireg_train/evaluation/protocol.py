@@ -7,7 +7,7 @@ score depends on beyond the model: the dataset entry's keys its task records (th
 ``conf/dataset/scannet.yaml``; for ``task=ovss`` the shorter side, the resize rule, ...), the
 run parameters it records (:attr:`~resireg_train.evaluation.specs.TaskSpec.protocol_params`: ``ovss``'s
 softmax temperature), what the built dataset fills where the entry has none (its
-``reduce_zero_label``, class list and prompt templates) and (where the encoder config has one)
+``reduce_zero_label``, class list and prompt template set) and (where the encoder config has one)
 the encoder's ``dense_path``. Its name is the dataset entry's ``protocol`` key (or the task and
 dataset kind).
 """
@@ -29,7 +29,7 @@ def protocol_record(params: Mapping[str, Any], dataset: Any = None) -> dict[str,
         params: the run's ``params`` (``task``, ``dataset``, ``encoder``, the task's
             ``protocol_params``).
         dataset: the built segmentation set (the 2D task passes it): its ``reduce_zero_label``
-            and class list fill the settings its entry does not name.
+            class list and prompt template set fill the settings its entry does not name.
     """
     task = str(params.get("task") or "ovss")
     entry = find_task(task)
@@ -39,12 +39,13 @@ def protocol_record(params: Mapping[str, Any], dataset: Any = None) -> dict[str,
     settings = {k: spec[k] for k in keys if k in spec}
     settings.update({k: params.get(k) for k in recorded})
     if dataset is not None:
-        from resireg.ovss import TEMPLATES
+        from resireg.ovss import template_label
 
+        settings.pop("templates", None)  # the built set's, last, by open_clip's constant and count
         settings.setdefault("reduce_zero_label", bool(dataset.reduce_zero_label))
         # the class-name file (conf/classes/) or the kind's built-in list, and the class count
         settings["classes"] = f"{spec.get('classes') or spec.get('kind')} ({len(dataset.classes)})"
-        settings.setdefault("templates", f"open_clip OPENAI_IMAGENET_TEMPLATES ({len(TEMPLATES)})")
+        settings["templates"] = template_label(dataset.templates)
     if "dense_path" in encoder:
         settings["encoder.dense_path"] = encoder["dense_path"]
     name = spec.get("protocol") or f"{task}/{spec.get('kind', '?')}"

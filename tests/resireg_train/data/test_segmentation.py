@@ -170,6 +170,10 @@ def test_orad3d_unknown_polygon_tag_is_an_error_naming_the_mapping(tmp_path):
         (dataset_conf("synthetic", short_side=8), r"dataset\.short_side=8"),
         (dataset_conf("orad3d", path="/nonexistent/orad"), r"dataset\.path='/nonexistent/orad'"),
         (dataset_conf("ade20k", path="/nonexistent/ade"), r"dataset\.path='/nonexistent/ade'"),
+        (
+            dataset_conf("synthetic", templates="imagenet"),
+            r"^dataset\.templates='imagenet': expected one of \['openai_imagenet', 'simple_imagenet'\]$",
+        ),
     ],
 )
 def test_bad_dataset_specs_name_the_key(spec, message):
@@ -210,3 +214,26 @@ def test_sixteen_bit_png_images_are_scaled_not_saturated(tmp_path):
     for channel in pixels:
         assert np.array_equal(channel.numpy(), expected)
     assert (clipped == 255).mean() > 0.99  # what the images came out as before
+
+
+def test_the_templates_key_picks_open_clips_set_and_the_protocol_record_names_it():
+    """``dataset.templates`` names the prompt template set of the class prototypes: the
+    engine's prompts are every class filled into each of open_clip's templates of that set, and
+    the run's protocol record names the set last, as it named the 80 before the key existed."""
+    import open_clip
+
+    from resireg_train.evaluation.ovss.engine import OVSSEngine
+    from resireg_train.evaluation.protocol import protocol_record
+
+    for name, constant, count in (("simple_imagenet", "SIMPLE_IMAGENET_TEMPLATES", 7),
+                                  ("openai_imagenet", "OPENAI_IMAGENET_TEMPLATES", 80)):  # fmt: skip
+        spec = dataset_conf("synthetic", size=2, templates=name)
+        dataset = build_segmentation_set(spec, patch_size=16)
+        templates = getattr(open_clip, constant)
+        want = [t(c) for c in dataset.classes for t in templates]
+        assert OVSSEngine(dataset, batch_size=2, num_workers=0).text.prompts == want
+        assert len(templates) == count
+        settings = protocol_record({"task": "ovss", "dataset": spec}, dataset)["settings"]
+        assert list(settings)[-1] == "templates"
+        assert settings["templates"] == f"open_clip {constant} ({count})"
+    assert dataset_conf("synthetic")["templates"] == "openai_imagenet"  # conf/protocol/paper.yaml

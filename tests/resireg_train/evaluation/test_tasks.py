@@ -231,8 +231,10 @@ def test_the_3d_tasks_class_prototypes_are_the_2d_tasks(tmp_path, tiny_export):
         three_d = MappingEngine(frames, batch_size=3, voxel_size=0.1)
     finally:
         ovss_engine.OVSSEngine.__init__ = original
-    # the 2D task on the 3D set's class names (its text path reads nothing else of a dataset)
-    two_d = ovss_engine.OVSSEngine(SimpleNamespace(classes=tuple(frames.classes)), batch_size=2)
+    # the 2D task on the 3D set's class names and the 80 templates (its text path reads
+    # nothing else of a dataset)
+    names = SimpleNamespace(classes=tuple(frames.classes), templates="openai_imagenet")
+    two_d = ovss_engine.OVSSEngine(names, batch_size=2)
     assert isinstance(three_d.text, ClassPrototypes) and isinstance(two_d.text, ClassPrototypes)
     with torch.no_grad():
         prompts = class_prompts(frames.classes)

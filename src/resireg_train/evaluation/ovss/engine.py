@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from resireg.method.variants import apply_variant
 from resireg.models import DenseEncoder, DenseOutput
-from resireg.ovss import TEMPLATES, SegmentationMetric, class_similarity, predict_grid
+from resireg.ovss import SegmentationMetric, class_similarity, predict_grid, template_set
 from resireg.specs.metrics import METRIC_SPECS
 from resireg.specs.variants import BASELINE, VARIANTS, parse_variant, takes_prior, variant_layer
 from resireg_train.data.segmentation import SegmentationSet, SkippedSample, collate_segmentation
@@ -203,7 +203,7 @@ class OVSSEngine(EvalEngine):
     """OVSS of one dataset: its batches, its class prompts and the scoring.
 
     The class prototypes are the tasks' shared text path
-    (:class:`resireg_train.evaluation.base.ClassPrototypes`: the ``K x 80`` class prompts embedded
+    (:class:`resireg_train.evaluation.base.ClassPrototypes`: the ``K x T`` class prompts embedded
     once by ``text_features``; every :meth:`prototypes` call applies the encoder's *current*
     ``dense_text``), so a training run re-embeds nothing per epoch.
 
@@ -212,7 +212,8 @@ class OVSSEngine(EvalEngine):
         batch_size: images per batch; for ReSiReg Full the batch is one scene (its
             prototypes are shared across the batch), so the score depends on it.
         num_workers: DataLoader workers decoding and resizing images.
-        templates: prompt templates (default: the 80 OpenAI ImageNet templates).
+        templates: prompt templates; ``None``: the dataset's set (its entry's ``templates``:
+            the 80 OpenAI ImageNet templates in the paper's and the OVSS field's protocols).
         temperature: softmax temperature of the prediction.
         prompt_batch_size: prompts per text-tower call.
     """
@@ -225,10 +226,11 @@ class OVSSEngine(EvalEngine):
         dataset: SegmentationSet,
         batch_size: int = 8,
         num_workers: int = 2,
-        templates: Sequence[Callable[[str], str]] = TEMPLATES,
+        templates: Sequence[Callable[[str], str]] | None = None,
         temperature: float = 100.0,
         prompt_batch_size: int = 1024,
     ) -> None:
+        templates = template_set(dataset.templates) if templates is None else templates
         super().__init__(dataset, batch_size, num_workers, templates, prompt_batch_size)
         self.temperature = temperature
         # Every name of every class is prompted (synonyms, conf/classes/): one prototype per

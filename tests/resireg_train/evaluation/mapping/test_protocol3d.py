@@ -748,7 +748,8 @@ def test_protocol_record_of_both_tasks_and_its_line_under_table_1(tmp_path):
     }  # fmt: skip
     assert set(record["settings"]) == mapping_keys and record["settings"]["knn"] == 1
     ade = {"name": "ade20k", "kind": "ade20k", "short_side": 576, "path": "x"}
-    dataset = SimpleNamespace(reduce_zero_label=True, classes=("wall",) * 150)
+    dataset = SimpleNamespace(reduce_zero_label=True, classes=("wall",) * 150,
+                              templates="openai_imagenet")  # fmt: skip
     clip = {"kind": "clip", "dense_path": "maskclip"}
     two_d = protocol_record({"task": "ovss", "dataset": ade, "encoder": clip, "temperature": 100.0},
                             dataset)  # fmt: skip
