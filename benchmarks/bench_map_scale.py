@@ -24,6 +24,10 @@ at its size:
   prototypes (ADE20K's count; near the class directions), the cosine argmax and the 3D task's
   rule with RayFronts' threshold 0.1 and prompt denoising 0.5; p50 and p95 of 15 runs (the
   whole call, not per class);
+- **classify's floor** (``--classify-floor SIZE``): the product of the stored features with
+  16 and 150 prototypes alone, in float32 and bfloat16 (operands already in that precision),
+  and the widening of the stored float16 features to float32: what any pass that scores every
+  class of every voxel pays before it decides anything;
 - **top-100 recall**: ``top_k`` against a float64 numpy brute force over the same stored
   features (:meth:`unit_rows`, chunk by chunk), ties to the lower index;
 - **save / load**: ``save`` to a temporary folder and ``SemanticMap.load`` (digest verified,
@@ -46,6 +50,7 @@ downloaded), mIoU and f-mIoU of each.
     python benchmarks/bench_map_scale.py --transform
     python benchmarks/bench_map_scale.py --sizes 1000000 --storages compact --peak-only
     python benchmarks/bench_map_scale.py --classify-cpu 100000   # CPU time per classify call
+    python benchmarks/bench_map_scale.py --classify-floor 1000000 --threads 2  # the product alone
 
 Figures: docs/benchmarks.md (one run, ratios against ``exact``).
 """
@@ -374,6 +379,45 @@ def classify_cpu(size: int, threads: int, runs: int = 5) -> dict:
     return out
 
 
+def classify_floor(size: int, threads: int, runs: int = 7) -> dict:
+    """What any dense classify pass over ``size`` stored voxels must pay on this machine: the
+    product of ``[size, 128]`` features with 16 and 150 class prototypes alone, in each
+    precision torch multiplies in here, from operands already in that precision (no widening,
+    no norms, no decision), wall-clock p50 of ``runs``; and the float16 -> float32 widening of
+    the stored features (what the exact float32 pass adds). A classify rule that must look at
+    every class of every voxel cannot run faster than the product in its precision."""
+    import torch
+
+    torch.set_num_threads(threads)
+    k = 128
+    g = torch.Generator().manual_seed(0)
+    stored = torch.nn.functional.normalize(torch.randn(size, k, generator=g), dim=1).half()
+
+    def p50(fn) -> float:
+        fn()
+        times = []
+        for _ in range(runs):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return pctl(times, 50)
+
+    out: dict = {"size": size, "channels": k, "threads": threads, "torch": torch.__version__,
+                 "cpu_capability": torch.backends.cpu.get_cpu_capability()}  # fmt: skip
+    wide = torch.empty(size, k)
+    out["widen_float16_to_float32_ms"] = p50(lambda: wide.copy_(stored))
+    for dtype in (torch.float32, torch.bfloat16):
+        x = stored.to(dtype)
+        name = str(dtype).removeprefix("torch.")
+        for n_cls in (16, 150):
+            protos = torch.randn(n_cls, k, generator=g).to(dtype)
+            scores = torch.empty(size, n_cls, dtype=dtype)
+            out[f"product_{n_cls}_{name}_ms"] = p50(
+                lambda x=x, w=protos.T, y=scores: torch.mm(x, w, out=y)
+            )
+    return out
+
+
 def merge(size: int, storage: str, threads: int) -> dict:
     import torch
 
@@ -587,6 +631,9 @@ def main() -> None:
     parser.add_argument("--classify-cpu", type=int, metavar="SIZE",
                         help="classify's CPU time per call on a compact map of SIZE voxels, "
                         "against the previous path, only")  # fmt: skip
+    parser.add_argument("--classify-floor", type=int, metavar="SIZE",
+                        help="the product of SIZE stored features with 16 and 150 classes "
+                        "alone, in float32 and bfloat16, only")  # fmt: skip
     parser.add_argument("--peak-only", action="store_true",
                         help="build the maps and measure the mapping peak only")  # fmt: skip
     args = parser.parse_args()
@@ -597,8 +644,9 @@ def main() -> None:
         else:
             print(json.dumps(merge(int(size), storage, args.threads)))
         return
-    if args.classify_cpu:
-        result = classify_cpu(args.classify_cpu, args.threads)
+    if args.classify_cpu or args.classify_floor:
+        result = (classify_cpu(args.classify_cpu, args.threads) if args.classify_cpu
+                  else classify_floor(args.classify_floor, args.threads))  # fmt: skip
         print(json.dumps(result, indent=2))
         if args.json:
             args.json.write_text(json.dumps(result, indent=2))
