@@ -42,20 +42,20 @@ __all__ = [
 TEMPLATES: tuple[Callable[[str], str], ...] = tuple(open_clip.OPENAI_IMAGENET_TEMPLATES)
 
 
-def template_set(name: str, key: str = "templates") -> tuple[Callable[[str], str], ...]:
-    """The templates of set ``name`` (:data:`resireg.specs.prompts.TEMPLATE_SETS`: open_clip's
-    ``openai_imagenet``, the 80 above, or ``simple_imagenet``, 7 of them); a ValueError naming
-    ``key``, the value and the choices otherwise."""
+def template_set(templates: str) -> tuple[Callable[[str], str], ...]:
+    """The templates of the set named ``templates`` (:data:`resireg.specs.prompts.TEMPLATE_SETS`:
+    open_clip's ``openai_imagenet``, the 80 above, or ``simple_imagenet``, 7 of them); a
+    ValueError naming the value and the choices otherwise."""
     check, expected = TEMPLATE_SET
-    if not check(name):
-        raise ValueError(f"{key}={name!r}: expected {expected}")
-    return tuple(getattr(open_clip, TEMPLATE_SETS[name]))
+    if not check(templates):
+        raise ValueError(f"templates={templates!r}: expected {expected}")
+    return tuple(getattr(open_clip, TEMPLATE_SETS[templates]))
 
 
-def template_label(name: str) -> str:
-    """How a run's protocol record names set ``name``: open_clip's constant and the count,
-    e.g. ``open_clip OPENAI_IMAGENET_TEMPLATES (80)``."""
-    return f"open_clip {TEMPLATE_SETS[name]} ({len(template_set(name))})"
+def template_label(templates: str) -> str:
+    """How a run's protocol record names the set ``templates``: open_clip's constant and the
+    count, e.g. ``open_clip OPENAI_IMAGENET_TEMPLATES (80)``."""
+    return f"open_clip {TEMPLATE_SETS[templates]} ({len(template_set(templates))})"
 
 
 #: ADE20K-150 class names in the form used by the training-free OVSS line of work that

@@ -46,7 +46,7 @@ from resireg.ovss import label_problem, template_set
 from resireg.sources.frames import DECODE_ERRORS
 from resireg.specs.rules import check_batch_size
 from resireg_train.config.errors import key_errors
-from resireg_train.data.specs import check_dataset_keys
+from resireg_train.data.specs import check_dataset_keys, check_dataset_values
 from resireg_train.data.synthetic import SYNTHETIC_CLASSES, SyntheticScenes
 from resireg_train.data.windows import WindowRules, protocol_conf, window_rules
 
@@ -144,7 +144,7 @@ class SegmentationSet(torch.utils.data.Dataset):
             raise ValueError(f"{len(self.names)} name lists for {len(self.classes)} classes")
         self.windows = windows if windows is not None else window_rules("paper")
         self.templates = templates if templates is not None else protocol_conf("paper")["templates"]
-        template_set(self.templates)  # a ValueError naming the set, before anything is read
+        template_set(self.templates)  # a ValueError naming the value, before anything is read
         self._load = load
         self._header_size = header_size
         self.length = length
@@ -291,7 +291,7 @@ def _build(spec: Mapping[str, Any], patch_size: int, key: str, name: str | None)
     if short_side is not None and int(short_side) < patch_size:
         raise ValueError(f"{key}.short_side={short_side!r}: expected null or >= {patch_size}")
     windows = WindowRules.from_spec(spec, key, patch_size)
-    template_set(spec["templates"], f"{key}.templates")
+    check_dataset_values(spec["kind"], {"templates": spec["templates"]}, key)
     common = {"short_side": short_side, "patch_size": patch_size, "windows": windows,
               "templates": spec["templates"]}  # fmt: skip
     dataset = entry.load()(name, spec, key, common)
