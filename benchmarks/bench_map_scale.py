@@ -388,19 +388,15 @@ def classify_floor(size: int, threads: int, runs: int = 7) -> dict:
     every class of every voxel cannot run faster than the product in its precision."""
     import torch
 
+    from _common import median_seconds
+
     torch.set_num_threads(threads)
     k = 128
     g = torch.Generator().manual_seed(0)
     stored = torch.nn.functional.normalize(torch.randn(size, k, generator=g), dim=1).half()
 
     def p50(fn) -> float:
-        fn()
-        times = []
-        for _ in range(runs):
-            t = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t)
-        return pctl(times, 50)
+        return median_seconds(fn, runs) * 1000
 
     out: dict = {"size": size, "channels": k, "threads": threads, "torch": torch.__version__,
                  "cpu_capability": torch.backends.cpu.get_cpu_capability()}  # fmt: skip
