@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
+from types import MappingProxyType
 from typing import Any
 
 from resireg_train.data.specs import (
@@ -154,10 +155,11 @@ class WindowRules:
 
 
 @functools.cache
-def protocol_conf(name: str) -> dict[str, Any]:
+def protocol_conf(name: str) -> Mapping[str, Any]:
     """The settings of the protocol ``conf/protocol/<name>.yaml`` (``paper``, ``ovss8``): what a
     :class:`~resireg_train.data.segmentation.SegmentationSet` built in Python without an entry
-    (a test's, a benchmark's) follows (``paper``), read from conf/ rather than typed again."""
+    (a test's, a benchmark's) follows (``paper``), read from conf/ rather than typed again; read
+    once, and read-only (the one copy every caller shares)."""
     import yaml
 
     from resireg_train.config.paths import CONFIG_DIR
@@ -165,9 +167,10 @@ def protocol_conf(name: str) -> dict[str, Any]:
     path = CONFIG_DIR / "protocol" / f"{name}.yaml"
     if not path.is_file():
         raise FileNotFoundError(f"protocol {name!r}: no {path}")
-    return yaml.safe_load(path.read_text())
+    return MappingProxyType(yaml.safe_load(path.read_text()))
 
 
+@functools.cache
 def window_rules(name: str) -> WindowRules:
     """The rules of the protocol ``conf/protocol/<name>.yaml`` (:func:`protocol_conf`)."""
     return WindowRules.from_spec(protocol_conf(name), f"protocol/{name}.yaml")

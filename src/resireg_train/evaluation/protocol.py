@@ -28,7 +28,7 @@ def protocol_record(params: Mapping[str, Any], dataset: Any = None) -> dict[str,
     Args:
         params: the run's ``params`` (``task``, ``dataset``, ``encoder``, the task's
             ``protocol_params``).
-        dataset: the built segmentation set (the 2D task passes it): its ``reduce_zero_label``
+        dataset: the built segmentation set (the 2D task passes it): its ``reduce_zero_label``,
             class list and prompt template set fill the settings its entry does not name.
     """
     task = str(params.get("task") or "ovss")
