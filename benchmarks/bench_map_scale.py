@@ -613,6 +613,8 @@ def transform_error(threads: int) -> dict:
 
 
 def main() -> None:
+    from _common import positive_int
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
     parser.add_argument("--storages", nargs="+", default=["exact", "compact"])
@@ -624,10 +626,10 @@ def main() -> None:
         "--child", nargs=3, metavar=("KIND", "SIZE", "STORAGE"), help=argparse.SUPPRESS
     )
     parser.add_argument("--json", type=Path, help="also write the results here")
-    parser.add_argument("--classify-cpu", type=int, metavar="SIZE",
+    parser.add_argument("--classify-cpu", type=positive_int, metavar="SIZE",
                         help="classify's CPU time per call on a compact map of SIZE voxels, "
                         "against the previous path, only")  # fmt: skip
-    parser.add_argument("--classify-floor", type=int, metavar="SIZE",
+    parser.add_argument("--classify-floor", type=positive_int, metavar="SIZE",
                         help="the product of SIZE stored features with 16 and 150 classes "
                         "alone, in float32 and bfloat16, only")  # fmt: skip
     parser.add_argument("--peak-only", action="store_true",
@@ -640,7 +642,7 @@ def main() -> None:
         else:
             print(json.dumps(merge(int(size), storage, args.threads)))
         return
-    if args.classify_cpu or args.classify_floor:
+    if args.classify_cpu or args.classify_floor:  # (each >= 1 when given)
         result = (classify_cpu(args.classify_cpu, args.threads) if args.classify_cpu
                   else classify_floor(args.classify_floor, args.threads))  # fmt: skip
         print(json.dumps(result, indent=2))
