@@ -64,7 +64,12 @@ def _hookwrapper():
         if _out is None:
             worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
             prefix = os.environ.get("SUITE_CPU", "suite_cpu")
-            _out = open(f"{prefix}.{worker}.tsv", "a", buffering=1)  # noqa: SIM115 (kept open)
+            path = f"{prefix}.{worker}.tsv"
+            try:
+                _out = open(path, "a", buffering=1)  # noqa: SIM115 (kept open)
+            except OSError as err:
+                raise pytest.UsageError(f"SUITE_CPU={prefix!r}: cannot write {path}: "
+                                        f"{err.strerror}") from None  # fmt: skip
         cpu, wall = tree_cpu(os.getpid()), time.perf_counter()
         yield
         cpu, wall = tree_cpu(os.getpid()) - cpu, time.perf_counter() - wall
@@ -82,9 +87,13 @@ def summary(prefix: str, top: int = 25) -> str:
     rows = []
     for path in sorted(glob.glob(f"{prefix}.*.tsv")):
         with open(path) as f:
-            for line in f:
-                test, cpu, wall = line.rstrip("\n").split("\t")
-                rows.append((test, float(cpu), float(wall)))
+            for number, line in enumerate(f, 1):
+                try:
+                    test, cpu, wall = line.rstrip("\n").split("\t")
+                    rows.append((test, float(cpu), float(wall)))
+                except ValueError:
+                    raise SystemExit(f"{path}:{number}: expected '<test> TAB <cpu s> TAB "
+                                     f"<wall s>', not {line.rstrip()!r}") from None  # fmt: skip
     if not rows:
         raise SystemExit(f"no {prefix}.*.tsv: run the suite with the plugin (module docstring)")
     files: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])

@@ -56,3 +56,23 @@ def test_the_summary_ranks_files_and_tests_by_cpu(tmp_path):
                           "    1.5     2.0  a.py::x"]  # fmt: skip
     with pytest.raises(SystemExit, match="no .*nothing\\.\\*\\.tsv"):
         suite_cpu.summary(str(tmp_path / "nothing"))
+
+
+def test_a_damaged_line_or_an_unwritable_prefix_is_named_in_one_line(tmp_path):
+    """A line cut short in a worker's file: the summary names the file and the line. A
+    SUITE_CPU prefix in a folder that does not exist: pytest refuses it as a usage error naming
+    the variable, before any test runs."""
+    (tmp_path / "run.gw0.tsv").write_text("a.py::x\t1.50\t2.00\nb.py::y\t4.0")
+    with pytest.raises(SystemExit, match=r"run\.gw0\.tsv:2: expected '<test> TAB <cpu s> TAB "
+                       r"<wall s>', not 'b\.py::y\\t4\.0'$"):  # fmt: skip
+        suite_cpu.summary(str(tmp_path / "run"))
+    test = tmp_path / "test_one.py"
+    test.write_text("def test_one():\n    pass\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "benchmarks"),
+           "SUITE_CPU": str(tmp_path / "missing" / "run")}  # fmt: skip
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-p", "suite_cpu", "-p", "no:xdist",
+                           "-p", "no:cacheprovider", "-c", os.devnull, str(test)],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)  # fmt: skip
+    assert proc.returncode != 0 and "Traceback" not in proc.stdout + proc.stderr
+    assert f"SUITE_CPU='{tmp_path / 'missing' / 'run'}': cannot write " in proc.stdout + proc.stderr
+    assert not (tmp_path / "missing").exists()
