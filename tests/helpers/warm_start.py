@@ -6,11 +6,11 @@ machines, most of what a short command costs).
 The forked process is a real process as :func:`helpers.run.started` makes one: its own PID and
 session (process group), SIGINT and SIGTERM at a fresh interpreter's defaults, stdin from
 /dev/null, stdout and stderr pipes, the command's argv, environment, working folder, the tests'
-process's umask and resource limits, and ``sys.path`` (its script's folder, then ``PYTHONPATH``), its exit code as Python gives it (an
-uncaught exception: 1; ``sys.exit(x)``: as the interpreter reads ``x``; Ctrl-C: killed by
-SIGINT), its non-daemon threads joined and its ``atexit`` functions run before it exits. What the
-imports printed on stderr (warnings) is printed again at its start, as a fresh interpreter
-would print it.
+process's umask and resource limits, and ``sys.path`` (its script's folder, then
+``PYTHONPATH``), its exit code as Python gives it (an uncaught exception: 1; ``sys.exit(x)``: as
+the interpreter reads ``x``; Ctrl-C: killed by SIGINT), its non-daemon threads joined and its
+``atexit`` functions run before it exits. What the imports printed on stderr (warnings) is
+printed again at its start, as a fresh interpreter would print it.
 
 What a warm start cannot give, and then a command starts fresh (:func:`helpers.run.started`
 decides; ``RESIREG_TEST_COLD_START=1`` starts every command fresh): an environment that differs
@@ -78,6 +78,8 @@ BASE_ENV = {**os.environ, "HF_HUB_OFFLINE": "1"}
 
 # ------------------------------------------------------------------------------------ the server
 _THIS_FILE = __file__  # a command's traceback leaves out this file's frames
+
+
 def _exit_code(exit: SystemExit) -> int:
     """The exit status Python gives ``sys.exit(code)`` (Python/pythonrun.c's handling)."""
     code = exit.code
