@@ -237,3 +237,14 @@ def test_the_templates_key_picks_open_clips_set_and_the_protocol_record_names_it
         assert list(settings)[-1] == "templates"
         assert settings["templates"] == f"open_clip {constant} ({count})"
     assert dataset_conf("synthetic")["templates"] == "openai_imagenet"  # conf/protocol/paper.yaml
+
+
+def test_the_config_check_refuses_a_template_set_it_does_not_know_naming_the_key():
+    """What resireg-eval checks before anything loads: the key, the value and the choices."""
+    from resireg.errors import ConfigError
+    from resireg_train.checks.eval import validate_eval
+
+    for bad in ("imagenet", None, 7):
+        with pytest.raises(ConfigError, match=rf"dataset\.templates={bad!r}: expected one of "
+                           r"\['openai_imagenet', 'simple_imagenet'\]"):  # fmt: skip
+            validate_eval({"dataset": dataset_conf("synthetic", templates=bad)})
